@@ -1,0 +1,239 @@
+"""Linear analysis of the servo loops with python-control (host-side, float64).
+
+The transfer functions are written here from the paper's equations, independently of
+the JAX code in :mod:`pusupu_jax.loops`, so that they can serve as its test oracle.
+For one axis:
+
+* :func:`blocks`: every continuous block (eq. 1-9, motor, screw and load);
+* :func:`closed_loops`: the closed current, velocity and position loops (inputs
+  ``i_ref`` [A], ``w_ref`` [rad/s], ``th_ref`` [rad]; outputs ``i``, ``w``, ``theta``),
+  continuous, or discrete at the loop rates when ``rates`` is given (controllers sampled
+  with ``rates.method``, the physical parts with a zero-order hold, each inner loop
+  resampled to its outer loop's rate by :func:`hold_resample`);
+* :func:`open_loops`: the loop gains broken at each controller output, for margins;
+* :func:`loop_metrics`: crossover, phase and gain margins, closed-loop bandwidth;
+* :func:`identify_T0` / :func:`kt_for_T0`: the velocity loop's first-order time
+  constant identified from a step test (the ``T0`` that C2 models) and the torque
+  constant that yields it.
+
+The physical model includes the back-EMF, so the "current" open loop here is the one
+the drive really has; :func:`current_open_loop_locked` is the paper's R-L form.
+"""
+
+from __future__ import annotations
+
+import math
+
+import control as ct
+import numpy as np
+from scipy.optimize import brentq, minimize_scalar
+
+from .params import N_AXES, AxisLoad, LoopRates, ServoParams
+
+LOOPS = ("current", "velocity", "position")
+
+
+def axis_values(p, axis: int) -> dict:
+    """Plain floats of one axis of a parameter set."""
+    return {k: float(np.asarray(v)[..., axis]) for k, v in vars(p).items()}
+
+
+def _sys(tf, inputs, outputs):
+    return ct.ss(tf, inputs=inputs, outputs=outputs)
+
+
+def blocks(servo: ServoParams, load: AxisLoad, axis: int = 0) -> dict:
+    """Continuous blocks of one axis as named python-control state-space systems."""
+    p, q = axis_values(servo, axis), axis_values(load, axis)
+    r = p["lead"] / (2 * math.pi)
+    j_eff = p["J"] + q["mass"] * r**2 / p["eta"]
+    b_eff = q["viscous"] * r**2 / p["eta"]
+    l1, l2, T0 = p["lambda1"], p["lambda2"], p["T0"]
+    elec = ct.ss([[-1 / p["Tn"], 0], [1 / p["L"], -p["R"] / p["L"]]],
+                 [[p["Kn"] / p["Tn"], 0], [0, -p["Ke"] / p["L"]]], [[0, 1]], [[0, 0]],
+                 inputs=["u", "w"], outputs=["i"], name="electrical")
+    mech = ct.ss([[0, 1], [0, -b_eff / j_eff]], [[0], [1 / j_eff]], np.eye(2), np.zeros((2, 1)),
+                 inputs=["tau"], outputs=["theta", "w"], name="mechanics")
+    return {
+        "Gxi": _sys(ct.tf([1], [p["Tcf"], 1]), "i_ref", "i_r"),
+        "Gcf": _sys(ct.tf([p["Kcf"]], [p["Tcf"], 1]), "i", "i_f"),
+        "Gi": _sys(ct.tf([p["Ki"] * p["Ti"], p["Ki"]], [p["Ti"], 0]), "e_i", "u_pi"),
+        "EMF": ct.ss([], [], [], [[p["emf_ff"] * p["Ke"] / p["Kn"]]], inputs="w", outputs="u_ff"),
+        "u": ct.summing_junction(inputs=["u_pi", "u_ff"], output="u"),
+        "Kt": ct.ss([], [], [], [[p["Kt"]]], inputs="i", outputs="tau"),
+        "electrical": elec,
+        "mechanics": mech,
+        "Gxv": _sys(ct.tf([1], [p["Tw"], 1]), "w_ref", "w_r"),
+        "Gw": _sys(ct.tf([p["Kw"]], [p["Tw"], 1]), "w", "w_f"),
+        "Gv": _sys(ct.tf([p["Kv"] * p["Tv"], p["Kv"]], [p["Tv"], 0]), "e_w", "i_ref"),
+        "C1": _sys(ct.tf([3 * l1, 1], [3 * l2, 1]), "th_ref", "r1"),
+        "C2": _sys(ct.tf(np.polymul([3 * l2, 1], [T0, 1]), np.polymul([3 * l2**2, 0], [l2 / 3, 1])), "e_p", "w_ref"),
+        "PID": _sys(ct.tf([p["Kp_pid"]], [1]) + ct.tf([p["Ki_pid"]], [1, 0])
+                    + ct.tf([p["Kd_pid"], 0], [p["Tf_pid"], 1]), "e_p", "w_ref"),
+    }
+
+
+_PHYSICAL = ("electrical", "mechanics")
+_CONTROLLERS = ("Gxi", "Gcf", "Gi", "Gxv", "Gw", "Gv", "C1", "C2", "PID")
+
+
+def sampled_blocks(b: dict, dt: float, method: str) -> dict:
+    """Blocks sampled at ``dt``: controllers with ``method``, physical parts with ZOH, static gains as they are."""
+    out = {}
+    for name, sys in b.items():
+        if name in _CONTROLLERS:
+            out[name] = ct.sample_system(sys, dt, method, name=sys.name, copy_names=True)
+        elif name in _PHYSICAL:
+            out[name] = ct.sample_system(sys, dt, "zoh", name=sys.name, copy_names=True)
+        else:
+            out[name] = sys
+    return out
+
+
+def hold_resample(sysd: ct.StateSpace, n: int) -> ct.StateSpace:
+    """A discrete system whose input is held for ``n`` samples and whose output is read every ``n``.
+
+    ``x[k+n] = A^n x[k] + sum_j A^j B u``; ``C`` and ``D`` are unchanged.  This is how
+    an inner loop at a fast rate looks to the outer loop at ``n`` times the period.
+    """
+    A, B, C, D = (np.asarray(m) for m in ct.ssdata(sysd))
+    An, acc, Aj = np.eye(A.shape[0]), np.zeros_like(B), np.eye(A.shape[0])
+    for _ in range(n):
+        acc = acc + Aj @ B
+        Aj = Aj @ A
+    An = Aj
+    return ct.ss(An, acc, C, D, sysd.dt * n, inputs=sysd.input_labels, outputs=sysd.output_labels)
+
+
+def _sum(a, b, out):
+    return ct.summing_junction(inputs=[a, "-" + b], output=out)
+
+
+def closed_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, rates: LoopRates | None = None,
+                 mode: str = "imc") -> dict:
+    """Closed current, velocity and position loops of one axis (continuous, or discrete at ``rates``).
+
+    Each maps its reference to the outputs ``(i, w, theta)``: ``current`` from ``i_ref``
+    [A], ``velocity`` from ``w_ref`` [rad/s], ``position`` from ``th_ref`` [rad].
+    """
+    b = blocks(servo, load, axis)
+    levels = [None, None, None] if rates is None else [rates.dt_current, rates.dt_velocity, rates.dt_position]
+    out = ["i", "w", "theta"]
+
+    def at(level):
+        dt = levels[level]
+        return b if dt is None else sampled_blocks(b, dt, rates.method)
+
+    bi = at(0)
+    cl_i = ct.interconnect([bi["Gxi"], bi["Gcf"], bi["Gi"], bi["EMF"], bi["u"], bi["Kt"], bi["electrical"],
+                            bi["mechanics"], _sum("i_r", "i_f", "e_i")], inputs="i_ref", outputs=out, name="current_loop")
+    inner = cl_i if rates is None else hold_resample(cl_i, rates.n_velocity)
+    bv = at(1)
+    cl_v = ct.interconnect([bv["Gxv"], bv["Gw"], bv["Gv"], inner, _sum("w_r", "w_f", "e_w")],
+                           inputs="w_ref", outputs=out, name="velocity_loop")
+    inner = cl_v if rates is None else hold_resample(cl_v, rates.n_position)
+    bp = at(2)
+    if mode == "imc":
+        parts = [bp["C1"], bp["C2"], _sum("r1", "theta", "e_p")]
+    elif mode == "pid":
+        parts = [bp["PID"], _sum("th_ref", "theta", "e_p")]
+    else:
+        raise ValueError(f"closed_loops: expected mode 'imc' or 'pid', got {mode!r}")
+    cl_p = ct.interconnect(parts + [inner], inputs="th_ref", outputs=out, name="position_loop")
+    return {"current": cl_i, "velocity": cl_v, "position": cl_p}
+
+
+def open_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, mode: str = "imc") -> dict:
+    """Continuous loop gains ``L`` (closed loop = ``L/(1+L)`` at that point) of each loop, broken at the controller."""
+    b = blocks(servo, load, axis)
+    cl = closed_loops(servo, load, axis, mode=mode)
+    p_i = ct.interconnect([b["EMF"], b["u"], b["Kt"], b["electrical"], b["mechanics"], b["Gcf"]],
+                          inputs="u_pi", outputs="i_f")
+    p_v = ct.interconnect([cl["current"], b["Gw"]], inputs="i_ref", outputs="w_f")
+    p_p = cl["velocity"][2, 0]
+    c_p = b["C2"] if mode == "imc" else b["PID"]
+    return {"current": _siso(b["Gi"]) * p_i, "velocity": _siso(b["Gv"]) * p_v, "position": _siso(c_p) * p_p}
+
+
+def _siso(sys):
+    return ct.ss(*ct.ssdata(sys))
+
+
+def current_open_loop_locked(servo: ServoParams, axis: int = 0):
+    """The paper's current loop gain (locked rotor): ``Gi Ginv Grl Gcf`` (eq. 1-4)."""
+    p = axis_values(servo, axis)
+    return (ct.tf([p["Ki"] * p["Ti"], p["Ki"]], [p["Ti"], 0]) * ct.tf([p["Kn"]], [p["Tn"], 1])
+            * ct.tf([1], [p["L"], p["R"]]) * ct.tf([p["Kcf"]], [p["Tcf"], 1]))
+
+
+def nominal_position_open_loop(servo: ServoParams, axis: int = 0):
+    """C2 times the position model it was designed for, ``1/(s (T0 s + 1))``."""
+    p = axis_values(servo, axis)
+    l2, T0 = p["lambda2"], p["T0"]
+    c2 = ct.tf(np.polymul([3 * l2, 1], [T0, 1]), np.polymul([3 * l2**2, 0], [l2 / 3, 1]))
+    return c2 * ct.tf([1], [T0, 1, 0])
+
+
+def margins(L) -> dict:
+    """Gain crossover [Hz], phase margin [deg], gain margin [dB] (None when infinite) of a loop gain."""
+    gm, pm, _, _, wgc, _ = ct.stability_margins(L)
+    return {"crossover_hz": float(wgc) / (2 * math.pi) if np.isfinite(wgc) else None,
+            "phase_margin_deg": float(pm) if np.isfinite(pm) else None,
+            "gain_margin_db": 20 * math.log10(gm) if np.isfinite(gm) and gm > 0 else None}
+
+
+def bandwidth_hz(sys, w_low: float = 1e-3, w_high: float = 1e6) -> float | None:
+    """First frequency [Hz] where the gain falls 3 dB below its low-frequency value (at ``w_low`` rad/s).
+
+    Computed from the frequency response, so that states the output does not see (the
+    motor angle in the current and velocity loops) do not spoil a DC-gain computation.
+    """
+    def excess(log_w):
+        return abs(sys(1j * 10**log_w)) - ref / math.sqrt(2)
+
+    ref = abs(sys(1j * w_low))
+    grid = np.linspace(math.log10(w_low), math.log10(w_high), 2000)
+    below = np.nonzero([excess(x) < 0 for x in grid])[0]
+    if not below.size:
+        return None
+    k = below[0]
+    return 10 ** brentq(excess, grid[k - 1], grid[k], xtol=1e-12) / (2 * math.pi)
+
+
+def loop_metrics(servo: ServoParams, load: AxisLoad, mode: str = "imc") -> dict:
+    """Per axis and loop: crossover_hz, phase_margin_deg, gain_margin_db, bandwidth_hz."""
+    axes = []
+    for k in range(N_AXES):
+        ol = open_loops(servo, load, k, mode)
+        cl = closed_loops(servo, load, k, mode=mode)
+        row = {}
+        for name, out in zip(LOOPS, (0, 1, 2)):
+            row[name] = margins(ol[name]) | {"bandwidth_hz": bandwidth_hz(cl[name][out, 0])}
+        axes.append(row)
+    return {"mode": mode, "axes": axes}
+
+
+def identify_T0(servo: ServoParams, load: AxisLoad, axis: int = 0, window: float = 0.2) -> float:
+    """First-order time constant identified from the closed velocity loop's step response [s].
+
+    ``T0`` minimises the squared difference between the step response of ``w_ref -> w``
+    and ``1 - exp(-t/T0)`` over ``0 <= t <= window`` (4001 samples): the step test a
+    technician runs on a drive.  (The impulse-response mean time is not used: the slow
+    pole-zero dipole of the velocity PI, ``Tv = 5 s``, inflates it without changing the
+    dominant dynamics.)  This is the plant ``1/(s (T0 s + 1))`` that ``C2`` is designed on.
+    """
+    t = np.linspace(0.0, window, 4001)
+    y = ct.step_response(closed_loops(servo, load, axis)["velocity"][1, 0], t).outputs
+    fit = minimize_scalar(lambda tau: float(np.sum((y - 1.0 + np.exp(-t / tau)) ** 2)),
+                          bounds=(1e-5, window), method="bounded", options={"xatol": 1e-12})
+    return float(fit.x)
+
+
+def kt_for_T0(servo: ServoParams, load: AxisLoad, T0: float | None = None, axis: int = 0) -> float:
+    """The torque constant [N m/A] (with ``Ke = Kt``) for which :func:`identify_T0` gives ``T0``."""
+    target = axis_values(servo, axis)["T0"] if T0 is None else T0
+
+    def gap(kt):
+        return identify_T0(servo.replace(Kt=np.full(N_AXES, kt), Ke=np.full(N_AXES, kt)), load, axis) - target
+
+    return brentq(gap, 0.3, 5.0, xtol=1e-9)

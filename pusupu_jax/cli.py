@@ -1,0 +1,148 @@
+"""The ``pusupu`` command (host-side).
+
+    pusupu analyze [--params FILE] [--mode imc|pid] [--json] [--plot PNG]
+    pusupu sim --plant axis --trajectory step|ramp|sine [--mode imc|pid] [--params FILE]
+               [--duration S] [--json] [--plot PNG]
+
+Errors in the input print one line ``pusupu: error: ...`` and exit with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import warnings
+
+from .params import ParameterError
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        _fail(message)
+
+
+def _fail(message: str):
+    print(f"pusupu: error: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="pusupu", description="Servo cascade simulator and analysis for the 6PUS-UPU manipulator.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    a = sub.add_parser("analyze", help="crossover, margins and bandwidth of every loop of every axis")
+    a.add_argument("--params", metavar="FILE", help="parameter YAML (default: Table 1 and documented choices)")
+    a.add_argument("--mode", choices=("imc", "pid"), default="imc", help="position controller (default imc)")
+    a.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    a.add_argument("--plot", metavar="PNG", help="write Bode and step plots of axis 0")
+    s = sub.add_parser("sim", help="simulate the cascade against a plant and print tracking metrics")
+    s.add_argument("--plant", choices=("axis",), default="axis", help="plant model (default axis)")
+    s.add_argument("--trajectory", choices=("step", "ramp", "sine"), default="step", help="reference (default step)")
+    s.add_argument("--mode", choices=("imc", "pid"), default="imc", help="position controller (default imc)")
+    s.add_argument("--params", metavar="FILE", help="parameter YAML")
+    s.add_argument("--duration", type=float, metavar="S", help="seconds (default per trajectory)")
+    s.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    s.add_argument("--plot", metavar="PNG", help="write reference, error and current plots of axis 0")
+    return p
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        return {"analyze": _analyze, "sim": _sim}[args.command](args)
+    except ParameterError as e:
+        _fail(str(e))
+
+
+def _load(args):
+    from .params import AxisLoad, LoopRates, ServoParams
+
+    if args.params:
+        from .config import load_params_file
+
+        return load_params_file(args.params)
+    return ServoParams.table1(), AxisLoad.default(), LoopRates()
+
+
+def _check_plot_path(path):
+    import os
+
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise ParameterError(f"--plot: expected a PNG path in an existing folder, got {path!r}")
+
+
+def _analyze(args) -> int:
+    from . import analysis
+
+    servo, load, _ = _load(args)
+    if args.plot:
+        _check_plot_path(args.plot)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = analysis.loop_metrics(servo, load, args.mode)
+        if args.plot:
+            from .plots import plot_loops
+
+            plot_loops(servo, load, args.plot, mode=args.mode)
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    print(f"position mode: {args.mode}")
+    print(f"{'axis':>4} {'loop':<9} {'crossover Hz':>13} {'PM deg':>8} {'GM dB':>8} {'bandwidth Hz':>13}")
+    for k, row in enumerate(result["axes"]):
+        for name, m in row.items():
+            cells = [m["crossover_hz"], m["phase_margin_deg"], m["gain_margin_db"], m["bandwidth_hz"]]
+            print(f"{k:>4} {name:<9} " + " ".join(f"{_num(c):>{w}}" for c, w in zip(cells, (13, 8, 8, 13))))
+    if args.plot:
+        print(f"plot: {args.plot}")
+    return 0
+
+
+def _num(x):
+    return "inf" if x is None else f"{x:.4g}"
+
+
+def _sim(args) -> int:
+    from .config import setup_jax
+
+    servo, load, rates = _load(args)
+    if args.plot:
+        _check_plot_path(args.plot)
+    setup_jax()
+    import jax
+
+    from . import metrics
+    from .sim import simulate
+    from .trajectories import axis_reference
+
+    ref = axis_reference(args.trajectory, rates, args.duration)
+    t0 = time.perf_counter()
+    trace = jax.block_until_ready(simulate(servo, ref, load=load, rates=rates, mode=args.mode))
+    wall = time.perf_counter() - t0
+    result = {"plant": args.plant, "trajectory": args.trajectory, "mode": args.mode,
+              "duration_s": float(trace.t[-1] + rates.dt_position), "wall_s": wall,
+              **metrics.summary(trace, servo)}
+    if args.trajectory == "step":
+        result |= metrics.step_summary(trace, servo)
+    if args.plot:
+        from .plots import plot_trace
+
+        plot_trace(trace, servo, args.plot, title=f"{args.trajectory}, {args.mode} mode, axis 0")
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    print(f"{args.trajectory} on the {args.plant} plant, {args.mode} mode, {result['duration_s']:.3g} s "
+          f"simulated in {wall:.2f} s (compile included)")
+    keys = [k for k in result if isinstance(result[k], list)]
+    print(f"{'axis':>4} " + " ".join(f"{k:>16}" for k in keys))
+    for a in range(len(result[keys[0]])):
+        print(f"{a:>4} " + " ".join(f"{_num(result[k][a]):>16}" for k in keys))
+    if args.plot:
+        print(f"plot: {args.plot}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

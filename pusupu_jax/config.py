@@ -1,0 +1,74 @@
+"""Parameter files (YAML) and the JAX runtime set-up shared by the CLI, tests and benchmarks (host-side).
+
+A parameter file has up to three sections, each optional; a scalar applies to every
+axis, a list gives one value per axis; SI units as documented in ``docs/parameters.md``::
+
+    servo:   {lambda1: 0.018, Kv: [0.015, 0.015, 0.015, 0.015, 0.015, 0.02]}
+    load:    {mass: 25.0, inclination: 1.5708}
+    rates:   {f_current: 20000, n_velocity: 5, n_position: 4, method: tustin}
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import yaml
+
+from .params import AxisLoad, LoopRates, ParameterError, ServoParams
+
+SECTIONS = ("servo", "load", "rates")
+
+
+def load_params_file(path) -> tuple[ServoParams, AxisLoad, LoopRates]:
+    """Read and validate a parameter file; raises :class:`ParameterError` naming the problem."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as e:
+        raise ParameterError(f"{path}: cannot read parameter file ({e.strerror})") from None
+    except yaml.YAMLError as e:
+        raise ParameterError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    data = {} if data is None else data
+    if not isinstance(data, dict):
+        raise ParameterError(f"{path}: expected a mapping with sections {SECTIONS}, got {type(data).__name__}")
+    unknown = sorted(set(data) - set(SECTIONS))
+    if unknown:
+        raise ParameterError(f"{path}: unknown section {unknown[0]!r}; expected some of {SECTIONS}")
+    try:
+        servo = ServoParams.from_mapping(data.get("servo") or {})
+        load = AxisLoad.from_mapping(data.get("load") or {})
+        rates = _rates(data.get("rates") or {})
+    except ParameterError as e:
+        raise ParameterError(f"{path}: {e}") from None
+    return servo, load, rates
+
+
+def _rates(values) -> LoopRates:
+    names = {f.name for f in dataclasses.fields(LoopRates)}
+    if not isinstance(values, dict):
+        raise ParameterError(f"rates: expected a mapping, got {type(values).__name__}")
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise ParameterError(f"rates: unknown key {unknown[0]!r}; expected one of {sorted(names)}")
+    if isinstance(values.get("f_current"), int):
+        values = dict(values, f_current=float(values["f_current"]))
+    return LoopRates(**values)
+
+
+def setup_jax(cache_dir: str | os.PathLike | None = None, x64: bool = True) -> Path:
+    """Enable float64 and JAX's persistent compilation cache (every compiled function is kept).
+
+    The cache lives in ``cache_dir``, else ``$PUSUPU_JAX_CACHE``, else
+    ``~/.cache/pusupu_jax/jax``.  Returns the cache directory.
+    """
+    import jax
+
+    path = Path(cache_dir or os.environ.get("PUSUPU_JAX_CACHE") or Path.home() / ".cache" / "pusupu_jax" / "jax")
+    path.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_enable_x64", x64)
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    return path

@@ -1,0 +1,41 @@
+"""Tracking metrics of a :class:`~pusupu_jax.sim.Trace` of a position mode (differentiable JAX)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from .plant.axis import screw_ratio
+
+
+def tracking_error(trace, params):
+    """Slider position error ``x - x_ref`` [m], shape ``(..., N, n_axes)``."""
+    return (trace.theta - trace.reference) * screw_ratio(params)[..., None, :]
+
+
+def summary(trace, params) -> dict:
+    """Per-axis tracking metrics (host-side floats): RMS and max error [mm], peak current [A] and torque [N m]."""
+    e = tracking_error(trace, params)
+    per_axis = {
+        "rms_error_mm": jnp.sqrt(jnp.mean(e**2, axis=-2)) * 1e3,
+        "max_error_mm": jnp.max(jnp.abs(e), axis=-2) * 1e3,
+        "peak_current_a": jnp.max(jnp.abs(trace.current), axis=-2),
+        "peak_torque_nm": jnp.max(jnp.abs(trace.torque), axis=-2),
+    }
+    return {k: [float(x) for x in jnp.ravel(v)] for k, v in per_axis.items()}
+
+
+def step_summary(trace, params, tolerance: float = 0.02) -> dict:
+    """Per-axis step metrics against the final reference: overshoot [%] and settling time [s].
+
+    The settling time is when the error last leaves ``tolerance`` times the step; None if
+    the error is still outside at the end of the trace.
+    """
+    e = tracking_error(trace, params)
+    final = trace.reference[..., -1, :] * screw_ratio(params)
+    x = final + e
+    overshoot = jnp.maximum(jnp.max(x, axis=-2) / final - 1.0, 0.0) * 100
+    outside = jnp.abs(e) > tolerance * jnp.abs(final)
+    last = jnp.max(jnp.where(outside, jnp.arange(e.shape[-2])[:, None], -1), axis=-2)
+    n, dt = e.shape[-2], float(trace.t[1] - trace.t[0])
+    return {"overshoot_pct": [float(v) for v in jnp.ravel(overshoot)],
+            "settling_time_s": [None if int(k) == n - 1 else (int(k) + 1) * dt for k in jnp.ravel(last)]}

@@ -1,0 +1,271 @@
+"""Parameters of the servo drives, the single-axis load and the loop rates.
+
+Every physical or controller parameter is a field of a frozen dataclass registered
+as a JAX pytree, one value per axis (shape ``(6,)``; leading batch dimensions are
+allowed, e.g. ``(1024, 6)`` for a vmapped parameter sweep).  Changing a value never
+recompiles a jitted function; changing a shape or a :class:`LoopRates` field does.
+
+Defaults are the paper's Table 1.  What the paper leaves out is chosen here and
+documented field by field (see also ``docs/parameters.md``).
+
+Validation is host-side and explicit: :func:`validate` (called by
+:meth:`ServoParams.from_mapping`, :func:`load_params_file` and
+:func:`pusupu_jax.sim.simulate`) raises :class:`ParameterError` naming the field,
+the expected value and what was found.  Constructors do not validate, because JAX
+rebuilds these objects with tracers and zeros (``tree_map(zeros_like, p)``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any, Mapping
+
+import jax
+import numpy as np
+
+N_AXES = 6
+
+
+class ParameterError(ValueError):
+    """A parameter, parameter file or loop-rate setting is invalid."""
+
+
+def _f(default: float, unit: str, doc: str, kind: str = "positive"):
+    """A per-axis field: ``kind`` is 'positive', 'nonnegative' or 'any' (finite)."""
+    return field(default=default, metadata={"unit": unit, "doc": doc, "kind": kind})
+
+
+def _pytree(cls):
+    names = [f.name for f in fields(cls)]
+    return jax.tree_util.register_dataclass(cls, data_fields=names, meta_fields=[])
+
+
+@_pytree
+@dataclass(frozen=True)
+class ServoParams:
+    """Servo drive of each axis: the three loops of the paper (Fig. 2) and the motor.
+
+    Every field has shape ``(..., 6)``.  Table 1 values unless marked *chosen*.
+    """
+
+    # --- position loop, 2-DOF IMC (eq. 9) ---
+    lambda1: Any = _f(0.018, "s", "IMC reference (tracking) filter time parameter, C1")
+    lambda2: Any = _f(0.15, "s", "IMC feedback (robustness) filter time parameter, C1 and C2")
+    T0: Any = _f(0.01475, "s", "time constant of the closed velocity loop as modelled by C2")
+    # --- velocity loop (eq. 6-8) ---
+    Kv: Any = _f(0.015, "A/(rad/s)", "velocity PI proportional gain")
+    Tv: Any = _f(5.0, "s", "velocity PI integral time")
+    Kw: Any = _f(1.0, "1", "velocity feedback filter gain")
+    Tw: Any = _f(0.01, "s", "velocity feedback and reference filter time constant")
+    # --- current loop (eq. 1-5) ---
+    Ki: Any = _f(1.0, "V/A", "current PI proportional gain (command volts per amp, before the inverter gain Kn)")
+    Ti: Any = _f(0.00208, "s", "current PI integral time (= L/R in the paper)")
+    Kcf: Any = _f(1.0, "1", "current feedback filter gain")
+    Tcf: Any = _f(0.00016, "s", "current feedback and reference filter time constant")
+    Kn: Any = _f(4.43, "1", "inverter (SPWM) gain")
+    Tn: Any = _f(0.0001, "s", "inverter time constant")
+    R: Any = _f(1.3, "ohm", "armature resistance")
+    L: Any = _f(0.0027, "H", "armature inductance")
+    # --- motor (J from Table 1; the rest chosen) ---
+    J: Any = _f(0.000188, "kg*m^2", "motor rotor inertia")
+    Kt: Any = _f(1.322, "N*m/A", "chosen: torque constant, solved so that the velocity loop identified "
+                 "from the model has T0 = 0.01475 s with the default AxisLoad (analysis.kt_for_T0)")
+    Ke: Any = _f(1.322, "V*s/rad", "chosen: back-EMF constant; equal to Kt (SI units, power balance of the "
+                 "DC-equivalent motor model)")
+    emf_ff: Any = _f(1.0, "1", "chosen: fraction of the back-EMF Ke*w fed forward into the current PI output "
+                     "(decoupling, as PMSM drives do; 1 = full, 0 = none)", kind="nonnegative")
+    I_max: Any = _f(10.0, "A", "chosen: current limit on the velocity PI output (13 N*m peak torque)")
+    V_max: Any = _f(300.0, "V", "chosen: armature voltage limit (310 V DC bus less margin); the current PI "
+                    "output saturates at V_max/Kn")
+    # --- drive train (chosen) ---
+    lead: Any = _f(0.01, "m/rev", "chosen: ball-screw lead (10 mm per motor revolution)")
+    eta: Any = _f(0.9, "1", "chosen: ball-screw efficiency (0 < eta <= 1); the load seen by the motor is divided by eta")
+    # --- baseline PID position loop (chosen: same crossover as the nominal IMC loop, see docs/parameters.md) ---
+    Kp_pid: Any = _f(6.5, "1/s", "PID proportional gain, motor rad/s per rad of position error")
+    Ki_pid: Any = _f(8.0, "1/s^2", "PID integral gain")
+    Kd_pid: Any = _f(0.02, "1", "PID derivative gain")
+    Tf_pid: Any = _f(0.005, "s", "PID derivative filter time constant, Kd s/(Tf s + 1)")
+
+    @classmethod
+    def table1(cls) -> "ServoParams":
+        """The paper's Table 1 (plus the documented choices), as float arrays of shape (6,)."""
+        return _broadcast_defaults(cls)
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], base: "ServoParams | None" = None) -> "ServoParams":
+        """Table 1 (or ``base``) with ``values`` replaced; scalars apply to every axis. Validates."""
+        return _from_mapping(cls, values, base)
+
+    def replace(self, **changes) -> "ServoParams":
+        return dataclasses.replace(self, **changes)
+
+
+@_pytree
+@dataclass(frozen=True)
+class AxisLoad:
+    """Load of the single-axis plant: the slider and its share of the mechanism, as a lumped mass.
+
+    Every field has shape ``(..., 6)``.  All values chosen (no load is published).
+    """
+
+    mass: Any = _f(20.0, "kg", "lumped moving mass on the slider")
+    inclination: Any = _f(0.0, "rad", "rail inclination from the horizontal (pi/2: vertical, gravity "
+                          "pulls the slider towards negative positions)", kind="any")
+    g: Any = _f(9.81, "m/s^2", "gravitational acceleration", kind="nonnegative")
+    viscous: Any = _f(50.0, "N*s/m", "viscous friction of the slider", kind="nonnegative")
+    coulomb: Any = _f(20.0, "N", "Coulomb friction of the slider (smoothed by tanh)", kind="nonnegative")
+    v_coulomb: Any = _f(0.001, "m/s", "velocity scale of the tanh smoothing of Coulomb friction")
+
+    @classmethod
+    def default(cls) -> "AxisLoad":
+        return _broadcast_defaults(cls)
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], base: "AxisLoad | None" = None) -> "AxisLoad":
+        return _from_mapping(cls, values, base)
+
+    def replace(self, **changes) -> "AxisLoad":
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class LoopRates:
+    """Loop rates (static: changing them recompiles).
+
+    The electrical model and the current loop tick at ``f_current``; the plant's
+    mechanics steps every ``n_mech`` ticks (torque averaged over them), the velocity
+    loop every ``n_velocity`` ticks and the position loop every ``n_velocity *
+    n_position`` ticks.  Defaults: 20 kHz, 4 kHz, 1 kHz.  ``method`` discretises the
+    controllers and filters ('tustin' or 'zoh'); the physical parts are always
+    sampled with a zero-order hold (exact for their linear part).
+    """
+
+    f_current: float = 20000.0  # Hz
+    n_velocity: int = 5
+    n_position: int = 4
+    n_mech: int = 1
+    method: str = "tustin"
+
+    def __post_init__(self):
+        if not (isinstance(self.f_current, (int, float)) and math.isfinite(self.f_current) and self.f_current > 0):
+            raise ParameterError(f"rates.f_current: expected a positive number of Hz, got {self.f_current!r}")
+        for name in ("n_velocity", "n_position", "n_mech"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1):
+                raise ParameterError(f"rates.{name}: expected an integer >= 1, got {v!r}")
+        if self.n_velocity % self.n_mech:
+            raise ParameterError(
+                f"rates.n_mech: expected a divisor of n_velocity={self.n_velocity}, got {self.n_mech}")
+        if self.method not in ("tustin", "zoh"):
+            raise ParameterError(f"rates.method: expected 'tustin' or 'zoh', got {self.method!r}")
+
+    @property
+    def dt_current(self) -> float:
+        """Current-loop (and electrical) sample time [s]."""
+        return 1.0 / self.f_current
+
+    @property
+    def dt_mech(self) -> float:
+        """Mechanical step [s]."""
+        return self.n_mech / self.f_current
+
+    @property
+    def dt_velocity(self) -> float:
+        """Velocity-loop sample time [s]."""
+        return self.n_velocity / self.f_current
+
+    @property
+    def dt_position(self) -> float:
+        """Position-loop sample time [s]."""
+        return self.n_velocity * self.n_position / self.f_current
+
+    def finer(self, factor: int) -> "LoopRates":
+        """The same loop structure with every rate multiplied by ``factor``."""
+        return dataclasses.replace(self, f_current=self.f_current * factor)
+
+
+def field_docs(cls) -> list[tuple[str, float, str, str]]:
+    """(name, default, unit, doc) for every field of a parameter class."""
+    return [(f.name, f.default, f.metadata["unit"], f.metadata["doc"]) for f in fields(cls)]
+
+
+def _broadcast_defaults(cls):
+    return cls(**{f.name: np.full((N_AXES,), float(f.default)) for f in fields(cls)})
+
+
+def _from_mapping(cls, values, base):
+    if not isinstance(values, Mapping):
+        raise ParameterError(f"{cls.__name__}: expected a mapping of field names to values, "
+                             f"got {type(values).__name__}")
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ParameterError(f"{cls.__name__}: unknown key {unknown[0]!r}; expected one of {sorted(known)}")
+    base = base if base is not None else _broadcast_defaults(cls)
+    changes = {}
+    for name, v in values.items():
+        try:
+            arr = np.asarray(v, dtype=float)
+        except (TypeError, ValueError):
+            raise ParameterError(f"{cls.__name__}.{name}: expected a number or a list of {N_AXES} numbers, "
+                                 f"got {v!r}") from None
+        if arr.ndim == 0:
+            arr = np.full((N_AXES,), float(arr))
+        changes[name] = arr
+    out = dataclasses.replace(base, **changes)
+    validate(out)
+    return out
+
+
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def validate(p) -> None:
+    """Check shapes, finiteness and signs of every field (host-side, concrete values only).
+
+    Raises :class:`ParameterError` with the field name, what was expected and what was
+    found.  Tracers (inside jit/vmap/grad) are skipped: validate before tracing.
+    """
+    cls = type(p)
+    shape = None
+    for f in fields(cls):
+        v = getattr(p, f.name)
+        if not _is_concrete(v):
+            return
+        arr = np.asarray(v)
+        where = f"{cls.__name__}.{f.name}"
+        if arr.ndim == 0 or arr.shape[-1] != N_AXES:
+            raise ParameterError(f"{where}: expected shape (..., {N_AXES}) (one value per axis), got {arr.shape}")
+        if shape is None:
+            shape = arr.shape
+        elif arr.shape != shape:
+            raise ParameterError(f"{where}: expected shape {shape} like the other fields, got {arr.shape}")
+        if not np.issubdtype(arr.dtype, np.number):
+            raise ParameterError(f"{where}: expected numbers, got dtype {arr.dtype}")
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            raise ParameterError(f"{where}: expected finite values [{f.metadata['unit']}], "
+                                 f"got {arr[bad].flat[0]} at {_index(bad)}")
+        kind = f.metadata["kind"]
+        bad = arr <= 0 if kind == "positive" else arr < 0 if kind == "nonnegative" else np.zeros_like(bad)
+        if bad.any():
+            word = "positive" if kind == "positive" else "non-negative"
+            raise ParameterError(f"{where}: expected a {word} value [{f.metadata['unit']}], "
+                                 f"got {arr[bad].flat[0]} at {_index(bad)}")
+    if cls is ServoParams:
+        eta = np.asarray(p.eta)
+        if (eta > 1).any():
+            raise ParameterError(f"ServoParams.eta: expected 0 < eta <= 1, got {eta[eta > 1].flat[0]}")
+
+
+def _index(mask) -> str:
+    idx = np.argwhere(mask)[0]
+    return f"axis {idx[-1]}" if len(idx) == 1 else f"index {tuple(int(i) for i in idx)}"
+
+
+def stack(params_list):
+    """Stack parameter sets along a new leading batch axis (for vmapped runs)."""
+    return jax.tree.map(lambda *xs: np.stack(xs), *params_list)

@@ -1,0 +1,19 @@
+"""Plants behind one interface, so the cascade runs the same against any of them.
+
+A plant is a hashable object (a static argument of the jitted rollout) with:
+
+* ``n_axes`` (int): number of driven axes;
+* ``prepare(servo, plant_params, dt) -> aux``: everything the step needs that depends
+  only on parameters (e.g. the ZOH matrices), computed once per rollout outside the
+  scan; ``dt`` [s] is the mechanical step;
+* ``init(aux) -> state``: the machine at rest at its home position;
+* ``measure(aux, state) -> (theta, omega)``: the encoders, motor angle [rad] and
+  speed [rad/s], shape ``(..., n_axes)``;
+* ``step(aux, state, torque) -> state``: advance one mechanical step with motor
+  torques [N m] held;
+* ``slider(aux, state) -> (x, v)``: slider position [m] and velocity [m/s].
+"""
+
+from .axis import AxisPlant
+
+__all__ = ["AxisPlant"]

@@ -1,0 +1,92 @@
+"""Figures (host-side, matplotlib Agg); every file is written atomically."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import control as ct  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from . import analysis  # noqa: E402
+from .metrics import tracking_error  # noqa: E402
+from .plant.axis import screw_ratio  # noqa: E402
+
+
+def save_atomic(fig, path) -> Path:
+    """Save ``fig`` as PNG to ``path`` through a temporary file in the same folder, then close it."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent if str(path.parent) else ".")
+    os.close(fd)
+    try:
+        fig.savefig(tmp, format="png", dpi=110)
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def plot_trace(trace, params, path, axis: int = 0, title: str = "") -> Path:
+    """Reference vs slider position, tracking error, and motor current/torque of one axis."""
+    t = np.asarray(trace.t)
+    ref = np.asarray(trace.reference)[:, axis] * float(np.asarray(screw_ratio(params))[axis]) * 1e3
+    x = np.asarray(trace.position)[:, axis] * 1e3
+    err = np.asarray(tracking_error(trace, params))[:, axis] * 1e3
+    fig, ax = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
+    ax[0].plot(t, ref, "k--", label="reference")
+    ax[0].plot(t, x, label="slider")
+    ax[0].set_ylabel("position [mm]")
+    ax[0].legend()
+    ax[1].plot(t, err)
+    ax[1].set_ylabel("error [mm]")
+    ax[2].plot(t, np.asarray(trace.current)[:, axis], label="current [A]")
+    ax[2].plot(t, np.asarray(trace.torque)[:, axis], label="torque [N m]")
+    ax[2].set_xlabel("time [s]")
+    ax[2].legend()
+    for a in ax:
+        a.grid(True, alpha=0.3)
+    fig.suptitle(title or f"axis {axis}")
+    fig.tight_layout()
+    return save_atomic(fig, path)
+
+
+def plot_loops(servo, load, path, axis: int = 0, mode: str = "imc") -> Path:
+    """Bode plots of the three open loops (with margins) and step responses of the closed loops."""
+    ol = analysis.open_loops(servo, load, axis, mode)
+    cl = analysis.closed_loops(servo, load, axis, mode=mode)
+    fig, ax = plt.subplots(3, 3, figsize=(14, 9))
+    spans = {"current": (1e1, 1e5, 0.01), "velocity": (1e0, 1e4, 0.2), "position": (1e-1, 1e3, 3.0)}
+    for col, (name, out) in enumerate(zip(analysis.LOOPS, (0, 1, 2))):
+        lo, hi, T = spans[name]
+        w = np.logspace(np.log10(lo), np.log10(hi), 600)
+        resp = ol[name](1j * w)
+        m = analysis.margins(ol[name])
+        ax[0, col].semilogx(w / (2 * np.pi), 20 * np.log10(np.abs(resp)))
+        ax[0, col].axhline(0, color="k", lw=0.5)
+        ax[0, col].set_title(f"{name} loop: fc={_fmt(m['crossover_hz'])} Hz, PM={_fmt(m['phase_margin_deg'])} deg, "
+                             f"GM={_fmt(m['gain_margin_db'])} dB", fontsize=9)
+        ax[0, col].set_ylabel("|L| [dB]")
+        ax[1, col].semilogx(w / (2 * np.pi), np.degrees(np.unwrap(np.angle(resp))))
+        ax[1, col].axhline(-180, color="k", lw=0.5)
+        ax[1, col].set_ylabel("phase L [deg]")
+        ax[1, col].set_xlabel("frequency [Hz]")
+        tt = np.linspace(0, T, 800)
+        ax[2, col].plot(tt, ct.step_response(cl[name][out, 0], tt).outputs)
+        ax[2, col].set_xlabel("time [s]")
+        ax[2, col].set_ylabel(f"closed-loop step ({'i w theta'.split()[out]})")
+        for r in range(3):
+            ax[r, col].grid(True, which="both", alpha=0.3)
+    fig.suptitle(f"axis {axis}, position mode {mode}")
+    fig.tight_layout()
+    return save_atomic(fig, path)
+
+
+def _fmt(x):
+    return "inf" if x is None else f"{x:.3g}"
