@@ -148,8 +148,8 @@ def open_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, mode: str = "i
     b = blocks(servo, load, axis)
     cl = closed_loops(servo, load, axis, mode=mode)
     p_i = ct.interconnect([b["EMF"], b["u"], b["Kt"], b["electrical"], b["mechanics"], b["Gcf"]],
-                          inputs="u_pi", outputs="i_f")
-    p_v = ct.interconnect([cl["current"], b["Gw"]], inputs="i_ref", outputs="w_f")
+                          inputs="u_pi", outputs="i_f", check_unused=False)
+    p_v = ct.interconnect([cl["current"], b["Gw"]], inputs="i_ref", outputs="w_f", check_unused=False)
     p_p = cl["velocity"][2, 0]
     c_p = b["C2"] if mode == "imc" else b["PID"]
     return {"current": _siso(b["Gi"]) * p_i, "velocity": _siso(b["Gv"]) * p_v, "position": _siso(c_p) * p_p}
@@ -176,7 +176,8 @@ def nominal_position_open_loop(servo: ServoParams, axis: int = 0):
 
 def margins(L) -> dict:
     """Gain crossover [Hz], phase margin [deg], gain margin [dB] (None when infinite) of a loop gain."""
-    gm, pm, _, _, wgc, _ = ct.stability_margins(L)
+    with np.errstate(invalid="ignore"):  # python-control compares NaNs when a crossing does not exist
+        gm, pm, _, _, wgc, _ = ct.stability_margins(L)
     return {"crossover_hz": float(wgc) / (2 * math.pi) if np.isfinite(wgc) else None,
             "phase_margin_deg": float(pm) if np.isfinite(pm) else None,
             "gain_margin_db": 20 * math.log10(gm) if np.isfinite(gm) and gm > 0 else None}

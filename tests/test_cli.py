@@ -1,0 +1,57 @@
+"""The ``pusupu`` command, run as a user runs it (a real subprocess, real files)."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+
+def pusupu(*args, check=True):
+    r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", *args], capture_output=True, text=True,
+                       env=dict(os.environ), timeout=600)
+    if check:
+        assert r.returncode == 0, r.stderr
+    return r
+
+
+def test_analyze_json_has_every_loop_of_every_axis(tmp_path):
+    png = tmp_path / "loops.png"
+    out = json.loads(pusupu("analyze", "--json", "--plot", str(png)).stdout)
+    assert len(out["axes"]) == 6
+    for axis in out["axes"]:
+        for loop in ("current", "velocity", "position"):
+            assert set(axis[loop]) == {"crossover_hz", "phase_margin_deg", "gain_margin_db", "bandwidth_hz"}
+    assert out["axes"][0]["current"]["crossover_hz"] == pytest.approx(241.5, rel=0.01)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_sim_step_prints_metrics_and_plots(tmp_path):
+    png = tmp_path / "step.png"
+    out = json.loads(pusupu("sim", "--plant", "axis", "--trajectory", "step", "--json", "--plot", str(png),
+                            "--duration", "0.5").stdout)
+    assert out["duration_s"] == pytest.approx(0.5)
+    assert len(out["rms_error_mm"]) == 6 and 0 < out["rms_error_mm"][0] < 5
+    assert out["max_error_mm"][0] == pytest.approx(5.0, rel=1e-3)  # the step itself, at t = 0
+    assert png.stat().st_size > 10_000
+    table = pusupu("sim", "--trajectory", "sine", "--mode", "pid", "--duration", "0.2").stdout
+    assert "rms_error_mm" in table and "pid mode" in table
+
+
+@pytest.mark.parametrize("args,message", [
+    (["sim", "--params", "{bad}"], "servo: {Tv: -1}"),
+    (["analyze", "--params", "{bad}"], "servo: {Foo: 1}"),
+    (["sim", "--trajectory", "bogus"], None),
+    (["sim", "--plot", "/no/such/folder/x.png"], None),
+    (["analyze", "--params", "/no/such/file.yaml"], None),
+])
+def test_bad_input_exits_2_with_one_line(tmp_path, args, message):
+    bad = tmp_path / "bad.yaml"
+    if message:
+        bad.write_text(message)
+    r = pusupu(*[str(bad) if a == "{bad}" else a for a in args], check=False)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("pusupu: error: "), r.stderr
+    assert "Traceback" not in r.stderr and r.stdout == ""

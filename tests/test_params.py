@@ -1,0 +1,84 @@
+"""Parameter validation, parameter files and batched (vmapped) runs."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from pusupu_jax import AxisLoad, LoopRates, ParameterError, ServoParams, simulate, validate
+from pusupu_jax.config import load_params_file
+from pusupu_jax.params import stack
+
+POSITIVE = [n for n, f in ServoParams.__dataclass_fields__.items() if f.metadata["kind"] == "positive"]
+
+
+@settings(max_examples=40, deadline=None)
+@given(name=st.sampled_from(POSITIVE), value=st.sampled_from([0.0, -1.0, -1e-9, math.nan, math.inf]),
+       axis=st.integers(0, 5))
+def test_bad_values_name_the_field_and_axis(table1, name, value, axis):
+    v = np.array(getattr(table1, name), dtype=float)
+    v[axis] = value
+    with pytest.raises(ParameterError, match=rf"ServoParams\.{name}: expected .* at axis {axis}"):
+        validate(table1.replace(**{name: v}))
+
+
+def test_wrong_shapes_and_unknown_keys(table1):
+    with pytest.raises(ParameterError, match=r"ServoParams\.Kv: expected shape \(\.\.\., 6\).*got \(5,\)"):
+        validate(table1.replace(Kv=np.ones(5)))
+    with pytest.raises(ParameterError, match=r"ServoParams\.Tv: expected shape \(6,\) like the other fields"):
+        validate(table1.replace(Tv=np.ones((2, 6))))
+    with pytest.raises(ParameterError, match="unknown key 'Kx'"):
+        ServoParams.from_mapping({"Kx": 1.0})
+    with pytest.raises(ParameterError, match="AxisLoad.mass: expected a positive"):
+        AxisLoad.from_mapping({"mass": 0})
+    with pytest.raises(ParameterError, match="eta: expected 0 < eta <= 1"):
+        ServoParams.from_mapping({"eta": 1.2})
+    with pytest.raises(ParameterError, match="rates.n_mech: expected a divisor"):
+        LoopRates(n_velocity=5, n_mech=2)
+
+
+def test_simulate_rejects_bad_input_before_running(table1):
+    with pytest.raises(ParameterError, match="ServoParams.lambda2"):
+        simulate(table1.replace(lambda2=-table1.lambda2), np.zeros(10))
+    with pytest.raises(ParameterError, match=r"reference: expected slider positions of shape"):
+        simulate(table1, np.zeros((10, 5)))
+    with pytest.raises(ParameterError, match="reference: expected finite"):
+        simulate(table1, np.full(10, np.nan))
+    with pytest.raises(ParameterError, match="mode: expected one of"):
+        simulate(table1, np.zeros(10), mode="lqr")
+
+
+def test_parameter_file_round_trip_and_errors(tmp_path):
+    good = tmp_path / "p.yaml"
+    good.write_text("servo: {lambda1: 0.02, Kv: [0.01, 0.02, 0.03, 0.04, 0.05, 0.06]}\n"
+                    "load: {mass: 30}\nrates: {f_current: 10000, n_velocity: 4}\n")
+    servo, load, rates = load_params_file(good)
+    assert np.allclose(servo.lambda1, 0.02) and np.allclose(servo.Kv, [0.01, 0.02, 0.03, 0.04, 0.05, 0.06])
+    assert np.allclose(load.mass, 30) and rates == LoopRates(f_current=10000.0, n_velocity=4)
+    cases = {"servo: {Ti: .nan}": "ServoParams.Ti: expected finite",
+             "servo: {Kv: [1, 2]}": r"ServoParams.Kv: expected shape",
+             "servo: {Kv: fast}": "ServoParams.Kv: expected a number",
+             "gains: {}": "unknown section 'gains'",
+             "rates: {f_current: -5}": "rates.f_current: expected a positive",
+             "servo: {lambda1: [0.1,": "not valid YAML",
+             "- 1\n- 2": "expected a mapping"}
+    for text, message in cases.items():
+        bad = tmp_path / "bad.yaml"
+        bad.write_text(text)
+        with pytest.raises(ParameterError, match=message):
+            load_params_file(bad)
+    with pytest.raises(ParameterError, match="cannot read"):
+        load_params_file(tmp_path / "missing.yaml")
+
+
+def test_vmapped_batch_equals_single_runs(table1):
+    ref = np.linspace(0, 0.002, 50)
+    sets = [table1.replace(Kv=table1.Kv * f, lambda1=table1.lambda1 * f) for f in (0.8, 1.0, 1.3)]
+    batch = simulate(stack(sets), ref)
+    assert batch.position.shape == (3, 50, 6)
+    for k, p in enumerate(sets):
+        single = simulate(p, ref)
+        np.testing.assert_allclose(batch.position[k], single.position, rtol=1e-10, atol=1e-15)
+    assert not np.allclose(batch.position[0], batch.position[2])
