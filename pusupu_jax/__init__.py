@@ -6,8 +6,12 @@ Public API::
     trace = simulate(ServoParams.table1(), reference_m, mode="imc")
 """
 
-from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate
-from .sim import Trace, rollout, simulate
+from .config import apply_xla_workaround
+
+apply_xla_workaround()  # before JAX's CPU backend starts: see config.XLA_CPU_WORKAROUND
+
+from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate  # noqa: E402
+from .sim import Trace, rollout, simulate  # noqa: E402
 
 __version__ = "0.1.0"
 

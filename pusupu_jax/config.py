@@ -20,6 +20,19 @@ from .params import AxisLoad, LoopRates, ParameterError, ServoParams
 
 SECTIONS = ("servo", "load", "rates")
 
+# jaxlib 0.10.2 on CPU: vmapped rollouts of 768 or more parameter sets wedge XLA's thread
+# pool (every worker idle, the caller waiting forever; 5 of 5 runs hung here).  Turning off
+# the concurrency-optimised scheduler avoids it (0 of 8 hung, batches 768-4096).  The flag
+# must be in XLA_FLAGS before the CPU backend starts, so the package applies it on import.
+XLA_CPU_WORKAROUND = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
+
+
+def apply_xla_workaround() -> None:
+    """Add :data:`XLA_CPU_WORKAROUND` to ``XLA_FLAGS`` unless the user set that flag themselves."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_cpu_enable_concurrency_optimized_scheduler" not in flags:
+        os.environ["XLA_FLAGS"] = f"{flags} {XLA_CPU_WORKAROUND}".strip()
+
 
 def load_params_file(path) -> tuple[ServoParams, AxisLoad, LoopRates]:
     """Read and validate a parameter file; raises :class:`ParameterError` naming the problem."""

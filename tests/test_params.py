@@ -82,3 +82,15 @@ def test_vmapped_batch_equals_single_runs(table1):
         single = simulate(p, ref)
         np.testing.assert_allclose(batch.position[k], single.position, rtol=1e-10, atol=1e-15)
     assert not np.allclose(batch.position[0], batch.position[2])
+
+
+def test_large_vmapped_batch_completes():
+    """1024 parameter sets vmapped: without config.XLA_CPU_WORKAROUND this wedged XLA's CPU thread pool."""
+    import subprocess
+    import sys
+
+    code = ("import numpy as np, jax; from pusupu_jax import ServoParams, simulate; from pusupu_jax.params import stack;"
+            "p = ServoParams.table1(); ps = stack([p.replace(Kv=p.Kv * f) for f in np.linspace(0.8, 1.2, 1024)]);"
+            "[jax.block_until_ready(simulate(ps, np.zeros(5))) for _ in range(2)]; print('ok')")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.stdout.strip() == "ok", r.stderr[-2000:]
