@@ -42,9 +42,26 @@ def _pytree(cls):
     return jax.tree_util.register_dataclass(cls, data_fields=names, meta_fields=[])
 
 
+class _PerAxis:
+    """Constructors shared by the per-axis parameter classes."""
+
+    @classmethod
+    def default(cls):
+        """Every field at its default, as float arrays of shape (6,)."""
+        return cls(**{f.name: np.full((N_AXES,), float(f.default)) for f in fields(cls)})
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], base=None):
+        """The defaults (or ``base``) with ``values`` replaced; scalars apply to every axis. Validates."""
+        return _from_mapping(cls, values, base)
+
+    def replace(self, **changes):
+        return dataclasses.replace(self, **changes)
+
+
 @_pytree
 @dataclass(frozen=True)
-class ServoParams:
+class ServoParams(_PerAxis):
     """Servo drive of each axis: the three loops of the paper (Fig. 2) and the motor.
 
     Every field has shape ``(..., 6)``.  Table 1 values unless marked *chosen*.
@@ -91,20 +108,12 @@ class ServoParams:
     @classmethod
     def table1(cls) -> "ServoParams":
         """The paper's Table 1 (plus the documented choices), as float arrays of shape (6,)."""
-        return _broadcast_defaults(cls)
-
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any], base: "ServoParams | None" = None) -> "ServoParams":
-        """Table 1 (or ``base``) with ``values`` replaced; scalars apply to every axis. Validates."""
-        return _from_mapping(cls, values, base)
-
-    def replace(self, **changes) -> "ServoParams":
-        return dataclasses.replace(self, **changes)
+        return cls.default()
 
 
 @_pytree
 @dataclass(frozen=True)
-class AxisLoad:
+class AxisLoad(_PerAxis):
     """Load of the single-axis plant: the slider and its share of the mechanism, as a lumped mass.
 
     Every field has shape ``(..., 6)``.  All values chosen (no load is published).
@@ -118,16 +127,6 @@ class AxisLoad:
     coulomb: Any = _f(20.0, "N", "Coulomb friction of the slider (smoothed by tanh)", kind="nonnegative")
     v_coulomb: Any = _f(0.001, "m/s", "velocity scale of the tanh smoothing of Coulomb friction")
 
-    @classmethod
-    def default(cls) -> "AxisLoad":
-        return _broadcast_defaults(cls)
-
-    @classmethod
-    def from_mapping(cls, values: Mapping[str, Any], base: "AxisLoad | None" = None) -> "AxisLoad":
-        return _from_mapping(cls, values, base)
-
-    def replace(self, **changes) -> "AxisLoad":
-        return dataclasses.replace(self, **changes)
 
 
 @dataclass(frozen=True)
@@ -191,10 +190,6 @@ def field_docs(cls) -> list[tuple[str, float, str, str]]:
     return [(f.name, f.default, f.metadata["unit"], f.metadata["doc"]) for f in fields(cls)]
 
 
-def _broadcast_defaults(cls):
-    return cls(**{f.name: np.full((N_AXES,), float(f.default)) for f in fields(cls)})
-
-
 def _from_mapping(cls, values, base):
     if not isinstance(values, Mapping):
         raise ParameterError(f"{cls.__name__}: expected a mapping of field names to values, "
@@ -203,7 +198,7 @@ def _from_mapping(cls, values, base):
     unknown = sorted(set(values) - known)
     if unknown:
         raise ParameterError(f"{cls.__name__}: unknown key {unknown[0]!r}; expected one of {sorted(known)}")
-    base = base if base is not None else _broadcast_defaults(cls)
+    base = base if base is not None else cls.default()
     changes = {}
     for name, v in values.items():
         try:
