@@ -97,12 +97,11 @@ def hold_resample(sysd: ct.StateSpace, n: int) -> ct.StateSpace:
     an inner loop at a fast rate looks to the outer loop at ``n`` times the period.
     """
     A, B, C, D = (np.asarray(m) for m in ct.ssdata(sysd))
-    An, acc, Aj = np.eye(A.shape[0]), np.zeros_like(B), np.eye(A.shape[0])
+    An, Bn = np.eye(A.shape[0]), np.zeros_like(B)
     for _ in range(n):
-        acc = acc + Aj @ B
-        Aj = Aj @ A
-    An = Aj
-    return ct.ss(An, acc, C, D, sysd.dt * n, inputs=sysd.input_labels, outputs=sysd.output_labels)
+        Bn = Bn + An @ B
+        An = An @ A
+    return ct.ss(An, Bn, C, D, sysd.dt * n, inputs=sysd.input_labels, outputs=sysd.output_labels)
 
 
 def _sum(a, b, out):

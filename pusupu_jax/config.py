@@ -65,8 +65,6 @@ def _rates(values) -> LoopRates:
     unknown = sorted(set(values) - names)
     if unknown:
         raise ParameterError(f"rates: unknown key {unknown[0]!r}; expected one of {sorted(names)}")
-    if isinstance(values.get("f_current"), int):
-        values = dict(values, f_current=float(values["f_current"]))
     return LoopRates(**values)
 
 

@@ -56,17 +56,10 @@ class Trace:
     state: Any  # every controller, electrical and plant state (pytree)
 
 
-class Carry(dict):
-    """Scan carry: named states (a dict pytree) of the plant, electrical model and loops."""
-
-
-jax.tree_util.register_pytree_node(
-    Carry, lambda c: (tuple(c.values()), tuple(c.keys())), lambda keys, vals: Carry(zip(keys, vals)))
-
-
-def initial_state(drive: loops.Drive, plant, aux, outer: str) -> Carry:
-    c = Carry(plant=plant.init(aux), electrical=loops.electrical_init(drive.electrical),
-              current=loops.pi_loop_init(drive.current))
+def initial_state(drive: loops.Drive, plant, aux, outer: str) -> dict:
+    """The scan carry: named states of the plant, the electrical model and every closed loop."""
+    c = dict(plant=plant.init(aux), electrical=loops.electrical_init(drive.electrical),
+             current=loops.pi_loop_init(drive.current))
     if outer != "current":
         c["velocity"] = loops.pi_loop_init(drive.velocity)
     if outer == "imc":
@@ -108,13 +101,13 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
             return (loops.electrical_step(drive.electrical, xe, u, omega), sc), (torque, u)
 
         (xe, sc), (torques, u) = jax.lax.scan(tick, (c["electrical"], c["current"]), None, length=rates.n_mech)
-        c = Carry(c, plant=plant.step(aux, c["plant"], jnp.mean(torques, axis=0)), electrical=xe, current=sc)
+        c = dict(c, plant=plant.step(aux, c["plant"], jnp.mean(torques, axis=0)), electrical=xe, current=sc)
         return c, u[0]
 
     def velocity_period(c, w_ref):
         _, omega = plant.measure(aux, c["plant"])
         sv, i_ref = loops.pi_loop_step(drive.velocity, c["velocity"], w_ref, omega)
-        c = Carry(c, velocity=sv)
+        c = dict(c, velocity=sv)
         c, _ = jax.lax.scan(lambda cc, _: mech_step(cc, i_ref), c, None, length=n_mech_steps)
         return c, i_ref
 
@@ -122,7 +115,7 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
         theta, _ = plant.measure(aux, c["plant"])
         step = loops.imc_step if outer == "imc" else loops.pid_step
         sp, w_ref = step(drive.imc if outer == "imc" else drive.pid, c["position"], theta_ref, theta)
-        c = Carry(c, position=sp)
+        c = dict(c, position=sp)
         c, _ = jax.lax.scan(lambda cc, _: velocity_period(cc, w_ref), c, None, length=rates.n_position)
         return c, w_ref
 
