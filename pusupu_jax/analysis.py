@@ -11,7 +11,8 @@ For one axis:
   with ``rates.method``, the physical parts with a zero-order hold, each inner loop
   resampled to its outer loop's rate by :func:`hold_resample`);
 * :func:`open_loops`: the loop gains broken at each controller output, for margins;
-* :func:`loop_metrics`: crossover, phase and gain margins, closed-loop bandwidth;
+* :func:`loop_metrics`: crossover, phase and gain margins, closed-loop bandwidth and
+  step metrics (:func:`step_metrics`);
 * :func:`identify_T0` / :func:`kt_for_T0`: the velocity loop's first-order time
   constant identified from a step test (the ``T0`` that C2 models) and the torque
   constant that yields it.
@@ -200,15 +201,30 @@ def bandwidth_hz(sys, w_low: float = 1e-3, w_high: float = 1e6) -> float | None:
     return 10 ** brentq(excess, grid[k - 1], grid[k], xtol=1e-12) / (2 * math.pi)
 
 
+STEP_SPAN_S = {"current": 0.02, "velocity": 0.5, "position": 6.0}
+
+
+def step_metrics(sys, span: float, w_low: float = 1e-4) -> dict:
+    """Rise time (10-90 %) [s], 2 % settling time [s] and overshoot [%] of a closed loop's step response.
+
+    The final value is the gain at ``w_low`` rad/s (the motor-angle state that the current
+    and velocity loops do not see would otherwise spoil a DC-gain computation).
+    """
+    info = ct.step_info(sys, T=np.linspace(0.0, span, 8001), yfinal=float(np.real(sys(1j * w_low))))
+    return {"rise_time_s": float(info["RiseTime"]), "settling_time_s": float(info["SettlingTime"]),
+            "overshoot_pct": float(info["Overshoot"])}
+
+
 def loop_metrics(servo: ServoParams, load: AxisLoad, mode: str = "imc") -> dict:
-    """Per axis and loop: crossover_hz, phase_margin_deg, gain_margin_db, bandwidth_hz."""
+    """Per axis and loop: crossover_hz, phase_margin_deg, gain_margin_db, bandwidth_hz and :func:`step_metrics`."""
     axes = []
     for k in range(N_AXES):
         ol = open_loops(servo, load, k, mode)
         cl = closed_loops(servo, load, k, mode=mode)
         row = {}
         for name, out in zip(LOOPS, (0, 1, 2)):
-            row[name] = margins(ol[name]) | {"bandwidth_hz": bandwidth_hz(cl[name][out, 0])}
+            row[name] = (margins(ol[name]) | {"bandwidth_hz": bandwidth_hz(cl[name][out, 0])}
+                         | step_metrics(cl[name][out, 0], STEP_SPAN_S[name]))
         axes.append(row)
     return {"mode": mode, "axes": axes}
 

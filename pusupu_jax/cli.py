@@ -90,11 +90,13 @@ def _analyze(args) -> int:
         print(json.dumps(result, indent=2))
         return 0
     print(f"position mode: {args.mode}")
-    print(f"{'axis':>4} {'loop':<9} {'crossover Hz':>13} {'PM deg':>8} {'GM dB':>8} {'bandwidth Hz':>13}")
+    cols = [("crossover_hz", "crossover Hz", 13), ("phase_margin_deg", "PM deg", 8), ("gain_margin_db", "GM dB", 8),
+            ("bandwidth_hz", "bandwidth Hz", 13), ("rise_time_s", "rise s", 9), ("settling_time_s", "settle s", 9),
+            ("overshoot_pct", "overshoot %", 12)]
+    print(f"{'axis':>4} {'loop':<9} " + " ".join(f"{title:>{w}}" for _, title, w in cols))
     for k, row in enumerate(result["axes"]):
         for name, m in row.items():
-            cells = [m["crossover_hz"], m["phase_margin_deg"], m["gain_margin_db"], m["bandwidth_hz"]]
-            print(f"{k:>4} {name:<9} " + " ".join(f"{_num(c):>{w}}" for c, w in zip(cells, (13, 8, 8, 13))))
+            print(f"{k:>4} {name:<9} " + " ".join(f"{_num(m[key]):>{w}}" for key, _, w in cols))
     if args.plot:
         print(f"plot: {args.plot}")
     return 0

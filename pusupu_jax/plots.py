@@ -62,9 +62,9 @@ def plot_loops(servo, load, path, axis: int = 0, mode: str = "imc") -> Path:
     ol = analysis.open_loops(servo, load, axis, mode)
     cl = analysis.closed_loops(servo, load, axis, mode=mode)
     fig, ax = plt.subplots(3, 3, figsize=(14, 9))
-    spans = {"current": (1e1, 1e5, 0.01), "velocity": (1e0, 1e4, 0.2), "position": (1e-1, 1e3, 3.0)}
+    spans = {"current": (1e1, 1e5), "velocity": (1e0, 1e4), "position": (1e-1, 1e3)}
     for col, (name, out) in enumerate(zip(analysis.LOOPS, (0, 1, 2))):
-        lo, hi, T = spans[name]
+        (lo, hi), T = spans[name], analysis.STEP_SPAN_S[name]
         w = np.logspace(np.log10(lo), np.log10(hi), 600)
         resp = ol[name](1j * w)
         m = analysis.margins(ol[name])
