@@ -1,0 +1,169 @@
+"""Kinematics of the 6PUS-UPU manipulator in JAX: the 5-DOF pose, inverse and forward kinematics, Jacobians.
+
+Pose ``q = (x, y, z, a, b)``: the platform centre ``p = (x, y, z)`` [m] (the UPU
+branch's top universal joint) and the platform normal ``n = Rx(a) Ry(b) e_z`` (two
+tilts [rad]).  The passive UPU branch fixes the rest of the orientation: its base
+universal joint turns the leg by ``Rx(phi1) Ry(phi2)`` so that the leg points at ``p``
+(``phi1 = atan2(-y, z)``, ``phi2 = asin(x / |p|)``) and its top universal joint adds
+``Ry(alpha) Rx(beta)``, so that
+
+    R = Rx(phi1) Ry(gamma) Rx(beta),   gamma = phi2 + alpha.
+
+Given ``n``, ``m = Rx(-phi1) n = (cos(beta) sin(gamma), -sin(beta), cos(beta) cos(gamma))``
+gives ``beta = -asin(m_y)``, ``gamma = atan2(m_x, m_z)`` in closed form.  With ``a = b = 0``
+the platform is level and unturned (``R = I``).  The leg must stay above the base
+(``z > 0``) and away from ``|m_y| = 1``.
+
+Inverse kinematics (closed form): the spherical joint ``P_i = p + R c_i`` and the slider
+``b_i + s_i u_i`` are a rod length apart, ``|b_i + s_i u_i - P_i| = l_i``, so
+``s_i = u_i.d_i - sqrt((u_i.d_i)^2 - |d_i|^2 + l_i^2)`` with ``d_i = P_i - b_i`` (the
+slider below the joint it carries, as in the default geometry).
+
+Forward kinematics: Gauss-Newton on the six branch equations for the five pose
+coordinates, a fixed number of iterations (a ``lax.scan``, so it is differentiable).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .geometry import Geometry, GeometryError
+
+
+def rot_x(t):
+    c, s = jnp.cos(t), jnp.sin(t)
+    z, o = jnp.zeros_like(t), jnp.ones_like(t)
+    return jnp.stack([jnp.stack([o, z, z], -1), jnp.stack([z, c, -s], -1), jnp.stack([z, s, c], -1)], -2)
+
+
+def rot_y(t):
+    c, s = jnp.cos(t), jnp.sin(t)
+    z, o = jnp.zeros_like(t), jnp.ones_like(t)
+    return jnp.stack([jnp.stack([c, z, s], -1), jnp.stack([z, o, z], -1), jnp.stack([-s, z, c], -1)], -2)
+
+
+def upu_angles(q):
+    """Joint coordinates of the UPU branch for pose ``q``: (phi1, phi2, leg length [m], alpha, beta)."""
+    p = q[..., :3]
+    length = jnp.linalg.norm(p, axis=-1)
+    phi1 = jnp.arctan2(-p[..., 1], p[..., 2])
+    phi2 = jnp.arcsin(p[..., 0] / length)
+    n = jnp.einsum("...ij,...j->...i", rot_x(q[..., 3]) @ rot_y(q[..., 4]), jnp.array([0.0, 0.0, 1.0]))
+    m = jnp.einsum("...ij,...j->...i", rot_x(-phi1), n)
+    beta = -jnp.arcsin(m[..., 1])
+    gamma = jnp.arctan2(m[..., 0], m[..., 2])
+    return phi1, phi2, length, gamma - phi2, beta
+
+
+def platform_rotation(q):
+    """Platform orientation ``R`` (3x3) imposed by the UPU branch for pose ``q``."""
+    phi1, phi2, _, alpha, beta = upu_angles(q)
+    return rot_x(phi1) @ rot_y(phi2 + alpha) @ rot_x(beta)
+
+
+def joint_points(geom: Geometry, q):
+    """Spherical-joint centres ``P_i`` in the base frame, shape ``(..., 6, 3)`` [m]."""
+    R = platform_rotation(q)
+    return q[..., None, :3] + jnp.einsum("...ij,kj->...ki", R, jnp.asarray(geom.platform_points))
+
+
+def _branch_terms(geom: Geometry, q):
+    d = joint_points(geom, q) - jnp.asarray(geom.rail_points)
+    ud = jnp.sum(d * jnp.asarray(geom.rail_dirs), axis=-1)
+    disc = ud**2 - jnp.sum(d**2, axis=-1) + jnp.asarray(geom.rod_lengths) ** 2
+    return ud, disc
+
+
+def inverse_kinematics(geom: Geometry, q):
+    """Slider positions ``s`` (``(..., 6)`` [m]) for poses ``q`` (``(..., 5)``); NaN where unreachable."""
+    ud, disc = _branch_terms(geom, q)
+    return ud - jnp.sqrt(disc)
+
+
+def jacobian(geom: Geometry, q):
+    """``ds/dq``, shape ``(..., 6, 5)`` (forward-mode derivative of the closed-form IK)."""
+    jac = jax.jacfwd(lambda qq: inverse_kinematics(geom, qq))
+    for _ in range(q.ndim - 1):
+        jac = jax.vmap(jac)
+    return jac(q)
+
+
+def forward_kinematics(geom: Geometry, s, q0=None, iterations: int = 12):
+    """Pose ``q`` whose IK is ``s`` (Gauss-Newton from ``q0``, default home); returns ``(q, residual [m])``.
+
+    ``residual`` is the max |IK(q) - s| after the last iteration: near zero when ``s``
+    is consistent with the mechanism (six sliders over-determine five coordinates).
+    """
+    q0 = jnp.broadcast_to(jnp.asarray(geom.home if q0 is None else q0, dtype=s.dtype), s.shape[:-1] + (5,))
+
+    def solve(s1, q1):
+        def step(q, _):
+            r = inverse_kinematics(geom, q) - s1
+            J = jax.jacfwd(lambda qq: inverse_kinematics(geom, qq))(q)
+            return q - jnp.linalg.solve(J.T @ J, J.T @ r), None
+
+        q, _ = jax.lax.scan(step, q1, None, length=iterations)
+        return q, jnp.max(jnp.abs(inverse_kinematics(geom, q) - s1))
+
+    f = solve
+    for _ in range(s.ndim - 1):
+        f = jax.vmap(f)
+    return f(s, q0)
+
+
+def condition_number(geom: Geometry, q):
+    """Condition number of the Jacobian at poses ``q``, its tilt columns scaled by the platform's radius.
+
+    A tilt [rad] times the characteristic length (mean distance of the spherical joints
+    from the platform centre) is a length, so every column is in metres.
+    """
+    length = jnp.mean(jnp.linalg.norm(jnp.asarray(geom.platform_points), axis=-1))
+    J = jacobian(geom, q) * jnp.array([1.0, 1.0, 1.0, 1.0, 1.0]).at[3:].set(length)
+    sv = jnp.linalg.svd(J, compute_uv=False)
+    return sv[..., 0] / sv[..., -1]
+
+
+def check_poses(geom: Geometry, q, cond_max: float = 30.0, margin: float = 0.0) -> dict:
+    """Check poses ``q`` (``(N, 5)``) host-side before any simulation; raise :class:`GeometryError` if bad.
+
+    Every branch must be reachable, every slider within its stroke (shrunk by ``margin``
+    [m] at both ends), the UPU leg within its limits, the leg above the base, and
+    :func:`condition_number` at most ``cond_max`` (the default geometry stays below 15.2
+    on the paper's paths).  Returns the extremes found.
+    """
+    q = np.atleast_2d(np.asarray(q, dtype=float))
+    if q.ndim != 2 or q.shape[1] != 5 or not np.isfinite(q).all():
+        raise GeometryError(f"poses: expected finite (N, 5) poses (x, y, z, a, b), got shape {q.shape}")
+    if (q[:, 2] <= 0).any():
+        k = int(np.argmax(q[:, 2] <= 0))
+        raise GeometryError(f"pose {k}: expected the platform above the base (z > 0), got z = {q[k, 2]:.4g} m")
+    _, disc = (np.asarray(a) for a in _branch_terms(geom, jnp.asarray(q)))
+    if (disc < 0).any():
+        k, i = np.argwhere(disc < 0)[0]
+        raise GeometryError(f"pose {k} {_fmt(q[k])}: branch {i} unreachable (its rod is too short for the joint)")
+    s = np.asarray(inverse_kinematics(geom, jnp.asarray(q)))
+    lo, hi = np.asarray(geom.stroke_min) + margin, np.asarray(geom.stroke_max) - margin
+    out = (s < lo) | (s > hi)
+    if out.any():
+        k, i = np.argwhere(out)[0]
+        raise GeometryError(f"pose {k} {_fmt(q[k])}: slider {i} out of stroke, s = {s[k, i] * 1e3:.1f} mm, "
+                            f"expected {lo[i] * 1e3:.1f} to {hi[i] * 1e3:.1f} mm")
+    leg = np.linalg.norm(q[:, :3], axis=1)
+    bad = (leg < float(geom.upu_min)) | (leg > float(geom.upu_max))
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise GeometryError(f"pose {k} {_fmt(q[k])}: UPU leg {leg[k] * 1e3:.1f} mm outside "
+                            f"{float(geom.upu_min) * 1e3:.0f} to {float(geom.upu_max) * 1e3:.0f} mm")
+    cond = np.nan_to_num(np.asarray(condition_number(geom, jnp.asarray(q))), nan=np.inf)
+    if (cond > cond_max).any():
+        k = int(np.argmax(cond))
+        raise GeometryError(f"pose {k} {_fmt(q[k])}: near-singular, Jacobian condition number {cond[k]:.3g} "
+                            f"> {cond_max:g}")
+    return {"slider_min_m": s.min(axis=0).tolist(), "slider_max_m": s.max(axis=0).tolist(),
+            "cond_max": float(cond.max()), "upu_leg_m": [float(leg.min()), float(leg.max())]}
+
+
+def _fmt(q):
+    return f"(x={q[0] * 1e3:.1f} mm, y={q[1] * 1e3:.1f} mm, z={q[2] * 1e3:.1f} mm, a={q[3]:.3g}, b={q[4]:.3g})"
