@@ -37,18 +37,7 @@ def apply_xla_workaround() -> None:
 def load_params_file(path) -> tuple[ServoParams, AxisLoad, LoopRates]:
     """Read and validate a parameter file; raises :class:`ParameterError` naming the problem."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as e:
-        raise ParameterError(f"{path}: cannot read parameter file ({e.strerror})") from None
-    except yaml.YAMLError as e:
-        raise ParameterError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
-    data = {} if data is None else data
-    if not isinstance(data, dict):
-        raise ParameterError(f"{path}: expected a mapping with sections {SECTIONS}, got {type(data).__name__}")
-    unknown = sorted(set(data) - set(SECTIONS))
-    if unknown:
-        raise ParameterError(f"{path}: unknown section {unknown[0]!r}; expected some of {SECTIONS}")
+    data = read_yaml_mapping(path, "section", SECTIONS)
     try:
         servo = ServoParams.from_mapping(data.get("servo") or {})
         load = AxisLoad.from_mapping(data.get("load") or {})
@@ -56,6 +45,27 @@ def load_params_file(path) -> tuple[ServoParams, AxisLoad, LoopRates]:
     except ParameterError as e:
         raise ParameterError(f"{path}: {e}") from None
     return servo, load, rates
+
+
+def read_yaml_mapping(path: Path, what: str, keys, error=ParameterError) -> dict:
+    """A YAML file holding a mapping whose keys are among ``keys`` (empty file: ``{}``).
+
+    Raises ``error`` with the path and one line saying what is wrong: unreadable, not
+    YAML, not a mapping, or an unknown key (called ``what`` in the message).
+    """
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as e:
+        raise error(f"{path}: cannot read file ({e.strerror})") from None
+    except yaml.YAMLError as e:
+        raise error(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+    data = {} if data is None else data
+    if not isinstance(data, dict):
+        raise error(f"{path}: expected a mapping of {what}s, got {type(data).__name__}")
+    unknown = sorted(set(data) - set(keys))
+    if unknown:
+        raise error(f"{path}: unknown {what} {unknown[0]!r}; expected some of {sorted(keys)}")
+    return data
 
 
 def _rates(values) -> LoopRates:

@@ -26,6 +26,7 @@ import jax
 import numpy as np
 import yaml
 
+from ..config import read_yaml_mapping
 from ..params import ParameterError
 
 N_BRANCHES = 6
@@ -122,17 +123,7 @@ def validate_geometry(g: Geometry) -> None:
 def load_geometry(path) -> Geometry:
     """Read a geometry YAML: any subset of the fields of :class:`Geometry`, the rest default."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except OSError as e:
-        raise GeometryError(f"{path}: cannot read geometry file ({e.strerror})") from None
-    except yaml.YAMLError as e:
-        raise GeometryError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
-    if not isinstance(data, dict):
-        raise GeometryError(f"{path}: expected a mapping of geometry fields, got {type(data).__name__}")
-    unknown = sorted(set(data) - set(_SHAPES))
-    if unknown:
-        raise GeometryError(f"{path}: unknown geometry field {unknown[0]!r}; expected some of {sorted(_SHAPES)}")
+    data = read_yaml_mapping(path, "geometry field", _SHAPES, GeometryError)
     try:
         g = Geometry.default().replace(**{k: np.asarray(v, dtype=float) for k, v in data.items()})
     except (TypeError, ValueError) as e:
