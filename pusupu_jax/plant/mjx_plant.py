@@ -1,0 +1,79 @@
+"""The 6PUS-UPU mechanism in MJX behind the plant interface of :mod:`pusupu_jax.plant`.
+
+The mechanical step is the MuJoCo timestep (``ModelOptions.timestep``) and must equal
+``rates.dt_mech``; the current loop and the electrical model tick ``rates.n_mech`` times
+inside it.  Measurements are encoder-like: the motor angle and speed follow from the
+slider through the screw, ``theta = (s - s_home) / r``, ``omega = s' / r``
+(``r = lead / 2 pi``), zeroed at the home pose as a homed drive is.  ``slider`` returns
+the travel from home [m] and the slider velocity [m/s].
+
+The plant is hashed by identity (it is a static argument of the jitted rollout): build it
+once with :meth:`MJXPlant.create` and reuse it, or every call compiles anew.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from .geometry import Geometry
+from .model import ModelOptions, build_model, slide_dofs, slide_qpos
+
+
+@jax.tree_util.register_dataclass
+@dataclass(frozen=True)
+class MJXAux:
+    model: Any  # mjx.Model with the servo-dependent armature
+    force_gain: Any  # (6,) N per N m: eta / r
+    r: Any  # (6,) m/rad
+
+
+@dataclass(frozen=True, eq=False)
+class MJXPlant:
+    """Six actuated PUS branches and the passive UPU branch, stepped by ``mjx.step``."""
+
+    mj_model: mujoco.MjModel
+    mjx_model: Any
+    options: ModelOptions
+    n_axes: int = 6
+
+    @classmethod
+    def create(cls, geom: Geometry | None = None, options: ModelOptions = ModelOptions()) -> "MJXPlant":
+        m = build_model(geom, options)
+        return cls(m, mjx.put_model(m), options)
+
+    @property
+    def _dofs(self):
+        return slide_dofs(self.mj_model)
+
+    @property
+    def _qpos(self):
+        return slide_qpos(self.mj_model)
+
+    def prepare(self, servo, plant_params, dt: float) -> MJXAux:
+        if not np.isclose(dt, self.options.timestep, rtol=1e-9):
+            raise ValueError(f"MJXPlant: the mechanical step rates.dt_mech = {dt} s must equal the model "
+                             f"timestep {self.options.timestep} s")
+        r = servo.lead / (2.0 * jnp.pi)
+        armature = self.mjx_model.dof_armature.at[self._dofs].set(servo.eta * servo.J / r**2)
+        return MJXAux(self.mjx_model.replace(dof_armature=armature), servo.eta / r, r)
+
+    def init(self, aux: MJXAux):
+        return mjx.forward(aux.model, mjx.make_data(aux.model))
+
+    def measure(self, aux: MJXAux, data):
+        s = data.qpos[self._qpos] - self.mj_model.qpos0[self._qpos]
+        return s / aux.r, data.qvel[self._dofs] / aux.r
+
+    def step(self, aux: MJXAux, data, torque):
+        qfrc = jnp.zeros_like(data.qfrc_applied).at[self._dofs].set(aux.force_gain * torque)
+        return mjx.step(aux.model, data.replace(qfrc_applied=qfrc))
+
+    def slider(self, aux: MJXAux, data):
+        return data.qpos[self._qpos] - self.mj_model.qpos0[self._qpos], data.qvel[self._dofs]

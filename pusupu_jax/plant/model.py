@@ -1,0 +1,213 @@
+"""The 6PUS-UPU mechanism as a MuJoCo model, built in code with ``mujoco.MjSpec`` (host-side).
+
+Tree (23 DOF): the passive UPU branch is in the kinematic tree,
+``world -> upu_lower (hinge x, hinge y) -> upu_upper (slide along the leg) -> platform
+(hinge y, hinge x)``, so the platform has exactly the 5 DOF of
+:mod:`pusupu_jax.plant.kinematics`; each PUS branch is its own chain,
+``world -> slider_i (slide along the rail) -> rod_i (hinge x, hinge y: the universal
+joint)``, closed on the platform by an equality ``connect`` at the spherical joint
+(6 x 3 constraint rows, 5 DOF left).
+
+Joint references are the home configuration, so ``qpos0`` is the assembled machine: the
+slide joints read the slider travel ``s_i`` [m] and the UPU leg length [m] directly.
+
+Each slider is driven through its ball screw: motor torque ``tau`` [N m] becomes the slider
+force ``eta tau / r`` (``r = lead / 2 pi`` [m/rad]) and the rotor appears on the slide joint
+as armature ``eta J / r^2`` [kg] (efficiency applied to the torque left after accelerating
+the rotor; the same convention as the single-axis plant).  Those two depend on the servo
+parameters and are set per rollout by the MJX plant, not here.
+
+``kin_error_seed`` builds the *real* machine with seeded errors on the rail points, the
+platform joint positions and the rod lengths (normal, ``kin_error_std`` [m]); the nominal
+geometry is what inverse kinematics uses.  ``contacts=True`` adds a tool sphere under the
+platform and a work surface for the compliance experiments; by default no geom collides.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from .geometry import Geometry, validate_geometry
+from .kinematics import inverse_kinematics, joint_points, upu_angles
+
+GROUP_VISUAL = 1
+
+
+@dataclass(frozen=True)
+class ModelOptions:
+    """Static options of the MuJoCo model."""
+
+    timestep: float = 0.00025  # s, mechanical step (rates.dt_mech: n_mech = 5 at 20 kHz)
+    payload: float = 0.0  # kg, added to the platform at its centre
+    kin_error_seed: int | None = None
+    kin_error_std: float = 0.0005  # m
+    contacts: bool = False
+    solver_iterations: int = 1  # Newton iterations; 1 keeps reverse-mode gradients through MJX possible
+    solref_timeconst: float = 0.0005  # s, stiffness time constant of the spherical-joint constraints (2 timesteps)
+
+
+def perturbed(geom: Geometry, seed: int, std: float) -> Geometry:
+    """The geometry with seeded normal errors (std ``std`` [m]) on rail points, platform joints and rod lengths."""
+    rng = np.random.default_rng(seed)
+    return geom.replace(
+        rail_points=np.asarray(geom.rail_points) + rng.normal(0.0, std, (6, 3)),
+        platform_points=np.asarray(geom.platform_points) + rng.normal(0.0, std, (6, 3)),
+        rod_lengths=np.asarray(geom.rod_lengths) + rng.normal(0.0, std, 6))
+
+
+def _frame_z_to(direction) -> np.ndarray:
+    """A quaternion (w, x, y, z) turning the local z axis onto ``direction``."""
+    quat = np.zeros(4)
+    mujoco.mju_quatZ2Vec(quat, np.asarray(direction, dtype=float))
+    return quat
+
+
+def rod_angles(direction_local):
+    """Hinge angles (about local x, then local y) that turn the z axis onto a unit vector."""
+    w = np.asarray(direction_local, dtype=float)
+    return np.arctan2(-w[..., 1], w[..., 2]), np.arcsin(np.clip(w[..., 0], -1.0, 1.0))
+
+
+def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptions()) -> mujoco.MjModel:
+    """Compile the mechanism; ``geom`` is the nominal geometry (default :meth:`Geometry.default`)."""
+    nominal = Geometry.default() if geom is None else geom
+    validate_geometry(nominal)
+    real = nominal if options.kin_error_seed is None else perturbed(nominal, options.kin_error_seed,
+                                                                   options.kin_error_std)
+    home = np.asarray(nominal.home, dtype=float)
+    s_home = np.asarray(inverse_kinematics(real, home))
+    if not np.isfinite(s_home).all():
+        raise ValueError("build_model: the home pose is unreachable for this geometry")
+    phi1, phi2, leg, alpha, beta = (float(v) for v in upu_angles(home))
+    joints = np.asarray(joint_points(real, home))
+
+    spec = mujoco.MjSpec()
+    spec.modelname = "pusupu_6PUS_UPU"
+    spec.option.timestep = options.timestep
+    spec.option.iterations = options.solver_iterations
+    spec.option.ls_iterations = 4
+    spec.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_EULER
+    if not options.contacts:
+        spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
+    spec.compiler.inertiafromgeom = False
+    world = spec.worldbody
+
+    def body(parent, name, pos, quat, mass, inertia):
+        b = parent.add_body(name=name, pos=list(pos), quat=list(quat))
+        b.mass, b.inertia, b.explicitinertial = float(mass), list(inertia), True
+        return b
+
+    def hinge(b, name, axis, ref):
+        b.add_joint(name=name, type=mujoco.mjtJoint.mjJNT_HINGE, axis=list(axis), ref=float(ref))
+
+    def visual(b, fromto, radius):
+        b.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=list(fromto), size=[radius, 0, 0],
+                   contype=0, conaffinity=0, group=GROUP_VISUAL)
+
+    # passive UPU branch: the two hinges of each universal joint sit on one body, applied in order
+    m_low, m_up = (float(v) for v in np.asarray(nominal.upu_mass))
+    lower = body(world, "upu_lower", [0, 0, 0], [1, 0, 0, 0], m_low, _rod_inertia(m_low, 0.4))
+    hinge(lower, "upu_phi1", [1, 0, 0], phi1)
+    hinge(lower, "upu_phi2", [0, 1, 0], phi2)
+    visual(lower, [0, 0, 0, 0, 0, 0.4], 0.03)
+    upper = body(lower, "upu_upper", [0, 0, leg], [1, 0, 0, 0], m_up, _rod_inertia(m_up, 0.4))
+    upper.add_joint(name="upu_leg", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 0, 1], ref=leg)
+    visual(upper, [0, 0, -0.4, 0, 0, 0], 0.025)
+    platform_mass = float(nominal.platform_mass) + options.payload
+    platform = body(upper, "platform", [0, 0, 0], [1, 0, 0, 0], platform_mass, np.asarray(nominal.platform_inertia))
+    hinge(platform, "upu_alpha", [0, 1, 0], alpha)
+    hinge(platform, "upu_beta", [1, 0, 0], beta)
+    for c in np.asarray(real.platform_points):
+        visual(platform, [0, 0, 0, *c], 0.02)
+    if options.contacts:
+        platform.add_geom(name="tool", type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=[0, 0, -0.15], size=[0.01, 0, 0])
+
+    for i in range(6):
+        u = np.asarray(real.rail_dirs[i], dtype=float)
+        rail_quat = _frame_z_to(u)
+        slider = body(world, f"slider_{i}", np.asarray(real.rail_points[i]) + s_home[i] * u, rail_quat,
+                      np.asarray(nominal.slider_mass)[i], [1e-3, 1e-3, 1e-3])
+        slider.add_joint(name=f"slide_{i}", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 0, 1], ref=float(s_home[i]))
+        # the rod frame's z axis points from the slider's U joint to the spherical joint at home
+        rail_rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rail_rot, rail_quat)
+        start = np.asarray(real.rail_points[i]) + s_home[i] * u
+        rod_dir_local = rail_rot.reshape(3, 3).T @ (joints[i] - start)
+        length = float(np.asarray(real.rod_lengths)[i])
+        rod_m = float(np.asarray(nominal.rod_mass)[i])
+        rod = body(slider, f"rod_{i}", [0, 0, 0], _frame_z_to(rod_dir_local / np.linalg.norm(rod_dir_local)),
+                   rod_m, _rod_inertia(rod_m, length))
+        rod.ipos = [0, 0, length / 2]
+        hinge(rod, f"rod_{i}_x", [1, 0, 0], 0.0)
+        hinge(rod, f"rod_{i}_y", [0, 1, 0], 0.0)
+        visual(rod, [0, 0, 0, 0, 0, length], 0.012)
+        eq = spec.add_equality(name=f"sphere_{i}", type=mujoco.mjtEq.mjEQ_CONNECT,
+                               objtype=mujoco.mjtObj.mjOBJ_BODY, name1=f"rod_{i}", name2="platform")
+        eq.data[0:3] = [0, 0, length]
+        eq.solref = [options.solref_timeconst, 1.0]
+        eq.solimp = [0.99, 0.999, 0.001, 0.5, 2.0]
+    if options.contacts:
+        world.add_geom(name="surface", type=mujoco.mjtGeom.mjGEOM_BOX, pos=[0, 0, float(home[2]) - 0.2],
+                       size=[0.3, 0.3, 0.01])
+    return spec.compile()
+
+
+def _rod_inertia(mass, length):
+    """Principal inertia [kg m^2] of a slender rod about its centre, axis along z."""
+    transverse = mass * length**2 / 12.0
+    return [transverse, transverse, 1e-3 * mass]
+
+
+def slide_dofs(model: mujoco.MjModel) -> np.ndarray:
+    """DOF indices of the six actuated slide joints, in branch order."""
+    return np.array([model.jnt_dofadr[model.joint(f"slide_{i}").id] for i in range(6)])
+
+
+def slide_qpos(model: mujoco.MjModel) -> np.ndarray:
+    """qpos indices of the six slide joints, in branch order."""
+    return np.array([model.jnt_qposadr[model.joint(f"slide_{i}").id] for i in range(6)])
+
+
+def loop_closure_residual(model: mujoco.MjModel, xpos, xmat) -> np.ndarray:
+    """Largest distance [m] between the two anchors of the six spherical-joint ``connect`` constraints.
+
+    ``xpos (..., nbody, 3)`` and ``xmat (..., nbody, 9 or 3x3)`` are body poses from
+    ``MjData`` or from a batch of MJX ``Data``; the result has the leading shape.
+    """
+    xpos = np.asarray(xpos)
+    xmat = np.asarray(xmat).reshape(xpos.shape[:-1] + (3, 3))
+    gaps = []
+    for i in range(6):
+        eq = model.equality(f"sphere_{i}").id
+        b1, b2 = model.eq_obj1id[eq], model.eq_obj2id[eq]
+        p1 = xpos[..., b1, :] + np.einsum("...ij,j->...i", xmat[..., b1, :, :], model.eq_data[eq, 0:3])
+        p2 = xpos[..., b2, :] + np.einsum("...ij,j->...i", xmat[..., b2, :, :], model.eq_data[eq, 3:6])
+        gaps.append(np.linalg.norm(p1 - p2, axis=-1))
+    return np.max(gaps, axis=0)
+
+
+def assembled_qpos(model: mujoco.MjModel, real: Geometry, q) -> np.ndarray:
+    """``qpos`` that puts the machine described by ``real`` at pose ``q`` with every constraint closed."""
+    q = np.asarray(q, dtype=float)
+    qpos = model.qpos0.copy()
+    upu = dict(zip(("upu_phi1", "upu_phi2", "upu_leg", "upu_alpha", "upu_beta"), (float(v) for v in upu_angles(q))))
+    for name, value in upu.items():
+        qpos[model.jnt_qposadr[model.joint(name).id]] = value
+    s = np.asarray(inverse_kinematics(real, q))
+    joints = np.asarray(joint_points(real, q))
+    for i in range(6):
+        qpos[model.jnt_qposadr[model.joint(f"slide_{i}").id]] = s[i]
+        slider, rod = model.body(f"slider_{i}"), model.body(f"rod_{i}")
+        rot = np.zeros(9)
+        mujoco.mju_quat2Mat(rot, model.body_quat[slider.id])
+        start = np.asarray(real.rail_points[i]) + s[i] * np.asarray(real.rail_dirs[i])
+        w = rot.reshape(3, 3).T @ (joints[i] - start)
+        mujoco.mju_quat2Mat(rot, model.body_quat[rod.id])
+        ax, ay = rod_angles(rot.reshape(3, 3).T @ (w / np.linalg.norm(w)))
+        qpos[model.jnt_qposadr[model.joint(f"rod_{i}_x").id]] = ax
+        qpos[model.jnt_qposadr[model.joint(f"rod_{i}_y").id]] = ay
+    return qpos
