@@ -90,3 +90,25 @@ def plot_loops(servo, load, path, axis: int = 0, mode: str = "imc") -> Path:
 
 def _fmt(x):
     return "inf" if x is None else f"{x:.3g}"
+
+
+def plot_platform_path(trace: dict, path, title: str = "") -> Path:
+    """3D reference vs actual platform path [mm] (``trace`` from :func:`pusupu_jax.machine.simulate_machine`)."""
+    ref, act = np.asarray(trace["reference"]) * 1e3, np.asarray(trace["platform"]) * 1e3
+    fig = plt.figure(figsize=(11, 5))
+    ax = fig.add_subplot(1, 2, 1, projection="3d")
+    ax.plot(*ref.T, "k--", label="reference")
+    ax.plot(*act.T, label="platform")
+    ax.set_xlabel("x [mm]")
+    ax.set_ylabel("y [mm]")
+    ax.set_zlabel("z [mm]")
+    ax.legend()
+    ax2 = fig.add_subplot(1, 2, 2)
+    err = np.linalg.norm(act - ref, axis=1)
+    ax2.plot(trace["t"], err)
+    ax2.set_xlabel("time [s]")
+    ax2.set_ylabel("platform position error [mm]")
+    ax2.grid(True, alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return save_atomic(fig, path)

@@ -32,3 +32,53 @@ def axis_reference(kind: str, rates: LoopRates = LoopRates(), duration: float | 
     else:
         x = 0.01 * np.sin(2 * np.pi * t)
     return np.repeat(x[:, None], N_AXES, axis=1)
+
+
+PLATFORM_TRAJECTORIES = ("arc", "p2p")
+
+
+def _quintic(dt, length, v_max, a_max):
+    """Quintic time scaling 0 -> 1 whose peak speed (1.875 L/T) and acceleration (5.77 L/T^2) stay within limits."""
+    T = max(1.875 * length / v_max, (5.7735 * length / a_max) ** 0.5, dt)
+    n = max(2, int(np.ceil(T / dt)) + 1)
+    tau = np.clip(np.arange(n) * dt / T, 0.0, 1.0)
+    return 10 * tau**3 - 15 * tau**4 + 6 * tau**5
+
+
+def platform_path(kind: str, home, rates: LoopRates = LoopRates(), v_max: float = 0.05, a_max: float = 0.2,
+                  hold: float = 0.5) -> np.ndarray:
+    """Platform poses ``(N, 5)`` at the position-loop rate for the paper's paths, starting and ending at rest.
+
+    * ``arc``: from home straight out to (200, 0, 0) mm, then a 270 deg major arc of 200 mm
+      radius about home in the horizontal plane (Fig. 7);
+    * ``p2p``: (0,0,0) -> (-100,-100,0) -> (100,100,0) mm (section 4).
+
+    Offsets are from ``home`` (x, y, z [m], a, b [rad]); the platform stays level.  Each
+    segment has quintic timing with peak speed ``v_max`` [m/s] and acceleration ``a_max``
+    [m/s^2] along the path; ``hold`` [s] at rest is appended.
+    """
+    if kind not in PLATFORM_TRAJECTORIES:
+        raise ParameterError(f"trajectory: expected one of {PLATFORM_TRAJECTORIES} for the mechanism, got {kind!r}")
+    for name, v in (("v_max", v_max), ("a_max", a_max)):
+        if not (np.isfinite(v) and v > 0):
+            raise ParameterError(f"trajectory {name}: expected a positive number, got {v!r}")
+    if not (np.isfinite(hold) and hold >= 0):
+        raise ParameterError(f"trajectory hold: expected a non-negative number of seconds, got {hold!r}")
+    dt = rates.dt_position
+    xy = []
+    if kind == "arc":
+        u = _quintic(dt, 0.2, v_max, a_max)
+        xy.append(np.stack([0.2 * u, 0 * u], axis=1))
+        u = _quintic(dt, 0.2 * 1.5 * np.pi, v_max, a_max)
+        phi = 1.5 * np.pi * u
+        xy.append(np.stack([0.2 * np.cos(phi), 0.2 * np.sin(phi)], axis=1))
+    else:
+        corners = np.array([[0.0, 0.0], [-0.1, -0.1], [0.1, 0.1]])
+        for a, b in zip(corners[:-1], corners[1:]):
+            u = _quintic(dt, float(np.linalg.norm(b - a)), v_max, a_max)
+            xy.append(a + u[:, None] * (b - a))
+    xy = np.concatenate(xy + [np.repeat(xy[-1][-1:], int(round(hold / dt)), axis=0)])
+    home = np.asarray(home, dtype=float)
+    q = np.repeat(home[None], len(xy), axis=0)
+    q[:, :2] += xy
+    return q

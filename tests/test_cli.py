@@ -56,3 +56,26 @@ def test_bad_input_exits_2_with_one_line(tmp_path, args, message):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("pusupu: error: "), r.stderr
     assert "Traceback" not in r.stderr and r.stdout == ""
+
+
+def test_sim_mjx_reports_the_machine_metrics(tmp_path):
+    png = tmp_path / "p2p.png"
+    out = json.loads(pusupu("sim", "--plant", "mjx", "--trajectory", "p2p", "--mode", "pid", "--json",
+                            "--plot", str(png)).stdout)
+    for key in ("branch_rms_error_mm", "motor_torque_peak_nm", "branch_force_peak_n"):
+        assert len(out[key]) == 6 and all(v > 0 for v in out[key])
+    assert 0 < out["rms_tracking_error_mm"] <= out["max_tracking_error_mm"] < 20
+    assert out["loop_closure_residual_max_mm"] < 0.01 * out["rms_tracking_error_mm"]
+    assert out["sync_error_rho"] > 0 and out["wall_s"] > 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("args", [["sim", "--plant", "mjx", "--trajectory", "sine"],
+                                  ["sim", "--plant", "axis", "--trajectory", "arc"],
+                                  ["sim", "--plant", "axis", "--kin-error", "3"],
+                                  ["sim", "--plant", "mjx", "--duration", "2"],
+                                  ["sim", "--plant", "mjx", "--mode", "hybrid"]])
+def test_bad_machine_arguments_exit_2_with_one_line(args):
+    r = pusupu(*args, check=False)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert r.stderr.startswith("pusupu: error: ")

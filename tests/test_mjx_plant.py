@@ -138,3 +138,13 @@ def test_cascade_drives_the_mjx_mechanism(mode):
     rms = np.sqrt(np.mean(err**2))
     residual = M.loop_closure_residual(PLANT.mj_model, trace.state["plant"].xpos, trace.state["plant"].xmat)
     assert residual.max() < 0.01 * rms, (residual.max(), rms)
+
+
+def test_machine_rejects_a_path_outside_the_workspace_before_running():
+    from pusupu_jax.machine import simulate_machine
+    from pusupu_jax.plant.geometry import GeometryError
+
+    path = np.repeat(G.home[None], 10, axis=0)
+    path[5, 0] = 0.6
+    with pytest.raises(GeometryError, match="pose 5 .*(unreachable|out of stroke|near-singular)"):
+        simulate_machine(SERVO, path)

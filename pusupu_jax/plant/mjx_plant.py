@@ -13,6 +13,8 @@ once with :meth:`MJXPlant.create` and reuse it, or every call compiles anew.
 
 from __future__ import annotations
 
+import contextlib
+import io
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,7 +22,9 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
+
+with contextlib.redirect_stdout(io.StringIO()):  # MJX prints its optional GPU backends' import failures
+    from mujoco import mjx
 
 from .geometry import Geometry
 from .model import ModelOptions, build_model, slide_dofs, slide_qpos
