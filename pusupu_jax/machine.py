@@ -20,7 +20,7 @@ from .params import LoopRates, ServoParams, validate
 from .plant import kinematics
 from .plant.geometry import Geometry
 from .plant.mjx_plant import MJXPlant
-from .plant.model import ModelOptions, loop_closure_residual
+from .plant.model import ModelOptions
 from .sim import rollout
 
 MACHINE_MODES = ("imc", "pid")
@@ -64,13 +64,12 @@ def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: Mo
     t0 = time.perf_counter()
     trace = jax.block_until_ready(_runner(plant, rates, mode)(servo, reference=jnp.asarray(s_ref / r)))
     wall = time.perf_counter() - t0
-    data = trace.state["plant"]
-    platform = np.asarray(data.xpos)[:, plant.mj_model.body("platform").id]
+    platform = np.asarray(trace.observation["platform_pos"])
     e_platform = np.linalg.norm(platform - np.asarray(path)[:, :3], axis=1)
     e_branch = np.asarray(trace.position) - s_ref
     torque = np.asarray(trace.torque)
     rho = metrics.synchronous_error(jnp.asarray(e_branch), rates.dt_position)
-    residual = loop_closure_residual(plant.mj_model, data.xpos, data.xmat)
+    residual = np.asarray(trace.observation["closure_residual"])
     result = {
         "mode": mode, "kin_error_seed": options.kin_error_seed, "duration_s": len(path) * rates.dt_position,
         "rms_tracking_error_mm": float(np.sqrt(np.mean(e_platform**2)) * 1e3),

@@ -53,7 +53,8 @@ class Trace:
     velocity: Any  # slider velocity, m/s
     current: Any  # armature current, A
     torque: Any  # motor torque Kt*I, N m
-    state: Any  # every controller, electrical and plant state (pytree)
+    state: Any  # every controller and electrical state (pytree)
+    observation: Any  # what the plant's observe() keeps (pytree)
 
 
 def initial_state(drive: loops.Drive, plant, aux, outer: str) -> dict:
@@ -88,7 +89,8 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
         x, v = plant.slider(aux, c["plant"])
         i = loops.electrical_current(c["electrical"])
         return dict(reference=ref, command=command, theta=theta, omega=omega, position=x, velocity=v,
-                    current=i, torque=drive.Kt * i, state=c)
+                    current=i, torque=drive.Kt * i, state={k: s for k, s in c.items() if k != "plant"},
+                    observation=plant.observe(aux, c["plant"]))
 
     def mech_step(c, i_ref):
         _, omega = plant.measure(aux, c["plant"])

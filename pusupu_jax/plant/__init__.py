@@ -11,7 +11,9 @@ A plant is a hashable object (a static argument of the jitted rollout) with:
   speed [rad/s], shape ``(..., n_axes)``;
 * ``step(aux, state, torque) -> state``: advance one mechanical step with motor
   torques [N m] held;
-* ``slider(aux, state) -> (x, v)``: slider position [m] and velocity [m/s].
+* ``slider(aux, state) -> (x, v)``: slider position [m] and velocity [m/s];
+* ``observe(aux, state) -> pytree``: what the trace keeps of the plant at each outer
+  step (the full state of a large plant would not fit in memory over long runs).
 """
 
 from .axis import AxisPlant

@@ -59,6 +59,10 @@ class AxisPlant:
     def slider(self, aux: AxisAux, state):
         return aux.r * state[..., 0], aux.r * state[..., 1]
 
+    def observe(self, aux: AxisAux, state):
+        """The whole (small) state: motor angle [rad] and speed [rad/s] per axis, ``(..., 6, 2)``."""
+        return state
+
 
 def screw_ratio(servo: ServoParams):
     """Slider travel per motor radian ``lead / 2 pi`` [m/rad]."""

@@ -27,7 +27,7 @@ with contextlib.redirect_stdout(io.StringIO()):  # MJX prints its optional GPU b
     from mujoco import mjx
 
 from .geometry import Geometry
-from .model import ModelOptions, build_model, slide_dofs, slide_qpos
+from .model import ModelOptions, build_model, loop_closure_residual, slide_dofs, slide_qpos
 
 
 @jax.tree_util.register_dataclass
@@ -81,3 +81,9 @@ class MJXPlant:
 
     def slider(self, aux: MJXAux, data):
         return data.qpos[self._qpos] - self.mj_model.qpos0[self._qpos], data.qvel[self._dofs]
+
+    def observe(self, aux: MJXAux, data):
+        """Platform position [m] and orientation (3x3), and the loop-closure residual [m]."""
+        body = self.mj_model.body("platform").id
+        return {"platform_pos": data.xpos[body], "platform_mat": data.xmat[body].reshape(3, 3),
+                "closure_residual": loop_closure_residual(self.mj_model, data.xpos, data.xmat)}

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import jax.numpy as jnp
 import mujoco
 import numpy as np
 
@@ -172,22 +173,19 @@ def slide_qpos(model: mujoco.MjModel) -> np.ndarray:
     return np.array([model.jnt_qposadr[model.joint(f"slide_{i}").id] for i in range(6)])
 
 
-def loop_closure_residual(model: mujoco.MjModel, xpos, xmat) -> np.ndarray:
+def loop_closure_residual(model: mujoco.MjModel, xpos, xmat):
     """Largest distance [m] between the two anchors of the six spherical-joint ``connect`` constraints.
 
     ``xpos (..., nbody, 3)`` and ``xmat (..., nbody, 9 or 3x3)`` are body poses from
-    ``MjData`` or from a batch of MJX ``Data``; the result has the leading shape.
+    ``MjData`` or MJX ``Data`` (traced or not); the result has the leading shape.
     """
-    xpos = np.asarray(xpos)
-    xmat = np.asarray(xmat).reshape(xpos.shape[:-1] + (3, 3))
-    gaps = []
-    for i in range(6):
-        eq = model.equality(f"sphere_{i}").id
-        b1, b2 = model.eq_obj1id[eq], model.eq_obj2id[eq]
-        p1 = xpos[..., b1, :] + np.einsum("...ij,j->...i", xmat[..., b1, :, :], model.eq_data[eq, 0:3])
-        p2 = xpos[..., b2, :] + np.einsum("...ij,j->...i", xmat[..., b2, :, :], model.eq_data[eq, 3:6])
-        gaps.append(np.linalg.norm(p1 - p2, axis=-1))
-    return np.max(gaps, axis=0)
+    xpos = jnp.asarray(xpos)
+    xmat = jnp.asarray(xmat).reshape(xpos.shape[:-1] + (3, 3))
+    eqs = [model.equality(f"sphere_{i}").id for i in range(6)]
+    b1, b2 = model.eq_obj1id[eqs], model.eq_obj2id[eqs]
+    p1 = xpos[..., b1, :] + jnp.einsum("...kij,kj->...ki", xmat[..., b1, :, :], model.eq_data[eqs, 0:3])
+    p2 = xpos[..., b2, :] + jnp.einsum("...kij,kj->...ki", xmat[..., b2, :, :], model.eq_data[eqs, 3:6])
+    return jnp.max(jnp.linalg.norm(p1 - p2, axis=-1), axis=-1)
 
 
 def assembled_qpos(model: mujoco.MjModel, real: Geometry, q) -> np.ndarray:
