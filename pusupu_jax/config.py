@@ -28,8 +28,13 @@ XLA_CPU_WORKAROUND = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 
 
 def apply_xla_workaround() -> None:
-    """Add :data:`XLA_CPU_WORKAROUND` to ``XLA_FLAGS`` unless the user set that flag themselves."""
+    """Add :data:`XLA_CPU_WORKAROUND` to ``XLA_FLAGS`` unless the user set that flag themselves.
+
+    ``PUSUPU_XLA_WORKAROUND=0`` leaves ``XLA_FLAGS`` alone (for a jaxlib that no longer knows the flag).
+    """
     flags = os.environ.get("XLA_FLAGS", "")
+    if os.environ.get("PUSUPU_XLA_WORKAROUND") == "0":
+        return
     if "xla_cpu_enable_concurrency_optimized_scheduler" not in flags:
         os.environ["XLA_FLAGS"] = f"{flags} {XLA_CPU_WORKAROUND}".strip()
 
