@@ -1,7 +1,7 @@
 """Co-simulation throughput: the cascade + MJX mechanism against the MJX plant alone; prints JSON.
 
     python benchmarks/bench_cosim.py [--batches 1,16,64] [--horizon-s 0.05] [--repeats 3] [--grad-batch 16]
-                                     [--dtype float64|float32]
+                                     [--dtype float64|float32] [--remat]
 
 An env-step is one mechanical step (0.25 ms of simulated time) of one machine.
 ``cascade+plant`` runs the full servo cascade of six axes (five current-loop ticks per
@@ -30,6 +30,7 @@ def main():
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--grad-batch", type=int, default=16)
     ap.add_argument("--dtype", choices=("float64", "float32"), default="float64")
+    ap.add_argument("--remat", action="store_true", help="rematerialise each position period in the gradient")
     args = ap.parse_args()
     from pusupu_jax.config import setup_jax
 
@@ -64,7 +65,7 @@ def main():
         return d.qpos
 
     def loss(p):
-        tr = rollout(p, None, ref, plant=plant, rates=rates, outer="imc")
+        tr = rollout(p, None, ref, plant=plant, rates=rates, outer="imc", remat=args.remat)
         return jnp.mean((tr.theta - tr.reference) ** 2)
 
     def timed(fn, x):
@@ -92,7 +93,7 @@ def main():
     params = stack([base.replace(Kv=base.Kv * f) for f in rng.uniform(0.8, 1.2, args.grad_batch)])
     fwd = timed(jax.jit(jax.vmap(loss)), params)
     grad = timed(jax.jit(jax.vmap(jax.grad(loss))), params)
-    result["gradient"] = {"batch": args.grad_batch, "forward_s": fwd, "grad_s": grad, "grad_over_forward": grad / fwd,
+    result["gradient"] = {"batch": args.grad_batch, "remat": args.remat, "forward_s": fwd, "grad_s": grad, "grad_over_forward": grad / fwd,
                           "grad_env_steps_per_s": args.grad_batch * env_steps_per_run / grad}
     print(json.dumps(result, indent=2))
 

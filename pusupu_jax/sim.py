@@ -71,12 +71,15 @@ def initial_state(drive: loops.Drive, plant, aux, outer: str) -> dict:
 
 
 def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), rates: LoopRates = LoopRates(),
-            outer: str = "imc") -> Trace:
-    """Run the cascade closed up to ``outer`` against ``plant`` (pure; jit with plant, rates, outer static).
+            outer: str = "imc", remat: bool = False) -> Trace:
+    """Run the cascade closed up to ``outer`` against ``plant`` (pure; jit with plant, rates, outer, remat static).
 
     ``reference`` has shape ``(N, n_axes)`` in the outer loop's units, one sample per
     outer period: motor angle [rad] for 'imc' and 'pid', motor speed [rad/s] for
-    'velocity', current [A] for 'current' (one per mechanical step).
+    'velocity', current [A] for 'current' (one per mechanical step).  ``remat=True``
+    recomputes each outer period in the backward pass instead of storing its inner steps
+    (``jax.checkpoint``): reverse-mode memory then grows with the number of outer periods
+    only, for about one extra forward pass.
     """
     if outer not in OUTER_LOOPS:
         raise ValueError(f"rollout: expected outer in {OUTER_LOOPS}, got {outer!r}")
@@ -129,12 +132,15 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
         c, command = period(c, ref)
         return c, record(start, ref, command)
 
+    if remat:
+        body = jax.checkpoint(body)
+
     _, rec = jax.lax.scan(body, initial_state(drive, plant, aux, outer), reference)
     t = jnp.arange(reference.shape[0]) * dt
     return Trace(t=t, **rec)
 
 
-_rollout_jit = jax.jit(rollout, static_argnames=("plant", "rates", "outer"))
+_rollout_jit = jax.jit(rollout, static_argnames=("plant", "rates", "outer", "remat"))
 
 
 @functools.lru_cache(maxsize=None)
