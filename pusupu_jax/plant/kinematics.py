@@ -44,12 +44,18 @@ def rot_y(t):
     return jnp.stack([jnp.stack([c, z, s], -1), jnp.stack([z, o, z], -1), jnp.stack([-s, z, c], -1)], -2)
 
 
+def xy_hinge_angles(direction):
+    """Angles of a hinge about x then a hinge about y that turn the z axis onto ``direction`` (any length)."""
+    direction = jnp.asarray(direction)
+    length = jnp.linalg.norm(direction, axis=-1)
+    return jnp.arctan2(-direction[..., 1], direction[..., 2]), jnp.arcsin(direction[..., 0] / length)
+
+
 def upu_angles(q):
     """Joint coordinates of the UPU branch for pose ``q``: (phi1, phi2, leg length [m], alpha, beta)."""
     p = q[..., :3]
     length = jnp.linalg.norm(p, axis=-1)
-    phi1 = jnp.arctan2(-p[..., 1], p[..., 2])
-    phi2 = jnp.arcsin(p[..., 0] / length)
+    phi1, phi2 = xy_hinge_angles(p)
     n = jnp.einsum("...ij,...j->...i", rot_x(q[..., 3]) @ rot_y(q[..., 4]), jnp.array([0.0, 0.0, 1.0]))
     m = jnp.einsum("...ij,...j->...i", rot_x(-phi1), n)
     beta = -jnp.arcsin(m[..., 1])

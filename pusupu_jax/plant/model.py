@@ -31,8 +31,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from .geometry import Geometry, validate_geometry
-from .kinematics import inverse_kinematics, joint_points, upu_angles
+from .geometry import Geometry, GeometryError, validate_geometry
+from .kinematics import inverse_kinematics, joint_points, upu_angles, xy_hinge_angles
 
 GROUP_VISUAL = 1
 
@@ -66,12 +66,6 @@ def _frame_z_to(direction) -> np.ndarray:
     return quat
 
 
-def rod_angles(direction_local):
-    """Hinge angles (about local x, then local y) that turn the z axis onto a unit vector."""
-    w = np.asarray(direction_local, dtype=float)
-    return np.arctan2(-w[..., 1], w[..., 2]), np.arcsin(np.clip(w[..., 0], -1.0, 1.0))
-
-
 def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptions()) -> mujoco.MjModel:
     """Compile the mechanism; ``geom`` is the nominal geometry (default :meth:`Geometry.default`)."""
     nominal = Geometry.default() if geom is None else geom
@@ -81,7 +75,7 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     home = np.asarray(nominal.home, dtype=float)
     s_home = np.asarray(inverse_kinematics(real, home))
     if not np.isfinite(s_home).all():
-        raise ValueError("build_model: the home pose is unreachable for this geometry")
+        raise GeometryError(f"geometry.home: the home pose {home.tolist()} is unreachable for this geometry")
     phi1, phi2, leg, alpha, beta = (float(v) for v in upu_angles(home))
     joints = np.asarray(joint_points(real, home))
 
@@ -205,7 +199,7 @@ def assembled_qpos(model: mujoco.MjModel, real: Geometry, q) -> np.ndarray:
         start = np.asarray(real.rail_points[i]) + s[i] * np.asarray(real.rail_dirs[i])
         w = rot.reshape(3, 3).T @ (joints[i] - start)
         mujoco.mju_quat2Mat(rot, model.body_quat[rod.id])
-        ax, ay = rod_angles(rot.reshape(3, 3).T @ (w / np.linalg.norm(w)))
+        ax, ay = (float(a) for a in xy_hinge_angles(rot.reshape(3, 3).T @ w))
         qpos[model.jnt_qposadr[model.joint(f"rod_{i}_x").id]] = ax
         qpos[model.jnt_qposadr[model.joint(f"rod_{i}_y").id]] = ay
     return qpos
