@@ -108,8 +108,9 @@ def _analyze(args) -> int:
     return 0
 
 
-def _num(x):
-    return "inf" if x is None else f"{x:.4g}"
+def _num(x, none="inf"):
+    """A table cell: 4 significant digits; ``none`` where the value is None (infinite margin, unsettled step)."""
+    return none if x is None else f"{x:.4g}"
 
 
 def _sim(args) -> int:
@@ -155,7 +156,7 @@ def _sim(args) -> int:
     keys = [k for k in result if isinstance(result[k], list)]
     print(f"{'axis':>4} " + " ".join(f"{k:>16}" for k in keys))
     for a in range(len(result[keys[0]])):
-        print(f"{a:>4} " + " ".join(f"{_num(result[k][a]):>16}" for k in keys))
+        print(f"{a:>4} " + " ".join(f"{_num(result[k][a], 'not settled'):>16}" for k in keys))
     if args.plot:
         print(f"plot: {args.plot}")
     return 0
