@@ -8,6 +8,7 @@ reports the metrics of ``pusupu sim --plant mjx``.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 
@@ -18,6 +19,7 @@ import numpy as np
 from . import metrics
 from .params import LoopRates, ServoParams, validate
 from .plant import kinematics
+from .plant.axis import screw_ratio
 from .plant.geometry import Geometry
 from .plant.mjx_plant import MJXPlant
 from .plant.model import ModelOptions
@@ -31,7 +33,7 @@ def machine_rates(options: ModelOptions = ModelOptions(), rates: LoopRates = Loo
     n_mech = rates.f_current * options.timestep
     if abs(n_mech - round(n_mech)) > 1e-9:
         raise ValueError(f"the model timestep {options.timestep} s is not a whole number of current-loop ticks")
-    return LoopRates(rates.f_current, rates.n_velocity, rates.n_position, int(round(n_mech)), rates.method)
+    return dataclasses.replace(rates, n_mech=int(round(n_mech)))
 
 
 @functools.lru_cache(maxsize=8)
@@ -60,7 +62,7 @@ def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: Mo
     plant = _plant(options)
     s_home = kinematics.inverse_kinematics(geom, jnp.asarray(geom.home))
     s_ref = np.asarray(kinematics.inverse_kinematics(geom, jnp.asarray(path)) - s_home)
-    r = np.asarray(servo.lead) / (2 * np.pi)
+    r = np.asarray(screw_ratio(servo))
     t0 = time.perf_counter()
     trace = jax.block_until_ready(_runner(plant, rates, mode)(servo, reference=jnp.asarray(s_ref / r)))
     wall = time.perf_counter() - t0

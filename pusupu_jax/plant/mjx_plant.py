@@ -26,6 +26,7 @@ import numpy as np
 with contextlib.redirect_stdout(io.StringIO()):  # MJX prints its optional GPU backends' import failures
     from mujoco import mjx
 
+from .axis import screw_ratio
 from .geometry import Geometry
 from .model import ModelOptions, build_model, loop_closure_residual, slide_dofs, slide_qpos
 
@@ -64,7 +65,7 @@ class MJXPlant:
         if not np.isclose(dt, self.options.timestep, rtol=1e-9):
             raise ValueError(f"MJXPlant: the mechanical step rates.dt_mech = {dt} s must equal the model "
                              f"timestep {self.options.timestep} s")
-        r = servo.lead / (2.0 * jnp.pi)
+        r = screw_ratio(servo)
         armature = self.mjx_model.dof_armature.at[self._dofs].set(servo.eta * servo.J / r**2)
         return MJXAux(self.mjx_model.replace(dof_armature=armature), servo.eta / r, r)
 
