@@ -143,10 +143,13 @@ def closed_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, rates: LoopR
     return {"current": cl_i, "velocity": cl_v, "position": cl_p}
 
 
-def open_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, mode: str = "imc") -> dict:
-    """Continuous loop gains ``L`` (closed loop = ``L/(1+L)`` at that point) of each loop, broken at the controller."""
+def open_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, mode: str = "imc", closed: dict | None = None) -> dict:
+    """Continuous loop gains ``L`` (closed loop = ``L/(1+L)`` at that point) of each loop, broken at the controller.
+
+    ``closed``: the continuous :func:`closed_loops` of the same axis and mode, when the caller has them.
+    """
     b = blocks(servo, load, axis)
-    cl = closed_loops(servo, load, axis, mode=mode)
+    cl = closed_loops(servo, load, axis, mode=mode) if closed is None else closed
     p_i = ct.interconnect([b["EMF"], b["u"], b["Kt"], b["electrical"], b["mechanics"], b["Gcf"]],
                           inputs="u_pi", outputs="i_f", check_unused=False)
     p_v = ct.interconnect([cl["current"], b["Gw"]], inputs="i_ref", outputs="w_f", check_unused=False)
@@ -219,8 +222,8 @@ def loop_metrics(servo: ServoParams, load: AxisLoad, mode: str = "imc") -> dict:
     """Per axis and loop: crossover_hz, phase_margin_deg, gain_margin_db, bandwidth_hz and :func:`step_metrics`."""
     axes = []
     for k in range(N_AXES):
-        ol = open_loops(servo, load, k, mode)
         cl = closed_loops(servo, load, k, mode=mode)
+        ol = open_loops(servo, load, k, mode, closed=cl)
         row = {}
         for name, out in zip(LOOPS, (0, 1, 2)):
             row[name] = (margins(ol[name]) | {"bandwidth_hz": bandwidth_hz(cl[name][out, 0])}

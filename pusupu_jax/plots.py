@@ -59,8 +59,8 @@ def plot_trace(trace, params, path, axis: int = 0, title: str = "") -> Path:
 
 def plot_loops(servo, load, path, axis: int = 0, mode: str = "imc") -> Path:
     """Bode plots of the three open loops (with margins) and step responses of the closed loops."""
-    ol = analysis.open_loops(servo, load, axis, mode)
     cl = analysis.closed_loops(servo, load, axis, mode=mode)
+    ol = analysis.open_loops(servo, load, axis, mode, closed=cl)
     fig, ax = plt.subplots(3, 3, figsize=(14, 9))
     spans = {"current": (1e1, 1e5), "velocity": (1e0, 1e4), "position": (1e-1, 1e3)}
     for col, (name, out) in enumerate(zip(analysis.LOOPS, (0, 1, 2))):
