@@ -60,8 +60,8 @@ class AxisPlant:
         return aux.r * state[..., 0], aux.r * state[..., 1]
 
     def observe(self, aux: AxisAux, state):
-        """The whole (small) state: motor angle [rad] and speed [rad/s] per axis, ``(..., 6, 2)``."""
-        return state
+        """Nothing: the state is the motor angle and speed, which the trace already holds."""
+        return ()
 
 
 def screw_ratio(servo: ServoParams):
