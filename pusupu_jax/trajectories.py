@@ -65,18 +65,16 @@ def platform_path(kind: str, home, rates: LoopRates = LoopRates(), v_max: float 
     if not (np.isfinite(hold) and hold >= 0):
         raise ParameterError(f"trajectory hold: expected a non-negative number of seconds, got {hold!r}")
     dt = rates.dt_position
-    xy = []
+
+    def line(a, b):
+        a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+        return a + _quintic(dt, float(np.linalg.norm(b - a)), v_max, a_max)[:, None] * (b - a)
+
     if kind == "arc":
-        u = _quintic(dt, 0.2, v_max, a_max)
-        xy.append(np.stack([0.2 * u, 0 * u], axis=1))
-        u = _quintic(dt, 0.2 * 1.5 * np.pi, v_max, a_max)
-        phi = 1.5 * np.pi * u
-        xy.append(np.stack([0.2 * np.cos(phi), 0.2 * np.sin(phi)], axis=1))
+        phi = 1.5 * np.pi * _quintic(dt, 0.2 * 1.5 * np.pi, v_max, a_max)
+        xy = [line([0.0, 0.0], [0.2, 0.0]), np.stack([0.2 * np.cos(phi), 0.2 * np.sin(phi)], axis=1)]
     else:
-        corners = np.array([[0.0, 0.0], [-0.1, -0.1], [0.1, 0.1]])
-        for a, b in zip(corners[:-1], corners[1:]):
-            u = _quintic(dt, float(np.linalg.norm(b - a)), v_max, a_max)
-            xy.append(a + u[:, None] * (b - a))
+        xy = [line([0.0, 0.0], [-0.1, -0.1]), line([-0.1, -0.1], [0.1, 0.1])]
     xy = np.concatenate(xy + [np.repeat(xy[-1][-1:], int(round(hold / dt)), axis=0)])
     home = np.asarray(home, dtype=float)
     q = np.repeat(home[None], len(xy), axis=0)
