@@ -162,7 +162,6 @@ def _sim(args) -> int:
     return 0
 
 
-
 def _sim_machine(args, servo, rates) -> int:
     from .machine import simulate_machine
     from .plant.model import ModelOptions
@@ -174,7 +173,7 @@ def _sim_machine(args, servo, rates) -> int:
     path = platform_path(args.trajectory, Geometry.default().home, rates)
     options = ModelOptions(kin_error_seed=args.kin_error)
     print(f"simulating {len(path) * rates.dt_position:.1f} s of the {args.trajectory} path on the MJX machine "
-          f"({args.mode} mode); the first run compiles for about a minute", file=sys.stderr)
+          f"({args.mode} mode); the first run compiles for about 15 s", file=sys.stderr)
     result, trace = simulate_machine(servo, path, mode=args.mode, options=options, rates=rates)
     result = {"plant": "mjx", "trajectory": args.trajectory} | result
     if args.plot:

@@ -128,7 +128,6 @@ class AxisLoad(_PerAxis):
     v_coulomb: Any = _f(0.001, "m/s", "velocity scale of the tanh smoothing of Coulomb friction")
 
 
-
 @dataclass(frozen=True)
 class LoopRates:
     """Loop rates (static: changing them recompiles).
