@@ -59,6 +59,13 @@ def perturbed(geom: Geometry, seed: int, std: float) -> Geometry:
         rod_lengths=np.asarray(geom.rod_lengths) + rng.normal(0.0, std, 6))
 
 
+def _in_frame(quat, vector) -> np.ndarray:
+    """``vector`` (world or parent axes) expressed in the frame rotated by ``quat``."""
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, np.asarray(quat, dtype=float))
+    return rot.reshape(3, 3).T @ np.asarray(vector, dtype=float)
+
+
 def _frame_z_to(direction) -> np.ndarray:
     """A quaternion (w, x, y, z) turning the local z axis onto ``direction``."""
     quat = np.zeros(4)
@@ -124,14 +131,11 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     for i in range(6):
         u = np.asarray(real.rail_dirs[i], dtype=float)
         rail_quat = _frame_z_to(u)
-        slider = body(world, f"slider_{i}", np.asarray(real.rail_points[i]) + s_home[i] * u, rail_quat,
-                      np.asarray(nominal.slider_mass)[i], [1e-3, 1e-3, 1e-3])
+        start = np.asarray(real.rail_points[i]) + s_home[i] * u
+        slider = body(world, f"slider_{i}", start, rail_quat, np.asarray(nominal.slider_mass)[i], [1e-3, 1e-3, 1e-3])
         slider.add_joint(name=f"slide_{i}", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 0, 1], ref=float(s_home[i]))
         # the rod frame's z axis points from the slider's U joint to the spherical joint at home
-        rail_rot = np.zeros(9)
-        mujoco.mju_quat2Mat(rail_rot, rail_quat)
-        start = np.asarray(real.rail_points[i]) + s_home[i] * u
-        rod_dir_local = rail_rot.reshape(3, 3).T @ (joints[i] - start)
+        rod_dir_local = _in_frame(rail_quat, joints[i] - start)
         length = float(np.asarray(real.rod_lengths)[i])
         rod_m = float(np.asarray(nominal.rod_mass)[i])
         rod = body(slider, f"rod_{i}", [0, 0, 0], _frame_z_to(rod_dir_local / np.linalg.norm(rod_dir_local)),
@@ -194,12 +198,9 @@ def assembled_qpos(model: mujoco.MjModel, real: Geometry, q) -> np.ndarray:
     for i in range(6):
         qpos[model.jnt_qposadr[model.joint(f"slide_{i}").id]] = s[i]
         slider, rod = model.body(f"slider_{i}"), model.body(f"rod_{i}")
-        rot = np.zeros(9)
-        mujoco.mju_quat2Mat(rot, model.body_quat[slider.id])
         start = np.asarray(real.rail_points[i]) + s[i] * np.asarray(real.rail_dirs[i])
-        w = rot.reshape(3, 3).T @ (joints[i] - start)
-        mujoco.mju_quat2Mat(rot, model.body_quat[rod.id])
-        ax, ay = (float(a) for a in xy_hinge_angles(rot.reshape(3, 3).T @ w))
+        w = _in_frame(model.body_quat[slider.id], joints[i] - start)
+        ax, ay = (float(a) for a in xy_hinge_angles(_in_frame(model.body_quat[rod.id], w)))
         qpos[model.jnt_qposadr[model.joint(f"rod_{i}_x").id]] = ax
         qpos[model.jnt_qposadr[model.joint(f"rod_{i}_y").id]] = ay
     return qpos
