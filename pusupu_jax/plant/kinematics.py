@@ -90,10 +90,7 @@ def inverse_kinematics(geom: Geometry, q):
 
 def jacobian(geom: Geometry, q):
     """``ds/dq``, shape ``(..., 6, 5)`` (forward-mode derivative of the closed-form IK)."""
-    jac = jax.jacfwd(lambda qq: inverse_kinematics(geom, qq))
-    for _ in range(q.ndim - 1):
-        jac = jax.vmap(jac)
-    return jac(q)
+    return jnp.vectorize(jax.jacfwd(lambda qq: inverse_kinematics(geom, qq)), signature="(5)->(6,5)")(q)
 
 
 def forward_kinematics(geom: Geometry, s, q0=None, iterations: int = 12):
@@ -102,7 +99,7 @@ def forward_kinematics(geom: Geometry, s, q0=None, iterations: int = 12):
     ``residual`` is the max |IK(q) - s| after the last iteration: near zero when ``s``
     is consistent with the mechanism (six sliders over-determine five coordinates).
     """
-    q0 = jnp.broadcast_to(jnp.asarray(geom.home if q0 is None else q0, dtype=s.dtype), s.shape[:-1] + (5,))
+    q0 = jnp.asarray(geom.home if q0 is None else q0, dtype=s.dtype)
 
     def solve(s1, q1):
         def step(q, _):
@@ -113,10 +110,7 @@ def forward_kinematics(geom: Geometry, s, q0=None, iterations: int = 12):
         q, _ = jax.lax.scan(step, q1, None, length=iterations)
         return q, jnp.max(jnp.abs(inverse_kinematics(geom, q) - s1))
 
-    f = solve
-    for _ in range(s.ndim - 1):
-        f = jax.vmap(f)
-    return f(s, q0)
+    return jnp.vectorize(solve, signature="(6),(5)->(5),()")(s, q0)
 
 
 def condition_number(geom: Geometry, q):
@@ -145,11 +139,11 @@ def check_poses(geom: Geometry, q, cond_max: float = 30.0, margin: float = 0.0) 
     if (q[:, 2] <= 0).any():
         k = int(np.argmax(q[:, 2] <= 0))
         raise GeometryError(f"pose {k}: expected the platform above the base (z > 0), got z = {q[k, 2]:.4g} m")
-    _, disc = (np.asarray(a) for a in _branch_terms(geom, jnp.asarray(q)))
+    ud, disc = (np.asarray(a) for a in _branch_terms(geom, jnp.asarray(q)))
     if (disc < 0).any():
         k, i = np.argwhere(disc < 0)[0]
         raise GeometryError(f"pose {k} {_fmt(q[k])}: branch {i} unreachable (its rod is too short for the joint)")
-    s = np.asarray(inverse_kinematics(geom, jnp.asarray(q)))
+    s = ud - np.sqrt(disc)  # inverse_kinematics, from the terms already at hand
     lo, hi = np.asarray(geom.stroke_min) + margin, np.asarray(geom.stroke_max) - margin
     out = (s < lo) | (s > hi)
     if out.any():
