@@ -3,7 +3,7 @@
     pusupu analyze [--params FILE] [--mode imc|pid] [--json] [--plot PNG]
     pusupu sim --plant axis --trajectory step|ramp|sine [--mode imc|pid] [--params FILE]
                [--duration S] [--json] [--plot PNG]
-    pusupu sim --plant mjx --trajectory arc|p2p [--mode imc|pid] [--params FILE] [--kin-error SEED]
+    pusupu sim --plant mjx --trajectory arc|p2p [--mode imc|pid|hybrid] [--params FILE] [--kin-error SEED]
                [--json] [--plot PNG]
 
 Errors in the input print one line ``pusupu: error: ...`` and exit with status 2.
@@ -45,7 +45,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="step|ramp|sine for the axis plant (default step), arc|p2p for mjx (default arc)")
     s.add_argument("--kin-error", type=int, metavar="SEED",
                    help="mjx: the simulated machine gets seeded kinematic errors (0.5 mm std)")
-    s.add_argument("--mode", choices=("imc", "pid"), default="imc", help="position controller (default imc)")
+    s.add_argument("--mode", choices=("imc", "pid", "hybrid"), default="imc",
+                   help="imc or pid on every branch, or hybrid (mjx only: branches 1-5 IMC, branch 6 force "
+                        "control, eq. 10-14; gains from the params file's hybrid section) (default imc)")
     s.add_argument("--params", metavar="FILE", help="parameter YAML")
     s.add_argument("--duration", type=float, metavar="S", help="seconds (default per trajectory)")
     s.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -62,13 +64,9 @@ def main(argv=None) -> int:
 
 
 def _load(args):
-    from .params import AxisLoad, LoopRates, ServoParams
+    from .config import load_params_file
 
-    if args.params:
-        from .config import load_params_file
-
-        return load_params_file(args.params)
-    return ServoParams.table1(), AxisLoad.default(), LoopRates()
+    return load_params_file(args.params)
 
 
 def _check_plot_path(path):
@@ -82,7 +80,7 @@ def _check_plot_path(path):
 def _analyze(args) -> int:
     from . import analysis
 
-    servo, load, _ = _load(args)
+    servo, load, *_ = _load(args)
     if args.plot:
         _check_plot_path(args.plot)
     with warnings.catch_warnings():
@@ -123,12 +121,14 @@ def _sim(args) -> int:
         raise ParameterError(f"--trajectory: expected one of {kinds} with --plant {args.plant}, got {args.trajectory!r}")
     if args.plant == "axis" and args.kin_error is not None:
         raise ParameterError("--kin-error: only the mjx plant has kinematic errors")
-    servo, load, rates = _load(args)
+    servo, load, rates, hybrid = _load(args)
     if args.plot:
         _check_plot_path(args.plot)
     setup_jax()
     if args.plant == "mjx":
-        return _sim_machine(args, servo, rates)
+        return _sim_machine(args, servo, rates, hybrid)
+    if args.mode == "hybrid":
+        raise ParameterError("--mode hybrid: needs the mechanism (--plant mjx); the axis plant has no redundant branch")
     import jax
 
     from . import metrics
@@ -162,7 +162,7 @@ def _sim(args) -> int:
     return 0
 
 
-def _sim_machine(args, servo, rates) -> int:
+def _sim_machine(args, servo, rates, hybrid) -> int:
     from .machine import simulate_machine
     from .plant.model import ModelOptions
     from .trajectories import platform_path
@@ -174,7 +174,7 @@ def _sim_machine(args, servo, rates) -> int:
     options = ModelOptions(kin_error_seed=args.kin_error)
     print(f"simulating {len(path) * rates.dt_position:.1f} s of the {args.trajectory} path on the MJX machine "
           f"({args.mode} mode); the first run compiles for about 15 s", file=sys.stderr)
-    result, trace = simulate_machine(servo, path, mode=args.mode, options=options, rates=rates)
+    result, trace = simulate_machine(servo, path, mode=args.mode, options=options, rates=rates, hybrid=hybrid)
     result = {"plant": "mjx", "trajectory": args.trajectory} | result
     if args.plot:
         from .plots import plot_platform_path
@@ -188,6 +188,8 @@ def _sim_machine(args, servo, rates) -> int:
           f"in {result['wall_s']:.2f} s (compile included)")
     for key in ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho", "loop_closure_residual_max_mm"):
         print(f"  {key:<30} {_num(result[key])}")
+    for key, value in result.get("hybrid", {}).items():
+        print(f"  hybrid {key:<23} {value if isinstance(value, str) else _num(value)}")
     keys = ("branch_rms_error_mm", "motor_torque_peak_nm", "branch_force_peak_n")
     print(f"{'branch':>6} " + " ".join(f"{k:>22}" for k in keys))
     for b in range(6):

@@ -1,11 +1,13 @@
 """Parameter files (YAML) and the JAX runtime set-up shared by the CLI, tests and benchmarks (host-side).
 
-A parameter file has up to three sections, each optional; a scalar applies to every
-axis, a list gives one value per axis; SI units as documented in ``docs/parameters.md``::
+A parameter file has up to four sections, each optional; in ``servo`` and ``load`` a
+scalar applies to every axis, a list gives one value per axis; SI units as documented in
+``docs/parameters.md``::
 
     servo:   {lambda1: 0.018, Kv: [0.015, 0.015, 0.015, 0.015, 0.015, 0.02]}
     load:    {mass: 25.0, inclination: 1.5708}
     rates:   {f_current: 20000, n_velocity: 5, n_position: 4, method: tustin}
+    hybrid:  {m6: 1.0, c6: 5000.0, g: 1000.0, form: signed}   # eq. 14, machine-wide scalars
 """
 
 from __future__ import annotations
@@ -13,12 +15,14 @@ from __future__ import annotations
 import dataclasses
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 import yaml
 
+from .hybrid import HybridGains
 from .params import AxisLoad, LoopRates, ParameterError, ServoParams
 
-SECTIONS = ("servo", "load", "rates")
+SECTIONS = ("servo", "load", "rates", "hybrid")
 
 # jaxlib 0.10.2 on CPU: vmapped rollouts of 768 or more parameter sets wedge XLA's thread
 # pool (every worker idle, the caller waiting forever; 5 of 5 runs hung here).  Turning off
@@ -39,17 +43,27 @@ def apply_xla_workaround() -> None:
         os.environ["XLA_FLAGS"] = f"{flags} {XLA_CPU_WORKAROUND}".strip()
 
 
-def load_params_file(path) -> tuple[ServoParams, AxisLoad, LoopRates]:
-    """Read and validate a parameter file; raises :class:`ParameterError` naming the problem."""
+class ParamsFile(NamedTuple):
+    """A parameter file's sections, each at its defaults where the file leaves it out."""
+
+    servo: ServoParams
+    load: AxisLoad
+    rates: LoopRates
+    hybrid: HybridGains
+
+
+def load_params_file(path=None) -> ParamsFile:
+    """Read and validate a parameter file (None: every default); raises :class:`ParameterError` naming the problem."""
+    if path is None:
+        return ParamsFile(ServoParams.table1(), AxisLoad.default(), LoopRates(), HybridGains())
     path = Path(path)
     data = read_yaml_mapping(path, "section", SECTIONS)
     try:
-        servo = ServoParams.from_mapping(data.get("servo") or {})
-        load = AxisLoad.from_mapping(data.get("load") or {})
-        rates = _rates(data.get("rates") or {})
+        return ParamsFile(ServoParams.from_mapping(data.get("servo") or {}),
+                          AxisLoad.from_mapping(data.get("load") or {}), _rates(data.get("rates") or {}),
+                          HybridGains.from_mapping(data.get("hybrid") or {}))
     except ParameterError as e:
         raise ParameterError(f"{path}: {e}") from None
-    return servo, load, rates
 
 
 def read_yaml_mapping(path: Path, what: str, keys, error=ParameterError) -> dict:

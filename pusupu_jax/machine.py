@@ -16,16 +16,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import metrics
+from . import hybrid as hybrid_law
 from .params import LoopRates, ServoParams, validate
-from .plant import kinematics
+from .plant import dynamics, kinematics
 from .plant.axis import screw_ratio
 from .plant.geometry import Geometry
 from .plant.mjx_plant import MJXPlant
 from .plant.model import ModelOptions
 from .sim import rollout
 
-MACHINE_MODES = ("imc", "pid")
+MACHINE_MODES = ("imc", "pid", "hybrid")
 
 
 def machine_rates(options: ModelOptions = ModelOptions(), rates: LoopRates = LoopRates()) -> LoopRates:
@@ -46,31 +46,55 @@ def _runner(plant, rates, mode):
     return jax.jit(functools.partial(rollout, plant_params=None, plant=plant, rates=rates, outer=mode))
 
 
+def machine_reference(servo: ServoParams, path, mode: str, *, options: ModelOptions = ModelOptions(),
+                      rates: LoopRates = LoopRates(), geom: Geometry | None = None):
+    """The rollout reference for platform poses ``path`` (``(N, 5)``, one per position period, checked first).
+
+    Branch references are the nominal inverse kinematics as motor angles from home [rad],
+    ``(N, 6)``; for 'hybrid' a :class:`~pusupu_jax.hybrid.HybridReference` that adds
+    branch 6's minimum-norm inverse-dynamics force and the coupling row along the path.
+    """
+    if mode not in MACHINE_MODES:
+        raise ValueError(f"mode: expected one of {MACHINE_MODES}, got {mode!r}")
+    geom = Geometry.default() if geom is None else geom
+    kinematics.check_poses(geom, path)
+    s_home = kinematics.inverse_kinematics(geom, jnp.asarray(geom.home))
+    s_ref = np.asarray(kinematics.inverse_kinematics(geom, jnp.asarray(path)) - s_home)
+    theta = jnp.asarray(s_ref / np.asarray(screw_ratio(servo)))
+    if mode != "hybrid":
+        return theta
+    force, J = dynamics.inverse_dynamics_forces(servo, path, rates.dt_position, geom, options)
+    return hybrid_law.HybridReference(theta, jnp.asarray(force[:, hybrid_law.FORCE_AXIS]),
+                                      jnp.asarray(dynamics.coupling_row(J)))
+
+
 def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: ModelOptions = ModelOptions(),
-                     rates: LoopRates = LoopRates()) -> tuple[dict, dict]:
+                     rates: LoopRates = LoopRates(), hybrid: hybrid_law.HybridGains | None = None
+                     ) -> tuple[dict, dict]:
     """Run platform poses ``path`` (``(N, 5)``, one per position period) on the default-geometry machine.
 
+    ``hybrid``: the gains of eq. 14 for ``mode='hybrid'`` (default :class:`~pusupu_jax.hybrid.HybridGains`).
     Returns ``(result, trace)``: the metrics (see ``pusupu sim --plant mjx``) and arrays for
     plots (``t``, ``reference``, ``platform`` positions [m]).
     """
-    if mode not in MACHINE_MODES:
-        raise ValueError(f"mode: expected one of {MACHINE_MODES} (hybrid is not implemented yet), got {mode!r}")
     validate(servo)
-    geom = Geometry.default()
-    kinematics.check_poses(geom, path)
+    if mode == "hybrid":
+        hybrid = hybrid_law.HybridGains() if hybrid is None else hybrid
+        hybrid_law.validate_gains(hybrid)
     rates = machine_rates(options, rates)
+    reference = machine_reference(servo, path, mode, options=options, rates=rates)
     plant = _plant(options)
-    s_home = kinematics.inverse_kinematics(geom, jnp.asarray(geom.home))
-    s_ref = np.asarray(kinematics.inverse_kinematics(geom, jnp.asarray(path)) - s_home)
     r = np.asarray(screw_ratio(servo))
+    s_ref = np.asarray(reference.theta if mode == "hybrid" else reference) * r
+    extra = {"hybrid": hybrid} if mode == "hybrid" else {}
     t0 = time.perf_counter()
-    trace = jax.block_until_ready(_runner(plant, rates, mode)(servo, reference=jnp.asarray(s_ref / r)))
+    trace = jax.block_until_ready(_runner(plant, rates, mode)(servo, reference=reference, **extra))
     wall = time.perf_counter() - t0
     platform = np.asarray(trace.observation["platform_pos"])
     e_platform = np.linalg.norm(platform - np.asarray(path)[:, :3], axis=1)
     e_branch = np.asarray(trace.position) - s_ref
     torque = np.asarray(trace.torque)
-    rho = metrics.synchronous_error(jnp.asarray(e_branch), rates.dt_position)
+    rho = hybrid_law.synchronous_error(jnp.asarray(e_branch), rates.dt_position)
     residual = np.asarray(trace.observation["closure_residual"])
     result = {
         "mode": mode, "kin_error_seed": options.kin_error_seed, "duration_s": len(path) * rates.dt_position,
@@ -83,4 +107,12 @@ def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: Mo
         "loop_closure_residual_max_mm": float(residual.max() * 1e3),
         "wall_s": wall,
     }
+    if mode == "hybrid":
+        # the state is recorded at the start of each period, so F_6 of period k shows at k + 1
+        f_rho = np.asarray(trace.state["force"]["force"])[1:] - np.asarray(reference.force_ff)[:-1]
+        result["hybrid"] = {"form": hybrid.form, **{f.name: float(getattr(hybrid, f.name))
+                                                   for f in hybrid_law.gain_fields()},
+                            "force_ff_peak_n": float(np.abs(np.asarray(reference.force_ff)).max()),
+                            "f_rho_rms_n": float(np.sqrt(np.mean(f_rho**2))),
+                            "f_rho_peak_n": float(np.abs(f_rho).max())}
     return result, {"t": np.asarray(trace.t), "reference": np.asarray(path)[:, :3], "platform": platform}

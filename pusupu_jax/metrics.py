@@ -40,16 +40,3 @@ def step_summary(trace, params, tolerance: float = 0.02) -> dict:
     return {"overshoot_pct": [float(v) for v in jnp.ravel(overshoot)],
             "settling_time_s": [None if int(k) == n - 1 else (int(k) + 1) * dt for k in jnp.ravel(last)]}
 
-
-def synchronous_error(branch_errors, dt):
-    """Eq. 10-12: the synchronous error ``rho(t)`` of branches 1-5, shape ``(..., N)`` [m s].
-
-    ``xi`` are the 10 pairwise differences ``e_n - e_m`` (n < m) of the first five branch
-    errors (eq. 11); eq. 12 is read as the RMS of the ``xi`` (``sqrt(mean xi^2)``: the
-    printed square root over a plain sum would be imaginary for negative sums), integrated
-    over time by the rectangle rule with step ``dt`` [s].
-    """
-    e = branch_errors[..., :5]
-    n, m = jnp.triu_indices(5, k=1)
-    xi = e[..., n] - e[..., m]
-    return jnp.cumsum(jnp.sqrt(jnp.mean(xi**2, axis=-1)), axis=-1) * dt

@@ -25,12 +25,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import hybrid as hybrid_law
 from . import loops
 from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate
 from .plant import AxisPlant
 from .plant.axis import screw_ratio
 
-OUTER_LOOPS = ("current", "velocity", "imc", "pid")
+OUTER_LOOPS = ("current", "velocity", "imc", "pid", "hybrid")
 MODES = ("imc", "pid")
 
 
@@ -63,20 +64,29 @@ def initial_state(drive: loops.Drive, plant, aux, outer: str) -> dict:
              current=loops.pi_loop_init(drive.current))
     if outer != "current":
         c["velocity"] = loops.pi_loop_init(drive.velocity)
-    if outer == "imc":
+    if outer in ("imc", "hybrid"):
         c["position"] = loops.imc_init(drive.imc)
     elif outer == "pid":
         c["position"] = loops.pid_init(drive.pid)
+    if outer == "hybrid":
+        c["force"] = hybrid_law.init()
     return c
 
 
 def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), rates: LoopRates = LoopRates(),
-            outer: str = "imc", remat: bool = False) -> Trace:
+            outer: str = "imc", remat: bool = False, hybrid: hybrid_law.HybridGains | None = None) -> Trace:
     """Run the cascade closed up to ``outer`` against ``plant`` (pure; jit with plant, rates, outer, remat static).
 
     ``reference`` has shape ``(N, n_axes)`` in the outer loop's units, one sample per
     outer period: motor angle [rad] for 'imc' and 'pid', motor speed [rad/s] for
-    'velocity', current [A] for 'current' (one per mechanical step).  ``remat=True``
+    'velocity', current [A] for 'current' (one per mechanical step).
+
+    ``outer='hybrid'`` is the force/position hybrid control of :mod:`pusupu_jax.hybrid`:
+    ``reference`` is a :class:`~pusupu_jax.hybrid.HybridReference` and ``hybrid`` its
+    :class:`~pusupu_jax.hybrid.HybridGains`.  Every axis runs the IMC cascade, but the
+    current reference of axis ``FORCE_AXIS`` is replaced by ``F_6 r / (eta Kt)`` (clamped
+    to its ``I_max``), so that axis's position and velocity controllers run without
+    effect; ``state['force']`` records ``rho``, ``rho'`` and ``F_6`` [N].  ``remat=True``
     recomputes each outer period in the backward pass instead of storing its inner steps
     (``jax.checkpoint``): reverse-mode memory then grows with the number of outer periods
     only, for about one extra forward pass.
@@ -86,12 +96,15 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
     drive = loops.discretize(params, rates)
     aux = plant.prepare(params, plant_params, rates.dt_mech)
     n_mech_steps = rates.n_velocity // rates.n_mech
+    if (outer == "hybrid") != (hybrid is not None):
+        raise ValueError("rollout: hybrid gains are needed exactly when outer='hybrid'")
+    r = screw_ratio(params)
 
     def record(c, ref, command):
         theta, omega = plant.measure(aux, c["plant"])
         x, v = plant.slider(aux, c["plant"])
         i = loops.electrical_current(c["electrical"])
-        return dict(reference=ref, command=command, theta=theta, omega=omega, position=x, velocity=v,
+        return dict(reference=ref.theta if outer == "hybrid" else ref, command=command, theta=theta, omega=omega, position=x, velocity=v,
                     current=i, torque=drive.Kt * i, state={k: s for k, s in c.items() if k != "plant"},
                     observation=plant.observe(aux, c["plant"]))
 
@@ -109,23 +122,34 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
         c = dict(c, plant=plant.step(aux, c["plant"], jnp.mean(torques, axis=0)), electrical=xe, current=sc)
         return c, u[0]
 
-    def velocity_period(c, w_ref):
+    def velocity_period(c, w_ref, i_force=None):
         _, omega = plant.measure(aux, c["plant"])
         sv, i_ref = loops.pi_loop_step(drive.velocity, c["velocity"], w_ref, omega)
+        if i_force is not None:
+            limit = params.I_max[..., hybrid_law.FORCE_AXIS]
+            i_ref = i_ref.at[..., hybrid_law.FORCE_AXIS].set(jnp.clip(i_force, -limit, limit))
         c = dict(c, velocity=sv)
         c, _ = jax.lax.scan(lambda cc, _: mech_step(cc, i_ref), c, None, length=n_mech_steps)
         return c, i_ref
 
-    def position_period(c, theta_ref):
+    def position_period(c, ref):
+        theta_ref = ref.theta if outer == "hybrid" else ref
         theta, _ = plant.measure(aux, c["plant"])
-        step = loops.imc_step if outer == "imc" else loops.pid_step
-        sp, w_ref = step(drive.imc if outer == "imc" else drive.pid, c["position"], theta_ref, theta)
+        step, coefficients = (loops.pid_step, drive.pid) if outer == "pid" else (loops.imc_step, drive.imc)
+        sp, w_ref = step(coefficients, c["position"], theta_ref, theta)
         c = dict(c, position=sp)
-        c, _ = jax.lax.scan(lambda cc, _: velocity_period(cc, w_ref), c, None, length=rates.n_position)
+        i_force = None
+        if outer == "hybrid":
+            sf, force = hybrid_law.step(hybrid, c["force"], (theta_ref - theta) * r, ref.coupling, ref.force_ff,
+                                        rates.dt_position)
+            c = dict(c, force=sf)
+            k = hybrid_law.FORCE_AXIS
+            i_force = force * r[..., k] / (params.eta[..., k] * drive.Kt[..., k])
+        c, _ = jax.lax.scan(lambda cc, _: velocity_period(cc, w_ref, i_force), c, None, length=rates.n_position)
         return c, w_ref
 
-    period, dt = {"current": (mech_step, rates.dt_mech), "velocity": (velocity_period, rates.dt_velocity),
-                  "imc": (position_period, rates.dt_position), "pid": (position_period, rates.dt_position)}[outer]
+    period, dt = {"current": (mech_step, rates.dt_mech), "velocity": (velocity_period, rates.dt_velocity)}.get(
+        outer, (position_period, rates.dt_position))
 
     def body(c, ref):
         start = c
@@ -136,7 +160,7 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
         body = jax.checkpoint(body)
 
     _, rec = jax.lax.scan(body, initial_state(drive, plant, aux, outer), reference)
-    t = jnp.arange(reference.shape[0]) * dt
+    t = jnp.arange(rec["reference"].shape[0]) * dt
     return Trace(t=t, **rec)
 
 

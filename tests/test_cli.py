@@ -62,6 +62,7 @@ def test_sim_mjx_reports_the_machine_metrics(tmp_path):
     png = tmp_path / "p2p.png"
     out = json.loads(pusupu("sim", "--plant", "mjx", "--trajectory", "p2p", "--mode", "pid", "--json",
                             "--plot", str(png)).stdout)
+    assert "hybrid" not in out
     for key in ("branch_rms_error_mm", "motor_torque_peak_nm", "branch_force_peak_n"):
         assert len(out[key]) == 6 and all(v > 0 for v in out[key])
     assert 0 < out["rms_tracking_error_mm"] <= out["max_tracking_error_mm"] < 20
@@ -74,8 +75,28 @@ def test_sim_mjx_reports_the_machine_metrics(tmp_path):
                                   ["sim", "--plant", "axis", "--trajectory", "arc"],
                                   ["sim", "--plant", "axis", "--kin-error", "3"],
                                   ["sim", "--plant", "mjx", "--duration", "2"],
-                                  ["sim", "--plant", "mjx", "--mode", "hybrid"]])
+                                  ["sim", "--plant", "axis", "--mode", "hybrid"]])
 def test_bad_machine_arguments_exit_2_with_one_line(args):
     r = pusupu(*args, check=False)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert r.stderr.startswith("pusupu: error: ")
+
+
+def test_sim_mjx_hybrid_takes_its_gains_from_the_params_file(tmp_path):
+    """Hybrid mode on the p2p path with kinematic errors; the eq. 14 gains come from the file's hybrid section."""
+    params = tmp_path / "params.yaml"
+    params.write_text("hybrid: {m6: 0.5, c6: 4000.0, g: 500.0, form: signed}\n")
+    out = json.loads(pusupu("sim", "--plant", "mjx", "--trajectory", "p2p", "--mode", "hybrid", "--kin-error", "3",
+                            "--params", str(params), "--json").stdout)
+    assert out["mode"] == "hybrid" and out["kin_error_seed"] == 3
+    assert out["hybrid"]["form"] == "signed" and out["hybrid"]["c6"] == 4000.0
+    assert 50.0 < out["hybrid"]["force_ff_peak_n"] < 200.0  # branch 6's share of the ~90 kg machine's weight
+    assert 0 < out["rms_tracking_error_mm"] < 30
+    assert out["loop_closure_residual_max_mm"] < 0.01 * out["rms_tracking_error_mm"]
+
+
+def test_a_bad_hybrid_section_exits_2_naming_the_gain(tmp_path):
+    params = tmp_path / "params.yaml"
+    params.write_text("hybrid: {c6: -3.0}\n")
+    r = pusupu("sim", "--plant", "mjx", "--mode", "hybrid", "--params", str(params), check=False)
+    assert r.returncode == 2 and "HybridGains.c6: expected a finite non-negative" in r.stderr, r.stderr

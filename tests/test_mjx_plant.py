@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from pusupu_jax import LoopRates, ServoParams
+from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.plant import kinematics as K
 from pusupu_jax.plant import model as M
 from pusupu_jax.plant.geometry import Geometry
@@ -171,30 +172,54 @@ def test_one_newton_iteration_is_the_converged_solve_without_contacts():
     assert np.max(np.abs(runs[0] - runs[1])) < 1e-12
 
 
-def _tracking_and_torque_peak(params, reference):
+def _tracking_and_torque_peak(params, hybrid, reference, outer):
     """Mean squared motor-angle error [rad^2] + 0.01 x a smooth torque peak (log-sum-exp, sharpness 20 /(N m))."""
-    trace = rollout(params, None, reference, plant=PLANT, rates=RATES, outer="imc")
+    trace = rollout(params, None, reference, plant=PLANT, rates=RATES, outer=outer, hybrid=hybrid)
     peak = jax.nn.logsumexp(20.0 * jnp.abs(trace.torque), axis=0) / 20.0
     return jnp.mean((trace.theta - trace.reference) ** 2) + 1e-2 * jnp.mean(peak)
 
 
-def test_gradient_through_the_cosimulation_matches_central_differences():
-    """Reverse mode through cascade + MJX (50 ms: 200 MJX steps, 1000 current ticks); relative error <= 1e-3.
+_objective = jax.jit(_tracking_and_torque_peak, static_argnames="outer")
+_gradient = jax.jit(jax.grad(_tracking_and_torque_peak, argnums=(0, 1)), static_argnames="outer")
 
-    Observed: 1.4e-6 (lambda1), 3.8e-7 (lambda2), 6.8e-10 (Kv), 1.8e-6 (Tv).
-    """
+
+def _short_move(outer):
+    """A 5 mm cosine move along x in 50 ms: the rollout reference for ``outer``."""
+    from pusupu_jax.machine import machine_reference
+
     n = 50
     t = np.arange(n) * RATES.dt_position
     x = 0.005 * (1 - np.cos(np.pi * t / t[-1]))
     q = np.stack([x, 0 * x, np.full(n, float(G.home[2])), 0 * x, 0 * x], axis=1)
-    s_ref = np.asarray(K.inverse_kinematics(G, jnp.asarray(q)) - K.inverse_kinematics(G, jnp.asarray(G.home)))
-    ref = jnp.asarray(s_ref / (float(SERVO.lead[0]) / (2 * np.pi)))
-    value = jax.jit(_tracking_and_torque_peak)
-    grad = jax.jit(jax.grad(_tracking_and_torque_peak))(SERVO, ref)
-    for name in ("lambda1", "lambda2", "Kv", "Tv"):
-        v = np.asarray(getattr(SERVO, name))
-        e = np.zeros(6)
-        e[0] = 1e-4 * abs(v[0])
-        fd = (value(SERVO.replace(**{name: v + e}), ref) - value(SERVO.replace(**{name: v - e}), ref)) / (2 * e[0])
-        ad = float(np.asarray(getattr(grad, name))[0])
+    return machine_reference(SERVO, q, outer, rates=RATES)
+
+
+@pytest.mark.parametrize("outer, hybrid, names", [
+    ("imc", None, ("lambda1", "lambda2", "Kv", "Tv")),
+    ("hybrid", HybridGains(), ("lambda2", "m6", "c6", "g")),
+    ("hybrid", HybridGains(form="rms"), ("m6", "c6", "g")),
+])
+def test_gradient_through_the_cosimulation_matches_central_differences(outer, hybrid, names):
+    """Reverse mode through cascade + MJX (50 ms: 200 MJX steps, 1000 current ticks); relative error <= 1e-3.
+
+    Observed (imc): 1.4e-6 (lambda1), 3.8e-7 (lambda2), 6.8e-10 (Kv), 1.8e-6 (Tv).  The
+    hybrid gains are scalars shared by the machine; servo gains are perturbed on axis 0.
+    """
+    ref = _short_move(outer)
+    grad = _gradient(SERVO, hybrid, ref, outer)
+    for name in names:
+        if hasattr(SERVO, name):
+            v = np.asarray(getattr(SERVO, name))
+            e = np.zeros(6)
+            e[0] = 1e-4 * abs(v[0])
+            plus, minus, step = SERVO.replace(**{name: v + e}), SERVO.replace(**{name: v - e}), e[0]
+            fd = (_objective(plus, hybrid, ref, outer) - _objective(minus, hybrid, ref, outer)) / (2 * step)
+            ad = float(np.asarray(getattr(grad[0], name))[0])
+        else:
+            v = float(getattr(hybrid, name))
+            step = 1e-4 * v
+            fd = (_objective(SERVO, hybrid.replace(**{name: v + step}), ref, outer)
+                  - _objective(SERVO, hybrid.replace(**{name: v - step}), ref, outer)) / (2 * step)
+            ad = float(getattr(grad[1], name))
+        assert fd != 0.0, name
         assert abs(ad - fd) <= 1e-3 * abs(fd), (name, ad, float(fd))

@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 
 from pusupu_jax import AxisLoad, LoopRates, ParameterError, ServoParams, simulate, validate
 from pusupu_jax.config import load_params_file
+from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import stack
 
 POSITIVE = [n for n, f in ServoParams.__dataclass_fields__.items() if f.metadata["kind"] == "positive"]
@@ -53,14 +54,16 @@ def test_simulate_rejects_bad_input_before_running(table1):
 def test_parameter_file_round_trip_and_errors(tmp_path):
     good = tmp_path / "p.yaml"
     good.write_text("servo: {lambda1: 0.02, Kv: [0.01, 0.02, 0.03, 0.04, 0.05, 0.06]}\n"
-                    "load: {mass: 30}\nrates: {f_current: 10000, n_velocity: 4}\n")
-    servo, load, rates = load_params_file(good)
+                    "load: {mass: 30}\nrates: {f_current: 10000, n_velocity: 4}\nhybrid: {g: 20.0, form: rms}\n")
+    servo, load, rates, hybrid = load_params_file(good)
+    assert hybrid.g == 20.0 and hybrid.form == "rms" and hybrid.c6 == HybridGains().c6
     assert np.allclose(servo.lambda1, 0.02) and np.allclose(servo.Kv, [0.01, 0.02, 0.03, 0.04, 0.05, 0.06])
     assert np.allclose(load.mass, 30) and rates == LoopRates(f_current=10000.0, n_velocity=4)
     cases = {"servo: {Ti: .nan}": "ServoParams.Ti: expected finite",
              "servo: {Kv: [1, 2]}": r"ServoParams.Kv: expected shape",
              "servo: {Kv: fast}": "ServoParams.Kv: expected a number",
              "gains: {}": "unknown section 'gains'",
+             "hybrid: {m6: -1}": "HybridGains.m6: expected a finite non-negative",
              "rates: {f_current: -5}": "rates.f_current: expected a positive",
              "servo: {lambda1: [0.1,": "not valid YAML",
              "- 1\n- 2": "expected a mapping"}

@@ -186,21 +186,39 @@ def loop_closure_residual(model: mujoco.MjModel, xpos, xmat):
     return jnp.max(jnp.linalg.norm(p1 - p2, axis=-1), axis=-1)
 
 
+def pose_to_qpos(model: mujoco.MjModel, real: Geometry):
+    """A JAX function ``q (..., 5) -> qpos (..., nq)`` putting the machine ``real`` at pose ``q``, every constraint closed.
+
+    Differentiable: its Jacobian ``d qpos / d q`` maps pose rates to joint velocities (every
+    joint is a hinge or a slide, so ``qvel`` is the time derivative of ``qpos``).
+    """
+    index = {name: int(model.jnt_qposadr[model.joint(name).id]) for name in
+             ("upu_phi1", "upu_phi2", "upu_leg", "upu_alpha", "upu_beta")}
+    upu = jnp.array(list(index.values()))
+    branch = [jnp.array([int(model.jnt_qposadr[model.joint(f"{j}_{i}{k}").id]) for i in range(6)])
+              for j, k in (("slide", ""), ("rod", "_x"), ("rod", "_y"))]
+
+    def frames(kind):
+        out = np.zeros((6, 9))
+        for i in range(6):
+            mujoco.mju_quat2Mat(out[i], model.body_quat[model.body(f"{kind}_{i}").id])
+        return jnp.asarray(out.reshape(6, 3, 3))
+
+    slider_rot, rod_rot = frames("slider"), frames("rod")
+    qpos0 = jnp.asarray(model.qpos0)
+    rail_points, rail_dirs = jnp.asarray(real.rail_points), jnp.asarray(real.rail_dirs)
+
+    def one(q):
+        s = inverse_kinematics(real, q)
+        rod = joint_points(real, q) - (rail_points + s[:, None] * rail_dirs)
+        rod = jnp.einsum("kji,kj->ki", rod_rot, jnp.einsum("kji,kj->ki", slider_rot, rod))  # in each rod's frame
+        ax, ay = xy_hinge_angles(rod)
+        return (qpos0.at[upu].set(jnp.stack(upu_angles(q))).at[branch[0]].set(s)
+                .at[branch[1]].set(ax).at[branch[2]].set(ay))
+
+    return jnp.vectorize(one, signature="(5)->(n)")
+
+
 def assembled_qpos(model: mujoco.MjModel, real: Geometry, q) -> np.ndarray:
     """``qpos`` that puts the machine described by ``real`` at pose ``q`` with every constraint closed."""
-    q = np.asarray(q, dtype=float)
-    qpos = model.qpos0.copy()
-    upu = dict(zip(("upu_phi1", "upu_phi2", "upu_leg", "upu_alpha", "upu_beta"), (float(v) for v in upu_angles(q))))
-    for name, value in upu.items():
-        qpos[model.jnt_qposadr[model.joint(name).id]] = value
-    s = np.asarray(inverse_kinematics(real, q))
-    joints = np.asarray(joint_points(real, q))
-    for i in range(6):
-        qpos[model.jnt_qposadr[model.joint(f"slide_{i}").id]] = s[i]
-        slider, rod = model.body(f"slider_{i}"), model.body(f"rod_{i}")
-        start = np.asarray(real.rail_points[i]) + s[i] * np.asarray(real.rail_dirs[i])
-        w = _in_frame(model.body_quat[slider.id], joints[i] - start)
-        ax, ay = (float(a) for a in xy_hinge_angles(_in_frame(model.body_quat[rod.id], w)))
-        qpos[model.jnt_qposadr[model.joint(f"rod_{i}_x").id]] = ax
-        qpos[model.jnt_qposadr[model.joint(f"rod_{i}_y").id]] = ay
-    return qpos
+    return np.asarray(pose_to_qpos(model, real)(jnp.asarray(q, dtype=float)))

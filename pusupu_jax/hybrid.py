@@ -1,0 +1,136 @@
+"""Force/position hybrid control with cross-coupling synchronous error compensation (paper eq. 10-14).
+
+Branches 1-5 are position-controlled (2-DOF IMC); branch 6, the redundant one
+(:data:`FORCE_AXIS`), is force-controlled: its drive's current reference is set from
+
+    F_6 = F_q + F_rho                                   (eq. 13)
+    F_rho = m6 rho'' + c6 rho' + g rho                  (eq. 14)
+
+``F_q`` [N] is branch 6's share of the nominal inverse dynamics under the minimum-norm
+distribution (:mod:`pusupu_jax.plant.dynamics`), precomputed along the reference path.
+The branch errors are the paper's ``e_i = s_i - s'_i`` (reference minus actual slider
+position [m], eq. 10), sampled at the position-loop rate.  Two forms of ``rho``:
+
+* ``'rms'`` (the paper's): ``rho' = sqrt(mean_i xi_i^2)`` over the 10 pairwise differences
+  ``xi = e_n - e_m`` of branches 1-5 (eq. 11).  Eq. 12 prints the square root over a
+  plain sum, which would be imaginary for negative sums; it is read as this RMS.  This
+  ``rho`` never decreases, so ``F_rho`` only ever pushes branch 6 one way (towards
+  positive travel), whatever the sign of the errors.
+* ``'signed'``: ``rho' = w . e_15`` with ``w = J_6 J_15^-1`` (:func:`~pusupu_jax.plant.dynamics.coupling_row`):
+  the errors of branches 1-5 converted to the travel they imply for branch 6, positive
+  when the platform lags so that branch 6 should push forward.  ``F_rho`` is then a PID
+  force law on that coupling error, pushing either way.
+
+In both forms ``rho`` is the time integral of ``rho'`` (rectangle rule) and ``rho''`` the
+backward difference of ``rho'`` over one position period.  Eq. 14 names ``m6, c6, g`` a
+mass, a Coriolis coefficient and a gravitational acceleration; dimensionally (``rho`` in
+m s) they are three gains, tuned like any other: ``m6`` [N s/m] on ``rho''`` [m/s],
+``c6`` [N/m] on ``rho'`` [m] and ``g`` [N/(m s)] on ``rho`` [m s].
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .params import ParameterError
+
+FORCE_AXIS = 5  # branch 6, zero-based
+RHO_FORMS = ("rms", "signed")
+
+
+def _gain(default: float, unit: str, doc: str):
+    return field(default=default, metadata={"unit": unit, "doc": doc})
+
+
+@jax.tree_util.register_dataclass
+@dataclass(frozen=True)
+class HybridGains:
+    """Gains of eq. 14 (scalars, or arrays with a leading batch dimension) and the static form of ``rho``."""
+
+    m6: Any = _gain(0.1, "N*s/m", "gain on rho'' (the paper's 'mass' of branch 6)")
+    c6: Any = _gain(1.0e3, "N/m", "gain on rho' (the paper's 'Coriolis coefficient')")
+    g: Any = _gain(1.0e2, "N/(m*s)", "gain on rho (the paper's 'gravitational acceleration')")
+    form: str = field(default="signed", metadata=dict(static=True))
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], base: "HybridGains | None" = None) -> "HybridGains":
+        """``base`` (default gains) with ``values`` replaced; validates."""
+        if not isinstance(values, Mapping):
+            raise ParameterError(f"HybridGains: expected a mapping, got {type(values).__name__}")
+        known = [f.name for f in dataclasses.fields(cls)]
+        unknown = sorted(set(values) - set(known))
+        if unknown:
+            raise ParameterError(f"HybridGains: unknown key {unknown[0]!r}; expected one of {known}")
+        out = dataclasses.replace(base or cls(), **values)
+        validate_gains(out)
+        return out
+
+    def replace(self, **changes) -> "HybridGains":
+        return dataclasses.replace(self, **changes)
+
+
+def gain_fields() -> list[dataclasses.Field]:
+    """The numeric (traced) fields of :class:`HybridGains`."""
+    return [f for f in dataclasses.fields(HybridGains) if not f.metadata.get("static")]
+
+
+def validate_gains(h: HybridGains) -> None:
+    """Raise :class:`ParameterError` unless every gain is a finite non-negative number and the form is known."""
+    if h.form not in RHO_FORMS:
+        raise ParameterError(f"HybridGains.form: expected one of {RHO_FORMS}, got {h.form!r}")
+    for f in gain_fields():
+        try:
+            v = np.asarray(getattr(h, f.name), dtype=float)
+        except (TypeError, ValueError):
+            raise ParameterError(f"HybridGains.{f.name}: expected a number [{f.metadata['unit']}], "
+                                 f"got {getattr(h, f.name)!r}") from None
+        if not np.isfinite(v).all() or (v < 0).any():
+            raise ParameterError(f"HybridGains.{f.name}: expected a finite non-negative number "
+                                 f"[{f.metadata['unit']}], got {v.ravel()[~(np.isfinite(v.ravel()) & (v.ravel() >= 0))][0]}")
+
+
+@jax.tree_util.register_dataclass
+@dataclass(frozen=True)
+class HybridReference:
+    """What the hybrid position period reads each sample: ``(N, ...)`` arrays scanned over time."""
+
+    theta: Any  # (N, 6) motor-angle references, rad
+    force_ff: Any  # (N,) F_q, the inverse-dynamics force of branch 6, N
+    coupling: Any  # (N, 5) w = J_6 J_15^-1 at the reference pose, 1
+
+
+def _safe_sqrt(x):
+    """``sqrt`` with a zero (not NaN) derivative at 0, where every branch error is equal."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+
+
+def rms_rate(e):
+    """``rho'`` of eq. 12 read as RMS: ``sqrt(mean xi^2)`` of the 10 pairwise differences of ``e[..., :5]`` [m]."""
+    n, m = np.triu_indices(5, k=1)
+    xi = e[..., n] - e[..., m]
+    return _safe_sqrt(jnp.mean(xi**2, axis=-1))
+
+
+def synchronous_error(branch_errors, dt):
+    """Eq. 10-12: ``rho(t)`` [m s], shape ``(..., N)``, from branch errors ``(..., N, 6)`` [m] every ``dt`` [s]."""
+    return jnp.cumsum(rms_rate(branch_errors), axis=-1) * dt
+
+
+def init():
+    """State of the force law: ``rho`` [m s], the previous ``rho'`` [m] and the last ``F_6`` [N]."""
+    return {"rho": jnp.zeros(()), "rate": jnp.zeros(()), "force": jnp.zeros(())}
+
+
+def step(gains: HybridGains, state, e, coupling, force_ff, dt: float):
+    """One position period: branch errors ``e`` (6,) [m] -> ``(state, F_6 [N])``."""
+    rate = rms_rate(e) if gains.form == "rms" else jnp.dot(coupling, e[:5])
+    rho = state["rho"] + rate * dt
+    force = force_ff + gains.m6 * (rate - state["rate"]) / dt + gains.c6 * rate + gains.g * rho
+    return {"rho": rho, "rate": rate, "force": force}, force

@@ -1,0 +1,82 @@
+"""Inverse dynamics of the nominal machine along a platform path, distributed over the six branches (host-side).
+
+For a path of poses ``q(t)`` the whole mechanism moves consistently: ``qpos = Phi(q)``
+(:func:`~pusupu_jax.plant.model.pose_to_qpos`), ``qvel = T q'`` with ``T = dPhi/dq``
+(``nv x 5``).  MuJoCo's equation of motion ``M qacc + c = B F + Jc^T lambda`` (``B``
+puts the slider forces ``F`` [N] on the slide joints, ``lambda`` are the spherical-joint
+constraint forces) projected on the consistent motions, where ``Jc T = 0`` removes the
+constraint forces, gives the five equations
+
+    J^T F = Q,   Q = T^T (M qacc + c),   J = ds/dq (6 x 5, the rows of T at the slides).
+
+Six forces for five equations: the redundancy.  The minimum-norm solution
+``F = J (J^T J)^-1 Q`` is the distribution with the smallest sum of squared branch forces
+(it has no component in the null space of ``J^T``, the internal force that only squeezes
+the mechanism).  Its sixth component is the paper's ``F_q``, "the optimized inverse
+redundant torque" of eq. 13, here a slider force [N].
+
+``M qacc + c`` is MuJoCo's recursive Newton-Euler (``mj_rne``, gravity and Coriolis
+included) plus the rotor armature ``eta J / r^2`` on the slides; ``qvel`` and ``qacc`` are
+central differences of ``qpos`` along the sampled path (second-order accurate, the path
+being smooth).  The nominal geometry is used: the controller does not know the seeded
+kinematic errors of the real machine.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from .axis import screw_ratio
+from .geometry import Geometry
+from .model import ModelOptions, build_model, pose_to_qpos, slide_dofs, slide_qpos
+
+
+def nominal_model(servo, geom: Geometry, options: ModelOptions) -> mujoco.MjModel:
+    """The model without kinematic errors, with the rotor armature of ``servo`` on the slides."""
+    m = build_model(geom, dataclasses.replace(options, kin_error_seed=None))
+    r = np.asarray(screw_ratio(servo))
+    m.dof_armature[slide_dofs(m)] = np.asarray(servo.eta) * np.asarray(servo.J) / r**2
+    return m
+
+
+def inverse_dynamics_forces(servo, path, dt: float, geom: Geometry | None = None,
+                            options: ModelOptions = ModelOptions()) -> tuple[np.ndarray, np.ndarray]:
+    """Minimum-norm slider forces along ``path`` and the actuation Jacobians.
+
+    ``path``: poses ``(N, 5)`` sampled every ``dt`` [s] (at least 3 samples).  Returns
+    ``(F, J)``: forces ``(N, 6)`` [N] with ``J^T F = Q`` at every sample, and ``J = ds/dq``
+    ``(N, 6, 5)`` of the nominal geometry.
+    """
+    geom = Geometry.default() if geom is None else geom
+    path = np.asarray(path, dtype=float)
+    if path.ndim != 2 or path.shape[1] != 5 or len(path) < 3:
+        raise ValueError(f"path: expected poses of shape (N >= 3, 5), got {path.shape}")
+    m = nominal_model(servo, geom, options)
+    phi = pose_to_qpos(m, geom)
+    qpos = np.asarray(phi(jnp.asarray(path)))
+    T = np.asarray(jnp.vectorize(jax.jacfwd(phi), signature="(5)->(n,5)")(jnp.asarray(path)))
+    qvel = np.gradient(qpos, dt, axis=0)
+    qacc = np.gradient(qvel, dt, axis=0)
+    d = mujoco.MjData(m)
+    tau = np.zeros((len(path), m.nv))
+    for k in range(len(path)):
+        d.qpos[:], d.qvel[:] = qpos[k], qvel[k]
+        mujoco.mj_forward(m, d)
+        d.qacc[:] = qacc[k]
+        mujoco.mj_rne(m, d, 1, tau[k])
+    tau += m.dof_armature * qacc
+    Q = np.einsum("nij,ni->nj", T, tau)
+    J = T[:, slide_qpos(m), :]
+    F = np.einsum("nij,nj->ni", J, np.linalg.solve(np.einsum("nki,nkj->nij", J, J), Q[..., None])[..., 0])
+    return F, J
+
+
+def coupling_row(J) -> np.ndarray:
+    """``w = J_6 J_15^-1`` (``(..., 5)``): how branch 6 must move when branches 1-5 move by ``ds_15`` (``ds_6 = w . ds_15``)."""
+    J = np.asarray(J)
+    return np.linalg.solve(np.swapaxes(J[..., :5, :], -1, -2), J[..., 5, :][..., None])[..., 0]
