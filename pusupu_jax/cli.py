@@ -6,6 +6,9 @@
     pusupu sim --plant mjx --trajectory arc|p2p [--mode imc|pid|hybrid] [--params FILE] [--kin-error SEED]
                [--json] [--plot PNG]
 
+    pusupu tune [--config FILE] [--out DIR] [--quick] [--fresh] [--json]
+    (analyze and sim also take --gains FILE, a gain file written by tune)
+
 Errors in the input print one line ``pusupu: error: ...`` and exit with status 2.
 """
 
@@ -52,21 +55,63 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--duration", type=float, metavar="S", help="seconds (default per trajectory)")
     s.add_argument("--json", action="store_true", help="print JSON instead of a table")
     s.add_argument("--plot", metavar="PNG", help="write reference, error and current plots of axis 0")
+    t = sub.add_parser("tune", help="the main job: tune the gains on the machine, export gains.yaml and a report")
+    t.add_argument("--config", metavar="FILE", help="tuning configuration YAML (default: the embedded one, "
+                                                     "see tune/config.py and docs/tuning.md)")
+    t.add_argument("--out", metavar="DIR", default="tune_out", help="output folder (default tune_out)")
+    t.add_argument("--quick", action="store_true", help="a short smoke run (under 2 min): one path, 5 iterations")
+    t.add_argument("--fresh", action="store_true", help="ignore (delete) a checkpoint in DIR instead of resuming")
+    t.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
+    for sp in (a, s):
+        sp.add_argument("--gains", metavar="FILE", help="a gain file written by pusupu tune (replaces the servo "
+                                                         "gains, hybrid gains and rates of --params)")
     return p
 
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
-        return {"analyze": _analyze, "sim": _sim}[args.command](args)
+        return {"analyze": _analyze, "sim": _sim, "tune": _tune}[args.command](args)
     except ParameterError as e:
         _fail(str(e))
+
+
+def _tune(args) -> int:
+    from pathlib import Path
+
+    from .config import setup_jax
+
+    setup_jax()
+    from tune.config import TuneConfig
+    from tune.job import run_job, table
+
+    cfg = TuneConfig.quick() if args.quick else TuneConfig()
+    if args.config:
+        cfg = TuneConfig.load(args.config, base=cfg)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"--out: expected a folder, got the file {args.out!r}")
+    report, status = run_job(cfg, out, fresh=args.fresh)
+    if args.json:
+        print(json.dumps({k: v for k, v in report.items() if k != "history"}, indent=2))
+    else:
+        print(table(report))
+        print(f"wrote: {', '.join(report['exported'] + report['plots'] + [str(out / 'report.json')])}")
+    if status:
+        print(f"pusupu: error: {report['export_error']}", file=sys.stderr)
+    return status
 
 
 def _load(args):
     from .config import load_params_file
 
-    return load_params_file(args.params)
+    loaded = load_params_file(args.params)
+    if getattr(args, "gains", None):
+        from tune.export import load_gains
+
+        servo, hybrid, rates, _ = load_gains(args.gains)
+        loaded = loaded._replace(servo=servo, hybrid=hybrid, rates=rates)
+    return loaded
 
 
 def _check_plot_path(path):

@@ -75,7 +75,7 @@ def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: Mo
 
     ``hybrid``: the gains of eq. 14 for ``mode='hybrid'`` (default :class:`~pusupu_jax.hybrid.HybridGains`).
     Returns ``(result, trace)``: the metrics (see ``pusupu sim --plant mjx``) and arrays for
-    plots (``t``, ``reference``, ``platform`` positions [m]).
+    plots (``t``, ``reference``, ``platform`` positions [m], ``branch_force`` [N]).
     """
     validate(servo)
     if mode == "hybrid":
@@ -115,4 +115,5 @@ def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: Mo
                             "force_ff_peak_n": float(np.abs(np.asarray(reference.force_ff)).max()),
                             "f_rho_rms_n": float(np.sqrt(np.mean(f_rho**2))),
                             "f_rho_peak_n": float(np.abs(f_rho).max())}
-    return result, {"t": np.asarray(trace.t), "reference": np.asarray(path)[:, :3], "platform": platform}
+    return result, {"t": np.asarray(trace.t), "reference": np.asarray(path)[:, :3], "platform": platform,
+                    "branch_force": torque * np.asarray(servo.eta) / r}

@@ -77,11 +77,11 @@ def margins(gain_fn, w=W_GRID) -> dict:
     """
     log_w = jnp.log(w)
 
-    def refine(g, x):  # two secant steps on g(log w) = 0 from the interpolated root
+    def refine(g, x):  # two secant steps on g(log w) = 0 from the interpolated root, kept on the grid's span
         x0, x1 = x, x + 1e-4
         for _ in range(2):
             g0, g1 = g(x0), g(x1)
-            x0, x1 = x1, x1 - g1 * (x1 - x0) / jnp.where(g1 == g0, 1.0, g1 - g0)
+            x0, x1 = x1, jnp.clip(x1 - g1 * (x1 - x0) / jnp.where(g1 == g0, 1.0, g1 - g0), log_w[0], log_w[-1])
         return x1
 
     L = gain_fn(w)

@@ -2,8 +2,10 @@
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -100,3 +102,63 @@ def test_a_bad_hybrid_section_exits_2_naming_the_gain(tmp_path):
     params.write_text("hybrid: {c6: -3.0}\n")
     r = pusupu("sim", "--plant", "mjx", "--mode", "hybrid", "--params", str(params), check=False)
     assert r.returncode == 2 and "HybridGains.c6: expected a finite non-negative" in r.stderr, r.stderr
+
+
+TINY_TUNE = """\
+trajectories: [p2p]
+horizon_s: 0.05
+iterations: 6
+checkpoint_every: 2
+eval_duration_s: 0.3
+"""
+
+
+@pytest.fixture(scope="module")
+def tuned(tmp_path_factory):
+    """One uninterrupted tiny tuning run (hybrid mode on 50 ms of the p2p path): its folder and report."""
+    folder = tmp_path_factory.mktemp("tune")
+    (folder / "tiny.yaml").write_text(TINY_TUNE)
+    r = pusupu("tune", "--config", str(folder / "tiny.yaml"), "--out", str(folder / "out"), "--json")
+    return folder, json.loads(r.stdout)
+
+
+def test_tune_writes_gains_report_and_plots(tuned):
+    folder, report = tuned
+    out = folder / "out"
+    for name in ("gains.yaml", "pid_ros2.yaml", "report.json", "objective.png", "path_p2p.png", "forces_p2p.png"):
+        assert (out / name).stat().st_size > 0, name
+    assert report["tuned_fields"] == ["lambda1", "lambda2", "m6", "c6", "g"]
+    assert report["objective_after"] <= report["objective_before"]
+    assert set(report["before"]["p2p"]) >= {"rms_tracking_error_mm", "branch_force_peak_n"}
+    assert min(report["margins_after"]["position"]["phase_margin_deg"]) >= 45.0
+    # the exported gains drive the other commands
+    a = json.loads(pusupu("analyze", "--gains", str(out / "gains.yaml"), "--json").stdout)
+    assert len(a["axes"]) == 6
+
+
+def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
+    """SIGKILL after the first checkpoint, run the same command again: the result equals the uninterrupted run's."""
+    folder, report = tuned
+    cmd = [sys.executable, "-m", "pusupu_jax.cli", "tune", "--config", str(folder / "tiny.yaml"),
+           "--out", str(tmp_path / "out"), "--json"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
+    deadline = time.time() + 600
+    while not (tmp_path / "out" / "checkpoint.pkl").exists() and p.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    p.send_signal(signal.SIGKILL)
+    p.communicate()
+    assert p.returncode == -signal.SIGKILL, "the run ended before it could be killed"
+    assert not (tmp_path / "out" / "gains.yaml").exists()
+    resumed = json.loads(pusupu(*cmd[3:]).stdout)
+    assert resumed["result"] == report["result"]
+    assert resumed["objective_after"] == report["objective_after"]
+
+
+def test_a_bad_gain_file_exits_2_with_one_line(tuned, tmp_path):
+    folder, _ = tuned
+    bad = tmp_path / "gains.yaml"
+    bad.write_text((folder / "out" / "gains.yaml").read_text().replace("version: 1", "version: 7"))
+    for command in ("analyze", "sim"):
+        r = pusupu(command, "--gains", str(bad), check=False)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert "version: expected 1" in r.stderr

@@ -1,0 +1,109 @@
+"""Gradient tuner vs a derivative-free optimiser on the same objective and start (JSON on stdout).
+
+The problem is ``pusupu tune``'s (hybrid mode, lambda1, lambda2, m6, c6, g in log space,
+same penalties) on a short training window so that the derivative-free side finishes.  The
+gradient tuner (clipped Adam, :func:`tune.run.optimise`) runs ``--iterations``; scipy's
+Nelder-Mead then minimises the same objective (forward rollouts only, the same box bounds)
+until it reaches the gradient tuner's best value or ``--max-evals``.  Counted: rollouts
+(a gradient evaluation counts as one rollout, its cost is reported separately as the
+gradient/forward time ratio) and wall time to reach the target (compile excluded on both
+sides).
+
+    python benchmarks/bench_tuner.py [--trajectory arc] [--horizon 0.5] [--iterations 25] [--max-evals 1500]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.optimize import minimize
+
+from pusupu_jax.config import setup_jax
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trajectory", default="arc", choices=("arc", "p2p"))
+    ap.add_argument("--horizon", type=float, default=0.5, help="training window [s]")
+    ap.add_argument("--iterations", type=int, default=25)
+    ap.add_argument("--max-evals", type=int, default=1500)
+    args = ap.parse_args()
+    setup_jax()
+    from pusupu_jax import ServoParams
+    from pusupu_jax.hybrid import HybridGains
+    from tune.config import TuneConfig
+    from tune.run import Problem, optimise
+
+    cfg = TuneConfig(trajectories=(args.trajectory,), horizon_s=args.horizon, iterations=args.iterations)
+    problem = Problem(cfg, ServoParams.table1(), HybridGains())
+    space, z0 = problem.space, problem.space.z0()
+    names = sorted(z0)
+    baseline = problem.start_baseline()  # compiles the gradient
+    value = jax.jit(lambda z: problem.objective(z, baseline)[0])
+    jax.block_until_ready(value(z0))  # compile the forward
+    t = time.perf_counter()
+    jax.block_until_ready(value(z0))
+    t_forward = time.perf_counter() - t
+    t = time.perf_counter()
+    jax.block_until_ready(problem.value_and_grad(z0))
+    t_grad = time.perf_counter() - t
+
+    trace = []
+    t0 = time.perf_counter()
+
+    def counted(z):
+        out = problem.value_and_grad(z)
+        trace.append((float(out[0][0]), time.perf_counter() - t0))
+        return out
+
+    result = optimise(counted, z0, space.project, iterations=cfg.iterations, learning_rate=cfg.learning_rate,
+                      clip_norm=cfg.clip_norm)
+    target = result["objective"]
+    grad_evals = next(i + 1 for i, (v, _) in enumerate(trace) if v <= target)
+    grad_wall = trace[grad_evals - 1][1]
+
+    lo = np.concatenate([np.log(np.ravel(space.lower[n])) for n in names])
+    hi = np.concatenate([np.log(np.ravel(space.upper[n])) for n in names])
+    evals = []
+    t0 = time.perf_counter()
+
+    def f(x):
+        x = np.clip(x, lo, hi)
+        v = float(value({n: jnp.asarray(x[i]) for i, n in enumerate(names)}))
+        evals.append((v, time.perf_counter() - t0))
+        if v <= target:
+            raise StopIteration
+        return v
+
+    x0 = np.array([float(z0[n]) for n in names])
+    try:
+        minimize(f, x0, method="Nelder-Mead", options={"maxfev": args.max_evals, "xatol": 1e-6, "fatol": 1e-9,
+                                                        "initial_simplex": x0 + 0.3 * np.vstack([np.zeros(len(x0)),
+                                                                                                 np.eye(len(x0))])})
+    except StopIteration:
+        pass
+    reached = evals[-1][0] <= target
+    best_nm = min(v for v, _ in evals)
+    out = {
+        "problem": {"trajectory": args.trajectory, "horizon_s": args.horizon, "mode": cfg.mode,
+                    "fields": names, "start_objective": trace[0][0]},
+        "forward_s": t_forward, "gradient_s": t_grad, "gradient_over_forward": t_grad / t_forward,
+        "gradient_tuner": {"target_objective": target, "rollouts_to_target": grad_evals,
+                           "wall_s_to_target": grad_wall},
+        "nelder_mead": {"reached_target": reached, "rollouts": len(evals), "wall_s": evals[-1][1],
+                        "best_objective": best_nm, "max_evals": args.max_evals},
+        "rollout_ratio": len(evals) / grad_evals,
+        "wall_ratio": evals[-1][1] / grad_wall,
+    }
+    json.dump(out, sys.stdout, indent=2)
+    print()
+
+
+if __name__ == "__main__":
+    main()

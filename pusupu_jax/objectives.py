@@ -1,0 +1,60 @@
+"""Differentiable objective terms over a machine rollout (JAX), for the tuner.
+
+Every term is a scalar in physical units, smooth almost everywhere, computed from a
+:class:`~pusupu_jax.sim.Trace` of the MJX machine and the platform path it followed:
+
+* ``track_rms`` [m]: RMS platform position error; ``track_max`` [m]: its smooth maximum;
+* ``branch_rms`` [m]: RMS slider error over all branches;
+* ``force_peak`` [N]: smooth peak of the branch forces over time and branches;
+* ``balance`` [1]: spread of the per-branch smooth force peaks (standard deviation / mean);
+* ``rho`` [m s]: the synchronous error of eq. 12 (RMS form) at the end of the run;
+* ``effort`` [A^2]: mean squared motor current;
+* ``saturation`` [1]: mean squared excess of the current over ``sat_fraction * I_max``
+  (the velocity PI's clamp) and of the back-EMF over ``sat_fraction * V_max``.
+
+:func:`smooth_max` is ``logsumexp(k x) / k``: never below the true maximum, and above it by
+at most ``log(n) / k`` for ``n`` samples, so it approaches the peak as the sharpness ``k``
+grows (a parameter: too sharp and its gradient reaches only the single largest sample).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from .hybrid import synchronous_error
+from .plant.axis import screw_ratio
+
+TERMS = ("track_rms", "track_max", "branch_rms", "force_peak", "balance", "rho", "effort", "saturation")
+
+
+def smooth_max(x, sharpness, axis=None):
+    """``logsumexp(sharpness * x) / sharpness`` over ``axis`` (all axes by default); units of ``x``."""
+    return jax.nn.logsumexp(sharpness * x, axis=axis) / sharpness
+
+
+def terms(trace, servo, path, dt: float, sharpness_force: float = 1.0, sharpness_error: float = 2000.0,
+          sat_fraction: float = 0.95) -> dict:
+    """Every objective term of a machine trace (see the module docstring).
+
+    ``path``: the platform poses ``(N, 5)`` the machine was asked to follow (one per
+    position period ``dt`` [s]); ``sharpness_force`` [1/N] and ``sharpness_error`` [1/m]
+    set the smooth maxima.
+    """
+    r = screw_ratio(servo)
+    error = jnp.linalg.norm(trace.observation["platform_pos"] - path[:, :3], axis=-1)
+    force = jnp.abs(trace.torque) * servo.eta / r
+    branch_error = (trace.theta - trace.reference) * r
+    per_branch = smooth_max(force, sharpness_force, axis=0)
+    excess_i = jax.nn.relu(jnp.abs(trace.current) - sat_fraction * servo.I_max) / servo.I_max
+    excess_v = jax.nn.relu(jnp.abs(servo.Ke * trace.omega) - sat_fraction * servo.V_max) / servo.V_max
+    return {
+        "track_rms": jnp.sqrt(jnp.mean(error**2)),
+        "track_max": smooth_max(error, sharpness_error),
+        "branch_rms": jnp.sqrt(jnp.mean(branch_error**2)),
+        "force_peak": smooth_max(force, sharpness_force),
+        "balance": jnp.std(per_branch) / jnp.mean(per_branch),
+        "rho": synchronous_error(-branch_error, dt)[-1],
+        "effort": jnp.mean(trace.current**2),
+        "saturation": jnp.mean(excess_i**2) + jnp.mean(excess_v**2),
+    }

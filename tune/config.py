@@ -1,0 +1,141 @@
+"""The tuning job's configuration: defaults embedded here, overridable from a YAML file.
+
+Every key of :class:`TuneConfig` may appear in the file (unknown keys are errors)::
+
+    mode: hybrid               # hybrid | imc | pid: the machine's control mode
+    groups: [imc, hybrid]      # what to tune: imc, velocity, current, pid, hybrid
+    shared: true               # one value for all six axes (false: one per axis)
+    trajectories: [arc, p2p]   # the paper's paths; training uses the first horizon_s of each
+    horizon_s: 2.0             # s, training window (the report evaluates the whole paths)
+    kin_error_seeds: [null]    # robust tuning: scenarios with seeded kinematic errors
+    payloads: [0.0]            # kg, scenarios with a payload on the platform
+    aggregate: mean            # mean | max over scenarios
+    iterations: 25
+    learning_rate: 0.1         # Adam on the log-parameters
+    final_lr_fraction: 1.0     # cosine decay of the learning rate to this fraction (1: constant)
+    clip_norm: 1.0             # gradient clipping (global norm)
+    starts: 1                  # multi-start: extra starts are random log-perturbations (std start_spread)
+    start_spread: 0.3
+    seed: 0
+    checkpoint_every: 5        # iterations
+    weights: {track_rms: 1.0, balance: 0.1}   # objective terms (pusupu_jax.objectives.TERMS), each
+                                              # divided by its value at the start
+    force_peak_limit: 1.0      # the smooth force peak may not exceed this times its start value
+    pm_min: 45.0               # deg, every loop of every axis
+    gm_min: 6.0                # dB
+    sharpness_force: 1.0       # 1/N, smooth peak of the branch forces
+    bounds: {lambda2: [0.01, 0.5]}   # per tuned field [lower, upper]; default start/10 .. start*10
+    eval_duration_s: null      # s: evaluate only the first seconds of each path (null: whole paths)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pusupu_jax.config import read_yaml_mapping
+from pusupu_jax.machine import MACHINE_MODES
+from pusupu_jax.objectives import TERMS
+from pusupu_jax.params import ParameterError
+from pusupu_jax.trajectories import PLATFORM_TRAJECTORIES
+
+from .space import GROUPS
+
+
+@dataclass(frozen=True)
+class TuneConfig:
+    mode: str = "hybrid"
+    groups: tuple = ("imc", "hybrid")
+    shared: bool = True
+    trajectories: tuple = ("arc", "p2p")
+    horizon_s: float = 2.0
+    kin_error_seeds: tuple = (None,)
+    payloads: tuple = (0.0,)
+    aggregate: str = "mean"
+    iterations: int = 25
+    learning_rate: float = 0.1
+    final_lr_fraction: float = 1.0
+    clip_norm: float = 1.0
+    starts: int = 1
+    start_spread: float = 0.3
+    seed: int = 0
+    checkpoint_every: int = 5
+    weights: dict = field(default_factory=lambda: {"track_rms": 1.0, "balance": 0.1})
+    force_peak_limit: float = 1.0
+    pm_min: float = 45.0
+    gm_min: float = 6.0
+    sharpness_force: float = 1.0
+    bounds: dict = field(default_factory=lambda: {"lambda2": (0.01, 0.5)})
+    eval_duration_s: float | None = None
+
+    @classmethod
+    def quick(cls) -> "TuneConfig":
+        """A smoke run: one path, short window, few iterations, a short evaluation (under 2 min cold)."""
+        return cls(trajectories=("arc",), horizon_s=0.3, iterations=5, checkpoint_every=2, eval_duration_s=3.0)
+
+    @classmethod
+    def load(cls, path, base: "TuneConfig | None" = None) -> "TuneConfig":
+        names = [f.name for f in dataclasses.fields(cls)]
+        data = read_yaml_mapping(Path(path), "key", names)
+        try:
+            return (base or cls()).replace(**data)
+        except ParameterError as e:
+            raise ParameterError(f"{path}: {e}") from None
+
+    def replace(self, **changes) -> "TuneConfig":
+        for key in ("groups", "trajectories", "kin_error_seeds", "payloads"):
+            if key in changes and isinstance(changes[key], list):
+                changes[key] = tuple(changes[key])
+        if "bounds" in changes and isinstance(changes["bounds"], dict):
+            changes["bounds"] = {k: tuple(v) if isinstance(v, list) else v for k, v in changes["bounds"].items()}
+        out = dataclasses.replace(self, **changes)
+        out.validate()
+        return out
+
+    def validate(self) -> None:
+        def need(ok, key, expected, got):
+            if not ok:
+                raise ParameterError(f"tune config {key}: expected {expected}, got {got!r}")
+
+        need(self.mode in MACHINE_MODES, "mode", f"one of {MACHINE_MODES}", self.mode)
+        need(isinstance(self.groups, tuple) and self.groups and set(self.groups) <= set(GROUPS), "groups",
+             f"a list of some of {sorted(GROUPS)}", self.groups)
+        need(isinstance(self.trajectories, tuple) and self.trajectories
+             and set(self.trajectories) <= set(PLATFORM_TRAJECTORIES), "trajectories",
+             f"a list of some of {PLATFORM_TRAJECTORIES}", self.trajectories)
+        need(all(s is None or (isinstance(s, int) and s >= 0) for s in self.kin_error_seeds) and self.kin_error_seeds,
+             "kin_error_seeds", "a list of null or non-negative integers", self.kin_error_seeds)
+        need(all(isinstance(p, (int, float)) and p >= 0 for p in self.payloads) and self.payloads, "payloads",
+             "a list of non-negative masses [kg]", self.payloads)
+        need(self.aggregate in ("mean", "max"), "aggregate", "mean or max", self.aggregate)
+        need(isinstance(self.final_lr_fraction, (int, float)) and 0 < self.final_lr_fraction <= 1,
+             "final_lr_fraction", "a number in (0, 1]", self.final_lr_fraction)
+        for key in ("horizon_s", "learning_rate", "clip_norm", "sharpness_force", "force_peak_limit"):
+            v = getattr(self, key)
+            need(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0, key, "a positive number", v)
+        for key in ("iterations", "starts", "checkpoint_every"):
+            v = getattr(self, key)
+            need(isinstance(v, int) and not isinstance(v, bool) and v >= 1, key, "a positive integer", v)
+        need(isinstance(self.seed, int), "seed", "an integer", self.seed)
+        need(isinstance(self.start_spread, (int, float)) and self.start_spread >= 0, "start_spread",
+             "a non-negative number", self.start_spread)
+        need(isinstance(self.shared, bool), "shared", "true or false", self.shared)
+        need(isinstance(self.weights, dict) and set(self.weights) <= set(TERMS) and self.weights
+             and all(isinstance(v, (int, float)) and v >= 0 for v in self.weights.values()), "weights",
+             f"a mapping of some of {TERMS} to non-negative numbers", self.weights)
+        need(self.mode != "hybrid" or "pid" not in self.groups, "groups", "no 'pid' group in hybrid mode",
+             self.groups)
+        need(self.mode == "hybrid" or "hybrid" not in self.groups, "groups", "the 'hybrid' group only in hybrid mode",
+             self.groups)
+        need(isinstance(self.bounds, dict) and all(isinstance(v, tuple) and len(v) == 2 for v in self.bounds.values()),
+             "bounds", "a mapping of field names to [lower, upper]", self.bounds)
+        need(self.eval_duration_s is None or (isinstance(self.eval_duration_s, (int, float))
+                                              and self.eval_duration_s > 0),
+             "eval_duration_s", "null or a positive number of seconds", self.eval_duration_s)
+
+    def digest(self) -> str:
+        """A hash of every setting (the checkpoint and the gain file's provenance carry it)."""
+        return hashlib.sha256(json.dumps(dataclasses.asdict(self), sort_keys=True, default=str).encode()).hexdigest()[:16]

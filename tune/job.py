@@ -1,0 +1,181 @@
+"""``pusupu tune``: the main job, from configuration to gain file, report and plots (host-side).
+
+1. Build the problem (:class:`tune.run.Problem`) from the configuration; the start is
+   Table 1 with the default hybrid gains.
+2. Optimise (:func:`tune.run.optimise`), checkpointing to ``DIR/checkpoint.pkl``; a run that
+   finds a checkpoint of the same configuration continues from it.
+3. Evaluate the start and the result on the whole paths (or ``eval_duration_s``) with
+   :func:`pusupu_jax.machine.simulate_machine` for every scenario.
+4. Write ``DIR/gains.yaml`` (only if the tuned gains pass every check), ``DIR/pid_ros2.yaml``,
+   ``DIR/report.json`` and the plots ``objective.png``, ``path_<scenario>.png``,
+   ``forces_<scenario>.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from pusupu_jax.hybrid import HybridGains  # noqa: E402
+from pusupu_jax.machine import simulate_machine  # noqa: E402
+from pusupu_jax.params import ParameterError, ServoParams  # noqa: E402
+from pusupu_jax.plant.model import ModelOptions  # noqa: E402
+from pusupu_jax.plots import save_atomic  # noqa: E402
+from pusupu_jax.trajectories import platform_path  # noqa: E402
+from pusupu_jax.plant.geometry import Geometry  # noqa: E402
+
+from . import export  # noqa: E402
+from .config import TuneConfig  # noqa: E402
+from .run import Problem, optimise, print_progress  # noqa: E402
+
+METRICS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho")
+
+
+def evaluate(cfg: TuneConfig, servo, hybrid, rates) -> dict:
+    """Machine metrics of every scenario on the whole paths (or their first ``eval_duration_s``)."""
+    out = {}
+    for kind in cfg.trajectories:
+        path = platform_path(kind, Geometry.default().home, rates)
+        if cfg.eval_duration_s is not None:
+            path = path[:max(3, int(round(cfg.eval_duration_s / rates.dt_position)))]
+        for seed in cfg.kin_error_seeds:
+            for payload in cfg.payloads:
+                name = f"{kind}" + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else "")
+                result, trace = simulate_machine(servo, path, mode=cfg.mode, hybrid=hybrid,
+                                                 options=ModelOptions(kin_error_seed=seed, payload=float(payload)))
+                out[name] = (result, trace)
+    return out
+
+
+def _plots(out: Path, history, before, after) -> list[str]:
+    files = []
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for k in sorted({h["start"] for h in history}):
+        pts = [(h["iteration"], h["objective"]) for h in history if h["start"] == k]
+        ax.plot(*zip(*pts), marker=".", label=f"start {k + 1}")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("objective (1 = start, lower is better)")
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    files.append(str(save_atomic(fig, out / "objective.png")))
+    for name in before:
+        tag = name.replace("/", "_")
+        (_, tb), (_, ta) = before[name], after[name]
+        fig = plt.figure(figsize=(12, 5))
+        ax = fig.add_subplot(1, 2, 1)
+        ax.plot(tb["reference"][:, 0] * 1e3, tb["reference"][:, 1] * 1e3, "k--", label="reference")
+        ax.plot(tb["platform"][:, 0] * 1e3, tb["platform"][:, 1] * 1e3, label="before (Table 1)")
+        ax.plot(ta["platform"][:, 0] * 1e3, ta["platform"][:, 1] * 1e3, label="after (tuned)")
+        ax.set_xlabel("x [mm]")
+        ax.set_ylabel("y [mm]")
+        ax.axis("equal")
+        ax.legend()
+        ax2 = fig.add_subplot(1, 2, 2)
+        for label, tr in (("before", tb), ("after", ta)):
+            ax2.plot(tr["t"], np.linalg.norm(tr["platform"] - tr["reference"], axis=1) * 1e3, label=label)
+        ax2.set_xlabel("time [s]")
+        ax2.set_ylabel("platform position error [mm]")
+        ax2.grid(True, alpha=0.3)
+        ax2.legend()
+        fig.suptitle(f"{name}: reference vs tracked path")
+        fig.tight_layout()
+        files.append(str(save_atomic(fig, out / f"path_{tag}.png")))
+        fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True, sharey=True)
+        for ax, (label, tr) in zip(axes, (("before (Table 1)", tb), ("after (tuned)", ta))):
+            for b in range(6):
+                ax.plot(tr["t"], tr["branch_force"][:, b], lw=0.8, label=f"branch {b + 1}")
+            ax.set_ylabel(f"{label}\nbranch force [N]")
+            ax.grid(True, alpha=0.3)
+        axes[0].legend(ncol=6, fontsize=7)
+        axes[1].set_xlabel("time [s]")
+        fig.suptitle(f"{name}: branch forces")
+        fig.tight_layout()
+        files.append(str(save_atomic(fig, out / f"forces_{tag}.png")))
+    return files
+
+
+def _summary(result: dict) -> dict:
+    return {k: result[k] for k in METRICS} | {"branch_force_peak_n": max(result["branch_force_peak_n"]),
+                                              "branch_force_peaks_n": result["branch_force_peak_n"]}
+
+
+def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) -> tuple[dict, int]:
+    """Run the whole job; returns ``(report, exit status)`` (1 when the tuned gains fail a check)."""
+    out.mkdir(parents=True, exist_ok=True)
+    checkpoint = out / "checkpoint.pkl"
+    if fresh and checkpoint.exists():
+        checkpoint.unlink()
+    t0 = time.perf_counter()
+    servo0, hybrid0 = ServoParams.table1(), HybridGains()
+    problem = Problem(cfg, servo0, hybrid0)
+    print(f"tune: {len(problem.scenarios)} scenario(s) ({', '.join(s.name for s in problem.scenarios)}), "
+          f"{cfg.horizon_s:g} s windows, tuning {', '.join(problem.space.fields)}; compiling the gradient "
+          "(about 1-2 min cold on 2 CPU cores)", file=stream, flush=True)
+    result = optimise(problem.value_and_grad, problem.space.z0(), problem.space.project,
+                      iterations=cfg.iterations, learning_rate=cfg.learning_rate, clip_norm=cfg.clip_norm,
+                      final_lr_fraction=cfg.final_lr_fraction,
+                      starts=cfg.starts, start_spread=cfg.start_spread, seed=cfg.seed, checkpoint=checkpoint,
+                      checkpoint_every=cfg.checkpoint_every, digest=cfg.digest(),
+                      progress=lambda *a: print_progress(*a, starts=cfg.starts, stream=stream))
+    servo1, hybrid1 = problem.space.apply(result["z"])
+    servo1 = servo1.replace(**{k: np.asarray(v) for k, v in vars(servo1).items()})
+    hybrid1 = hybrid1.replace(**{f: float(getattr(hybrid1, f)) for f in ("m6", "c6", "g")})
+    t_opt = time.perf_counter() - t0
+    print("tune: evaluating the start and the result on the whole paths", file=stream, flush=True)
+    before = evaluate(cfg, servo0, hybrid0, problem.rates)
+    after = evaluate(cfg, servo1, hybrid1, problem.rates)
+    objective_before = float(result["history"][0]["objective"])
+    report = {
+        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
+        "config_hash": cfg.digest(), "tuned_fields": list(problem.space.fields),
+        "start": {f: np.asarray(v).tolist() for f, v in problem.space.values(problem.space.z0()).items()},
+        "result": {f: np.asarray(v).tolist() for f, v in problem.space.values(result["z"]).items()},
+        "objective_before": objective_before, "objective_after": float(result["objective"]),
+        "iterations": len(result["history"]), "history": [{k: h[k] for k in ("start", "iteration", "objective")}
+                                                           for h in result["history"]],
+        "before": {n: _summary(r) for n, (r, _) in before.items()},
+        "after": {n: _summary(r) for n, (r, _) in after.items()},
+        "optimise_wall_s": t_opt,
+    }
+    status = 0
+    try:
+        report["margins_after"] = export.check_gains(servo1, hybrid1, cfg.pm_min, cfg.gm_min,
+                                                     mode="pid" if cfg.mode == "pid" else "imc")
+        provenance = {"config_hash": cfg.digest(), "objective_before": objective_before,
+                      "objective_after": float(result["objective"]), "mode": cfg.mode,
+                      "metrics_after": report["after"]}
+        export.write_gains(out / "gains.yaml", servo1, hybrid1, problem.rates, provenance, cfg.pm_min, cfg.gm_min)
+        export.write_ros2_pid(out / "pid_ros2.yaml", servo1)
+        report["exported"] = [str(out / "gains.yaml"), str(out / "pid_ros2.yaml")]
+    except ParameterError as e:
+        report["exported"], report["export_error"] = [], str(e)
+        status = 1
+    report["plots"] = _plots(out, result["history"], before, after)
+    report["wall_s"] = time.perf_counter() - t0
+    export.write_atomic(out / "report.json", json.dumps(report, indent=2))
+    return report, status
+
+
+def table(report: dict) -> str:
+    """The before/after table printed at the end of a run."""
+    lines = [f"{'scenario':<14} {'metric':<24} {'before':>10} {'after':>10} {'change':>8}"]
+    for name in report["before"]:
+        b, a = report["before"][name], report["after"][name]
+        for key in (*METRICS, "branch_force_peak_n"):
+            change = (a[key] / b[key] - 1) * 100 if b[key] else float("nan")
+            lines.append(f"{name:<14} {key:<24} {b[key]:>10.4g} {a[key]:>10.4g} {change:>7.1f}%")
+    lines.append(f"objective {report['objective_before']:.4f} -> {report['objective_after']:.4f} in "
+                 f"{report['iterations']} evaluations, {report['wall_s']:.0f} s")
+    for field in report["tuned_fields"]:
+        lines.append(f"  {field:<8} {np.ravel(report['start'][field])[0]:.6g} -> {np.ravel(report['result'][field])[0]:.6g}")
+    if report.get("export_error"):
+        lines.append(f"NOT EXPORTED: {report['export_error']}")
+    return "\n".join(lines)

@@ -1,0 +1,89 @@
+"""What the tuner moves: parameter groups, the log parametrisation and the box bounds.
+
+A group names fields of :class:`~pusupu_jax.params.ServoParams` or
+:class:`~pusupu_jax.hybrid.HybridGains`.  Each tuned field is a log-value ``z``: one per
+axis, or one shared by every axis when ``shared`` (servo fields only; the hybrid gains are
+machine-wide scalars anyway).  ``exp(z)`` keeps every gain positive; after each optimiser
+step ``z`` is projected onto the box ``[log lo, log hi]``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import jax.numpy as jnp
+import numpy as np
+
+from pusupu_jax.hybrid import HybridGains
+from pusupu_jax.params import ParameterError, ServoParams
+
+GROUPS = {
+    "imc": ("lambda1", "lambda2"),
+    "velocity": ("Kv", "Tv"),
+    "current": ("Ki", "Ti"),
+    "pid": ("Kp_pid", "Ki_pid", "Kd_pid", "Tf_pid"),
+    "hybrid": ("m6", "c6", "g"),
+}
+HYBRID_FIELDS = GROUPS["hybrid"]
+
+
+@dataclass(frozen=True)
+class Space:
+    """The tuned fields around a start point: ``z`` is a dict of log-values (the optimiser's pytree)."""
+
+    fields: tuple[str, ...]
+    shared: bool
+    servo0: ServoParams
+    hybrid0: HybridGains
+    lower: dict  # name -> lower bound (same shape as the value)
+    upper: dict
+
+    @classmethod
+    def create(cls, groups, servo0: ServoParams, hybrid0: HybridGains, shared: bool = True,
+               bounds: dict | None = None, span: float = 10.0) -> "Space":
+        """Fields of ``groups``; default bounds ``start / span`` to ``start * span``, overridden by ``bounds``."""
+        unknown = [g for g in groups if g not in GROUPS]
+        if unknown or not groups:
+            raise ParameterError(f"tune groups: expected some of {sorted(GROUPS)}, got {list(groups)}")
+        fields = tuple(f for g in groups for f in GROUPS[g])
+        space = cls(fields, shared, servo0, hybrid0, {}, {})
+        start = space.values(space.z0())
+        bounds = bounds or {}
+        extra = sorted(set(bounds) - set(fields))
+        if extra:
+            raise ParameterError(f"tune bounds: {extra[0]!r} is not a tuned field; tuned: {list(fields)}")
+        for f in fields:
+            lo, hi = bounds.get(f, (None, None))
+            v = np.asarray(start[f])
+            space.lower[f] = np.full_like(v, v / span if lo is None else lo, dtype=float)
+            space.upper[f] = np.full_like(v, v * span if hi is None else hi, dtype=float)
+            if not (0 < space.lower[f] <= v).all() or not (v <= space.upper[f]).all():
+                raise ParameterError(f"tune bounds.{f}: expected 0 < lower <= start ({v.ravel()[0]:.6g}) <= upper, "
+                                     f"got [{space.lower[f].ravel()[0]:.6g}, {space.upper[f].ravel()[0]:.6g}]")
+        return space
+
+    def _start(self, name):
+        if name in HYBRID_FIELDS:
+            return np.asarray(getattr(self.hybrid0, name), dtype=float)
+        v = np.asarray(getattr(self.servo0, name), dtype=float)
+        if self.shared:
+            if not np.allclose(v, v[0]):
+                raise ParameterError(f"tune: {name} differs between axes at the start; set shared: false")
+            return np.asarray(v[0])
+        return v
+
+    def z0(self) -> dict:
+        return {f: jnp.log(jnp.asarray(self._start(f))) for f in self.fields}
+
+    def values(self, z) -> dict:
+        return {f: jnp.exp(v) for f, v in z.items()}
+
+    def project(self, z) -> dict:
+        return {f: jnp.clip(v, np.log(self.lower[f]), np.log(self.upper[f])) for f, v in z.items()}
+
+    def apply(self, z) -> tuple[ServoParams, HybridGains]:
+        """The full parameter sets at ``z`` (traceable)."""
+        vals = self.values(z)
+        servo = {f: jnp.broadcast_to(v, (6,)) for f, v in vals.items() if f not in HYBRID_FIELDS}
+        hybrid = {f: v for f, v in vals.items() if f in HYBRID_FIELDS}
+        return self.servo0.replace(**servo), self.hybrid0.replace(**hybrid)
