@@ -40,13 +40,13 @@ def main():
     import numpy as np
 
     from pusupu_jax import ServoParams
-    from pusupu_jax.machine import _plant, machine_rates
+    from pusupu_jax.machine import machine_plant, machine_rates
     from pusupu_jax.params import stack
     from pusupu_jax.plant.model import ModelOptions
     from pusupu_jax.sim import rollout
 
     options = ModelOptions()
-    plant, rates = _plant(options), machine_rates(options)
+    plant, rates = machine_plant(options), machine_rates(options)
     n_pos = int(round(args.horizon_s / rates.dt_position))
     env_steps_per_run = n_pos * rates.n_position * (rates.n_velocity // rates.n_mech)
     ref = jnp.asarray(np.sin(np.linspace(0, np.pi, n_pos))[:, None] * np.ones(6) * 2.0)  # motor rad

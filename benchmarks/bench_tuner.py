@@ -10,6 +10,7 @@ gradient/forward time ratio) and wall time to reach the target (compile excluded
 sides).
 
     python benchmarks/bench_tuner.py [--trajectory arc] [--horizon 0.5] [--iterations 25] [--max-evals 1500]
+                                     [--groups imc,hybrid] [--per-axis]
 """
 
 from __future__ import annotations
@@ -33,6 +34,8 @@ def main() -> None:
     ap.add_argument("--horizon", type=float, default=0.5, help="training window [s]")
     ap.add_argument("--iterations", type=int, default=25)
     ap.add_argument("--max-evals", type=int, default=1500)
+    ap.add_argument("--groups", default="imc,hybrid", help="comma-separated tuned groups (tune/space.py)")
+    ap.add_argument("--per-axis", action="store_true", help="one value per axis instead of shared")
     args = ap.parse_args()
     setup_jax()
     from pusupu_jax import ServoParams
@@ -40,7 +43,8 @@ def main() -> None:
     from tune.config import TuneConfig
     from tune.run import Problem, optimise
 
-    cfg = TuneConfig(trajectories=(args.trajectory,), horizon_s=args.horizon, iterations=args.iterations)
+    cfg = TuneConfig(trajectories=(args.trajectory,), horizon_s=args.horizon, iterations=args.iterations,
+                     groups=tuple(args.groups.split(",")), shared=not args.per_axis)
     problem = Problem(cfg, ServoParams.table1(), HybridGains())
     space, z0 = problem.space, problem.space.z0()
     names = sorted(z0)
@@ -75,13 +79,19 @@ def main() -> None:
 
     def f(x):
         x = np.clip(x, lo, hi)
-        v = float(value({n: jnp.asarray(x[i]) for i, n in enumerate(names)}))
+        v = float(value(unflatten(x)))
         evals.append((v, time.perf_counter() - t0))
         if v <= target:
             raise StopIteration
         return v
 
-    x0 = np.array([float(z0[n]) for n in names])
+    sizes = [int(np.size(z0[n])) for n in names]
+    splits = np.cumsum(sizes)[:-1]
+
+    def unflatten(x):
+        return {n: jnp.asarray(part).reshape(np.shape(z0[n])) for n, part in zip(names, np.split(x, splits))}
+
+    x0 = np.concatenate([np.ravel(z0[n]) for n in names])
     try:
         minimize(f, x0, method="Nelder-Mead", options={"maxfev": args.max_evals, "xatol": 1e-6, "fatol": 1e-9,
                                                         "initial_simplex": x0 + 0.3 * np.vstack([np.zeros(len(x0)),
@@ -92,7 +102,7 @@ def main() -> None:
     best_nm = min(v for v, _ in evals)
     out = {
         "problem": {"trajectory": args.trajectory, "horizon_s": args.horizon, "mode": cfg.mode,
-                    "fields": names, "start_objective": trace[0][0]},
+                    "fields": names, "parameters": int(sum(sizes)), "start_objective": trace[0][0]},
         "forward_s": t_forward, "gradient_s": t_grad, "gradient_over_forward": t_grad / t_forward,
         "gradient_tuner": {"target_objective": target, "rollouts_to_target": grad_evals,
                            "wall_s_to_target": grad_wall},

@@ -37,7 +37,8 @@ def machine_rates(options: ModelOptions = ModelOptions(), rates: LoopRates = Loo
 
 
 @functools.lru_cache(maxsize=8)
-def _plant(options: ModelOptions) -> MJXPlant:
+def machine_plant(options: ModelOptions = ModelOptions()) -> MJXPlant:
+    """The default-geometry MJX plant for ``options``, built once per options (a static jit argument)."""
     return MJXPlant.create(Geometry.default(), options)
 
 
@@ -83,7 +84,7 @@ def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: Mo
         hybrid_law.validate_gains(hybrid)
     rates = machine_rates(options, rates)
     reference = machine_reference(servo, path, mode, options=options, rates=rates)
-    plant = _plant(options)
+    plant = machine_plant(options)
     r = np.asarray(screw_ratio(servo))
     s_ref = np.asarray(reference.theta if mode == "hybrid" else reference) * r
     extra = {"hybrid": hybrid} if mode == "hybrid" else {}

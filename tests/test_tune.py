@@ -74,6 +74,19 @@ def test_resuming_from_a_checkpoint_gives_the_uninterrupted_result(tmp_path):
                  **(kw | {"digest": "y"}))
 
 
+def test_per_axis_space_tunes_each_axis_and_checks_bounds():
+    space = Space.create(("imc", "hybrid"), SERVO, HybridGains(), shared=False)
+    z = space.z0()
+    assert z["lambda1"].shape == (6,) and z["c6"].shape == ()
+    servo, hybrid = space.apply(space.project({**z, "lambda1": z["lambda1"] + jnp.arange(6.0) * 10}))
+    assert np.allclose(servo.lambda1, np.minimum(0.018 * np.exp(np.arange(6.0) * 10), 0.18))  # clipped at start*10
+    assert float(hybrid.c6) == pytest.approx(1000.0)
+    with pytest.raises(ParameterError, match=r"bounds.lambda2: expected 0 < lower <= start"):
+        Space.create(("imc",), SERVO, HybridGains(), shared=False, bounds={"lambda2": (0.2, 0.5)})
+    with pytest.raises(ParameterError, match="differs between axes"):
+        Space.create(("imc",), SERVO.replace(lambda1=np.linspace(0.01, 0.02, 6)), HybridGains())
+
+
 GOOD = SERVO.replace(lambda1=np.linspace(0.02, 0.05, 6), lambda2=np.full(6, 0.1))
 HYBRID = HybridGains(m6=0.2, c6=1234.5, g=67.8, form="rms")
 

@@ -34,7 +34,7 @@ from pusupu_jax.plant.geometry import Geometry  # noqa: E402
 
 from . import export  # noqa: E402
 from .config import TuneConfig  # noqa: E402
-from .run import Problem, optimise, print_progress  # noqa: E402
+from .run import Problem, optimise, print_progress, scenario_name  # noqa: E402
 
 METRICS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho")
 
@@ -48,7 +48,7 @@ def evaluate(cfg: TuneConfig, servo, hybrid, rates) -> dict:
             path = path[:max(3, int(round(cfg.eval_duration_s / rates.dt_position)))]
         for seed in cfg.kin_error_seeds:
             for payload in cfg.payloads:
-                name = f"{kind}" + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else "")
+                name = scenario_name(kind, seed, payload)
                 result, trace = simulate_machine(servo, path, mode=cfg.mode, hybrid=hybrid,
                                                  options=ModelOptions(kin_error_seed=seed, payload=float(payload)))
                 out[name] = (result, trace)
@@ -116,7 +116,7 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) 
     t0 = time.perf_counter()
     servo0, hybrid0 = ServoParams.table1(), HybridGains()
     problem = Problem(cfg, servo0, hybrid0)
-    print(f"tune: {len(problem.scenarios)} scenario(s) ({', '.join(s.name for s in problem.scenarios)}), "
+    print(f"tune: {len(problem.scenarios.names)} scenario(s) ({', '.join(problem.scenarios.names)}), "
           f"{cfg.horizon_s:g} s windows, tuning {', '.join(problem.space.fields)}; compiling the gradient "
           "(about 1-2 min cold on 2 CPU cores)", file=stream, flush=True)
     result = optimise(problem.value_and_grad, problem.space.z0(), problem.space.project,

@@ -1,7 +1,7 @@
 """The tuning problem (objective over scenarios) and the optimiser loop with checkpoints.
 
 The objective at log-parameters ``z`` is, per scenario (path window x kinematic-error
-seed x payload), ``sum_k w_k term_k(z) / term_k(z0)`` over the weighted
+seed x payload; the scenarios run as one vmapped batch), ``sum_k w_k term_k(z) / term_k(z0)`` over the weighted
 :mod:`pusupu_jax.objectives` terms, plus penalties: the smooth branch-force peak above
 ``force_peak_limit`` times its start value, current/voltage saturation, and every loop's
 phase and gain margins (:mod:`pusupu_jax.margins`, single-axis model) below
@@ -17,6 +17,7 @@ lines on stderr.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 import pickle
 import sys
@@ -31,7 +32,7 @@ import optax
 
 from pusupu_jax import objectives
 from pusupu_jax.hybrid import HybridGains
-from pusupu_jax.machine import _plant, machine_rates, machine_reference
+from pusupu_jax.machine import machine_plant, machine_rates, machine_reference
 from pusupu_jax.margins import loop_margins
 from pusupu_jax.params import AxisLoad, ParameterError, ServoParams
 from pusupu_jax.plant.geometry import Geometry
@@ -45,28 +46,43 @@ from .space import Space
 PENALTY_WEIGHT = 100.0
 
 
+def scenario_name(kind: str, seed: int | None, payload: float) -> str:
+    """``arc``, ``arc/seed3``, ``p2p/seed3/10kg``, ..."""
+    return kind + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else "")
+
+
 @dataclasses.dataclass(frozen=True)
-class Scenario:
-    name: str
-    plant: object
-    reference: object
-    path: object  # (N, 5) platform poses
+class Scenarios:
+    """Every (path, seed, payload) combination, stacked along a leading axis for one vmapped rollout.
 
+    Each path is cut to the same window (its first ``duration`` s, or the shortest path), so
+    that the batch is rectangular; seeds and payloads enter as :meth:`MJXPlant.variant` models.
+    """
 
-def scenarios(cfg: TuneConfig, servo: ServoParams, duration: float | None, rates) -> list[Scenario]:
-    """Every (path, seed, payload) combination, each path cut to its first ``duration`` s (None: whole)."""
-    out = []
-    for kind in cfg.trajectories:
-        path = platform_path(kind, Geometry.default().home, rates)
+    names: list
+    plant: object  # the nominal MJXPlant (structure and static fields)
+    models: object  # stacked mjx.Model variants, (S, ...)
+    reference: object  # stacked rollout references, (S, N, ...)
+    path: object  # stacked platform poses, (S, N, 5)
+
+    @classmethod
+    def build(cls, cfg: TuneConfig, servo: ServoParams, duration: float | None, rates) -> "Scenarios":
+        paths = {kind: platform_path(kind, Geometry.default().home, rates) for kind in cfg.trajectories}
+        n = min(len(p) for p in paths.values())
         if duration is not None:
-            path = path[:max(3, int(round(duration / rates.dt_position)))]
-        for seed in cfg.kin_error_seeds:
-            for payload in cfg.payloads:
-                options = ModelOptions(kin_error_seed=seed, payload=float(payload))
-                ref = machine_reference(servo, path, cfg.mode, options=options, rates=rates)
-                name = f"{kind}" + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else "")
-                out.append(Scenario(name, _plant(options), ref, jnp.asarray(path)))
-    return out
+            n = min(n, max(3, int(round(duration / rates.dt_position))))
+        plant = machine_plant(ModelOptions())
+        names, models, refs, cut = [], [], [], []
+        for kind, path in paths.items():
+            for seed in cfg.kin_error_seeds:
+                for payload in cfg.payloads:
+                    options = ModelOptions(kin_error_seed=seed, payload=float(payload))
+                    names.append(scenario_name(kind, seed, payload))
+                    models.append(plant.variant(options))
+                    refs.append(machine_reference(servo, path[:n], cfg.mode, options=options, rates=rates))
+                    cut.append(jnp.asarray(path[:n]))
+        stack = functools.partial(jax.tree.map, lambda *xs: jnp.stack(xs))
+        return cls(names, plant, stack(*models), stack(*refs), jnp.stack(cut))
 
 
 class Problem:
@@ -76,20 +92,23 @@ class Problem:
         self.cfg = cfg
         self.rates = machine_rates()
         self.space = Space.create(cfg.groups, servo0, hybrid0, shared=cfg.shared, bounds=cfg.bounds)
-        self.scenarios = scenarios(cfg, servo0, cfg.horizon_s, self.rates)
+        self.scenarios = Scenarios.build(cfg, servo0, cfg.horizon_s, self.rates)
         self.load = AxisLoad.default()
         self._value_and_grad = jax.jit(jax.value_and_grad(self.objective, has_aux=True))
         self.baseline = None
 
-    def scenario_terms(self, z) -> list[dict]:
+    def scenario_terms(self, z) -> dict:
+        """Every objective term of every scenario: ``{term: (S,)}``."""
         servo, hybrid = self.space.apply(z)
-        out = []
-        for sc in self.scenarios:
-            trace = rollout(servo, None, sc.reference, plant=sc.plant, rates=self.rates, outer=self.cfg.mode,
+        sc = self.scenarios
+
+        def one(model, reference, path):
+            trace = rollout(servo, model, reference, plant=sc.plant, rates=self.rates, outer=self.cfg.mode,
                             hybrid=hybrid if self.cfg.mode == "hybrid" else None)
-            out.append(objectives.terms(trace, servo, sc.path, self.rates.dt_position,
-                                        sharpness_force=self.cfg.sharpness_force))
-        return out
+            return objectives.terms(trace, servo, path, self.rates.dt_position,
+                                    sharpness_force=self.cfg.sharpness_force)
+
+        return jax.vmap(one)(sc.models, sc.reference, sc.path)
 
     def margins(self, z) -> dict:
         servo, _ = self.space.apply(z)
@@ -98,29 +117,25 @@ class Problem:
     def objective(self, z, baseline):
         """``(J, aux)``; ``baseline`` holds each scenario's terms at the start (the normalisers)."""
         cfg = self.cfg
-        per = []
-        terms = self.scenario_terms(z)
-        for t, b in zip(terms, baseline):
-            j = sum(w * t[k] / b[k] for k, w in cfg.weights.items())
-            j += PENALTY_WEIGHT * jax.nn.relu(t["force_peak"] / (cfg.force_peak_limit * b["force_peak"]) - 1.0) ** 2
-            j += PENALTY_WEIGHT * t["saturation"]
-            per.append(j)
-        per = jnp.stack(per)
+        t = self.scenario_terms(z)
+        per = sum(w * t[k] / baseline[k] for k, w in cfg.weights.items())
+        per += PENALTY_WEIGHT * jax.nn.relu(t["force_peak"] / (cfg.force_peak_limit * baseline["force_peak"])
+                                            - 1.0) ** 2
+        per += PENALTY_WEIGHT * t["saturation"]
         total = jnp.mean(per) if cfg.aggregate == "mean" else jnp.max(per)
-        m = self.margins(z)
-        for loop in m.values():
+        for loop in self.margins(z).values():
             pm = jnp.minimum(loop["phase_margin_deg"], 180.0)
             gm = jnp.minimum(loop["gain_margin_db"], 60.0)
             total += PENALTY_WEIGHT * jnp.sum(jax.nn.relu((cfg.pm_min + 1.0 - pm) / 10.0) ** 2)
             total += PENALTY_WEIGHT * jnp.sum(jax.nn.relu((cfg.gm_min + 0.5 - gm) / 3.0) ** 2)
-        return total, {"scenarios": per, "terms": terms}
+        return total, {"scenarios": per, "terms": t}
 
     def start_baseline(self):
         """The terms at the start, from one call of the compiled gradient (normalisers of 1: no new compile)."""
         if self.baseline is None:
-            ones = [{k: jnp.ones(()) for k in objectives.TERMS} for _ in self.scenarios]
+            ones = {k: jnp.ones(len(self.scenarios.names)) for k in objectives.TERMS}
             (_, aux), _ = self._value_and_grad(self.space.z0(), ones)
-            self.baseline = jax.tree.map(jnp.asarray, aux["terms"])
+            self.baseline = aux["terms"]
         return self.baseline
 
     def value_and_grad(self, z):

@@ -57,7 +57,7 @@ class Space:
             v = np.asarray(start[f])
             space.lower[f] = np.full_like(v, v / span if lo is None else lo, dtype=float)
             space.upper[f] = np.full_like(v, v * span if hi is None else hi, dtype=float)
-            if not (0 < space.lower[f] <= v).all() or not (v <= space.upper[f]).all():
+            if not ((0 < space.lower[f]) & (space.lower[f] <= v) & (v <= space.upper[f])).all():
                 raise ParameterError(f"tune bounds.{f}: expected 0 < lower <= start ({v.ravel()[0]:.6g}) <= upper, "
                                      f"got [{space.lower[f].ravel()[0]:.6g}, {space.upper[f].ravel()[0]:.6g}]")
         return space

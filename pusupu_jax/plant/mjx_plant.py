@@ -9,11 +9,17 @@ the travel from home [m] and the slider velocity [m/s].
 
 The plant is hashed by identity (it is a static argument of the jitted rollout): build it
 once with :meth:`MJXPlant.create` and reuse it, or every call compiles anew.
+
+Scenarios (seeded kinematic errors, payloads) of the same mechanism differ only in array
+fields of the model, so they can share one compiled rollout and be vmapped: pass
+:meth:`MJXPlant.variant` models (stacked for a batch) as the rollout's ``plant_params``;
+``None`` runs the plant's own model.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 from dataclasses import dataclass
 from typing import Any
@@ -53,6 +59,22 @@ class MJXPlant:
         m = build_model(geom, options)
         return cls(m, mjx.put_model(m), options)
 
+    def variant(self, options: ModelOptions, geom: Geometry | None = None):
+        """The ``mjx.Model`` of the machine built with ``options``, as array fields on this plant's structure.
+
+        Only array fields are taken from the variant (body poses, masses, inertias, geoms,
+        connect anchors, ``qpos0``); the rest (sizes, indices, solver options) must be and
+        are the same.  Two things are left at this plant's values: the model statistics
+        (``stat``: they scale the solver's termination test, which one Newton iteration
+        never reaches) and the height-field bounding radii (no height fields here).
+        """
+        other = mjx.put_model(build_model(geom, options))
+        if other.nq != self.mjx_model.nq or other.nv != self.mjx_model.nv or other.neq != self.mjx_model.neq:
+            raise ValueError("MJXPlant.variant: the options change the model's structure, not only its values")
+        arrays = {f.name: getattr(other, f.name) for f in dataclasses.fields(other)
+                  if isinstance(getattr(other, f.name), jax.Array)}
+        return self.mjx_model.replace(**arrays)
+
     @property
     def _dofs(self):
         return slide_dofs(self.mj_model)
@@ -65,26 +87,27 @@ class MJXPlant:
         if not np.isclose(dt, self.options.timestep, rtol=1e-9):
             raise ValueError(f"MJXPlant: the mechanical step rates.dt_mech = {dt} s must equal the model "
                              f"timestep {self.options.timestep} s")
+        model = self.mjx_model if plant_params is None else plant_params
         r = screw_ratio(servo)
-        armature = self.mjx_model.dof_armature.at[self._dofs].set(servo.eta * servo.J / r**2)
-        return MJXAux(self.mjx_model.replace(dof_armature=armature), servo.eta / r, r)
+        armature = model.dof_armature.at[self._dofs].set(servo.eta * servo.J / r**2)
+        return MJXAux(model.replace(dof_armature=armature), servo.eta / r, r)
 
     def init(self, aux: MJXAux):
         return mjx.forward(aux.model, mjx.make_data(aux.model))
 
     def measure(self, aux: MJXAux, data):
-        s = data.qpos[self._qpos] - self.mj_model.qpos0[self._qpos]
-        return s / aux.r, data.qvel[self._dofs] / aux.r
+        s, v = self.slider(aux, data)
+        return s / aux.r, v / aux.r
 
     def step(self, aux: MJXAux, data, torque):
         qfrc = jnp.zeros_like(data.qfrc_applied).at[self._dofs].set(aux.force_gain * torque)
         return mjx.step(aux.model, data.replace(qfrc_applied=qfrc))
 
     def slider(self, aux: MJXAux, data):
-        return data.qpos[self._qpos] - self.mj_model.qpos0[self._qpos], data.qvel[self._dofs]
+        return data.qpos[self._qpos] - aux.model.qpos0[self._qpos], data.qvel[self._dofs]
 
     def observe(self, aux: MJXAux, data):
         """Platform position [m] and orientation (3x3), and the loop-closure residual [m]."""
         body = self.mj_model.body("platform").id
         return {"platform_pos": data.xpos[body], "platform_mat": data.xmat[body].reshape(3, 3),
-                "closure_residual": loop_closure_residual(self.mj_model, data.xpos, data.xmat)}
+                "closure_residual": loop_closure_residual(self.mj_model, data.xpos, data.xmat, aux.model.eq_data)}

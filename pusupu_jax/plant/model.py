@@ -171,18 +171,20 @@ def slide_qpos(model: mujoco.MjModel) -> np.ndarray:
     return np.array([model.jnt_qposadr[model.joint(f"slide_{i}").id] for i in range(6)])
 
 
-def loop_closure_residual(model: mujoco.MjModel, xpos, xmat):
+def loop_closure_residual(model: mujoco.MjModel, xpos, xmat, eq_data=None):
     """Largest distance [m] between the two anchors of the six spherical-joint ``connect`` constraints.
 
     ``xpos (..., nbody, 3)`` and ``xmat (..., nbody, 9 or 3x3)`` are body poses from
     ``MjData`` or MJX ``Data`` (traced or not); the result has the leading shape.
+    ``eq_data`` (default ``model.eq_data``) holds the anchors, for a model variant.
     """
     xpos = jnp.asarray(xpos)
     xmat = jnp.asarray(xmat).reshape(xpos.shape[:-1] + (3, 3))
     eqs = [model.equality(f"sphere_{i}").id for i in range(6)]
     b1, b2 = model.eq_obj1id[eqs], model.eq_obj2id[eqs]
-    p1 = xpos[..., b1, :] + jnp.einsum("...kij,kj->...ki", xmat[..., b1, :, :], model.eq_data[eqs, 0:3])
-    p2 = xpos[..., b2, :] + jnp.einsum("...kij,kj->...ki", xmat[..., b2, :, :], model.eq_data[eqs, 3:6])
+    data = jnp.asarray(model.eq_data if eq_data is None else eq_data)[jnp.asarray(eqs)]
+    p1 = xpos[..., b1, :] + jnp.einsum("...kij,kj->...ki", xmat[..., b1, :, :], data[:, 0:3])
+    p2 = xpos[..., b2, :] + jnp.einsum("...kij,kj->...ki", xmat[..., b2, :, :], data[:, 3:6])
     return jnp.max(jnp.linalg.norm(p1 - p2, axis=-1), axis=-1)
 
 
