@@ -58,8 +58,8 @@ def inverse_dynamics_forces(servo, path, dt: float, geom: Geometry | None = None
         raise ValueError(f"path: expected poses of shape (N >= 3, 5), got {path.shape}")
     m = nominal_model(servo, geom, options)
     phi = pose_to_qpos(m, geom)
-    qpos = np.asarray(phi(jnp.asarray(path)))
-    T = np.asarray(jnp.vectorize(jax.jacfwd(phi), signature="(5)->(n,5)")(jnp.asarray(path)))
+    with_jacobian = jax.jit(lambda q: (phi(q), jnp.vectorize(jax.jacfwd(phi), signature="(5)->(n,5)")(q)))
+    qpos, T = (np.asarray(a) for a in with_jacobian(jnp.asarray(path)))  # one compile, not one per operation
     qvel = np.gradient(qpos, dt, axis=0)
     qacc = np.gradient(qvel, dt, axis=0)
     d = mujoco.MjData(m)
