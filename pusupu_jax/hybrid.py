@@ -90,9 +90,10 @@ def validate_gains(h: HybridGains) -> None:
         except (TypeError, ValueError):
             raise ParameterError(f"HybridGains.{f.name}: expected a number [{f.metadata['unit']}], "
                                  f"got {getattr(h, f.name)!r}") from None
-        if not np.isfinite(v).all() or (v < 0).any():
+        bad = ~(np.isfinite(v) & (v >= 0))
+        if bad.any():
             raise ParameterError(f"HybridGains.{f.name}: expected a finite non-negative number "
-                                 f"[{f.metadata['unit']}], got {v.ravel()[~(np.isfinite(v.ravel()) & (v.ravel() >= 0))][0]}")
+                                 f"[{f.metadata['unit']}], got {v[bad].ravel()[0]}")
 
 
 @jax.tree_util.register_dataclass

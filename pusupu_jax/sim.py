@@ -104,9 +104,9 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
         theta, omega = plant.measure(aux, c["plant"])
         x, v = plant.slider(aux, c["plant"])
         i = loops.electrical_current(c["electrical"])
-        return dict(reference=ref.theta if outer == "hybrid" else ref, command=command, theta=theta, omega=omega, position=x, velocity=v,
-                    current=i, torque=drive.Kt * i, state={k: s for k, s in c.items() if k != "plant"},
-                    observation=plant.observe(aux, c["plant"]))
+        return dict(reference=ref.theta if outer == "hybrid" else ref, command=command, theta=theta, omega=omega,
+                    position=x, velocity=v, current=i, torque=drive.Kt * i,
+                    state={k: s for k, s in c.items() if k != "plant"}, observation=plant.observe(aux, c["plant"]))
 
     def mech_step(c, i_ref):
         _, omega = plant.measure(aux, c["plant"])

@@ -175,7 +175,8 @@ def table(report: dict) -> str:
     lines.append(f"objective {report['objective_before']:.4f} -> {report['objective_after']:.4f} in "
                  f"{report['iterations']} evaluations, {report['wall_s']:.0f} s")
     for field in report["tuned_fields"]:
-        lines.append(f"  {field:<8} {np.ravel(report['start'][field])[0]:.6g} -> {np.ravel(report['result'][field])[0]:.6g}")
+        start, result = np.ravel(report["start"][field]), np.ravel(report["result"][field])
+        lines.append(f"  {field:<8} {start[0]:.6g} -> {result[0]:.6g}" + (" (axis 1)" if len(result) > 1 else ""))
     if report.get("export_error"):
         lines.append(f"NOT EXPORTED: {report['export_error']}")
     return "\n".join(lines)

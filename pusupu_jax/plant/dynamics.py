@@ -77,6 +77,6 @@ def inverse_dynamics_forces(servo, path, dt: float, geom: Geometry | None = None
 
 
 def coupling_row(J) -> np.ndarray:
-    """``w = J_6 J_15^-1`` (``(..., 5)``): how branch 6 must move when branches 1-5 move by ``ds_15`` (``ds_6 = w . ds_15``)."""
+    """``w = J_6 J_15^-1``, shape ``(..., 5)``: when branches 1-5 move by ``ds_15``, branch 6 moves by ``w . ds_15``."""
     J = np.asarray(J)
     return np.linalg.solve(np.swapaxes(J[..., :5, :], -1, -2), J[..., 5, :][..., None])[..., 0]
