@@ -85,20 +85,30 @@ def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: Mo
     rates = machine_rates(options, rates)
     reference = machine_reference(servo, path, mode, options=options, rates=rates)
     plant = machine_plant(options)
-    r = np.asarray(screw_ratio(servo))
-    s_ref = np.asarray(reference.theta if mode == "hybrid" else reference) * r
     extra = {"hybrid": hybrid} if mode == "hybrid" else {}
     t0 = time.perf_counter()
     trace = jax.block_until_ready(_runner(plant, rates, mode)(servo, reference=reference, **extra))
     wall = time.perf_counter() - t0
+    result, arrays = machine_metrics(trace, servo, path, reference, mode, rates.dt_position, hybrid)
+    return {"mode": mode, "kin_error_seed": options.kin_error_seed} | result | {"wall_s": wall}, arrays
+
+
+def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: float,
+                    hybrid: hybrid_law.HybridGains | None = None) -> tuple[dict, dict]:
+    """The metrics of ``pusupu sim --plant mjx`` from a machine trace (host-side), and arrays for plots.
+
+    ``reference``: the rollout reference the trace followed (see :func:`machine_reference`).
+    """
+    r = np.asarray(screw_ratio(servo))
+    s_ref = np.asarray(reference.theta if mode == "hybrid" else reference) * r
     platform = np.asarray(trace.observation["platform_pos"])
     e_platform = np.linalg.norm(platform - np.asarray(path)[:, :3], axis=1)
     e_branch = np.asarray(trace.position) - s_ref
     torque = np.asarray(trace.torque)
-    rho = hybrid_law.synchronous_error(jnp.asarray(e_branch), rates.dt_position)
+    rho = hybrid_law.synchronous_error(jnp.asarray(e_branch), dt)
     residual = np.asarray(trace.observation["closure_residual"])
     result = {
-        "mode": mode, "kin_error_seed": options.kin_error_seed, "duration_s": len(path) * rates.dt_position,
+        "duration_s": len(path) * dt,
         "rms_tracking_error_mm": float(np.sqrt(np.mean(e_platform**2)) * 1e3),
         "max_tracking_error_mm": float(e_platform.max() * 1e3),
         "branch_rms_error_mm": (np.sqrt(np.mean(e_branch**2, axis=0)) * 1e3).tolist(),
@@ -106,7 +116,6 @@ def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: Mo
         "branch_force_peak_n": (np.abs(torque) * np.asarray(servo.eta) / r).max(axis=0).tolist(),
         "sync_error_rho": float(rho[-1]) * 1e3,  # mm s
         "loop_closure_residual_max_mm": float(residual.max() * 1e3),
-        "wall_s": wall,
     }
     if mode == "hybrid":
         # the state is recorded at the start of each period, so F_6 of period k shows at k + 1

@@ -96,9 +96,12 @@ def write_atomic(path: Path, text: str) -> None:
 
 
 def gains_document(servo: ServoParams, hybrid: HybridGains, rates: LoopRates, provenance: dict,
-                   pm_min: float = 45.0, gm_min: float = 6.0) -> str:
-    """The YAML text of a gain file (validated: raises ParameterError rather than describe bad gains)."""
-    margins = check_gains(servo, hybrid, pm_min, gm_min)
+                   pm_min: float = 45.0, gm_min: float = 6.0, margins: dict | None = None) -> str:
+    """The YAML text of a gain file (validated: raises ParameterError rather than describe bad gains).
+
+    ``margins``: the result of :func:`check_gains` for these gains, when the caller has it.
+    """
+    margins = check_gains(servo, hybrid, pm_min, gm_min) if margins is None else margins
     doc = {
         "schema": SCHEMA, "version": VERSION, "units": units(),
         "servo": {f.name: np.asarray(getattr(servo, f.name), dtype=float).tolist() for f in dataclasses.fields(servo)},
@@ -113,8 +116,8 @@ def gains_document(servo: ServoParams, hybrid: HybridGains, rates: LoopRates, pr
 
 
 def write_gains(path, servo: ServoParams, hybrid: HybridGains, rates: LoopRates, provenance: dict,
-                pm_min: float = 45.0, gm_min: float = 6.0) -> None:
-    write_atomic(Path(path), gains_document(servo, hybrid, rates, provenance, pm_min, gm_min))
+                pm_min: float = 45.0, gm_min: float = 6.0, margins: dict | None = None) -> None:
+    write_atomic(Path(path), gains_document(servo, hybrid, rates, provenance, pm_min, gm_min, margins))
 
 
 def load_gains(path) -> tuple[ServoParams, HybridGains, LoopRates, dict]:

@@ -5,7 +5,8 @@
 2. Optimise (:func:`tune.run.optimise`), checkpointing to ``DIR/checkpoint.pkl``; a run that
    finds a checkpoint of the same configuration continues from it.
 3. Evaluate the start and the result on the whole paths (or ``eval_duration_s``) with
-   :func:`pusupu_jax.machine.simulate_machine` for every scenario.
+   :func:`pusupu_jax.machine.simulate_machine` for every scenario; when ``eval_duration_s``
+   equals ``horizon_s`` (``--quick``), the training rollouts are reused instead (no second compile).
 4. Write ``DIR/gains.yaml`` (only if the tuned gains pass every check), ``DIR/pid_ros2.yaml``,
    ``DIR/report.json`` and the plots ``objective.png``, ``path_<scenario>.png``,
    ``forces_<scenario>.png``.
@@ -129,9 +130,13 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) 
     servo1 = servo1.replace(**{k: np.asarray(v) for k, v in vars(servo1).items()})
     hybrid1 = hybrid1.replace(**{f: float(getattr(hybrid1, f)) for f in ("m6", "c6", "g")})
     t_opt = time.perf_counter() - t0
-    print("tune: evaluating the start and the result on the whole paths", file=stream, flush=True)
-    before = evaluate(cfg, servo0, hybrid0, problem.rates)
-    after = evaluate(cfg, servo1, hybrid1, problem.rates)
+    if cfg.eval_duration_s is not None and cfg.eval_duration_s == cfg.horizon_s:
+        print("tune: metrics of the start and the result on the training windows", file=stream, flush=True)
+        before, after = problem.window_metrics(problem.space.z0()), problem.window_metrics(result["z"])
+    else:
+        print("tune: evaluating the start and the result on the whole paths", file=stream, flush=True)
+        before = evaluate(cfg, servo0, hybrid0, problem.rates)
+        after = evaluate(cfg, servo1, hybrid1, problem.rates)
     objective_before = float(result["history"][0]["objective"])
     report = {
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
@@ -152,7 +157,8 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) 
         provenance = {"config_hash": cfg.digest(), "objective_before": objective_before,
                       "objective_after": float(result["objective"]), "mode": cfg.mode,
                       "metrics_after": report["after"]}
-        export.write_gains(out / "gains.yaml", servo1, hybrid1, problem.rates, provenance, cfg.pm_min, cfg.gm_min)
+        export.write_gains(out / "gains.yaml", servo1, hybrid1, problem.rates, provenance, cfg.pm_min, cfg.gm_min,
+                           margins=report["margins_after"])
         export.write_ros2_pid(out / "pid_ros2.yaml", servo1)
         report["exported"] = [str(out / "gains.yaml"), str(out / "pid_ros2.yaml")]
     except ParameterError as e:

@@ -32,7 +32,7 @@ import optax
 
 from pusupu_jax import objectives
 from pusupu_jax.hybrid import HybridGains
-from pusupu_jax.machine import machine_plant, machine_rates, machine_reference
+from pusupu_jax.machine import machine_metrics, machine_plant, machine_rates, machine_reference
 from pusupu_jax.margins import loop_margins
 from pusupu_jax.params import AxisLoad, ParameterError, ServoParams
 from pusupu_jax.plant.geometry import Geometry
@@ -97,8 +97,8 @@ class Problem:
         self._value_and_grad = jax.jit(jax.value_and_grad(self.objective, has_aux=True))
         self.baseline = None
 
-    def scenario_terms(self, z) -> dict:
-        """Every objective term of every scenario: ``{term: (S,)}``."""
+    def scenario_terms(self, z) -> tuple[dict, object]:
+        """Every objective term of every scenario, ``{term: (S,)}``, and the traces (leading axis S)."""
         servo, hybrid = self.space.apply(z)
         sc = self.scenarios
 
@@ -106,7 +106,7 @@ class Problem:
             trace = rollout(servo, model, reference, plant=sc.plant, rates=self.rates, outer=self.cfg.mode,
                             hybrid=hybrid if self.cfg.mode == "hybrid" else None)
             return objectives.terms(trace, servo, path, self.rates.dt_position,
-                                    sharpness_force=self.cfg.sharpness_force)
+                                    sharpness_force=self.cfg.sharpness_force), trace
 
         return jax.vmap(one)(sc.models, sc.reference, sc.path)
 
@@ -117,7 +117,7 @@ class Problem:
     def objective(self, z, baseline):
         """``(J, aux)``; ``baseline`` holds each scenario's terms at the start (the normalisers)."""
         cfg = self.cfg
-        t = self.scenario_terms(z)
+        t, traces = self.scenario_terms(z)
         per = sum(w * t[k] / baseline[k] for k, w in cfg.weights.items())
         per += PENALTY_WEIGHT * jax.nn.relu(t["force_peak"] / (cfg.force_peak_limit * baseline["force_peak"])
                                             - 1.0) ** 2
@@ -128,7 +128,7 @@ class Problem:
             gm = jnp.minimum(loop["gain_margin_db"], 60.0)
             total += PENALTY_WEIGHT * jnp.sum(jax.nn.relu((cfg.pm_min + 1.0 - pm) / 10.0) ** 2)
             total += PENALTY_WEIGHT * jnp.sum(jax.nn.relu((cfg.gm_min + 0.5 - gm) / 3.0) ** 2)
-        return total, {"scenarios": per, "terms": t}
+        return total, {"scenarios": per, "terms": t, "traces": traces}
 
     def start_baseline(self):
         """The terms at the start, from one call of the compiled gradient (normalisers of 1: no new compile)."""
@@ -141,11 +141,25 @@ class Problem:
     def value_and_grad(self, z):
         return self._value_and_grad(z, self.start_baseline())
 
+    def window_metrics(self, z) -> dict:
+        """``{scenario: (metrics, plot arrays)}`` of the training windows at ``z``, from the compiled gradient."""
+        (_, aux), _ = self.value_and_grad(z)
+        servo, hybrid = self.space.apply(z)
+        servo = servo.replace(**{k: np.asarray(v) for k, v in vars(servo).items()})
+        out = {}
+        for k, name in enumerate(self.scenarios.names):
+            pick = functools.partial(jax.tree.map, lambda x: np.asarray(x[k]))
+            out[name] = machine_metrics(pick(aux["traces"]), servo, np.asarray(self.scenarios.path[k]),
+                                        pick(self.scenarios.reference), self.cfg.mode, self.rates.dt_position,
+                                        hybrid if self.cfg.mode == "hybrid" else None)
+        return out
+
 
 def _save_atomic(path: Path, state: dict) -> None:
+    arrays = {k: jax.tree.map(np.asarray, state[k]) for k in ("z", "opt", "best_z")}  # off the device
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as f:
-        pickle.dump(jax.tree.map(np.asarray, state), f)
+        pickle.dump(state | arrays, f)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
