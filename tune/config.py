@@ -75,7 +75,7 @@ class TuneConfig:
     @classmethod
     def quick(cls) -> "TuneConfig":
         """A smoke run: the arc's first 0.5 s, 5 iterations, metrics on that window (no second compile)."""
-        return cls(trajectories=("arc",), horizon_s=0.5, iterations=5, checkpoint_every=2, eval_duration_s=0.5)
+        return cls(trajectories=("arc",), horizon_s=0.4, iterations=5, checkpoint_every=2, eval_duration_s=0.4)
 
     @classmethod
     def load(cls, path, base: "TuneConfig | None" = None) -> "TuneConfig":
