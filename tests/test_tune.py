@@ -174,3 +174,31 @@ def test_ros2_pid_export_has_the_known_keys(tmp_path):
     g = gains["slide_0"]
     assert {"p", "i", "d", "i_clamp_max", "i_clamp_min", "antiwindup"} <= set(g)
     assert g["p"] == 6.5 and g["i"] == 8.0 and g["i_clamp_min"] == -g["i_clamp_max"] < 0
+
+
+@pytest.mark.parametrize("text, message", [
+    ("iterations: 0", "iterations: expected a positive integer"),
+    ("groups: [imc, foo]", "groups: expected a list of some of"),
+    ("colour: red", "unknown key 'colour'"),
+    ("mode: imc\ngroups: [hybrid]", "the 'hybrid' group only in hybrid mode"),
+    ("weights: {speed: 1}", "weights: expected a mapping of some of"),
+    ("aggregate: median", "aggregate: expected mean or max"),
+])
+def test_bad_tune_configurations_are_rejected(tmp_path, text, message):
+    from tune.config import TuneConfig
+
+    path = tmp_path / "tune.yaml"
+    path.write_text(text + "\n")
+    with pytest.raises(ParameterError, match=message):
+        TuneConfig.load(path)
+
+
+def test_a_tune_configuration_overrides_the_defaults(tmp_path):
+    from tune.config import TuneConfig
+
+    path = tmp_path / "tune.yaml"
+    path.write_text("kin_error_seeds: [null, 3]\npayloads: [0.0, 10.0]\nbounds: {lambda1: [0.005, 0.3]}\n")
+    cfg = TuneConfig.load(path)
+    assert cfg.kin_error_seeds == (None, 3) and cfg.payloads == (0.0, 10.0)
+    assert cfg.bounds == {"lambda1": (0.005, 0.3)} and cfg.iterations == TuneConfig().iterations
+    assert cfg.digest() != TuneConfig().digest()
