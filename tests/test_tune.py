@@ -1,12 +1,5 @@
 """The tuner: the optimiser on a synthetic problem, checkpoints, gain files and their validation."""
 
-import json
-import os
-import signal
-import subprocess
-import sys
-import time
-
 import jax
 import jax.numpy as jnp
 import numpy as np
