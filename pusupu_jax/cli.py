@@ -72,7 +72,7 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
         return {"analyze": _analyze, "sim": _sim, "tune": _tune}[args.command](args)
-    except ParameterError as e:
+    except (ParameterError, FloatingPointError) as e:  # bad input; a tuning run that went non-finite
         _fail(str(e))
 
 
