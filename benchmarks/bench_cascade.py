@@ -15,7 +15,6 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -23,21 +22,10 @@ import time
 
 import numpy as np
 
-
-def _timed(fn, repeats):
-    import jax
-
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+from timing import median_time  # beside this script
 
 
 def throughput(args) -> dict:
-    import jax
-
     from pusupu_jax import AxisLoad, LoopRates, ServoParams, simulate
     from pusupu_jax.params import stack
 
@@ -53,8 +41,7 @@ def throughput(args) -> dict:
                        for f in rng.uniform(0.7, 1.3, args.batch)])
         n = int(round(horizon / rates.dt_position))
         ref = 0.01 * np.sin(2 * np.pi * np.arange(n) * rates.dt_position)
-        jax.block_until_ready(simulate(p, ref, load=load))  # compile
-        wall = _timed(lambda: simulate(p, ref, load=load), args.repeats)
+        wall = median_time(lambda: simulate(p, ref, load=load), args.repeats)
         batch = 1 if np.ndim(p.Kv) == 1 else np.shape(p.Kv)[0]
         axis_steps = batch * n * ticks_per_sample * 6
         out[label] = {"batch": batch, "horizon_s": horizon, "axis_steps": axis_steps, "wall_s": wall,

@@ -19,8 +19,6 @@ import argparse
 import json
 import os
 import platform
-import statistics
-import time
 
 
 def main():
@@ -44,6 +42,7 @@ def main():
     from pusupu_jax.params import stack
     from pusupu_jax.plant.model import ModelOptions
     from pusupu_jax.sim import rollout
+    from timing import median_time
 
     options = ModelOptions()
     plant, rates = machine_plant(options), machine_rates(options)
@@ -69,13 +68,7 @@ def main():
         return jnp.mean((tr.theta - tr.reference) ** 2)
 
     def timed(fn, x):
-        jax.block_until_ready(fn(x))
-        times = []
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(x))
-            times.append(time.perf_counter() - t0)
-        return statistics.median(times)
+        return median_time(lambda: fn(x), args.repeats)
 
     base = ServoParams.table1()
     rng = np.random.default_rng(0)

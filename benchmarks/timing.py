@@ -1,0 +1,19 @@
+"""Timing shared by the benchmark scripts (imported from beside them)."""
+
+from __future__ import annotations
+
+import statistics
+import time
+
+
+def median_time(fn, repeats: int) -> float:
+    """Median wall time [s] of ``repeats`` calls of ``fn()``, each awaited, after one warm-up call (the compile)."""
+    import jax
+
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
