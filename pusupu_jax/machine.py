@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import hybrid as hybrid_law
+from .objectives import branch_force
 from .params import LoopRates, ServoParams, validate
 from .plant import dynamics, kinematics
 from .plant.axis import screw_ratio
@@ -105,6 +106,7 @@ def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: f
     e_platform = np.linalg.norm(platform - np.asarray(path)[:, :3], axis=1)
     e_branch = np.asarray(trace.position) - s_ref
     torque = np.asarray(trace.torque)
+    force = np.asarray(branch_force(trace, servo))
     rho = hybrid_law.synchronous_error(jnp.asarray(e_branch), dt)
     residual = np.asarray(trace.observation["closure_residual"])
     result = {
@@ -113,7 +115,7 @@ def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: f
         "max_tracking_error_mm": float(e_platform.max() * 1e3),
         "branch_rms_error_mm": (np.sqrt(np.mean(e_branch**2, axis=0)) * 1e3).tolist(),
         "motor_torque_peak_nm": np.abs(torque).max(axis=0).tolist(),
-        "branch_force_peak_n": (np.abs(torque) * np.asarray(servo.eta) / r).max(axis=0).tolist(),
+        "branch_force_peak_n": np.abs(force).max(axis=0).tolist(),
         "sync_error_rho": float(rho[-1]) * 1e3,  # mm s
         "loop_closure_residual_max_mm": float(residual.max() * 1e3),
     }
@@ -126,4 +128,4 @@ def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: f
                             "f_rho_rms_n": float(np.sqrt(np.mean(f_rho**2))),
                             "f_rho_peak_n": float(np.abs(f_rho).max())}
     return result, {"t": np.asarray(trace.t), "reference": np.asarray(path)[:, :3], "platform": platform,
-                    "branch_force": torque * np.asarray(servo.eta) / r}
+                    "branch_force": force}

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from .hybrid import synchronous_error
+from .metrics import tracking_error
 from .plant.axis import screw_ratio
 
 TERMS = ("track_rms", "track_max", "branch_rms", "force_peak", "balance", "rho", "effort", "saturation")
@@ -33,6 +34,11 @@ def smooth_max(x, sharpness, axis=None):
     return jax.nn.logsumexp(sharpness * x, axis=axis) / sharpness
 
 
+def branch_force(trace, servo):
+    """Slider force of each branch ``eta Kt i / r`` [N], shape ``(..., N, 6)``."""
+    return trace.torque * servo.eta / screw_ratio(servo)
+
+
 def terms(trace, servo, path, dt: float, sharpness_force: float = 1.0, sharpness_error: float = 2000.0,
           sat_fraction: float = 0.95) -> dict:
     """Every objective term of a machine trace (see the module docstring).
@@ -41,10 +47,9 @@ def terms(trace, servo, path, dt: float, sharpness_force: float = 1.0, sharpness
     position period ``dt`` [s]); ``sharpness_force`` [1/N] and ``sharpness_error`` [1/m]
     set the smooth maxima.
     """
-    r = screw_ratio(servo)
     error = jnp.linalg.norm(trace.observation["platform_pos"] - path[:, :3], axis=-1)
-    force = jnp.abs(trace.torque) * servo.eta / r
-    branch_error = (trace.theta - trace.reference) * r
+    force = jnp.abs(branch_force(trace, servo))
+    branch_error = tracking_error(trace, servo)
     per_branch = smooth_max(force, sharpness_force, axis=0)
     excess_i = jax.nn.relu(jnp.abs(trace.current) - sat_fraction * servo.I_max) / servo.I_max
     excess_v = jax.nn.relu(jnp.abs(servo.Ke * trace.omega) - sat_fraction * servo.V_max) / servo.V_max
@@ -54,7 +59,7 @@ def terms(trace, servo, path, dt: float, sharpness_force: float = 1.0, sharpness
         "branch_rms": jnp.sqrt(jnp.mean(branch_error**2)),
         "force_peak": smooth_max(force, sharpness_force),
         "balance": jnp.std(per_branch) / jnp.mean(per_branch),
-        "rho": synchronous_error(-branch_error, dt)[-1],
+        "rho": synchronous_error(branch_error, dt)[-1],
         "effort": jnp.mean(trace.current**2),
         "saturation": jnp.mean(excess_i**2) + jnp.mean(excess_v**2),
     }
