@@ -7,13 +7,14 @@ scalar applies to every axis, a list gives one value per axis; SI units as docum
     servo:   {lambda1: 0.018, Kv: [0.015, 0.015, 0.015, 0.015, 0.015, 0.02]}
     load:    {mass: 25.0, inclination: 1.5708}
     rates:   {f_current: 20000, n_velocity: 5, n_position: 4, method: tustin}
-    hybrid:  {m6: 1.0, c6: 5000.0, g: 1000.0, form: signed}   # eq. 14, machine-wide scalars
+    hybrid:  {m6: 0.1, c6: 1000.0, g: 100.0, form: signed}   # eq. 14, machine-wide scalars
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
+import tempfile
 from pathlib import Path
 from typing import NamedTuple
 
@@ -85,6 +86,25 @@ def read_yaml_mapping(path: Path, what: str, keys, error=ParameterError) -> dict
     if unknown:
         raise error(f"{path}: unknown {what} {unknown[0]!r}; expected some of {sorted(keys)}")
     return data
+
+
+def write_atomic(path, data: str | bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file in the same folder, synced, then renamed over it.
+
+    A reader sees the old file or the new one, never a part; a failure leaves no temporary behind.
+    """
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data.encode() if isinstance(data, str) else data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
 
 
 def _rates(values) -> LoopRates:

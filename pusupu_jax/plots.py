@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
+import io
 from pathlib import Path
 
 import matplotlib
@@ -14,23 +13,19 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from . import analysis  # noqa: E402
+from .config import write_atomic  # noqa: E402
 from .metrics import tracking_error  # noqa: E402
 from .plant.axis import screw_ratio  # noqa: E402
 
 
 def save_atomic(fig, path) -> Path:
-    """Save ``fig`` as PNG to ``path`` through a temporary file in the same folder, then close it."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent if str(path.parent) else ".")
-    os.close(fd)
+    """Save ``fig`` as PNG to ``path`` atomically (:func:`~pusupu_jax.config.write_atomic`), then close it."""
+    png = io.BytesIO()
     try:
-        fig.savefig(tmp, format="png", dpi=110)
-        os.replace(tmp, path)
+        fig.savefig(png, format="png", dpi=110)
     finally:
         plt.close(fig)
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+    return write_atomic(path, png.getvalue())
 
 
 def plot_trace(trace, params, path, axis: int = 0, title: str = "") -> Path:

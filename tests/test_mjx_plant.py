@@ -12,6 +12,7 @@ import pytest
 
 from pusupu_jax import LoopRates, ServoParams
 from pusupu_jax.hybrid import HybridGains
+from pusupu_jax.params import stack
 from pusupu_jax.plant import kinematics as K
 from pusupu_jax.plant import model as M
 from pusupu_jax.plant.geometry import Geometry
@@ -273,7 +274,7 @@ def test_model_variants_vmapped_equal_their_own_plants():
     options = [M.ModelOptions(kin_error_seed=3), M.ModelOptions(payload=5.0)]
     path = platform_path("p2p", G.home, RATES)[:100]
     ref = machine_reference(SERVO, path, "pid", rates=RATES)
-    models = jax.tree.map(lambda *xs: jnp.stack(xs), *[PLANT.variant(o) for o in options])
+    models = stack([PLANT.variant(o) for o in options])
     batch = jax.jit(jax.vmap(lambda m: rollout(SERVO, m, ref, plant=PLANT, rates=RATES, outer="pid")))(models)
     for k, o in enumerate(options):
         own = MJXPlant.create(G, o)

@@ -29,7 +29,6 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import hashlib
-import os
 from pathlib import Path
 
 import jax
@@ -38,6 +37,7 @@ import yaml
 
 import pusupu_jax
 from pusupu_jax import loops
+from pusupu_jax.config import write_atomic
 from pusupu_jax.hybrid import HybridGains, gain_fields
 from pusupu_jax.margins import loop_margins
 from pusupu_jax.params import AxisLoad, LoopRates, ParameterError, ServoParams, validate
@@ -86,15 +86,6 @@ def _checksum(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w") as f:
-        f.write(text)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
 def gains_document(servo: ServoParams, hybrid: HybridGains, rates: LoopRates, provenance: dict,
                    pm_min: float = 45.0, gm_min: float = 6.0, margins: dict | None = None) -> str:
     """The YAML text of a gain file (validated: raises ParameterError rather than describe bad gains).
@@ -117,7 +108,7 @@ def gains_document(servo: ServoParams, hybrid: HybridGains, rates: LoopRates, pr
 
 def write_gains(path, servo: ServoParams, hybrid: HybridGains, rates: LoopRates, provenance: dict,
                 pm_min: float = 45.0, gm_min: float = 6.0, margins: dict | None = None) -> None:
-    write_atomic(Path(path), gains_document(servo, hybrid, rates, provenance, pm_min, gm_min, margins))
+    write_atomic(path, gains_document(servo, hybrid, rates, provenance, pm_min, gm_min, margins))
 
 
 def load_gains(path) -> tuple[ServoParams, HybridGains, LoopRates, dict]:
@@ -205,5 +196,5 @@ def write_ros2_pid(path, servo: ServoParams, joint_prefix: str = "slide_") -> No
             "p": float(np.asarray(servo.Kp_pid)[a]), "i": float(np.asarray(servo.Ki_pid)[a]),
             "d": float(np.asarray(servo.Kd_pid)[a]), "i_clamp_max": clamp, "i_clamp_min": -clamp,
             "antiwindup": True, "d_filter_time_constant": float(np.asarray(servo.Tf_pid)[a])}
-    write_atomic(Path(path), yaml.safe_dump({"pid_controller": {"ros__parameters": {"gains": gains}}},
+    write_atomic(path, yaml.safe_dump({"pid_controller": {"ros__parameters": {"gains": gains}}},
                                             sort_keys=False))

@@ -25,35 +25,28 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from pusupu_jax.config import write_atomic  # noqa: E402
 from pusupu_jax.hybrid import HybridGains  # noqa: E402
 from pusupu_jax.machine import simulate_machine  # noqa: E402
 from pusupu_jax.params import ParameterError, ServoParams  # noqa: E402
-from pusupu_jax.plant.model import ModelOptions  # noqa: E402
 from pusupu_jax.plots import save_atomic  # noqa: E402
 from pusupu_jax.trajectories import platform_path  # noqa: E402
 from pusupu_jax.plant.geometry import Geometry  # noqa: E402
 
 from . import export  # noqa: E402
 from .config import TuneConfig  # noqa: E402
-from .run import Problem, optimise, print_progress, scenario_name  # noqa: E402
+from .run import Problem, optimise, print_progress, scenario_list, window  # noqa: E402
 
 METRICS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho")
 
 
 def evaluate(cfg: TuneConfig, servo, hybrid, rates) -> dict:
     """Machine metrics of every scenario on the whole paths (or their first ``eval_duration_s``)."""
-    out = {}
-    for kind in cfg.trajectories:
-        path = platform_path(kind, Geometry.default().home, rates)
-        if cfg.eval_duration_s is not None:
-            path = path[:max(3, int(round(cfg.eval_duration_s / rates.dt_position)))]
-        for seed in cfg.kin_error_seeds:
-            for payload in cfg.payloads:
-                name = scenario_name(kind, seed, payload)
-                result, trace = simulate_machine(servo, path, mode=cfg.mode, hybrid=hybrid,
-                                                 options=ModelOptions(kin_error_seed=seed, payload=float(payload)))
-                out[name] = (result, trace)
-    return out
+    paths = {kind: platform_path(kind, Geometry.default().home, rates) for kind in cfg.trajectories}
+    if cfg.eval_duration_s is not None:
+        paths = {kind: p[:window(cfg.eval_duration_s, rates.dt_position)] for kind, p in paths.items()}
+    return {name: simulate_machine(servo, paths[kind], mode=cfg.mode, hybrid=hybrid, options=options)
+            for name, kind, options in scenario_list(cfg)}
 
 
 def _plots(out: Path, history, before, after) -> list[str]:
@@ -126,9 +119,7 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) 
                       starts=cfg.starts, start_spread=cfg.start_spread, seed=cfg.seed, checkpoint=checkpoint,
                       checkpoint_every=cfg.checkpoint_every, digest=cfg.digest(),
                       progress=lambda *a: print_progress(*a, starts=cfg.starts, stream=stream))
-    servo1, hybrid1 = problem.space.apply(result["z"])
-    servo1 = servo1.replace(**{k: np.asarray(v) for k, v in vars(servo1).items()})
-    hybrid1 = hybrid1.replace(**{f: float(getattr(hybrid1, f)) for f in ("m6", "c6", "g")})
+    servo1, hybrid1 = problem.space.host_values(result["z"])
     t_opt = time.perf_counter() - t0
     if cfg.eval_duration_s is not None and cfg.eval_duration_s == cfg.horizon_s:
         print("tune: metrics of the start and the result on the training windows", file=stream, flush=True)
@@ -166,7 +157,7 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) 
         status = 1
     report["plots"] = _plots(out, result["history"], before, after)
     report["wall_s"] = time.perf_counter() - t0
-    export.write_atomic(out / "report.json", json.dumps(report, indent=2))
+    write_atomic(out / "report.json", json.dumps(report, indent=2))
     return report, status
 
 

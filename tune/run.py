@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import os
 import pickle
 import sys
 import time
@@ -31,10 +30,11 @@ import numpy as np
 import optax
 
 from pusupu_jax import objectives
+from pusupu_jax.config import write_atomic
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import machine_metrics, machine_plant, machine_rates, machine_reference
 from pusupu_jax.margins import loop_margins
-from pusupu_jax.params import AxisLoad, ParameterError, ServoParams
+from pusupu_jax.params import AxisLoad, ParameterError, ServoParams, stack
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
 from pusupu_jax.sim import rollout
@@ -46,9 +46,16 @@ from .space import Space
 PENALTY_WEIGHT = 100.0
 
 
-def scenario_name(kind: str, seed: int | None, payload: float) -> str:
-    """``arc``, ``arc/seed3``, ``p2p/seed3/10kg``, ..."""
-    return kind + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else "")
+def scenario_list(cfg: TuneConfig) -> list[tuple[str, str, ModelOptions]]:
+    """``(name, trajectory, model options)`` of every scenario; names like ``arc``, ``arc/seed3``, ``p2p/seed3/10kg``."""
+    return [(kind + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else ""), kind,
+             ModelOptions(kin_error_seed=seed, payload=float(payload)))
+            for kind in cfg.trajectories for seed in cfg.kin_error_seeds for payload in cfg.payloads]
+
+
+def window(duration: float, dt: float) -> int:
+    """The number of position periods in the first ``duration`` seconds of a path (at least 3)."""
+    return max(3, int(round(duration / dt)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,19 +77,15 @@ class Scenarios:
         paths = {kind: platform_path(kind, Geometry.default().home, rates) for kind in cfg.trajectories}
         n = min(len(p) for p in paths.values())
         if duration is not None:
-            n = min(n, max(3, int(round(duration / rates.dt_position))))
+            n = min(n, window(duration, rates.dt_position))
         plant = machine_plant(ModelOptions())
         names, models, refs, cut = [], [], [], []
-        for kind, path in paths.items():
-            for seed in cfg.kin_error_seeds:
-                for payload in cfg.payloads:
-                    options = ModelOptions(kin_error_seed=seed, payload=float(payload))
-                    names.append(scenario_name(kind, seed, payload))
-                    models.append(plant.variant(options))
-                    refs.append(machine_reference(servo, path[:n], cfg.mode, options=options, rates=rates))
-                    cut.append(jnp.asarray(path[:n]))
-        stack = functools.partial(jax.tree.map, lambda *xs: jnp.stack(xs))
-        return cls(names, plant, stack(*models), stack(*refs), jnp.stack(cut))
+        for name, kind, options in scenario_list(cfg):
+            names.append(name)
+            models.append(plant.variant(options))
+            refs.append(machine_reference(servo, paths[kind][:n], cfg.mode, options=options, rates=rates))
+            cut.append(paths[kind][:n])
+        return cls(names, plant, stack(models), stack(refs), np.stack(cut))
 
 
 class Problem:
@@ -144,8 +147,7 @@ class Problem:
     def window_metrics(self, z) -> dict:
         """``{scenario: (metrics, plot arrays)}`` of the training windows at ``z``, from the compiled gradient."""
         (_, aux), _ = self.value_and_grad(z)
-        servo, hybrid = self.space.apply(z)
-        servo = servo.replace(**{k: np.asarray(v) for k, v in vars(servo).items()})
+        servo, hybrid = self.space.host_values(z)
         out = {}
         for k, name in enumerate(self.scenarios.names):
             pick = functools.partial(jax.tree.map, lambda x: np.asarray(x[k]))
@@ -157,12 +159,7 @@ class Problem:
 
 def _save_atomic(path: Path, state: dict) -> None:
     arrays = {k: jax.tree.map(np.asarray, state[k]) for k in ("z", "opt", "best_z")}  # off the device
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        pickle.dump(state | arrays, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    write_atomic(path, pickle.dumps(state | arrays))
 
 
 def load_checkpoint(path: Path, digest: str) -> dict | None:
@@ -209,16 +206,20 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
                              for (n, v), key in zip(sorted(z.items()), keys)})
             state["z"], state["opt"] = z, opt.init(z)
         z, opt_state = jax.tree.map(jnp.asarray, state["z"]), state["opt"]
+
+        def note(z, value, iteration):  # history entry, and the best point so far
+            state["history"].append({"start": k, "iteration": iteration, "objective": value,
+                                     "z": {n: np.asarray(v).tolist() for n, v in z.items()}})
+            if value < state["best_value"]:
+                state["best_value"], state["best_z"] = value, {n: np.asarray(v) for n, v in z.items()}
+
         while state["iteration"] < iterations:
             (value, aux), grad = value_and_grad(z)
             value = float(value)
             if not np.isfinite(value) or not all(np.isfinite(np.asarray(g)).all() for g in grad.values()):
                 raise FloatingPointError(f"tune: non-finite objective or gradient at start {k}, "
                                          f"iteration {state['iteration']} (value {value})")
-            state["history"].append({"start": k, "iteration": state["iteration"], "objective": value,
-                                     "z": {n: np.asarray(v).tolist() for n, v in z.items()}})
-            if value < state["best_value"]:
-                state["best_value"], state["best_z"] = value, {n: np.asarray(v) for n, v in z.items()}
+            note(z, value, state["iteration"])
             updates, opt_state = opt.update(grad, opt_state, z)
             z = project(optax.apply_updates(z, updates))
             state["iteration"] += 1
@@ -228,12 +229,8 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
                          time.perf_counter() - t_start)
             if checkpoint and state["iteration"] % checkpoint_every == 0:
                 _save_atomic(checkpoint, state)
-        # the last step's result is evaluated too: it may be the best
-        (value, _), _ = value_and_grad(z)
-        if float(value) < state["best_value"]:
-            state["best_value"], state["best_z"] = float(value), {n: np.asarray(v) for n, v in z.items()}
-        state["history"].append({"start": k, "iteration": iterations, "objective": float(value),
-                                 "z": {n: np.asarray(v).tolist() for n, v in z.items()}})
+        (value, _), _ = value_and_grad(z)  # the last step's result is evaluated too: it may be the best
+        note(z, float(value), iterations)
         state.update(start=k + 1, iteration=0, z=None, opt=None, done=k + 1 >= starts)
         if checkpoint:
             _save_atomic(checkpoint, state)

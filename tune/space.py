@@ -87,3 +87,9 @@ class Space:
         servo = {f: jnp.broadcast_to(v, (6,)) for f, v in vals.items() if f not in HYBRID_FIELDS}
         hybrid = {f: v for f, v in vals.items() if f in HYBRID_FIELDS}
         return self.servo0.replace(**servo), self.hybrid0.replace(**hybrid)
+
+    def host_values(self, z) -> tuple[ServoParams, HybridGains]:
+        """:meth:`apply` as host values: numpy arrays in the servo parameters, floats in the hybrid gains."""
+        servo, hybrid = self.apply(z)
+        return (servo.replace(**{k: np.asarray(v) for k, v in vars(servo).items()}),
+                hybrid.replace(**{f: float(getattr(hybrid, f)) for f in HYBRID_FIELDS}))
