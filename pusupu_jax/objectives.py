@@ -4,7 +4,7 @@ Every term is a scalar in physical units, smooth almost everywhere, computed fro
 :class:`~pusupu_jax.sim.Trace` of the MJX machine and the platform path it followed:
 
 * ``track_rms`` [m]: RMS platform position error; ``track_max`` [m]: its smooth maximum;
-* ``branch_rms`` [m]: RMS slider error over all branches;
+* ``branch_rms`` [m]: RMS slider error over all branches; ``branch_max`` [m]: its smooth maximum;
 * ``force_peak`` [N]: smooth peak of the branch forces over time and branches;
 * ``balance`` [1]: spread of the per-branch smooth force peaks (standard deviation / mean);
 * ``rho`` [m s]: the synchronous error of eq. 12 (RMS form) at the end of the run;
@@ -26,7 +26,7 @@ from .hybrid import synchronous_error
 from .metrics import tracking_error
 from .plant.axis import screw_ratio
 
-TERMS = ("track_rms", "track_max", "branch_rms", "force_peak", "balance", "rho", "effort", "saturation")
+TERMS = ("track_rms", "track_max", "branch_rms", "branch_max", "force_peak", "balance", "rho", "effort", "saturation")
 
 
 def smooth_max(x, sharpness, axis=None):
@@ -57,6 +57,7 @@ def terms(trace, servo, path, dt: float, sharpness_force: float = 1.0, sharpness
         "track_rms": jnp.sqrt(jnp.mean(error**2)),
         "track_max": smooth_max(error, sharpness_error),
         "branch_rms": jnp.sqrt(jnp.mean(branch_error**2)),
+        "branch_max": smooth_max(jnp.abs(branch_error), sharpness_error),
         "force_peak": smooth_max(force, sharpness_force),
         "balance": jnp.std(per_branch) / jnp.mean(per_branch),
         "rho": synchronous_error(branch_error, dt)[-1],

@@ -139,4 +139,5 @@ class TuneConfig:
 
     def digest(self) -> str:
         """A hash of every setting (the checkpoint and the gain file's provenance carry it)."""
-        return hashlib.sha256(json.dumps(dataclasses.asdict(self), sort_keys=True, default=str).encode()).hexdigest()[:16]
+        text = json.dumps(dataclasses.asdict(self), sort_keys=True, default=str)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]

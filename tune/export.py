@@ -64,13 +64,19 @@ def _discrete(servo: ServoParams, rates: LoopRates) -> dict:
     return out
 
 
+def margins_report(servo: ServoParams, mode: str = "imc") -> dict:
+    """Phase [deg] and gain [dB] margins of every loop of every axis, float64 host lists (``inf`` where none)."""
+    with jax.enable_x64(True):
+        m = loop_margins(servo, AxisLoad.default(), mode=mode)
+    return {loop: {k: np.asarray(v[k]).tolist() for k in ("phase_margin_deg", "gain_margin_db")}
+            for loop, v in m.items()}
+
+
 def check_gains(servo: ServoParams, hybrid: HybridGains, pm_min: float, gm_min: float, mode: str = "imc") -> dict:
-    """Validate values and margins; returns the margins (host floats) or raises ParameterError."""
+    """Validate values and margins; returns :func:`margins_report` or raises ParameterError."""
     validate(servo)
     HybridGains.from_mapping({}, base=hybrid)
-    with jax.enable_x64(True):
-        m = jax.tree.map(np.asarray, loop_margins(servo, AxisLoad.default(), mode=mode))
-    out = {}
+    m = margins_report(servo, mode)
     for loop, v in m.items():
         pm, gm = np.asarray(v["phase_margin_deg"]), np.asarray(v["gain_margin_db"])
         if not (np.isfinite(pm).all() or np.isinf(pm).all()) or (pm < pm_min).any() or (gm < gm_min).any():
@@ -78,8 +84,7 @@ def check_gains(servo: ServoParams, hybrid: HybridGains, pm_min: float, gm_min: 
             raise ParameterError(f"gains: the {loop} loop of axis {a + 1} has {pm[a]:.1f} deg phase margin and "
                                  f"{gm[a]:.1f} dB gain margin; expected at least {pm_min} deg and {gm_min} dB "
                                  "(unstable or too little margin: not written)")
-        out[loop] = {"phase_margin_deg": pm.tolist(), "gain_margin_db": gm.tolist()}
-    return out
+    return m
 
 
 def _checksum(text: str) -> str:
@@ -134,7 +139,8 @@ def _parse(doc, text):
     if doc.get("schema") != SCHEMA:
         raise ParameterError(f"schema: expected {SCHEMA!r}, got {doc.get('schema')!r}")
     if doc.get("version") != VERSION:
-        raise ParameterError(f"version: expected {VERSION} (this pusupu_jax reads only that), got {doc.get('version')!r}")
+        raise ParameterError(f"version: expected {VERSION} (this pusupu_jax reads only that), "
+                             f"got {doc.get('version')!r}")
     missing = [k for k in KEYS if k not in doc]
     if missing:
         raise ParameterError(f"missing key {missing[0]!r} (truncated file?); expected {list(KEYS)}")
@@ -150,7 +156,8 @@ def _parse(doc, text):
     if not isinstance(doc["servo"], dict) or set(doc["servo"]) != servo_fields:
         got = set(doc["servo"]) if isinstance(doc["servo"], dict) else set()
         diff = sorted((servo_fields - got) or (got - servo_fields))
-        raise ParameterError(f"servo: expected every ServoParams field, {'missing' if servo_fields - got else 'unknown'} "
+        which = "missing" if servo_fields - got else "unknown"
+        raise ParameterError(f"servo: expected every ServoParams field, {which} "
                              f"{diff[0] if diff else doc['servo']!r}")
     for name, v in doc["servo"].items():
         if not (isinstance(v, list) and len(v) == 6):

@@ -97,8 +97,8 @@ def _plots(out: Path, history, before, after) -> list[str]:
 
 
 def _summary(result: dict) -> dict:
-    return {k: result[k] for k in METRICS} | {"branch_force_peak_n": max(result["branch_force_peak_n"]),
-                                              "branch_force_peaks_n": result["branch_force_peak_n"]}
+    """Every machine metric, and the highest of the six branch force peaks [N]."""
+    return result | {"highest_branch_force_peak_n": max(result["branch_force_peak_n"])}
 
 
 def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) -> tuple[dict, int]:
@@ -139,6 +139,7 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) 
                                                            for h in result["history"]],
         "before": {n: _summary(r) for n, (r, _) in before.items()},
         "after": {n: _summary(r) for n, (r, _) in after.items()},
+        "margins_before": export.margins_report(servo0, mode="pid" if cfg.mode == "pid" else "imc"),
         "optimise_wall_s": t_opt,
     }
     status = 0
@@ -163,12 +164,12 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) 
 
 def table(report: dict) -> str:
     """The before/after table printed at the end of a run."""
-    lines = [f"{'scenario':<14} {'metric':<24} {'before':>10} {'after':>10} {'change':>8}"]
+    lines = [f"{'scenario':<14} {'metric':<28} {'before':>10} {'after':>10} {'change':>8}"]
     for name in report["before"]:
         b, a = report["before"][name], report["after"][name]
-        for key in (*METRICS, "branch_force_peak_n"):
+        for key in (*METRICS, "highest_branch_force_peak_n"):
             change = (a[key] / b[key] - 1) * 100 if b[key] else float("nan")
-            lines.append(f"{name:<14} {key:<24} {b[key]:>10.4g} {a[key]:>10.4g} {change:>7.1f}%")
+            lines.append(f"{name:<14} {key:<28} {b[key]:>10.4g} {a[key]:>10.4g} {change:>7.1f}%")
     lines.append(f"objective {report['objective_before']:.4f} -> {report['objective_after']:.4f} in "
                  f"{report['iterations']} evaluations, {report['wall_s']:.0f} s")
     for field in report["tuned_fields"]:

@@ -47,7 +47,7 @@ PENALTY_WEIGHT = 100.0
 
 
 def scenario_list(cfg: TuneConfig) -> list[tuple[str, str, ModelOptions]]:
-    """``(name, trajectory, model options)`` of every scenario; names like ``arc``, ``arc/seed3``, ``p2p/seed3/10kg``."""
+    """``(name, trajectory, model options)`` of every scenario, named ``arc``, ``arc/seed3``, ``p2p/seed3/10kg``..."""
     return [(kind + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else ""), kind,
              ModelOptions(kin_error_seed=seed, payload=float(payload)))
             for kind in cfg.trajectories for seed in cfg.kin_error_seeds for payload in cfg.payloads]
@@ -238,9 +238,13 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
 
 
 def print_progress(start, iteration, iterations, value, best, aux, elapsed, starts=1, stream=sys.stderr):
-    """One line per iteration: ``tune [start 1/1] 12/25 J=0.7342 best=0.7310 3.1 s/it, ETA 40 s``."""
+    """A line per iteration: ``tune [start 1/1] [#####.....] 12/25 J=0.7342 best=0.7310 3.1 s/it, ETA 40 s``.
+
+    The bar covers the whole run (every start); a line each, so that logs of batch jobs keep the history.
+    """
     done = start * iterations + iteration
     total = starts * iterations
     rate = elapsed / max(done, 1)
-    print(f"tune [start {start + 1}/{starts}] {iteration}/{iterations} J={value:.4f} best={best:.4f} "
-          f"{rate:.1f} s/it, ETA {rate * (total - done):.0f} s", file=stream, flush=True)
+    filled = round(20 * done / total)
+    print(f"tune [start {start + 1}/{starts}] [{'#' * filled}{'.' * (20 - filled)}] {iteration}/{iterations} "
+          f"J={value:.4f} best={best:.4f} {rate:.1f} s/it, ETA {rate * (total - done):.0f} s", file=stream, flush=True)
