@@ -4,7 +4,7 @@
 
 Runs the path at the default steps (20 kHz current loop, 0.25 ms MJX step, velocity and
 position loops at 4 kHz and 1 kHz) and with every step halved (40 kHz, 0.125 ms, 8 kHz,
-2 kHz; the constraint stiffness is a physical time constant and stays 0.5 ms), and prints
+2 kHz; the constraint stiffness is a physical time constant and stays 2 ms), and prints
 JSON with both results and the relative change of the platform's RMS tracking error.
 """
 

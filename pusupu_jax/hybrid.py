@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .metrics import safe_sqrt
 from .params import ParameterError
 
 FORCE_AXIS = 5  # branch 6, zero-based
@@ -106,17 +107,11 @@ class HybridReference:
     coupling: Any  # (N, 5) w = J_6 J_15^-1 at the reference pose, 1
 
 
-def _safe_sqrt(x):
-    """``sqrt`` with a zero (not NaN) derivative at 0, where every branch error is equal."""
-    positive = x > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
-
-
 def rms_rate(e):
     """``rho'`` of eq. 12 read as RMS: ``sqrt(mean xi^2)`` of the 10 pairwise differences of ``e[..., :5]`` [m]."""
     n, m = np.triu_indices(5, k=1)
     xi = e[..., n] - e[..., m]
-    return _safe_sqrt(jnp.mean(xi**2, axis=-1))
+    return safe_sqrt(jnp.mean(xi**2, axis=-1))  # every branch error equal: rho' = 0, derivative 0
 
 
 def synchronous_error(branch_errors, dt):

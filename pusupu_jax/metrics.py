@@ -7,6 +7,12 @@ import jax.numpy as jnp
 from .plant.axis import screw_ratio
 
 
+def safe_sqrt(x):
+    """``sqrt`` with a zero (not NaN) derivative at 0 in forward and reverse mode (an exact zero error, a start at rest)."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+
+
 def tracking_error(trace, params):
     """Slider position error ``x - x_ref`` [m], shape ``(..., N, n_axes)``."""
     return (trace.theta - trace.reference) * screw_ratio(params)[..., None, :]

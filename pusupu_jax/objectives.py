@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from .hybrid import synchronous_error
-from .metrics import tracking_error
+from .metrics import safe_sqrt, tracking_error
 from .plant.axis import screw_ratio
 
 TERMS = ("track_rms", "track_max", "branch_rms", "branch_max", "force_peak", "balance", "rho", "effort", "saturation")
@@ -47,7 +47,7 @@ def terms(trace, servo, path, dt: float, sharpness_force: float = 1.0, sharpness
     position period ``dt`` [s]); ``sharpness_force`` [1/N] and ``sharpness_error`` [1/m]
     set the smooth maxima.
     """
-    error = jnp.linalg.norm(trace.observation["platform_pos"] - path[:, :3], axis=-1)
+    error = safe_sqrt(jnp.sum((trace.observation["platform_pos"] - path[:, :3]) ** 2, axis=-1))  # 0 at the start
     force = jnp.abs(branch_force(trace, servo))
     branch_error = tracking_error(trace, servo)
     per_branch = smooth_max(force, sharpness_force, axis=0)

@@ -1,4 +1,5 @@
-"""Reverse-mode gradients through the whole cascade against central finite differences (float64)."""
+"""Reverse-mode gradients through the whole cascade against central finite differences (float64), and the
+forward/reverse gradient helper."""
 
 import jax
 import jax.numpy as jnp
@@ -63,3 +64,23 @@ def test_rematerialised_gradient_is_the_same(table1):
     remat = jax.grad(loss)(table1, True)
     for name in ("lambda1", "lambda2", "Kv", "Ti"):
         np.testing.assert_allclose(getattr(remat, name), getattr(plain, name), rtol=1e-12)
+
+
+def test_forward_and_reverse_value_and_grad_agree_on_a_pytree():
+    """pusupu_jax.gradients: both modes return (value, aux) and the gradient in the parameters' structure."""
+    from pusupu_jax.gradients import value_and_grad
+
+    def fun(x, scale):
+        value = scale * (jnp.sum(jnp.sin(x["a"]) ** 2) + x["b"] ** 3)
+        return value, {"doubled": 2 * value}
+
+    x = {"a": jnp.array([0.3, -1.2, 2.0]), "b": jnp.array(0.7)}
+    (v_r, aux_r), g_r = value_and_grad(fun, "reverse")(x, 1.5)
+    (v_f, aux_f), g_f = jax.jit(value_and_grad(fun, "forward"))(x, 1.5)
+    assert float(v_f) == pytest.approx(float(v_r), rel=1e-15) and float(aux_f["doubled"]) == pytest.approx(2 * float(v_r))
+    np.testing.assert_allclose(g_f["a"], 1.5 * np.sin(2 * np.asarray(x["a"])), rtol=1e-14)
+    np.testing.assert_allclose(g_f["b"], 1.5 * 3 * 0.7**2, rtol=1e-14)
+    for k in x:
+        np.testing.assert_allclose(g_f[k], g_r[k], rtol=1e-14)
+    with pytest.raises(ValueError, match="gradient mode: expected one of"):
+        value_and_grad(fun, "sideways")

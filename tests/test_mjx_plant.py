@@ -75,7 +75,7 @@ def mjx_run(plant, aux):
 
 
 def test_mjx_matches_c_mujoco_step_by_step_float64():
-    """Same model, same inputs, 400 steps (0.1 s, sliders move up to ~15 mm): observed 3e-8 m and 4e-7 m/s."""
+    """Same model, same inputs, 400 steps (0.1 s, sliders move up to ~15 mm): observed 2.3e-8 m and 7.5e-7 m/s."""
     aux = PLANT.prepare(SERVO, None, RATES.dt_mech)
     qpos, qvel = (np.asarray(a) for a in mjx_run(PLANT, aux))
     c_qpos, c_qvel, residual = c_mujoco_run(PLANT, aux)
@@ -97,10 +97,12 @@ print(json.dumps({"dtype": str(qpos.dtype), "qpos": float(np.abs(np.asarray(qpos
 
 
 def test_mjx_matches_c_mujoco_in_float32():
-    """Float32 (a fresh process without x64): positions within 1e-4 m of C MuJoCo (observed 3e-7).
+    """Float32 (a fresh process without x64) against C MuJoCo (float64): state within 1e-4 (m, rad, m/s, rad/s).
 
-    Velocities agree to 4.1e-4 m/s only (float64: 4e-7): float32 rounding amplified by the
-    stiff constraints and the 74 kg reflected armature.  Bound 1e-3 m/s; the issue asks 1e-4.
+    Observed over the 400 steps: qpos 3.1e-7, qvel 4.1e-5.  Velocity is the tight one: the
+    connect constraints turn float32 rounding of the anchor positions (~5e-8 m at 0.8 m)
+    into acceleration through their stiffness ~ 1/timeconst^2, so the error scales with
+    ``1/solref_timeconst^2`` (one-step qvel error 3.6e-4 at 0.5 ms, 8.9e-5 at 1 ms, 2.7e-5 at 2 ms).
     """
     r = subprocess.run([sys.executable, "-c", FLOAT32], capture_output=True, text=True, timeout=600,
                        env={"JAX_ENABLE_X64": "0", **{k: v for k, v in __import__("os").environ.items()
@@ -108,7 +110,7 @@ def test_mjx_matches_c_mujoco_in_float32():
     assert r.returncode == 0, r.stderr[-2000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["dtype"] == "float32"
-    assert out["qpos"] < 1e-4 and out["qvel"] < 1e-3, out
+    assert out["qpos"] < 1e-4 and out["qvel"] < 1e-4, out
 
 
 def platform_move(n):
@@ -230,9 +232,11 @@ def test_gradient_through_the_cosimulation_matches_central_differences(outer, hy
 
 def test_every_objective_term_has_the_gradient_of_central_differences():
     """Each term of pusupu_jax.objectives through hybrid mode on the machine (50 ms), d/d(log gain) for the
-    tuner's default fields (shared lambda1, lambda2 and m6, c6, g): relative error <= 1e-3, or within 1e-7 of
-    the term's size.  Observed: 1e-7 to 2e-5 where the gradient is substantial (lambda2, c6 on every term);
-    up to 1e-2 only on gradients 1e-6 of the term or smaller (g and m6 on a 50 ms run, lambda1 on force_peak).
+    tuner's default fields (shared lambda1, lambda2 and m6, c6, g), in reverse and in forward mode: relative
+    error <= 1e-3, or within 1e-7 of the term's size.  Observed: 1e-7 to 2e-5 where the gradient is
+    substantial (lambda2, c6 on every term); up to 1e-2 only on gradients 1e-6 of the term or smaller (g and
+    m6 on a 50 ms run, lambda1 on force_peak).  The two modes agree to 1e-9 of the term's size: they differ
+    by rounding only.
     """
     from pusupu_jax import objectives
     from tune.space import Space
@@ -248,6 +252,7 @@ def test_every_objective_term_has_the_gradient_of_central_differences():
 
     z0 = space.z0()
     jac = jax.jit(jax.jacrev(terms))(z0)
+    jac_forward = jax.jit(jax.jacfwd(terms))(z0)
     value = jax.jit(terms)
     h = 1e-3
     at_start = value(z0)
@@ -258,6 +263,7 @@ def test_every_objective_term_has_the_gradient_of_central_differences():
             fd = (float(plus[name]) - float(minus[name])) / (2 * h)
             ad = float(jac[name][field])
             report.append((field, name, ad, fd))
+            assert abs(float(jac_forward[name][field]) - ad) <= 1e-9 * abs(float(at_start[name])), (field, name)
             # 1e-3 relative, or 1e-7 of the term's own size for gradients too small to matter to the tuner
             # (where central differences see the rollout's round-off: force_peak vs lambda1 is 1e-6 relative)
             assert abs(ad - fd) <= 1e-3 * abs(fd) + 1e-7 * abs(float(at_start[name])), (field, name, ad, fd)

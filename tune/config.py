@@ -25,6 +25,7 @@ Every key of :class:`TuneConfig` may appear in the file (unknown keys are errors
     gm_min: 6.0                # dB
     sharpness_force: 1.0       # 1/N, smooth peak of the branch forces
     bounds: {lambda2: [0.01, 0.5]}   # per tuned field [lower, upper]; default start/10 .. start*10
+    gradient: reverse          # reverse | forward: how the gradient is taken (pusupu_jax.gradients)
     eval_duration_s: null      # s: evaluate only the first seconds of each path (null: whole paths);
                                # equal to horizon_s: reuse the training rollouts (no second compile)
 """
@@ -38,6 +39,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pusupu_jax.config import read_yaml_mapping
+from pusupu_jax.gradients import GRADIENT_MODES
 from pusupu_jax.machine import MACHINE_MODES
 from pusupu_jax.objectives import TERMS
 from pusupu_jax.params import ParameterError
@@ -70,6 +72,7 @@ class TuneConfig:
     gm_min: float = 6.0
     sharpness_force: float = 1.0
     bounds: dict = field(default_factory=lambda: {"lambda2": (0.01, 0.5)})
+    gradient: str = "reverse"
     eval_duration_s: float | None = None
 
     @classmethod
@@ -133,6 +136,7 @@ class TuneConfig:
              self.groups)
         need(isinstance(self.bounds, dict) and all(isinstance(v, tuple) and len(v) == 2 for v in self.bounds.values()),
              "bounds", "a mapping of field names to [lower, upper]", self.bounds)
+        need(self.gradient in GRADIENT_MODES, "gradient", f"one of {GRADIENT_MODES}", self.gradient)
         need(self.eval_duration_s is None or (isinstance(self.eval_duration_s, (int, float))
                                               and self.eval_duration_s > 0),
              "eval_duration_s", "null or a positive number of seconds", self.eval_duration_s)

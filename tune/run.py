@@ -31,6 +31,7 @@ import optax
 
 from pusupu_jax import objectives
 from pusupu_jax.config import write_atomic
+from pusupu_jax.gradients import value_and_grad
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import machine_metrics, machine_plant, machine_rates, machine_reference
 from pusupu_jax.margins import loop_margins
@@ -97,7 +98,7 @@ class Problem:
         self.space = Space.create(cfg.groups, servo0, hybrid0, shared=cfg.shared, bounds=cfg.bounds)
         self.scenarios = Scenarios.build(cfg, servo0, cfg.horizon_s, self.rates)
         self.load = AxisLoad.default()
-        self._value_and_grad = jax.jit(jax.value_and_grad(self.objective, has_aux=True))
+        self._value_and_grad = jax.jit(value_and_grad(self.objective, cfg.gradient))
         self.baseline = None
 
     def scenario_terms(self, z) -> tuple[dict, object]:

@@ -47,7 +47,7 @@ class ModelOptions:
     kin_error_std: float = 0.0005  # m
     contacts: bool = False
     solver_iterations: int = 1  # Newton iterations; 1 keeps reverse-mode gradients through MJX possible
-    solref_timeconst: float = 0.0005  # s, stiffness time constant of the spherical-joint constraints (2 timesteps)
+    solref_timeconst: float = 0.002  # s, stiffness time constant of the spherical-joint constraints (8 timesteps)
 
 
 def perturbed(geom: Geometry, seed: int, std: float) -> Geometry:
