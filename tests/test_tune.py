@@ -176,6 +176,7 @@ def test_ros2_pid_export_has_the_known_keys(tmp_path):
     ("mode: imc\ngroups: [hybrid]", "the 'hybrid' group only in hybrid mode"),
     ("weights: {speed: 1}", "weights: expected a mapping of some of"),
     ("aggregate: median", "aggregate: expected mean or max"),
+    ("gradient: backward", "gradient: expected one of \\('reverse', 'forward'\\)"),
 ])
 def test_bad_tune_configurations_are_rejected(tmp_path, text, message):
     from tune.config import TuneConfig
