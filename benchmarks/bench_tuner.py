@@ -21,11 +21,12 @@ import sys
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 from scipy.optimize import minimize
 
 from pusupu_jax.config import setup_jax
+from timing import median_time  # beside this script
 
 
 def main() -> None:
@@ -47,16 +48,10 @@ def main() -> None:
                      groups=tuple(args.groups.split(",")), shared=not args.per_axis)
     problem = Problem(cfg, ServoParams.table1(), HybridGains())
     space, z0 = problem.space, problem.space.z0()
-    names = sorted(z0)
-    baseline = problem.start_baseline()  # compiles the gradient
+    baseline = problem.start_baseline()
     value = jax.jit(lambda z: problem.objective(z, baseline)[0])
-    jax.block_until_ready(value(z0))  # compile the forward
-    t = time.perf_counter()
-    jax.block_until_ready(value(z0))
-    t_forward = time.perf_counter() - t
-    t = time.perf_counter()
-    jax.block_until_ready(problem.value_and_grad(z0))
-    t_grad = time.perf_counter() - t
+    t_forward = median_time(lambda: value(z0), 1)  # after one compiling call each
+    t_grad = median_time(lambda: problem.value_and_grad(z0), 1)
 
     trace = []
     t0 = time.perf_counter()
@@ -72,8 +67,10 @@ def main() -> None:
     grad_evals = next(i + 1 for i, (v, _) in enumerate(trace) if v <= target)
     grad_wall = trace[grad_evals - 1][1]
 
-    lo = np.concatenate([np.log(np.ravel(space.lower[n])) for n in names])
-    hi = np.concatenate([np.log(np.ravel(space.upper[n])) for n in names])
+    x0, unflatten = ravel_pytree(z0)  # fields in sorted order, as the dicts below
+    x0 = np.asarray(x0)
+    lo = np.asarray(ravel_pytree({n: np.log(v) for n, v in space.lower.items()})[0])
+    hi = np.asarray(ravel_pytree({n: np.log(v) for n, v in space.upper.items()})[0])
     evals = []
     t0 = time.perf_counter()
 
@@ -85,13 +82,6 @@ def main() -> None:
             raise StopIteration
         return v
 
-    sizes = [int(np.size(z0[n])) for n in names]
-    splits = np.cumsum(sizes)[:-1]
-
-    def unflatten(x):
-        return {n: jnp.asarray(part).reshape(np.shape(z0[n])) for n, part in zip(names, np.split(x, splits))}
-
-    x0 = np.concatenate([np.ravel(z0[n]) for n in names])
     try:
         minimize(f, x0, method="Nelder-Mead", options={"maxfev": args.max_evals, "xatol": 1e-6, "fatol": 1e-9,
                                                         "initial_simplex": x0 + 0.3 * np.vstack([np.zeros(len(x0)),
@@ -102,7 +92,7 @@ def main() -> None:
     best_nm = min(v for v, _ in evals)
     out = {
         "problem": {"trajectory": args.trajectory, "horizon_s": args.horizon, "mode": cfg.mode,
-                    "fields": names, "parameters": int(sum(sizes)), "start_objective": trace[0][0]},
+                    "fields": sorted(z0), "parameters": int(x0.size), "start_objective": trace[0][0]},
         "forward_s": t_forward, "gradient_s": t_grad, "gradient_over_forward": t_grad / t_forward,
         "gradient_tuner": {"target_objective": target, "rollouts_to_target": grad_evals,
                            "wall_s_to_target": grad_wall},

@@ -8,7 +8,7 @@ from .plant.axis import screw_ratio
 
 
 def safe_sqrt(x):
-    """``sqrt`` with a zero (not NaN) derivative at 0 in forward and reverse mode (an exact zero error, a start at rest)."""
+    """``sqrt`` with a zero (not NaN) derivative at 0, in forward and reverse mode (an error exactly 0 at rest)."""
     positive = x > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
 

@@ -47,14 +47,15 @@ def terms(trace, servo, path, dt: float, sharpness_force: float = 1.0, sharpness
     position period ``dt`` [s]); ``sharpness_force`` [1/N] and ``sharpness_error`` [1/m]
     set the smooth maxima.
     """
-    error = safe_sqrt(jnp.sum((trace.observation["platform_pos"] - path[:, :3]) ** 2, axis=-1))  # 0 at the start
+    error_sq = jnp.sum((trace.observation["platform_pos"] - path[:, :3]) ** 2, axis=-1)  # m^2
+    error = safe_sqrt(error_sq)  # exactly 0 at the start
     force = jnp.abs(branch_force(trace, servo))
     branch_error = tracking_error(trace, servo)
     per_branch = smooth_max(force, sharpness_force, axis=0)
     excess_i = jax.nn.relu(jnp.abs(trace.current) - sat_fraction * servo.I_max) / servo.I_max
     excess_v = jax.nn.relu(jnp.abs(servo.Ke * trace.omega) - sat_fraction * servo.V_max) / servo.V_max
     return {
-        "track_rms": jnp.sqrt(jnp.mean(error**2)),
+        "track_rms": jnp.sqrt(jnp.mean(error_sq)),
         "track_max": smooth_max(error, sharpness_error),
         "branch_rms": jnp.sqrt(jnp.mean(branch_error**2)),
         "branch_max": smooth_max(jnp.abs(branch_error), sharpness_error),

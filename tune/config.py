@@ -141,6 +141,11 @@ class TuneConfig:
                                               and self.eval_duration_s > 0),
              "eval_duration_s", "null or a positive number of seconds", self.eval_duration_s)
 
+    @property
+    def loop_mode(self) -> str:
+        """The position loop whose margins are checked: 'pid' in pid mode, else 'imc' (hybrid runs IMC)."""
+        return "pid" if self.mode == "pid" else "imc"
+
     def digest(self) -> str:
         """A hash of every setting (the checkpoint and the gain file's provenance carry it)."""
         text = json.dumps(dataclasses.asdict(self), sort_keys=True, default=str)

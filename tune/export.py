@@ -168,9 +168,8 @@ def _parse(doc, text):
         rates = LoopRates(**doc["rates"])
     except TypeError as e:
         raise ParameterError(f"rates: {e}") from None
-    pm_min = float(doc["provenance"].get("pm_min", 45.0)) if isinstance(doc["provenance"], dict) else 45.0
-    gm_min = float(doc["provenance"].get("gm_min", 6.0)) if isinstance(doc["provenance"], dict) else 6.0
-    check_gains(servo, hybrid, pm_min, gm_min)
+    provenance = doc["provenance"] if isinstance(doc["provenance"], dict) else {}
+    check_gains(servo, hybrid, float(provenance.get("pm_min", 45.0)), float(provenance.get("gm_min", 6.0)))
     fresh = _discrete(servo, rates)
     for name, per_axis in fresh.items():
         for a, mats in enumerate(per_axis):
@@ -203,5 +202,4 @@ def write_ros2_pid(path, servo: ServoParams, joint_prefix: str = "slide_") -> No
             "p": float(np.asarray(servo.Kp_pid)[a]), "i": float(np.asarray(servo.Ki_pid)[a]),
             "d": float(np.asarray(servo.Kd_pid)[a]), "i_clamp_max": clamp, "i_clamp_min": -clamp,
             "antiwindup": True, "d_filter_time_constant": float(np.asarray(servo.Tf_pid)[a])}
-    write_atomic(path, yaml.safe_dump({"pid_controller": {"ros__parameters": {"gains": gains}}},
-                                            sort_keys=False))
+    write_atomic(path, yaml.safe_dump({"pid_controller": {"ros__parameters": {"gains": gains}}}, sort_keys=False))

@@ -30,19 +30,17 @@ from pusupu_jax.hybrid import HybridGains  # noqa: E402
 from pusupu_jax.machine import simulate_machine  # noqa: E402
 from pusupu_jax.params import ParameterError, ServoParams  # noqa: E402
 from pusupu_jax.plots import save_atomic  # noqa: E402
-from pusupu_jax.trajectories import platform_path  # noqa: E402
-from pusupu_jax.plant.geometry import Geometry  # noqa: E402
 
 from . import export  # noqa: E402
 from .config import TuneConfig  # noqa: E402
-from .run import Problem, optimise, print_progress, scenario_list, window  # noqa: E402
+from .run import Problem, optimise, platform_paths, print_progress, scenario_list, window  # noqa: E402
 
 METRICS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho")
 
 
 def evaluate(cfg: TuneConfig, servo, hybrid, rates) -> dict:
     """Machine metrics of every scenario on the whole paths (or their first ``eval_duration_s``)."""
-    paths = {kind: platform_path(kind, Geometry.default().home, rates) for kind in cfg.trajectories}
+    paths = platform_paths(cfg, rates)
     if cfg.eval_duration_s is not None:
         paths = {kind: p[:window(cfg.eval_duration_s, rates.dt_position)] for kind, p in paths.items()}
     return {name: simulate_machine(servo, paths[kind], mode=cfg.mode, hybrid=hybrid, options=options)
@@ -139,13 +137,13 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) 
                                                            for h in result["history"]],
         "before": {n: _summary(r) for n, (r, _) in before.items()},
         "after": {n: _summary(r) for n, (r, _) in after.items()},
-        "margins_before": export.margins_report(servo0, mode="pid" if cfg.mode == "pid" else "imc"),
+        "margins_before": export.margins_report(servo0, mode=cfg.loop_mode),
         "optimise_wall_s": t_opt,
     }
     status = 0
     try:
         report["margins_after"] = export.check_gains(servo1, hybrid1, cfg.pm_min, cfg.gm_min,
-                                                     mode="pid" if cfg.mode == "pid" else "imc")
+                                                     mode=cfg.loop_mode)
         provenance = {"config_hash": cfg.digest(), "objective_before": objective_before,
                       "objective_after": float(result["objective"]), "mode": cfg.mode,
                       "metrics_after": report["after"]}

@@ -54,6 +54,11 @@ def scenario_list(cfg: TuneConfig) -> list[tuple[str, str, ModelOptions]]:
             for kind in cfg.trajectories for seed in cfg.kin_error_seeds for payload in cfg.payloads]
 
 
+def platform_paths(cfg: TuneConfig, rates) -> dict:
+    """``{trajectory: platform poses (N, 5)}`` of the configuration's paths, whole, about the default home."""
+    return {kind: platform_path(kind, Geometry.default().home, rates) for kind in cfg.trajectories}
+
+
 def window(duration: float, dt: float) -> int:
     """The number of position periods in the first ``duration`` seconds of a path (at least 3)."""
     return max(3, int(round(duration / dt)))
@@ -75,7 +80,7 @@ class Scenarios:
 
     @classmethod
     def build(cls, cfg: TuneConfig, servo: ServoParams, duration: float | None, rates) -> "Scenarios":
-        paths = {kind: platform_path(kind, Geometry.default().home, rates) for kind in cfg.trajectories}
+        paths = platform_paths(cfg, rates)
         n = min(len(p) for p in paths.values())
         if duration is not None:
             n = min(n, window(duration, rates.dt_position))
@@ -116,7 +121,7 @@ class Problem:
 
     def margins(self, z) -> dict:
         servo, _ = self.space.apply(z)
-        return loop_margins(servo, self.load, mode="pid" if self.cfg.mode == "pid" else "imc")
+        return loop_margins(servo, self.load, mode=self.cfg.loop_mode)
 
     def objective(self, z, baseline):
         """``(J, aux)``; ``baseline`` holds each scenario's terms at the start (the normalisers)."""
