@@ -1,5 +1,7 @@
 """The MuJoCo model of the mechanism, the MJX plant against C MuJoCo, and the cascade co-simulated with it."""
 
+import contextlib
+import io
 import json
 import subprocess
 import sys
@@ -18,6 +20,9 @@ from pusupu_jax.plant import model as M
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.mjx_plant import MJXPlant
 from pusupu_jax.sim import rollout
+
+with contextlib.redirect_stdout(io.StringIO()):  # MJX prints its optional GPU backends' import failures
+    from mujoco import mjx
 
 G = Geometry.default()
 SERVO = ServoParams.table1()
@@ -48,37 +53,50 @@ N_STEPS = 400
 TORQUE = np.cumsum(np.random.default_rng(0).normal(0, 0.002, (N_STEPS, 6)), axis=0) + 0.06  # N m, near holding
 
 
-def c_mujoco_run(plant, aux):
-    """The same open-loop torques through C MuJoCo, with the armature the MJX plant set."""
-    m = plant.mj_model
+def c_mujoco_run(plant, aux, torque=TORQUE, qpos=None, model=None):
+    """Open-loop torques (default :data:`TORQUE`) through C MuJoCo, with the armature the MJX plant set.
+
+    ``model`` defaults to the plant's own; the run starts at rest at ``qpos`` (default
+    ``qpos0``).  Returns qpos and qvel after every step, the loop-closure residual [m] and
+    the final ``MjData``.
+    """
+    m = plant.mj_model if model is None else model
     dofs = M.slide_dofs(m)
     m.dof_armature[dofs] = np.asarray(aux.model.dof_armature)[dofs]
     d = mujoco.MjData(m)
+    if qpos is not None:
+        d.qpos[:] = qpos
     mujoco.mj_forward(m, d)
-    qpos, qvel, res = [], [], []
-    for tau in TORQUE:
+    qpos_out, qvel_out, res = [], [], []
+    for tau in torque:
         d.qfrc_applied[:] = 0
         d.qfrc_applied[dofs] = np.asarray(aux.force_gain) * tau
         mujoco.mj_step(m, d)
-        qpos.append(d.qpos.copy())
-        qvel.append(d.qvel.copy())
+        qpos_out.append(d.qpos.copy())
+        qvel_out.append(d.qvel.copy())
         res.append(float(M.loop_closure_residual(m, d.xpos, d.xmat)))
-    return np.array(qpos), np.array(qvel), np.array(res)
+    return np.array(qpos_out), np.array(qvel_out), np.array(res), d
 
 
-def mjx_run(plant, aux):
-    def body(d, tau):
-        d = plant.step(aux, d, tau)
-        return d, (d.qpos, d.qvel)
+def mjx_run(plant, aux, torque=TORQUE, qpos=None):
+    """The same through ``plant`` in MJX (one jitted scan); qpos and qvel after every step."""
+    def run(a, t, q):
+        d = plant.init(a) if q is None else mjx.forward(a.model, plant.init(a).replace(qpos=q))
 
-    return jax.jit(lambda a, t: jax.lax.scan(body, plant.init(a), t)[1])(aux, jnp.asarray(TORQUE))
+        def body(d, tau):
+            d = plant.step(a, d, tau)
+            return d, (d.qpos, d.qvel)
+
+        return jax.lax.scan(body, d, t)[1]
+
+    return jax.jit(run)(aux, jnp.asarray(torque), None if qpos is None else jnp.asarray(qpos))
 
 
 def test_mjx_matches_c_mujoco_step_by_step_float64():
     """Same model, same inputs, 400 steps (0.1 s, sliders move up to ~15 mm): observed 2.3e-8 m and 7.5e-7 m/s."""
     aux = PLANT.prepare(SERVO, None, RATES.dt_mech)
     qpos, qvel = (np.asarray(a) for a in mjx_run(PLANT, aux))
-    c_qpos, c_qvel, residual = c_mujoco_run(PLANT, aux)
+    c_qpos, c_qvel, residual, _ = c_mujoco_run(PLANT, aux)
     assert np.max(np.abs(c_qpos[-1, M.slide_qpos(PLANT.mj_model)] - PLANT.mj_model.qpos0[M.slide_qpos(PLANT.mj_model)])) > 1e-3
     assert np.max(np.abs(qpos - c_qpos)) < 1e-6
     assert np.max(np.abs(qvel - c_qvel)) < 1e-5
@@ -90,7 +108,7 @@ import json, numpy as np, jax, jax.numpy as jnp
 from tests.test_mjx_plant import PLANT, SERVO, RATES, mjx_run, c_mujoco_run
 aux = PLANT.prepare(SERVO, None, RATES.dt_mech)
 qpos, qvel = mjx_run(PLANT, aux)
-c_qpos, c_qvel, _ = c_mujoco_run(PLANT, aux)
+c_qpos, c_qvel, _, _ = c_mujoco_run(PLANT, aux)
 print(json.dumps({"dtype": str(qpos.dtype), "qpos": float(np.abs(np.asarray(qpos) - c_qpos).max()),
                   "qvel": float(np.abs(np.asarray(qvel) - c_qvel).max())}))
 """
@@ -161,18 +179,79 @@ def test_one_newton_iteration_is_the_converged_solve_without_contacts():
     for iterations, tolerance in ((1, 1e-8), (100, 1e-12)):
         m = M.build_model(G, M.ModelOptions(solver_iterations=iterations))
         m.opt.tolerance = tolerance
-        dofs = M.slide_dofs(m)
-        m.dof_armature[dofs] = np.asarray(aux.model.dof_armature)[dofs]
-        d = mujoco.MjData(m)
-        mujoco.mj_forward(m, d)
-        qpos = []
-        for tau in TORQUE:
-            d.qfrc_applied[:] = 0
-            d.qfrc_applied[dofs] = np.asarray(aux.force_gain) * tau
-            mujoco.mj_step(m, d)
-            qpos.append(d.qpos.copy())
-        runs.append(np.array(qpos))
+        runs.append(c_mujoco_run(PLANT, aux, model=m)[0])
     assert np.max(np.abs(runs[0] - runs[1])) < 1e-12
+
+
+CONTACT_PLANT = MJXPlant.create(G, M.ModelOptions(contacts=True))
+
+
+def _above_the_surface(gap):
+    """qpos of the home pose lowered until the tool sphere is ``gap`` [m] above the work surface (joints closed)."""
+    m = CONTACT_PLANT.mj_model
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)  # qpos0 is the home pose
+    tool, surface = m.geom("tool"), m.geom("surface")
+    clearance = (d.geom_xpos[tool.id][2] - tool.size[0]) - (d.geom_xpos[surface.id][2] + surface.size[2])
+    pose = np.array(G.home, dtype=float)
+    pose[2] -= clearance - gap
+    return M.assembled_qpos(m, G, pose)
+
+
+def test_contacts_stop_the_platform_on_the_work_surface_as_in_c_mujoco():
+    """``ModelOptions(contacts=True)``: released with the motors off 1 mm above the surface, the machine falls,
+    the tool lands 48 ms in and the surface holds it.
+
+    MJX against C MuJoCo through the impact (float64, 400 steps): observed 9.4e-13 m and 9.8e-10 m/s
+    (bounds 1e-9, 1e-7: the impact amplifies rounding, so the bounds are looser than without contact).
+    One Newton iteration is still the converged solve with this single contact: observed 5e-15 m
+    against 100 iterations.
+    """
+    aux = CONTACT_PLANT.prepare(SERVO, None, RATES.dt_mech)
+    q0, off = _above_the_surface(1e-3), np.zeros_like(TORQUE)
+    qpos, qvel = (np.asarray(a) for a in mjx_run(CONTACT_PLANT, aux, off, q0))
+    c_qpos, c_qvel, _, landed = c_mujoco_run(CONTACT_PLANT, aux, off, q0)
+    assert np.max(np.abs(qpos - c_qpos)) < 1e-9
+    assert np.max(np.abs(qvel - c_qvel)) < 1e-7
+    m = CONTACT_PLANT.mj_model
+    force = np.zeros(6)
+    assert landed.ncon == 1
+    mujoco.mj_contactForce(m, landed, 0, force)
+    assert force[0] > 100.0  # N along the normal: the surface carries the machine
+    _, _, _, free = c_mujoco_run(CONTACT_PLANT, aux, off, q0, model=M.build_model(G, M.ModelOptions()))
+    platform = m.body("platform").id
+    assert free.xpos[platform][2] < landed.xpos[platform][2] - 1e-3  # without the surface it falls further
+    converged = M.build_model(G, M.ModelOptions(contacts=True, solver_iterations=100))
+    converged.opt.tolerance = 1e-12
+    assert np.max(np.abs(c_qpos - c_mujoco_run(CONTACT_PLANT, aux, off, q0, model=converged)[0])) < 1e-12
+
+
+def test_gradient_through_contact_matches_central_differences():
+    """d(mean platform height over the last 25 ms of 100 ms) / d(motor torque, the same on every axis) with the
+    tool pressed on the surface (C MuJoCo: in contact at 75 ms and at 100 ms): reverse mode against
+    central differences (h = 1e-5 N m), observed 4e-10 relative (7e-8 at h = 1e-4, 2e-7 at 1e-6: truncation
+    and round-off of the differences).  Bound 1e-6.
+    """
+    aux = CONTACT_PLANT.prepare(SERVO, None, RATES.dt_mech)
+    q0 = jnp.asarray(_above_the_surface(1e-3))
+    platform = CONTACT_PLANT.mj_model.body("platform").id
+    n, u, h = len(TORQUE), 0.02, 1e-5
+
+    def height(tau):
+        def body(d, _):
+            d = CONTACT_PLANT.step(aux, d, jnp.full(6, tau))
+            return d, d.xpos[platform, 2]
+
+        d0 = mjx.forward(aux.model, CONTACT_PLANT.init(aux).replace(qpos=q0))
+        return jnp.mean(jax.lax.scan(body, d0, None, length=n)[1][-n // 4:])
+
+    value_and_grad = jax.jit(jax.value_and_grad(height))
+    for steps in (3 * n // 4, n):
+        assert c_mujoco_run(CONTACT_PLANT, aux, np.full((steps, 6), u), np.asarray(q0))[3].ncon == 1
+    ad = float(value_and_grad(u)[1])
+    fd = (float(value_and_grad(u + h)[0]) - float(value_and_grad(u - h)[0])) / (2 * h)
+    assert fd > 0.0  # more holding torque, less weight on the surface: the platform sits higher
+    assert abs(ad - fd) <= 1e-6 * abs(fd), (ad, fd)
 
 
 def _tracking_and_torque_peak(params, hybrid, reference, outer):
