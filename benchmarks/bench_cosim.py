@@ -17,6 +17,9 @@ a function of the tuner's log-parameters (``tune.space``), vmapped over each of
 ``--grad-batches`` parameter sets.  ``forward_s`` times the objective alone; ``reverse``
 is ``jax.value_and_grad`` with respect to every field of the ``--grad-groups`` sets
 (its cost does not depend on how many; ``--remat`` rematerialises each position period);
+``plant_alone`` is reverse mode through the same MJX steps with the trivial controller
+(d sum(qpos^2) / d its constant torque offset; ``--remat`` rematerialises each step): the
+floor that no controller code can go under;
 ``forward_mode[groups]`` is ``jacfwd`` with respect to that set's fields (cost grows with
 their number).  Each ``*_over_forward`` is that time over ``forward_s``;
 ``forward_vs_reverse_diff`` compares the two gradients of the largest set, per field
@@ -71,13 +74,15 @@ def main():
     def cascade(p):
         return rollout(p, None, ref, plant=plant, rates=rates, outer="imc").theta
 
-    def plant_alone(p):
+    def plant_alone(p, offset=0.06, remat=False):
         aux = plant.prepare(p, None, rates.dt_mech)
 
         def body(d, _):
             theta, omega = plant.measure(aux, d)
-            return plant.step(aux, d, -0.05 * theta - 0.005 * omega + 0.06), None
+            return plant.step(aux, d, -0.05 * theta - 0.005 * omega + offset), None
 
+        if remat:
+            body = jax.checkpoint(body)
         d, _ = jax.lax.scan(body, plant.init(aux), None, length=env_steps_per_run)
         return d.qpos
 
@@ -122,6 +127,11 @@ def main():
         row = {"forward_s": fwd, "reverse": {"fields": list(spaces[largest].fields),
                                              "grad_s": timed(reverse_fn, z)}, "forward_mode": {}}
         row["reverse"]["grad_over_forward"] = row["reverse"]["grad_s"] / fwd
+        offsets = jnp.asarray(rng.uniform(0.05, 0.07, (batch, 6)))
+        plant_objective = lambda offset: jnp.sum(plant_alone(base, offset, args.remat) ** 2)
+        plant_fwd = timed(jax.jit(jax.vmap(plant_objective)), offsets)
+        plant_grad = timed(jax.jit(jax.vmap(jax.value_and_grad(plant_objective))), offsets)
+        row["plant_alone"] = {"forward_s": plant_fwd, "grad_s": plant_grad, "grad_over_forward": plant_grad / plant_fwd}
         row["forward_env_steps_per_s"] = batch * env_steps_per_run / fwd
         for gs in group_sets:
             zg = {f: z[f] for f in spaces[gs].fields}
