@@ -29,14 +29,14 @@ import control as ct
 import numpy as np
 from scipy.optimize import brentq, minimize_scalar
 
-from .params import N_AXES, AxisLoad, LoopRates, ServoParams
+from .params import N_AXES, AxisLoad, LoopRates, ServoParams, arrays
 
 LOOPS = ("current", "velocity", "position")
 
 
 def axis_values(p, axis: int) -> dict:
     """Plain floats of one axis of a parameter set."""
-    return {k: float(np.asarray(v)[..., axis]) for k, v in vars(p).items()}
+    return {k: float(np.asarray(v)[..., axis]) for k, v in arrays(p).items()}
 
 
 def _sys(tf, inputs, outputs):
@@ -67,11 +67,33 @@ def blocks(servo: ServoParams, load: AxisLoad, axis: int = 0) -> dict:
         "Gxv": _sys(ct.tf([1], [p["Tw"], 1]), "w_ref", "w_r"),
         "Gw": _sys(ct.tf([p["Kw"]], [p["Tw"], 1]), "w", "w_f"),
         "Gv": _sys(ct.tf([p["Kv"] * p["Tv"], p["Kv"]], [p["Tv"], 0]), "e_w", "i_ref"),
-        "C1": _sys(ct.tf([3 * l1, 1], [3 * l2, 1]), "th_ref", "r1"),
+        "C1": _sys(imc_c1(l1, l2, servo.imc_form), "th_ref", "r1"),
         "C2": _sys(ct.tf(np.polymul([3 * l2, 1], [T0, 1]), np.polymul([3 * l2**2, 0], [l2 / 3, 1])), "e_p", "w_ref"),
         "PID": _sys(ct.tf([p["Kp_pid"]], [1]) + ct.tf([p["Ki_pid"]], [1, 0])
                     + ct.tf([p["Kd_pid"], 0], [p["Tf_pid"], 1]), "e_p", "w_ref"),
     }
+
+
+FF_LAG_S = 0.5e-3  # s: half the default position period, the lag of the pid_ff backward difference
+
+
+def velocity_feedforward(servo: ServoParams, axis: int, rates: LoopRates | None = None):
+    """The pid_ff feedforward ``th_ref -> w_ff``: exactly ``Kff (1 - z^-1)/dt`` at the position rate when ``rates``
+    is given, else its continuous stand-in ``Kff s/(FF_LAG_S s + 1)`` (the backward difference lags by half a period)."""
+    k = axis_values(servo, axis)["Kff_pid"]
+    if rates is None:
+        return _sys(ct.tf([k, 0], [FF_LAG_S, 1]), "th_ref", "w_ff")
+    dt = rates.dt_position
+    return _sys(ct.tf([k, -k], [dt, 0], dt), "th_ref", "w_ff")
+
+
+def imc_c1(l1: float, l2: float, form: str):
+    """The prefilter C1 (eq. 9) as a python-control transfer function, in the ``form`` of :func:`pusupu_jax.loops.imc_c1`."""
+    if form == "printed":
+        return ct.tf([3 * l1, 1], [3 * l2, 1])
+    f_r = ct.tf([3 * l1, 1], np.polymul(np.polymul([l1, 1], [l1, 1]), [l1, 1]))
+    f_d = ct.tf([3 * l2, 1], np.polymul(np.polymul([l2, 1], [l2, 1]), [l2, 1]))
+    return ct.minreal(f_r / f_d, verbose=False)
 
 
 _PHYSICAL = ("electrical", "mechanics")
@@ -137,8 +159,11 @@ def closed_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, rates: LoopR
         parts = [bp["C1"], bp["C2"], _sum("r1", "theta", "e_p")]
     elif mode == "pid":
         parts = [bp["PID"], _sum("th_ref", "theta", "e_p")]
+    elif mode == "pid_ff":
+        parts = [ct.ss(bp["PID"], inputs="e_p", outputs="w_pid"), velocity_feedforward(servo, axis, rates),
+                 ct.summing_junction(inputs=["w_pid", "w_ff"], output="w_ref"), _sum("th_ref", "theta", "e_p")]
     else:
-        raise ValueError(f"closed_loops: expected mode 'imc' or 'pid', got {mode!r}")
+        raise ValueError(f"closed_loops: expected mode 'imc', 'pid' or 'pid_ff', got {mode!r}")
     cl_p = ct.interconnect(parts + [inner], inputs="th_ref", outputs=out, name="position_loop")
     return {"current": cl_i, "velocity": cl_v, "position": cl_p}
 
@@ -154,7 +179,7 @@ def open_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, mode: str = "i
                           inputs="u_pi", outputs="i_f", check_unused=False)
     p_v = ct.interconnect([cl["current"], b["Gw"]], inputs="i_ref", outputs="w_f", check_unused=False)
     p_p = cl["velocity"][2, 0]
-    c_p = b["C2"] if mode == "imc" else b["PID"]
+    c_p = b["C2"] if mode == "imc" else b["PID"]  # pid_ff: the feedforward acts outside the loop
     return {"current": _siso(b["Gi"]) * p_i, "velocity": _siso(b["Gv"]) * p_v, "position": _siso(c_p) * p_p}
 
 
@@ -211,9 +236,11 @@ def step_metrics(sys, span: float, w_low: float = 1e-4) -> dict:
     """Rise time (10-90 %) [s], 2 % settling time [s] and overshoot [%] of a closed loop's step response.
 
     The final value is the gain at ``w_low`` rad/s (the motor-angle state that the current
-    and velocity loops do not see would otherwise spoil a DC-gain computation).
+    and velocity loops do not see would otherwise spoil a DC-gain computation).  The response
+    is sampled at ``span / 30000`` (0.2 ms for the position loop, whose full-form IMC step rises
+    in about 17 ms).
     """
-    info = ct.step_info(sys, T=np.linspace(0.0, span, 8001), yfinal=float(np.real(sys(1j * w_low))))
+    info = ct.step_info(sys, T=np.linspace(0.0, span, 30001), yfinal=float(np.real(sys(1j * w_low))))
     return {"rise_time_s": float(info["RiseTime"]), "settling_time_s": float(info["SettlingTime"]),
             "overshoot_pct": float(info["Overshoot"])}
 
@@ -242,9 +269,17 @@ def identify_T0(servo: ServoParams, load: AxisLoad, axis: int = 0, window: float
     dominant dynamics.)  This is the plant ``1/(s (T0 s + 1))`` that ``C2`` is designed on.
     """
     t = np.linspace(0.0, window, 4001)
-    y = ct.step_response(closed_loops(servo, load, axis)["velocity"][1, 0], t).outputs
-    fit = minimize_scalar(lambda tau: float(np.sum((y - 1.0 + np.exp(-t / tau)) ** 2)),
-                          bounds=(1e-5, window), method="bounded", options={"xatol": 1e-12})
+    return fit_first_order(t, ct.step_response(closed_loops(servo, load, axis)["velocity"][1, 0], t).outputs)
+
+
+def fit_first_order(t, y, step=1.0) -> float:
+    """The time constant ``T0`` [s] minimising ``sum (y - step (1 - exp(-t/T0)))^2`` (least squares, bounded by ``t``).
+
+    ``y`` may have a leading axis of several step tests of the same loop, with ``step`` their step sizes.
+    """
+    t, y, step = np.asarray(t, dtype=float), np.asarray(y, dtype=float), np.asarray(step, dtype=float)[..., None]
+    fit = minimize_scalar(lambda tau: float(np.sum((y - step * (1.0 - np.exp(-t / tau))) ** 2)),
+                          bounds=(1e-5, float(t[-1])), method="bounded", options={"xatol": 1e-12})
     return float(fit.x)
 
 

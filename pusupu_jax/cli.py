@@ -1,13 +1,15 @@
 """The ``pusupu`` command (host-side).
 
-    pusupu analyze [--params FILE] [--mode imc|pid] [--json] [--plot PNG]
-    pusupu sim --plant axis --trajectory step|ramp|sine [--mode imc|pid] [--params FILE]
+    pusupu analyze [--params FILE] [--mode imc|pid|pid_ff] [--json] [--plot PNG]
+    pusupu analyze --identify-T0 [--params FILE] [--kin-error SEED] [--json] [--plot PNG]
+    pusupu sim --plant axis --trajectory step|ramp|sine [--mode imc|pid|pid_ff] [--params FILE]
                [--duration S] [--json] [--plot PNG]
-    pusupu sim --plant mjx --trajectory arc|p2p [--mode imc|pid|hybrid] [--params FILE] [--kin-error SEED]
-               [--json] [--plot PNG]
+    pusupu sim --plant mjx --trajectory arc|p2p [--mode imc|pid|pid_ff|hybrid] [--params FILE]
+               [--kin-error SEED] [--json] [--plot PNG]
 
     pusupu tune [--config FILE] [--out DIR] [--quick] [--fresh] [--json]
-    (analyze and sim also take --gains FILE, a gain file written by tune)
+    (analyze and sim also take --gains FILE, a gain file written by tune; analyze, sim and tune
+    take --imc-form full|printed, sim takes --start rest|zero)
 
 Errors in the input print one line ``pusupu: error: ...`` and exit with status 2.
 """
@@ -20,7 +22,7 @@ import sys
 import time
 import warnings
 
-from .params import ParameterError
+from .params import IMC_FORMS, ParameterError
 
 
 class _Parser(argparse.ArgumentParser):
@@ -38,9 +40,16 @@ def _parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     a = sub.add_parser("analyze", help="crossover, margins and bandwidth of every loop of every axis")
     a.add_argument("--params", metavar="FILE", help="parameter YAML (default: Table 1 and documented choices)")
-    a.add_argument("--mode", choices=("imc", "pid"), default="imc", help="position controller (default imc)")
+    a.add_argument("--mode", choices=("imc", "pid", "pid_ff"), default="imc",
+                   help="position controller: 2-DOF IMC, PID, or PID with velocity feedforward (default imc)")
     a.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    a.add_argument("--plot", metavar="PNG", help="write Bode and step plots of axis 0")
+    a.add_argument("--plot", metavar="PNG", help="write Bode and step plots of axis 0 (with --identify-T0: the "
+                                                  "machine's step responses and their fits)")
+    a.add_argument("--identify-T0", action="store_true",
+                   help="identify each branch's velocity-loop time constant T0 from velocity steps of the MJX "
+                        "machine (x and y platform motions from home) instead of the loop analysis")
+    a.add_argument("--kin-error", type=int, metavar="SEED",
+                   help="with --identify-T0: the machine gets seeded kinematic errors (0.5 mm std)")
     s = sub.add_parser("sim", help="simulate the cascade against a plant and print tracking metrics")
     s.add_argument("--plant", choices=("axis", "mjx"), default="axis",
                    help="axis: six single-axis plants; mjx: the 6PUS-UPU mechanism in MJX (default axis)")
@@ -48,9 +57,13 @@ def _parser() -> argparse.ArgumentParser:
                    help="step|ramp|sine for the axis plant (default step), arc|p2p for mjx (default arc)")
     s.add_argument("--kin-error", type=int, metavar="SEED",
                    help="mjx: the simulated machine gets seeded kinematic errors (0.5 mm std)")
-    s.add_argument("--mode", choices=("imc", "pid", "hybrid"), default="imc",
-                   help="imc or pid on every branch, or hybrid (mjx only: branches 1-5 IMC, branch 6 force "
-                        "control, eq. 10-14; gains from the params file's hybrid section) (default imc)")
+    s.add_argument("--mode", choices=("imc", "pid", "pid_ff", "hybrid"), default="imc",
+                   help="imc, pid or pid_ff (PID with velocity feedforward) on every branch, or hybrid (mjx only: "
+                        "branches 1-5 IMC, branch 6 force control, eq. 10-14; gains from the params file's hybrid "
+                        "section) (default imc)")
+    s.add_argument("--start", choices=("rest", "zero"), default="rest",
+                   help="rest: the machine held still by its drives at t = 0 (currents and integrators preloaded); "
+                        "zero: every controller state zero, so it sags until the integrators catch up (default rest)")
     s.add_argument("--params", metavar="FILE", help="parameter YAML")
     s.add_argument("--duration", type=float, metavar="S", help="seconds (default per trajectory)")
     s.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -62,16 +75,27 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("--quick", action="store_true", help="a short smoke run (under 2 min): one path, 5 iterations")
     t.add_argument("--fresh", action="store_true", help="ignore (delete) a checkpoint in DIR instead of resuming")
     t.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
+    e = sub.add_parser("experiment", help="reproduce one of the paper's claims: runs, figures, JSON and a table")
+    e.add_argument("name", metavar="NAME", help="arc (Fig. 7), p2p (section 4, Table 2), hybrid_grid (hybrid "
+                                                 "stability across lambda2) or timing (every step halved)")
+    e.add_argument("--out", metavar="DIR", default="experiments_out", help="output folder (default experiments_out)")
+    e.add_argument("--quick", action="store_true", help="a short version (a few seconds of the paths, fewer seeds)")
+    e.add_argument("--json", action="store_true", help="print the metrics as JSON instead of the table")
     for sp in (a, s):
         sp.add_argument("--gains", metavar="FILE", help="a gain file written by pusupu tune (replaces the servo "
                                                          "gains, hybrid gains and rates of --params)")
+    for sp in (a, s, t):
+        sp.add_argument("--imc-form", choices=IMC_FORMS,
+                        help="form of the IMC prefilter C1: full (reference response (3 l1 s+1)/(l1 s+1)^3, what "
+                             "section 2.2 describes) or printed (eq. 9 as printed); default: the params or gain "
+                             "file's servo.imc_form, else full (docs/imc.md)")
     return p
 
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
-        return {"analyze": _analyze, "sim": _sim, "tune": _tune}[args.command](args)
+        return {"analyze": _analyze, "sim": _sim, "tune": _tune, "experiment": _experiment}[args.command](args)
     except (ParameterError, FloatingPointError) as e:  # bad input; a tuning run that went non-finite
         _fail(str(e))
 
@@ -102,6 +126,30 @@ def _tune(args) -> int:
     return status
 
 
+def _experiment(args) -> int:
+    from pathlib import Path
+
+    from .config import setup_jax
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"--out: expected a folder, got the file {args.out!r}")
+    setup_jax()
+    import experiments
+
+    experiments.get(args.name)  # an unknown name fails before any work
+    print(f"experiment {args.name}{' (quick)' if args.quick else ''}: running (the first runs compile for about "
+          "20 s per control mode)", file=sys.stderr, flush=True)
+    t0 = time.perf_counter()
+    result, files = experiments.run_experiment(args.name, out, quick=args.quick)
+    if args.json:
+        print(json.dumps(result.metrics, indent=2))
+    else:
+        print(experiments.get(args.name).table(result))
+        print(f"wrote: {', '.join(str(f) for f in files)} ({time.perf_counter() - t0:.0f} s)")
+    return 0
+
+
 def _load(args):
     from .config import load_params_file
 
@@ -111,6 +159,8 @@ def _load(args):
 
         servo, hybrid, rates, _ = load_gains(args.gains)
         loaded = loaded._replace(servo=servo, hybrid=hybrid, rates=rates)
+    if args.imc_form:
+        loaded = loaded._replace(servo=loaded.servo.replace(imc_form=args.imc_form))
     return loaded
 
 
@@ -125,9 +175,13 @@ def _check_plot_path(path):
 def _analyze(args) -> int:
     from . import analysis
 
-    servo, load, *_ = _load(args)
+    servo, load, rates, _ = _load(args)
     if args.plot:
         _check_plot_path(args.plot)
+    if args.identify_T0:
+        return _identify(args, servo, load, rates)
+    if args.kin_error is not None:
+        raise ParameterError("--kin-error: only with --identify-T0 (the loop analysis uses the single-axis load)")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         result = analysis.loop_metrics(servo, load, args.mode)
@@ -146,6 +200,44 @@ def _analyze(args) -> int:
     for k, row in enumerate(result["axes"]):
         for name, m in row.items():
             print(f"{k:>4} {name:<9} " + " ".join(f"{_num(m[key]):>{w}}" for key, _, w in cols))
+    if args.plot:
+        print(f"plot: {args.plot}")
+    return 0
+
+
+def _identify(args, servo, load, rates) -> int:
+    import numpy as np
+
+    from .config import setup_jax
+
+    setup_jax()
+    from .analysis import identify_T0
+    from .identify import identify_T0_machine
+    from .plant.model import ModelOptions
+
+    print("identifying T0 on the MJX machine (velocity steps along x and y from home); the first run compiles "
+          "for about 20 s", file=sys.stderr)
+    result = identify_T0_machine(servo, ModelOptions(kin_error_seed=args.kin_error), rates=rates)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        axis_model = identify_T0(servo, load)
+    out = {"T0_s": result["T0"], "fit_rms_rad_s": result["fit_rms"], "directions": result["directions"],
+           "T0_servo_s": np.asarray(servo.T0).tolist(), "T0_axis_model_s": axis_model,
+           "kin_error_seed": args.kin_error}
+    if args.plot:
+        from .plots import plot_identification
+
+        plot_identification(result, args.plot, title="velocity steps of the machine"
+                            + (f", kinematic errors seed {args.kin_error}" if args.kin_error is not None else ""))
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    print(f"T0 identified on the machine (velocity steps along {', '.join(result['directions'])} from home); "
+          f"single-axis model: {axis_model * 1e3:.2f} ms")
+    print(f"{'branch':>6} {'T0 ms':>8} {'servo T0 ms':>12} {'fit rms rad/s':>14}")
+    for b in range(6):
+        print(f"{b + 1:>6} {result['T0'][b] * 1e3:>8.2f} {out['T0_servo_s'][b] * 1e3:>12.2f} "
+              f"{result['fit_rms'][b]:>14.3g}")
     if args.plot:
         print(f"plot: {args.plot}")
     return 0
@@ -182,9 +274,10 @@ def _sim(args) -> int:
 
     ref = axis_reference(args.trajectory, rates, args.duration)
     t0 = time.perf_counter()
-    trace = jax.block_until_ready(simulate(servo, ref, load=load, rates=rates, mode=args.mode))
+    trace = jax.block_until_ready(simulate(servo, ref, load=load, rates=rates, mode=args.mode, start=args.start))
     wall = time.perf_counter() - t0
-    result = {"plant": args.plant, "trajectory": args.trajectory, "mode": args.mode,
+    result = {"plant": args.plant, "trajectory": args.trajectory, "mode": args.mode, "imc_form": servo.imc_form,
+              "start": args.start,
               "duration_s": float(trace.t[-1] + rates.dt_position), "wall_s": wall,
               **metrics.summary(trace, servo)}
     if args.trajectory == "step":
@@ -196,7 +289,8 @@ def _sim(args) -> int:
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
-    print(f"{args.trajectory} on the {args.plant} plant, {args.mode} mode, {result['duration_s']:.3g} s "
+    print(f"{args.trajectory} on the {args.plant} plant, {args.mode} mode (IMC form {servo.imc_form}, start "
+          f"{args.start}), {result['duration_s']:.3g} s "
           f"simulated in {wall:.2f} s (compile included)")
     keys = [k for k in result if isinstance(result[k], list)]
     print(f"{'axis':>4} " + " ".join(f"{k:>16}" for k in keys))
@@ -219,7 +313,8 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
     options = ModelOptions(kin_error_seed=args.kin_error)
     print(f"simulating {len(path) * rates.dt_position:.1f} s of the {args.trajectory} path on the MJX machine "
           f"({args.mode} mode); the first run compiles for about 15 s", file=sys.stderr)
-    result, trace = simulate_machine(servo, path, mode=args.mode, options=options, rates=rates, hybrid=hybrid)
+    result, trace = simulate_machine(servo, path, mode=args.mode, options=options, rates=rates, hybrid=hybrid,
+                                     start=args.start)
     result = {"plant": "mjx", "trajectory": args.trajectory} | result
     if args.plot:
         from .plots import plot_platform_path
@@ -229,7 +324,8 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
-    print(f"{args.trajectory} on the MJX machine, {args.mode} mode, {result['duration_s']:.3g} s simulated "
+    print(f"{args.trajectory} on the MJX machine, {args.mode} mode (IMC form {servo.imc_form}, start {args.start}), "
+          f"{result['duration_s']:.3g} s simulated "
           f"in {result['wall_s']:.2f} s (compile included)")
     for key in ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho", "loop_closure_residual_max_mm"):
         print(f"  {key:<30} {_num(result[key])}")

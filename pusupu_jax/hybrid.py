@@ -54,7 +54,9 @@ def _gain(default: float, unit: str, doc: str):
 class HybridGains:
     """Gains of eq. 14 (scalars, or arrays with a leading batch dimension) and the static form of ``rho``."""
 
-    m6: Any = _gain(0.1, "N*s/m", "gain on rho'' (the paper's 'mass' of branch 6)")
+    m6: Any = _gain(7.0e3, "N*s/m", "gain on rho'' (the paper's 'mass' of branch 6); in the signed form rho'' is "
+                    "branch 6's velocity error implied by branches 1-5, so m6 damps branch 6: default Kv Kt eta / r^2 "
+                    "of Table 1 (7.05e3), the proportional action of its own velocity loop (docs/hybrid.md)")
     c6: Any = _gain(1.0e3, "N/m", "gain on rho' (the paper's 'Coriolis coefficient')")
     g: Any = _gain(1.0e2, "N/(m*s)", "gain on rho (the paper's 'gravitational acceleration')")
     form: str = field(default="signed", metadata=dict(static=True))
@@ -119,9 +121,9 @@ def synchronous_error(branch_errors, dt):
     return jnp.cumsum(rms_rate(branch_errors), axis=-1) * dt
 
 
-def init():
-    """State of the force law: ``rho`` [m s], the previous ``rho'`` [m] and the last ``F_6`` [N]."""
-    return {"rho": jnp.zeros(()), "rate": jnp.zeros(()), "force": jnp.zeros(())}
+def init(force=0.0):
+    """State of the force law: ``rho`` [m s], the previous ``rho'`` [m] and the last ``F_6`` [N] (``force``)."""
+    return {"rho": jnp.zeros(()), "rate": jnp.zeros(()), "force": jnp.zeros(()) + force}
 
 
 def step(gains: HybridGains, state, e, coupling, force_ff, dt: float):

@@ -21,9 +21,11 @@ Loops and their signals (motor side; Fig. 2 of the paper):
   ``+-I_max`` with anti-windup;
 * position loop, every ``n_velocity*n_position`` ticks, giving the velocity reference
   [rad/s] from the motor-angle reference [rad]: 2-DOF IMC
-  ``w_r = C2 (C1 theta' - theta)`` with ``C1 = (3 l1 s+1)/(3 l2 s+1)`` and
-  ``C2 = (3 l2 s+1)(T0 s+1) / (3 l2^2 s (l2/3 s+1))`` (eq. 9), or the PID baseline
-  ``Kp + Ki/s + Kd s/(Tf s+1)`` on ``theta' - theta``.
+  ``w_r = C2 (C1 theta' - theta)`` with ``C2 = (3 l2 s+1)(T0 s+1) / (3 l2^2 s (l2/3 s+1))``
+  (eq. 9) and the prefilter ``C1`` in one of two forms (``ServoParams.imc_form``, see
+  :func:`imc_c1` and ``docs/imc.md``); or the PID baseline ``Kp + Ki/s + Kd s/(Tf s+1)`` on
+  ``theta' - theta``, alone ('pid') or plus the velocity feedforward ``Kff (theta'_k -
+  theta'_{k-1})/dt`` ('pid_ff', the industry-standard baseline).
 
 The current and velocity loops have the same structure (reference filter, feedback
 filter, clamped PI) and share :class:`PILoop` and :func:`pi_loop_step`.
@@ -71,6 +73,7 @@ class Drive:
     velocity: PILoop
     imc: IMC
     pid: LTI
+    velocity_ff: Any  # 1/s: Kff / dt_position, the pid_ff feedforward on the reference's backward difference
     electrical: LTI  # states (inverter voltage [V], armature current [A]); inputs (u [V], w [rad/s])
     Kt: Any  # N m / A
     emf_gain: Any  # V/(rad/s): back-EMF feedforward emf_ff*Ke/Kn
@@ -88,30 +91,65 @@ class IMCState(NamedTuple):
 
 
 def first_order(gain, tau) -> LTI:
-    """``gain / (tau s + 1)``."""
-    return lti.tf([gain], [tau, 1.0])
+    """``gain / (tau s + 1)``; state: the filtered input ``x' = (u - x)/tau``, output ``gain x``."""
+    return lti.ss([[-1.0 / tau]], [[1.0 / tau]], [[gain]], [[0.0 * tau]])
+
+
+def lead_lag(a, b) -> LTI:
+    """``(a s + 1)/(b s + 1)``; state: the input low-passed with ``b``, output ``(a/b) u + (1 - a/b) x``."""
+    return lti.ss([[-1.0 / b]], [[1.0 / b]], [[1.0 - a / b]], [[a / b]])
 
 
 def pi_controller(k, ti) -> LTI:
-    """``k (ti s + 1) / (ti s)``."""
-    return lti.tf([k * ti, k], [ti, 0.0])
+    """``k (ti s + 1) / (ti s)``; state: the integral term ``x' = (k/ti) e`` (in output units), output ``k e + x``."""
+    return lti.ss([[0.0 * k]], [[k / ti]], [[1.0 + 0.0 * k]], [[k]])
 
 
-def imc_c1(lambda1, lambda2) -> LTI:
-    """Eq. 9, ``C1 = (3 l1 s + 1)/(3 l2 s + 1)``."""
-    return lti.tf([3.0 * lambda1, 1.0], [3.0 * lambda2, 1.0])
+def imc_c1(lambda1, lambda2, form: str = "full") -> LTI:
+    """The 2-DOF IMC prefilter, in one of two forms (``docs/imc.md`` derives both).
+
+    * ``'printed'``: eq. 9 as printed, ``C1 = (3 l1 s + 1)/(3 l2 s + 1)``.  With the loop's
+      own response ``f_d = (3 l2 s+1)/(l2 s+1)^3`` the reference response is
+      ``(3 l1 s+1)/(l2 s+1)^3``: lambda1 only moves a zero, and a ramp lags ``3 (l2 - l1)``.
+    * ``'full'`` (default): ``C1 = f_r / f_d = (3 l1 s+1)(l2 s+1)^3 / ((l1 s+1)^3 (3 l2 s+1))``,
+      so that the reference response is ``f_r = (3 l1 s+1)/(l1 s+1)^3``: lambda1 sets tracking
+      and lambda2 disturbance rejection, as section 2.2 says (no ramp lag: type 2).  The printed
+      form is this with the factor ``(l2 s+1)^3/(l1 s+1)^3`` missing.
+
+    Realised as lead-lag sections in series (states: the reference low-passed, in rad).
+    """
+    printed = lead_lag(3.0 * lambda1, 3.0 * lambda2)
+    if form == "printed":
+        return printed
+    if form != "full":
+        raise ValueError(f"imc_c1: expected form 'full' or 'printed', got {form!r}")
+    section = lead_lag(lambda2, lambda1)
+    return lti.series(section, section, section, printed)
+
+
+def filtered_pid(kp, ki, kd, tau) -> LTI:
+    """``(kp + ki/s + kd s) / (tau s + 1)``; states: the integral term ``I' = ki e`` and the filtered output ``v``.
+
+    ``v' = ((kp - kd/tau) e + I - v)/tau``, output ``(kd/tau) e + v``: both states in output units.
+    """
+    z = 0.0 * tau
+    return lti.ss([[z, z], [1.0 / tau, -1.0 / tau]], [[ki], [(kp - kd / tau) / tau]], [[z, 1.0 + z]], [[kd / tau]])
 
 
 def imc_c2(lambda2, T0) -> LTI:
-    """Eq. 9, ``C2 = (3 l2 s+1)(T0 s+1) / (3 l2^2 s (l2/3 s + 1))``, expanded in powers of s."""
-    num = [3.0 * lambda2 * T0, 3.0 * lambda2 + T0, 1.0]
-    den = [lambda2**3, 3.0 * lambda2**2, 0.0]
-    return lti.tf(num, den)
+    """Eq. 9, ``C2 = (3 l2 s+1)(T0 s+1) / (3 l2^2 s (l2/3 s + 1))``: the PID ``Kp = (3 l2 + T0)/(3 l2^2)``,
+    ``Ki = 1/(3 l2^2)``, ``Kd = T0/l2`` behind the filter ``1/((l2/3) s + 1)`` (:func:`filtered_pid`)."""
+    return filtered_pid((3.0 * lambda2 + T0) / (3.0 * lambda2**2), 1.0 / (3.0 * lambda2**2), T0 / lambda2,
+                        lambda2 / 3.0)
 
 
 def pid_controller(kp, ki, kd, tf_) -> LTI:
-    """``kp + ki/s + kd s/(tf s + 1)`` over the common denominator ``s (tf s + 1)``."""
-    return lti.tf([kp * tf_ + kd, kp + ki * tf_, ki], [tf_, 1.0, 0.0])
+    """``kp + ki/s + kd s/(tf s + 1)``; states: the integral term ``I' = ki e`` and the input low-passed ``e_f``.
+
+    Output ``kp e + I + (kd/tf)(e - e_f)``.
+    """
+    z = 0.0 * tf_
+    return lti.ss([[z, z], [z, -1.0 / tf_]], [[ki], [1.0 / tf_]], [[1.0 + z, -kd / tf_]], [[kp + kd / tf_]])
 
 
 def electrical_model(p: ServoParams) -> LTI:
@@ -137,8 +175,10 @@ def discretize(p: ServoParams, rates: LoopRates) -> Drive:
     return Drive(
         current=pi_loop(p.Ki, p.Ti, p.Kcf, p.Tcf, p.V_max / p.Kn, rates.dt_current),
         velocity=pi_loop(p.Kv, p.Tv, p.Kw, p.Tw, p.I_max, rates.dt_velocity),
-        imc=IMC(lti.c2d(imc_c1(p.lambda1, p.lambda2), dt_p, m), lti.c2d(imc_c2(p.lambda2, p.T0), dt_p, m)),
+        imc=IMC(lti.c2d(imc_c1(p.lambda1, p.lambda2, p.imc_form), dt_p, m),
+                lti.c2d(imc_c2(p.lambda2, p.T0), dt_p, m)),
         pid=lti.c2d(pid_controller(p.Kp_pid, p.Ki_pid, p.Kd_pid, p.Tf_pid), dt_p, m),
+        velocity_ff=p.Kff_pid / dt_p,
         electrical=lti.c2d(electrical_model(p), rates.dt_current, "zoh"),
         Kt=p.Kt,
         emf_gain=p.emf_ff * p.Ke / p.Kn,
@@ -168,6 +208,16 @@ def pi_loop_step(c: PILoop, s: PIState, ref, meas, feedforward=0.0):
     return PIState(x_ref, x_fb, x_pi), clamped
 
 
+def pi_loop_rest(c: PILoop, ref, meas, out) -> PIState:
+    """The state of a PI loop that has held ``out`` for a long time with constant ``ref`` and ``meas``.
+
+    Both filters sit at their steady values and the PI's integrator holds ``out`` (its error
+    must then be zero: ``ref`` and ``meas`` at the ratio of the feedback and reference filter gains).
+    """
+    return PIState(lti.dc_state(c.ref_filter, ref[..., None]), lti.dc_state(c.fb_filter, meas[..., None]),
+                   lti.integrator_state(c.pi, out))
+
+
 def imc_init(c: IMC) -> IMCState:
     return IMCState(lti.zeros_state(c.c1), lti.zeros_state(c.c2))
 
@@ -188,8 +238,32 @@ def pid_step(c: LTI, s, theta_ref, theta):
     return lti.step_siso(c, s, theta_ref - theta)
 
 
+class PIDFFState(NamedTuple):
+    pid: Any
+    previous_ref: Any  # the last motor-angle reference, rad
+
+
+def pid_ff_init(c: LTI, theta_ref0=0.0) -> PIDFFState:
+    """The PID at rest, the reference held at ``theta_ref0`` [rad] before the first sample."""
+    x = lti.zeros_state(c)
+    return PIDFFState(x, jnp.broadcast_to(jnp.asarray(theta_ref0, x.dtype), x.shape[:-1]))
+
+
+def pid_ff_step(c: LTI, velocity_ff, s: PIDFFState, theta_ref, theta):
+    """PID plus velocity feedforward: ``w_r = PID(theta_ref - theta) + Kff (theta_ref - previous)/dt`` [rad/s]."""
+    x, w_pid = lti.step_siso(c, s.pid, theta_ref - theta)
+    return PIDFFState(x, theta_ref), w_pid + velocity_ff * (theta_ref - s.previous_ref)
+
+
 def electrical_init(c: LTI):
     return lti.zeros_state(c)
+
+
+def electrical_rest(c: LTI, current):
+    """Inverter and armature at rest (motor still) carrying ``current`` [A]; returns ``(state, command u [V])``."""
+    unit = lti.dc_state(c, jnp.stack([jnp.ones_like(current), jnp.zeros_like(current)], axis=-1))
+    u = current / electrical_current(unit)
+    return unit * u[..., None], u
 
 
 def electrical_current(x):

@@ -1,9 +1,8 @@
 """Linear time-invariant blocks in JAX: state-space form, discretisation, stepping.
 
-Every filter and controller of the cascade is a continuous transfer function of the
-parameters, turned into a state-space block (:func:`tf`), discretised once per
-rollout (:func:`c2d`, outside the scan) and stepped inside the scan
-(:func:`output`, :func:`update`).  Matrices carry leading batch dimensions (one block
+Every filter and controller of the cascade is a continuous state-space block of the
+parameters (:func:`ss`, :func:`series`), discretised once per rollout (:func:`c2d`, outside
+the scan) and stepped inside the scan (:func:`output`, :func:`update`).  Matrices carry leading batch dimensions (one block
 per axis, and more under vmap): ``A (..., n, n)``, ``B (..., n, m)``,
 ``C (..., p, n)``, ``D (..., p, m)``.
 
@@ -33,31 +32,39 @@ class LTI:
     D: Any
 
 
-def tf(num, den) -> LTI:
-    """SISO transfer function ``num(s)/den(s)`` in controllable canonical form.
+def _stack2(rows):
+    """A ``(..., r, c)`` matrix from nested lists of arrays of one batch shape."""
+    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
 
-    ``num`` and ``den`` are sequences of coefficient arrays (highest power first, each
-    of the batch shape), ``len(num) <= len(den)`` (proper), ``den[0] != 0``.
+
+def ss(A, B, C, D) -> LTI:
+    """A SISO block from nested lists of per-axis coefficient arrays (``A`` n x n, ``B`` n x 1, ``C`` 1 x n, ``D`` 1 x 1).
+
+    The blocks of the cascade are written in realisations whose states hold physical values
+    that do not depend on the gains (a low-pass state holds the filtered input, an integrator
+    holds its output term), so that a state carried over a change of gains means the same:
+    a drive switches gains without a bump, and a run restarted from another run's state with
+    other gains continues smoothly.
     """
-    n = len(den) - 1
-    if len(num) > n + 1:
-        raise ValueError(f"tf: expected a proper transfer function, got numerator degree {len(num) - 1} "
-                         f"> denominator degree {n}")
-    den = [jnp.asarray(c) for c in den]
-    batch = jnp.broadcast_shapes(*[jnp.shape(c) for c in den], *[jnp.shape(c) for c in num])
-    lead = jnp.broadcast_to(den[0], batch)
-    a = [jnp.broadcast_to(c, batch) / lead for c in den[1:]]
-    b = [jnp.zeros(batch)] * (n + 1 - len(num)) + [jnp.broadcast_to(jnp.asarray(c), batch) / lead for c in num]
-    d = b[0]
-    if n == 0:
-        empty = jnp.zeros(batch + (0, 0))
-        return LTI(empty, jnp.zeros(batch + (0, 1)), jnp.zeros(batch + (1, 0)), d[..., None, None])
-    first_row = jnp.stack([-ai for ai in a], axis=-1)[..., None, :]
-    shift = jnp.broadcast_to(jnp.eye(n - 1, n), batch + (n - 1, n))
-    A = jnp.concatenate([first_row, shift], axis=-2)
-    B = jnp.broadcast_to(jnp.eye(n, 1), batch + (n, 1))
-    C = jnp.stack([b[i + 1] - d * a[i] for i in range(n)], axis=-1)[..., None, :]
-    return LTI(A, B, C, d[..., None, None])
+    batch = jnp.broadcast_shapes(*[jnp.shape(x) for row in (*A, *B, *C, *D) for x in row])
+
+    def mat(rows):
+        return _stack2([[jnp.broadcast_to(jnp.asarray(x, dtype=float), batch) for x in row] for row in rows])
+
+    return LTI(mat(A), mat(B), mat(C), mat(D))
+
+
+def series(*blocks: LTI) -> LTI:
+    """``blocks[-1]( ... blocks[1](blocks[0](u)))``: SISO blocks in series, states concatenated in order."""
+    out = blocks[0]
+    for b in blocks[1:]:
+        n1, n2 = out.A.shape[-1], b.A.shape[-1]
+        batch = out.A.shape[:-2]
+        top = jnp.concatenate([out.A, jnp.zeros(batch + (n1, n2))], axis=-1)
+        bottom = jnp.concatenate([b.B @ out.C, b.A], axis=-1)
+        out = LTI(jnp.concatenate([top, bottom], axis=-2), jnp.concatenate([out.B, b.B @ out.D], axis=-2),
+                  jnp.concatenate([b.D @ out.C, b.C], axis=-1), b.D @ out.D)
+    return out
 
 
 def c2d(sys: LTI, dt: float, method: str) -> LTI:
@@ -90,6 +97,27 @@ def _batched(fn, M):
 def zeros_state(sys: LTI):
     """The zero state of a block, shape ``(..., n)``."""
     return jnp.zeros(sys.A.shape[:-1])
+
+
+def dc_state(sys: LTI, u):
+    """The fixed point ``x = A x + B u`` of a discrete block without an integrator, for a constant input ``u (..., m)``."""
+    n = sys.A.shape[-1]
+    return jnp.linalg.solve(jnp.eye(n) - sys.A, jnp.einsum("...ij,...j->...i", sys.B, u)[..., None])[..., 0]
+
+
+def dc_gain(sys: LTI):
+    """Steady output per unit constant input of a discrete SISO block without an integrator, shape ``(...)``."""
+    one = jnp.ones(sys.A.shape[:-2] + (1,))
+    return output(sys, dc_state(sys, one), one[..., 0])
+
+
+def integrator_state(sys: LTI, y):
+    """A state of a discrete SISO block with an integrator (``A = 1``) that outputs ``y`` with a zero input.
+
+    With a zero input every state is a fixed point; this is the one of least norm.
+    """
+    c = sys.C[..., 0, :]
+    return c * (y / jnp.sum(c * c, axis=-1))[..., None]
 
 
 def output(sys: LTI, x, u):

@@ -18,7 +18,7 @@ import numpy as np
 
 from . import hybrid as hybrid_law
 from .objectives import branch_force
-from .params import LoopRates, ServoParams, validate
+from .params import LoopRates, ServoParams, stack, validate
 from .plant import dynamics, kinematics
 from .plant.axis import screw_ratio
 from .plant.geometry import Geometry
@@ -26,7 +26,7 @@ from .plant.mjx_plant import MJXPlant
 from .plant.model import ModelOptions
 from .sim import rollout
 
-MACHINE_MODES = ("imc", "pid", "hybrid")
+MACHINE_MODES = ("imc", "pid", "pid_ff", "hybrid")
 
 
 def machine_rates(options: ModelOptions = ModelOptions(), rates: LoopRates = LoopRates()) -> LoopRates:
@@ -44,8 +44,12 @@ def machine_plant(options: ModelOptions = ModelOptions()) -> MJXPlant:
 
 
 @functools.lru_cache(maxsize=None)
-def _runner(plant, rates, mode):
-    return jax.jit(functools.partial(rollout, plant_params=None, plant=plant, rates=rates, outer=mode))
+def _batch_runner(plant, rates, mode, start, servo_axis, hybrid_axis):
+    def one(servo, model, reference, hybrid):
+        return rollout(servo, model, reference, plant=plant, rates=rates, outer=mode, start=start,
+                       hybrid=hybrid if mode == "hybrid" else None)
+
+    return jax.jit(jax.vmap(one, in_axes=(servo_axis, 0, 0, hybrid_axis)))
 
 
 def machine_reference(servo: ServoParams, path, mode: str, *, options: ModelOptions = ModelOptions(),
@@ -70,28 +74,85 @@ def machine_reference(servo: ServoParams, path, mode: str, *, options: ModelOpti
                                       jnp.asarray(dynamics.coupling_row(J)))
 
 
-def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: ModelOptions = ModelOptions(),
-                     rates: LoopRates = LoopRates(), hybrid: hybrid_law.HybridGains | None = None
-                     ) -> tuple[dict, dict]:
-    """Run platform poses ``path`` (``(N, 5)``, one per position period) on the default-geometry machine.
+@dataclasses.dataclass(frozen=True, eq=False)
+class Scenario:
+    """One run of the machine: platform poses ``path`` ``(N, 5)`` (one per position period) on the machine
+    built with ``options`` (seeded kinematic errors, payload); ``name`` labels it in reports."""
 
-    ``hybrid``: the gains of eq. 14 for ``mode='hybrid'`` (default :class:`~pusupu_jax.hybrid.HybridGains`).
-    Returns ``(result, trace)``: the metrics (see ``pusupu sim --plant mjx``) and arrays for
-    plots (``t``, ``reference``, ``platform`` positions [m], ``branch_force`` [N]).
+    path: np.ndarray
+    options: ModelOptions = ModelOptions()
+    name: str = ""
+
+
+def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rates: LoopRates = LoopRates(),
+                       hybrid: hybrid_law.HybridGains | None = None, start: str = "rest") -> list[tuple[dict, dict]]:
+    """Run several :class:`Scenario` on the default-geometry machine as one vmapped batch (one compile).
+
+    The scenarios differ in their model's arrays (:meth:`MJXPlant.variant`: seeded errors,
+    payloads) and their paths; shorter paths are padded with their last pose (the machine
+    holding still) to the longest, and every metric is taken over each path's own length.
+    ``servo`` (and, in hybrid mode, ``hybrid``) is shared, or has a leading axis of one
+    parameter set per scenario (a gain sweep).  ``options`` may differ only in
+    ``kin_error_seed`` and ``payload``.  Returns ``[(result, arrays)]`` as :func:`simulate_machine`.
     """
+    if mode not in MACHINE_MODES:
+        raise ValueError(f"mode: expected one of {MACHINE_MODES}, got {mode!r}")
+    scenarios = list(scenarios)
     validate(servo)
+    batched = np.ndim(servo.lambda1) == 2
+    if batched and np.shape(servo.lambda1)[0] != len(scenarios):
+        raise ValueError(f"servo: expected one parameter set or {len(scenarios)} (one per scenario), "
+                         f"got {np.shape(servo.lambda1)[0]}")
     if mode == "hybrid":
         hybrid = hybrid_law.HybridGains() if hybrid is None else hybrid
         hybrid_law.validate_gains(hybrid)
-    rates = machine_rates(options, rates)
-    reference = machine_reference(servo, path, mode, options=options, rates=rates)
-    plant = machine_plant(options)
-    extra = {"hybrid": hybrid} if mode == "hybrid" else {}
+    nominal = dataclasses.replace(scenarios[0].options, kin_error_seed=None, payload=0.0)
+    rates = machine_rates(nominal, rates)
+    plant = machine_plant(nominal)
+    length = max(len(sc.path) for sc in scenarios)
+
+    def pick(tree, k):
+        return jax.tree.map(lambda x: np.asarray(x)[k], tree)
+
+    servos = [pick(servo, k) if batched else servo for k in range(len(scenarios))]
+    hybrid_axis = 0 if mode == "hybrid" and np.ndim(hybrid.m6) == 1 else None
+    hybrids = [pick(hybrid, k) if hybrid_axis == 0 else hybrid for k in range(len(scenarios))]
+    models, references = [], []
+    for sc, sv in zip(scenarios, servos):
+        padded = np.concatenate([sc.path, np.repeat(sc.path[-1:], length - len(sc.path), axis=0)])
+        references.append(machine_reference(sv, padded, mode, options=sc.options, rates=rates))
+        models.append(plant.variant(sc.options))
+    run = _batch_runner(plant, rates, mode, start, 0 if batched else None, hybrid_axis)
     t0 = time.perf_counter()
-    trace = jax.block_until_ready(_runner(plant, rates, mode)(servo, reference=reference, **extra))
+    traces = jax.block_until_ready(run(servo, stack(models), stack(references), hybrid))
     wall = time.perf_counter() - t0
-    result, arrays = machine_metrics(trace, servo, path, reference, mode, rates.dt_position, hybrid)
-    return {"mode": mode, "kin_error_seed": options.kin_error_seed} | result | {"wall_s": wall}, arrays
+    out = []
+    for k, sc in enumerate(scenarios):
+        n = len(sc.path)
+        trace = jax.tree.map(lambda x: np.asarray(x)[k, :n], traces)
+        reference = jax.tree.map(lambda x: np.asarray(x)[:n], references[k])
+        result, arrays = machine_metrics(trace, servos[k], sc.path, reference, mode, rates.dt_position, hybrids[k])
+        out.append(({"name": sc.name, "mode": mode, "imc_form": servo.imc_form, "start": start,
+                     "kin_error_seed": sc.options.kin_error_seed, "payload_kg": sc.options.payload}
+                    | result | {"wall_s": wall}, arrays))
+    return out
+
+
+def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: ModelOptions = ModelOptions(),
+                     rates: LoopRates = LoopRates(), hybrid: hybrid_law.HybridGains | None = None,
+                     start: str = "rest") -> tuple[dict, dict]:
+    """Run platform poses ``path`` (``(N, 5)``, one per position period) on the default-geometry machine.
+
+    ``hybrid``: the gains of eq. 14 for ``mode='hybrid'`` (default :class:`~pusupu_jax.hybrid.HybridGains`).
+    ``start``: 'rest' (the machine held still by its drives at t = 0) or 'zero' (every controller state zero).
+    Returns ``(result, trace)``: the metrics (see ``pusupu sim --plant mjx``) and arrays for
+    plots (``t``, ``reference``, ``platform`` positions [m], ``branch_force`` [N]).  A batch of one
+    :func:`simulate_scenarios`: seeded errors and payloads share the nominal machine's compile.
+    """
+    result, arrays = simulate_scenarios(servo, [Scenario(np.asarray(path), options)], mode=mode, rates=rates,
+                                        hybrid=hybrid, start=start)[0]
+    result.pop("name")
+    return result, arrays
 
 
 def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: float,

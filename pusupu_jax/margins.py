@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from .params import arrays
 from .plant.axis import screw_ratio
 
 W_GRID = jnp.logspace(-2, 6, 4001)  # rad/s
@@ -33,8 +34,8 @@ def _tf(num, den, s):
 
 def loop_gains(servo, load, w, mode: str = "imc") -> dict:
     """``L(jw)`` of the current, velocity and position loops; parameters ``(..., 6)``, result ``(..., 6, len(w))``."""
-    p = {k: jnp.asarray(v)[..., None] for k, v in vars(servo).items()}
-    q = {k: jnp.asarray(v)[..., None] for k, v in vars(load).items()}
+    p = {k: jnp.asarray(v)[..., None] for k, v in arrays(servo).items()}
+    q = {k: jnp.asarray(v)[..., None] for k, v in arrays(load).items()}
     s = 1j * jnp.asarray(w)
     one = jnp.ones_like(p["Ki"])
     zero = jnp.zeros_like(one)
@@ -54,10 +55,10 @@ def loop_gains(servo, load, w, mode: str = "imc") -> dict:
     if mode == "imc":
         l2, T0 = p["lambda2"], p["T0"]
         c = (3 * l2 * s + 1) * (T0 * s + 1) / (3 * l2**2 * s * (l2 / 3 * s + 1))
-    elif mode == "pid":
+    elif mode in ("pid", "pid_ff"):  # the velocity feedforward acts outside the loop
         c = p["Kp_pid"] + p["Ki_pid"] / s + p["Kd_pid"] * s / (p["Tf_pid"] * s + 1)
     else:
-        raise ValueError(f"loop_gains: expected mode 'imc' or 'pid', got {mode!r}")
+        raise ValueError(f"loop_gains: expected mode 'imc', 'pid' or 'pid_ff', got {mode!r}")
     return {"current": l_i, "velocity": l_v, "position": c * t_v / s}
 
 

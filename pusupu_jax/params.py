@@ -26,6 +26,7 @@ import jax
 import numpy as np
 
 N_AXES = 6
+IMC_FORMS = ("full", "printed")
 
 
 class ParameterError(ValueError):
@@ -37,9 +38,30 @@ def _f(default: float, unit: str, doc: str, kind: str = "positive"):
     return field(default=default, metadata={"unit": unit, "doc": doc, "kind": kind})
 
 
+def _choice(default: str, choices: tuple, doc: str):
+    """A static, machine-wide field: one of ``choices`` (a jit-static pytree field: changing it recompiles)."""
+    return field(default=default, metadata={"unit": "", "doc": doc, "kind": "choice", "choices": choices,
+                                            "static": True})
+
+
+def array_fields(cls) -> list:
+    """The per-axis (traced) fields of a parameter class."""
+    return [f for f in fields(cls) if not f.metadata.get("static")]
+
+
+def static_fields(cls) -> list:
+    """The static (choice) fields of a parameter class."""
+    return [f for f in fields(cls) if f.metadata.get("static")]
+
+
+def arrays(p) -> dict:
+    """``{name: value}`` of the per-axis fields of a parameter set (its static choices left out)."""
+    return {f.name: getattr(p, f.name) for f in array_fields(type(p))}
+
+
 def _pytree(cls):
-    names = [f.name for f in fields(cls)]
-    return jax.tree_util.register_dataclass(cls, data_fields=names, meta_fields=[])
+    return jax.tree_util.register_dataclass(cls, data_fields=[f.name for f in array_fields(cls)],
+                                            meta_fields=[f.name for f in static_fields(cls)])
 
 
 class _PerAxis:
@@ -47,8 +69,8 @@ class _PerAxis:
 
     @classmethod
     def default(cls):
-        """Every field at its default, as float arrays of shape (6,)."""
-        return cls(**{f.name: np.full((N_AXES,), float(f.default)) for f in fields(cls)})
+        """Every per-axis field at its default, as float arrays of shape (6,); the static choices at theirs."""
+        return cls(**{f.name: np.full((N_AXES,), float(f.default)) for f in array_fields(cls)})
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any], base=None):
@@ -104,6 +126,12 @@ class ServoParams(_PerAxis):
     Ki_pid: Any = _f(8.0, "1/s^2", "PID integral gain")
     Kd_pid: Any = _f(0.02, "1", "PID derivative gain")
     Tf_pid: Any = _f(0.005, "s", "PID derivative filter time constant, Kd s/(Tf s + 1)")
+    Kff_pid: Any = _f(1.0, "1", "velocity feedforward gain of mode pid_ff: the reference's backward difference "
+                      "[rad/s] times Kff is added to the PID output", kind="nonnegative")
+    # --- static structure (machine-wide; changing it recompiles) ---
+    imc_form: str = _choice("full", IMC_FORMS, "form of the 2-DOF IMC prefilter C1: 'full' (reference response "
+                            "(3 l1 s+1)/(l1 s+1)^3, as section 2.2 describes; docs/imc.md) or 'printed' (eq. 9 "
+                            "as printed, (3 l1 s+1)/(3 l2 s+1))")
 
     @classmethod
     def table1(cls) -> "ServoParams":
@@ -198,8 +226,12 @@ def _from_mapping(cls, values, base):
     if unknown:
         raise ParameterError(f"{cls.__name__}: unknown key {unknown[0]!r}; expected one of {sorted(known)}")
     base = base if base is not None else cls.default()
+    static = {f.name for f in static_fields(cls)}
     changes = {}
     for name, v in values.items():
+        if name in static:
+            changes[name] = v
+            continue
         try:
             arr = np.asarray(v, dtype=float)
         except (TypeError, ValueError):
@@ -224,8 +256,12 @@ def validate(p) -> None:
     found.  Tracers (inside jit/vmap/grad) are skipped: validate before tracing.
     """
     cls = type(p)
+    for f in static_fields(cls):
+        v = getattr(p, f.name)
+        if v not in f.metadata["choices"]:
+            raise ParameterError(f"{cls.__name__}.{f.name}: expected one of {f.metadata['choices']}, got {v!r}")
     shape = None
-    for f in fields(cls):
+    for f in array_fields(cls):
         v = getattr(p, f.name)
         if not _is_concrete(v):
             return

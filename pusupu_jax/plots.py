@@ -107,3 +107,21 @@ def plot_platform_path(trace: dict, path, title: str = "") -> Path:
     fig.suptitle(title)
     fig.tight_layout()
     return save_atomic(fig, path)
+
+
+def plot_identification(result: dict, path, title: str = "") -> Path:
+    """The machine's velocity-step responses (:func:`pusupu_jax.identify.identify_T0_machine`) and their first-order fits."""
+    t = np.asarray(result["t"])
+    fig, axes = plt.subplots(len(result["directions"]), 1, figsize=(8, 3.2 * len(result["directions"])),
+                             sharex=True, squeeze=False)
+    for ax, d, omega, ref in zip(axes[:, 0], result["directions"], result["omega"], result["omega_ref"]):
+        for b in range(6):
+            line, = ax.plot(t, omega[:, b], lw=1.2, label=f"branch {b + 1}: T0 {result['T0'][b] * 1e3:.1f} ms")
+            ax.plot(t, ref[b] * (1 - np.exp(-t / result["T0"][b])), "--", lw=0.8, color=line.get_color())
+        ax.set_ylabel(f"motor speed [rad/s]\n({d} step)")
+        ax.grid(True, alpha=0.3)
+    axes[0, 0].legend(fontsize=7, ncol=2)
+    axes[-1, 0].set_xlabel("time [s] (dashed: first-order fits)")
+    fig.suptitle(title or "velocity steps of the machine")
+    fig.tight_layout()
+    return save_atomic(fig, path)

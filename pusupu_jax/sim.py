@@ -19,20 +19,21 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from . import hybrid as hybrid_law
-from . import loops
+from . import loops, lti
 from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate
 from .plant import AxisPlant
 from .plant.axis import screw_ratio
 
-OUTER_LOOPS = ("current", "velocity", "imc", "pid", "hybrid")
-MODES = ("imc", "pid")
+OUTER_LOOPS = ("current", "velocity", "imc", "pid", "pid_ff", "hybrid")
+MODES = ("imc", "pid", "pid_ff")
+STARTS = ("rest", "zero")
 
 
 @jax.tree_util.register_dataclass
@@ -58,46 +59,62 @@ class Trace:
     observation: Any  # what the plant's observe() keeps (pytree)
 
 
-def initial_state(drive: loops.Drive, plant, aux, outer: str) -> dict:
-    """The scan carry: named states of the plant, the electrical model and every closed loop."""
-    c = dict(plant=plant.init(aux), electrical=loops.electrical_init(drive.electrical),
+def initial_state(drive: loops.Drive, plant, aux, outer: str, start: str = "rest", force_ff0=None) -> dict:
+    """The scan carry: named states of the plant, the electrical model and every closed loop.
+
+    ``start='rest'``: the plant at rest in its initial state and the cascade holding it there,
+    as on a machine that has been standing under control: the motor currents that hold it
+    (``plant.holding_torque``; in hybrid mode branch 6 pushes ``force_ff0``, its ``F_q`` at
+    t = 0 [N]), the electrical model carrying them, every filter at its steady value, each PI
+    integrator preloaded with the output it holds, the position loops at zero error.
+    ``start='zero'``: every controller and electrical state zero, so that the plant sags
+    under gravity until the integrators catch up (how runs started before; kept to
+    reproduce old figures).
+    """
+    if start not in STARTS:
+        raise ValueError(f"rollout: expected start in {STARTS}, got {start!r}")
+    plant_state = plant.init(aux)
+    theta0, _ = plant.measure(aux, plant_state)
+    c = dict(plant=plant_state, electrical=loops.electrical_init(drive.electrical),
              current=loops.pi_loop_init(drive.current))
     if outer != "current":
         c["velocity"] = loops.pi_loop_init(drive.velocity)
+    if start == "rest":
+        force = (None, None) if outer != "hybrid" else (hybrid_law.FORCE_AXIS, force_ff0)
+        i = plant.holding_torque(aux, plant_state, *force) / drive.Kt
+        c["electrical"], u = loops.electrical_rest(drive.electrical, i)
+        i_ref = i * lti.dc_gain(drive.current.fb_filter) / lti.dc_gain(drive.current.ref_filter)
+        c["current"] = loops.pi_loop_rest(drive.current, i_ref, i, u)
+        if outer != "current":
+            c["velocity"] = loops.pi_loop_rest(drive.velocity, jnp.zeros_like(i), jnp.zeros_like(i), i_ref)
     if outer in ("imc", "hybrid"):
         c["position"] = loops.imc_init(drive.imc)
     elif outer == "pid":
         c["position"] = loops.pid_init(drive.pid)
+    elif outer == "pid_ff":
+        c["position"] = loops.pid_ff_init(drive.pid, theta0)
     if outer == "hybrid":
-        c["force"] = hybrid_law.init()
+        c["force"] = hybrid_law.init(force_ff0 if start == "rest" else 0.0)
     return c
 
 
-def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), rates: LoopRates = LoopRates(),
-            outer: str = "imc", remat: bool = False, hybrid: hybrid_law.HybridGains | None = None) -> Trace:
-    """Run the cascade closed up to ``outer`` against ``plant`` (pure; jit with plant, rates, outer, remat static).
+class _Cascade(NamedTuple):
+    """The pieces of a rollout: one outer period, the trace record of it, the period [s] and the initial carry."""
 
-    ``reference`` has shape ``(N, n_axes)`` in the outer loop's units, one sample per
-    outer period: motor angle [rad] for 'imc' and 'pid', motor speed [rad/s] for
-    'velocity', current [A] for 'current' (one per mechanical step).
+    period: Any  # (carry, reference sample) -> (carry, command)
+    record: Any  # (carry at the period's start, reference sample, command) -> trace entries
+    dt: float
+    init: Any  # (start, force_ff0) -> carry
 
-    ``outer='hybrid'`` is the force/position hybrid control of :mod:`pusupu_jax.hybrid`:
-    ``reference`` is a :class:`~pusupu_jax.hybrid.HybridReference` and ``hybrid`` its
-    :class:`~pusupu_jax.hybrid.HybridGains`.  Every axis runs the IMC cascade, but the
-    current reference of axis ``FORCE_AXIS`` is replaced by ``F_6 r / (eta Kt)`` (clamped
-    to its ``I_max``), so that axis's position and velocity controllers run without
-    effect; ``state['force']`` records ``rho``, ``rho'`` and ``F_6`` [N].  ``remat=True``
-    recomputes each outer period in the backward pass instead of storing its inner steps
-    (``jax.checkpoint``): reverse-mode memory then grows with the number of outer periods
-    only, for about one extra forward pass.
-    """
+
+def _cascade(params, plant_params, *, plant, rates: LoopRates, outer: str, hybrid) -> _Cascade:
     if outer not in OUTER_LOOPS:
         raise ValueError(f"rollout: expected outer in {OUTER_LOOPS}, got {outer!r}")
+    if (outer == "hybrid") != (hybrid is not None):
+        raise ValueError("rollout: hybrid gains are needed exactly when outer='hybrid'")
     drive = loops.discretize(params, rates)
     aux = plant.prepare(params, plant_params, rates.dt_mech)
     n_mech_steps = rates.n_velocity // rates.n_mech
-    if (outer == "hybrid") != (hybrid is not None):
-        raise ValueError("rollout: hybrid gains are needed exactly when outer='hybrid'")
     r = screw_ratio(params)
 
     def record(c, ref, command):
@@ -132,11 +149,17 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
         c, _ = jax.lax.scan(lambda cc, _: mech_step(cc, i_ref), c, None, length=n_mech_steps)
         return c, i_ref
 
+    def position_controller(state, theta_ref, theta):
+        if outer == "pid":
+            return loops.pid_step(drive.pid, state, theta_ref, theta)
+        if outer == "pid_ff":
+            return loops.pid_ff_step(drive.pid, drive.velocity_ff, state, theta_ref, theta)
+        return loops.imc_step(drive.imc, state, theta_ref, theta)
+
     def position_period(c, ref):
         theta_ref = ref.theta if outer == "hybrid" else ref
         theta, _ = plant.measure(aux, c["plant"])
-        step, coefficients = (loops.pid_step, drive.pid) if outer == "pid" else (loops.imc_step, drive.imc)
-        sp, w_ref = step(coefficients, c["position"], theta_ref, theta)
+        sp, w_ref = position_controller(c["position"], theta_ref, theta)
         c = dict(c, position=sp)
         i_force = None
         if outer == "hybrid":
@@ -150,36 +173,96 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
 
     period, dt = {"current": (mech_step, rates.dt_mech), "velocity": (velocity_period, rates.dt_velocity)}.get(
         outer, (position_period, rates.dt_position))
+    return _Cascade(period, record, dt, lambda start, force_ff0: initial_state(drive, plant, aux, outer, start,
+                                                                               force_ff0))
 
+
+def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), rates: LoopRates = LoopRates(),
+            outer: str = "imc", remat: bool = False, hybrid: hybrid_law.HybridGains | None = None,
+            start: str = "rest", init=None) -> Trace:
+    """Run the cascade closed up to ``outer`` against ``plant`` (pure; jit with plant, rates, outer, remat, start static).
+
+    ``outer``: 'current', 'velocity', 'imc' (2-DOF IMC, ``params.imc_form``), 'pid', 'pid_ff'
+    (PID with velocity feedforward) or 'hybrid'.  ``start``: 'rest' (the static equilibrium,
+    :func:`initial_state`) or 'zero'.  ``init``: a carry to start from instead (one of
+    :func:`rollout_segments`'s, for a window of a longer run); its trace's ``t`` starts at 0.
+
+    ``reference`` has shape ``(N, n_axes)`` in the outer loop's units, one sample per
+    outer period: motor angle [rad] for 'imc' and 'pid', motor speed [rad/s] for
+    'velocity', current [A] for 'current' (one per mechanical step).
+
+    ``outer='hybrid'`` is the force/position hybrid control of :mod:`pusupu_jax.hybrid`:
+    ``reference`` is a :class:`~pusupu_jax.hybrid.HybridReference` and ``hybrid`` its
+    :class:`~pusupu_jax.hybrid.HybridGains`.  Every axis runs the IMC cascade, but the
+    current reference of axis ``FORCE_AXIS`` is replaced by ``F_6 r / (eta Kt)`` (clamped
+    to its ``I_max``), so that axis's position and velocity controllers run without
+    effect; ``state['force']`` records ``rho``, ``rho'`` and ``F_6`` [N].  ``remat=True``
+    recomputes each outer period in the backward pass instead of storing its inner steps
+    (``jax.checkpoint``): reverse-mode memory then grows with the number of outer periods
+    only, for about one extra forward pass.
+    """
+    cascade = _cascade(params, plant_params, plant=plant, rates=rates, outer=outer, hybrid=hybrid)
+    if init is None:
+        init = cascade.init(start, reference.force_ff[0] if outer == "hybrid" else None)
+    _, rec = jax.lax.scan(_body(cascade, remat), init, reference)
+    return _trace(rec, cascade.dt)
+
+
+def _body(cascade: _Cascade, remat: bool):
     def body(c, ref):
-        start = c
-        c, command = period(c, ref)
-        return c, record(start, ref, command)
+        c_next, command = cascade.period(c, ref)
+        return c_next, cascade.record(c, ref, command)
 
-    if remat:
-        body = jax.checkpoint(body)
-
-    _, rec = jax.lax.scan(body, initial_state(drive, plant, aux, outer), reference)
-    t = jnp.arange(rec["reference"].shape[0]) * dt
-    return Trace(t=t, **rec)
+    return jax.checkpoint(body) if remat else body
 
 
-_rollout_jit = jax.jit(rollout, static_argnames=("plant", "rates", "outer", "remat"))
+def _trace(rec: dict, dt: float) -> Trace:
+    return Trace(t=jnp.arange(rec["reference"].shape[0]) * dt, **rec)
+
+
+def rollout_segments(params: ServoParams, plant_params, reference, *, segments: int, plant=AxisPlant(),
+                     rates: LoopRates = LoopRates(), outer: str = "imc", hybrid: hybrid_law.HybridGains | None = None,
+                     start: str = "rest"):
+    """:func:`rollout` over ``reference`` cut into ``segments`` equal parts; returns ``(trace, carries)``.
+
+    ``reference`` has ``segments * every`` samples; ``carries`` ``(segments, ...)`` holds the
+    carry at the start of each part (periods ``0, every, 2 every, ...``): the start states of
+    windows spread over a long run, for :func:`rollout`'s ``init``.  The trace is the whole run's.
+    """
+    cascade = _cascade(params, plant_params, plant=plant, rates=rates, outer=outer, hybrid=hybrid)
+    n = jax.tree.leaves(reference)[0].shape[0]
+    if n % segments:
+        raise ValueError(f"rollout_segments: expected a reference of a multiple of {segments} samples, got {n}")
+    parts = jax.tree.map(lambda x: x.reshape((segments, n // segments) + x.shape[1:]), reference)
+    body = _body(cascade, False)
+
+    def part(c, refs):
+        end, rec = jax.lax.scan(body, c, refs)
+        return end, (c, rec)
+
+    init = cascade.init(start, reference.force_ff[0] if outer == "hybrid" else None)
+    _, (carries, rec) = jax.lax.scan(part, init, parts)
+    return _trace(jax.tree.map(lambda x: x.reshape((n,) + x.shape[2:]), rec), cascade.dt), carries
+
+
+_rollout_jit = jax.jit(rollout, static_argnames=("plant", "rates", "outer", "remat", "start"))
 
 
 @functools.lru_cache(maxsize=None)
-def _batched_rollout(plant, rates, outer, load_axis):
-    return jax.jit(jax.vmap(functools.partial(rollout, plant=plant, rates=rates, outer=outer),
+def _batched_rollout(plant, rates, outer, load_axis, start):
+    return jax.jit(jax.vmap(functools.partial(rollout, plant=plant, rates=rates, outer=outer, start=start),
                             in_axes=(0, load_axis, 0)))
 
 
 def simulate(params: ServoParams | None = None, reference=None, *, load=None, plant=AxisPlant(),
-             rates: LoopRates = LoopRates(), mode: str = "imc") -> Trace:
+             rates: LoopRates = LoopRates(), mode: str = "imc", start: str = "rest") -> Trace:
     """Simulate the position-controlled machine (host-side entry point).
 
     ``reference``: slider positions [m], shape ``(N,)`` (same for every axis) or
     ``(N, n_axes)``, one sample per position-loop period ``rates.dt_position``; the
-    machine starts at rest at zero.  ``mode``: 'imc' (2-DOF IMC) or 'pid' (baseline).
+    machine starts at rest at zero, held there by its drives (``start='rest'``) or with every
+    controller state zero (``'zero'``).  ``mode``: 'imc' (2-DOF IMC, ``params.imc_form``),
+    'pid' (baseline) or 'pid_ff' (PID with velocity feedforward).
     ``params`` with a leading batch dimension ``(B, n_axes)`` runs a vmapped batch
     (``load`` batched alike or shared).  Returns a :class:`Trace`.
     """
@@ -187,6 +270,8 @@ def simulate(params: ServoParams | None = None, reference=None, *, load=None, pl
     load = AxisLoad.default() if load is None else load
     if mode not in MODES:
         raise ParameterError(f"mode: expected one of {MODES}, got {mode!r}")
+    if start not in STARTS:
+        raise ParameterError(f"start: expected one of {STARTS}, got {start!r}")
     validate(params)
     validate(load)
     ref = np.asarray(reference, dtype=float) if reference is not None else None
@@ -199,6 +284,6 @@ def simulate(params: ServoParams | None = None, reference=None, *, load=None, pl
         ref = np.repeat(ref[:, None], plant.n_axes, axis=1)
     theta_ref = jnp.asarray(ref) / screw_ratio(params)[..., None, :]
     if np.ndim(params.lambda1) == 1:
-        return _rollout_jit(params, load, theta_ref, plant=plant, rates=rates, outer=mode)
+        return _rollout_jit(params, load, theta_ref, plant=plant, rates=rates, outer=mode, start=start)
     load_axis = 0 if np.ndim(load.mass) == 2 else None
-    return _batched_rollout(plant, rates, mode, load_axis)(params, load, theta_ref)
+    return _batched_rollout(plant, rates, mode, load_axis, start)(params, load, theta_ref)

@@ -106,16 +106,20 @@ def test_a_bad_hybrid_section_exits_2_naming_the_gain(tmp_path):
 
 TINY_TUNE = """\
 trajectories: [p2p]
-horizon_s: 0.05
+path_s: 0.3
+windows: 2
+window_s: 0.05
+refresh_every: 2
 iterations: 6
 checkpoint_every: 2
-eval_duration_s: 0.3
+baselines: [pid]
 """
 
 
 @pytest.fixture(scope="module")
 def tuned(tmp_path_factory):
-    """One uninterrupted tiny tuning run (hybrid mode on 50 ms of the p2p path): its folder and report."""
+    """One uninterrupted tiny tuning run (hybrid mode, two 50 ms windows of the p2p path's first 0.3 s): its folder
+    and report."""
     folder = tmp_path_factory.mktemp("tune")
     (folder / "tiny.yaml").write_text(TINY_TUNE)
     r = pusupu("tune", "--config", str(folder / "tiny.yaml"), "--out", str(folder / "out"), "--json")

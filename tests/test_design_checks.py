@@ -30,20 +30,55 @@ def test_c2_is_the_imc_controller_of_the_nominal_position_plant(table1):
     imc = Q(1j * W) / (1 - P(1j * W) * Q(1j * W))  # pointwise: no numerical pole-zero cancellation
     jax_c2 = _freq(loops.imc_c2(table1.lambda2, table1.T0), W)
     np.testing.assert_allclose(jax_c2, imc, rtol=1e-8)
-    # and the reference response of the 2-DOF loop with a perfect model is C1 f = (3 l1 s+1)/(l2 s+1)^3
-    l1 = float(table1.lambda1[0])
-    c1f = _freq(loops.imc_c1(table1.lambda1, table1.lambda2), W) * f(1j * W)
-    np.testing.assert_allclose(c1f, ((3 * l1 * s + 1) / (l2 * s + 1) ** 3)(1j * W), rtol=1e-8)
 
 
-@pytest.mark.parametrize("name", ["Gxi", "Gcf", "Gi", "Gxv", "Gw", "Gv", "C1", "C2", "PID"])
+@pytest.mark.parametrize("lambda1,lambda2", [(0.018, 0.15), (0.05, 0.03), (0.1, 0.1)])
+@pytest.mark.parametrize("source", ["jax", "analysis"])
+def test_2dof_imc_responses_with_a_perfect_model(table1, lambda1, lambda2, source):
+    """With the plant C2 was designed on, P = 1/(s (T0 s+1)), interconnected in python-control (float64):
+
+    * the loop's own (disturbance) response is f_d = (3 l2 s+1)/(l2 s+1)^3: the complementary
+      sensitivity C2 P/(1 + C2 P) = f_d, so an output disturbance reaches theta as 1 - f_d;
+    * the full form's reference response C1 C2 P/(1 + C2 P) is f_r = (3 l1 s+1)/(l1 s+1)^3
+      (lambda1 alone sets tracking);
+    * the printed form's is (3 l1 s+1)/(l2 s+1)^3 (lambda2 sets tracking too; a ramp lags 3 (l2 - l1)).
+
+    Tolerance 1e-9 relative over 1e-2..1e5 rad/s: only rounding separates the two sides.
+    """
+    T0 = float(table1.T0[0])
+    s = ct.tf("s")
+    f_r = (3 * lambda1 * s + 1) / (lambda1 * s + 1) ** 3
+    f_d = (3 * lambda2 * s + 1) / (lambda2 * s + 1) ** 3
+    P = ct.ss(1 / (s * (T0 * s + 1)))
+    if source == "jax":  # the discretiser's continuous blocks, brought into python-control
+        def c1(form):
+            blk = loops.imc_c1(jnp.full(6, lambda1), jnp.full(6, lambda2), form)
+            return ct.ss(*(np.asarray(m)[0] for m in (blk.A, blk.B, blk.C, blk.D)))
+        blk = loops.imc_c2(jnp.full(6, lambda2), jnp.full(6, T0))
+        c2 = ct.ss(*(np.asarray(m)[0] for m in (blk.A, blk.B, blk.C, blk.D)))
+    else:
+        def c1(form):
+            return an.imc_c1(lambda1, lambda2, form)
+        c2 = an.blocks(table1.replace(lambda2=np.full(6, lambda2)), AxisLoad.default())["C2"]
+        c2 = ct.ss(*ct.ssdata(c2))
+    loop = ct.feedback(c2 * P, 1)  # theta / r1: the loop's complementary sensitivity
+    jw = 1j * W
+    np.testing.assert_allclose(loop(jw), f_d(jw), rtol=1e-9)
+    np.testing.assert_allclose(ct.feedback(1, c2 * P)(jw), 1 - f_d(jw), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose((c1("full") * loop)(jw), f_r(jw), rtol=1e-9)
+    printed = (3 * lambda1 * s + 1) / (lambda2 * s + 1) ** 3
+    np.testing.assert_allclose((c1("printed") * loop)(jw), printed(jw), rtol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["Gxi", "Gcf", "Gi", "Gxv", "Gw", "Gv", "C1", "C1 printed", "C2", "PID"])
 def test_jax_blocks_match_the_analysis_blocks(table1, name):
-    p = table1
+    p = table1.replace(imc_form="printed") if name == "C1 printed" else table1
+    name = name.split()[0]
     jax_block = {
         "Gxi": loops.first_order(jnp.ones(6), p.Tcf), "Gcf": loops.first_order(p.Kcf, p.Tcf),
         "Gi": loops.pi_controller(p.Ki, p.Ti), "Gxv": loops.first_order(jnp.ones(6), p.Tw),
         "Gw": loops.first_order(p.Kw, p.Tw), "Gv": loops.pi_controller(p.Kv, p.Tv),
-        "C1": loops.imc_c1(p.lambda1, p.lambda2), "C2": loops.imc_c2(p.lambda2, p.T0),
+        "C1": loops.imc_c1(p.lambda1, p.lambda2, p.imc_form), "C2": loops.imc_c2(p.lambda2, p.T0),
         "PID": loops.pid_controller(p.Kp_pid, p.Ki_pid, p.Kd_pid, p.Tf_pid)}[name]
     ref = an.blocks(p, AxisLoad.default())[name]
     np.testing.assert_allclose(_freq(jax_block, W), ref(1j * W), rtol=1e-8)

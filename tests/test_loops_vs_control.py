@@ -20,15 +20,19 @@ LOOPS = [("current", "current", 0, 1.0), ("velocity", "omega", 1, 10.0), ("imc",
 
 
 def _control_loop(table1, load, outer, rates):
-    cl = an.closed_loops(table1, load, 0, rates=rates, mode="pid" if outer == "pid" else "imc")
+    mode = outer if outer in ("pid", "pid_ff") else "imc"
+    cl = an.closed_loops(table1, load, 0, rates=rates, mode=mode)
     return cl[{"current": "current", "velocity": "velocity"}.get(outer, "position")]
 
 
 @pytest.mark.parametrize("method", ["tustin", "zoh"])
-@pytest.mark.parametrize("outer,signal,out,amp", LOOPS)
-def test_discrete_loop_equals_python_control(table1, linear_load, method, outer, signal, out, amp):
+@pytest.mark.parametrize("outer,signal,out,amp,form", [loop + ("full",) for loop in LOOPS]
+                         + [("imc", "theta", 2, 3.0, "printed"), ("pid_ff", "theta", 2, 3.0, "full")])
+def test_discrete_loop_equals_python_control(table1, linear_load, method, outer, signal, out, amp, form):
+    """Every loop, both forms of the IMC prefilter and the PID with velocity feedforward (exact at the samples)."""
     import control as ct
 
+    table1 = table1.replace(imc_form=form)
     rates = LoopRates(method=method)
     rng = np.random.default_rng(1)
     n = 300
@@ -49,8 +53,11 @@ DURATION = {"current": 0.01, "velocity": 0.2, "imc": 3.0, "pid": 3.0}
 # Max |discrete - continuous| step-response error at 10x the default rates, as a fraction of
 # the step.  The error comes from sampling and holding (about half a sample of delay at each
 # loop), so it is first order in the step: at 10x we measured 0.23 % (current), 0.05 %
-# (velocity), 0.010 % (imc), 0.017 % (pid).  Bounds are twice those.
-TOL_10X = {"current": 5e-3, "velocity": 1e-3, "imc": 2e-4, "pid": 4e-4}
+# (velocity), 0.076 % (imc, full form: its prefilter answers a step 69x harder at first, gain
+# (l2/l1)^2), 0.010 % (imc, printed form), 0.017 % (pid).  Bounds are twice those.  pid_ff is
+# left out: its continuous model stands in for the backward difference with a fixed lag
+# (analysis.FF_LAG_S), which the discretisation does not converge to.
+TOL_10X = {"current": 5e-3, "velocity": 1e-3, "imc": 1.5e-3, "imc printed": 2e-4, "pid": 4e-4}
 
 
 def _step_error(table1, load, outer, signal, out, amp, rates):
@@ -65,12 +72,15 @@ def _step_error(table1, load, outer, signal, out, amp, rates):
     return np.max(np.abs(np.asarray(getattr(trace, signal))[:, 0] - expected)) / amp
 
 
-@pytest.mark.parametrize("outer,signal,out,amp", LOOPS)
+@pytest.mark.parametrize("outer,signal,out,amp", LOOPS + [("imc printed", "theta", 2, 3.0)])
 def test_discretisation_converges_to_continuous(table1, linear_load, outer, signal, out, amp):
     """At 10x the rates the response is within TOL_10X of the continuous loop, and the error shrank >= 8x."""
+    name = outer
+    if outer == "imc printed":
+        outer, table1 = "imc", table1.replace(imc_form="printed")
     coarse = _step_error(table1, linear_load, outer, signal, out, amp, LoopRates())
     fine = _step_error(table1, linear_load, outer, signal, out, amp, LoopRates().finer(10))
-    assert fine <= TOL_10X[outer], f"{outer}: {fine:.2e} of the step at 10x"
+    assert fine <= TOL_10X[name], f"{name}: {fine:.2e} of the step at 10x"
     assert coarse / fine >= 8.0, f"{outer}: error only shrank {coarse / fine:.1f}x for 10x finer steps"
 
 

@@ -94,7 +94,7 @@ def test_gain_file_round_trip_is_exact(tmp_path):
     path = tmp_path / "gains.yaml"
     _write(path)
     servo, hybrid, rates, doc = export.load_gains(path)
-    for name, value in vars(GOOD).items():
+    for name, value in vars(GOOD).items():  # the static imc_form included
         assert np.array_equal(np.asarray(getattr(servo, name)), np.asarray(value)), name
     assert hybrid == HYBRID and rates == RATES
     assert doc["units"]["lambda1"] == "s" and doc["units"]["c6"] == "N/m"
@@ -119,7 +119,9 @@ BAD = {
     "NaN": (lambda d: d["servo"]["Ti"].__setitem__(2, float("nan")), "ServoParams.Ti: expected finite"),
     "negative time constant": (lambda d: d["servo"]["Tv"].__setitem__(0, -5.0), "ServoParams.Tv: expected a positive"),
     "unstable gains": (lambda d: d["servo"].update(Kv=[0.015] * 5 + [2.0]), "velocity loop of axis 6 has"),
-    "schema version": (lambda d: d.update(version=2), "version: expected 1"),
+    "schema version": (lambda d: d.update(version=3), "version: expected 2"),
+    "version 1 (printed-form era)": (lambda d: d.update(version=1), "version 1 files predate the choice of IMC"),
+    "unknown IMC form": (lambda d: d["servo"].update(imc_form="exact"), "ServoParams.imc_form: expected one of"),
     "stale discrete": (lambda d: d["discrete"]["pid"][0]["D"][0].__setitem__(0, 1.0), r"discrete.pid\[0\]"),
 }
 

@@ -2,11 +2,17 @@
 
 Every key of :class:`TuneConfig` may appear in the file (unknown keys are errors)::
 
-    mode: hybrid               # hybrid | imc | pid: the machine's control mode
-    groups: [imc, hybrid]      # what to tune: imc, velocity, current, pid, hybrid
+    mode: hybrid               # hybrid | imc | pid | pid_ff: the machine's control mode
+    imc_form: full             # full | printed: the IMC prefilter C1 (docs/imc.md)
+    groups: [imc, velocity, hybrid]   # what to tune: imc (lambda1, lambda2, T0), velocity (Kv, Tv),
+                               # current (Ki, Ti), pid (Kp, Ki, Kd, Tf of the PID), feedforward (Kff_pid), hybrid
     shared: true               # one value for all six axes (false: one per axis)
-    trajectories: [arc, p2p]   # the paper's paths; training uses the first horizon_s of each
-    horizon_s: 2.0             # s, training window (the report evaluates the whole paths)
+    trajectories: [arc, p2p]   # the paper's paths
+    path_s: null               # s: use the first path_s seconds of each path (null: the whole paths)
+    windows: 6                 # training windows per path, spread over it: window k starts at k/windows of it
+    window_s: 0.5              # s, the length of each training window
+    refresh_every: 5           # iterations between forward passes over the whole paths that renew the windows'
+                               # start states
     kin_error_seeds: [null]    # robust tuning: scenarios with seeded kinematic errors
     payloads: [0.0]            # kg, scenarios with a payload on the platform
     aggregate: mean            # mean | max over scenarios
@@ -17,7 +23,7 @@ Every key of :class:`TuneConfig` may appear in the file (unknown keys are errors
     starts: 1                  # multi-start: extra starts are random log-perturbations (std start_spread)
     start_spread: 0.3
     seed: 0
-    checkpoint_every: 5        # iterations
+    checkpoint_every: 5        # iterations; a multiple of refresh_every (a resumed run renews where it stopped)
     weights: {track_rms: 1.0, balance: 0.1}   # objective terms (pusupu_jax.objectives.TERMS), each
                                               # divided by its value at the start
     force_peak_limit: 1.0      # the smooth force peak may not exceed this times its start value
@@ -26,8 +32,7 @@ Every key of :class:`TuneConfig` may appear in the file (unknown keys are errors
     sharpness_force: 1.0       # 1/N, smooth peak of the branch forces
     bounds: {lambda2: [0.01, 0.5]}   # per tuned field [lower, upper]; default start/10 .. start*10
     gradient: reverse          # reverse | forward: how the gradient is taken (pusupu_jax.gradients)
-    eval_duration_s: null      # s: evaluate only the first seconds of each path (null: whole paths);
-                               # equal to horizon_s: reuse the training rollouts (no second compile)
+    baselines: [pid, pid_ff]   # modes run beside the start and the result on the whole paths, Table 1 gains
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ from pusupu_jax.config import read_yaml_mapping
 from pusupu_jax.gradients import GRADIENT_MODES
 from pusupu_jax.machine import MACHINE_MODES
 from pusupu_jax.objectives import TERMS
-from pusupu_jax.params import ParameterError
+from pusupu_jax.params import IMC_FORMS, ParameterError
 from pusupu_jax.trajectories import PLATFORM_TRAJECTORIES
 
 from .space import GROUPS
@@ -51,10 +56,14 @@ from .space import GROUPS
 @dataclass(frozen=True)
 class TuneConfig:
     mode: str = "hybrid"
-    groups: tuple = ("imc", "hybrid")
+    imc_form: str = "full"
+    groups: tuple = ("imc", "velocity", "hybrid")
     shared: bool = True
     trajectories: tuple = ("arc", "p2p")
-    horizon_s: float = 2.0
+    path_s: float | None = None
+    windows: int = 6
+    window_s: float = 0.5
+    refresh_every: int = 5
     kin_error_seeds: tuple = (None,)
     payloads: tuple = (0.0,)
     aggregate: str = "mean"
@@ -73,12 +82,13 @@ class TuneConfig:
     sharpness_force: float = 1.0
     bounds: dict = field(default_factory=lambda: {"lambda2": (0.01, 0.5)})
     gradient: str = "reverse"
-    eval_duration_s: float | None = None
+    baselines: tuple = ("pid", "pid_ff")
 
     @classmethod
     def quick(cls) -> "TuneConfig":
-        """A smoke run: the arc's first 0.5 s, 5 iterations, metrics on that window (no second compile)."""
-        return cls(trajectories=("arc",), horizon_s=0.4, iterations=5, checkpoint_every=2, eval_duration_s=0.4)
+        """A smoke run: the arc's first 2 s in 2 windows of 0.3 s, 5 iterations, no baselines (no extra compile)."""
+        return cls(trajectories=("arc",), path_s=2.0, windows=2, window_s=0.3, refresh_every=1, iterations=5,
+                   checkpoint_every=2, baselines=())
 
     @classmethod
     def load(cls, path, base: "TuneConfig | None" = None) -> "TuneConfig":
@@ -90,7 +100,7 @@ class TuneConfig:
             raise ParameterError(f"{path}: {e}") from None
 
     def replace(self, **changes) -> "TuneConfig":
-        for key in ("groups", "trajectories", "kin_error_seeds", "payloads"):
+        for key in ("groups", "trajectories", "kin_error_seeds", "payloads", "baselines"):
             if key in changes and isinstance(changes[key], list):
                 changes[key] = tuple(changes[key])
         if "bounds" in changes and isinstance(changes["bounds"], dict):
@@ -117,10 +127,10 @@ class TuneConfig:
         need(self.aggregate in ("mean", "max"), "aggregate", "mean or max", self.aggregate)
         need(isinstance(self.final_lr_fraction, (int, float)) and 0 < self.final_lr_fraction <= 1,
              "final_lr_fraction", "a number in (0, 1]", self.final_lr_fraction)
-        for key in ("horizon_s", "learning_rate", "clip_norm", "sharpness_force", "force_peak_limit"):
+        for key in ("window_s", "learning_rate", "clip_norm", "sharpness_force", "force_peak_limit"):
             v = getattr(self, key)
             need(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0, key, "a positive number", v)
-        for key in ("iterations", "starts", "checkpoint_every"):
+        for key in ("iterations", "starts", "checkpoint_every", "windows", "refresh_every"):
             v = getattr(self, key)
             need(isinstance(v, int) and not isinstance(v, bool) and v >= 1, key, "a positive integer", v)
         need(isinstance(self.seed, int), "seed", "an integer", self.seed)
@@ -130,21 +140,26 @@ class TuneConfig:
         need(isinstance(self.weights, dict) and set(self.weights) <= set(TERMS) and self.weights
              and all(isinstance(v, (int, float)) and v >= 0 for v in self.weights.values()), "weights",
              f"a mapping of some of {TERMS} to non-negative numbers", self.weights)
-        need(self.mode != "hybrid" or "pid" not in self.groups, "groups", "no 'pid' group in hybrid mode",
-             self.groups)
         need(self.mode == "hybrid" or "hybrid" not in self.groups, "groups", "the 'hybrid' group only in hybrid mode",
              self.groups)
         need(isinstance(self.bounds, dict) and all(isinstance(v, tuple) and len(v) == 2 for v in self.bounds.values()),
              "bounds", "a mapping of field names to [lower, upper]", self.bounds)
         need(self.gradient in GRADIENT_MODES, "gradient", f"one of {GRADIENT_MODES}", self.gradient)
-        need(self.eval_duration_s is None or (isinstance(self.eval_duration_s, (int, float))
-                                              and self.eval_duration_s > 0),
-             "eval_duration_s", "null or a positive number of seconds", self.eval_duration_s)
+        need(self.path_s is None or (isinstance(self.path_s, (int, float)) and not isinstance(self.path_s, bool)
+                                     and self.path_s > 0),
+             "path_s", "null or a positive number of seconds", self.path_s)
+        need(self.checkpoint_every % self.refresh_every == 0, "checkpoint_every",
+             f"a multiple of refresh_every ({self.refresh_every})", self.checkpoint_every)
+        need(self.imc_form in IMC_FORMS, "imc_form", f"one of {IMC_FORMS}", self.imc_form)
+        need(isinstance(self.baselines, tuple) and set(self.baselines) <= set(MACHINE_MODES) - {"hybrid"},
+             "baselines", "a list of some of pid, pid_ff, imc", self.baselines)
+        need(self.mode in ("pid", "pid_ff") or not {"pid", "feedforward"} & set(self.groups), "groups",
+             "the pid and feedforward groups only in the pid and pid_ff modes", self.groups)
 
     @property
     def loop_mode(self) -> str:
-        """The position loop whose margins are checked: 'pid' in pid mode, else 'imc' (hybrid runs IMC)."""
-        return "pid" if self.mode == "pid" else "imc"
+        """The position loop whose margins are checked: 'pid' in the pid modes, else 'imc' (hybrid runs IMC)."""
+        return "pid" if self.mode in ("pid", "pid_ff") else "imc"
 
     def digest(self) -> str:
         """A hash of every setting (the checkpoint and the gain file's provenance carry it)."""

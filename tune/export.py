@@ -1,11 +1,12 @@
 """Gain files: a versioned, validated YAML schema with units, discrete coefficients and provenance.
 
-Schema ``pusupu-gains`` version 1 (every key required, in this order)::
+Schema ``pusupu-gains`` version 2 (every key required, in this order)::
 
     schema: pusupu-gains
-    version: 1
+    version: 2
     units: {lambda1: s, ..., m6: N*s/m, ...}      # must match exactly (SI, docs/parameters.md)
-    servo: {lambda1: [6 values], ...}              # every ServoParams field, one value per axis
+    servo: {lambda1: [6 values], ..., imc_form: full}   # every ServoParams field, one value per axis;
+                                                   # imc_form (full | printed) is machine-wide
     hybrid: {m6: .., c6: .., g: .., form: signed}
     rates: {f_current: .., n_velocity: .., n_position: .., n_mech: .., method: ..}
     discrete:                                      # per axis, at those rates: x' = A x + B u, y = C x + D u
@@ -40,16 +41,17 @@ from pusupu_jax import loops
 from pusupu_jax.config import write_atomic
 from pusupu_jax.hybrid import HybridGains, gain_fields
 from pusupu_jax.margins import loop_margins
-from pusupu_jax.params import AxisLoad, LoopRates, ParameterError, ServoParams, validate
+from pusupu_jax.params import (AxisLoad, LoopRates, ParameterError, ServoParams, array_fields, arrays,
+                               static_fields, validate)
 
-SCHEMA, VERSION = "pusupu-gains", 1
+SCHEMA, VERSION = "pusupu-gains", 2
 KEYS = ("schema", "version", "units", "servo", "hybrid", "rates", "discrete", "margins", "provenance", "checksum")
 CONTROLLERS = {"current_pi": lambda d: d.current.pi, "velocity_pi": lambda d: d.velocity.pi,
                "imc_c1": lambda d: d.imc.c1, "imc_c2": lambda d: d.imc.c2, "pid": lambda d: d.pid}
 
 
 def units() -> dict:
-    return ({f.name: f.metadata["unit"] for f in dataclasses.fields(ServoParams)}
+    return ({f.name: f.metadata["unit"] for f in array_fields(ServoParams)}
             | {f.name: f.metadata["unit"] for f in gain_fields()})
 
 
@@ -100,7 +102,8 @@ def gains_document(servo: ServoParams, hybrid: HybridGains, rates: LoopRates, pr
     margins = check_gains(servo, hybrid, pm_min, gm_min) if margins is None else margins
     doc = {
         "schema": SCHEMA, "version": VERSION, "units": units(),
-        "servo": {f.name: np.asarray(getattr(servo, f.name), dtype=float).tolist() for f in dataclasses.fields(servo)},
+        "servo": {**{k: np.asarray(v, dtype=float).tolist() for k, v in arrays(servo).items()},
+                  **{f.name: getattr(servo, f.name) for f in static_fields(ServoParams)}},
         "hybrid": {**{f.name: float(getattr(hybrid, f.name)) for f in gain_fields()}, "form": hybrid.form},
         "rates": dataclasses.asdict(rates), "discrete": _discrete(servo, rates), "margins": margins,
         "provenance": {"package_version": pusupu_jax.__version__,
@@ -138,6 +141,10 @@ def _parse(doc, text):
         raise ParameterError(f"expected a {SCHEMA} mapping, got {type(doc).__name__}")
     if doc.get("schema") != SCHEMA:
         raise ParameterError(f"schema: expected {SCHEMA!r}, got {doc.get('schema')!r}")
+    if doc.get("version") == 1:
+        raise ParameterError(f"version: expected {VERSION}, got 1: version 1 files predate the choice of IMC "
+                             "prefilter (they meant eq. 9 as printed); re-run pusupu tune, or use its gains with "
+                             "--imc-form printed in a params file")
     if doc.get("version") != VERSION:
         raise ParameterError(f"version: expected {VERSION} (this pusupu_jax reads only that), "
                              f"got {doc.get('version')!r}")
@@ -159,8 +166,9 @@ def _parse(doc, text):
         which = "missing" if servo_fields - got else "unknown"
         raise ParameterError(f"servo: expected every ServoParams field, {which} "
                              f"{diff[0] if diff else doc['servo']!r}")
+    static = {f.name for f in static_fields(ServoParams)}
     for name, v in doc["servo"].items():
-        if not (isinstance(v, list) and len(v) == 6):
+        if name not in static and not (isinstance(v, list) and len(v) == 6):
             raise ParameterError(f"servo.{name}: expected a list of 6 numbers (one per axis), got {v!r}")
     servo = ServoParams.from_mapping(doc["servo"])
     hybrid = HybridGains.from_mapping(doc["hybrid"] if isinstance(doc["hybrid"], dict) else {"form": doc["hybrid"]})

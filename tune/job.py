@@ -2,11 +2,12 @@
 
 1. Build the problem (:class:`tune.run.Problem`) from the configuration; the start is
    Table 1 with the default hybrid gains.
-2. Optimise (:func:`tune.run.optimise`), checkpointing to ``DIR/checkpoint.pkl``; a run that
-   finds a checkpoint of the same configuration continues from it.
-3. Evaluate the start and the result on the whole paths (or ``eval_duration_s``) with
-   :func:`pusupu_jax.machine.simulate_machine` for every scenario; when ``eval_duration_s``
-   equals ``horizon_s`` (``--quick``), the training rollouts are reused instead (no second compile).
+2. Optimise (:func:`tune.run.optimise`) on training windows spread over the whole paths,
+   checkpointing to ``DIR/checkpoint.pkl``; a run that finds a checkpoint of the same
+   configuration continues from it.
+3. Evaluate the start and the result on the whole paths with the problem's own forward pass
+   (no second compile), and the baselines (``cfg.baselines``: PID and PID with velocity
+   feedforward, Table 1 gains) with :func:`pusupu_jax.machine.simulate_scenarios`.
 4. Write ``DIR/gains.yaml`` (only if the tuned gains pass every check), ``DIR/pid_ros2.yaml``,
    ``DIR/report.json`` and the plots ``objective.png``, ``path_<scenario>.png``,
    ``forces_<scenario>.png``.
@@ -27,27 +28,27 @@ import numpy as np  # noqa: E402
 
 from pusupu_jax.config import write_atomic  # noqa: E402
 from pusupu_jax.hybrid import HybridGains  # noqa: E402
-from pusupu_jax.machine import simulate_machine  # noqa: E402
+from pusupu_jax.machine import Scenario, simulate_scenarios  # noqa: E402
 from pusupu_jax.params import ParameterError, ServoParams  # noqa: E402
 from pusupu_jax.plots import save_atomic  # noqa: E402
 
 from . import export  # noqa: E402
 from .config import TuneConfig  # noqa: E402
-from .run import Problem, optimise, platform_paths, print_progress, scenario_list, window  # noqa: E402
+from .run import Problem, optimise, platform_paths, print_progress, scenario_list  # noqa: E402
 
 METRICS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho")
 
 
-def evaluate(cfg: TuneConfig, servo, hybrid, rates) -> dict:
-    """Machine metrics of every scenario on the whole paths (or their first ``eval_duration_s``)."""
+def evaluate_baselines(cfg: TuneConfig, rates) -> dict:
+    """``{mode: {scenario: (metrics, arrays)}}`` of every baseline mode on the whole paths, Table 1 gains."""
     paths = platform_paths(cfg, rates)
-    if cfg.eval_duration_s is not None:
-        paths = {kind: p[:window(cfg.eval_duration_s, rates.dt_position)] for kind, p in paths.items()}
-    return {name: simulate_machine(servo, paths[kind], mode=cfg.mode, hybrid=hybrid, options=options)
-            for name, kind, options in scenario_list(cfg)}
+    scenarios = [Scenario(paths[kind], options, name) for name, kind, options in scenario_list(cfg)]
+    return {mode: {sc.name: out for sc, out in zip(scenarios, simulate_scenarios(ServoParams.table1(), scenarios,
+                                                                                   mode=mode, rates=rates))}
+            for mode in cfg.baselines}
 
 
-def _plots(out: Path, history, before, after) -> list[str]:
+def _plots(out: Path, history, before, after, baselines) -> list[str]:
     files = []
     fig, ax = plt.subplots(figsize=(6, 4))
     for k in sorted({h["start"] for h in history}):
@@ -66,13 +67,19 @@ def _plots(out: Path, history, before, after) -> list[str]:
         ax.plot(tb["reference"][:, 0] * 1e3, tb["reference"][:, 1] * 1e3, "k--", label="reference")
         ax.plot(tb["platform"][:, 0] * 1e3, tb["platform"][:, 1] * 1e3, label="before (Table 1)")
         ax.plot(ta["platform"][:, 0] * 1e3, ta["platform"][:, 1] * 1e3, label="after (tuned)")
+        for mode, runs in baselines.items():
+            ax.plot(runs[name][1]["platform"][:, 0] * 1e3, runs[name][1]["platform"][:, 1] * 1e3, lw=0.8,
+                    label=f"baseline {mode}")
         ax.set_xlabel("x [mm]")
         ax.set_ylabel("y [mm]")
         ax.axis("equal")
         ax.legend()
         ax2 = fig.add_subplot(1, 2, 2)
-        for label, tr in (("before", tb), ("after", ta)):
-            ax2.plot(tr["t"], np.linalg.norm(tr["platform"] - tr["reference"], axis=1) * 1e3, label=label)
+        curves = [("before", tb), ("after", ta)] + [(f"baseline {mode}", runs[name][1])
+                                                     for mode, runs in baselines.items()]
+        for label, tr in curves:
+            ax2.plot(tr["t"], np.linalg.norm(tr["platform"] - tr["reference"], axis=1) * 1e3, label=label, lw=0.9)
+        ax2.set_yscale("log")
         ax2.set_xlabel("time [s]")
         ax2.set_ylabel("platform position error [mm]")
         ax2.grid(True, alpha=0.3)
@@ -108,24 +115,25 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) 
     t0 = time.perf_counter()
     servo0, hybrid0 = ServoParams.table1(), HybridGains()
     problem = Problem(cfg, servo0, hybrid0)
+    extent = "whole path" if cfg.path_s is None else f"path cut to {cfg.path_s:g} s"
     print(f"tune: {len(problem.scenarios.names)} scenario(s) ({', '.join(problem.scenarios.names)}), "
-          f"{cfg.horizon_s:g} s windows, tuning {', '.join(problem.space.fields)}; compiling the gradient "
-          "(about 1-2 min cold on 2 CPU cores)", file=stream, flush=True)
+          f"{cfg.windows} windows of {cfg.window_s:g} s spread over each {extent}, "
+          f"tuning {', '.join(problem.space.fields)}; compiling the forward pass and the gradient "
+          "(about 2 min cold on 2 CPU cores)", file=stream, flush=True)
     result = optimise(problem.value_and_grad, problem.space.z0(), problem.space.project,
                       iterations=cfg.iterations, learning_rate=cfg.learning_rate, clip_norm=cfg.clip_norm,
                       final_lr_fraction=cfg.final_lr_fraction,
                       starts=cfg.starts, start_spread=cfg.start_spread, seed=cfg.seed, checkpoint=checkpoint,
-                      checkpoint_every=cfg.checkpoint_every, digest=cfg.digest(),
+                      checkpoint_every=cfg.checkpoint_every, digest=cfg.digest(), prepare=problem.prepare,
                       progress=lambda *a: print_progress(*a, starts=cfg.starts, stream=stream))
+    servo0 = problem.space.servo0
     servo1, hybrid1 = problem.space.host_values(result["z"])
     t_opt = time.perf_counter() - t0
-    if cfg.eval_duration_s is not None and cfg.eval_duration_s == cfg.horizon_s:
-        print("tune: metrics of the start and the result on the training windows", file=stream, flush=True)
-        before, after = problem.window_metrics(problem.space.z0()), problem.window_metrics(result["z"])
-    else:
-        print("tune: evaluating the start and the result on the whole paths", file=stream, flush=True)
-        before = evaluate(cfg, servo0, hybrid0, problem.rates)
-        after = evaluate(cfg, servo1, hybrid1, problem.rates)
+    print("tune: evaluating the start and the result on the whole paths"
+          + (f", and the baselines ({', '.join(cfg.baselines)}, Table 1 gains)" if cfg.baselines else ""),
+          file=stream, flush=True)
+    before, after = problem.path_metrics(problem.space.z0()), problem.path_metrics(result["z"])
+    baselines = evaluate_baselines(cfg, problem.rates)
     objective_before = float(result["history"][0]["objective"])
     report = {
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
@@ -137,6 +145,7 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) 
                                                            for h in result["history"]],
         "before": {n: _summary(r) for n, (r, _) in before.items()},
         "after": {n: _summary(r) for n, (r, _) in after.items()},
+        "baselines": {mode: {n: _summary(r) for n, (r, _) in runs.items()} for mode, runs in baselines.items()},
         "margins_before": export.margins_report(servo0, mode=cfg.loop_mode),
         "optimise_wall_s": t_opt,
     }
@@ -154,20 +163,25 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) 
     except ParameterError as e:
         report["exported"], report["export_error"] = [], str(e)
         status = 1
-    report["plots"] = _plots(out, result["history"], before, after)
+    report["plots"] = _plots(out, result["history"], before, after, baselines)
     report["wall_s"] = time.perf_counter() - t0
     write_atomic(out / "report.json", json.dumps(report, indent=2))
     return report, status
 
 
 def table(report: dict) -> str:
-    """The before/after table printed at the end of a run."""
-    lines = [f"{'scenario':<14} {'metric':<28} {'before':>10} {'after':>10} {'change':>8}"]
+    """The before/after table printed at the end of a run, with the baselines beside."""
+    modes = list(report.get("baselines", {}))
+    lines = [f"{'scenario':<14} {'metric':<28} {'before':>10} {'after':>10} {'change':>8}"
+             + "".join(f" {m:>10}" for m in modes) + (f" {'vs best':>8}" if modes else "")]
     for name in report["before"]:
         b, a = report["before"][name], report["after"][name]
         for key in (*METRICS, "highest_branch_force_peak_n"):
             change = (a[key] / b[key] - 1) * 100 if b[key] else float("nan")
-            lines.append(f"{name:<14} {key:<28} {b[key]:>10.4g} {a[key]:>10.4g} {change:>7.1f}%")
+            base = [report["baselines"][m][name][key] for m in modes]
+            versus = f" {(a[key] / min(base) - 1) * 100:>7.1f}%" if base and min(base) else ""
+            lines.append(f"{name:<14} {key:<28} {b[key]:>10.4g} {a[key]:>10.4g} {change:>7.1f}%"
+                         + "".join(f" {v:>10.4g}" for v in base) + versus)
     lines.append(f"objective {report['objective_before']:.4f} -> {report['objective_after']:.4f} in "
                  f"{report['iterations']} evaluations, {report['wall_s']:.0f} s")
     for field in report["tuned_fields"]:

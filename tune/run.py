@@ -1,8 +1,9 @@
 """The tuning problem (objective over scenarios) and the optimiser loop with checkpoints.
 
-The objective at log-parameters ``z`` is, per scenario (path window x kinematic-error
-seed x payload; the scenarios run as one vmapped batch), ``sum_k w_k term_k(z) / term_k(z0)`` over the weighted
-:mod:`pusupu_jax.objectives` terms, plus penalties: the smooth branch-force peak above
+The objective at log-parameters ``z`` is, per scenario (path x kinematic-error seed x payload),
+``sum_k w_k term_k(z) / term_k(z0)`` over the weighted :mod:`pusupu_jax.objectives` terms of its
+training windows joined end to end (``cfg.windows`` windows of ``cfg.window_s`` spread over the
+whole path, every window of every scenario in one vmapped batch), plus penalties: the smooth branch-force peak above
 ``force_peak_limit`` times its start value, current/voltage saturation, and every loop's
 phase and gain margins (:mod:`pusupu_jax.margins`, single-axis model) below
 ``pm_min``/``gm_min``.  Scenarios are aggregated by their mean or maximum.
@@ -17,7 +18,6 @@ lines on stderr.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import pickle
 import sys
 import time
@@ -38,7 +38,7 @@ from pusupu_jax.margins import loop_margins
 from pusupu_jax.params import AxisLoad, ParameterError, ServoParams, stack
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
-from pusupu_jax.sim import rollout
+from pusupu_jax.sim import rollout, rollout_segments
 from pusupu_jax.trajectories import platform_path
 
 from .config import TuneConfig
@@ -55,78 +55,146 @@ def scenario_list(cfg: TuneConfig) -> list[tuple[str, str, ModelOptions]]:
 
 
 def platform_paths(cfg: TuneConfig, rates) -> dict:
-    """``{trajectory: platform poses (N, 5)}`` of the configuration's paths, whole, about the default home."""
-    return {kind: platform_path(kind, Geometry.default().home, rates) for kind in cfg.trajectories}
-
-
-def window(duration: float, dt: float) -> int:
-    """The number of position periods in the first ``duration`` seconds of a path (at least 3)."""
-    return max(3, int(round(duration / dt)))
+    """``{trajectory: platform poses (N, 5)}`` of the configuration's paths about the default home (the first
+    ``cfg.path_s`` seconds of each, or the whole path)."""
+    paths = {kind: platform_path(kind, Geometry.default().home, rates) for kind in cfg.trajectories}
+    if cfg.path_s is not None:
+        paths = {kind: p[:max(3, int(round(cfg.path_s / rates.dt_position)))] for kind, p in paths.items()}
+    return paths
 
 
 @dataclasses.dataclass(frozen=True)
 class Scenarios:
-    """Every (path, seed, payload) combination, stacked along a leading axis for one vmapped rollout.
+    """Every (path, seed, payload) combination, and the training windows spread over each path.
 
-    Each path is cut to the same window (its first ``duration`` s, or the shortest path), so
-    that the batch is rectangular; seeds and payloads enter as :meth:`MJXPlant.variant` models.
+    Each path of ``N`` periods is padded with its last pose to ``K * every`` periods (``K =
+    cfg.windows``, ``every = ceil(N / K)``); window ``k`` is its ``W`` periods from ``k * every``
+    (``W = cfg.window_s``), started from the carry a forward pass over the whole path has there.
+    Seeds and payloads enter as :meth:`MJXPlant.variant` models.
     """
 
     names: list
+    kinds: list  # the trajectory of each scenario
+    lengths: list  # its unpadded number of periods
+    paths: list  # its platform poses (N, 5), unpadded
     plant: object  # the nominal MJXPlant (structure and static fields)
-    models: object  # stacked mjx.Model variants, (S, ...)
-    reference: object  # stacked rollout references, (S, N, ...)
-    path: object  # stacked platform poses, (S, N, 5)
+    groups: dict  # trajectory -> (scenario indices, stacked models (S_k, ...), stacked references (S_k, K every, ...))
+    windows: int
+    window_models: object  # (S K, ...) in scenario-major order
+    window_reference: object  # (S K, W, ...)
+    window_path: object  # (S K, W, 5)
 
     @classmethod
-    def build(cls, cfg: TuneConfig, servo: ServoParams, duration: float | None, rates) -> "Scenarios":
+    def build(cls, cfg: TuneConfig, servo: ServoParams, rates) -> "Scenarios":
         paths = platform_paths(cfg, rates)
-        n = min(len(p) for p in paths.values())
-        if duration is not None:
-            n = min(n, window(duration, rates.dt_position))
+        K, W = cfg.windows, max(3, int(round(cfg.window_s / rates.dt_position)))
         plant = machine_plant(ModelOptions())
-        names, models, refs, cut = [], [], [], []
+        names, kinds, lengths, cut, models, refs, padded_paths = [], [], [], [], [], [], []
         for name, kind, options in scenario_list(cfg):
+            path = paths[kind]
+            every = -(-len(path) // K)
+            if W > every:
+                raise ParameterError(f"tune config window_s: expected at most a {K}th of the {kind} path "
+                                     f"({every * rates.dt_position:g} s), got {cfg.window_s}")
+            padded = np.concatenate([path, np.repeat(path[-1:], K * every - len(path), axis=0)])
             names.append(name)
+            kinds.append(kind)
+            lengths.append(len(path))
+            cut.append(path)
             models.append(plant.variant(options))
-            refs.append(machine_reference(servo, paths[kind][:n], cfg.mode, options=options, rates=rates))
-            cut.append(paths[kind][:n])
-        return cls(names, plant, stack(models), stack(refs), np.stack(cut))
+            refs.append(machine_reference(servo, padded, cfg.mode, options=options, rates=rates))
+            padded_paths.append(padded)
+        groups = {}
+        for kind in cfg.trajectories:
+            idx = [i for i, k in enumerate(kinds) if k == kind]
+            groups[kind] = (idx, stack([models[i] for i in idx]), stack([refs[i] for i in idx]))
+        starts = [[k * (len(padded_paths[i]) // K) for k in range(K)] for i in range(len(names))]
+        pick = [(i, a) for i in range(len(names)) for a in starts[i]]
+        return cls(names, kinds, lengths, cut, plant, groups, K,
+                   stack([models[i] for i, _ in pick]),
+                   stack([jax.tree.map(lambda x: np.asarray(x)[a:a + W], refs[i]) for i, a in pick]),
+                   np.stack([padded_paths[i][a:a + W] for i, a in pick]))
 
 
 class Problem:
-    """The objective of a :class:`TuneConfig` around the start ``servo0``, ``hybrid0``."""
+    """The objective of a :class:`TuneConfig` around the start ``servo0``, ``hybrid0``.
+
+    Training windows start from the states of a forward pass over the whole paths at the
+    current gains (:meth:`refresh`, every ``cfg.refresh_every`` iterations: :meth:`prepare`); the
+    gradient runs every window of every scenario as one vmapped batch, and cuts the
+    dependence of the windows' start states on the gains (truncated backpropagation).
+    """
 
     def __init__(self, cfg: TuneConfig, servo0: ServoParams, hybrid0: HybridGains):
         self.cfg = cfg
         self.rates = machine_rates()
-        self.space = Space.create(cfg.groups, servo0, hybrid0, shared=cfg.shared, bounds=cfg.bounds)
-        self.scenarios = Scenarios.build(cfg, servo0, cfg.horizon_s, self.rates)
+        self.space = Space.create(cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared,
+                                  bounds=cfg.bounds)
+        self.scenarios = Scenarios.build(cfg, self.space.servo0, self.rates)
         self.load = AxisLoad.default()
         self._value_and_grad = jax.jit(value_and_grad(self.objective, cfg.gradient))
-        self.baseline = None
+        hybrid_mode = cfg.mode == "hybrid"
+        sc = self.scenarios
 
-    def scenario_terms(self, z) -> tuple[dict, object]:
-        """Every objective term of every scenario, ``{term: (S,)}``, and the traces (leading axis S)."""
+        def whole(servo, hybrid, model, reference):
+            return rollout_segments(servo, model, reference, segments=sc.windows, plant=sc.plant, rates=self.rates,
+                                    outer=cfg.mode, hybrid=hybrid if hybrid_mode else None)
+
+        self._whole = jax.jit(jax.vmap(whole, in_axes=(None, None, 0, 0)))
+        self.baseline = None
+        self.starts = None  # window start carries (S K, ...)
+        self._starts_z = None
+
+    def run_paths(self, z) -> list:
+        """The forward pass over every scenario's whole path at ``z``: ``[(trace (K every, ...), carries (K, ...))]``."""
+        servo, hybrid = self.space.apply(z)
+        out = [None] * len(self.scenarios.names)
+        for idx, models, refs in self.scenarios.groups.values():
+            traces, carries = self._whole(servo, hybrid, models, refs)
+            for j, i in enumerate(idx):
+                out[i] = jax.tree.map(lambda x: x[j], (traces, carries))
+        return out
+
+    def refresh(self, z) -> None:
+        """Renew the windows' start states from a forward pass over the whole paths at ``z``."""
+        runs = self.run_paths(z)
+        self.starts = jax.tree.map(lambda *c: jnp.concatenate(c), *[carries for _, carries in runs])
+        self._starts_z = {k: np.asarray(v) for k, v in z.items()}
+
+    def prepare(self, z, iteration: int) -> None:
+        """Before iteration ``iteration``: renew the start states every ``refresh_every`` iterations (and when missing)."""
+        same = self._starts_z is not None and all(np.array_equal(np.asarray(z[k]), v) for k, v in self._starts_z.items())
+        if self.starts is None or (iteration % self.cfg.refresh_every == 0 and not same):
+            self.refresh(z)
+
+    def scenario_terms(self, z, starts) -> tuple[dict, object]:
+        """Every objective term of every scenario over its windows, ``{term: (S,)}``, and the window traces."""
         servo, hybrid = self.space.apply(z)
         sc = self.scenarios
 
-        def one(model, reference, path):
-            trace = rollout(servo, model, reference, plant=sc.plant, rates=self.rates, outer=self.cfg.mode,
-                            hybrid=hybrid if self.cfg.mode == "hybrid" else None)
-            return objectives.terms(trace, servo, path, self.rates.dt_position,
-                                    sharpness_force=self.cfg.sharpness_force), trace
+        def one(model, reference, init):
+            return rollout(servo, model, reference, plant=sc.plant, rates=self.rates, outer=self.cfg.mode,
+                           hybrid=hybrid if self.cfg.mode == "hybrid" else None, init=init)
 
-        return jax.vmap(one)(sc.models, sc.reference, sc.path)
+        traces = jax.vmap(one)(sc.window_models, sc.window_reference, starts)
+        S, K = len(sc.names), sc.windows
+
+        def per_scenario(x):  # (S K, W, ...) -> (S, K W, ...): each scenario's windows end to end
+            return x.reshape((S, K * x.shape[1]) + x.shape[2:]) if x.ndim >= 2 else x.reshape(S, K)
+
+        joined, path = jax.tree.map(per_scenario, traces), per_scenario(jnp.asarray(sc.window_path))
+        terms = jax.vmap(lambda tr, p: objectives.terms(tr, servo, p, self.rates.dt_position,
+                                                        sharpness_force=self.cfg.sharpness_force))(joined, path)
+        return terms, traces
 
     def margins(self, z) -> dict:
         servo, _ = self.space.apply(z)
         return loop_margins(servo, self.load, mode=self.cfg.loop_mode)
 
-    def objective(self, z, baseline):
+    def objective(self, z, baseline, starts):
         """``(J, aux)``; ``baseline`` holds each scenario's terms at the start (the normalisers)."""
         cfg = self.cfg
-        t, traces = self.scenario_terms(z)
+        t, traces = self.scenario_terms(z, starts)
         per = sum(w * t[k] / baseline[k] for k, w in cfg.weights.items())
         per += PENALTY_WEIGHT * jax.nn.relu(t["force_peak"] / (cfg.force_peak_limit * baseline["force_peak"])
                                             - 1.0) ** 2
@@ -137,29 +205,33 @@ class Problem:
             gm = jnp.minimum(loop["gain_margin_db"], 60.0)
             total += PENALTY_WEIGHT * jnp.sum(jax.nn.relu((cfg.pm_min + 1.0 - pm) / 10.0) ** 2)
             total += PENALTY_WEIGHT * jnp.sum(jax.nn.relu((cfg.gm_min + 0.5 - gm) / 3.0) ** 2)
-        return total, {"scenarios": per, "terms": t, "traces": traces}
+        return total, {"scenarios": per, "terms": t}
 
     def start_baseline(self):
         """The terms at the start, from one call of the compiled gradient (normalisers of 1: no new compile)."""
         if self.baseline is None:
+            z0 = self.space.z0()
+            self.prepare(z0, 0)
             ones = {k: jnp.ones(len(self.scenarios.names)) for k in objectives.TERMS}
-            (_, aux), _ = self._value_and_grad(self.space.z0(), ones)
+            (_, aux), _ = self._value_and_grad(z0, ones, self.starts)
             self.baseline = aux["terms"]
         return self.baseline
 
     def value_and_grad(self, z):
-        return self._value_and_grad(z, self.start_baseline())
+        return self._value_and_grad(z, self.start_baseline(), self.starts)
 
-    def window_metrics(self, z) -> dict:
-        """``{scenario: (metrics, plot arrays)}`` of the training windows at ``z``, from the compiled gradient."""
-        (_, aux), _ = self.value_and_grad(z)
+    def path_metrics(self, z) -> dict:
+        """``{scenario: (metrics, plot arrays)}`` on the whole paths at ``z``, from the same compiled forward pass."""
         servo, hybrid = self.space.host_values(z)
+        sc = self.scenarios
         out = {}
-        for k, name in enumerate(self.scenarios.names):
-            pick = functools.partial(jax.tree.map, lambda x: np.asarray(x[k]))
-            out[name] = machine_metrics(pick(aux["traces"]), servo, np.asarray(self.scenarios.path[k]),
-                                        pick(self.scenarios.reference), self.cfg.mode, self.rates.dt_position,
-                                        hybrid if self.cfg.mode == "hybrid" else None)
+        for i, (trace, _) in enumerate(self.run_paths(z)):
+            n = sc.lengths[i]
+            idx, _, refs = sc.groups[sc.kinds[i]]
+            reference = jax.tree.map(lambda x: np.asarray(x)[idx.index(i), :n], refs)
+            out[sc.names[i]] = machine_metrics(jax.tree.map(lambda x: np.asarray(x)[:n], trace), servo, sc.paths[i],
+                                               reference, self.cfg.mode, self.rates.dt_position,
+                                               hybrid if self.cfg.mode == "hybrid" else None)
         return out
 
 
@@ -187,10 +259,11 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
              clip_norm: float = 1.0, final_lr_fraction: float = 1.0, starts: int = 1, start_spread: float = 0.0,
              seed: int = 0,
              checkpoint: Path | None = None, checkpoint_every: int = 5, digest: str = "",
-             progress: Callable | None = None) -> dict:
+             progress: Callable | None = None, prepare: Callable | None = None) -> dict:
     """Minimise from ``z0`` (and ``starts - 1`` perturbed starts); returns the best ``z`` and the history.
 
-    ``value_and_grad(z) -> ((value, aux), grad)``.  With ``checkpoint``, the state is saved
+    ``value_and_grad(z) -> ((value, aux), grad)``; ``prepare(z, iteration)``, if given, runs before
+    each evaluation (a start's iterations count from 0).  With ``checkpoint``, the state is saved
     every ``checkpoint_every`` iterations and at the end of each start, and a run that
     finds one continues from it (bit-identical to an uninterrupted run: every random draw
     is made from ``seed`` and the start index).
@@ -220,6 +293,8 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
                 state["best_value"], state["best_z"] = value, {n: np.asarray(v) for n, v in z.items()}
 
         while state["iteration"] < iterations:
+            if prepare:
+                prepare(z, state["iteration"])
             (value, aux), grad = value_and_grad(z)
             value = float(value)
             if not np.isfinite(value) or not all(np.isfinite(np.asarray(g)).all() for g in grad.values()):
@@ -235,6 +310,8 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
                          time.perf_counter() - t_start)
             if checkpoint and state["iteration"] % checkpoint_every == 0:
                 _save_atomic(checkpoint, state)
+        if prepare:
+            prepare(z, iterations)
         (value, _), _ = value_and_grad(z)  # the last step's result is evaluated too: it may be the best
         note(z, float(value), iterations)
         state.update(start=k + 1, iteration=0, z=None, opt=None, done=k + 1 >= starts)

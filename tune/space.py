@@ -15,13 +15,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from pusupu_jax.hybrid import HybridGains
-from pusupu_jax.params import ParameterError, ServoParams
+from pusupu_jax.params import ParameterError, ServoParams, arrays
 
 GROUPS = {
-    "imc": ("lambda1", "lambda2"),
+    "imc": ("lambda1", "lambda2", "T0"),
     "velocity": ("Kv", "Tv"),
     "current": ("Ki", "Ti"),
     "pid": ("Kp_pid", "Ki_pid", "Kd_pid", "Tf_pid"),
+    "feedforward": ("Kff_pid",),
     "hybrid": ("m6", "c6", "g"),
 }
 HYBRID_FIELDS = GROUPS["hybrid"]
@@ -91,5 +92,5 @@ class Space:
     def host_values(self, z) -> tuple[ServoParams, HybridGains]:
         """:meth:`apply` as host values: numpy arrays in the servo parameters, floats in the hybrid gains."""
         servo, hybrid = self.apply(z)
-        return (servo.replace(**{k: np.asarray(v) for k, v in vars(servo).items()}),
+        return (servo.replace(**{k: np.asarray(v) for k, v in arrays(servo).items()}),
                 hybrid.replace(**{f: float(getattr(hybrid, f)) for f in HYBRID_FIELDS}))

@@ -7,6 +7,9 @@ A plant is a hashable object (a static argument of the jitted rollout) with:
   only on parameters (e.g. the ZOH matrices), computed once per rollout outside the
   scan; ``dt`` [s] is the mechanical step;
 * ``init(aux) -> state``: the machine at rest at its home position;
+* ``holding_torque(aux, state, force_axis=None, force=None) -> torque``: the motor torques
+  [N m] that hold the plant still in ``state`` (its static equilibrium), optionally with one
+  axis pushing a given slider force [N]; runs start from it (:func:`pusupu_jax.sim.rollout`);
 * ``measure(aux, state) -> (theta, omega)``: the encoders, motor angle [rad] and
   speed [rad/s], shape ``(..., n_axes)``;
 * ``step(aux, state, torque) -> state``: advance one mechanical step with motor

@@ -48,6 +48,16 @@ class AxisPlant:
     def init(self, aux: AxisAux):
         return jnp.zeros(aux.r.shape + (2,))
 
+    def holding_torque(self, aux: AxisAux, state, force_axis: int | None = None, force=None):
+        """Motor torques [N m] that hold each axis still: gravity along the rail (friction is 0 at rest).
+
+        The axes are independent: ``force_axis`` (pushing a slider force ``force`` [N]) leaves the others as they are.
+        """
+        torque = aux.r / aux.eta * aux.load_force * jnp.ones_like(state[..., 0])
+        if force_axis is None:
+            return torque
+        return torque.at[..., force_axis].set(force * aux.r[..., force_axis] / aux.eta[..., force_axis])
+
     def measure(self, aux: AxisAux, state):
         return state[..., 0], state[..., 1]
 

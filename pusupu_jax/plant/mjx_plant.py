@@ -34,7 +34,7 @@ with contextlib.redirect_stdout(io.StringIO()):  # MJX prints its optional GPU b
 
 from .axis import screw_ratio
 from .geometry import Geometry
-from .model import ModelOptions, build_model, loop_closure_residual, slide_dofs, slide_qpos
+from .model import ModelOptions, build_model, connect_gap, loop_closure_residual, slide_dofs, slide_qpos
 
 
 @jax.tree_util.register_dataclass
@@ -94,6 +94,36 @@ class MJXPlant:
 
     def init(self, aux: MJXAux):
         return mjx.forward(aux.model, mjx.make_data(aux.model))
+
+    def holding_torque(self, aux: MJXAux, data, force_axis: int | None = None, force=None):
+        """Motor torques [N m] that hold the machine still in ``data`` (at rest: gravity only), ``(6,)``.
+
+        The five equations of static equilibrium along the motions the closed chain allows,
+        ``J^T F = Q`` (``N``: a basis of the null space of the spherical joints' constraint
+        Jacobian; ``J = N`` at the slides; ``Q = N^T qfrc_bias``), are solved for the slider
+        forces ``F`` with the minimum norm (no internal force), as
+        :mod:`pusupu_jax.plant.dynamics` distributes the inverse dynamics; with
+        ``force_axis``, that branch pushes ``force`` [N] and the other five carry the rest
+        (unique).  This is the machine's own model (seeded errors and payload included); no
+        gradient flows through it.
+        """
+        model, data = jax.lax.stop_gradient((aux.model, data))
+
+        def gap(qpos):  # every joint is a hinge or a slide: qpos and qvel have the same layout
+            d = mjx.kinematics(model, data.replace(qpos=qpos))
+            return connect_gap(self.mj_model, d.xpos, d.xmat, model.eq_data).reshape(-1)
+
+        jc = jax.jacfwd(gap)(data.qpos)  # (18, nv)
+        basis = jnp.linalg.svd(jc)[2][jc.shape[0]:].T  # (nv, nv - 18): the consistent motions
+        J = basis[self._dofs]
+        Q = basis.T @ data.qfrc_bias
+        if force_axis is None:
+            F = J @ jnp.linalg.solve(J.T @ J, Q)
+        else:
+            rest = np.array([k for k in range(self.n_axes) if k != force_axis])
+            F = jnp.zeros(self.n_axes).at[force_axis].set(force).at[rest].set(
+                jnp.linalg.solve(J[rest].T, Q - J[force_axis] * force))
+        return F / aux.force_gain
 
     def measure(self, aux: MJXAux, data):
         s, v = self.slider(aux, data)

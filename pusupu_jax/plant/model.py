@@ -171,11 +171,11 @@ def slide_qpos(model: mujoco.MjModel) -> np.ndarray:
     return np.array([model.jnt_qposadr[model.joint(f"slide_{i}").id] for i in range(6)])
 
 
-def loop_closure_residual(model: mujoco.MjModel, xpos, xmat, eq_data=None):
-    """Largest distance [m] between the two anchors of the six spherical-joint ``connect`` constraints.
+def connect_gap(model: mujoco.MjModel, xpos, xmat, eq_data=None):
+    """Anchor on the rod minus anchor on the platform [m] of the six spherical-joint ``connect`` constraints.
 
     ``xpos (..., nbody, 3)`` and ``xmat (..., nbody, 9 or 3x3)`` are body poses from
-    ``MjData`` or MJX ``Data`` (traced or not); the result has the leading shape.
+    ``MjData`` or MJX ``Data`` (traced or not); the result is ``(..., 6, 3)``.
     ``eq_data`` (default ``model.eq_data``) holds the anchors, for a model variant.
     """
     xpos = jnp.asarray(xpos)
@@ -185,7 +185,12 @@ def loop_closure_residual(model: mujoco.MjModel, xpos, xmat, eq_data=None):
     data = jnp.asarray(model.eq_data if eq_data is None else eq_data)[jnp.asarray(eqs)]
     p1 = xpos[..., b1, :] + jnp.einsum("...kij,kj->...ki", xmat[..., b1, :, :], data[:, 0:3])
     p2 = xpos[..., b2, :] + jnp.einsum("...kij,kj->...ki", xmat[..., b2, :, :], data[:, 3:6])
-    return jnp.max(jnp.linalg.norm(p1 - p2, axis=-1), axis=-1)
+    return p1 - p2
+
+
+def loop_closure_residual(model: mujoco.MjModel, xpos, xmat, eq_data=None):
+    """Largest distance [m] between the two anchors of the six spherical-joint constraints (:func:`connect_gap`)."""
+    return jnp.max(jnp.linalg.norm(connect_gap(model, xpos, xmat, eq_data), axis=-1), axis=-1)
 
 
 def pose_to_qpos(model: mujoco.MjModel, real: Geometry):

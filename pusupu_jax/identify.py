@@ -1,0 +1,74 @@
+"""The velocity loops' time constant ``T0`` identified on the MJX machine (host-side driver, one jitted rollout).
+
+``C2`` (eq. 9) is designed on the position plant ``1/(s (T0 s + 1))``: the closed velocity
+loop seen as a first-order lag.  Table 1's ``T0 = 0.01475 s`` belongs to the paper's machine,
+and :func:`pusupu_jax.analysis.identify_T0` finds it on the 20 kg single-axis ``AxisLoad``; on
+the 6PUS-UPU mechanism each branch carries its own share of the platform, rods and UPU leg,
+coupled through the closed chain, and that share changes with the direction of motion.
+
+The test, as a technician runs it on the machine: from rest at a pose (held by the drives,
+:func:`pusupu_jax.sim.initial_state`), every branch's velocity loop gets a step of the speed
+that one platform motion asks of it (``w_ref = J d v / r`` for a direction ``d`` in pose space,
+``J = ds/dq`` of the nominal geometry), so that the branches move together as the mechanism
+allows; the measured motor speeds are recorded for ``window`` seconds.  Each branch's ``T0``
+is the least-squares first-order fit to its responses over every direction tested
+(:func:`pusupu_jax.analysis.fit_first_order`; a direction in which a branch hardly moves
+weighs little).  Directions default to ``x`` and ``y``, the plane of the paper's paths.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .analysis import fit_first_order
+from .machine import machine_plant, machine_rates
+from .params import LoopRates, ServoParams, validate
+from .plant import kinematics
+from .plant.axis import screw_ratio
+from .plant.geometry import Geometry
+from .plant.model import ModelOptions
+from .sim import rollout
+
+DIRECTIONS = {"x": (1.0, 0, 0, 0, 0), "y": (0, 1.0, 0, 0, 0), "z": (0, 0, 1.0, 0, 0)}
+
+
+@functools.lru_cache(maxsize=None)
+def _step_tests(plant, rates):
+    return jax.jit(jax.vmap(functools.partial(rollout, plant=plant, rates=rates, outer="velocity"),
+                            in_axes=(None, None, 0)))
+
+
+def identify_T0_machine(servo: ServoParams, options: ModelOptions = ModelOptions(),
+                        directions=("x", "y"), speed: float = 0.01, window: float = 0.2,
+                        rates: LoopRates = LoopRates()) -> dict:
+    """Per-branch ``T0`` [s] from velocity steps of the machine at its home pose.
+
+    ``speed`` [m/s]: the platform speed of each step; ``window`` [s]: the length of each test.
+    Returns ``{"T0": [6 values], "directions": [...], "t": (N,), "omega": (D, N, 6) rad/s,
+    "omega_ref": (D, 6) rad/s, "fit_rms": [6 values] rad/s}``.
+    """
+    validate(servo)
+    unknown = [d for d in directions if d not in DIRECTIONS]
+    if unknown or not directions:
+        raise ValueError(f"directions: expected some of {sorted(DIRECTIONS)}, got {list(directions)}")
+    rates = machine_rates(options, rates)
+    geom = Geometry.default()
+    J = np.asarray(kinematics.jacobian(geom, jnp.asarray(geom.home)))  # (6, 5) m per pose unit
+    r = np.asarray(screw_ratio(servo))
+    w_ref = np.stack([J @ np.asarray(DIRECTIONS[d]) * speed / r for d in directions])  # (D, 6) rad/s
+    n = int(round(window / rates.dt_velocity))
+    reference = jnp.asarray(np.repeat(w_ref[:, None, :], n, axis=1))
+    trace = _step_tests(machine_plant(options), rates)(servo, None, reference)
+    t, omega = np.asarray(trace.t[0]), np.asarray(trace.omega)
+    T0, fit_rms = [], []
+    for b in range(6):
+        tau = fit_first_order(t, omega[:, :, b], w_ref[:, b])
+        T0.append(tau)
+        model = w_ref[:, None, b] * (1.0 - np.exp(-t / tau))
+        fit_rms.append(float(np.sqrt(np.mean((omega[:, :, b] - model) ** 2))))
+    return {"T0": T0, "directions": list(directions), "t": t, "omega": omega, "omega_ref": w_ref,
+            "fit_rms": fit_rms}
