@@ -1,7 +1,9 @@
 """Gradient tuner vs a derivative-free optimiser on the same objective and start (JSON on stdout).
 
-The problem is ``pusupu tune``'s (hybrid mode, lambda1, lambda2, m6, c6, g in log space,
-same penalties) on a short training window so that the derivative-free side finishes.  The
+The problem is ``pusupu tune``'s (hybrid mode, the default groups in log space, same
+penalties) on a short stretch of one path (``--path`` seconds, ``--windows`` training windows
+of ``--window`` s, start states from one forward pass at the start gains) so that the
+derivative-free side finishes.  The
 gradient tuner (clipped Adam, :func:`tune.run.optimise`) runs ``--iterations``; scipy's
 Nelder-Mead then minimises the same objective (forward rollouts only, the same box bounds)
 until it reaches the gradient tuner's best value or ``--max-evals``.  Counted: rollouts
@@ -9,8 +11,8 @@ until it reaches the gradient tuner's best value or ``--max-evals``.  Counted: r
 gradient/forward time ratio) and wall time to reach the target (compile excluded on both
 sides).
 
-    python benchmarks/bench_tuner.py [--trajectory arc] [--horizon 0.5] [--iterations 25] [--max-evals 1500]
-                                     [--groups imc,hybrid] [--per-axis]
+    python benchmarks/bench_tuner.py [--trajectory arc] [--path 2] [--windows 2] [--window 0.25] [--iterations 25]
+                                     [--max-evals 1500] [--groups imc,velocity,hybrid] [--per-axis]
 """
 
 from __future__ import annotations
@@ -32,10 +34,12 @@ from timing import median_time  # beside this script
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trajectory", default="arc", choices=("arc", "p2p"))
-    ap.add_argument("--horizon", type=float, default=0.5, help="training window [s]")
+    ap.add_argument("--path", type=float, default=2.0, help="the first seconds of the path [s]")
+    ap.add_argument("--windows", type=int, default=2, help="training windows spread over it")
+    ap.add_argument("--window", type=float, default=0.25, help="training window [s]")
     ap.add_argument("--iterations", type=int, default=25)
     ap.add_argument("--max-evals", type=int, default=1500)
-    ap.add_argument("--groups", default="imc,hybrid", help="comma-separated tuned groups (tune/space.py)")
+    ap.add_argument("--groups", default="imc,velocity,hybrid", help="comma-separated tuned groups (tune/space.py)")
     ap.add_argument("--per-axis", action="store_true", help="one value per axis instead of shared")
     args = ap.parse_args()
     setup_jax()
@@ -44,12 +48,12 @@ def main() -> None:
     from tune.config import TuneConfig
     from tune.run import Problem, optimise
 
-    cfg = TuneConfig(trajectories=(args.trajectory,), horizon_s=args.horizon, iterations=args.iterations,
-                     groups=tuple(args.groups.split(",")), shared=not args.per_axis)
+    cfg = TuneConfig(trajectories=(args.trajectory,), path_s=args.path, windows=args.windows, window_s=args.window,
+                     iterations=args.iterations, groups=tuple(args.groups.split(",")), shared=not args.per_axis)
     problem = Problem(cfg, ServoParams.table1(), HybridGains())
     space, z0 = problem.space, problem.space.z0()
-    baseline = problem.start_baseline()
-    value = jax.jit(lambda z: problem.objective(z, baseline)[0])
+    baseline = problem.start_baseline()  # and the window start states at z0, kept for both optimisers
+    value = jax.jit(lambda z: problem.objective(z, baseline, problem.starts)[0])
     t_forward = median_time(lambda: value(z0), 1)  # after one compiling call each
     t_grad = median_time(lambda: problem.value_and_grad(z0), 1)
 
@@ -91,7 +95,8 @@ def main() -> None:
     reached = evals[-1][0] <= target
     best_nm = min(v for v, _ in evals)
     out = {
-        "problem": {"trajectory": args.trajectory, "horizon_s": args.horizon, "mode": cfg.mode,
+        "problem": {"trajectory": args.trajectory, "path_s": args.path, "windows": args.windows,
+                    "window_s": args.window, "mode": cfg.mode,
                     "fields": sorted(z0), "parameters": int(x0.size), "start_objective": trace[0][0]},
         "forward_s": t_forward, "gradient_s": t_grad, "gradient_over_forward": t_grad / t_forward,
         "gradient_tuner": {"target_objective": target, "rollouts_to_target": grad_evals,

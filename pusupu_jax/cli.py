@@ -112,6 +112,8 @@ def _tune(args) -> int:
     cfg = TuneConfig.quick() if args.quick else TuneConfig()
     if args.config:
         cfg = TuneConfig.load(args.config, base=cfg)
+    if args.imc_form:
+        cfg = cfg.replace(imc_form=args.imc_form)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out: expected a folder, got the file {args.out!r}")

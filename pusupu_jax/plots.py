@@ -87,6 +87,16 @@ def _fmt(x):
     return "inf" if x is None else f"{x:.3g}"
 
 
+def equal_axes_3d(ax, points) -> None:
+    """Give a 3D axis the same scale on x, y and z around ``points`` ``(N, 3)`` (matplotlib stretches each to fit)."""
+    points = np.asarray(points)
+    mid = (points.max(axis=0) + points.min(axis=0)) / 2
+    half = max(float(np.ptp(points, axis=0).max()) / 2, 1e-9)
+    ax.set_xlim(mid[0] - half, mid[0] + half)
+    ax.set_ylim(mid[1] - half, mid[1] + half)
+    ax.set_zlim(mid[2] - half, mid[2] + half)
+
+
 def plot_platform_path(trace: dict, path, title: str = "") -> Path:
     """3D reference vs actual platform path [mm] (``trace`` from :func:`pusupu_jax.machine.simulate_machine`)."""
     ref, act = np.asarray(trace["reference"]) * 1e3, np.asarray(trace["platform"]) * 1e3
@@ -97,6 +107,7 @@ def plot_platform_path(trace: dict, path, title: str = "") -> Path:
     ax.set_xlabel("x [mm]")
     ax.set_ylabel("y [mm]")
     ax.set_zlabel("z [mm]")
+    equal_axes_3d(ax, ref)
     ax.legend()
     ax2 = fig.add_subplot(1, 2, 2)
     err = np.linalg.norm(act - ref, axis=1)
