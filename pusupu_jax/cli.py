@@ -37,6 +37,7 @@ def _fail(message: str):
 
 def _parser() -> argparse.ArgumentParser:
     p = _Parser(prog="pusupu", description="Servo cascade simulator and analysis for the 6PUS-UPU manipulator.")
+    p.add_argument("--version", action="version", version=f"pusupu {_version()}")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     a = sub.add_parser("analyze", help="crossover, margins and bandwidth of every loop of every axis")
     a.add_argument("--params", metavar="FILE", help="parameter YAML (default: Table 1 and documented choices)")
@@ -48,14 +49,14 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--identify-T0", action="store_true",
                    help="identify each branch's velocity-loop time constant T0 from velocity steps of the MJX "
                         "machine (x and y platform motions from home) instead of the loop analysis")
-    a.add_argument("--kin-error", type=int, metavar="SEED",
+    a.add_argument("--kin-error", type=_seed, metavar="SEED",
                    help="with --identify-T0: the machine gets seeded kinematic errors (0.5 mm std)")
     s = sub.add_parser("sim", help="simulate the cascade against a plant and print tracking metrics")
     s.add_argument("--plant", choices=("axis", "mjx"), default="axis",
                    help="axis: six single-axis plants; mjx: the 6PUS-UPU mechanism in MJX (default axis)")
     s.add_argument("--trajectory", choices=("step", "ramp", "sine", "arc", "p2p"),
                    help="step|ramp|sine for the axis plant (default step), arc|p2p for mjx (default arc)")
-    s.add_argument("--kin-error", type=int, metavar="SEED",
+    s.add_argument("--kin-error", type=_seed, metavar="SEED",
                    help="mjx: the simulated machine gets seeded kinematic errors (0.5 mm std)")
     s.add_argument("--mode", choices=("imc", "pid", "pid_ff", "hybrid"), default="imc",
                    help="imc, pid or pid_ff (PID with velocity feedforward) on every branch, or hybrid (mjx only: "
@@ -75,6 +76,33 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("--quick", action="store_true", help="a short smoke run (under 2 min): one path, 5 iterations")
     t.add_argument("--fresh", action="store_true", help="ignore (delete) a checkpoint in DIR instead of resuming")
     t.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
+    g = sub.add_parser("gains", help="read, compare, check or re-sign a gain file; export it for ROS 2 and see "
+                                     "what ROS would run")
+    actions = g.add_subparsers(dest="action", required=True, parser_class=_Parser)
+    g_show = actions.add_parser("show", help="the gains as a table: sections, values, units, what was tuned")
+    g_show.add_argument("file", metavar="FILE")
+    g_show.add_argument("--json", action="store_true", help="print the checked document as JSON")
+    g_diff = actions.add_parser("diff", help="the values two gain files disagree on")
+    g_diff.add_argument("file", metavar="FILE")
+    g_diff.add_argument("other", metavar="OTHER")
+    g_check = actions.add_parser("check", help="validate a gain file (exit 0 when it passes every check)")
+    g_check.add_argument("file", metavar="FILE")
+    g_sign = actions.add_parser("sign", help="re-sign a deliberately edited gain file once its gains validate")
+    g_sign.add_argument("file", metavar="FILE")
+    g_export = actions.add_parser("export-ros", help="write the ROS 2 pid_controller and joint trajectory "
+                                                      "controller parameter files")
+    g_export.add_argument("file", metavar="FILE")
+    g_export.add_argument("--out", metavar="DIR", default=".", help="output folder (default .)")
+    g_export.add_argument("--joints", metavar="J1,...,J6", help="the six slider joints' names "
+                                                                 "(default slide_1,...,slide_6)")
+    g_ros = actions.add_parser("check-ros", help="simulate what ROS's PID would run with the exported gains on the "
+                                                 "machine, beside the full pusupu controller")
+    g_ros.add_argument("file", metavar="FILE")
+    g_ros.add_argument("--trajectory", choices=("arc", "p2p", "both"), default="both", help="default both")
+    g_ros.add_argument("--seconds", type=float, metavar="S", help="only the first S seconds of each path")
+    g_ros.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    for sp in (g_show, g_diff, g_check, g_sign, g_export, g_ros):
+        _floors_arguments(sp)
     e = sub.add_parser("experiment", help="reproduce one of the paper's claims: runs, figures, JSON and a table")
     e.add_argument("name", metavar="NAME", help="arc (Fig. 7), p2p (section 4, Table 2), hybrid_grid (hybrid "
                                                  "stability across lambda2) or timing (every step halved)")
@@ -84,6 +112,7 @@ def _parser() -> argparse.ArgumentParser:
     for sp in (a, s):
         sp.add_argument("--gains", metavar="FILE", help="a gain file written by pusupu tune (replaces the servo "
                                                          "gains, hybrid gains and rates of --params)")
+        _floors_arguments(sp)
     for sp in (a, s, t):
         sp.add_argument("--imc-form", choices=IMC_FORMS,
                         help="form of the IMC prefilter C1: full (reference response (3 l1 s+1)/(l1 s+1)^3, what "
@@ -92,12 +121,54 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _seed(text: str) -> int:
+    if not text.isdigit():
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer seed, got {text!r}")
+    return int(text)
+
+
+def _floors_arguments(parser):
+    parser.add_argument("--min-pm", type=float, metavar="DEG", help="accept gain files with at least DEG of phase "
+                                                                     "margin instead of 45 (said on stderr)")
+    parser.add_argument("--min-gm", type=float, metavar="DB", help="accept gain files with at least DB of gain margin "
+                                                                    "instead of 6 (said on stderr)")
+
+
+def _floors(args):
+    """The stability floors for loading gain files: 45 deg and 6 dB, or the user's explicit, logged override."""
+    from .gains import FLOORS
+
+    floors = (FLOORS[0] if args.min_pm is None else args.min_pm, FLOORS[1] if args.min_gm is None else args.min_gm)
+    if floors != FLOORS:
+        import math
+
+        if not all(math.isfinite(v) and v >= 0 for v in floors):
+            raise ParameterError(f"--min-pm/--min-gm: expected finite non-negative margins, got {floors}")
+        print(f"pusupu: accepting gain files down to {floors[0]:g} deg and {floors[1]:g} dB of margin (default "
+              f"{FLOORS[0]:g} deg, {FLOORS[1]:g} dB)", file=sys.stderr)
+    return floors
+
+
+def _version() -> str:
+    from . import __version__
+
+    return __version__
+
+
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
+    commands = {"analyze": _analyze, "sim": _sim, "tune": _tune, "experiment": _experiment, "gains": _gains}
     try:
-        return {"analyze": _analyze, "sim": _sim, "tune": _tune, "experiment": _experiment}[args.command](args)
+        return commands[args.command](args)
     except (ParameterError, FloatingPointError) as e:  # bad input; a tuning run that went non-finite
         _fail(str(e))
+    except OSError as e:  # a full disk, a folder that vanished: the old files are intact (atomic writes)
+        _fail(f"{e.filename + ': ' if e.filename else ''}{e.strerror or e}")
+    except KeyboardInterrupt:
+        where = f" (the checkpoint in {args.out} keeps the run: the same command resumes it)" if args.command == "tune" \
+            else ""
+        print(f"pusupu: interrupted{where}", file=sys.stderr)
+        return 130
 
 
 def _tune(args) -> int:
@@ -109,14 +180,14 @@ def _tune(args) -> int:
     from tune.config import TuneConfig
     from tune.job import run_job, table
 
+    if not args.out:
+        raise ParameterError("--out: expected a folder, got an empty name")
     cfg = TuneConfig.quick() if args.quick else TuneConfig()
     if args.config:
         cfg = TuneConfig.load(args.config, base=cfg)
     if args.imc_form:
         cfg = cfg.replace(imc_form=args.imc_form)
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ParameterError(f"--out: expected a folder, got the file {args.out!r}")
     report, status = run_job(cfg, out, fresh=args.fresh)
     if args.json:
         print(json.dumps({k: v for k, v in report.items() if k != "history"}, indent=2))
@@ -157,21 +228,104 @@ def _load(args):
 
     loaded = load_params_file(args.params)
     if getattr(args, "gains", None):
-        from tune.export import load_gains
+        from . import gains
 
-        servo, hybrid, rates, _ = load_gains(args.gains)
-        loaded = loaded._replace(servo=servo, hybrid=hybrid, rates=rates)
+        g = gains.load(args.gains, _floors(args))
+        loaded = loaded._replace(servo=g.servo, hybrid=g.hybrid, rates=g.rates)
     if args.imc_form:
         loaded = loaded._replace(servo=loaded.servo.replace(imc_form=args.imc_form))
     return loaded
+
+
+def _gains(args) -> int:
+    from pathlib import Path
+
+    from . import gains
+
+    floors = _floors(args)
+    if args.action == "sign":  # the checks of load() less the checksum, then the derived blocks written anew
+        gains.sign(args.file, floors)
+        print(f"{args.file}: its gains pass every check; re-signed")
+        return 0
+    g = gains.load(args.file, floors)
+    if args.action == "show":
+        print(json.dumps(g.document, indent=2) if args.json else gains.show(g.document))
+    elif args.action == "diff":
+        lines = gains.diff(g.document, gains.load(args.other, floors).document)
+        print("\n".join(lines) if lines else "no difference in gains, plant values, rates or mode")
+    elif args.action == "check":
+        print(f"{args.file}: valid {gains.SCHEMA} v{gains.VERSION}, mode {g.mode}; every loop has at least "
+              f"{floors[0]:g} deg and {floors[1]:g} dB")
+    elif args.action == "export-ros":
+        from . import ros2
+
+        joints = ros2.JOINTS if not args.joints else tuple(args.joints.split(","))
+        out = Path(args.out)
+        if not out.is_dir():
+            raise ParameterError(f"--out: expected an existing folder, got {args.out!r}")
+        for path in ros2.write_files(out, g.servo, g.mode, g.rates, source=args.file, joints=joints):
+            print(f"wrote {path}")
+    else:
+        return _check_ros(args, g)
+    return 0
+
+
+def _check_ros(args, g) -> int:
+    from .config import setup_jax
+
+    setup_jax()
+    from . import gains, ros2
+    from .machine import Scenario, simulate_scenarios
+    from .plant.geometry import Geometry
+    from .trajectories import platform_path
+
+    kinds = ("arc", "p2p") if args.trajectory == "both" else (args.trajectory,)
+    paths = {k: platform_path(k, Geometry.default().home, g.rates) for k in kinds}
+    if args.seconds is not None:
+        if not (args.seconds > 0):
+            raise ParameterError(f"--seconds: expected a positive number, got {args.seconds}")
+        paths = {k: p[:max(3, int(args.seconds / g.rates.dt_position))] for k, p in paths.items()}
+    scenarios = [Scenario(p, name=k) for k, p in paths.items()]
+    print(f"simulating {', '.join(kinds)} with the full pusupu controller ({g.mode}) and with what ROS's PID runs "
+          "(two compiles of about 20 s)", file=sys.stderr)
+    ros_servo = ros2.as_ros_servo(g.servo, g.mode)
+    runs = {"pusupu": simulate_scenarios(g.servo, scenarios, mode=g.mode, rates=g.rates,
+                                         hybrid=g.hybrid if g.mode == "hybrid" else None),
+            "ros": simulate_scenarios(ros_servo, scenarios, mode="ros_pid", rates=g.rates)}
+    margins = {"pusupu": gains.margins_report(g.servo, g.mode), "ros": gains.margins_report(ros_servo, "ros_pid")}
+    result = {"mode": g.mode, "ros_gains": {k: v.tolist() for k, v in ros2.ros_gains(g.servo, g.mode).items()},
+              "paths": {}, "position_margins": {}}
+    for who in runs:
+        for sc, (r, _) in zip(scenarios, runs[who]):
+            result["paths"].setdefault(sc.name, {})[who] = {
+                k: r[k] for k in ("rms_tracking_error_mm", "max_tracking_error_mm")} | {
+                "highest_branch_force_peak_n": max(r["branch_force_peak_n"])}
+        m = margins[who]["position"]
+        result["position_margins"][who] = {"phase_margin_deg": float(min(m["phase_margin_deg"])),
+                                           "gain_margin_db": float(min(m["gain_margin_db"]))}
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    print(f"{'path':<6} {'metric':<28} {'pusupu (' + g.mode + ')':>18} {'ROS PID':>12}")
+    for name, per in result["paths"].items():
+        for key in ("rms_tracking_error_mm", "max_tracking_error_mm", "highest_branch_force_peak_n"):
+            print(f"{name:<6} {key:<28} {per['pusupu'][key]:>18.4g} {per['ros'][key]:>12.4g}")
+    for key in ("phase_margin_deg", "gain_margin_db"):
+        print(f"{'':<6} {'position loop ' + key:<28} {result['position_margins']['pusupu'][key]:>18.4g} "
+              f"{result['position_margins']['ros'][key]:>12.4g}")
+    return 0
 
 
 def _check_plot_path(path):
     import os
 
     folder = os.path.dirname(os.path.abspath(path))
+    if not path or os.path.isdir(path):
+        raise ParameterError(f"--plot: expected the path of a PNG file, got the folder {path!r}")
     if not os.path.isdir(folder):
         raise ParameterError(f"--plot: expected a PNG path in an existing folder, got {path!r}")
+    if not os.access(folder, os.W_OK):
+        raise ParameterError(f"--plot: cannot write in the folder {folder!r}")
 
 
 def _analyze(args) -> int:

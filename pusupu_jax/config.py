@@ -18,8 +18,7 @@ import tempfile
 from pathlib import Path
 from typing import NamedTuple
 
-import yaml
-
+from . import inputs
 from .hybrid import HybridGains
 from .params import AxisLoad, LoopRates, ParameterError, ServoParams
 
@@ -60,9 +59,9 @@ def load_params_file(path=None) -> ParamsFile:
     path = Path(path)
     data = read_yaml_mapping(path, "section", SECTIONS)
     try:
-        return ParamsFile(ServoParams.from_mapping(data.get("servo") or {}),
-                          AxisLoad.from_mapping(data.get("load") or {}), _rates(data.get("rates") or {}),
-                          HybridGains.from_mapping(data.get("hybrid") or {}))
+        return ParamsFile(*(parse({} if data.get(name) is None else data[name]) for name, parse in (
+            ("servo", ServoParams.from_mapping), ("load", AxisLoad.from_mapping), ("rates", rates_from_mapping),
+            ("hybrid", HybridGains.from_mapping))))
     except ParameterError as e:
         raise ParameterError(f"{path}: {e}") from None
 
@@ -70,32 +69,32 @@ def load_params_file(path=None) -> ParamsFile:
 def read_yaml_mapping(path: Path, what: str, keys, error=ParameterError) -> dict:
     """A YAML file holding a mapping whose keys are among ``keys`` (empty file: ``{}``).
 
-    Raises ``error`` with the path and one line saying what is wrong: unreadable, not
-    YAML, not a mapping, or an unknown key (called ``what`` in the message).
+    Read with :func:`pusupu_jax.inputs.read_yaml` (size limit, UTF-8, no aliases, no duplicate
+    keys); raises ``error`` with the path and one line saying what is wrong (an unknown key is
+    called a ``what`` in the message).
     """
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as e:
-        raise error(f"{path}: cannot read file ({e.strerror})") from None
-    except yaml.YAMLError as e:
-        raise error(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
-    data = {} if data is None else data
-    if not isinstance(data, dict):
-        raise error(f"{path}: expected a mapping of {what}s, got {type(data).__name__}")
-    unknown = sorted(set(data) - set(keys))
-    if unknown:
-        raise error(f"{path}: unknown {what} {unknown[0]!r}; expected some of {sorted(keys)}")
-    return data
+    data = inputs.read_yaml(path, "YAML file", error)
+    return inputs.check_keys({} if data is None else data, str(path), keys, error, what=what)
+
+
+def umask() -> int:
+    """The process's file-creation mask (read without changing it where the OS allows)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def write_atomic(path, data: str | bytes) -> Path:
     """Write ``data`` to ``path`` through a temporary file in the same folder, synced, then renamed over it.
 
-    A reader sees the old file or the new one, never a part; a failure leaves no temporary behind.
+    A reader sees the old file or the new one, never a part; a failure (a full disk included)
+    leaves the old file and no temporary behind.  The file gets the mode a plain ``open`` would
+    give it: ``0666`` less the umask (``0644`` under the usual ``022``).
     """
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.fchmod(fd, 0o666 & ~umask())
         with os.fdopen(fd, "wb") as f:
             f.write(data.encode() if isinstance(data, str) else data)
             f.flush()
@@ -107,25 +106,35 @@ def write_atomic(path, data: str | bytes) -> Path:
     return path
 
 
-def _rates(values) -> LoopRates:
-    names = {f.name for f in dataclasses.fields(LoopRates)}
-    if not isinstance(values, dict):
-        raise ParameterError(f"rates: expected a mapping, got {type(values).__name__}")
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise ParameterError(f"rates: unknown key {unknown[0]!r}; expected one of {sorted(names)}")
-    return LoopRates(**values)
+MAX_F_CURRENT = 1e6  # Hz: 50x the default current loop; higher rates are a typo, and a second of them fills memory
+
+
+def rates_from_mapping(values) -> LoopRates:
+    """A :class:`LoopRates` from a mapping of its fields (a params file's or gain file's ``rates``), checked."""
+    where = "rates"
+    inputs.check_keys(values, where, [f.name for f in dataclasses.fields(LoopRates)], ParameterError)
+    out = dict(values)
+    if "f_current" in out:
+        out["f_current"] = inputs.number(out["f_current"], f"{where}.f_current", ParameterError, low=0.0,
+                                         low_open=True, high=MAX_F_CURRENT)
+    for name in ("n_velocity", "n_position", "n_mech"):
+        if name in out:
+            out[name] = inputs.integer(out[name], f"{where}.{name}", ParameterError, low=1, high=1000)
+    if "method" in out:
+        inputs.choice(out["method"], f"{where}.method", ("tustin", "zoh"), ParameterError)
+    return LoopRates(**out)
 
 
 def setup_jax(cache_dir: str | os.PathLike | None = None, x64: bool = True) -> Path:
     """Enable float64 and JAX's persistent compilation cache (every compiled function is kept).
 
-    The cache lives in ``cache_dir``, else ``$PUSUPU_JAX_CACHE``, else
-    ``~/.cache/pusupu_jax/jax``.  Returns the cache directory.
+    The cache lives in ``cache_dir``, else ``$PUSUPU_JAX_CACHE``, else JAX's own
+    ``$JAX_COMPILATION_CACHE_DIR``, else ``~/.cache/pusupu_jax/jax``.  Returns the cache directory.
     """
     import jax
 
-    path = Path(cache_dir or os.environ.get("PUSUPU_JAX_CACHE") or Path.home() / ".cache" / "pusupu_jax" / "jax")
+    path = Path(cache_dir or os.environ.get("PUSUPU_JAX_CACHE") or os.environ.get("JAX_COMPILATION_CACHE_DIR")
+                or Path.home() / ".cache" / "pusupu_jax" / "jax")
     path.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_enable_x64", x64)
     jax.config.update("jax_compilation_cache_dir", str(path))

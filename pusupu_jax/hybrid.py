@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import inputs
 from .metrics import safe_sqrt
 from .params import ParameterError
 
@@ -63,14 +64,11 @@ class HybridGains:
 
     @classmethod
     def from_mapping(cls, values: Mapping[str, Any], base: "HybridGains | None" = None) -> "HybridGains":
-        """``base`` (default gains) with ``values`` replaced; validates."""
-        if not isinstance(values, Mapping):
-            raise ParameterError(f"HybridGains: expected a mapping, got {type(values).__name__}")
-        known = [f.name for f in dataclasses.fields(cls)]
-        unknown = sorted(set(values) - set(known))
-        if unknown:
-            raise ParameterError(f"HybridGains: unknown key {unknown[0]!r}; expected one of {known}")
-        out = dataclasses.replace(base or cls(), **values)
+        """``base`` (default gains) with ``values`` replaced; validates (one number per gain, machine-wide)."""
+        inputs.check_keys(values, "HybridGains", [f.name for f in dataclasses.fields(cls)], ParameterError)
+        changes = {k: v if k == "form" else inputs.number(v, f"HybridGains.{k}", ParameterError, finite=False)
+                   for k, v in values.items()}
+        out = dataclasses.replace(base or cls(), **changes)
         validate_gains(out)
         return out
 

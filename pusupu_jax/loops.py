@@ -66,6 +66,19 @@ class IMC:
 
 @jax.tree_util.register_dataclass
 @dataclass(frozen=True)
+class RosPID:
+    """ROS's PID (control_toolbox ``Pid`` in ``pid_controller``) on the position loop, from the PID fields."""
+
+    p: Any  # 1/s
+    i: Any  # 1/s^2, inside the integral
+    d: Any  # 1, on the velocity error
+    ff: Any  # 1, on the reference velocity
+    limit: Any  # rad/s: output and integral clamps, V_max / Ke
+    dt: Any  # s: the controller_manager period (the position loop's)
+
+
+@jax.tree_util.register_dataclass
+@dataclass(frozen=True)
 class Drive:
     """Every discrete coefficient of the cascade at its loop rate (one value per axis)."""
 
@@ -74,6 +87,7 @@ class Drive:
     imc: IMC
     pid: LTI
     velocity_ff: Any  # 1/s: Kff / dt_position, the pid_ff feedforward on the reference's backward difference
+    ros: RosPID
     electrical: LTI  # states (inverter voltage [V], armature current [A]); inputs (u [V], w [rad/s])
     Kt: Any  # N m / A
     emf_gain: Any  # V/(rad/s): back-EMF feedforward emf_ff*Ke/Kn
@@ -179,6 +193,7 @@ def discretize(p: ServoParams, rates: LoopRates) -> Drive:
                 lti.c2d(imc_c2(p.lambda2, p.T0), dt_p, m)),
         pid=lti.c2d(pid_controller(p.Kp_pid, p.Ki_pid, p.Kd_pid, p.Tf_pid), dt_p, m),
         velocity_ff=p.Kff_pid / dt_p,
+        ros=RosPID(p.Kp_pid, p.Ki_pid, p.Kd_pid, p.Kff_pid, p.V_max / p.Ke, dt_p),
         electrical=lti.c2d(electrical_model(p), rates.dt_current, "zoh"),
         Kt=p.Kt,
         emf_gain=p.emf_ff * p.Ke / p.Kn,
@@ -253,6 +268,32 @@ def pid_ff_step(c: LTI, velocity_ff, s: PIDFFState, theta_ref, theta):
     """PID plus velocity feedforward: ``w_r = PID(theta_ref - theta) + Kff (theta_ref - previous)/dt`` [rad/s]."""
     x, w_pid = lti.step_siso(c, s.pid, theta_ref - theta)
     return PIDFFState(x, theta_ref), w_pid + velocity_ff * (theta_ref - s.previous_ref)
+
+
+class RosPIDState(NamedTuple):
+    integral: Any  # the I term, rad/s
+    previous_ref: Any  # the last motor-angle reference, rad
+
+
+def ros_pid_init(c: RosPID, theta_ref0=0.0) -> RosPIDState:
+    z = jnp.zeros_like(c.p)
+    return RosPIDState(z, z + theta_ref0)
+
+
+def ros_pid_step(c: RosPID, s: RosPIDState, theta_ref, theta, omega):
+    """control_toolbox's PID as ``pid_controller`` runs it with position and velocity interfaces [rad, rad/s].
+
+    ``u = clamp(p e + I + d (w_ref - w))``, command ``ff w_ref + u`` with ``w_ref`` the reference's
+    backward difference; then ``I += dt i e`` unless conditional integration holds it (clamped and the
+    error pushing further), and ``I`` is clamped.  No derivative filter, no output filter, no prefilter.
+    """
+    w_ref = (theta_ref - s.previous_ref) / c.dt
+    e = theta_ref - theta
+    unsat = c.p * e + s.integral + c.d * (w_ref - omega)
+    u = jnp.clip(unsat, -c.limit, c.limit)
+    hold = (unsat != u) & (e * unsat > 0)
+    integral = jnp.clip(jnp.where(hold, s.integral, s.integral + c.dt * c.i * e), -c.limit, c.limit)
+    return RosPIDState(integral, theta_ref), c.ff * w_ref + u
 
 
 def electrical_init(c: LTI):

@@ -26,7 +26,7 @@ from .plant.mjx_plant import MJXPlant
 from .plant.model import ModelOptions
 from .sim import rollout
 
-MACHINE_MODES = ("imc", "pid", "pid_ff", "hybrid")
+MACHINE_MODES = ("imc", "pid", "pid_ff", "ros_pid", "hybrid")
 
 
 def machine_rates(options: ModelOptions = ModelOptions(), rates: LoopRates = LoopRates()) -> LoopRates:

@@ -57,8 +57,10 @@ def loop_gains(servo, load, w, mode: str = "imc") -> dict:
         c = (3 * l2 * s + 1) * (T0 * s + 1) / (3 * l2**2 * s * (l2 / 3 * s + 1))
     elif mode in ("pid", "pid_ff"):  # the velocity feedforward acts outside the loop
         c = p["Kp_pid"] + p["Ki_pid"] / s + p["Kd_pid"] * s / (p["Tf_pid"] * s + 1)
+    elif mode == "ros_pid":  # ROS's PID: no derivative filter (its d acts on the measured velocity error)
+        c = p["Kp_pid"] + p["Ki_pid"] / s + p["Kd_pid"] * s
     else:
-        raise ValueError(f"loop_gains: expected mode 'imc', 'pid' or 'pid_ff', got {mode!r}")
+        raise ValueError(f"loop_gains: expected mode 'imc', 'pid', 'pid_ff' or 'ros_pid', got {mode!r}")
     return {"current": l_i, "velocity": l_v, "position": c * t_v / s}
 
 

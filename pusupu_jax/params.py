@@ -25,6 +25,8 @@ from typing import Any, Mapping
 import jax
 import numpy as np
 
+from . import inputs
+
 N_AXES = 6
 IMC_FORMS = ("full", "printed")
 
@@ -33,15 +35,15 @@ class ParameterError(ValueError):
     """A parameter, parameter file or loop-rate setting is invalid."""
 
 
-def _f(default: float, unit: str, doc: str, kind: str = "positive"):
-    """A per-axis field: ``kind`` is 'positive', 'nonnegative' or 'any' (finite)."""
-    return field(default=default, metadata={"unit": unit, "doc": doc, "kind": kind})
+def _f(default: float, unit: str, doc: str, kind: str = "positive", section: str = ""):
+    """A per-axis field: ``kind`` is 'positive', 'nonnegative' or 'any' (finite); ``section``: where a gain file puts it."""
+    return field(default=default, metadata={"unit": unit, "doc": doc, "kind": kind, "section": section})
 
 
-def _choice(default: str, choices: tuple, doc: str):
+def _choice(default: str, choices: tuple, doc: str, section: str = ""):
     """A static, machine-wide field: one of ``choices`` (a jit-static pytree field: changing it recompiles)."""
     return field(default=default, metadata={"unit": "", "doc": doc, "kind": "choice", "choices": choices,
-                                            "static": True})
+                                            "static": True, "section": section})
 
 
 def array_fields(cls) -> list:
@@ -90,48 +92,48 @@ class ServoParams(_PerAxis):
     """
 
     # --- position loop, 2-DOF IMC (eq. 9) ---
-    lambda1: Any = _f(0.018, "s", "IMC reference (tracking) filter time parameter, C1")
-    lambda2: Any = _f(0.15, "s", "IMC feedback (robustness) filter time parameter, C1 and C2")
-    T0: Any = _f(0.01475, "s", "time constant of the closed velocity loop as modelled by C2")
+    lambda1: Any = _f(0.018, "s", "IMC reference (tracking) filter time parameter, C1", section="position")
+    lambda2: Any = _f(0.15, "s", "IMC feedback (robustness) filter time parameter, C1 and C2", section="position")
+    T0: Any = _f(0.01475, "s", "time constant of the closed velocity loop as modelled by C2", section="position")
     # --- velocity loop (eq. 6-8) ---
-    Kv: Any = _f(0.015, "A/(rad/s)", "velocity PI proportional gain")
-    Tv: Any = _f(5.0, "s", "velocity PI integral time")
-    Kw: Any = _f(1.0, "1", "velocity feedback filter gain")
-    Tw: Any = _f(0.01, "s", "velocity feedback and reference filter time constant")
+    Kv: Any = _f(0.015, "A/(rad/s)", "velocity PI proportional gain", section="velocity")
+    Tv: Any = _f(5.0, "s", "velocity PI integral time", section="velocity")
+    Kw: Any = _f(1.0, "1", "velocity feedback filter gain", section="velocity")
+    Tw: Any = _f(0.01, "s", "velocity feedback and reference filter time constant", section="velocity")
     # --- current loop (eq. 1-5) ---
-    Ki: Any = _f(1.0, "V/A", "current PI proportional gain (command volts per amp, before the inverter gain Kn)")
-    Ti: Any = _f(0.00208, "s", "current PI integral time (= L/R in the paper)")
-    Kcf: Any = _f(1.0, "1", "current feedback filter gain")
-    Tcf: Any = _f(0.00016, "s", "current feedback and reference filter time constant")
-    Kn: Any = _f(4.43, "1", "inverter (SPWM) gain")
-    Tn: Any = _f(0.0001, "s", "inverter time constant")
-    R: Any = _f(1.3, "ohm", "armature resistance")
-    L: Any = _f(0.0027, "H", "armature inductance")
+    Ki: Any = _f(1.0, "V/A", "current PI proportional gain (command volts per amp, before the inverter gain Kn)", section="current")
+    Ti: Any = _f(0.00208, "s", "current PI integral time (= L/R in the paper)", section="current")
+    Kcf: Any = _f(1.0, "1", "current feedback filter gain", section="current")
+    Tcf: Any = _f(0.00016, "s", "current feedback and reference filter time constant", section="current")
+    Kn: Any = _f(4.43, "1", "inverter (SPWM) gain", section="plant")
+    Tn: Any = _f(0.0001, "s", "inverter time constant", section="plant")
+    R: Any = _f(1.3, "ohm", "armature resistance", section="plant")
+    L: Any = _f(0.0027, "H", "armature inductance", section="plant")
     # --- motor (J from Table 1; the rest chosen) ---
-    J: Any = _f(0.000188, "kg*m^2", "motor rotor inertia")
+    J: Any = _f(0.000188, "kg*m^2", "motor rotor inertia", section="plant")
     Kt: Any = _f(1.322, "N*m/A", "chosen: torque constant, solved so that the velocity loop identified "
-                 "from the model has T0 = 0.01475 s with the default AxisLoad (analysis.kt_for_T0)")
+                 "from the model has T0 = 0.01475 s with the default AxisLoad (analysis.kt_for_T0)", section="plant")
     Ke: Any = _f(1.322, "V*s/rad", "chosen: back-EMF constant; equal to Kt (SI units, power balance of the "
-                 "DC-equivalent motor model)")
+                 "DC-equivalent motor model)", section="plant")
     emf_ff: Any = _f(1.0, "1", "chosen: fraction of the back-EMF Ke*w fed forward into the current PI output "
-                     "(decoupling, as PMSM drives do; 1 = full, 0 = none)", kind="nonnegative")
-    I_max: Any = _f(10.0, "A", "chosen: current limit on the velocity PI output (13 N*m peak torque)")
+                     "(decoupling, as PMSM drives do; 1 = full, 0 = none)", kind="nonnegative", section="current")
+    I_max: Any = _f(10.0, "A", "chosen: current limit on the velocity PI output (13 N*m peak torque)", section="limits")
     V_max: Any = _f(300.0, "V", "chosen: armature voltage limit (310 V DC bus less margin); the current PI "
-                    "output saturates at V_max/Kn")
+                    "output saturates at V_max/Kn", section="limits")
     # --- drive train (chosen) ---
-    lead: Any = _f(0.01, "m/rev", "chosen: ball-screw lead (10 mm per motor revolution)")
-    eta: Any = _f(0.9, "1", "chosen: ball-screw efficiency (0 < eta <= 1); the load seen by the motor is divided by eta")
+    lead: Any = _f(0.01, "m/rev", "chosen: ball-screw lead (10 mm per motor revolution)", section="plant")
+    eta: Any = _f(0.9, "1", "chosen: ball-screw efficiency (0 < eta <= 1); the load seen by the motor is divided by eta", section="plant")
     # --- baseline PID position loop (chosen: same crossover as the nominal IMC loop, see docs/parameters.md) ---
-    Kp_pid: Any = _f(6.5, "1/s", "PID proportional gain, motor rad/s per rad of position error")
-    Ki_pid: Any = _f(8.0, "1/s^2", "PID integral gain")
-    Kd_pid: Any = _f(0.02, "1", "PID derivative gain")
-    Tf_pid: Any = _f(0.005, "s", "PID derivative filter time constant, Kd s/(Tf s + 1)")
+    Kp_pid: Any = _f(6.5, "1/s", "PID proportional gain, motor rad/s per rad of position error", section="pid")
+    Ki_pid: Any = _f(8.0, "1/s^2", "PID integral gain", section="pid")
+    Kd_pid: Any = _f(0.02, "1", "PID derivative gain", section="pid")
+    Tf_pid: Any = _f(0.005, "s", "PID derivative filter time constant, Kd s/(Tf s + 1)", section="pid")
     Kff_pid: Any = _f(1.0, "1", "velocity feedforward gain of mode pid_ff: the reference's backward difference "
-                      "[rad/s] times Kff is added to the PID output", kind="nonnegative")
+                      "[rad/s] times Kff is added to the PID output", kind="nonnegative", section="pid")
     # --- static structure (machine-wide; changing it recompiles) ---
     imc_form: str = _choice("full", IMC_FORMS, "form of the 2-DOF IMC prefilter C1: 'full' (reference response "
                             "(3 l1 s+1)/(l1 s+1)^3, as section 2.2 describes; docs/imc.md) or 'printed' (eq. 9 "
-                            "as printed, (3 l1 s+1)/(3 l2 s+1))")
+                            "as printed, (3 l1 s+1)/(3 l2 s+1))", section="position")
 
     @classmethod
     def table1(cls) -> "ServoParams":
@@ -218,28 +220,22 @@ def field_docs(cls) -> list[tuple[str, float, str, str]]:
 
 
 def _from_mapping(cls, values, base):
-    if not isinstance(values, Mapping):
-        raise ParameterError(f"{cls.__name__}: expected a mapping of field names to values, "
-                             f"got {type(values).__name__}")
-    known = {f.name for f in fields(cls)}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise ParameterError(f"{cls.__name__}: unknown key {unknown[0]!r}; expected one of {sorted(known)}")
+    inputs.check_keys(values, cls.__name__, [f.name for f in fields(cls)], ParameterError, what="field")
     base = base if base is not None else cls.default()
-    static = {f.name for f in static_fields(cls)}
+    static = {f.name: f for f in static_fields(cls)}
     changes = {}
     for name, v in values.items():
+        where = f"{cls.__name__}.{name}"
         if name in static:
-            changes[name] = v
-            continue
-        try:
-            arr = np.asarray(v, dtype=float)
-        except (TypeError, ValueError):
-            raise ParameterError(f"{cls.__name__}.{name}: expected a number or a list of {N_AXES} numbers, "
-                                 f"got {v!r}") from None
-        if arr.ndim == 0:
-            arr = np.full((N_AXES,), float(arr))
-        changes[name] = arr
+            changes[name] = inputs.choice(v, where, static[name].metadata["choices"], ParameterError)
+        elif isinstance(v, list):
+            if len(v) != N_AXES:
+                raise ParameterError(f"{where}: expected a number or a list of {N_AXES} numbers (one per axis), "
+                                     f"got a list of {len(v)}")
+            changes[name] = np.array([inputs.number(x, f"{where}[{k}]", ParameterError, finite=False)
+                                      for k, x in enumerate(v)])
+        else:
+            changes[name] = np.full((N_AXES,), inputs.number(v, where, ParameterError, finite=False))
     out = dataclasses.replace(base, **changes)
     validate(out)
     return out

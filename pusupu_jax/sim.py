@@ -31,7 +31,7 @@ from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate
 from .plant import AxisPlant
 from .plant.axis import screw_ratio
 
-OUTER_LOOPS = ("current", "velocity", "imc", "pid", "pid_ff", "hybrid")
+OUTER_LOOPS = ("current", "velocity", "imc", "pid", "pid_ff", "ros_pid", "hybrid")
 MODES = ("imc", "pid", "pid_ff")
 STARTS = ("rest", "zero")
 
@@ -93,6 +93,8 @@ def initial_state(drive: loops.Drive, plant, aux, outer: str, start: str = "rest
         c["position"] = loops.pid_init(drive.pid)
     elif outer == "pid_ff":
         c["position"] = loops.pid_ff_init(drive.pid, theta0)
+    elif outer == "ros_pid":
+        c["position"] = loops.ros_pid_init(drive.ros, theta0)
     if outer == "hybrid":
         c["force"] = hybrid_law.init(force_ff0 if start == "rest" else 0.0)
     return c
@@ -149,17 +151,19 @@ def _cascade(params, plant_params, *, plant, rates: LoopRates, outer: str, hybri
         c, _ = jax.lax.scan(lambda cc, _: mech_step(cc, i_ref), c, None, length=n_mech_steps)
         return c, i_ref
 
-    def position_controller(state, theta_ref, theta):
+    def position_controller(state, theta_ref, theta, omega):
         if outer == "pid":
             return loops.pid_step(drive.pid, state, theta_ref, theta)
         if outer == "pid_ff":
             return loops.pid_ff_step(drive.pid, drive.velocity_ff, state, theta_ref, theta)
+        if outer == "ros_pid":
+            return loops.ros_pid_step(drive.ros, state, theta_ref, theta, omega)
         return loops.imc_step(drive.imc, state, theta_ref, theta)
 
     def position_period(c, ref):
         theta_ref = ref.theta if outer == "hybrid" else ref
-        theta, _ = plant.measure(aux, c["plant"])
-        sp, w_ref = position_controller(c["position"], theta_ref, theta)
+        theta, omega = plant.measure(aux, c["plant"])
+        sp, w_ref = position_controller(c["position"], theta_ref, theta, omega)
         c = dict(c, position=sp)
         i_force = None
         if outer == "hybrid":
@@ -183,7 +187,8 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
     """Run the cascade closed up to ``outer`` against ``plant`` (pure; jit with plant, rates, outer, remat, start static).
 
     ``outer``: 'current', 'velocity', 'imc' (2-DOF IMC, ``params.imc_form``), 'pid', 'pid_ff'
-    (PID with velocity feedforward) or 'hybrid'.  ``start``: 'rest' (the static equilibrium,
+    (PID with velocity feedforward), 'ros_pid' (the PID fields run as ROS's PID does:
+    :func:`pusupu_jax.loops.ros_pid_step`) or 'hybrid'.  ``start``: 'rest' (the static equilibrium,
     :func:`initial_state`) or 'zero'.  ``init``: a carry to start from instead (one of
     :func:`rollout_segments`'s, for a window of a longer run); its trace's ``t`` starts at 0.
 

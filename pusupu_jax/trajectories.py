@@ -10,6 +10,7 @@ import numpy as np
 from .params import N_AXES, LoopRates, ParameterError
 
 AXIS_TRAJECTORIES = ("step", "ramp", "sine")
+MAX_PERIODS = 2_000_000  # position periods of one axis-plant run (its trace holds ~1 kB per period)
 
 
 def axis_reference(kind: str, rates: LoopRates = LoopRates(), duration: float | None = None) -> np.ndarray:
@@ -24,6 +25,10 @@ def axis_reference(kind: str, rates: LoopRates = LoopRates(), duration: float | 
     duration = {"step": 2.0, "ramp": 1.0, "sine": 2.0}[kind] if duration is None else duration
     if not (np.isfinite(duration) and duration > 0):
         raise ParameterError(f"trajectory duration: expected a positive number of seconds, got {duration!r}")
+    if duration / rates.dt_position > MAX_PERIODS:
+        raise ParameterError(f"trajectory duration: expected at most {MAX_PERIODS * rates.dt_position:g} s at this "
+                             f"position-loop rate ({MAX_PERIODS} periods: the trace of a longer run does not fit in "
+                             f"memory), got {duration:g} s")
     t = np.arange(max(1, int(round(duration / rates.dt_position)))) * rates.dt_position
     if kind == "step":
         x = np.full_like(t, 0.005)

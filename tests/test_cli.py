@@ -1,5 +1,6 @@
 """The ``pusupu`` command, run as a user runs it (a real subprocess, real files)."""
 
+import hashlib
 import json
 import os
 import signal
@@ -126,18 +127,37 @@ def tuned(tmp_path_factory):
     return folder, json.loads(r.stdout)
 
 
-def test_tune_writes_gains_report_and_plots(tuned):
+def test_tune_writes_gains_ros_files_report_and_plots(tuned):
+    import yaml
+
+    from pusupu_jax import gains, ros2
+
     folder, report = tuned
     out = folder / "out"
-    for name in ("gains.yaml", "pid_ros2.yaml", "report.json", "objective.png", "path_p2p.png", "forces_p2p.png"):
+    for name in ("gains.yaml", "ros2_pid_controller.yaml", "ros2_joint_trajectory_controller.yaml", "report.json",
+                 "objective.png", "path_p2p.png", "forces_p2p.png", "checkpoint.npz"):
         assert (out / name).stat().st_size > 0, name
-    assert report["tuned_fields"] == ["lambda1", "lambda2", "m6", "c6", "g"]
+    assert not list(out.glob("*.pkl"))
+    assert report["tuned_fields"] == ["lambda1", "lambda2", "T0", "Kv", "Tv", "m6", "c6", "g"]
     assert report["objective_after"] <= report["objective_before"]
     assert set(report["before"]["p2p"]) >= {"rms_tracking_error_mm", "branch_force_peak_n"}
+    assert set(report["baselines"]["pid"]["p2p"]) >= {"rms_tracking_error_mm", "branch_force_peak_n"}
     assert min(report["margins_after"]["position"]["phase_margin_deg"]) >= 45.0
+    # the report names the gain file it describes
+    assert report["gains_file"]["sha256"] == hashlib.sha256((out / "gains.yaml").read_bytes()).hexdigest()
+    # the ROS files carry the conversion of the tuned controller, in joint units
+    g = gains.load(out / "gains.yaml")
+    assert g.document["controller"]["position"]["lambda2"]["tuned"] is True
+    expected = ros2.ros_gains(g.servo, "hybrid")
+    ros = yaml.safe_load((out / "ros2_pid_controller.yaml").read_text())[ros2.PID_CONTROLLER]["ros__parameters"]
+    for k, joint in enumerate(ros["dof_names"]):
+        assert [ros["gains"][joint][key] for key in "pid"] == [expected[key][k] for key in "pid"]
     # the exported gains drive the other commands
     a = json.loads(pusupu("analyze", "--gains", str(out / "gains.yaml"), "--json").stdout)
     assert len(a["axes"]) == 6
+    shown = pusupu("gains", "show", str(out / "gains.yaml")).stdout
+    assert "lambda2" in shown and "yes" in shown
+    assert "valid pusupu-gains v2" in pusupu("gains", "check", str(out / "gains.yaml")).stdout
 
 
 def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
@@ -147,7 +167,7 @@ def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
            "--out", str(tmp_path / "out"), "--json"]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
     deadline = time.time() + 600
-    while not (tmp_path / "out" / "checkpoint.pkl").exists() and p.poll() is None and time.time() < deadline:
+    while not (tmp_path / "out" / "checkpoint.npz").exists() and p.poll() is None and time.time() < deadline:
         time.sleep(0.05)
     p.send_signal(signal.SIGKILL)
     p.communicate()
@@ -158,11 +178,117 @@ def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
     assert resumed["objective_after"] == report["objective_after"]
 
 
+def test_ctrl_c_during_a_tune_ends_with_one_line(tuned, tmp_path):
+    """Probe row 11: a KeyboardInterrupt traceback; now one line saying how to resume, and exit status 130."""
+    folder, _ = tuned
+    cmd = [sys.executable, "-m", "pusupu_jax.cli", "tune", "--config", str(folder / "tiny.yaml"),
+           "--out", str(tmp_path / "out")]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
+    deadline = time.time() + 600
+    while not (tmp_path / "out" / ".pusupu.lock").exists() and p.poll() is None and time.time() < deadline:
+        time.sleep(0.05)
+    p.send_signal(signal.SIGINT)
+    _, err = p.communicate(timeout=600)
+    assert p.returncode == 130, err
+    lines = [line for line in err.splitlines() if line.startswith("pusupu")]
+    assert lines == [f"pusupu: interrupted (the checkpoint in {tmp_path / 'out'} keeps the run: the same command "
+                     "resumes it)"], err
+    assert "Traceback" not in err
+
+
 def test_a_bad_gain_file_exits_2_with_one_line(tuned, tmp_path):
     folder, _ = tuned
     bad = tmp_path / "gains.yaml"
-    bad.write_text((folder / "out" / "gains.yaml").read_text().replace("version: 1", "version: 7"))
-    for command in ("analyze", "sim"):
-        r = pusupu(command, "--gains", str(bad), check=False)
+    bad.write_text((folder / "out" / "gains.yaml").read_text().replace("version: 2", "version: 7"))
+    for command in (["analyze"], ["sim"], ["gains", "show"], ["gains", "check"]):
+        args = [*command, str(bad)] if command[0] == "gains" else [*command, "--gains", str(bad)]
+        r = pusupu(*args, check=False)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
-        assert "version: expected 1" in r.stderr
+        assert "version: expected 2" in r.stderr
+
+
+def test_gains_check_ros_prints_both_controllers(tuned):
+    folder, _ = tuned
+    out = json.loads(pusupu("gains", "check-ros", str(folder / "out" / "gains.yaml"), "--trajectory", "p2p",
+                            "--seconds", "0.3", "--json").stdout)
+    for who in ("pusupu", "ros"):
+        assert out["paths"]["p2p"][who]["rms_tracking_error_mm"] > 0
+        assert out["position_margins"][who]["phase_margin_deg"] > 0
+    assert out["ros_gains"]["d"][0] > 0
+
+
+def test_a_foreign_checkpoint_is_refused_without_running(tmp_path):
+    """Probe row 1: a crafted checkpoint.pkl in --out ran its code.  Now nothing reads a pickle."""
+    out = tmp_path / "out"
+    out.mkdir()
+    marker = tmp_path / "pwned"
+    payload = f"cos\nsystem\n(S'touch {marker}'\ntR.".encode()  # a pickle that runs a shell command
+    (out / "checkpoint.pkl").write_bytes(payload)
+    r = pusupu("tune", "--quick", "--out", str(out), check=False)
+    assert r.returncode == 2 and "never read" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    (out / "checkpoint.pkl").unlink()
+    (out / "checkpoint.npz").write_bytes(payload)  # the same bytes where the checkpoint is now kept
+    r = pusupu("tune", "--quick", "--out", str(out), check=False)
+    assert r.returncode == 2 and "not a pusupu checkpoint" in r.stderr, r.stderr
+    assert not marker.exists()
+
+
+def test_a_second_run_into_a_busy_folder_is_refused(tmp_path):
+    """Probe row 4: two runs into one --out both said they wrote gains.yaml; now the second names the holder."""
+    from tune.job import OutputLock
+
+    out = tmp_path / "out"
+    out.mkdir()
+    lock = OutputLock(out)
+    try:
+        r = pusupu("tune", "--quick", "--fresh", "--out", str(out), check=False)
+    finally:
+        lock.release()
+    assert r.returncode == 2 and f"pid {os.getpid()}" in r.stderr and "in use" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("args, message", [
+    (["tune", "--out", ""], "--out: expected a folder, got an empty name"),
+    (["tune", "--quick", "--out", "{file}/sub"], "--out: cannot write"),
+    (["tune", "--quick", "--out", "{file}"], "--out: expected a folder, got the file"),
+    (["tune", "--config", "{config}"], "pm_min: expected a finite number"),
+    (["sim", "--plot", "{dir}"], "--plot: expected the path of a PNG file, got the folder"),
+    (["sim", "--duration", "1e4"], "trajectory duration: expected at most 2000 s"),
+    (["sim", "--params", "{rates}"], "rates.f_current: expected a number <= 1e+06"),
+    (["sim", "--plant", "mjx", "--kin-error", "-1"], "expected a non-negative integer seed"),
+    (["sim", "--params", "{binary}"], "expected a UTF-8 text"),
+    (["sim", "--params", "{bomb}"], "anchors are not accepted"),
+    (["sim", "--params", "{mixed}"], "expected string keys"),
+    (["sim", "--params", "{quoted}"], "ServoParams.Kv: expected a number, got str"),
+    (["sim", "--params", "{duplicate}"], "duplicate key 'servo'"),
+    (["sim", "--params", "{zero}"], "ServoParams: expected a mapping of fields, got int 0"),
+    (["sim", "--plant", "mjx", "--mode", "hybrid", "--params", "{hybrid_list}"], "HybridGains.m6: expected a number"),
+])
+def test_every_probe_input_ends_in_one_line_and_exit_2(tmp_path, args, message):
+    """Issue 14's reliability probe: inputs that ended in tracebacks, hangs or silent acceptance, each one line now,
+    before any compile."""
+    files = {"file": ("f.txt", b"x"), "dir": ("d", None), "config": ("c.yaml", b"pm_min: .nan\n"),
+             "rates": ("r.yaml", b"rates: {f_current: 1.0e+12}\n"), "binary": ("b.yaml", bytes(range(256))),
+             "bomb": ("bomb.yaml", b"a: &a [x, x]\nb: &b [*a, *a]\nservo: [*b, *b]\n"),
+             "mixed": ("m.yaml", b"{1: 2, foo: 3}\n"), "quoted": ("q.yaml", b"servo: {Kv: '0.015'}\n"),
+             "duplicate": ("dup.yaml", b"servo: {Kv: 0.01}\nservo: {Kv: 0.02}\n"), "zero": ("z.yaml", b"servo: 0\n"),
+             "hybrid_list": ("h.yaml", b"hybrid: {m6: [1, 2, 3]}\n")}
+    paths = {}
+    for key, (name, data) in files.items():
+        paths[key] = tmp_path / name
+        if data is None:
+            paths[key].mkdir()
+        else:
+            paths[key].write_bytes(data)
+    r = pusupu(*[a.format(**paths) if "{" in a else a for a in args], check=False)
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("pusupu: error: ") and message in lines[0], r.stderr
+
+
+def test_version_and_python_m():
+    from pusupu_jax import __version__
+
+    assert pusupu("--version").stdout.strip() == f"pusupu {__version__}"
+    r = subprocess.run([sys.executable, "-m", "pusupu_jax", "--version"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == f"pusupu {__version__}"

@@ -33,6 +33,7 @@ Every key of :class:`TuneConfig` may appear in the file (unknown keys are errors
     bounds: {lambda2: [0.01, 0.5]}   # per tuned field [lower, upper]; default start/10 .. start*10
     gradient: reverse          # reverse | forward: how the gradient is taken (pusupu_jax.gradients)
     baselines: [pid, pid_ff]   # modes run beside the start and the result on the whole paths, Table 1 gains
+    ros_joints: [slide_1, slide_2, slide_3, slide_4, slide_5, slide_6]   # joint names of the ROS 2 export
 """
 
 from __future__ import annotations
@@ -47,7 +48,9 @@ from pusupu_jax.config import read_yaml_mapping
 from pusupu_jax.gradients import GRADIENT_MODES
 from pusupu_jax.machine import MACHINE_MODES
 from pusupu_jax.objectives import TERMS
+from pusupu_jax import inputs
 from pusupu_jax.params import IMC_FORMS, ParameterError
+from pusupu_jax.ros2 import JOINTS
 from pusupu_jax.trajectories import PLATFORM_TRAJECTORIES
 
 from .space import GROUPS
@@ -83,6 +86,7 @@ class TuneConfig:
     bounds: dict = field(default_factory=lambda: {"lambda2": (0.01, 0.5)})
     gradient: str = "reverse"
     baselines: tuple = ("pid", "pid_ff")
+    ros_joints: tuple = JOINTS
 
     @classmethod
     def quick(cls) -> "TuneConfig":
@@ -100,7 +104,7 @@ class TuneConfig:
             raise ParameterError(f"{path}: {e}") from None
 
     def replace(self, **changes) -> "TuneConfig":
-        for key in ("groups", "trajectories", "kin_error_seeds", "payloads", "baselines"):
+        for key in ("groups", "trajectories", "kin_error_seeds", "payloads", "baselines", "ros_joints"):
             if key in changes and isinstance(changes[key], list):
                 changes[key] = tuple(changes[key])
         if "bounds" in changes and isinstance(changes["bounds"], dict):
@@ -110,56 +114,70 @@ class TuneConfig:
         return out
 
     def validate(self) -> None:
+        """Every key's kind and range (one line naming the key); numbers must be finite unless a key says so."""
         def need(ok, key, expected, got):
             if not ok:
                 raise ParameterError(f"tune config {key}: expected {expected}, got {got!r}")
 
-        need(self.mode in MACHINE_MODES, "mode", f"one of {MACHINE_MODES}", self.mode)
-        need(isinstance(self.groups, tuple) and self.groups and set(self.groups) <= set(GROUPS), "groups",
-             f"a list of some of {sorted(GROUPS)}", self.groups)
-        need(isinstance(self.trajectories, tuple) and self.trajectories
-             and set(self.trajectories) <= set(PLATFORM_TRAJECTORIES), "trajectories",
-             f"a list of some of {PLATFORM_TRAJECTORIES}", self.trajectories)
-        need(all(s is None or (isinstance(s, int) and s >= 0) for s in self.kin_error_seeds) and self.kin_error_seeds,
-             "kin_error_seeds", "a list of null or non-negative integers", self.kin_error_seeds)
-        need(all(isinstance(p, (int, float)) and p >= 0 for p in self.payloads) and self.payloads, "payloads",
-             "a list of non-negative masses [kg]", self.payloads)
+        def num(key, **kw):
+            inputs.number(getattr(self, key), f"tune config {key}", ParameterError, **kw)
+
+        def integer(key, low=1):
+            inputs.integer(getattr(self, key), f"tune config {key}", ParameterError, low=low)
+
+        def names(key, allowed):
+            v = getattr(self, key)
+            need(isinstance(v, tuple) and v and set(v) <= set(allowed) and len(set(v)) == len(v), key,
+                 f"a list of distinct names from {sorted(allowed)}", v)
+
+        need(self.mode in MACHINE_MODES and self.mode != "ros_pid", "mode",
+             f"one of {tuple(m for m in MACHINE_MODES if m != 'ros_pid')}", self.mode)
+        names("groups", GROUPS)
+        names("trajectories", PLATFORM_TRAJECTORIES)
+        need(isinstance(self.kin_error_seeds, tuple) and self.kin_error_seeds
+             and all(s is None or (isinstance(s, int) and not isinstance(s, bool) and s >= 0)
+                     for s in self.kin_error_seeds), "kin_error_seeds", "a list of null or non-negative integers",
+             self.kin_error_seeds)
+        need(isinstance(self.payloads, tuple) and self.payloads, "payloads", "a list of masses [kg]", self.payloads)
+        for k, p in enumerate(self.payloads):
+            inputs.number(p, f"tune config payloads[{k}]", ParameterError, low=0.0, high=1000.0)
         need(self.aggregate in ("mean", "max"), "aggregate", "mean or max", self.aggregate)
-        need(isinstance(self.final_lr_fraction, (int, float)) and 0 < self.final_lr_fraction <= 1,
-             "final_lr_fraction", "a number in (0, 1]", self.final_lr_fraction)
-        for key in ("window_s", "learning_rate", "clip_norm", "sharpness_force", "force_peak_limit"):
-            v = getattr(self, key)
-            need(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0, key, "a positive number", v)
+        num("final_lr_fraction", low=0.0, low_open=True, high=1.0)
+        for key in ("learning_rate", "clip_norm", "sharpness_force", "force_peak_limit"):
+            num(key, low=0.0, low_open=True)
+        num("window_s", low=0.0, low_open=True, high=60.0)
+        if self.path_s is not None:
+            num("path_s", low=0.0, low_open=True, high=3600.0)
+        num("pm_min", low=0.0, high=90.0)
+        num("gm_min", low=0.0, high=60.0)
+        num("start_spread", low=0.0)
         for key in ("iterations", "starts", "checkpoint_every", "windows", "refresh_every"):
-            v = getattr(self, key)
-            need(isinstance(v, int) and not isinstance(v, bool) and v >= 1, key, "a positive integer", v)
-        need(isinstance(self.seed, int), "seed", "an integer", self.seed)
-        need(isinstance(self.start_spread, (int, float)) and self.start_spread >= 0, "start_spread",
-             "a non-negative number", self.start_spread)
+            integer(key)
+        integer("seed", low=None)
         need(isinstance(self.shared, bool), "shared", "true or false", self.shared)
-        need(isinstance(self.weights, dict) and set(self.weights) <= set(TERMS) and self.weights
-             and all(isinstance(v, (int, float)) and v >= 0 for v in self.weights.values()), "weights",
+        need(isinstance(self.weights, dict) and set(self.weights) <= set(TERMS) and self.weights, "weights",
              f"a mapping of some of {TERMS} to non-negative numbers", self.weights)
+        for term, w in self.weights.items():
+            inputs.number(w, f"tune config weights.{term}", ParameterError, low=0.0)
         need(self.mode == "hybrid" or "hybrid" not in self.groups, "groups", "the 'hybrid' group only in hybrid mode",
              self.groups)
         need(isinstance(self.bounds, dict) and all(isinstance(v, tuple) and len(v) == 2 for v in self.bounds.values()),
              "bounds", "a mapping of field names to [lower, upper]", self.bounds)
+        for field_name, pair in self.bounds.items():
+            for k, v in enumerate(pair):
+                inputs.number(v, f"tune config bounds.{field_name}[{k}]", ParameterError, low=0.0, low_open=True)
         need(self.gradient in GRADIENT_MODES, "gradient", f"one of {GRADIENT_MODES}", self.gradient)
-        need(self.path_s is None or (isinstance(self.path_s, (int, float)) and not isinstance(self.path_s, bool)
-                                     and self.path_s > 0),
-             "path_s", "null or a positive number of seconds", self.path_s)
         need(self.checkpoint_every % self.refresh_every == 0, "checkpoint_every",
              f"a multiple of refresh_every ({self.refresh_every})", self.checkpoint_every)
         need(self.imc_form in IMC_FORMS, "imc_form", f"one of {IMC_FORMS}", self.imc_form)
-        need(isinstance(self.baselines, tuple) and set(self.baselines) <= set(MACHINE_MODES) - {"hybrid"},
-             "baselines", "a list of some of pid, pid_ff, imc", self.baselines)
+        need(isinstance(self.baselines, tuple) and set(self.baselines) <= {"pid", "pid_ff", "imc", "ros_pid"}
+             and len(set(self.baselines)) == len(self.baselines), "baselines",
+             "a list of distinct modes from pid, pid_ff, imc, ros_pid", self.baselines)
         need(self.mode in ("pid", "pid_ff") or not {"pid", "feedforward"} & set(self.groups), "groups",
              "the pid and feedforward groups only in the pid and pid_ff modes", self.groups)
-
-    @property
-    def loop_mode(self) -> str:
-        """The position loop whose margins are checked: 'pid' in the pid modes, else 'imc' (hybrid runs IMC)."""
-        return "pid" if self.mode in ("pid", "pid_ff") else "imc"
+        need(isinstance(self.ros_joints, tuple) and len(self.ros_joints) == 6 and len(set(self.ros_joints)) == 6
+             and all(isinstance(j, str) and j for j in self.ros_joints), "ros_joints",
+             "6 distinct joint names", self.ros_joints)
 
     def digest(self) -> str:
         """A hash of every setting (the checkpoint and the gain file's provenance carry it)."""

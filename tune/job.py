@@ -3,20 +3,26 @@
 1. Build the problem (:class:`tune.run.Problem`) from the configuration; the start is
    Table 1 with the default hybrid gains.
 2. Optimise (:func:`tune.run.optimise`) on training windows spread over the whole paths,
-   checkpointing to ``DIR/checkpoint.pkl``; a run that finds a checkpoint of the same
-   configuration continues from it.
+   checkpointing to ``DIR/checkpoint.npz`` (arrays and JSON, never a pickle); a run that finds a
+   checkpoint of the same configuration continues from it.  ``DIR`` is locked while a run uses it.
 3. Evaluate the start and the result on the whole paths with the problem's own forward pass
    (no second compile), and the baselines (``cfg.baselines``: PID and PID with velocity
    feedforward, Table 1 gains) with :func:`pusupu_jax.machine.simulate_scenarios`.
-4. Write ``DIR/gains.yaml`` (only if the tuned gains pass every check), ``DIR/pid_ros2.yaml``,
-   ``DIR/report.json`` and the plots ``objective.png``, ``path_<scenario>.png``,
-   ``forces_<scenario>.png``.
+4. Write ``DIR/gains.yaml`` (only if the tuned gains pass every check: :mod:`pusupu_jax.gains`),
+   the ROS 2 parameter files ``DIR/ros2_pid_controller.yaml`` and
+   ``DIR/ros2_joint_trajectory_controller.yaml`` (:mod:`pusupu_jax.ros2`), the plots
+   ``objective.png``, ``path_<scenario>.png``, ``forces_<scenario>.png``, and last ``DIR/report.json``.
 """
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import json
+import os
+import socket
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -26,15 +32,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from pusupu_jax import gains, ros2  # noqa: E402
 from pusupu_jax.config import write_atomic  # noqa: E402
 from pusupu_jax.hybrid import HybridGains  # noqa: E402
 from pusupu_jax.machine import Scenario, simulate_scenarios  # noqa: E402
 from pusupu_jax.params import ParameterError, ServoParams  # noqa: E402
 from pusupu_jax.plots import save_atomic  # noqa: E402
 
-from . import export  # noqa: E402
 from .config import TuneConfig  # noqa: E402
-from .run import Problem, optimise, platform_paths, print_progress, scenario_list  # noqa: E402
+from .run import CHECKPOINT, Problem, optimise, platform_paths, print_progress, scenario_list  # noqa: E402
 
 METRICS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho")
 
@@ -106,10 +112,63 @@ def _summary(result: dict) -> dict:
     return result | {"highest_branch_force_peak_n": max(result["branch_force_peak_n"])}
 
 
+def prepare_output(out: Path) -> Path:
+    """Check ``out`` before any work: a folder that exists or can be made, writable, holding no pickled checkpoint."""
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"--out: expected a folder, got the file {str(out)!r}")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = tempfile.NamedTemporaryFile(dir=out, prefix=".pusupu-write-test.", delete=True)
+        probe.close()
+    except OSError as e:
+        raise ParameterError(f"--out: cannot write in {str(out)!r} ({e.strerror})") from None
+    legacy = out / "checkpoint.pkl"
+    if legacy.exists():
+        raise ParameterError(f"{legacy}: a pickled checkpoint (an older pusupu_jax's, or someone else's) is never read, "
+                             "since loading a pickle can run code; delete it or choose another --out")
+    return out
+
+
+class OutputLock:
+    """An exclusive lock on an output folder (``DIR/.pusupu.lock``, held by this process until it exits)."""
+
+    def __init__(self, out: Path):
+        self.path = out / ".pusupu.lock"
+        self.file = open(self.path, "a+")
+        try:
+            fcntl.flock(self.file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self.file.seek(0)
+            holder = self.file.read().strip() or "unknown"
+            self.file.close()
+            raise ParameterError(f"--out: {out} is in use by another pusupu tune ({holder}); wait for it or choose "
+                                 "another --out") from None
+        self.file.seek(0)
+        self.file.truncate()
+        self.file.write(f"pid {os.getpid()} on {socket.gethostname()}")
+        self.file.flush()
+
+    def release(self):
+        fcntl.flock(self.file, fcntl.LOCK_UN)
+        self.file.close()
+
+
 def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) -> tuple[dict, int]:
-    """Run the whole job; returns ``(report, exit status)`` (1 when the tuned gains fail a check)."""
-    out.mkdir(parents=True, exist_ok=True)
-    checkpoint = out / "checkpoint.pkl"
+    """Run the whole job; returns ``(report, exit status)`` (1 when the tuned gains fail a check).
+
+    The outputs of one run are written gains first, report last; the report names the gain
+    file it describes by its checksum (or says that none was written and why).
+    """
+    prepare_output(out)
+    lock = OutputLock(out)
+    try:
+        return _run(cfg, out, fresh, stream)
+    finally:
+        lock.release()
+
+
+def _run(cfg: TuneConfig, out: Path, fresh: bool, stream) -> tuple[dict, int]:
+    checkpoint = out / CHECKPOINT
     if fresh and checkpoint.exists():
         checkpoint.unlink()
     t0 = time.perf_counter()
@@ -146,27 +205,35 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) 
         "before": {n: _summary(r) for n, (r, _) in before.items()},
         "after": {n: _summary(r) for n, (r, _) in after.items()},
         "baselines": {mode: {n: _summary(r) for n, (r, _) in runs.items()} for mode, runs in baselines.items()},
-        "margins_before": export.margins_report(servo0, mode=cfg.loop_mode),
+        "margins_before": gains.margins_report(servo0, mode=cfg.mode),
         "optimise_wall_s": t_opt,
     }
     status = 0
+    gains_path = out / "gains.yaml"
     try:
-        report["margins_after"] = export.check_gains(servo1, hybrid1, cfg.pm_min, cfg.gm_min,
-                                                     mode=cfg.loop_mode)
+        report["margins_after"] = gains.check_gains(servo1, hybrid1, cfg.mode, (cfg.pm_min, cfg.gm_min))
         provenance = {"config_hash": cfg.digest(), "objective_before": objective_before,
-                      "objective_after": float(result["objective"]), "mode": cfg.mode,
+                      "objective_after": float(result["objective"]), "floors": [cfg.pm_min, cfg.gm_min],
                       "metrics_after": report["after"]}
-        export.write_gains(out / "gains.yaml", servo1, hybrid1, problem.rates, provenance, cfg.pm_min, cfg.gm_min,
-                           margins=report["margins_after"])
-        export.write_ros2_pid(out / "pid_ros2.yaml", servo1)
-        report["exported"] = [str(out / "gains.yaml"), str(out / "pid_ros2.yaml")]
+        gains.write(gains_path, servo1, hybrid1, problem.rates, mode=cfg.mode, tuned=problem.space.fields,
+                    provenance=provenance, floors=(cfg.pm_min, cfg.gm_min), margins=report["margins_after"])
+        ros = ros2.write_files(out, servo1, cfg.mode, problem.rates, source=str(gains_path), joints=cfg.ros_joints)
+        report["exported"] = [str(gains_path)] + [str(p) for p in ros]
+        report["gains_file"] = {"path": str(gains_path), "sha256": _sha256(gains_path)}
     except ParameterError as e:
         report["exported"], report["export_error"] = [], str(e)
+        report["gains_file"] = {"path": None, "not_written": str(e),
+                                "left_as_it_was": ({"path": str(gains_path), "sha256": _sha256(gains_path)}
+                                                   if gains_path.exists() else None)}
         status = 1
     report["plots"] = _plots(out, result["history"], before, after, baselines)
     report["wall_s"] = time.perf_counter() - t0
     write_atomic(out / "report.json", json.dumps(report, indent=2))
     return report, status
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def table(report: dict) -> str:

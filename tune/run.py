@@ -18,9 +18,11 @@ lines on stderr.
 from __future__ import annotations
 
 import dataclasses
-import pickle
+import io
+import json
 import sys
 import time
+import zipfile
 from pathlib import Path
 from typing import Callable
 
@@ -31,6 +33,7 @@ import optax
 
 from pusupu_jax import objectives
 from pusupu_jax.config import write_atomic
+from pusupu_jax.gains import loop_mode
 from pusupu_jax.gradients import value_and_grad
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import machine_metrics, machine_plant, machine_rates, machine_reference
@@ -189,7 +192,7 @@ class Problem:
 
     def margins(self, z) -> dict:
         servo, _ = self.space.apply(z)
-        return loop_margins(servo, self.load, mode=self.cfg.loop_mode)
+        return loop_margins(servo, self.load, mode=loop_mode(self.cfg.mode))
 
     def objective(self, z, baseline, starts):
         """``(J, aux)``; ``baseline`` holds each scenario's terms at the start (the normalisers)."""
@@ -235,24 +238,51 @@ class Problem:
         return out
 
 
-def _save_atomic(path: Path, state: dict) -> None:
-    arrays = {k: jax.tree.map(np.asarray, state[k]) for k in ("z", "opt", "best_z")}  # off the device
-    write_atomic(path, pickle.dumps(state | arrays))
+CHECKPOINT, CHECKPOINT_FORMAT = "checkpoint.npz", "pusupu-checkpoint-1"
 
 
-def load_checkpoint(path: Path, digest: str) -> dict | None:
-    """The checkpoint at ``path`` if it exists; an error if it belongs to another configuration."""
+def save_checkpoint(path: Path, state: dict) -> None:
+    """The optimiser state as one ``.npz`` of arrays (``z/<field>``, ``best/<field>``, ``opt/<k>``: the optax state's
+    leaves in order) plus its JSON ``meta`` (digest, counters, history), written atomically."""
+    arrays = {f"z/{k}": np.asarray(v) for k, v in (state["z"] or {}).items()}
+    arrays |= {f"best/{k}": np.asarray(v) for k, v in (state["best_z"] or {}).items()}
+    if state["opt"] is not None:
+        arrays |= {f"opt/{k}": np.asarray(leaf) for k, leaf in enumerate(jax.tree.leaves(state["opt"]))}
+    meta = {k: state[k] for k in ("digest", "start", "iteration", "history", "best_value", "done")}
+    meta = {"format": CHECKPOINT_FORMAT, **meta, "best_value": float(meta["best_value"])}
+    buffer = io.BytesIO()
+    np.savez(buffer, meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **arrays)
+    write_atomic(path, buffer.getvalue())
+
+
+def load_checkpoint(path: Path, digest: str, opt_template) -> dict | None:
+    """The checkpoint at ``path`` if it exists (None otherwise); ``opt_template``: an optax state of the right structure.
+
+    Read as plain arrays (``allow_pickle=False``): a file that is not such a checkpoint is refused with one line and
+    nothing in it runs.  A checkpoint of another configuration is refused too.
+    """
     if not path.exists():
         return None
     try:
-        with open(path, "rb") as f:
-            state = pickle.load(f)
-    except (OSError, pickle.UnpicklingError, EOFError) as e:
-        raise ParameterError(f"{path}: unreadable checkpoint ({e}); delete it or use --fresh") from None
-    if state.get("digest") != digest:
-        raise ParameterError(f"{path}: checkpoint of another configuration (hash {state.get('digest')}, this one "
+        with np.load(path, allow_pickle=False) as f:
+            meta = json.loads(bytes(f["meta"]).decode())
+            if not isinstance(meta, dict) or meta.get("format") != CHECKPOINT_FORMAT:
+                raise ValueError(f"not a {CHECKPOINT_FORMAT} file")
+            arrays = {k: np.asarray(f[k]) for k in f.files if k != "meta"}
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ParameterError(f"{path}: not a pusupu checkpoint ({e}); delete it or use --fresh") from None
+    if meta.get("digest") != digest:
+        raise ParameterError(f"{path}: checkpoint of another configuration (hash {meta.get('digest')}, this one "
                              f"{digest}); use --fresh or another --out")
-    return state
+    z = {k[2:]: v for k, v in arrays.items() if k.startswith("z/")} or None
+    best = {k[5:]: v for k, v in arrays.items() if k.startswith("best/")} or None
+    leaves = [arrays[f"opt/{k}"] for k in range(len([a for a in arrays if a.startswith("opt/")]))]
+    treedef = jax.tree.structure(opt_template)
+    opt = jax.tree.unflatten(treedef, leaves) if leaves else None
+    if leaves and len(leaves) != treedef.num_leaves:
+        raise ParameterError(f"{path}: checkpoint of another optimiser state; use --fresh")
+    return {**{k: meta[k] for k in ("digest", "start", "iteration", "history", "best_value", "done")},
+            "z": z, "best_z": best, "opt": opt}
 
 
 def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iterations: int, learning_rate: float,
@@ -270,7 +300,7 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
     """
     schedule = optax.cosine_decay_schedule(learning_rate, iterations, alpha=final_lr_fraction)
     opt = optax.chain(optax.clip_by_global_norm(clip_norm), optax.adam(schedule))
-    state = load_checkpoint(checkpoint, digest) if checkpoint else None
+    state = load_checkpoint(checkpoint, digest, opt.init(z0)) if checkpoint else None
     if state is None:
         state = {"digest": digest, "start": 0, "iteration": 0, "z": None, "opt": None, "history": [],
                  "best_value": np.inf, "best_z": None, "done": False}
@@ -309,14 +339,14 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
                 progress(k, state["iteration"], iterations, value, state["best_value"], aux,
                          time.perf_counter() - t_start)
             if checkpoint and state["iteration"] % checkpoint_every == 0:
-                _save_atomic(checkpoint, state)
+                save_checkpoint(checkpoint, state)
         if prepare:
             prepare(z, iterations)
         (value, _), _ = value_and_grad(z)  # the last step's result is evaluated too: it may be the best
         note(z, float(value), iterations)
         state.update(start=k + 1, iteration=0, z=None, opt=None, done=k + 1 >= starts)
         if checkpoint:
-            _save_atomic(checkpoint, state)
+            save_checkpoint(checkpoint, state)
     return {"z": state["best_z"], "objective": state["best_value"], "history": state["history"]}
 
 

@@ -1,0 +1,418 @@
+"""Gain files: the tuned servo gains for people as well as programs, validated on load (host-side).
+
+Schema ``pusupu-gains`` version 2, every key required, in this order (``docs/gains.md`` shows a
+whole file; ``pusupu_jax/schemas/pusupu-gains.schema.json`` is its JSON Schema)::
+
+    schema: pusupu-gains
+    version: 2
+    mode: hybrid                       # the control mode the gains are for: imc | pid | pid_ff | hybrid
+    controller:                        # what the drives and the position loop run
+      position: {imc_form: full, lambda1: {value: 0.0105, unit: s, tuned: true}, ...}
+      velocity: {Kv: {value: .., unit: A/(rad/s), tuned: true}, ...}
+      current: {...}, limits: {...}, pid: {...}
+      hybrid: {form: signed, m6: {value: .., unit: N*s/m, tuned: true}, ...}
+    plant: {J: {value: .., unit: kg*m^2}, ...}   # the model the gains were tuned on; not gains
+    rates: {f_current: 20000.0, n_velocity: 5, n_position: 4, n_mech: 5, method: tustin}
+    discrete:                          # each controller block at its rate: x+ = A x + B u, y = C x + D u
+      current_pi: {sample_period_s: 5.0e-05, input: .., output: .., clamp: .., A: .., B: .., C: .., D: ..}
+    margins: {current: {phase_margin_deg: .., gain_margin_db: ..}, velocity: .., position: ..}
+    provenance: {package, package_version, jax_version, mujoco_version, git_commit, created_utc, ...}
+    checksum: <sha256 of everything above>
+
+A value shared by the six axes is written once; otherwise as a list of six.  A field the
+tuner moved carries ``tuned: true``.
+
+:func:`load` checks everything and raises :class:`~pusupu_jax.params.ParameterError` with one
+line naming the problem: the schema and version, unknown and missing keys, units, kinds and
+ranges of every value, that the discrete blocks are the discretisation of the gains at the
+stated rates, that every loop is stable with at least :data:`FLOORS` of margin (or the
+caller's explicit floors, never thresholds read from the file), and last the checksum.  The
+checksum detects accidents (a truncated or edited file), not attacks: anyone can compute it.
+:func:`sign` recomputes the derived blocks and the checksum of a deliberately edited file once
+its gains pass the same checks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import hashlib
+import json
+import subprocess
+from pathlib import Path
+
+import jax
+import numpy as np
+import yaml
+
+from . import __version__, inputs, loops
+from .config import rates_from_mapping, write_atomic
+from .hybrid import HybridGains, gain_fields, validate_gains
+from .margins import loop_margins
+from .params import AxisLoad, LoopRates, ParameterError, ServoParams, array_fields, static_fields, validate
+
+SCHEMA, VERSION = "pusupu-gains", 2
+KEYS = ("schema", "version", "mode", "controller", "plant", "rates", "discrete", "margins", "provenance", "checksum")
+MODES = ("imc", "pid", "pid_ff", "hybrid")
+CONTROLLER_SECTIONS = ("position", "velocity", "current", "limits", "pid", "hybrid")
+FLOORS = (45.0, 6.0)  # deg, dB: every loop of every axis, unless the caller says otherwise (and logs it)
+
+# each discrete block: where it sits in loops.Drive, its sample period (a LoopRates property), what flows
+# in and out, and what clamps it
+BLOCKS = {
+    "current_ref_filter": (lambda d: d.current.ref_filter, "dt_current", "current reference [A]",
+                           "filtered current reference [A]", "none"),
+    "current_fb_filter": (lambda d: d.current.fb_filter, "dt_current", "measured current [A]",
+                          "filtered current [A]", "none"),
+    "current_pi": (lambda d: d.current.pi, "dt_current", "current error [A] (filtered reference - filtered current)",
+                   "inverter command [V], the back-EMF feedforward emf_ff*Ke*w/Kn added",
+                   "sum clamped to +-V_max/Kn; integration held while the clamp and the error push the same way"),
+    "velocity_ref_filter": (lambda d: d.velocity.ref_filter, "dt_velocity", "speed reference [rad/s]",
+                            "filtered speed reference [rad/s]", "none"),
+    "velocity_fb_filter": (lambda d: d.velocity.fb_filter, "dt_velocity", "measured motor speed [rad/s]",
+                           "filtered speed [rad/s]", "none"),
+    "velocity_pi": (lambda d: d.velocity.pi, "dt_velocity", "speed error [rad/s] (filtered reference - filtered "
+                    "speed)", "current reference [A]", "clamped to +-I_max; integration held as for the current PI"),
+    "imc_c1": (lambda d: d.imc.c1, "dt_position", "motor-angle reference [rad]", "prefiltered reference [rad]",
+               "none"),
+    "imc_c2": (lambda d: d.imc.c2, "dt_position", "angle error [rad] (prefiltered reference - measured angle)",
+               "speed reference [rad/s]", "none"),
+    "pid": (lambda d: d.pid, "dt_position", "angle error [rad]", "speed reference [rad/s] (pid_ff: plus "
+            "Kff_pid times the reference's change over one period / period)", "none"),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class GainFile:
+    """A loaded gain file: the parameter sets it describes and its document."""
+
+    servo: ServoParams
+    hybrid: HybridGains
+    rates: LoopRates
+    mode: str
+    document: dict
+
+
+def loop_mode(mode: str) -> str:
+    """The position loop of a control mode: 'pid' for pid and pid_ff (the feedforward is outside the loop), 'ros_pid'
+    for ROS's PID, else 'imc' (hybrid runs IMC)."""
+    return {"pid": "pid", "pid_ff": "pid", "ros_pid": "ros_pid"}.get(mode, "imc")
+
+
+def margins_report(servo: ServoParams, mode: str = "imc") -> dict:
+    """Phase [deg] and gain [dB] margins of every loop of every axis (``pusupu_jax.margins``, single-axis model)."""
+    with jax.enable_x64(True):
+        m = loop_margins(servo, AxisLoad.default(), mode=loop_mode(mode))
+    return {loop: {k: np.asarray(v[k], dtype=float).tolist() for k in ("phase_margin_deg", "gain_margin_db")}
+            for loop, v in m.items()}
+
+
+def check_gains(servo: ServoParams, hybrid: HybridGains, mode: str = "imc", floors=FLOORS) -> dict:
+    """Validate values and margins against ``floors`` = (deg, dB); returns :func:`margins_report` or raises."""
+    validate(servo)
+    validate_gains(hybrid)
+    pm_min, gm_min = floors
+    m = margins_report(servo, mode)
+    for loop, v in m.items():
+        pm, gm = np.asarray(v["phase_margin_deg"]), np.asarray(v["gain_margin_db"])
+        if not np.isfinite(pm).all() and not np.isinf(pm).all() or (pm < pm_min).any() or (gm < gm_min).any():
+            a = int(np.argmin(np.minimum(pm - pm_min, gm - gm_min)))
+            raise ParameterError(f"gains: the {loop} loop of axis {a + 1} has {pm[a]:.1f} deg phase margin and "
+                                 f"{gm[a]:.1f} dB gain margin; expected at least {pm_min:g} deg and {gm_min:g} dB "
+                                 "(unstable or too little margin)")
+    return m
+
+
+def _compact(values):
+    """A per-axis value written once when the six are equal, else as a list of six (plain floats)."""
+    arr = np.asarray(values, dtype=float)
+    return float(arr.flat[0]) if np.all(arr == arr.flat[0]) else arr.tolist()
+
+
+def _discrete(servo: ServoParams, rates: LoopRates) -> dict:
+    with jax.enable_x64(True):  # the file holds float64 coefficients, whatever the caller's JAX precision
+        drive = jax.tree.map(np.asarray, loops.discretize(servo, rates))
+    out = {}
+    for name, (get, period, signal_in, signal_out, clamp) in BLOCKS.items():
+        block = get(drive)
+        mats = {k: np.asarray(getattr(block, k)) for k in ("A", "B", "C", "D")}
+        same = all(np.array_equal(m, np.broadcast_to(m[:1], m.shape)) for m in mats.values())
+        coefficients = ({k: m[0].tolist() for k, m in mats.items()} if same
+                        else {"per_axis": [{k: m[a].tolist() for k, m in mats.items()} for a in range(6)]})
+        out[name] = {"sample_period_s": getattr(rates, period), "input": signal_in, "output": signal_out,
+                     "clamp": clamp, **coefficients}
+    return out
+
+
+def _git_commit() -> str | None:
+    try:
+        r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True,
+                           timeout=10)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=Path(__file__).parent,
+                               capture_output=True, text=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return (r.stdout.strip() + ("-dirty" if dirty else "")) if r.returncode == 0 else None
+
+
+def _versions() -> dict:
+    import importlib.metadata as md
+
+    def version(name):
+        try:
+            return md.version(name)
+        except md.PackageNotFoundError:
+            return None
+
+    return {"package": "pusupu_jax", "package_version": __version__, "jax_version": version("jax"),
+            "mujoco_version": version("mujoco"), "git_commit": _git_commit()}
+
+
+def _checksum(text: str) -> str:
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _field(value, unit: str, tuned: bool) -> dict:
+    return {"value": _compact(value), "unit": unit} | ({"tuned": True} if tuned else {})
+
+
+def document(servo: ServoParams, hybrid: HybridGains, rates: LoopRates, *, mode: str, tuned=(),
+             provenance: dict | None = None, floors=FLOORS, margins: dict | None = None) -> str:
+    """The YAML text of a gain file (validated: raises ParameterError rather than describe unstable gains)."""
+    if mode not in MODES:
+        raise ParameterError(f"gains mode: expected one of {MODES}, got {mode!r}")
+    margins = check_gains(servo, hybrid, mode, floors) if margins is None else margins
+    controller = {name: {} for name in CONTROLLER_SECTIONS}
+    plant = {}
+    for f in static_fields(ServoParams):
+        controller[f.metadata["section"]][f.name] = getattr(servo, f.name)
+    for f in array_fields(ServoParams):
+        section = plant if f.metadata["section"] == "plant" else controller[f.metadata["section"]]
+        section[f.name] = _field(getattr(servo, f.name), f.metadata["unit"], f.name in tuned)
+    controller["hybrid"] = {"form": hybrid.form, **{f.name: _field(float(getattr(hybrid, f.name)), f.metadata["unit"],
+                                                                    f.name in tuned) for f in gain_fields()}}
+    doc = {
+        "schema": SCHEMA, "version": VERSION, "mode": mode, "controller": controller, "plant": plant,
+        "rates": dataclasses.asdict(rates), "discrete": _discrete(servo, rates),
+        "margins": {loop: {k: _compact(v) for k, v in m.items()} for loop, m in margins.items()},
+        "provenance": {**_versions(),
+                       "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+                       "tuned_fields": sorted(tuned), **(provenance or {})},
+    }
+    body = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110)  # innermost mappings on one line
+    return body + yaml.safe_dump({"checksum": _checksum(body)})
+
+
+def write(path, servo: ServoParams, hybrid: HybridGains, rates: LoopRates, **kw) -> Path:
+    """:func:`document` written atomically (a crash leaves the old file)."""
+    return write_atomic(path, document(servo, hybrid, rates, **kw))
+
+
+def load(path, floors=FLOORS) -> GainFile:
+    """Read and check a gain file (see the module docstring); stability is checked against ``floors``."""
+    path = Path(path)
+    text = inputs.read_text(path, "gain file", ParameterError)
+    try:
+        return parse(text, floors=floors)
+    except ParameterError as e:
+        raise ParameterError(f"{path}: {e}") from None
+
+
+def parse(text: str, floors=FLOORS, checksum: bool = True) -> GainFile:
+    """:func:`load` on text; ``checksum=False`` skips the checksum and the derived blocks (for :func:`sign`)."""
+    doc = inputs.parse_yaml(text, "gain file", ParameterError)
+    if not isinstance(doc, dict):
+        raise ParameterError(f"expected a {SCHEMA} mapping, got {type(doc).__name__}")
+    if doc.get("schema") != SCHEMA:
+        raise ParameterError(f"schema: expected {SCHEMA!r}, got {doc.get('schema')!r}")
+    if doc.get("version") != VERSION:
+        extra = (": version 1 files predate the choice of IMC prefilter (they meant eq. 9 as printed); re-run "
+                 "pusupu tune" if doc.get("version") == 1 else " (this pusupu_jax reads only that)")
+        raise ParameterError(f"version: expected {VERSION}, got {doc.get('version')!r}{extra}")
+    inputs.check_keys(doc, "gain file", KEYS, ParameterError, required=KEYS)
+    mode = inputs.choice(doc["mode"], "mode", MODES, ParameterError)
+    servo, hybrid = _parameters(doc)
+    names = [f.name for f in dataclasses.fields(LoopRates)]
+    rates = rates_from_mapping(inputs.check_keys(doc["rates"], "rates", names, ParameterError, required=names))
+    if not isinstance(doc["provenance"], dict):
+        raise ParameterError(f"provenance: expected a mapping, got {type(doc['provenance']).__name__}")
+    check_gains(servo, hybrid, mode, floors)
+    if checksum:
+        fresh = _discrete(servo, rates)
+        inputs.check_keys(doc["discrete"], "discrete", fresh, ParameterError, required=fresh, what="block")
+        for name, block in fresh.items():
+            if not _same_block(doc["discrete"][name], block):
+                raise ParameterError(f"discrete.{name}: not the discretisation of the gains at the stated rates "
+                                     "(edited by hand? check the gains, then pusupu gains sign)")
+        if doc["checksum"] != _checksum(text[:text.rfind("checksum:")]):
+            raise ParameterError("checksum: does not match the content (edited or truncated file; after a deliberate "
+                                 "edit, pusupu gains sign re-signs it once it validates)")
+    return GainFile(servo, hybrid, rates, mode, doc)
+
+
+def _same_block(stored, fresh) -> bool:
+    if not isinstance(stored, dict) or any(stored.get(k) != fresh[k] for k in ("sample_period_s",)):
+        return False
+    try:
+        if "per_axis" in fresh:
+            pairs = [(s[k], f[k]) for s, f in zip(stored["per_axis"], fresh["per_axis"], strict=True) for k in "ABCD"]
+        else:
+            pairs = [(stored[k], fresh[k]) for k in "ABCD"]
+        return all(np.allclose(np.asarray(a, dtype=float), np.asarray(b, dtype=float), rtol=1e-12, atol=1e-15)
+                   for a, b in pairs)
+    except (KeyError, TypeError, ValueError):
+        return False
+
+
+def _parameters(doc) -> tuple[ServoParams, HybridGains]:
+    controller = inputs.check_keys(doc["controller"], "controller", CONTROLLER_SECTIONS, ParameterError,
+                                   required=CONTROLLER_SECTIONS, what="section")
+    expected = {name: [] for name in CONTROLLER_SECTIONS + ("plant",)}
+    for f in dataclasses.fields(ServoParams):
+        expected[f.metadata["section"]].append(f.name)
+    expected["hybrid"] = ["form"] + [f.name for f in gain_fields()]
+    sections = dict(controller, plant=doc["plant"])
+    values, units = {}, {f.name: f.metadata["unit"] for f in array_fields(ServoParams)}
+    units |= {f.name: f.metadata["unit"] for f in gain_fields()}
+    for section, names in expected.items():
+        where = section if section == "plant" else f"controller.{section}"
+        inputs.check_keys(sections[section], where, names, ParameterError, required=names, what="field")
+        for name in names:
+            v = sections[section][name]
+            if name in units:
+                entry = inputs.check_keys(v, f"{where}.{name}", ("value", "unit", "tuned"), ParameterError,
+                                          required=("value", "unit"))
+                if entry["unit"] != units[name]:
+                    raise ParameterError(f"{where}.{name}.unit: expected {units[name]!r}, got {entry['unit']!r}")
+                if "tuned" in entry and not isinstance(entry["tuned"], bool):
+                    raise ParameterError(f"{where}.{name}.tuned: expected true or false, got {entry['tuned']!r}")
+                v = entry["value"]
+            values[name] = v
+    hybrid = HybridGains.from_mapping({k: values.pop(k) for k in expected["hybrid"]})
+    return ServoParams.from_mapping(values), hybrid
+
+
+def sign(path, floors=FLOORS) -> Path:
+    """Re-sign a deliberately edited gain file: its gains must pass every check; the derived blocks (discrete
+    coefficients, margins) are recomputed and the checksum written anew (atomically, same mode and tuned marks)."""
+    path = Path(path)
+    text = inputs.read_text(path, "gain file", ParameterError)
+    try:
+        g = parse(text, floors=floors, checksum=False)
+    except ParameterError as e:
+        raise ParameterError(f"{path}: {e}") from None
+    tuned = g.document["provenance"].get("tuned_fields", [])
+    provenance = {k: v for k, v in g.document["provenance"].items()
+                  if k not in ("tuned_fields", "created_utc") and k not in _versions()}
+    provenance["signed_utc"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+    provenance["created_utc_before_signing"] = g.document["provenance"].get("created_utc")
+    return write(path, g.servo, g.hybrid, g.rates, mode=g.mode, tuned=tuned, provenance=provenance, floors=floors)
+
+
+def rows(doc: dict) -> list[tuple[str, str, object, str, bool]]:
+    """``(section, field, value, unit, tuned)`` of every gain and plant value of a document, in file order."""
+    out = []
+    for section, fields in list(doc["controller"].items()) + [("plant", doc["plant"])]:
+        for name, v in fields.items():
+            if isinstance(v, dict):
+                out.append((section, name, v["value"], v["unit"], bool(v.get("tuned"))))
+            else:
+                out.append((section, name, v, "", False))
+    return out
+
+
+def show(doc: dict) -> str:
+    """A gain file as a table for people: sections, values (six when they differ), units, what was tuned."""
+    lines = [f"{SCHEMA} v{doc['version']}, mode {doc['mode']}, rates {doc['rates']['f_current']:g} Hz current / "
+             f"{doc['rates']['n_velocity']} / {doc['rates']['n_position']} ({doc['rates']['method']})",
+             f"{'section':<9} {'field':<10} {'value':<44} {'unit':<12} tuned"]
+    for section, name, value, unit, tuned in rows(doc):
+        text = (" ".join(f"{x:.6g}" for x in value) if isinstance(value, list)
+                else f"{value:.6g}" if isinstance(value, float) else str(value))
+        lines.append(f"{section:<9} {name:<10} {text:<44} {unit:<12} {'yes' if tuned else ''}")
+    for loop, m in doc["margins"].items():
+        pm, gm = np.min(m["phase_margin_deg"]), np.min(m["gain_margin_db"])
+        lines.append(f"margins   {loop:<10} {pm:.1f} deg, {gm:.1f} dB (smallest over the axes)")
+    p = doc["provenance"]
+    lines.append(f"made by {p.get('package')} {p.get('package_version')} (jax {p.get('jax_version')}, mujoco "
+                 f"{p.get('mujoco_version')}, commit {p.get('git_commit')}) at {p.get('created_utc')}")
+    return "\n".join(lines)
+
+
+def diff(a: dict, b: dict) -> list[str]:
+    """The values two gain documents disagree on, one line each (empty when their gains and rates are equal)."""
+    left, right = ({(s, n): (v, u) for s, n, v, u, _ in rows(d)} for d in (a, b))
+    out = []
+    for key in sorted(set(left) | set(right)):
+        if left.get(key) != right.get(key):
+            out.append(f"{key[0]}.{key[1]}: {left.get(key, ('-', ''))[0]} -> {right.get(key, ('-', ''))[0]} "
+                       f"{(left.get(key) or right.get(key))[1]}")
+    for k in sorted(set(a["rates"]) | set(b["rates"])):
+        if a["rates"].get(k) != b["rates"].get(k):
+            out.append(f"rates.{k}: {a['rates'].get(k)} -> {b['rates'].get(k)}")
+    if a["mode"] != b["mode"]:
+        out.append(f"mode: {a['mode']} -> {b['mode']}")
+    return out
+
+
+def json_schema() -> dict:
+    """The JSON Schema of a gain file, built from the parameter classes' metadata (shipped as a file; a test keeps the
+    two equal)."""
+    number = {"type": "number"}
+    per_axis = {"oneOf": [number, {"type": "array", "items": number, "minItems": 6, "maxItems": 6}]}
+
+    def field_schema(unit):
+        return {"type": "object", "required": ["value", "unit"], "additionalProperties": False,
+                "properties": {"value": per_axis, "unit": {"const": unit}, "tuned": {"type": "boolean"}}}
+
+    sections = {name: {"type": "object", "additionalProperties": False, "properties": {}, "required": []}
+                for name in CONTROLLER_SECTIONS + ("plant",)}
+    for f in dataclasses.fields(ServoParams):
+        sec = sections[f.metadata["section"]]
+        sec["properties"][f.name] = ({"enum": list(f.metadata["choices"])} if f.metadata.get("static")
+                                     else field_schema(f.metadata["unit"]))
+        sec["required"].append(f.name)
+    sections["hybrid"]["properties"]["form"] = {"enum": ["rms", "signed"]}
+    for f in gain_fields():
+        sections["hybrid"]["properties"][f.name] = field_schema(f.metadata["unit"])
+    sections["hybrid"]["required"] = ["form"] + [f.name for f in gain_fields()]
+    matrix = {"type": "array", "items": {"type": "array", "items": number}}
+    coefficients = {k: matrix for k in "ABCD"}
+    block = {"type": "object", "required": ["sample_period_s", "input", "output", "clamp"],
+             "properties": {"sample_period_s": number, "input": {"type": "string"}, "output": {"type": "string"},
+                            "clamp": {"type": "string"}, **coefficients,
+                            "per_axis": {"type": "array", "minItems": 6, "maxItems": 6,
+                                         "items": {"type": "object", "properties": coefficients,
+                                                   "required": list("ABCD")}}}}
+    loop = {"type": "object", "properties": {"phase_margin_deg": per_axis, "gain_margin_db": per_axis}}
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "$id": "https://pusupu-jax/schemas/pusupu-gains.schema.json",
+        "title": "pusupu gain file", "description": __doc__.split("\n\n")[0],
+        "type": "object", "required": list(KEYS), "additionalProperties": False,
+        "properties": {
+            "schema": {"const": SCHEMA}, "version": {"const": VERSION}, "mode": {"enum": list(MODES)},
+            "controller": {"type": "object", "additionalProperties": False, "required": list(CONTROLLER_SECTIONS),
+                           "properties": {name: sections[name] for name in CONTROLLER_SECTIONS}},
+            "plant": sections["plant"],
+            "rates": {"type": "object", "additionalProperties": False,
+                      "required": [f.name for f in dataclasses.fields(LoopRates)],
+                      "properties": {"f_current": number, "n_velocity": {"type": "integer", "minimum": 1},
+                                     "n_position": {"type": "integer", "minimum": 1},
+                                     "n_mech": {"type": "integer", "minimum": 1},
+                                     "method": {"enum": ["tustin", "zoh"]}}},
+            "discrete": {"type": "object", "additionalProperties": False, "required": list(BLOCKS),
+                         "properties": {name: block for name in BLOCKS}},
+            "margins": {"type": "object", "properties": {k: loop for k in ("current", "velocity", "position")}},
+            "provenance": {"type": "object"},
+            "checksum": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
+        },
+    }
+
+
+SCHEMA_FILE = Path(__file__).parent / "schemas" / "pusupu-gains.schema.json"
+
+
+def schema_text() -> str:
+    """:func:`json_schema` as the shipped file's text."""
+    return json.dumps(json_schema(), indent=2) + "\n"

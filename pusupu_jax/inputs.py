@@ -1,0 +1,138 @@
+"""Reading what users and other programs hand us (host-side): one place for every loader's checks.
+
+* :func:`read_yaml`: a file of at most :data:`MAX_FILE_BYTES`, in UTF-8, parsed as YAML with no
+  aliases or anchors (a few hundred bytes of nested aliases expand to gigabytes) and no
+  duplicate keys, whose mappings have string keys;
+* :func:`check_keys`: a mapping whose keys are known (and include the required ones);
+* :func:`number`, :func:`integer`, :func:`choice`: one value of the expected kind.
+
+Every failure raises the caller's error class (a :class:`~pusupu_jax.params.ParameterError`)
+with one line: where, what was expected, what was found.
+
+What YAML users write and is accepted: an integer where a real is expected (``5`` for ``5.0``),
+exponents (``1.0e-3``), YAML 1.1 integers in hex or octal (``0x10``), ``null`` where a key says
+it may be null.  What is refused: quoted numbers (``"0.015"``: a string), booleans where numbers
+are expected (``true`` is not 1), ``.nan`` and ``.inf`` (unless a key says so), duplicate keys,
+aliases and anchors, keys that are not strings (``{1: 2}``).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import yaml
+
+MAX_FILE_BYTES = 1 << 20  # 1 MiB: a parameter, gain, configuration or job file is a few kB
+
+
+class _Strict(yaml.SafeLoader):
+    """SafeLoader without aliases or anchors, without duplicate keys, with string keys only."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            raise yaml.YAMLError(f"aliases are not accepted (line {self.peek_event().start_mark.line + 1})")
+        event = self.peek_event()
+        if getattr(event, "anchor", None) is not None:
+            raise yaml.YAMLError(f"anchors are not accepted (line {event.start_mark.line + 1})")
+        return super().compose_node(parent, index)
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if not isinstance(key, str):
+                raise yaml.YAMLError(f"expected string keys, got {key!r} (line {key_node.start_mark.line + 1})")
+            if key in seen:
+                raise yaml.YAMLError(f"duplicate key {key!r} (line {key_node.start_mark.line + 1})")
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def parse_yaml(text: str, where: str, error):
+    """``text`` parsed with the strict loader; ``error(f"{where}: ...")`` when it is not such YAML."""
+    try:
+        return yaml.load(text, Loader=_Strict)  # noqa: S506 - a SafeLoader subclass
+    except yaml.YAMLError as e:
+        raise error(f"{where}: not valid YAML ({str(e).splitlines()[0]})") from None
+    except RecursionError:
+        raise error(f"{where}: not valid YAML (nested too deeply)") from None
+
+
+def read_text(path, what: str, error) -> str:
+    """The UTF-8 text of a file of at most :data:`MAX_FILE_BYTES` (``what`` names it in errors)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            data = f.read(MAX_FILE_BYTES + 1)
+    except IsADirectoryError:
+        raise error(f"{path}: expected a {what}, got a folder") from None
+    except OSError as e:
+        raise error(f"{path}: cannot read {what} ({e.strerror})") from None
+    if len(data) > MAX_FILE_BYTES:
+        raise error(f"{path}: expected a {what} of at most {MAX_FILE_BYTES // 1024} KiB, got a larger file")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise error(f"{path}: expected a UTF-8 text {what}, found a byte 0x{data[e.start]:02x} at {e.start} "
+                    "that is not UTF-8") from None
+
+
+def read_yaml(path, what: str, error):
+    """A YAML file, read with :func:`read_text` and parsed with :func:`parse_yaml`."""
+    return parse_yaml(read_text(path, what, error), str(path), error)
+
+
+def check_keys(value, where: str, known, error, required=(), what: str = "key") -> dict:
+    """``value`` as a mapping whose keys are among ``known`` and include ``required``."""
+    if not isinstance(value, dict):
+        raise error(f"{where}: expected a mapping of {what}s, got {_kind(value)}")
+    bad = [k for k in value if not isinstance(k, str)]
+    if bad:
+        raise error(f"{where}: expected string keys, got {bad[0]!r}")
+    unknown = sorted(set(value) - set(known))
+    if unknown:
+        raise error(f"{where}: unknown {what} {unknown[0]!r}; expected some of {sorted(known)}")
+    missing = [k for k in required if k not in value]
+    if missing:
+        raise error(f"{where}: missing {what} {missing[0]!r}")
+    return value
+
+
+def number(value, where: str, error, *, low=None, high=None, low_open=False, finite=True) -> float:
+    """A real number (an int or a float; not a bool, not a string) within ``[low, high]`` (``(low, ...`` if ``low_open``)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise error(f"{where}: expected a number, got {_kind(value)}")
+    v = float(value)
+    if finite and not math.isfinite(v):
+        raise error(f"{where}: expected a finite number, got {v}")
+    if math.isnan(v):
+        raise error(f"{where}: expected a number, got nan")
+    if low is not None and (v < low or (low_open and v == low)):
+        raise error(f"{where}: expected a number {'>' if low_open else '>='} {low:g}, got {v:g}")
+    if high is not None and v > high:
+        raise error(f"{where}: expected a number <= {high:g}, got {v:g}")
+    return v
+
+
+def integer(value, where: str, error, *, low=None, high=None) -> int:
+    """An integer (not a bool, not a float) within ``[low, high]``."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise error(f"{where}: expected an integer, got {_kind(value)}")
+    if (low is not None and value < low) or (high is not None and value > high):
+        span = f"in [{low}, {high}]" if high is not None else f">= {low}"
+        raise error(f"{where}: expected an integer {span}, got {value}")
+    return value
+
+
+def choice(value, where: str, choices, error) -> str:
+    """One of ``choices`` (strings)."""
+    if not isinstance(value, str) or value not in choices:
+        raise error(f"{where}: expected one of {tuple(choices)}, got {value!r}")
+    return value
+
+
+def _kind(value) -> str:
+    """How an unexpected value is named in errors: its repr when short, else its type."""
+    text = repr(value)
+    return f"{type(value).__name__} {text}" if len(text) <= 40 else f"a {type(value).__name__}"

@@ -1,0 +1,194 @@
+"""Gain files: written for people, read back exactly, every bad input refused with one line, hand edits re-signed."""
+
+import json
+import os
+import stat
+
+import jsonschema
+import numpy as np
+import pytest
+import yaml
+
+from pusupu_jax import LoopRates, ParameterError, ServoParams, gains
+from pusupu_jax.hybrid import HybridGains
+
+RATES = LoopRates(n_mech=5)
+GOOD = ServoParams.table1().replace(lambda1=np.linspace(0.02, 0.05, 6), lambda2=np.full(6, 0.1))
+HYBRID = HybridGains(m6=0.2, c6=1234.5, g=67.8, form="rms")
+TUNED = ("lambda1", "lambda2", "c6")
+
+
+def _write(path, servo=GOOD, hybrid=HYBRID, **kw):
+    return gains.write(path, servo, hybrid, RATES, mode="hybrid", tuned=TUNED,
+                       provenance={"config_hash": "test", "objective_before": 1.0, "objective_after": 0.5}, **kw)
+
+
+def test_a_gain_file_reads_back_exactly(tmp_path):
+    path = _write(tmp_path / "gains.yaml")
+    g = gains.load(path)
+    for name, value in vars(GOOD).items():  # the static imc_form included
+        assert np.array_equal(np.asarray(getattr(g.servo, name)), np.asarray(value)), name
+    assert g.hybrid == HYBRID and g.rates == RATES and g.mode == "hybrid"
+    doc = g.document
+    position = doc["controller"]["position"]
+    assert position["imc_form"] == "full"
+    assert position["lambda1"]["value"] == GOOD.lambda1.tolist() and position["lambda1"]["tuned"] is True
+    assert position["lambda2"] == {"value": 0.1, "unit": "s", "tuned": True}  # shared by the six axes: written once
+    assert "tuned" not in position["T0"] and doc["plant"]["J"] == {"value": 0.000188, "unit": "kg*m^2"}
+    assert doc["controller"]["hybrid"]["c6"]["tuned"] is True and doc["controller"]["hybrid"]["form"] == "rms"
+    block = doc["discrete"]["velocity_pi"]
+    assert block["sample_period_s"] == RATES.dt_velocity and "current reference" in block["output"]
+    assert "I_max" in block["clamp"]
+    p = doc["provenance"]
+    assert p["package"] == "pusupu_jax" and p["jax_version"] and p["mujoco_version"] and "git_commit" in p
+    assert p["tuned_fields"] == sorted(TUNED) and p["config_hash"] == "test"
+
+
+def test_the_shipped_json_schema_is_current_and_describes_written_files(tmp_path):
+    assert gains.SCHEMA_FILE.read_text() == gains.schema_text()
+    path = _write(tmp_path / "gains.yaml")
+    jsonschema.validate(yaml.safe_load(path.read_text()), json.loads(gains.SCHEMA_FILE.read_text()))
+
+
+def _rewrite(path, change):
+    """Apply ``change`` to the document and sign it again (as a foreign tool, or an attacker, would)."""
+    doc = yaml.safe_load(path.read_text())
+    doc.pop("checksum")
+    change(doc)
+    body = yaml.safe_dump(doc, sort_keys=False)
+    path.write_text(body + yaml.safe_dump({"checksum": gains._checksum(body)}))
+
+
+def _set(section, name, value):
+    def change(d):
+        where = d["plant"] if section == "plant" else d["controller"][section]
+        where[name]["value"] = value
+    return change
+
+
+BAD = {
+    "missing key": (lambda d: d.pop("margins"), "missing key 'margins'"),
+    "unknown key": (lambda d: d.update(extra=1), "unknown key 'extra'"),
+    "wrong unit": (lambda d: d["controller"]["position"]["lambda1"].update(unit="ms"),
+                   "controller.position.lambda1.unit: expected 's', got 'ms'"),
+    "unit an int": (lambda d: d["controller"]["position"]["lambda1"].update(unit=1), "unit: expected 's', got 1"),
+    "unit a list": (lambda d: d["controller"]["position"]["lambda1"].update(unit=["s"]), "unit: expected 's'"),
+    "wrong length": (_set("velocity", "Kv", [0.015] * 5), r"ServoParams.Kv: expected a number or a list of 6"),
+    "a quoted number": (_set("velocity", "Kv", "0.015"), "ServoParams.Kv: expected a number, got str"),
+    "a boolean": (_set("velocity", "Kv", True), "ServoParams.Kv: expected a number, got bool"),
+    "NaN": (_set("current", "Ti", [0.00208] * 2 + [float("nan")] + [0.00208] * 3), r"ServoParams.Ti\[2\]: expected a number, got nan"),
+    "negative time constant": (_set("velocity", "Tv", -5.0), "ServoParams.Tv: expected a positive"),
+    "unstable gains": (_set("velocity", "Kv", [0.015] * 5 + [2.0]), "velocity loop of axis 6 has"),
+    "schema version": (lambda d: d.update(version=3), "version: expected 2"),
+    "version 1 (printed-form era)": (lambda d: d.update(version=1), "version 1 files predate the choice of IMC"),
+    "unknown IMC form": (lambda d: d["controller"]["position"].update(imc_form="exact"),
+                         "ServoParams.imc_form: expected one of"),
+    "unknown mode": (lambda d: d.update(mode="fuzzy"), "mode: expected one of"),
+    "hybrid gain a list": (lambda d: d["controller"]["hybrid"]["m6"].update(value=[1, 2, 3]),
+                           "HybridGains.m6: expected a number, got list"),
+    "stale discrete": (lambda d: d["discrete"]["pid"]["D"][0].__setitem__(0, 1.0), "discrete.pid: not the"),
+    "rates not a mapping": (lambda d: d.update(rates=5), "rates: expected a mapping"),
+    "tuned not a boolean": (lambda d: d["controller"]["position"]["lambda1"].update(tuned="yes"),
+                            "lambda1.tuned: expected true or false"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_gain_files_are_refused_with_one_line(tmp_path, case):
+    path = _write(tmp_path / "gains.yaml")
+    change, message = BAD[case]
+    _rewrite(path, change)
+    with pytest.raises(ParameterError, match=message) as e:
+        gains.load(path)
+    assert "\n" not in str(e.value)
+
+
+def test_stability_is_checked_against_fixed_floors_never_the_files_own(tmp_path):
+    """Probe row 2: Kv = 1000 (velocity loop far past its gain margin), thresholds of -1000 written into the file's
+    provenance and margins, checksum recomputed: refused.  An explicit, lower floor is the caller's choice."""
+    path = _write(tmp_path / "gains.yaml")
+
+    def attack(d):
+        d["controller"]["velocity"]["Kv"]["value"] = 1000.0
+        d["provenance"].update(pm_min=-1000, gm_min=-1000, floors=[-1000, -1000])
+
+    _rewrite(path, attack)
+    with pytest.raises(ParameterError, match="velocity loop of axis 1 has .* expected at least 45 deg and 6 dB"):
+        gains.load(path)
+    with pytest.raises(ParameterError, match="expected at least 0 deg and 0 dB"):
+        gains.load(path, floors=(0.0, 0.0))  # unstable: even a floor of zero refuses it
+
+
+def test_edited_and_truncated_files_are_caught_and_a_deliberate_edit_is_re_signed(tmp_path):
+    path = _write(tmp_path / "gains.yaml")
+    text = path.read_text()
+    path.write_text(text.replace("value: 1234.5", "value: 1234.6"))
+    with pytest.raises(ParameterError, match="checksum: does not match"):
+        gains.load(path)
+    gains.sign(path)  # a deliberate, valid edit: re-signed
+    g = gains.load(path)
+    assert float(g.hybrid.c6) == 1234.6 and g.document["provenance"]["signed_utc"]
+    assert g.document["provenance"]["tuned_fields"] == sorted(TUNED)
+    signed = path.read_text()
+    path.write_text(signed.replace("Kv: {value: 0.015", "Kv: {value: 3.0"))
+    with pytest.raises(ParameterError, match="velocity loop"):
+        gains.sign(path)  # an unstable edit is not signed ...
+    assert "Kv: {value: 3.0" in path.read_text()  # ... nor the file rewritten
+    for cut in (len(text) // 2, text.rfind("checksum:"), len(text) - 10):
+        path.write_text(text[:cut])
+        with pytest.raises(ParameterError, match="(truncated|checksum|not valid YAML|missing key)"):
+            gains.load(path)
+
+
+def test_unstable_gains_are_never_written_and_the_old_file_survives(tmp_path):
+    path = _write(tmp_path / "gains.yaml")
+    before = path.read_bytes()
+    with pytest.raises(ParameterError, match="unstable or too little margin"):
+        _write(path, servo=GOOD.replace(Kv=np.full(6, 2.0)))
+    with pytest.raises(ParameterError, match="ServoParams.lambda2: expected finite"):
+        _write(path, servo=GOOD.replace(lambda2=np.full(6, np.nan)))
+    assert path.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["gains.yaml"]  # no temporary left behind
+
+
+@pytest.mark.parametrize("mask, mode", [(0o022, 0o644), (0o077, 0o600), (0o002, 0o664)])
+def test_files_get_the_mode_the_umask_gives(tmp_path, mask, mode):
+    """Probe row 14: every file used to be 0600 whatever the umask; an existing 0644 file stayed 0600 after a rewrite."""
+    old = os.umask(mask)
+    try:
+        path = _write(tmp_path / "gains.yaml")
+        assert stat.S_IMODE(path.stat().st_mode) == mode
+        _write(path)  # rewritten over itself
+        assert stat.S_IMODE(path.stat().st_mode) == mode
+    finally:
+        os.umask(old)
+
+
+def test_show_and_diff_read_for_people(tmp_path):
+    a = gains.load(_write(tmp_path / "a.yaml")).document
+    b = gains.load(_write(tmp_path / "b.yaml", hybrid=HYBRID.replace(c6=999.0))).document
+    text = gains.show(a)
+    assert "lambda1" in text and "0.02 0.026 0.032 0.038 0.044 0.05" in text and "yes" in text
+    assert "margins   position" in text
+    assert gains.diff(a, b) == ["hybrid.c6: 1234.5 -> 999.0 N/m"]
+    assert gains.diff(a, a) == []
+
+
+BAD_BYTES = {
+    "random bytes": bytes(range(256)) * 4,
+    "an alias bomb": b"a: &a [x, x]\nb: &b [*a, *a]\nc: &c [*b, *b]\nd: [*c, *c]\n",
+    "duplicate keys": b"schema: pusupu-gains\nschema: pusupu-gains\n",
+    "mixed key types": b"{1: 2, foo: 3}\n",
+    "too large": b"# " + b"x" * (1 << 20) + b"\n",
+    "not a mapping": b"- 1\n- 2\n",
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_BYTES))
+def test_malformed_files_end_in_one_line(tmp_path, case):
+    """Probe rows 8, 10, 13: never a traceback, never gigabytes."""
+    path = tmp_path / "gains.yaml"
+    path.write_bytes(BAD_BYTES[case])
+    with pytest.raises(ParameterError) as e:
+        gains.load(path)
+    assert "\n" not in str(e.value) and len(str(e.value)) < 300
