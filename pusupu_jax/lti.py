@@ -43,8 +43,8 @@ def ss(A, B, C, D) -> LTI:
     The blocks of the cascade are written in realisations whose states hold physical values
     that do not depend on the gains (a low-pass state holds the filtered input, an integrator
     holds its output term), so that a state carried over a change of gains means the same:
-    a drive switches gains without a bump, and a run restarted from another run's state with
-    other gains continues smoothly.
+    a change of gains moves the output only in proportion to the change, and a run restarted from
+    another run's state with other gains continues smoothly.
     """
     batch = jnp.broadcast_shapes(*[jnp.shape(x) for row in (*A, *B, *C, *D) for x in row])
 

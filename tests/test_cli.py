@@ -292,3 +292,22 @@ def test_version_and_python_m():
     assert pusupu("--version").stdout.strip() == f"pusupu {__version__}"
     r = subprocess.run([sys.executable, "-m", "pusupu_jax", "--version"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip() == f"pusupu {__version__}"
+
+
+def test_a_write_that_fails_midway_keeps_the_old_file_and_ends_in_one_line(tmp_path):
+    """Probe row 6 (a full disk gave an ENOSPC traceback): the process may write at most 4 kB per file
+    (RLIMIT_FSIZE; the write fails with EFBIG where a full disk gives ENOSPC, through the same code).  Re-signing a
+    gain file must end with one line and exit 2, the old file intact and no temporary left behind."""
+    from pusupu_jax import LoopRates, ServoParams, gains
+    from pusupu_jax.hybrid import HybridGains
+
+    path = gains.write(tmp_path / "gains.yaml", ServoParams.table1(), HybridGains(), LoopRates(n_mech=5), mode="imc")
+    before = path.read_bytes()
+    limited = ("import resource, runpy, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+               "resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096)); "
+               f"sys.argv = ['pusupu', 'gains', 'sign', {str(path)!r}]; runpy.run_module('pusupu_jax', run_name='__main__')")
+    r = subprocess.run([sys.executable, "-c", limited], capture_output=True, text=True, env=dict(os.environ),
+                       timeout=300)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "File too large" in r.stderr
+    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["gains.yaml"]

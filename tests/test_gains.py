@@ -192,3 +192,24 @@ def test_malformed_files_end_in_one_line(tmp_path, case):
     with pytest.raises(ParameterError) as e:
         gains.load(path)
     assert "\n" not in str(e.value) and len(str(e.value)) < 300
+
+
+def test_a_refused_export_says_so_and_names_the_file_left_in_place(tmp_path):
+    """Probe row 12: a report and plots used to describe gains that were not in gains.yaml.  Refused gains write
+    nothing, and the report's entry names the earlier gains.yaml left as it was (by its sha256)."""
+    import hashlib
+
+    from tune.config import TuneConfig
+    from tune.job import export
+
+    cfg = TuneConfig()
+    good = export(tmp_path, cfg, GOOD, HYBRID, RATES, TUNED, {})
+    assert good["gains_file"]["sha256"] == hashlib.sha256((tmp_path / "gains.yaml").read_bytes()).hexdigest()
+    assert {p.split("/")[-1] for p in good["exported"]} == {"gains.yaml", "ros2_pid_controller.yaml",
+                                                           "ros2_joint_trajectory_controller.yaml"}
+    before = (tmp_path / "gains.yaml").read_bytes()
+    bad = export(tmp_path, cfg, GOOD.replace(Kv=np.full(6, 2.0)), HYBRID, RATES, TUNED, {})
+    assert bad["exported"] == [] and "velocity loop" in bad["export_error"]
+    assert bad["gains_file"]["path"] is None and "velocity loop" in bad["gains_file"]["not_written"]
+    assert bad["gains_file"]["left_as_it_was"]["sha256"] == good["gains_file"]["sha256"]
+    assert (tmp_path / "gains.yaml").read_bytes() == before

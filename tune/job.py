@@ -208,28 +208,36 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream) -> tuple[dict, int]:
         "margins_before": gains.margins_report(servo0, mode=cfg.mode),
         "optimise_wall_s": t_opt,
     }
-    status = 0
-    gains_path = out / "gains.yaml"
-    try:
-        report["margins_after"] = gains.check_gains(servo1, hybrid1, cfg.mode, (cfg.pm_min, cfg.gm_min))
-        provenance = {"config_hash": cfg.digest(), "objective_before": objective_before,
-                      "objective_after": float(result["objective"]), "floors": [cfg.pm_min, cfg.gm_min],
-                      "metrics_after": report["after"]}
-        gains.write(gains_path, servo1, hybrid1, problem.rates, mode=cfg.mode, tuned=problem.space.fields,
-                    provenance=provenance, floors=(cfg.pm_min, cfg.gm_min), margins=report["margins_after"])
-        ros = ros2.write_files(out, servo1, cfg.mode, problem.rates, source=str(gains_path), joints=cfg.ros_joints)
-        report["exported"] = [str(gains_path)] + [str(p) for p in ros]
-        report["gains_file"] = {"path": str(gains_path), "sha256": _sha256(gains_path)}
-    except ParameterError as e:
-        report["exported"], report["export_error"] = [], str(e)
-        report["gains_file"] = {"path": None, "not_written": str(e),
-                                "left_as_it_was": ({"path": str(gains_path), "sha256": _sha256(gains_path)}
-                                                   if gains_path.exists() else None)}
-        status = 1
+    provenance = {"config_hash": cfg.digest(), "objective_before": objective_before,
+                  "objective_after": float(result["objective"]), "floors": [cfg.pm_min, cfg.gm_min],
+                  "metrics_after": report["after"]}
+    report |= export(out, cfg, servo1, hybrid1, problem.rates, problem.space.fields, provenance)
+    status = 1 if "export_error" in report else 0
     report["plots"] = _plots(out, result["history"], before, after, baselines)
     report["wall_s"] = time.perf_counter() - t0
     write_atomic(out / "report.json", json.dumps(report, indent=2))
     return report, status
+
+
+def export(out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: dict) -> dict:
+    """Write ``gains.yaml`` and the ROS 2 files if the gains pass every check; the report's entries about them.
+
+    ``gains_file`` names the gain file the report describes (path and sha256), or says that none was written and
+    why, and which earlier ``gains.yaml`` (if any) was left as it was: a report never silently describes gains that
+    are not in ``gains.yaml``.
+    """
+    gains_path = out / "gains.yaml"
+    try:
+        margins = gains.check_gains(servo, hybrid, cfg.mode, (cfg.pm_min, cfg.gm_min))
+        gains.write(gains_path, servo, hybrid, rates, mode=cfg.mode, tuned=tuned, provenance=provenance,
+                    floors=(cfg.pm_min, cfg.gm_min), margins=margins)
+        ros = ros2.write_files(out, servo, cfg.mode, rates, source=str(gains_path), joints=cfg.ros_joints)
+        return {"margins_after": margins, "exported": [str(gains_path)] + [str(p) for p in ros],
+                "gains_file": {"path": str(gains_path), "sha256": _sha256(gains_path)}}
+    except ParameterError as e:
+        left = {"path": str(gains_path), "sha256": _sha256(gains_path)} if gains_path.exists() else None
+        return {"margins_after": gains.margins_report(servo, cfg.mode), "exported": [], "export_error": str(e),
+                "gains_file": {"path": None, "not_written": str(e), "left_as_it_was": left}}
 
 
 def _sha256(path: Path) -> str:

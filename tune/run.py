@@ -213,11 +213,14 @@ class Problem:
     def start_baseline(self):
         """The terms at the start, from one call of the compiled gradient (normalisers of 1: no new compile)."""
         if self.baseline is None:
+            kept = (self.starts, self._starts_z)  # a resumed run has its own starts already: keep them
             z0 = self.space.z0()
-            self.prepare(z0, 0)
+            self.refresh(z0)
             ones = {k: jnp.ones(len(self.scenarios.names)) for k in objectives.TERMS}
             (_, aux), _ = self._value_and_grad(z0, ones, self.starts)
             self.baseline = aux["terms"]
+            if kept[0] is not None:
+                self.starts, self._starts_z = kept
         return self.baseline
 
     def value_and_grad(self, z):

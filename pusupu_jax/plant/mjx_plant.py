@@ -34,7 +34,7 @@ with contextlib.redirect_stdout(io.StringIO()):  # MJX prints its optional GPU b
 
 from .axis import screw_ratio
 from .geometry import Geometry
-from .model import ModelOptions, build_model, connect_gap, loop_closure_residual, slide_dofs, slide_qpos
+from .model import ModelOptions, build_model, loop_closure_residual, slide_dofs, slide_qpos
 
 
 @jax.tree_util.register_dataclass
@@ -79,6 +79,43 @@ class MJXPlant:
     def _dofs(self):
         return slide_dofs(self.mj_model)
 
+    def _connect_jacobian(self, model, data):
+        """``(18, nv)``: d(anchor on the rod - anchor on the platform)/d(qvel) of the six spherical joints.
+
+        MuJoCo's point Jacobian (``mj_jac``; ``mjx.jac`` with its body-tree mask built here once
+        from the static tree): ``cdof[3:] + cdof[:3] x (point - subtree_com[root])`` over the
+        DOFs that move the body.  ``data`` must hold ``cdof`` and ``subtree_com`` (after ``mjx.forward``).
+        """
+        m = self.mj_model
+        xmat = data.xmat.reshape(-1, 3, 3)
+        rows = []
+        for k in range(6):
+            eq = m.equality(f"sphere_{k}").id
+            anchors = model.eq_data[eq]
+            jacobians = []
+            for body, anchor in ((m.eq_obj1id[eq], anchors[0:3]), (m.eq_obj2id[eq], anchors[3:6])):
+                point = data.xpos[body] + xmat[body] @ anchor
+                offset = point - data.subtree_com[m.body_rootid[body]]
+                jacp = data.cdof[:, 3:] + jnp.cross(data.cdof[:, :3], offset)
+                jacobians.append(jacp * self._moves(body)[:, None])
+            rows.append((jacobians[0] - jacobians[1]).T)
+        return jnp.concatenate(rows)
+
+    def _moves(self, body: int) -> np.ndarray:
+        """``(nv,)`` bool: the DOFs whose motion moves ``body`` (its own and its ancestors')."""
+        m, chain = self.mj_model, set()
+        while body > 0:
+            chain.add(body)
+            body = m.body_parentid[body]
+        return np.isin(m.dof_bodyid, sorted(chain))
+
+    @property
+    def _upu_and_branch_dofs(self):
+        """DOF indices of the UPU leg's five joints (the platform's coordinates) and of the branches' 18."""
+        m = self.mj_model
+        upu = [m.jnt_dofadr[m.joint(name).id] for name in ("upu_phi1", "upu_phi2", "upu_leg", "upu_alpha", "upu_beta")]
+        return np.array(upu), np.array(sorted(set(range(m.nv)) - set(upu)))
+
     @property
     def _qpos(self):
         return slide_qpos(self.mj_model)
@@ -99,22 +136,21 @@ class MJXPlant:
         """Motor torques [N m] that hold the machine still in ``data`` (at rest: gravity only), ``(6,)``.
 
         The five equations of static equilibrium along the motions the closed chain allows,
-        ``J^T F = Q`` (``N``: a basis of the null space of the spherical joints' constraint
-        Jacobian; ``J = N`` at the slides; ``Q = N^T qfrc_bias``), are solved for the slider
-        forces ``F`` with the minimum norm (no internal force), as
-        :mod:`pusupu_jax.plant.dynamics` distributes the inverse dynamics; with
+        ``J^T F = Q`` (``N``: a basis of those motions; ``J = N`` at the slides; ``Q = N^T
+        qfrc_bias``), are solved for the slider forces ``F`` with the minimum norm (no internal
+        force), as :mod:`pusupu_jax.plant.dynamics` distributes the inverse dynamics; with
         ``force_axis``, that branch pushes ``force`` [N] and the other five carry the rest
-        (unique).  This is the machine's own model (seeded errors and payload included); no
-        gradient flows through it.
+        (unique).  ``N``: the UPU leg's five joints are the platform's coordinates, and the
+        spherical joints' constraints ``Jc_u dq_u + Jc_b dq_b = 0`` give each branch's three
+        joints from them (``Jc_b`` is block diagonal, 3 x 3 per branch, invertible away from
+        singular poses).  This is the machine's own model (seeded errors and payload included);
+        no gradient flows through it.
         """
         model, data = jax.lax.stop_gradient((aux.model, data))
-
-        def gap(qpos):  # every joint is a hinge or a slide: qpos and qvel have the same layout
-            d = mjx.kinematics(model, data.replace(qpos=qpos))
-            return connect_gap(self.mj_model, d.xpos, d.xmat, model.eq_data).reshape(-1)
-
-        jc = jax.jacfwd(gap)(data.qpos)  # (18, nv)
-        basis = jnp.linalg.svd(jc)[2][jc.shape[0]:].T  # (nv, nv - 18): the consistent motions
+        upu, branches = self._upu_and_branch_dofs
+        jc = self._connect_jacobian(model, data)  # (18, nv)
+        basis = jnp.zeros((jc.shape[1], len(upu))).at[upu].set(jnp.eye(len(upu)))
+        basis = basis.at[branches].set(-jnp.linalg.solve(jc[:, branches], jc[:, upu]))
         J = basis[self._dofs]
         Q = basis.T @ data.qfrc_bias
         if force_axis is None:
