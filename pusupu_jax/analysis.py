@@ -29,6 +29,7 @@ import control as ct
 import numpy as np
 from scipy.optimize import brentq, minimize_scalar
 
+from .cascade import control_mode
 from .params import N_AXES, AxisLoad, LoopRates, ServoParams, arrays
 
 LOOPS = ("current", "velocity", "position")
@@ -155,15 +156,16 @@ def closed_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, rates: LoopR
                            inputs="w_ref", outputs=out, name="velocity_loop")
     inner = cl_v if rates is None else hold_resample(cl_v, rates.n_position)
     bp = at(2)
-    if mode == "imc":
+    law = control_mode(mode).law
+    if law == "imc":
         parts = [bp["C1"], bp["C2"], _sum("r1", "theta", "e_p")]
-    elif mode == "pid":
+    elif law == "pid":
         parts = [bp["PID"], _sum("th_ref", "theta", "e_p")]
-    elif mode == "pid_ff":
+    elif law == "pid_ff":
         parts = [ct.ss(bp["PID"], inputs="e_p", outputs="w_pid"), velocity_feedforward(servo, axis, rates),
                  ct.summing_junction(inputs=["w_pid", "w_ff"], output="w_ref"), _sum("th_ref", "theta", "e_p")]
     else:
-        raise ValueError(f"closed_loops: expected mode 'imc', 'pid' or 'pid_ff', got {mode!r}")
+        raise ValueError(f"closed_loops: expected a mode of imc, pid, pid_ff or hybrid, got {mode!r}")
     cl_p = ct.interconnect(parts + [inner], inputs="th_ref", outputs=out, name="position_loop")
     return {"current": cl_i, "velocity": cl_v, "position": cl_p}
 
@@ -179,7 +181,7 @@ def open_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, mode: str = "i
                           inputs="u_pi", outputs="i_f", check_unused=False)
     p_v = ct.interconnect([cl["current"], b["Gw"]], inputs="i_ref", outputs="w_f", check_unused=False)
     p_p = cl["velocity"][2, 0]
-    c_p = b["C2"] if mode == "imc" else b["PID"]  # pid_ff: the feedforward acts outside the loop
+    c_p = b["C2"] if control_mode(mode).law == "imc" else b["PID"]  # pid_ff: the feedforward acts outside the loop
     return {"current": _siso(b["Gi"]) * p_i, "velocity": _siso(b["Gv"]) * p_v, "position": _siso(c_p) * p_p}
 
 

@@ -93,16 +93,10 @@ class GainFile:
     document: dict
 
 
-def loop_mode(mode: str) -> str:
-    """The position loop of a control mode: 'pid' for pid and pid_ff (the feedforward is outside the loop), 'ros_pid'
-    for ROS's PID, else 'imc' (hybrid runs IMC)."""
-    return {"pid": "pid", "pid_ff": "pid", "ros_pid": "ros_pid"}.get(mode, "imc")
-
-
 def margins_report(servo: ServoParams, mode: str = "imc") -> dict:
     """Phase [deg] and gain [dB] margins of every loop of every axis (``pusupu_jax.margins``, single-axis model)."""
     with jax.enable_x64(True):
-        m = loop_margins(servo, AxisLoad.default(), mode=loop_mode(mode))
+        m = loop_margins(servo, AxisLoad.default(), mode=mode)
     return {loop: {k: np.asarray(v[k], dtype=float).tolist() for k in ("phase_margin_deg", "gain_margin_db")}
             for loop, v in m.items()}
 

@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -119,14 +119,25 @@ def synchronous_error(branch_errors, dt):
     return jnp.cumsum(rms_rate(branch_errors), axis=-1) * dt
 
 
-def init(force=0.0):
-    """State of the force law: ``rho`` [m s], the previous ``rho'`` [m] and the last ``F_6`` [N] (``force``)."""
-    return {"rho": jnp.zeros(()), "rate": jnp.zeros(()), "force": jnp.zeros(()) + force}
+class ForceState(NamedTuple):
+    """State of the force law."""
+
+    rho: Any  # m s: the synchronous error, integral of rho'
+    rate: Any  # m: the previous rho'
+    force: Any  # N: the last F_6
 
 
-def step(gains: HybridGains, state, e, coupling, force_ff, dt: float):
-    """One position period: branch errors ``e`` (6,) [m] -> ``(state, F_6 [N])``."""
-    rate = rms_rate(e) if gains.form == "rms" else jnp.dot(coupling, e[:5])
-    rho = state["rho"] + rate * dt
-    force = force_ff + gains.m6 * (rate - state["rate"]) / dt + gains.c6 * rate + gains.g * rho
-    return {"rho": rho, "rate": rate, "force": force}, force
+def init(force=0.0) -> ForceState:
+    """The force law at rest, its last ``F_6`` at ``force`` [N]."""
+    return ForceState(jnp.zeros(()), jnp.zeros(()), jnp.zeros(()) + force)
+
+
+def step(gains: HybridGains, state: ForceState, e, coupling, force_ff, dt):
+    """One position period (eq. 13-14): branch errors ``e`` (6,) [m] -> ``(state, F_6 [N])``.
+
+    ``coupling`` (5,): the row ``w`` of the signed form [1]; ``force_ff``: ``F_q`` [N]; ``dt``: the period [s].
+    """
+    rate = rms_rate(e) if gains.form == "rms" else jnp.dot(coupling, e[..., :5])
+    rho = state.rho + rate * dt
+    force = force_ff + gains.m6 * (rate - state.rate) / dt + gains.c6 * rate + gains.g * rho
+    return ForceState(rho, rate, force), force

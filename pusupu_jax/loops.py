@@ -42,6 +42,7 @@ import jax.numpy as jnp
 from . import lti
 from .lti import LTI
 from .params import LoopRates, ServoParams
+from .plant.axis import screw_ratio
 
 
 @jax.tree_util.register_dataclass
@@ -91,6 +92,9 @@ class Drive:
     electrical: LTI  # states (inverter voltage [V], armature current [A]); inputs (u [V], w [rad/s])
     Kt: Any  # N m / A
     emf_gain: Any  # V/(rad/s): back-EMF feedforward emf_ff*Ke/Kn
+    screw: Any  # m/rad: slider travel per motor radian, lead / 2 pi
+    force_current: Any  # A/N: the current that pushes a slider force, r / (eta Kt)
+    dt_position: Any  # s: the position loop's period
 
 
 class PIState(NamedTuple):
@@ -197,6 +201,9 @@ def discretize(p: ServoParams, rates: LoopRates) -> Drive:
         electrical=lti.c2d(electrical_model(p), rates.dt_current, "zoh"),
         Kt=p.Kt,
         emf_gain=p.emf_ff * p.Ke / p.Kn,
+        screw=screw_ratio(p),
+        force_current=screw_ratio(p) / (p.eta * p.Kt),
+        dt_position=dt_p + 0.0 * p.Kt,
     )
 
 
@@ -235,6 +242,12 @@ def pi_loop_rest(c: PILoop, ref, meas, out) -> PIState:
 
 def imc_init(c: IMC) -> IMCState:
     return IMCState(lti.zeros_state(c.c1), lti.zeros_state(c.c2))
+
+
+def imc_rest(c: IMC, theta0) -> IMCState:
+    """The IMC at rest with the reference held at ``theta0`` [rad] and zero error (``theta0 = 0``: all zero)."""
+    theta0 = jnp.broadcast_to(jnp.asarray(theta0, c.c1.A.dtype), c.c1.A.shape[:-2])
+    return IMCState(lti.dc_state(c.c1, theta0[..., None]), lti.zeros_state(c.c2))
 
 
 def imc_step(c: IMC, s: IMCState, theta_ref, theta):

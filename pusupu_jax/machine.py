@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import hybrid as hybrid_law
+from .cascade import POSITION_MODES, control_mode
 from .objectives import branch_force
 from .params import LoopRates, ServoParams, stack, validate
 from .plant import dynamics, kinematics
@@ -26,7 +27,7 @@ from .plant.mjx_plant import MJXPlant
 from .plant.model import ModelOptions
 from .sim import rollout
 
-MACHINE_MODES = ("imc", "pid", "pid_ff", "ros_pid", "hybrid")
+MACHINE_MODES = POSITION_MODES
 
 
 def machine_rates(options: ModelOptions = ModelOptions(), rates: LoopRates = LoopRates()) -> LoopRates:
@@ -47,7 +48,7 @@ def machine_plant(options: ModelOptions = ModelOptions()) -> MJXPlant:
 def _batch_runner(plant, rates, mode, start, servo_axis, hybrid_axis):
     def one(servo, model, reference, hybrid):
         return rollout(servo, model, reference, plant=plant, rates=rates, outer=mode, start=start,
-                       hybrid=hybrid if mode == "hybrid" else None)
+                       hybrid=hybrid if control_mode(mode).hybrid else None)
 
     return jax.jit(jax.vmap(one, in_axes=(servo_axis, 0, 0, hybrid_axis)))
 
@@ -67,7 +68,7 @@ def machine_reference(servo: ServoParams, path, mode: str, *, options: ModelOpti
     s_home = kinematics.inverse_kinematics(geom, jnp.asarray(geom.home))
     s_ref = np.asarray(kinematics.inverse_kinematics(geom, jnp.asarray(path)) - s_home)
     theta = jnp.asarray(s_ref / np.asarray(screw_ratio(servo)))
-    if mode != "hybrid":
+    if not control_mode(mode).hybrid:
         return theta
     force, J = dynamics.inverse_dynamics_forces(servo, path, rates.dt_position, geom, options)
     return hybrid_law.HybridReference(theta, jnp.asarray(force[:, hybrid_law.FORCE_AXIS]),
@@ -103,7 +104,7 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
     if batched and np.shape(servo.lambda1)[0] != len(scenarios):
         raise ValueError(f"servo: expected one parameter set or {len(scenarios)} (one per scenario), "
                          f"got {np.shape(servo.lambda1)[0]}")
-    if mode == "hybrid":
+    if control_mode(mode).hybrid:
         hybrid = hybrid_law.HybridGains() if hybrid is None else hybrid
         hybrid_law.validate_gains(hybrid)
     nominal = dataclasses.replace(scenarios[0].options, kin_error_seed=None, payload=0.0)
@@ -115,7 +116,7 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
         return jax.tree.map(lambda x: np.asarray(x)[k], tree)
 
     servos = [pick(servo, k) if batched else servo for k in range(len(scenarios))]
-    hybrid_axis = 0 if mode == "hybrid" and np.ndim(hybrid.m6) == 1 else None
+    hybrid_axis = 0 if control_mode(mode).hybrid and np.ndim(hybrid.m6) == 1 else None
     hybrids = [pick(hybrid, k) if hybrid_axis == 0 else hybrid for k in range(len(scenarios))]
     models, references = [], []
     for sc, sv in zip(scenarios, servos):
@@ -162,7 +163,7 @@ def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: f
     ``reference``: the rollout reference the trace followed (see :func:`machine_reference`).
     """
     r = np.asarray(screw_ratio(servo))
-    s_ref = np.asarray(reference.theta if mode == "hybrid" else reference) * r
+    s_ref = np.asarray(control_mode(mode).theta(reference)) * r
     platform = np.asarray(trace.observation["platform_pos"])
     e_platform = np.linalg.norm(platform - np.asarray(path)[:, :3], axis=1)
     e_branch = np.asarray(trace.position) - s_ref
@@ -180,9 +181,9 @@ def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: f
         "sync_error_rho": float(rho[-1]) * 1e3,  # mm s
         "loop_closure_residual_max_mm": float(residual.max() * 1e3),
     }
-    if mode == "hybrid":
+    if control_mode(mode).hybrid:
         # the state is recorded at the start of each period, so F_6 of period k shows at k + 1
-        f_rho = np.asarray(trace.state["force"]["force"])[1:] - np.asarray(reference.force_ff)[:-1]
+        f_rho = np.asarray(trace.state.force.force)[1:] - np.asarray(reference.force_ff)[:-1]
         result["hybrid"] = {"form": hybrid.form, **{f.name: float(getattr(hybrid, f.name))
                                                    for f in hybrid_law.gain_fields()},
                             "force_ff_peak_n": float(np.abs(np.asarray(reference.force_ff)).max()),

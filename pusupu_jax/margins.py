@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
+from .cascade import control_mode
 from .params import arrays
 from .plant.axis import screw_ratio
 
@@ -52,15 +53,16 @@ def loop_gains(servo, load, w, mode: str = "imc") -> dict:
     g_v = _tf([p["Kv"] * p["Tv"], p["Kv"]], [p["Tv"], zero], s)
     l_v = g_v * t_i * motion * p["Kw"] / (p["Tw"] * s + 1)
     t_v = g_v * t_i * motion / (p["Tw"] * s + 1) / (1 + l_v)
-    if mode == "imc":
+    law = control_mode(mode).law
+    if law == "imc":
         l2, T0 = p["lambda2"], p["T0"]
         c = (3 * l2 * s + 1) * (T0 * s + 1) / (3 * l2**2 * s * (l2 / 3 * s + 1))
-    elif mode in ("pid", "pid_ff"):  # the velocity feedforward acts outside the loop
+    elif law in ("pid", "pid_ff"):  # the velocity feedforward acts outside the loop
         c = p["Kp_pid"] + p["Ki_pid"] / s + p["Kd_pid"] * s / (p["Tf_pid"] * s + 1)
-    elif mode == "ros_pid":  # ROS's PID: no derivative filter (its d acts on the measured velocity error)
+    elif law == "ros_pid":  # ROS's PID: no derivative filter (its d acts on the measured velocity error)
         c = p["Kp_pid"] + p["Ki_pid"] / s + p["Kd_pid"] * s
     else:
-        raise ValueError(f"loop_gains: expected mode 'imc', 'pid', 'pid_ff' or 'ros_pid', got {mode!r}")
+        raise ValueError(f"loop_gains: expected a mode with a position loop, got {mode!r}")
     return {"current": l_i, "velocity": l_v, "position": c * t_v / s}
 
 

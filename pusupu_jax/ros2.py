@@ -32,6 +32,7 @@ import numpy as np
 import yaml
 
 from .config import write_atomic
+from .cascade import MODES, control_mode
 from .params import LoopRates, ParameterError, ServoParams
 from .plant.axis import screw_ratio
 
@@ -42,11 +43,12 @@ PID_CONTROLLER, TRAJECTORY_CONTROLLER = "pusupu_pid_controller", "pusupu_traject
 
 def ros_gains(servo: ServoParams, mode: str) -> dict:
     """``{p, i, d, ff}`` per axis (arrays (6,)) of ROS's PID for the position loop of ``mode``."""
-    if mode in ("pid", "pid_ff"):
-        ff = np.asarray(servo.Kff_pid, dtype=float) if mode == "pid_ff" else np.zeros(6)
+    law = control_mode(mode).law if mode in MODES else None
+    if law in ("pid", "pid_ff"):
+        ff = np.asarray(servo.Kff_pid, dtype=float) if law == "pid_ff" else np.zeros(6)
         return {"p": np.asarray(servo.Kp_pid, dtype=float), "i": np.asarray(servo.Ki_pid, dtype=float),
                 "d": np.asarray(servo.Kd_pid, dtype=float), "ff": ff}
-    if mode not in ("imc", "hybrid"):
+    if law != "imc":
         raise ParameterError(f"ROS export: expected a mode of imc, pid, pid_ff or hybrid, got {mode!r}")
     l2, T0 = np.asarray(servo.lambda2, dtype=float), np.asarray(servo.T0, dtype=float)
     return {"p": (3 * l2 + T0) / (3 * l2**2), "i": 1 / (3 * l2**2), "d": T0 / l2, "ff": np.zeros(6)}
@@ -111,9 +113,10 @@ def _check_joints(joints):
 
 def header(mode: str, source: str) -> str:
     """The comment at the top of an exported file: where it comes from, its units, what ROS carries and drops."""
-    dropped = ("the derivative filter Tf_pid (ROS uses the velocity error instead)" if mode in ("pid", "pid_ff") else
+    dropped = ("the derivative filter Tf_pid (ROS uses the velocity error instead)"
+               if control_mode(mode).law in ("pid", "pid_ff") else
                "the IMC prefilter C1 (which sets tracking), C2's output filter 1/((lambda2/3) s + 1)"
-               + (", and branch 6's force control (hybrid mode): ROS holds its position" if mode == "hybrid" else ""))
+               + (", and branch 6's force control (hybrid mode): ROS holds its position" if control_mode(mode).hybrid else ""))
     return (f"# Exported by pusupu_jax from {source}: the tuned {mode} position loop as ROS 2 PIDs.\n"
             "# Joint units: slider position [m], velocity [m/s]; p [1/s], i [1/s^2], d [1], feedforward [1]; clamps\n"
             "# [m/s] (the slider speed at which the back-EMF reaches V_max).\n"

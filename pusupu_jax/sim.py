@@ -25,13 +25,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import cascade as cascade_
 from . import hybrid as hybrid_law
-from . import loops, lti
+from . import loops
 from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate
 from .plant import AxisPlant
 from .plant.axis import screw_ratio
 
-OUTER_LOOPS = ("current", "velocity", "imc", "pid", "pid_ff", "ros_pid", "hybrid")
 MODES = ("imc", "pid", "pid_ff")
 STARTS = ("rest", "zero")
 
@@ -55,130 +55,123 @@ class Trace:
     velocity: Any  # slider velocity, m/s
     current: Any  # armature current, A
     torque: Any  # motor torque Kt*I, N m
-    state: Any  # every controller and electrical state (pytree)
+    current_reference: Any  # A, (..., N, m, n_axes): the current references of the period's m inner periods
+    state: Any  # every controller state (a cascade.CascadeState)
     observation: Any  # what the plant's observe() keeps (pytree)
 
 
-def initial_state(drive: loops.Drive, plant, aux, outer: str, start: str = "rest", force_ff0=None) -> dict:
-    """The scan carry: named states of the plant, the electrical model and every closed loop.
+class Carry(NamedTuple):
+    """The scan carry: the plant, the electrical model (inverter, armature) and the controllers."""
 
-    ``start='rest'``: the plant at rest in its initial state and the cascade holding it there,
-    as on a machine that has been standing under control: the motor currents that hold it
+    plant: Any
+    electrical: Any  # (..., n_axes, 2): inverter voltage [V], armature current [A]
+    cascade: cascade_.CascadeState
+
+
+def initial_state(drive: loops.Drive, plant, aux, mode: cascade_.ControlMode, start: str = "rest",
+                  force_ff0=None) -> Carry:
+    """The plant at rest in its initial state, and the cascade as ``start`` says.
+
+    ``start='rest'``: the cascade holding the plant there, as on a machine that has been standing
+    under control (:func:`pusupu_jax.cascade.rest`): the motor currents that hold it
     (``plant.holding_torque``; in hybrid mode branch 6 pushes ``force_ff0``, its ``F_q`` at
-    t = 0 [N]), the electrical model carrying them, every filter at its steady value, each PI
-    integrator preloaded with the output it holds, the position loops at zero error.
-    ``start='zero'``: every controller and electrical state zero, so that the plant sags
-    under gravity until the integrators catch up (how runs started before; kept to
-    reproduce old figures).
+    t = 0 [N]) and the electrical model carrying them.  ``start='zero'``: every controller and
+    electrical state zero, so that the plant sags under gravity until the integrators catch up
+    (how runs started before; kept to reproduce old figures).
     """
     if start not in STARTS:
         raise ValueError(f"rollout: expected start in {STARTS}, got {start!r}")
     plant_state = plant.init(aux)
     theta0, _ = plant.measure(aux, plant_state)
-    c = dict(plant=plant_state, electrical=loops.electrical_init(drive.electrical),
-             current=loops.pi_loop_init(drive.current))
-    if outer != "current":
-        c["velocity"] = loops.pi_loop_init(drive.velocity)
-    if start == "rest":
-        force = (None, None) if outer != "hybrid" else (hybrid_law.FORCE_AXIS, force_ff0)
-        i = plant.holding_torque(aux, plant_state, *force) / drive.Kt
-        c["electrical"], u = loops.electrical_rest(drive.electrical, i)
-        i_ref = i * lti.dc_gain(drive.current.fb_filter) / lti.dc_gain(drive.current.ref_filter)
-        c["current"] = loops.pi_loop_rest(drive.current, i_ref, i, u)
-        if outer != "current":
-            c["velocity"] = loops.pi_loop_rest(drive.velocity, jnp.zeros_like(i), jnp.zeros_like(i), i_ref)
-    if outer in ("imc", "hybrid"):
-        c["position"] = loops.imc_init(drive.imc)
-    elif outer == "pid":
-        c["position"] = loops.pid_init(drive.pid)
-    elif outer == "pid_ff":
-        c["position"] = loops.pid_ff_init(drive.pid, theta0)
-    elif outer == "ros_pid":
-        c["position"] = loops.ros_pid_init(drive.ros, theta0)
-    if outer == "hybrid":
-        c["force"] = hybrid_law.init(force_ff0 if start == "rest" else 0.0)
-    return c
+    if start == "zero":
+        return Carry(plant_state, loops.electrical_init(drive.electrical), cascade_.init(drive, mode, theta0))
+    force = (mode.force_axis, force_ff0) if mode.hybrid else (None, None)
+    i = plant.holding_torque(aux, plant_state, *force) / drive.Kt
+    electrical, u = loops.electrical_rest(drive.electrical, i)
+    return Carry(plant_state, electrical, cascade_.rest(drive, mode, i, u, theta0, 0.0 if force_ff0 is None else force_ff0))
 
 
-class _Cascade(NamedTuple):
-    """The pieces of a rollout: one outer period, the trace record of it, the period [s] and the initial carry."""
+def current_ticks(drive: loops.Drive, electrical, s: cascade_.CascadeState, i_ref, omega, n: int):
+    """``n`` current periods of the drives and their motors' electrics with the motor speed ``omega`` [rad/s] held.
 
-    period: Any  # (carry, reference sample) -> (carry, command)
-    record: Any  # (carry at the period's start, reference sample, command) -> trace entries
+    Returns ``(electrical, state, mean motor torque [N m], the first period's inverter command [V])``:
+    the mechanics then advances one step with that torque (``n = rates.n_mech``).
+    """
+    def tick(ce, _):
+        xe, sc = ce
+        sc, u = cascade_.current_tick(drive, sc, i_ref, loops.electrical_current(xe), omega)
+        torque = drive.Kt * loops.electrical_current(xe)
+        return (loops.electrical_step(drive.electrical, xe, u, omega), sc), (torque, u)
+
+    (xe, sc), (torques, u) = jax.lax.scan(tick, (electrical, s), None, length=n)
+    return xe, sc, jnp.mean(torques, axis=0), u[0]
+
+
+class Pieces(NamedTuple):
+    """The pieces of a rollout: one outer period, the trace record of it, the period [s] and the initial carry.
+
+    ``mech_step`` and ``velocity_period`` are the drive side below a command, ``measure`` and ``observe`` the plant's
+    sensors: the simulated robot (:mod:`hw_bridge.sim_robot`) runs its drives and mechanism with them.
+    """
+
+    period: Any  # (carry, reference sample) -> (carry, (command, current references (m, n_axes)))
+    record: Any  # (carry at the period's start, reference sample, (command, current references)) -> trace entries
     dt: float
     init: Any  # (start, force_ff0) -> carry
+    mech_step: Any  # (carry, i_ref [A]) -> (carry, u of the first tick [V])
+    velocity_period: Any  # (carry, w_ref [rad/s], i_force [A] or None) -> (carry, i_ref [A])
+    measure: Any  # carry -> (theta [rad], omega [rad/s])
+    observe: Any  # carry -> the plant's observation (pytree)
 
 
-def _cascade(params, plant_params, *, plant, rates: LoopRates, outer: str, hybrid) -> _Cascade:
-    if outer not in OUTER_LOOPS:
-        raise ValueError(f"rollout: expected outer in {OUTER_LOOPS}, got {outer!r}")
-    if (outer == "hybrid") != (hybrid is not None):
+def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.ControlMode, hybrid) -> Pieces:
+    """The closures of one rollout (traced: call inside a jitted function) for ``mode`` against ``plant``."""
+    if mode.hybrid != (hybrid is not None):
         raise ValueError("rollout: hybrid gains are needed exactly when outer='hybrid'")
     drive = loops.discretize(params, rates)
     aux = plant.prepare(params, plant_params, rates.dt_mech)
     n_mech_steps = rates.n_velocity // rates.n_mech
-    r = screw_ratio(params)
 
-    def record(c, ref, command):
-        theta, omega = plant.measure(aux, c["plant"])
-        x, v = plant.slider(aux, c["plant"])
-        i = loops.electrical_current(c["electrical"])
-        return dict(reference=ref.theta if outer == "hybrid" else ref, command=command, theta=theta, omega=omega,
-                    position=x, velocity=v, current=i, torque=drive.Kt * i,
-                    state={k: s for k, s in c.items() if k != "plant"}, observation=plant.observe(aux, c["plant"]))
+    def record(c: Carry, ref, out):
+        command, i_refs = out
+        theta, omega = plant.measure(aux, c.plant)
+        x, v = plant.slider(aux, c.plant)
+        i = loops.electrical_current(c.electrical)
+        return dict(reference=mode.theta(ref), command=command, theta=theta, omega=omega,
+                    position=x, velocity=v, current=i, torque=drive.Kt * i, current_reference=i_refs, state=c.cascade,
+                    observation=plant.observe(aux, c.plant))
 
-    def mech_step(c, i_ref):
-        _, omega = plant.measure(aux, c["plant"])
+    def mech_step(c: Carry, i_ref):
+        _, omega = plant.measure(aux, c.plant)
+        xe, sc, torque, u = current_ticks(drive, c.electrical, c.cascade, i_ref, omega, rates.n_mech)
+        return Carry(plant.step(aux, c.plant, torque), xe, sc), u
 
-        def tick(ce, _):
-            xe, sc = ce
-            sc, u = loops.pi_loop_step(drive.current, sc, i_ref, loops.electrical_current(xe),
-                                       drive.emf_gain * omega)
-            torque = drive.Kt * loops.electrical_current(xe)
-            return (loops.electrical_step(drive.electrical, xe, u, omega), sc), (torque, u)
-
-        (xe, sc), (torques, u) = jax.lax.scan(tick, (c["electrical"], c["current"]), None, length=rates.n_mech)
-        c = dict(c, plant=plant.step(aux, c["plant"], jnp.mean(torques, axis=0)), electrical=xe, current=sc)
-        return c, u[0]
-
-    def velocity_period(c, w_ref, i_force=None):
-        _, omega = plant.measure(aux, c["plant"])
-        sv, i_ref = loops.pi_loop_step(drive.velocity, c["velocity"], w_ref, omega)
-        if i_force is not None:
-            limit = params.I_max[..., hybrid_law.FORCE_AXIS]
-            i_ref = i_ref.at[..., hybrid_law.FORCE_AXIS].set(jnp.clip(i_force, -limit, limit))
-        c = dict(c, velocity=sv)
-        c, _ = jax.lax.scan(lambda cc, _: mech_step(cc, i_ref), c, None, length=n_mech_steps)
+    def velocity_period(c: Carry, w_ref, i_force=None):
+        _, omega = plant.measure(aux, c.plant)
+        sc, i_ref = cascade_.velocity_tick(drive, mode, c.cascade, w_ref, omega, i_force)
+        c, _ = jax.lax.scan(lambda cc, _: mech_step(cc, i_ref), c._replace(cascade=sc), None, length=n_mech_steps)
         return c, i_ref
 
-    def position_controller(state, theta_ref, theta, omega):
-        if outer == "pid":
-            return loops.pid_step(drive.pid, state, theta_ref, theta)
-        if outer == "pid_ff":
-            return loops.pid_ff_step(drive.pid, drive.velocity_ff, state, theta_ref, theta)
-        if outer == "ros_pid":
-            return loops.ros_pid_step(drive.ros, state, theta_ref, theta, omega)
-        return loops.imc_step(drive.imc, state, theta_ref, theta)
+    def position_period(c: Carry, ref):
+        theta, omega = plant.measure(aux, c.plant)
+        sc, w_ref, i_force = cascade_.position_tick(drive, mode, c.cascade, ref, theta, omega, hybrid)
+        c, i_refs = jax.lax.scan(lambda cc, _: velocity_period(cc, w_ref, i_force), c._replace(cascade=sc), None,
+                                 length=rates.n_position)
+        return c, (w_ref, i_refs)
 
-    def position_period(c, ref):
-        theta_ref = ref.theta if outer == "hybrid" else ref
-        theta, omega = plant.measure(aux, c["plant"])
-        sp, w_ref = position_controller(c["position"], theta_ref, theta, omega)
-        c = dict(c, position=sp)
-        i_force = None
-        if outer == "hybrid":
-            sf, force = hybrid_law.step(hybrid, c["force"], (theta_ref - theta) * r, ref.coupling, ref.force_ff,
-                                        rates.dt_position)
-            c = dict(c, force=sf)
-            k = hybrid_law.FORCE_AXIS
-            i_force = force * r[..., k] / (params.eta[..., k] * drive.Kt[..., k])
-        c, _ = jax.lax.scan(lambda cc, _: velocity_period(cc, w_ref, i_force), c, None, length=rates.n_position)
-        return c, w_ref
+    def current_period(c: Carry, i_ref):
+        c, u = mech_step(c, i_ref)
+        return c, (u, i_ref[None])
 
-    period, dt = {"current": (mech_step, rates.dt_mech), "velocity": (velocity_period, rates.dt_velocity)}.get(
-        outer, (position_period, rates.dt_position))
-    return _Cascade(period, record, dt, lambda start, force_ff0: initial_state(drive, plant, aux, outer, start,
-                                                                               force_ff0))
+    def inner_velocity_period(c: Carry, w_ref):
+        c, i_ref = velocity_period(c, w_ref)
+        return c, (i_ref, i_ref[None])
+
+    period, dt = {"current": (current_period, rates.dt_mech), "velocity": (inner_velocity_period, rates.dt_velocity),
+                  "position": (position_period, rates.dt_position)}[mode.closed]
+    return Pieces(period, record, dt, lambda start, force_ff0: initial_state(drive, plant, aux, mode, start,
+                                                                               force_ff0), mech_step, velocity_period,
+                  lambda c: plant.measure(aux, c.plant), lambda c: plant.observe(aux, c.plant))
 
 
 def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), rates: LoopRates = LoopRates(),
@@ -206,14 +199,15 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
     (``jax.checkpoint``): reverse-mode memory then grows with the number of outer periods
     only, for about one extra forward pass.
     """
-    cascade = _cascade(params, plant_params, plant=plant, rates=rates, outer=outer, hybrid=hybrid)
+    mode = cascade_.control_mode(outer)
+    cascade = pieces(params, plant_params, plant=plant, rates=rates, mode=mode, hybrid=hybrid)
     if init is None:
-        init = cascade.init(start, reference.force_ff[0] if outer == "hybrid" else None)
+        init = cascade.init(start, reference.force_ff[0] if mode.hybrid else None)
     _, rec = jax.lax.scan(_body(cascade, remat), init, reference)
     return _trace(rec, cascade.dt)
 
 
-def _body(cascade: _Cascade, remat: bool):
+def _body(cascade: Pieces, remat: bool):
     def body(c, ref):
         c_next, command = cascade.period(c, ref)
         return c_next, cascade.record(c, ref, command)
@@ -234,7 +228,8 @@ def rollout_segments(params: ServoParams, plant_params, reference, *, segments: 
     carry at the start of each part (periods ``0, every, 2 every, ...``): the start states of
     windows spread over a long run, for :func:`rollout`'s ``init``.  The trace is the whole run's.
     """
-    cascade = _cascade(params, plant_params, plant=plant, rates=rates, outer=outer, hybrid=hybrid)
+    mode = cascade_.control_mode(outer)
+    cascade = pieces(params, plant_params, plant=plant, rates=rates, mode=mode, hybrid=hybrid)
     n = jax.tree.leaves(reference)[0].shape[0]
     if n % segments:
         raise ValueError(f"rollout_segments: expected a reference of a multiple of {segments} samples, got {n}")
@@ -245,7 +240,7 @@ def rollout_segments(params: ServoParams, plant_params, reference, *, segments: 
         end, rec = jax.lax.scan(body, c, refs)
         return end, (c, rec)
 
-    init = cascade.init(start, reference.force_ff[0] if outer == "hybrid" else None)
+    init = cascade.init(start, reference.force_ff[0] if mode.hybrid else None)
     _, (carries, rec) = jax.lax.scan(part, init, parts)
     return _trace(jax.tree.map(lambda x: x.reshape((n,) + x.shape[2:]), rec), cascade.dt), carries
 

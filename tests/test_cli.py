@@ -12,7 +12,7 @@ import pytest
 
 
 def pusupu(*args, check=True):
-    r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", *args], capture_output=True, text=True,
+    r = subprocess.run([sys.executable, "-m", "pusupu_cli", *args], capture_output=True, text=True,
                        env=dict(os.environ), timeout=600)
     if check:
         assert r.returncode == 0, r.stderr
@@ -163,7 +163,7 @@ def test_tune_writes_gains_ros_files_report_and_plots(tuned):
 def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
     """SIGKILL after the first checkpoint, run the same command again: the result equals the uninterrupted run's."""
     folder, report = tuned
-    cmd = [sys.executable, "-m", "pusupu_jax.cli", "tune", "--config", str(folder / "tiny.yaml"),
+    cmd = [sys.executable, "-m", "pusupu_cli", "tune", "--config", str(folder / "tiny.yaml"),
            "--out", str(tmp_path / "out"), "--json"]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
     deadline = time.time() + 600
@@ -181,7 +181,7 @@ def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
 def test_ctrl_c_during_a_tune_ends_with_one_line(tuned, tmp_path):
     """Probe row 11: a KeyboardInterrupt traceback; now one line saying how to resume, and exit status 130."""
     folder, _ = tuned
-    cmd = [sys.executable, "-m", "pusupu_jax.cli", "tune", "--config", str(folder / "tiny.yaml"),
+    cmd = [sys.executable, "-m", "pusupu_cli", "tune", "--config", str(folder / "tiny.yaml"),
            "--out", str(tmp_path / "out")]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
     deadline = time.time() + 600
@@ -290,7 +290,7 @@ def test_version_and_python_m():
     from pusupu_jax import __version__
 
     assert pusupu("--version").stdout.strip() == f"pusupu {__version__}"
-    r = subprocess.run([sys.executable, "-m", "pusupu_jax", "--version"], capture_output=True, text=True, timeout=120)
+    r = subprocess.run([sys.executable, "-m", "pusupu_cli", "--version"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip() == f"pusupu {__version__}"
 
 
@@ -305,7 +305,7 @@ def test_a_write_that_fails_midway_keeps_the_old_file_and_ends_in_one_line(tmp_p
     before = path.read_bytes()
     limited = ("import resource, runpy, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
                "resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096)); "
-               f"sys.argv = ['pusupu', 'gains', 'sign', {str(path)!r}]; runpy.run_module('pusupu_jax', run_name='__main__')")
+               f"sys.argv = ['pusupu', 'gains', 'sign', {str(path)!r}]; runpy.run_module('pusupu_cli', run_name='__main__')")
     r = subprocess.run([sys.executable, "-c", limited], capture_output=True, text=True, env=dict(os.environ),
                        timeout=300)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr

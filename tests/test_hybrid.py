@@ -88,12 +88,12 @@ def test_force_law_is_eq_14_in_both_forms():
     dt = 0.001
     for form, rate in (("rms", float(H.rms_rate(e))), ("signed", float(w @ e[:5]))):
         gains = H.HybridGains(m6=2.0, c6=3e3, g=4e4, form=form)
-        state = {"rho": jnp.asarray(0.01), "rate": jnp.asarray(1e-4), "force": jnp.asarray(0.0)}
+        state = H.ForceState(jnp.asarray(0.01), jnp.asarray(1e-4), jnp.asarray(0.0))
         new, force = H.step(gains, state, e, w, 50.0, dt)
         rho = 0.01 + rate * dt
         expected = 50.0 + 2.0 * (rate - 1e-4) / dt + 3e3 * rate + 4e4 * rho
         assert float(force) == pytest.approx(expected, rel=1e-12)
-        assert float(new["rho"]) == pytest.approx(rho, rel=1e-12) and float(new["force"]) == float(force)
+        assert float(new.rho) == pytest.approx(rho, rel=1e-12) and float(new.force) == float(force)
 
 
 def test_bad_hybrid_gains_are_rejected():

@@ -44,6 +44,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from pusupu_jax.cascade import control_mode
 from pusupu_jax.config import read_yaml_mapping
 from pusupu_jax.gradients import GRADIENT_MODES
 from pusupu_jax.machine import MACHINE_MODES
@@ -159,7 +160,7 @@ class TuneConfig:
              f"a mapping of some of {TERMS} to non-negative numbers", self.weights)
         for term, w in self.weights.items():
             inputs.number(w, f"tune config weights.{term}", ParameterError, low=0.0)
-        need(self.mode == "hybrid" or "hybrid" not in self.groups, "groups", "the 'hybrid' group only in hybrid mode",
+        need(control_mode(self.mode).hybrid or "hybrid" not in self.groups, "groups", "the 'hybrid' group only in hybrid mode",
              self.groups)
         need(isinstance(self.bounds, dict) and all(isinstance(v, tuple) and len(v) == 2 for v in self.bounds.values()),
              "bounds", "a mapping of field names to [lower, upper]", self.bounds)

@@ -32,8 +32,8 @@ import numpy as np
 import optax
 
 from pusupu_jax import objectives
+from pusupu_jax.cascade import control_mode
 from pusupu_jax.config import write_atomic
-from pusupu_jax.gains import loop_mode
 from pusupu_jax.gradients import value_and_grad
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import machine_metrics, machine_plant, machine_rates, machine_reference
@@ -136,7 +136,7 @@ class Problem:
         self.scenarios = Scenarios.build(cfg, self.space.servo0, self.rates)
         self.load = AxisLoad.default()
         self._value_and_grad = jax.jit(value_and_grad(self.objective, cfg.gradient))
-        hybrid_mode = cfg.mode == "hybrid"
+        hybrid_mode = control_mode(cfg.mode).hybrid
         sc = self.scenarios
 
         def whole(servo, hybrid, model, reference):
@@ -177,7 +177,7 @@ class Problem:
 
         def one(model, reference, init):
             return rollout(servo, model, reference, plant=sc.plant, rates=self.rates, outer=self.cfg.mode,
-                           hybrid=hybrid if self.cfg.mode == "hybrid" else None, init=init)
+                           hybrid=hybrid if control_mode(self.cfg.mode).hybrid else None, init=init)
 
         traces = jax.vmap(one)(sc.window_models, sc.window_reference, starts)
         S, K = len(sc.names), sc.windows
@@ -192,7 +192,7 @@ class Problem:
 
     def margins(self, z) -> dict:
         servo, _ = self.space.apply(z)
-        return loop_margins(servo, self.load, mode=loop_mode(self.cfg.mode))
+        return loop_margins(servo, self.load, mode=self.cfg.mode)
 
     def objective(self, z, baseline, starts):
         """``(J, aux)``; ``baseline`` holds each scenario's terms at the start (the normalisers)."""
@@ -237,7 +237,7 @@ class Problem:
             reference = jax.tree.map(lambda x: np.asarray(x)[idx.index(i), :n], refs)
             out[sc.names[i]] = machine_metrics(jax.tree.map(lambda x: np.asarray(x)[:n], trace), servo, sc.paths[i],
                                                reference, self.cfg.mode, self.rates.dt_position,
-                                               hybrid if self.cfg.mode == "hybrid" else None)
+                                               hybrid if control_mode(self.cfg.mode).hybrid else None)
         return out
 
 

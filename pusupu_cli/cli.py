@@ -1,4 +1,4 @@
-"""The ``pusupu`` command (host-side).
+"""The ``pusupu`` command (host-side; an application of the core, like ``tune``, ``experiments`` and ``hw_bridge``).
 
     pusupu analyze [--params FILE] [--mode imc|pid|pid_ff] [--json] [--plot PNG]
     pusupu analyze --identify-T0 [--params FILE] [--kin-error SEED] [--json] [--plot PNG]
@@ -22,7 +22,9 @@ import sys
 import time
 import warnings
 
-from .params import IMC_FORMS, ParameterError
+from pusupu_jax.params import IMC_FORMS, ParameterError
+
+from . import bridge as bridge_cli
 
 
 class _Parser(argparse.ArgumentParser):
@@ -118,6 +120,7 @@ def _parser() -> argparse.ArgumentParser:
                         help="form of the IMC prefilter C1: full (reference response (3 l1 s+1)/(l1 s+1)^3, what "
                              "section 2.2 describes) or printed (eq. 9 as printed); default: the params or gain "
                              "file's servo.imc_form, else full (docs/imc.md)")
+    bridge_cli.add_parsers(sub)
     return p
 
 
@@ -136,7 +139,7 @@ def _floors_arguments(parser):
 
 def _floors(args):
     """The stability floors for loading gain files: 45 deg and 6 dB, or the user's explicit, logged override."""
-    from .gains import FLOORS
+    from pusupu_jax.gains import FLOORS
 
     floors = (FLOORS[0] if args.min_pm is None else args.min_pm, FLOORS[1] if args.min_gm is None else args.min_gm)
     if floors != FLOORS:
@@ -150,14 +153,15 @@ def _floors(args):
 
 
 def _version() -> str:
-    from . import __version__
+    from pusupu_jax import __version__
 
     return __version__
 
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
-    commands = {"analyze": _analyze, "sim": _sim, "tune": _tune, "experiment": _experiment, "gains": _gains}
+    commands = {"analyze": _analyze, "sim": _sim, "tune": _tune, "experiment": _experiment, "gains": _gains,
+                "bridge": bridge_cli.run_bridge, "sim-robot": bridge_cli.run_sim_robot}
     try:
         return commands[args.command](args)
     except (ParameterError, FloatingPointError) as e:  # bad input; a tuning run that went non-finite
@@ -174,7 +178,7 @@ def main(argv=None) -> int:
 def _tune(args) -> int:
     from pathlib import Path
 
-    from .config import setup_jax
+    from pusupu_jax.config import setup_jax
 
     setup_jax()
     from tune.config import TuneConfig
@@ -202,7 +206,7 @@ def _tune(args) -> int:
 def _experiment(args) -> int:
     from pathlib import Path
 
-    from .config import setup_jax
+    from pusupu_jax.config import setup_jax
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -224,11 +228,11 @@ def _experiment(args) -> int:
 
 
 def _load(args):
-    from .config import load_params_file
+    from pusupu_jax.config import load_params_file
 
     loaded = load_params_file(args.params)
     if getattr(args, "gains", None):
-        from . import gains
+        from pusupu_jax import gains
 
         g = gains.load(args.gains, _floors(args))
         loaded = loaded._replace(servo=g.servo, hybrid=g.hybrid, rates=g.rates)
@@ -240,7 +244,7 @@ def _load(args):
 def _gains(args) -> int:
     from pathlib import Path
 
-    from . import gains
+    from pusupu_jax import gains
 
     floors = _floors(args)
     if args.action == "sign":  # the checks of load() less the checksum, then the derived blocks written anew
@@ -257,7 +261,7 @@ def _gains(args) -> int:
         print(f"{args.file}: valid {gains.SCHEMA} v{gains.VERSION}, mode {g.mode}; every loop has at least "
               f"{floors[0]:g} deg and {floors[1]:g} dB")
     elif args.action == "export-ros":
-        from . import ros2
+        from pusupu_jax import ros2
 
         joints = ros2.JOINTS if not args.joints else tuple(args.joints.split(","))
         out = Path(args.out)
@@ -271,13 +275,14 @@ def _gains(args) -> int:
 
 
 def _check_ros(args, g) -> int:
-    from .config import setup_jax
+    from pusupu_jax.config import setup_jax
 
     setup_jax()
-    from . import gains, ros2
-    from .machine import Scenario, simulate_scenarios
-    from .plant.geometry import Geometry
-    from .trajectories import platform_path
+    from pusupu_jax import gains, ros2
+    from pusupu_jax.cascade import control_mode
+    from pusupu_jax.machine import Scenario, simulate_scenarios
+    from pusupu_jax.plant.geometry import Geometry
+    from pusupu_jax.trajectories import platform_path
 
     kinds = ("arc", "p2p") if args.trajectory == "both" else (args.trajectory,)
     paths = {k: platform_path(k, Geometry.default().home, g.rates) for k in kinds}
@@ -290,7 +295,7 @@ def _check_ros(args, g) -> int:
           "(two compiles of about 20 s)", file=sys.stderr)
     ros_servo = ros2.as_ros_servo(g.servo, g.mode)
     runs = {"pusupu": simulate_scenarios(g.servo, scenarios, mode=g.mode, rates=g.rates,
-                                         hybrid=g.hybrid if g.mode == "hybrid" else None),
+                                         hybrid=g.hybrid if control_mode(g.mode).hybrid else None),
             "ros": simulate_scenarios(ros_servo, scenarios, mode="ros_pid", rates=g.rates)}
     margins = {"pusupu": gains.margins_report(g.servo, g.mode), "ros": gains.margins_report(ros_servo, "ros_pid")}
     result = {"mode": g.mode, "ros_gains": {k: v.tolist() for k, v in ros2.ros_gains(g.servo, g.mode).items()},
@@ -329,7 +334,7 @@ def _check_plot_path(path):
 
 
 def _analyze(args) -> int:
-    from . import analysis
+    from pusupu_jax import analysis
 
     servo, load, rates, _ = _load(args)
     if args.plot:
@@ -342,7 +347,7 @@ def _analyze(args) -> int:
         warnings.simplefilter("ignore")
         result = analysis.loop_metrics(servo, load, args.mode)
         if args.plot:
-            from .plots import plot_loops
+            from pusupu_jax.plots import plot_loops
 
             plot_loops(servo, load, args.plot, mode=args.mode)
     if args.json:
@@ -364,12 +369,12 @@ def _analyze(args) -> int:
 def _identify(args, servo, load, rates) -> int:
     import numpy as np
 
-    from .config import setup_jax
+    from pusupu_jax.config import setup_jax
 
     setup_jax()
-    from .analysis import identify_T0
-    from .identify import identify_T0_machine
-    from .plant.model import ModelOptions
+    from pusupu_jax.analysis import identify_T0
+    from pusupu_jax.identify import identify_T0_machine
+    from pusupu_jax.plant.model import ModelOptions
 
     print("identifying T0 on the MJX machine (velocity steps along x and y from home); the first run compiles "
           "for about 20 s", file=sys.stderr)
@@ -381,7 +386,7 @@ def _identify(args, servo, load, rates) -> int:
            "T0_servo_s": np.asarray(servo.T0).tolist(), "T0_axis_model_s": axis_model,
            "kin_error_seed": args.kin_error}
     if args.plot:
-        from .plots import plot_identification
+        from pusupu_jax.plots import plot_identification
 
         plot_identification(result, args.plot, title="velocity steps of the machine"
                             + (f", kinematic errors seed {args.kin_error}" if args.kin_error is not None else ""))
@@ -405,7 +410,7 @@ def _num(x, none="inf"):
 
 
 def _sim(args) -> int:
-    from .config import setup_jax
+    from pusupu_jax.config import setup_jax
 
     axis_kinds, machine_kinds = ("step", "ramp", "sine"), ("arc", "p2p")
     kinds = axis_kinds if args.plant == "axis" else machine_kinds
@@ -420,13 +425,15 @@ def _sim(args) -> int:
     setup_jax()
     if args.plant == "mjx":
         return _sim_machine(args, servo, rates, hybrid)
-    if args.mode == "hybrid":
+    from pusupu_jax.cascade import control_mode
+
+    if control_mode(args.mode).hybrid:
         raise ParameterError("--mode hybrid: needs the mechanism (--plant mjx); the axis plant has no redundant branch")
     import jax
 
-    from . import metrics
-    from .sim import simulate
-    from .trajectories import axis_reference
+    from pusupu_jax import metrics
+    from pusupu_jax.sim import simulate
+    from pusupu_jax.trajectories import axis_reference
 
     ref = axis_reference(args.trajectory, rates, args.duration)
     t0 = time.perf_counter()
@@ -439,7 +446,7 @@ def _sim(args) -> int:
     if args.trajectory == "step":
         result |= metrics.step_summary(trace, servo)
     if args.plot:
-        from .plots import plot_trace
+        from pusupu_jax.plots import plot_trace
 
         plot_trace(trace, servo, args.plot, title=f"{args.trajectory}, {args.mode} mode, axis 0")
     if args.json:
@@ -458,10 +465,10 @@ def _sim(args) -> int:
 
 
 def _sim_machine(args, servo, rates, hybrid) -> int:
-    from .machine import simulate_machine
-    from .plant.model import ModelOptions
-    from .trajectories import platform_path
-    from .plant.geometry import Geometry
+    from pusupu_jax.machine import simulate_machine
+    from pusupu_jax.plant.model import ModelOptions
+    from pusupu_jax.trajectories import platform_path
+    from pusupu_jax.plant.geometry import Geometry
 
     if args.duration is not None:
         raise ParameterError("--duration: the mjx paths have their own timing (velocity and acceleration limits)")
@@ -473,7 +480,7 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
                                      start=args.start)
     result = {"plant": "mjx", "trajectory": args.trajectory} | result
     if args.plot:
-        from .plots import plot_platform_path
+        from pusupu_jax.plots import plot_platform_path
 
         plot_platform_path(trace, args.plot, title=f"{args.trajectory}, {args.mode} mode"
                            + (f", kinematic errors seed {args.kin_error}" if args.kin_error is not None else ""))

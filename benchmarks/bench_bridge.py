@@ -1,0 +1,98 @@
+"""The bridge's real-time figures on loopback against the simulated robot (JSON on stdout and in --out).
+
+For each rate: ``pusupu sim-robot`` in its own process, then ``--runs`` bridge runs of ``--seconds``
+each (one robot session per run), with the real-time settings the OS grants.  Per run: cycles,
+missed deadlines, the latency percentiles (wake-up to command sent, us), the feedback age and
+whether the run completed; over the runs the spread (min, median, max) of each.
+
+* 1 kHz: Table 1 gains, IMC on all six axes, every drive in CSV (the bridge closes the position loop);
+* 4 kHz: Table 1 gains, hybrid mode: branches 1-5 CSV, branch 6 CST (the bridge closes its velocity loop at
+  4 kHz and its force law at 1 kHz).
+
+    python benchmarks/bench_bridge.py [--seconds 60] [--runs 3] [--rates 1000,4000] [--out FILE]
+
+The path (the arc, 26 s) repeats its last sample once done: the machine then holds still.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from pusupu_jax.config import setup_jax
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=60.0)
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--rates", default="1000,4000")
+    ap.add_argument("--out", help="also write the JSON here")
+    args = ap.parse_args()
+    setup_jax()
+    from hw_bridge.loop import BridgeLoop
+    from hw_bridge.protocol import FEEDBACK
+    from hw_bridge.safety import Safety
+    from hw_bridge.session import Bridge
+    from hw_bridge.udp import Endpoint
+    from pusupu_cli.bridge import bridge_reference, limits_for
+    from pusupu_jax import gains
+    from pusupu_jax.hybrid import HybridGains
+    from pusupu_jax.params import LoopRates, ServoParams
+
+    results = {"seconds": args.seconds, "runs": args.runs, "cpus": os.cpu_count(), "uname": " ".join(os.uname()),
+               "rates": {}}
+    folder = Path(tempfile.mkdtemp())
+    for rate in (float(r) for r in args.rates.split(",")):
+        mode = "imc" if rate <= 1000 else "hybrid"
+        path = gains.write(folder / f"{mode}.yaml", ServoParams.table1(), HybridGains(), LoopRates(), mode=mode)
+        g = gains.load(path)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        robot = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen",
+                                  f"udp://127.0.0.1:{port}", "--rate", str(rate)], stdout=subprocess.PIPE, text=True)
+        assert "listening" in robot.stdout.readline()
+        loop = BridgeLoop(g, bridge_reference(g, "arc"), rate=rate)
+        runs = []
+        try:
+            for _ in range(args.runs):
+                ep = Endpoint(FEEDBACK, peer=("127.0.0.1", port))
+                run = Bridge(loop, ep, Safety(limits_for(g.servo)), hold_s=args.seconds).run(args.seconds)
+                ep.close()
+                rep = run.report()
+                runs.append({k: rep[k] for k in ("cycles", "missed_deadlines", "missed_fraction", "skipped_cycles",
+                                                 "latency_us", "feedback_age_us", "completed", "faults",
+                                                 "realtime")})
+                print(json.dumps({"rate_hz": rate, **runs[-1]}), file=sys.stderr)
+        finally:
+            robot.terminate()
+            robot.wait(30)
+
+        def spread(get):
+            v = [get(r) for r in runs if get(r) is not None]
+            return {"min": float(np.min(v)), "median": float(np.median(v)), "max": float(np.max(v))} if v else None
+
+        results["rates"][f"{rate:g}"] = {
+            "mode": mode, "drive_modes": [int(m) for m in loop.drive_modes], "runs": runs,
+            "spread": {"latency_p50_us": spread(lambda r: (r["latency_us"] or {}).get("p50")),
+                       "latency_p99_us": spread(lambda r: (r["latency_us"] or {}).get("p99")),
+                       "latency_p99.9_us": spread(lambda r: (r["latency_us"] or {}).get("p99.9")),
+                       "latency_max_us": spread(lambda r: (r["latency_us"] or {}).get("max")),
+                       "missed_fraction": spread(lambda r: r["missed_fraction"])}}
+    text = json.dumps(results, indent=2)
+    print(text)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()

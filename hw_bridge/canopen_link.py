@@ -1,0 +1,177 @@
+"""CANopen CiA 402 between the bridge and six drives: the ``canopen`` package over ``python-can``.
+
+Both sides use :func:`drive_dictionary`, the object dictionary of one drive (CiA 402 objects and
+the predefined PDO mapping below).  Node IDs 1-6 are axes 1-6.
+
+* set-up over SDO: the bridge writes each drive's mode of operation (0x6060: 9 CSV, 10 CST),
+  reads it back (0x6061), and reads the motor's rated torque (0x6076, mN m) that scales torques;
+* each cycle the bridge sends one RPDO per drive (controlword 0x6040, target velocity 0x60FF,
+  target torque 0x6071), then SYNC; on SYNC each drive applies its RPDO, runs one period, and
+  answers with two TPDOs: (statusword 0x6041, position actual 0x6064, torque actual 0x6077) and
+  (velocity actual 0x606C, mode display 0x6061).
+
+Units on the bus, as drives use them: positions in increments of a 20-bit encoder
+(:data:`COUNTS_PER_RAD`), speeds in increments per second, torques in thousandths of the rated
+torque.  :class:`CanLink` gives the bridge the interface of :class:`hw_bridge.udp.Endpoint`
+(commands out, the newest complete feedback in), so the session runs over either transport.
+
+On a real bus, bit timing limits the rate: 19 frames per cycle at 1 Mbit/s take about 2.3 ms
+(about 120 bits each), so six axes fit 400 Hz, not 1 kHz; on the virtual bus there is no bit timing.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+
+import numpy as np
+
+from . import protocol
+
+COUNTS_PER_RAD = 2**20 / (2 * math.pi)  # increments per motor radian (20-bit encoder)
+N_AXES = 6
+DEVICE_TYPE = 0x00020192  # CiA 402, servo drive
+
+
+def drive_dictionary():
+    """The object dictionary of one simulated drive (and of the bridge's view of it)."""
+    import canopen
+    from canopen.objectdictionary import (INTEGER8, INTEGER16, INTEGER32, UNSIGNED8, UNSIGNED16, UNSIGNED32,
+                                          ODRecord, ODVariable)
+
+    od = canopen.ObjectDictionary()
+
+    def var(index, name, kind, access="rw", default=0, sub=0):
+        v = ODVariable(name, index, sub)
+        v.data_type, v.access_type, v.default = kind, access, default
+        return v
+
+    od.add_object(var(0x1000, "Device type", UNSIGNED32, "ro", DEVICE_TYPE))
+    for index, name, kind, access in ((0x6040, "Controlword", UNSIGNED16, "rw"),
+                                      (0x6041, "Statusword", UNSIGNED16, "ro"),
+                                      (0x6060, "Modes of operation", INTEGER8, "rw"),
+                                      (0x6061, "Modes of operation display", INTEGER8, "ro"),
+                                      (0x6064, "Position actual value", INTEGER32, "ro"),
+                                      (0x606C, "Velocity actual value", INTEGER32, "ro"),
+                                      (0x6071, "Target torque", INTEGER16, "rw"),
+                                      (0x6076, "Motor rated torque", UNSIGNED32, "rw"),
+                                      (0x6077, "Torque actual value", INTEGER16, "ro"),
+                                      (0x60FF, "Target velocity", INTEGER32, "rw")):
+        od.add_object(var(index, name, kind, access))
+
+    def pdo(comm_index, map_index, cob_id, entries, name):
+        comm = ODRecord(f"{name} communication parameter", comm_index)
+        for sub, (n, kind, default) in enumerate((("Highest sub-index", UNSIGNED8, 2),
+                                                  ("COB-ID", UNSIGNED32, cob_id),
+                                                  ("Transmission type", UNSIGNED8, 1))):
+            comm.add_member(var(comm_index, n, kind, "rw", default, sub))
+        od.add_object(comm)
+        mapping = ODRecord(f"{name} mapping parameter", map_index)
+        mapping.add_member(var(map_index, "Number of entries", UNSIGNED8, "rw", len(entries), 0))
+        for sub, (index, bits) in enumerate(entries, start=1):
+            mapping.add_member(var(map_index, f"Entry {sub}", UNSIGNED32, "rw", (index << 16) | bits, sub))
+        od.add_object(mapping)
+
+    pdo(0x1400, 0x1600, 0x200, [(0x6040, 16), (0x60FF, 32), (0x6071, 16)], "RPDO1")
+    pdo(0x1800, 0x1A00, 0x180, [(0x6041, 16), (0x6064, 32), (0x6077, 16)], "TPDO1")
+    pdo(0x1801, 0x1A01, 0x280, [(0x606C, 32), (0x6061, 8)], "TPDO2")
+    return od
+
+
+def node_dictionary(node_id: int):
+    """:func:`drive_dictionary` with the PDO COB-IDs of node ``node_id`` (0x200 + id, 0x180 + id, 0x280 + id)."""
+    od = drive_dictionary()
+    for index in (0x1400, 0x1800, 0x1801):
+        od[index][1].default += node_id
+    return od
+
+
+def open_bus(url: str):
+    """``can://INTERFACE/CHANNEL`` (``can://udp_multicast/239.74.163.2``, ``can://socketcan/can0``) -> a python-can bus."""
+    import can
+
+    rest = url[len("can://"):] if url.startswith("can://") else ""
+    interface, _, channel = rest.partition("/")
+    if not interface or not channel:
+        raise ValueError(f"expected can://INTERFACE/CHANNEL, got {url!r}")
+    kw = {"receive_own_messages": False} if interface == "udp_multicast" else {}
+    return can.Bus(interface=interface, channel=channel, **kw)
+
+
+class CanLink:
+    """The bridge's side: six remote CiA 402 drives, set up over SDO, driven by RPDO + SYNC, read by TPDO."""
+
+    def __init__(self, bus, drive_modes, rated_torque=None, sdo_timeout: float = 0.5):
+        import can
+        import canopen
+
+        self.network = canopen.Network(bus)
+        self.network.notifier = can.Notifier(bus, self.network.listeners, 0.1)
+        self.nodes = []
+        self.rejected: Counter = Counter()
+        self.received_at = 0.0
+        self._fresh = np.zeros((N_AXES, 2), bool)
+        self._sequence = 0
+        self._last = None
+        for k in range(N_AXES):
+            node = self.network.add_node(k + 1, node_dictionary(k + 1))
+            node.sdo.RESPONSE_TIMEOUT = sdo_timeout
+            node.rpdo.read(from_od=True)
+            node.tpdo.read(from_od=True)
+            for j in (1, 2):
+                node.tpdo[j].add_callback(lambda m, k=k, j=j: self._on_tpdo(k, j))
+            self.nodes.append(node)
+        self.modes = np.asarray(drive_modes, np.int8)
+        self.rated = np.zeros(N_AXES)
+        for k, node in enumerate(self.nodes):  # SDO set-up
+            node.sdo["Modes of operation"].raw = int(self.modes[k])
+            shown = node.sdo["Modes of operation display"].raw
+            if shown != self.modes[k]:
+                raise RuntimeError(f"drive {k + 1}: mode of operation {self.modes[k]} not taken (shows {shown})")
+            self.rated[k] = node.sdo["Motor rated torque"].raw * 1e-3  # N m
+        if rated_torque is not None and not np.allclose(self.rated, rated_torque, rtol=1e-3):
+            raise RuntimeError(f"drives' rated torque {self.rated} N m, expected {rated_torque}")
+
+    def _on_tpdo(self, k: int, j: int) -> None:
+        self._fresh[k, j - 1] = True
+        self.received_at = time.monotonic()
+
+    def send_command(self, cmd: protocol.Command) -> None:
+        """One RPDO per drive, then SYNC."""
+        velocity = np.round(np.where(self.modes == protocol.CSV, cmd.target, 0.0) * COUNTS_PER_RAD)
+        torque = np.round(np.where(self.modes == protocol.CST, cmd.target, 0.0) / self.rated * 1000.0)
+        for k, node in enumerate(self.nodes):
+            m = node.rpdo[1]
+            m["Controlword"].raw = int(cmd.controlword[k])
+            m["Target velocity"].raw = int(np.clip(velocity[k], -2**31, 2**31 - 1))
+            m["Target torque"].raw = int(np.clip(torque[k], -2**15, 2**15 - 1))
+            m.transmit()
+        self._fresh[:] = False
+        self.network.sync.transmit()
+
+    def poll(self, timeout: float = 0.0):
+        """The drives' answer to the last SYNC as a :class:`~hw_bridge.protocol.Feedback` once all of it arrived."""
+        if timeout > 0:
+            end = time.monotonic() + timeout
+            while not self._fresh.all() and time.monotonic() < end:
+                time.sleep(20e-6)
+        if not self._fresh.all():
+            return None
+        self._fresh[:] = False
+        t1 = [n.tpdo[1] for n in self.nodes]
+        t2 = [n.tpdo[2] for n in self.nodes]
+        fb = protocol.Feedback(
+            self._sequence, int(self.received_at * 1e9), 0,
+            np.array([m["Statusword"].raw for m in t1], np.uint16),
+            np.array([m["Modes of operation display"].raw for m in t2], np.int8),
+            np.array([m["Position actual value"].raw for m in t1], float) / COUNTS_PER_RAD,
+            np.array([m["Velocity actual value"].raw for m in t2], float) / COUNTS_PER_RAD,
+            np.array([m["Torque actual value"].raw for m in t1], float) * self.rated / 1000.0,
+            np.full(3, np.nan))
+        self._sequence += 1
+        return fb
+
+    def close(self) -> None:
+        self.network.notifier.stop()
+        self.network.bus.shutdown()

@@ -1,0 +1,65 @@
+"""Pure step functions compiled before the first cycle on the CPU over flat float64 vectors (host-side).
+
+Calling a jitted function costs a flatten of every argument pytree and a transfer per leaf: a
+drive's coefficients and a cascade's state are dozens of leaves (the MJX machine's state,
+hundreds), which cost more than the step itself at kilohertz rates.  :class:`FlatStep` packs
+them into one vector each (``jax.flatten_util.ravel_pytree``; integer leaves round-trip exactly
+through float64), unpacks them inside the compiled function, and keeps the state on the device
+between calls, so one cycle is one call with a few small arrays.  The call goes through ``jax.jit``'s
+C++ dispatch (an ahead-of-time ``Compiled`` object dispatches in Python, about 40 us slower here);
+the construction compiles and runs it once, so no cycle ever compiles.
+"""
+
+from __future__ import annotations
+
+import jax
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+
+def cpu():
+    """The CPU device (the loops run there even when a GPU is present), executing on the calling thread.
+
+    Asynchronous dispatch would run each step on a pool thread while the cycle's thread waits: with
+    the cycle's thread at SCHED_FIFO on one pinned CPU, that pool thread then waits behind it (steps of
+    80 ms were measured).  Synchronous dispatch keeps the step on the real-time thread.
+    """
+    jax.config.update("jax_cpu_enable_async_dispatch", False)
+    return jax.devices("cpu")[0]
+
+
+class FlatStep:
+    """``fn(*consts, state, *inputs) -> (state, out)`` as ``step(state_flat, *inputs_flat) -> (state_flat, out_flat)``.
+
+    ``consts``: pytrees fixed for the run (a drive's coefficients, gains), passed as vectors;
+    ``state`` and ``inputs``: example pytrees of the shapes the step takes.  Compiled and run once
+    (warm-up) at construction.
+    """
+
+    def __init__(self, fn, consts: tuple, state, inputs: tuple):
+        device = cpu()
+        flats = [ravel_pytree(c) for c in consts]
+        state_flat, self.unravel_state = ravel_pytree(state)
+        in_flats = [ravel_pytree(x) for x in inputs]
+        n = len(consts)
+
+        def flat(*args):
+            cs = [un(a) for (_, un), a in zip(flats, args[:n])]
+            s = self.unravel_state(args[n])
+            ins = [un(a) for (_, un), a in zip(in_flats, args[n + 1:])]
+            s2, out = fn(*cs, s, *ins)
+            return ravel_pytree(s2)[0], ravel_pytree(out)[0]
+
+        self.consts = [jax.device_put(f, device) for f, _ in flats]
+        self.unravel_inputs = [un for _, un in in_flats]
+        self.state = jax.device_put(state_flat, device)
+        self._exe = jax.jit(flat)  # called with committed CPU arrays: it compiles and runs there
+        # compile and warm up before the first cycle, as the cycles call it (a default_device context would be part
+        # of the compile's key: the first cycle would compile again)
+        self(self.state, *[np.asarray(f) for f, _ in in_flats])
+
+    def __call__(self, state, *inputs):
+        """One step: ``(state_flat (device), out (numpy))``."""
+        s, out = self._exe(*self.consts, state, *[np.ravel(x) for x in inputs])
+        return s, np.asarray(out)
+

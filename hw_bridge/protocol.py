@@ -1,0 +1,144 @@
+"""The bridge's UDP protocol, version 1: fixed-layout little-endian packets with sequence numbers and a CRC.
+
+Every packet::
+
+    offset size  field
+    0      4     magic b"PSPU"
+    4      1     version (1)
+    5      1     kind: 1 command (bridge -> robot), 2 feedback (robot -> bridge)
+    6      1     n_axes (1..16)
+    7      1     flags (0; reserved)
+    8      4     sequence (u32, +1 per packet of a sender, wrapping)
+    12     8     timestamp (i64, ns on the sender's CLOCK_MONOTONIC)
+    20     4     ack (u32): command -> the feedback sequence it answers; feedback -> the last command applied
+    24     2     payload length (u16, bytes)
+    26     ...   payload
+    end    4     CRC-32 (zlib/IEEE 802.3) of every byte before it
+
+Command payload, per axis (12 bytes): controlword (u16, CiA 402 object 0x6040), mode of
+operation (i8, 0x6060: 9 cyclic synchronous velocity, 10 cyclic synchronous torque), pad (u8),
+target (f64: motor speed [rad/s] in CSV, motor torque [N m] in CST).
+
+Feedback payload: per axis (28 bytes) statusword (u16, 0x6041), mode display (i8, 0x6061), pad
+(u8), position (f64, motor angle from home [rad]), velocity (f64, [rad/s]), torque (f64, actual
+motor torque [N m]); then the platform position (3 f64, [m]; NaN when the robot does not know it).
+
+:func:`decode` refuses anything else with a :class:`ProtocolError` whose ``reason`` names the
+check that failed; the receiver counts refusals by reason and drops the packet.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+
+MAGIC = b"PSPU"
+VERSION = 1
+COMMAND, FEEDBACK = 1, 2
+MAX_AXES = 16
+MAX_PACKET = 1024  # bytes: larger datagrams are refused before decoding
+CSV, CST = 9, 10  # CiA 402 modes of operation (object 0x6060)
+
+_HEADER = struct.Struct("<4sBBBBIqIH")
+_CRC = struct.Struct("<I")
+_COMMAND_AXIS = np.dtype([("controlword", "<u2"), ("mode", "i1"), ("pad", "u1"), ("target", "<f8")])
+_FEEDBACK_AXIS = np.dtype([("statusword", "<u2"), ("mode", "i1"), ("pad", "u1"), ("position", "<f8"),
+                           ("velocity", "<f8"), ("torque", "<f8")])
+_PLATFORM = struct.Struct("<3d")
+REASONS = ("size", "magic", "version", "kind", "axes", "length", "crc")
+
+
+class ProtocolError(ValueError):
+    """A packet that is not a valid version-1 packet; ``reason`` is one of :data:`REASONS`."""
+
+    def __init__(self, reason: str, detail: str):
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class Command:
+    """One cycle's command to the drives; arrays ``(n_axes,)``."""
+
+    sequence: int
+    timestamp_ns: int
+    ack: int  # the feedback sequence this command answers
+    controlword: np.ndarray  # u16
+    mode: np.ndarray  # i8: CSV or CST per axis
+    target: np.ndarray  # rad/s (CSV) or N m (CST)
+
+
+@dataclass(frozen=True)
+class Feedback:
+    """One sample of the drives' actual values; arrays ``(n_axes,)``."""
+
+    sequence: int
+    timestamp_ns: int
+    ack: int  # the last command sequence the robot applied
+    statusword: np.ndarray  # u16
+    mode: np.ndarray  # i8
+    position: np.ndarray  # motor angle from home, rad
+    velocity: np.ndarray  # rad/s
+    torque: np.ndarray  # N m
+    platform: np.ndarray  # (3,) m, NaN when unknown
+
+
+def _pack(kind: int, sequence: int, timestamp_ns: int, ack: int, n_axes: int, payload: bytes) -> bytes:
+    head = _HEADER.pack(MAGIC, VERSION, kind, n_axes, 0, sequence & 0xFFFFFFFF, timestamp_ns, ack & 0xFFFFFFFF,
+                        len(payload))
+    body = head + payload
+    return body + _CRC.pack(zlib.crc32(body))
+
+
+def encode_command(c: Command) -> bytes:
+    n = len(c.target)
+    a = np.zeros(n, _COMMAND_AXIS)
+    a["controlword"], a["mode"], a["target"] = c.controlword, c.mode, c.target
+    return _pack(COMMAND, c.sequence, c.timestamp_ns, c.ack, n, a.tobytes())
+
+
+def encode_feedback(f: Feedback) -> bytes:
+    n = len(f.position)
+    a = np.zeros(n, _FEEDBACK_AXIS)
+    a["statusword"], a["mode"] = f.statusword, f.mode
+    a["position"], a["velocity"], a["torque"] = f.position, f.velocity, f.torque
+    return _pack(FEEDBACK, f.sequence, f.timestamp_ns, f.ack, n, a.tobytes() + _PLATFORM.pack(*f.platform))
+
+
+def decode(data: bytes, kind: int | None = None) -> Command | Feedback:
+    """The packet in ``data`` (of ``kind`` if given); :class:`ProtocolError` for anything malformed."""
+    if not (_HEADER.size + _CRC.size <= len(data) <= MAX_PACKET):
+        raise ProtocolError("size", f"expected {_HEADER.size + _CRC.size}..{MAX_PACKET} bytes, got {len(data)}")
+    magic, version, k, n, _, seq, stamp, ack, length = _HEADER.unpack_from(data)
+    if magic != MAGIC:
+        raise ProtocolError("magic", f"expected {MAGIC!r}, got {magic!r}")
+    if version != VERSION:
+        raise ProtocolError("version", f"expected {VERSION}, got {version}")
+    if k not in (COMMAND, FEEDBACK) or (kind is not None and k != kind):
+        raise ProtocolError("kind", f"expected {kind or (COMMAND, FEEDBACK)}, got {k}")
+    if not 1 <= n <= MAX_AXES:
+        raise ProtocolError("axes", f"expected 1..{MAX_AXES} axes, got {n}")
+    expected = n * (_COMMAND_AXIS.itemsize if k == COMMAND else _FEEDBACK_AXIS.itemsize) \
+        + (0 if k == COMMAND else _PLATFORM.size)
+    if length != expected or len(data) != _HEADER.size + length + _CRC.size:
+        raise ProtocolError("length", f"expected a payload of {expected} bytes in a packet of "
+                                      f"{_HEADER.size + expected + _CRC.size}, got {length} in {len(data)}")
+    (crc,) = _CRC.unpack_from(data, len(data) - _CRC.size)
+    if crc != zlib.crc32(data[:-_CRC.size]):
+        raise ProtocolError("crc", "the CRC-32 does not match the packet")
+    payload = data[_HEADER.size:_HEADER.size + length]
+    if k == COMMAND:
+        a = np.frombuffer(payload, _COMMAND_AXIS)
+        return Command(seq, stamp, ack, a["controlword"].copy(), a["mode"].copy(), a["target"].copy())
+    a = np.frombuffer(payload[:n * _FEEDBACK_AXIS.itemsize], _FEEDBACK_AXIS)
+    return Feedback(seq, stamp, ack, a["statusword"].copy(), a["mode"].copy(), a["position"].copy(),
+                    a["velocity"].copy(), a["torque"].copy(),
+                    np.array(_PLATFORM.unpack_from(payload, n * _FEEDBACK_AXIS.itemsize)))
+
+
+def newer(sequence: int, last: int | None) -> bool:
+    """``sequence`` comes after ``last`` in u32 serial-number arithmetic (RFC 1982); a replay or a late packet does not."""
+    return last is None or 0 < (sequence - last) % 2**32 < 2**31

@@ -1,0 +1,129 @@
+"""A fixed-rate cycle on the monotonic clock (host-side): real-time settings, deadlines, overruns, timing statistics.
+
+Cycle ``k``'s deadline is ``t0 + k T``.  The runner sleeps until ``SPIN`` before it (the kernel's
+timer slack on a non-RT kernel is tens of microseconds) and spins the rest.  A deadline is
+*missed* when a cycle's work ends after the next deadline.  Overrun policy: when a cycle would
+start after the next deadline has passed, the runner skips to the
+next deadline in the future (it never runs cycles back to back to catch up), counts the skipped
+cycles, and hands the count to the cycle function, which decides (the bridge faults after
+``max_consecutive_misses``).  Garbage collection is frozen and disabled for the run.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import gc
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+SPIN = 200e-6  # s spent spinning before each deadline
+
+
+@dataclass
+class RealtimeReport:
+    """What the OS granted: each setting with 'granted' or the reason it was refused."""
+
+    settings: dict = field(default_factory=dict)
+
+    def lines(self) -> list[str]:
+        return [f"{k}: {v}" for k, v in self.settings.items()]
+
+
+def realtime_setup(priority: int = 80, cpu: int | None = None) -> RealtimeReport:
+    """SCHED_FIFO at ``priority``, ``mlockall``, and CPU affinity to ``cpu`` (default: the last CPU), where allowed."""
+    rep = RealtimeReport()
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        rep.settings["SCHED_FIFO"] = f"granted (priority {priority})"
+    except (OSError, AttributeError) as e:
+        rep.settings["SCHED_FIFO"] = f"refused ({getattr(e, 'strerror', None) or e}); running SCHED_OTHER"
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.mlockall(3) != 0:  # MCL_CURRENT | MCL_FUTURE
+            raise OSError(ctypes.get_errno(), os.strerror(ctypes.get_errno()))
+        rep.settings["mlockall"] = "granted"
+    except (OSError, AttributeError) as e:
+        rep.settings["mlockall"] = f"refused ({getattr(e, 'strerror', None) or e}); pages may fault in the loop"
+    try:
+        cpus = sorted(os.sched_getaffinity(0))
+        target = cpus[-1] if cpu is None else cpu
+        os.sched_setaffinity(0, {target})
+        rep.settings["affinity"] = f"granted (CPU {target} of {len(cpus)})"
+    except (OSError, AttributeError) as e:
+        rep.settings["affinity"] = f"refused ({e})"
+    return rep
+
+
+@dataclass
+class CycleStats:
+    """Per-cycle timing [s] in preallocated arrays: wake-up lateness and the cycle function's own time."""
+
+    period: float
+    wake_late: np.ndarray
+    busy: np.ndarray
+    skipped: int = 0
+    cycles: int = 0
+
+    @property
+    def missed(self) -> int:
+        """Deadlines missed: cycles whose work ended after the next deadline, plus the cycles skipped."""
+        return int(np.count_nonzero(self.wake_late + self.busy > self.period)) + self.skipped
+
+    @classmethod
+    def allocate(cls, period: float, n: int) -> "CycleStats":
+        return cls(period, np.zeros(n), np.zeros(n))
+
+
+class CycleRunner:
+    """Calls ``fn(k, skipped) -> bool`` once per cycle at ``rate`` [Hz] until it returns False or ``n`` cycles ran."""
+
+    def __init__(self, rate: float):
+        if not (rate > 0):
+            raise ValueError(f"rate: expected a positive number of Hz, got {rate!r}")
+        self.period = 1.0 / rate
+
+    def run(self, fn, n: int) -> CycleStats:
+        stats = CycleStats.allocate(self.period, n)
+        T = self.period
+        gc.collect()
+        gc.freeze()
+        was_enabled = gc.isenabled()
+        gc.disable()
+        try:
+            t0 = time.monotonic() + 2 * T
+            k = 0
+            skipped = 0
+            while k < n:
+                deadline = t0 + k * T
+                now = time.monotonic()
+                if now < deadline - SPIN:
+                    time.sleep(deadline - SPIN - now)
+                while (now := time.monotonic()) < deadline:
+                    pass
+                late = now - deadline
+                if late > T:  # the next deadline has passed too: skip to the next one ahead
+                    behind = int(late // T)
+                    stats.skipped += behind
+                    skipped += behind
+                    k += behind
+                    if k >= n:
+                        break
+                    continue
+                stats.wake_late[stats.cycles] = late
+                go_on = fn(k, skipped)
+                stats.busy[stats.cycles] = time.monotonic() - now
+                stats.cycles += 1
+                skipped = 0
+                k += 1
+                if not go_on:
+                    break
+        finally:
+            if was_enabled:
+                gc.enable()
+            gc.unfreeze()
+        stats.wake_late = stats.wake_late[:stats.cycles]
+        stats.busy = stats.busy[:stats.cycles]
+        return stats

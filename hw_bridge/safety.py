@@ -1,0 +1,97 @@
+"""Limits, guards, the feedback watchdog and the fault log of the bridge (host-side, plain numpy).
+
+Every feedback sample passes :meth:`Safety.check_feedback` and every command
+:meth:`Safety.limit_command` before it is sent, so no command outside the limits ever leaves
+the bridge: targets are clamped, and a non-finite target is a fault (the command sent is then
+the safe one, zero).  A fault latches: the bridge sends CiA 402 quick stop, then disable voltage.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .protocol import CSV
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Per-axis limits, arrays ``(n_axes,)``, motor side.
+
+    ``position_min``/``position_max`` [rad from home]: the strokes; ``velocity`` [rad/s]: the largest
+    speed command; ``torque`` [N m]: the largest torque command (``Kt I_max``); ``feedback_margin``:
+    measured speeds and torques beyond ``margin`` times their limit are faults (a broken encoder or
+    a corrupted packet, not a motion).
+    """
+
+    position_min: np.ndarray
+    position_max: np.ndarray
+    velocity: np.ndarray
+    torque: np.ndarray
+    feedback_margin: float = 2.0
+
+    def __post_init__(self):
+        for name in ("position_min", "position_max", "velocity", "torque"):
+            v = np.asarray(getattr(self, name), dtype=float)
+            if v.ndim != 1 or np.isnan(v).any():
+                raise ValueError(f"limits.{name}: expected one number per axis, got {v}")
+            object.__setattr__(self, name, v)
+        if not (np.all(self.position_min < self.position_max) and np.all(self.velocity > 0)
+                and np.all(self.torque > 0)):
+            raise ValueError("limits: expected position_min < position_max and positive velocity and torque limits")
+
+
+@dataclass
+class Fault:
+    cycle: int
+    kind: str  # 'feedback stale', 'feedback invalid', 'position limit', 'command invalid', 'deadline', 'drive fault'
+    detail: str
+
+    def line(self) -> str:
+        return f"cycle {self.cycle}: {self.kind}: {self.detail}"
+
+
+@dataclass
+class Safety:
+    """Guards on one bridge run; ``faults`` logs every fault with its cycle, the first one latches the safe stop."""
+
+    limits: Limits
+    watchdog_cycles: int = 5  # feedback older than this many cycles stops the machine
+    faults: list = field(default_factory=list)
+
+    @property
+    def tripped(self) -> bool:
+        return bool(self.faults)
+
+    def fault(self, cycle: int, kind: str, detail: str) -> None:
+        self.faults.append(Fault(cycle, kind, detail))
+
+    def check_feedback(self, cycle: int, age: int, position, velocity, torque) -> bool:
+        """True when the sample may drive the loops: fresh (``age`` cycles old at most the watchdog), finite, in range."""
+        lim = self.limits
+        if age > self.watchdog_cycles:
+            self.fault(cycle, "feedback stale", f"no new feedback for {age} cycles (watchdog {self.watchdog_cycles})")
+            return False
+        values = np.concatenate([position, velocity, torque])
+        if not np.isfinite(values).all():
+            self.fault(cycle, "feedback invalid", "NaN or inf in the measured position, velocity or torque")
+            return False
+        m = lim.feedback_margin
+        if np.any(np.abs(velocity) > m * lim.velocity) or np.any(np.abs(torque) > m * lim.torque):
+            self.fault(cycle, "feedback invalid", f"measured speed or torque beyond {m} times its limit")
+            return False
+        if np.any(position < lim.position_min) or np.any(position > lim.position_max):
+            k = int(np.argmax((position < lim.position_min) | (position > lim.position_max)))
+            self.fault(cycle, "position limit", f"axis {k + 1} at {position[k]:.4g} rad, outside "
+                                                f"[{lim.position_min[k]:.4g}, {lim.position_max[k]:.4g}]")
+            return False
+        return True
+
+    def limit_command(self, cycle: int, modes, target) -> np.ndarray:
+        """``target`` clamped to the velocity (CSV) or torque (CST) limit of each axis; all zero if any is not finite."""
+        if not np.isfinite(target).all():
+            self.fault(cycle, "command invalid", "the loops computed a NaN or inf target")
+            return np.zeros_like(target)
+        bound = np.where(np.asarray(modes) == CSV, self.limits.velocity, self.limits.torque)
+        return np.clip(target, -bound, bound)

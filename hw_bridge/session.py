@@ -1,0 +1,195 @@
+"""One bridge run (host-side): bring the drives up through CiA 402, take over, run the loops, stop, report.
+
+Per cycle: read the newest feedback, check it (:class:`~hw_bridge.safety.Safety`), step the
+loops (:class:`~hw_bridge.loop.BridgeLoop`), clamp the targets, send the command.  Phases:
+
+1. *connect*: send shutdown until every drive reports 'ready to switch on' (``connect_s``);
+2. *enable*: switch on, then enable operation, until every drive reports 'operation enabled';
+3. *run*: :meth:`BridgeLoop.start` from the drives' actual values (no step), then the path;
+4. *stop*: on a fault, or at the end: quick stop for ``stop_cycles``, then disable voltage.
+
+``latency`` of a cycle: from its wake-up to its command sent: reading the feedback socket, the
+checks, the step, the encoding and the ``sendto``.  ``feedback_age``: from the robot's send stamp to
+our read of that feedback at the start of the cycle that used it (one monotonic clock on loopback):
+the transport *plus* the wait for our next cycle, so at most one period more than the transport.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import cia402, protocol
+from .loop import BridgeLoop
+from .runner import CycleRunner, realtime_setup
+from .safety import Safety
+
+PHASES = ("connect", "enable", "run", "stop", "done")
+
+
+@dataclass
+class BridgeRun:
+    """The record of one run: per-cycle arrays (``phase == 'run'`` cycles) and counters."""
+
+    rate: float
+    cycles: int = 0
+    missed: int = 0
+    skipped: int = 0
+    latency_us: list = field(default_factory=list)
+    feedback_age_us: list = field(default_factory=list)
+    t: list = field(default_factory=list)
+    reference: list = field(default_factory=list)
+    position: list = field(default_factory=list)
+    platform: list = field(default_factory=list)
+    platform_reference: list = field(default_factory=list)
+    commands: list = field(default_factory=list)  # every command sent: (cycle, modes, controlword, target)
+    faults: list = field(default_factory=list)
+    rejected: dict = field(default_factory=dict)
+    realtime: list = field(default_factory=list)
+    completed: bool = False
+
+    def report(self, screw=None) -> dict:
+        """The run's figures: cycles, missed deadlines, latency percentiles [us], faults, tracking error [mm]."""
+        def pct(x):
+            x = np.asarray(x)
+            if not len(x):
+                return None
+            return {f"p{p}": float(np.percentile(x, p)) for p in (50, 99, 99.9)} | {"max": float(x.max())}
+
+        out = {"rate_hz": self.rate, "cycles": self.cycles, "missed_deadlines": self.missed,
+               "missed_fraction": self.missed / max(self.cycles + self.skipped, 1), "skipped_cycles": self.skipped,
+               "latency_us": pct(self.latency_us), "feedback_age_us": pct(self.feedback_age_us), "faults": [f.line() for f in self.faults],
+               "rejected_packets": dict(self.rejected), "realtime": self.realtime, "completed": self.completed}
+        if self.position and screw is not None:
+            e = (np.asarray(self.position) - np.asarray(self.reference)) * np.asarray(screw) * 1e3
+            out["branch_rms_error_mm"] = np.sqrt(np.mean(e**2, axis=0)).tolist()
+            out["branch_max_error_mm"] = np.abs(e).max(axis=0).tolist()
+        if self.platform and self.platform_reference and np.isfinite(np.asarray(self.platform)).all():
+            e = np.linalg.norm(np.asarray(self.platform) - np.asarray(self.platform_reference), axis=1) * 1e3
+            out["rms_tracking_error_mm"] = float(np.sqrt(np.mean(e**2)))
+            out["max_tracking_error_mm"] = float(e.max())
+        return out
+
+
+class Bridge:
+    """Runs ``loop`` against the drives behind ``endpoint``: a :class:`~hw_bridge.udp.Endpoint` of FEEDBACK or a
+    :class:`~hw_bridge.canopen_link.CanLink` (``send_command``, ``poll``, ``received_at``, ``rejected``)."""
+
+    def __init__(self, loop: BridgeLoop, endpoint, safety: Safety, *, connect_s: float = 5.0, stop_cycles: int = 50,
+                 max_consecutive_misses: int = 3, hold_s: float = 0.0):
+        self.loop, self.endpoint, self.safety = loop, endpoint, safety
+        self.connect_cycles = int(connect_s * loop.rate)
+        self.stop_cycles = stop_cycles
+        self.max_misses = max_consecutive_misses
+        self.hold_cycles = int(hold_s * loop.rate)
+
+    def run(self, duration: float | None = None, realtime: bool = True) -> BridgeRun:
+        """Up to ``duration`` [s] of the path (default: all of it, takeover included); returns the record."""
+        loop, ep, safety = self.loop, self.endpoint, self.safety
+        n_axes = len(loop.drive_modes)
+        rec = BridgeRun(loop.rate)
+        if realtime:
+            rec.realtime = realtime_setup().lines()
+        st = {"phase": "connect", "since": 0, "feedback": None, "age": 0, "sequence": 0, "run_start": None,
+              "run_cycles": None, "misses": 0, "fresh": False}
+        zeros = np.zeros(n_axes)
+        sent = {}  # command sequence -> run cycle
+
+        def send(k, controlword, target, t_wake):
+            fb = st["feedback"]
+            cmd = protocol.Command(st["sequence"], time.monotonic_ns(), fb.sequence if fb else 0,
+                                   np.full(n_axes, controlword, np.uint16), loop.drive_modes, target)
+            ep.send_command(cmd)
+            st["sequence"] += 1
+            rec.commands.append((k, controlword, target))
+            return time.monotonic() - t_wake
+
+        def states():
+            fb = st["feedback"]
+            return {cia402.state_of(int(w)) for w in fb.statusword} if fb is not None else set()
+
+        def cycle(k, skipped):
+            t_wake = time.monotonic()
+            packet = ep.poll()
+            if packet is not None:
+                st["feedback"], st["age"], st["fresh"] = packet, 0, True
+            else:
+                st["age"] += 1 + skipped
+                st["fresh"] = False
+            phase = st["phase"]
+            fb = st["feedback"]
+            if phase == "connect":
+                if states() == {cia402.READY} or states() == {cia402.SWITCHED_ON}:
+                    st["phase"], st["since"] = "enable", k
+                elif k - st["since"] > self.connect_cycles:
+                    safety.fault(k, "feedback stale", f"the drives did not come up in {self.connect_cycles} cycles "
+                                                      f"(states: {sorted(states()) or 'no feedback'})")
+                    st["phase"], st["since"] = "stop", k
+                word = cia402.FAULT_RESET if cia402.FAULT in states() and k % 2 else cia402.SHUTDOWN
+                send(k, word, zeros, t_wake)
+                return True
+            if phase == "enable":
+                s = states()
+                if s == {cia402.OPERATION_ENABLED} and st["fresh"]:
+                    k6 = loop.mode.force_axis
+                    loop.start(fb.position, fb.torque, float(fb.torque[k6] * loop.force_per_torque[k6])
+                               if loop.mode.hybrid else None)
+                    st["phase"], st["run_start"] = "run", k
+                    total = loop.cycles + self.hold_cycles
+                    st["run_cycles"] = total if duration is None else min(total, int(round(duration * loop.rate)))
+                elif k - st["since"] > self.connect_cycles:
+                    safety.fault(k, "drive fault", f"the drives did not enable (states: {sorted(s)})")
+                    st["phase"], st["since"] = "stop", k
+                else:
+                    word = cia402.SWITCH_ON if s == {cia402.READY} else cia402.ENABLE_OPERATION
+                    send(k, word, zeros, t_wake)
+                    return True
+            if st["phase"] == "run":
+                j = k - st["run_start"]
+                st["misses"] = st["misses"] + 1 if skipped else 0
+                ok = not safety.tripped
+                if ok and st["misses"] > self.max_misses:
+                    safety.fault(k, "deadline", f"{st['misses']} consecutive cycles missed their deadline")
+                    ok = False
+                if ok and states() - {cia402.OPERATION_ENABLED}:
+                    safety.fault(k, "drive fault", f"a drive left 'operation enabled' (states: {sorted(states())})")
+                    ok = False
+                ok = ok and safety.check_feedback(k, st["age"], fb.position, fb.velocity, fb.torque)
+                if not ok:
+                    st["phase"], st["since"] = "stop", k
+                else:
+                    target = safety.limit_command(k, loop.drive_modes, loop.step(j, fb.position, fb.velocity))
+                    rec.latency_us.append(send(k, cia402.ENABLE_OPERATION, target, t_wake) * 1e6)
+                    if st["fresh"]:
+                        rec.feedback_age_us.append((ep.received_at - fb.timestamp_ns * 1e-9) * 1e6)
+                    # the fresh feedback shows the machine after the command it acknowledges (over CANopen, which
+                    # has no acknowledgement: the last one): compare it with the reference of the cycle after that
+                    ja = sent.get(fb.ack, -1) if fb.ack else j - 1
+                    if st["fresh"] and ja >= 0:
+                        rec.t.append((ja + 1) / loop.rate)
+                        rec.reference.append(loop.reference_at(ja + 1))
+                        rec.position.append(fb.position)
+                        rec.platform.append(fb.platform)
+                        if loop.reference.platform is not None:
+                            p = min(max((ja + 1) // loop.n_position - loop.takeover_periods, 0),
+                                    len(loop.reference.platform) - 1)
+                            rec.platform_reference.append(loop.reference.platform[p])
+                    sent[st["sequence"] - 1] = j
+                    if j + 1 >= st["run_cycles"]:
+                        rec.completed = not safety.tripped
+                        st["phase"], st["since"] = "stop", k + 1
+                    return True
+            # stop: quick stop, then disable voltage
+            word = cia402.QUICK_STOP if k - st["since"] < self.stop_cycles else cia402.DISABLE_VOLTAGE
+            send(k, word, zeros, t_wake)
+            return k - st["since"] < self.stop_cycles + 5
+
+        run_s = (duration if duration is not None else len(loop.reference.theta) * loop.rates.dt_position + 30.0)
+        stats = CycleRunner(loop.rate).run(cycle, 2 * self.connect_cycles + int(run_s * loop.rate) + self.hold_cycles
+                                           + 2 * self.stop_cycles)
+        rec.cycles, rec.missed, rec.skipped = stats.cycles, stats.missed, stats.skipped
+        rec.faults = list(safety.faults)
+        rec.rejected = dict(ep.rejected)
+        return rec

@@ -1,0 +1,358 @@
+"""A simulated robot behind the bridge's transport: the MJX machine and its drives' inner loops, in step with the bridge.
+
+The one module of ``hw_bridge`` that imports the mechanism (MuJoCo MJX); the bridge never
+imports it.  ``pusupu sim-robot --listen udp://127.0.0.1:PORT`` runs it.
+
+Each valid command from the bridge goes to the six drives' CiA 402 state machines; while they
+are 'operation enabled' the machine advances one bridge period under the command (CSV: each
+drive's velocity loop follows the speed target; CST: its current loop follows the torque
+target), with the same drive-side functions the simulator scans (:func:`pusupu_jax.sim.pieces`,
+:func:`pusupu_jax.cascade.velocity_tick`).  Then the robot replies with the actual values.  In
+'quick stop active' the drives stop the machine with their own velocity loops (speed zero);
+in any other state the brakes hold it (the mechanism does not move).  The machine runs one
+period per command, so it keeps the bridge's real-time rate; if commands stop for
+``watchdog_s`` while enabled, the drives fault (their own sync watchdog) and the brakes engage.
+
+A new session starts when the drives are brought up again from 'switch on disabled': the
+machine is then at rest at home, held by its drives, and the next fault of the schedule arms.
+
+Faults on demand (``--fault KIND@T[:ARG]``, one per session, ``T`` [s] after enable):
+``stop`` (silent for ARG s, default 1), ``delay`` (replies ARG s late, default 0.02),
+``drop`` (replies dropped with probability ARG, default 1), ``reorder`` (replies sent in
+reverse order in blocks of ARG, default 8), ``corrupt`` (a byte flipped with probability
+ARG, default 1), ``nan`` (NaN positions), ``range`` (positions ARG rad off, default 1e4: metres of travel),
+``garbage`` (every reply comes with malformed, truncated, oversized, wrong-version and replayed
+packets), ``none``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import sys
+import time
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from pusupu_jax import cascade, loops, sim
+from pusupu_jax.gains import GainFile
+from pusupu_jax.machine import machine_plant, machine_rates
+from pusupu_jax.plant.geometry import Geometry
+from pusupu_jax.plant.model import ModelOptions, build_model, slide_dofs, slide_qpos
+
+from . import cia402, protocol
+from .compiled import FlatStep, cpu
+from .udp import Endpoint
+
+FAULTS = ("none", "stop", "delay", "drop", "reorder", "corrupt", "nan", "range", "garbage")
+DEFAULT_ARG = {"stop": 1.0, "delay": 0.02, "drop": 1.0, "reorder": 8, "corrupt": 1.0, "range": 1.0e4}
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    kind: str = "none"
+    at: float = 0.0  # s after enable
+    arg: float | None = None
+
+    @classmethod
+    def parse(cls, text: str) -> "FaultSpec":
+        """``KIND@T[:ARG]`` or ``none``; ValueError naming what was expected."""
+        kind, _, rest = text.partition("@")
+        at, _, arg = rest.partition(":")
+        try:
+            spec = cls(kind, float(at) if at else 0.0, float(arg) if arg else DEFAULT_ARG.get(kind))
+        except ValueError:
+            raise ValueError(f"--fault: expected KIND@SECONDS[:ARG] with numbers, got {text!r}") from None
+        if kind not in FAULTS or spec.at < 0 or (spec.arg is not None and not np.isfinite(spec.arg)):
+            raise ValueError(f"--fault: expected KIND@SECONDS[:ARG], KIND one of {FAULTS}, got {text!r}")
+        return spec
+
+
+class RobotModel:
+    """The mechanism (C MuJoCo) and its drives (the simulator's functions, compiled on the CPU), one bridge period per call.
+
+    The mechanism is the machine's own MuJoCo model (:func:`pusupu_jax.plant.model.build_model`, seeded
+    kinematic errors included) stepped by C MuJoCo with the MJX plant's armature and torque mapping,
+    one step per velocity period (the timestep is ``rates.dt_velocity``); the drives at rest start from
+    the MJX plant's static equilibrium, as the simulator's runs do.  Why C MuJoCo: on this 2-core CPU
+    an MJX step through JAX's dispatch took about 300 us, more than a 250 us cycle; C MuJoCo takes tens.
+    """
+
+    def __init__(self, gains: GainFile, rate: float | None = None, kin_error_seed: int | None = None,
+                 cst: bool = False):
+        from .loop import bridge_rates
+
+        jax.config.update("jax_enable_x64", True)
+        self.servo = servo = gains.servo
+        self.rates = bridge_rates(gains.rates, cst, rate)  # the bridge's, for its drive-mode pattern
+        options = ModelOptions(timestep=self.rates.dt_velocity, kin_error_seed=kin_error_seed)
+        nominal = dataclasses.replace(options, kin_error_seed=None)
+        plant = machine_plant(nominal)
+        rates = machine_rates(nominal, self.rates)
+        vmode = cascade.control_mode("velocity")
+        carry0 = jax.jit(lambda model: sim.pieces(servo, model, plant=plant, rates=rates, mode=vmode,
+                                                  hybrid=None).init("rest", None))(jax.device_put(plant.variant(options),
+                                                                                                  cpu()))
+        self.m = build_model(Geometry.default(), options)
+        self.dofs, self.qpos = slide_dofs(self.m), slide_qpos(self.m)
+        r = np.asarray(servo.lead / (2 * np.pi), dtype=float)
+        self.m.dof_armature[self.dofs] = np.asarray(servo.eta * servo.J, dtype=float) / r**2
+        self.r, self.force_gain = r, np.asarray(servo.eta, dtype=float) / r
+        self.Kt = np.asarray(servo.Kt, dtype=float)
+        self.platform = self.m.body("platform").id
+
+        def velocity_period(d, state, target, cst_mask, omega):
+            electrical, sc = state
+            sc, i_vel = cascade.velocity_tick(d, vmode, sc, jnp.where(cst_mask, 0.0, target), omega)
+            limit = d.velocity.limit
+            i_ref = jnp.where(cst_mask, jnp.clip(target / d.Kt, -limit, limit), i_vel)
+            electrical, sc, torque, _ = sim.current_ticks(d, electrical, sc, i_ref, omega, rates.n_mech)
+            return (electrical, sc), torque
+
+        z = np.zeros(len(self.Kt))
+        self._drive = FlatStep(velocity_period, (loops.discretize(servo, rates),), (carry0.electrical, carry0.cascade),
+                               (z, np.zeros(len(z), bool), z))
+        self.drive0 = self._drive.state
+        self.torque0 = self.Kt * np.asarray(loops.electrical_current(carry0.electrical))
+
+    def reset(self):
+        """A new machine at rest at home, held by its drives: ``(MjData, drive state)``."""
+        d = mujoco.MjData(self.m)
+        mujoco.mj_forward(self.m, d)
+        return d, self.drive0
+
+    def actual(self, d):
+        """``(theta [rad], omega [rad/s], platform [m])`` of the machine in ``d``."""
+        s = d.qpos[self.qpos] - self.m.qpos0[self.qpos]
+        return s / self.r, d.qvel[self.dofs] / self.r, d.xpos[self.platform].copy()
+
+    def advance(self, d, state, target, cst_mask):
+        """One bridge period under ``target`` (CSV: rad/s; CST: N m): the drive state and the motor torque [N m]."""
+        torque = np.zeros(len(self.Kt))
+        for _ in range(1 if np.any(cst_mask) else self.rates.n_position):  # velocity periods in a bridge period
+            state, torque = self._drive(state, target, cst_mask, d.qvel[self.dofs] / self.r)
+            d.qfrc_applied[self.dofs] = self.force_gain * torque
+            mujoco.mj_step(self.m, d)
+        return state, torque
+
+
+class SimRobot:
+    """The robot's controller, transport aside: a command in, the drives and the machine one period on, feedback out.
+
+    Also the drives' sync watchdog (:meth:`watch`) and the faults that change what the robot measures or
+    whether it answers (``stop``, ``nan``, ``range``); the transports add the faults of their packets.
+    """
+
+    def __init__(self, model: RobotModel, faults=(), watchdog_s: float = 0.05, log=print):
+        self.model = model
+        self.faults = list(faults)
+        self.watchdog_s = watchdog_s
+        self.log = log
+        self.drives = [cia402.DriveStateMachine() for _ in model.Kt]
+        self.mode = np.full(len(self.drives), protocol.CSV, np.int8)
+        self.session = -1
+        self.sequence = 0
+        self.last = time.monotonic()
+        self._new_session()
+
+    def _new_session(self):
+        self.session += 1
+        self.data, self.state = self.model.reset()
+        self.torque = self.model.torque0
+        self.fault = self.faults[self.session] if self.session < len(self.faults) else FaultSpec()
+        self.enabled_at = None
+        self.silent_until = 0.0
+        self.applied = 0
+
+    def active(self, kind: str, now: float) -> bool:
+        """The session's fault is ``kind`` and due."""
+        return self.fault.kind == kind and self.enabled_at is not None and now - self.enabled_at >= self.fault.at
+
+    def watch(self, now: float) -> None:
+        """The drives' sync watchdog: enabled and no command for ``watchdog_s``: fault, brakes on."""
+        if all(d.enabled for d in self.drives) and now - self.last > self.watchdog_s:
+            for d in self.drives:
+                d.fault()
+            self.log(f"sim-robot: session {self.session}: no command for {self.watchdog_s * 1e3:.0f} ms: "
+                     "drives faulted, brakes on")
+
+    def handle(self, cmd: protocol.Command, now: float) -> protocol.Feedback | None:
+        """Apply one command; the feedback to send (None: the robot is silent)."""
+        if now < self.silent_until:
+            return None
+        if self.active("stop", now):
+            self.silent_until = now + self.fault.arg
+            self.fault = FaultSpec()
+            self.log(f"sim-robot: session {self.session}: stopped (silent for {self.silent_until - now:.2f} s)")
+            return None
+        self.last = now
+        before = {d.state for d in self.drives}
+        for d, w in zip(self.drives, cmd.controlword):
+            d.command(int(w))
+        after = {d.state for d in self.drives}
+        if after == {cia402.READY} and before != {cia402.READY} and self.enabled_at is not None:
+            self._new_session()  # brought up again after a session that ran
+        if after == {cia402.OPERATION_ENABLED}:
+            if self.enabled_at is None:
+                self.enabled_at = now
+            self.mode = np.asarray(cmd.mode, np.int8)
+            self.state, self.torque = self.model.advance(self.data, self.state, np.asarray(cmd.target, dtype=float),
+                                                         self.mode == protocol.CST)
+        elif after == {cia402.QUICK_STOP_ACTIVE}:
+            self.state, self.torque = self.model.advance(self.data, self.state, np.zeros(len(self.drives)),
+                                                         np.zeros(len(self.drives), bool))
+        self.applied = cmd.sequence
+        theta, omega, platform = self.model.actual(self.data)
+        if self.active("nan", now):
+            theta = theta * np.nan
+        if self.active("range", now):
+            theta = theta + self.fault.arg
+        fb = protocol.Feedback(self.sequence, time.monotonic_ns(), self.applied,
+                               np.array([d.statusword for d in self.drives], np.uint16), self.mode, theta, omega,
+                               self.torque, platform)
+        self.sequence += 1
+        return fb
+
+
+class UdpServer:
+    """The robot behind UDP, with the faults of its packets: ``drop``, ``corrupt``, ``garbage``, ``reorder``, ``delay``."""
+
+    def __init__(self, robot: SimRobot, endpoint: Endpoint, seed: int = 0):
+        self.robot, self.ep = robot, endpoint
+        self.rng = np.random.default_rng(seed)
+        self.queue = []  # (due time, order, bytes): replies held back (delay)
+        self.block = []  # replies held back to be sent in reverse (reorder)
+        self._last = b""
+
+    def _send(self, fb: protocol.Feedback, now: float) -> None:
+        r, data = self.robot, protocol.encode_feedback(fb)
+        if r.active("drop", now) and self.rng.random() < r.fault.arg:
+            return
+        if r.active("corrupt", now) and self.rng.random() < r.fault.arg:
+            b = bytearray(data)
+            b[int(self.rng.integers(len(b)))] ^= 0xFF
+            data = bytes(b)
+        if r.active("garbage", now):
+            for bad in (data[:17], data + bytes(protocol.MAX_PACKET), data[:4] + b"\x02" + data[5:],
+                        b"\x00" * len(data), self._last or data):
+                self.ep.send(bad)
+            self._last = data
+        if r.active("reorder", now):
+            self.block.append(data)
+            if len(self.block) >= int(r.fault.arg):
+                for d in reversed(self.block):
+                    self.ep.send(d)
+                self.block = []
+            return
+        if r.active("delay", now):
+            heapq.heappush(self.queue, (now + r.fault.arg, fb.sequence, data))
+            return
+        self.ep.send(data)
+
+    def serve(self, max_s: float | None = None) -> None:
+        """Serve commands until ``max_s`` [s] pass (None: until interrupted)."""
+        end = None if max_s is None else time.monotonic() + max_s
+        session = self.robot.session
+        while end is None or time.monotonic() < end:
+            cmd = self.ep.poll(timeout=0.001)
+            now = time.monotonic()
+            while self.queue and self.queue[0][0] <= now:
+                self.ep.send(heapq.heappop(self.queue)[2])
+            self.robot.watch(now)
+            if cmd is None:
+                continue
+            fb = self.robot.handle(cmd, now)
+            if self.robot.session != session:
+                session, self.queue, self.block = self.robot.session, [], []
+            if fb is not None:
+                self._send(fb, now)
+
+
+class CanServer:
+    """The robot behind CANopen: six CiA 402 drive nodes (``canopen.LocalNode``) on one bus, driven by SYNC.
+
+    Each drive answers SDO requests from its dictionary; on SYNC the robot takes every drive's last
+    RPDO, runs one period, and sends each drive's two TPDOs.  Faults: ``stop`` and ``drop`` (no
+    TPDOs), ``range`` (positions off); NaN has no integer encoding on the bus.
+    """
+
+    def __init__(self, robot: SimRobot, bus):
+        import canopen
+
+        from .canopen_link import COUNTS_PER_RAD, N_AXES, node_dictionary
+
+        self.robot, self.scale = robot, COUNTS_PER_RAD
+        self.network = canopen.Network(bus)
+        self.nodes = []
+        for k in range(N_AXES):
+            node = canopen.LocalNode(k + 1, node_dictionary(k + 1))
+            self.network.add_node(node)
+            node.sdo["Motor rated torque"].raw = int(round(float(robot.model.Kt[k] * robot.model.servo.I_max[k]) * 1e3))
+            node.sdo["Modes of operation display"].raw = protocol.CSV
+            node.add_write_callback(lambda index, subindex, od, data, node=node: self._on_write(node, index, data))
+            node.rpdo.read(from_od=True)
+            node.tpdo.read(from_od=True)
+            self.nodes.append(node)
+        import can
+
+        self.network.notifier = can.Notifier(bus, self.network.listeners, 0.1)
+        self.network.subscribe(0x80, self._on_sync)
+
+    def _on_write(self, node, index, data) -> None:
+        if index == 0x6060:  # the mode of operation, set over SDO, is displayed
+            node.sdo["Modes of operation display"].raw = int.from_bytes(data[:1], "little", signed=True)
+
+    def _on_sync(self, can_id, data, timestamp) -> None:
+        now = time.monotonic()
+        r = self.robot
+        modes = np.array([n.sdo["Modes of operation display"].raw for n in self.nodes], np.int8)
+        rated = np.array([n.sdo["Motor rated torque"].raw for n in self.nodes], float) * 1e-3
+        maps = [n.rpdo[1] for n in self.nodes]
+        target = np.where(modes == protocol.CST, np.array([m["Target torque"].raw for m in maps]) * rated / 1000.0,
+                          np.array([m["Target velocity"].raw for m in maps]) / self.scale)
+        cmd = protocol.Command(r.applied + 1, 0, 0, np.array([m["Controlword"].raw for m in maps], np.uint16), modes,
+                               target)
+        fb = r.handle(cmd, now)
+        if fb is None or (r.active("drop", now) and r.fault.arg >= 1.0):
+            return
+        for k, node in enumerate(self.nodes):
+            t1, t2 = node.tpdo[1], node.tpdo[2]
+            t1["Statusword"].raw = int(fb.statusword[k])
+            t1["Position actual value"].raw = int(np.clip(round(fb.position[k] * self.scale), -2**31, 2**31 - 1))
+            t1["Torque actual value"].raw = int(np.clip(round(fb.torque[k] / rated[k] * 1000.0), -2**15, 2**15 - 1))
+            t2["Velocity actual value"].raw = int(np.clip(round(fb.velocity[k] * self.scale), -2**31, 2**31 - 1))
+            t2["Modes of operation display"].raw = int(modes[k])
+            t1.transmit()
+            t2.transmit()
+
+    def serve(self, max_s: float | None = None) -> None:
+        end = None if max_s is None else time.monotonic() + max_s
+        while end is None or time.monotonic() < end:
+            time.sleep(0.001)
+            self.robot.watch(time.monotonic())
+
+
+def main_loop(model: RobotModel, listen: str, faults, max_s=None) -> int:
+    """Serve on ``listen`` (udp://HOST:PORT or can://INTERFACE/CHANNEL) until interrupted; one line when ready."""
+    robot = SimRobot(model, faults, log=lambda m: print(m, file=sys.stderr, flush=True))
+    if listen.startswith("can://"):
+        from .canopen_link import open_bus
+
+        server = CanServer(robot, open_bus(listen))
+        where = listen
+    else:
+        from .udp import parse_url
+
+        ep = Endpoint(protocol.COMMAND, bind=parse_url(listen))
+        server = UdpServer(robot, ep)
+        where = "udp://{}:{}".format(*ep.address)
+    print(f"sim-robot: listening on {where}", flush=True)
+    try:
+        server.serve(max_s)
+    except KeyboardInterrupt:
+        pass
+    return 0

@@ -1,0 +1,100 @@
+"""UDP endpoints of the protocol (:mod:`hw_bridge.protocol`): non-blocking sockets, every datagram checked and counted.
+
+:class:`Endpoint` receives packets of one kind and keeps the newest valid one; malformed,
+truncated, oversized, wrong-version and replayed (or reordered: not newer than the last
+accepted) packets are dropped and counted by reason.  Nothing a peer sends can raise.
+"""
+
+from __future__ import annotations
+
+import socket
+import time
+from collections import Counter
+from urllib.parse import urlparse
+
+from . import protocol
+
+
+def parse_url(url: str, scheme: str = "udp") -> tuple[str, int]:
+    """``udp://HOST:PORT`` -> (host, port); ValueError naming what was expected."""
+    u = urlparse(url)
+    try:
+        port = u.port
+    except ValueError:
+        port = None
+    if u.scheme != scheme or not u.hostname or port is None:
+        raise ValueError(f"expected {scheme}://HOST:PORT, got {url!r}")
+    return u.hostname, port
+
+
+class Endpoint:
+    """A UDP socket that sends packets and receives packets of kind ``kind`` (COMMAND or FEEDBACK).
+
+    ``bind``: local address (default loopback, a free port); ``peer``: where to send (None: to
+    whoever sent the last valid packet).
+    """
+
+    def __init__(self, kind: int, bind=("127.0.0.1", 0), peer=None):
+        self.kind = kind
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        self.sock.bind(bind)
+        self.sock.setblocking(False)
+        self.peer = peer
+        self.rejected: Counter = Counter()
+        self.accepted = 0
+        self.last_sequence = None
+        self.received_at = 0.0  # s, monotonic: when the newest packet arrived
+
+    @property
+    def address(self) -> tuple[str, int]:
+        return self.sock.getsockname()
+
+    def send(self, data: bytes) -> None:
+        if self.peer is not None:
+            try:
+                self.sock.sendto(data, self.peer)
+            except OSError:
+                self.rejected["send failed"] += 1
+
+    def send_command(self, cmd: protocol.Command) -> None:
+        self.send(protocol.encode_command(cmd))
+
+    def poll(self, timeout: float = 0.0):
+        """The newest valid packet received since the last call (None if none); waits up to ``timeout`` [s] for one."""
+        newest = None
+        if timeout > 0:
+            self.sock.settimeout(timeout)
+        try:
+            while True:
+                try:
+                    data, addr = self.sock.recvfrom(protocol.MAX_PACKET + 1)
+                except (BlockingIOError, socket.timeout):
+                    break
+                except OSError:  # e.g. ICMP port unreachable reported on a connected peer
+                    self.rejected["socket error"] += 1
+                    continue
+                finally:
+                    if timeout > 0:
+                        self.sock.setblocking(False)
+                        timeout = 0.0
+                try:
+                    packet = protocol.decode(data, self.kind)
+                except protocol.ProtocolError as e:
+                    self.rejected[e.reason] += 1
+                    continue
+                if not protocol.newer(packet.sequence, self.last_sequence):
+                    self.rejected["replayed"] += 1
+                    continue
+                self.last_sequence = packet.sequence
+                self.accepted += 1
+                self.received_at = time.monotonic()
+                if self.peer is None or self.kind == protocol.COMMAND:
+                    self.peer = addr
+                newest = packet
+        finally:
+            self.sock.setblocking(False)
+        return newest
+
+    def close(self) -> None:
+        self.sock.close()

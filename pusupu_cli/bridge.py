@@ -1,0 +1,236 @@
+"""``pusupu bridge`` and ``pusupu sim-robot``: the tuned loops against drives, and a simulated robot to run them on."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from pusupu_jax.params import ParameterError
+
+
+def add_parsers(sub) -> None:
+    b = sub.add_parser("bridge", help="run a gain file's loops at real-time rate against the drives of a robot")
+    b.add_argument("--gains", metavar="FILE", required=True, help="a gain file (pusupu tune's gains.yaml); a bad or "
+                                                                   "unstable one is refused before anything is sent")
+    b.add_argument("--robot", metavar="URL", required=True,
+                   help="udp://HOST:PORT of a robot controller, or can://INTERFACE/CHANNEL of a CANopen bus with CiA "
+                        "402 drives at node IDs 1-6 (python-can interfaces) (pusupu sim-robot for a simulated one)")
+    b.add_argument("--rate", type=float, metavar="HZ", help="cycle rate, up to 4000 (default: the gain file's rate "
+                                                             "of the fastest loop the bridge closes: 1000 in CSV, "
+                                                             "4000 with CST axes)")
+    b.add_argument("--duration", type=float, metavar="S", help="seconds of the path (default all of it)")
+    b.add_argument("--trajectory", choices=("arc", "p2p"), default="arc", help="default arc")
+    b.add_argument("--drive-modes", metavar="M[,M...]", default="csv",
+                   help="csv or cst, one for all axes or six comma-separated; hybrid mode always runs branch 6 in "
+                        "cst (default csv)")
+    b.add_argument("--watchdog", type=int, default=5, metavar="N", help="cycles without fresh feedback before a "
+                                                                         "safe stop (default 5)")
+    b.add_argument("--bind", metavar="HOST", default="127.0.0.1", help="local address (default loopback)")
+    b.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO, mlockall or CPU affinity")
+    b.add_argument("--json", action="store_true", help="print the report as JSON")
+    b.add_argument("--plot", metavar="PNG", help="write the latency histogram and the tracking trace")
+    r = sub.add_parser("sim-robot", help="a simulated robot behind the bridge's protocol: the machine and its drives")
+    r.add_argument("--gains", metavar="FILE", required=True, help="the gain file of the drives' inner loops")
+    r.add_argument("--listen", metavar="URL", default="udp://127.0.0.1:5600",
+                   help="udp://HOST:PORT or can://INTERFACE/CHANNEL (python-can, e.g. can://udp_multicast/239.74.163.2 "
+                        "or can://socketcan/can0) (default udp://127.0.0.1:5600)")
+    r.add_argument("--rate", type=float, metavar="HZ", help="the bridge's --rate (default the gain file's)")
+    r.add_argument("--drive-modes", metavar="M[,M...]", default="csv",
+                   help="the bridge's --drive-modes: with --rate, they say which loop the rate is of (default csv)")
+    r.add_argument("--kin-error", type=int, metavar="SEED", help="seeded kinematic errors of the machine (0.5 mm std)")
+    r.add_argument("--fault", action="append", default=[], metavar="KIND@S[:ARG]",
+                   help="a fault for the next session (repeat for later sessions): stop, delay, drop, reorder, "
+                        "corrupt, nan, range, garbage or none, S seconds after enable (hw_bridge/sim_robot.py)")
+    r.add_argument("--seconds", type=float, metavar="S", help="serve for S seconds, then exit (default: until ^C)")
+
+
+def _robot_url(url: str):
+    """(host, port) of udp://HOST:PORT, or None for can://INTERFACE/CHANNEL."""
+    from hw_bridge.udp import parse_url
+
+    if url.startswith("can://"):
+        interface, _, channel = url[len("can://"):].partition("/")
+        if not interface or not channel:
+            raise ParameterError(f"--robot: expected can://INTERFACE/CHANNEL, got {url!r}")
+        return None
+    try:
+        return parse_url(url)
+    except ValueError as e:
+        raise ParameterError(f"--robot: {e}") from None
+
+
+def _drive_modes(text: str, n: int = 6):
+    names = text.split(",")
+    if len(names) == 1:
+        names = names * n
+    if len(names) != n or not set(names) <= {"csv", "cst"}:
+        raise ParameterError(f"--drive-modes: expected csv or cst, once or {n} times, got {text!r}")
+    return names
+
+
+def limits_for(servo):
+    """The bridge's limits on the default geometry: strokes from home, V_max/Ke, Kt I_max (host-side)."""
+    import jax.numpy as jnp
+    import numpy as np
+
+    from hw_bridge.safety import Limits
+    from pusupu_jax.plant import kinematics
+    from pusupu_jax.plant.geometry import Geometry
+
+    geom = Geometry.default()
+    r = np.asarray(servo.lead, dtype=float) / (2 * np.pi)
+    s_home = np.asarray(kinematics.inverse_kinematics(geom, jnp.asarray(geom.home)))
+    return Limits((np.asarray(geom.stroke_min) - s_home) / r, (np.asarray(geom.stroke_max) - s_home) / r,
+                  np.asarray(servo.V_max / servo.Ke, dtype=float), np.asarray(servo.Kt * servo.I_max, dtype=float))
+
+
+def bridge_reference(g, trajectory: str, rates=None):
+    """The path's stream for the bridge at ``rates`` (default the gain file's), computed offline here (inverse
+    kinematics, F_q of hybrid mode)."""
+    import numpy as np
+
+    from hw_bridge.loop import BridgeReference
+    from pusupu_jax.cascade import control_mode
+    from pusupu_jax.machine import machine_reference
+    from pusupu_jax.plant.geometry import Geometry
+    from pusupu_jax.trajectories import platform_path
+
+    rates = g.rates if rates is None else rates
+    path = platform_path(trajectory, Geometry.default().home, rates)
+    ref = machine_reference(g.servo, path, g.mode, rates=rates)
+    if control_mode(g.mode).hybrid:
+        return BridgeReference(np.asarray(ref.theta), np.asarray(ref.force_ff), np.asarray(ref.coupling), path[:, :3])
+    return BridgeReference(np.asarray(ref), platform=path[:, :3])
+
+
+def run_bridge(args) -> int:
+    import math
+
+    import numpy as np
+
+    from pusupu_jax import gains
+    from pusupu_jax.config import setup_jax
+
+    address = _robot_url(args.robot)
+    modes = _drive_modes(args.drive_modes)
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise ParameterError(f"--duration: expected a positive number of seconds, got {args.duration}")
+    if not args.watchdog >= 1:
+        raise ParameterError(f"--watchdog: expected at least 1 cycle, got {args.watchdog}")
+    if args.plot:
+        from pusupu_cli.cli import _check_plot_path
+
+        _check_plot_path(args.plot)
+    g = gains.load(args.gains)  # refused here (one line, exit 2) before any socket opens
+    setup_jax()
+    from hw_bridge.loop import BridgeLoop, plan
+    from hw_bridge.protocol import FEEDBACK
+    from hw_bridge.safety import Safety
+    from hw_bridge.session import Bridge
+    from hw_bridge.udp import Endpoint
+
+    try:
+        modes = modes if args.drive_modes != "csv" else None
+        loop = BridgeLoop(g, bridge_reference(g, args.trajectory, plan(g, modes, args.rate)[1]), modes, args.rate)
+    except ValueError as e:
+        raise ParameterError(str(e)) from None
+    if address is None:
+        from hw_bridge.canopen_link import CanLink, open_bus
+
+        try:
+            endpoint = CanLink(open_bus(args.robot), loop.drive_modes, np.asarray(g.servo.Kt * g.servo.I_max))
+        except Exception as e:  # no drive answers the SDO set-up, a bus that does not open
+            raise ParameterError(f"--robot {args.robot}: CANopen set-up failed: {e}") from None
+    else:
+        endpoint = Endpoint(FEEDBACK, bind=(args.bind, 0), peer=address)
+    print(f"bridge: {g.mode} loops at {loop.rate:g} Hz (position every {loop.n_position} cycle(s)), drives "
+          f"{','.join('cst' if m == 10 else 'csv' for m in loop.drive_modes)}, robot {args.robot}", file=sys.stderr)
+    try:
+        run = Bridge(loop, endpoint, Safety(limits_for(g.servo), args.watchdog)).run(args.duration,
+                                                                                      not args.no_realtime)
+    finally:
+        endpoint.close()
+    report = run.report(screw=loop.drive.screw)
+    if args.json:
+        print(json.dumps(report, indent=2))
+    else:
+        print(_table(report))
+    if args.plot:
+        bridge_figure(run, report, args.plot)
+    for line in report["faults"]:
+        print(f"pusupu: fault: {line}", file=sys.stderr)
+    return 0 if report["completed"] else 1
+
+
+def _table(rep: dict) -> str:
+    lines = [f"cycles {rep['cycles']} at {rep['rate_hz']:g} Hz, missed deadlines {rep['missed_deadlines']} "
+             f"({100 * rep['missed_fraction']:.3f} %), skipped {rep['skipped_cycles']}"]
+    for key in ("latency_us", "feedback_age_us"):
+        p = rep[key]
+        if p:
+            lines.append(f"{key:15s} p50 {p['p50']:8.1f}  p99 {p['p99']:8.1f}  p99.9 {p['p99.9']:8.1f}  "
+                         f"max {p['max']:8.1f}")
+    if "rms_tracking_error_mm" in rep:
+        lines.append(f"platform tracking error: RMS {rep['rms_tracking_error_mm']:.4f} mm, "
+                     f"max {rep['max_tracking_error_mm']:.4f} mm")
+    lines.append(f"rejected packets: {rep['rejected_packets'] or 'none'}")
+    lines += [f"real-time {line}" for line in rep["realtime"]]
+    lines.append("completed" if rep["completed"] else f"stopped: {len(rep['faults'])} fault(s)")
+    return "\n".join(lines)
+
+
+def bridge_figure(run, report: dict, path) -> None:
+    """The latency histogram [us] and the tracking trace (branch 1's reference and position, every branch's error)."""
+    import numpy as np
+
+    from pusupu_jax.plots import save_atomic  # selects the Agg backend first
+
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.5))
+    lat = np.asarray(run.latency_us)
+    if len(lat):
+        a.hist(lat, bins=100, log=True)
+        for key in ("p50", "p99", "p99.9"):
+            a.axvline(report["latency_us"][key], ls="--", color="k", lw=0.8)
+    a.set_xlabel("wake-up to command sent [us]")
+    a.set_ylabel("cycles")
+    a.set_title(f"{report['cycles']} cycles at {report['rate_hz']:g} Hz, {report['missed_deadlines']} missed")
+    if run.position:
+        t = np.asarray(run.t)
+        e = (np.asarray(run.position) - np.asarray(run.reference)) * 1e3
+        b.plot(t, e, lw=0.8)
+        b.set_ylabel("branch error [mrad of motor angle]")
+        b.legend([f"branch {k + 1}" for k in range(e.shape[1])], fontsize=7)
+    b.set_xlabel("t [s]")
+    b.set_title("tracking")
+    save_atomic(fig, path)
+
+
+def run_sim_robot(args) -> int:
+    from pusupu_jax import gains
+    from pusupu_jax.config import setup_jax
+
+    from hw_bridge.udp import parse_url
+
+    if not args.listen.startswith("can://"):
+        try:
+            parse_url(args.listen)
+        except ValueError as e:
+            raise ParameterError(f"--listen: {e}") from None
+    g = gains.load(args.gains)
+    setup_jax()
+    from hw_bridge.sim_robot import FaultSpec, RobotModel, main_loop
+
+    try:
+        faults = [FaultSpec.parse(f) for f in args.fault]
+    except ValueError as e:
+        raise ParameterError(str(e)) from None
+    from hw_bridge.loop import plan
+
+    try:
+        codes, _ = plan(g, None if args.drive_modes == "csv" else _drive_modes(args.drive_modes), args.rate)
+    except ValueError as e:
+        raise ParameterError(str(e)) from None
+    model = RobotModel(g, args.rate, args.kin_error, cst=bool((codes == 10).any()))
+    return main_loop(model, args.listen, faults, args.seconds)

@@ -1,0 +1,168 @@
+"""The servo cascade as per-rate ticks over a typed state: what the simulator scans and the bridge runs.
+
+Plant-free: every tick takes the measurements of its rate and returns its command, so that
+:func:`pusupu_jax.sim.rollout` scans exactly these functions against a model and
+:mod:`hw_bridge` calls exactly these functions against drives.
+
+* :func:`position_tick`, every position period: motor-angle reference [rad] (or a
+  :class:`~pusupu_jax.hybrid.HybridReference` sample) and measured angle [rad] -> velocity
+  reference [rad/s]; in hybrid mode also branch 6's current reference [A] from the force law
+  (eq. 13-14), ``F_6 r / (eta Kt)``;
+* :func:`velocity_tick`, every velocity period: velocity reference and measured speed
+  [rad/s] -> current reference [A], clamped to ``+-I_max``; in hybrid mode the force axis's
+  current reference is replaced by the force law's, clamped alike;
+* :func:`current_tick`, every current period: current reference and measured current [A] ->
+  inverter command [V], with the back-EMF feedforward and the ``+-V_max/Kn`` clamp.
+
+A :class:`ControlMode` is the one static answer to "which loops are closed, and what does
+the reference hold"; :data:`MODES` names every mode the simulator and the bridge run.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import jax.numpy as jnp
+
+from . import hybrid as hybrid_law
+from . import lti, loops
+from .loops import Drive, PIState
+
+
+@dataclass(frozen=True)
+class ControlMode:
+    """Which loops the cascade closes and what its reference holds (static).
+
+    ``closed``: the outermost closed loop, 'current', 'velocity' or 'position'; ``law``: the
+    position controller ('imc', 'pid', 'pid_ff', 'ros_pid'; None below position);
+    ``force_axis``: the branch whose current reference comes from the hybrid force law (None: none).
+    """
+
+    name: str
+    closed: str
+    law: str | None = None
+    force_axis: int | None = None
+
+    @property
+    def hybrid(self) -> bool:
+        """Branch ``force_axis`` force-controlled; the reference is a :class:`~pusupu_jax.hybrid.HybridReference`."""
+        return self.force_axis is not None
+
+    @property
+    def reference_unit(self) -> str:
+        """What one reference sample holds: 'A' (current), 'rad/s' (velocity) or 'rad' (motor angle)."""
+        return {"current": "A", "velocity": "rad/s", "position": "rad"}[self.closed]
+
+    def theta(self, ref):
+        """The motor-angle reference [rad] of a reference sample (or sequence)."""
+        return ref.theta if self.hybrid else ref
+
+
+MODES = {m.name: m for m in (
+    ControlMode("current", "current"),
+    ControlMode("velocity", "velocity"),
+    ControlMode("imc", "position", "imc"),
+    ControlMode("pid", "position", "pid"),
+    ControlMode("pid_ff", "position", "pid_ff"),
+    ControlMode("ros_pid", "position", "ros_pid"),
+    ControlMode("hybrid", "position", "imc", hybrid_law.FORCE_AXIS),
+)}
+POSITION_MODES = tuple(name for name, m in MODES.items() if m.closed == "position")
+
+
+def control_mode(mode: "str | ControlMode") -> ControlMode:
+    """The :class:`ControlMode` named ``mode`` (a mode passes through); ValueError names the known ones."""
+    if isinstance(mode, ControlMode):
+        return mode
+    if mode not in MODES:
+        raise ValueError(f"mode: expected one of {tuple(MODES)}, got {mode!r}")
+    return MODES[mode]
+
+
+class CascadeState(NamedTuple):
+    """Every controller state of one drive set (arrays ``(..., n_axes, ...)``); None for a loop that is open."""
+
+    current: PIState
+    velocity: PIState | None
+    position: Any | None  # IMCState, the PID's state, PIDFFState or RosPIDState
+    force: hybrid_law.ForceState | None
+
+
+def _position_init(drive: Drive, mode: ControlMode, theta0):
+    """The position controller at rest at ``theta0`` [rad], zero error: IMC's prefilter holds ``theta0``."""
+    if mode.law == "imc":
+        return loops.imc_rest(drive.imc, theta0)
+    if mode.law == "pid":
+        return loops.pid_init(drive.pid)
+    if mode.law == "pid_ff":
+        return loops.pid_ff_init(drive.pid, theta0)
+    if mode.law == "ros_pid":
+        return loops.ros_pid_init(drive.ros, theta0)
+    return None
+
+
+def init(drive: Drive, mode: ControlMode, theta0=0.0, force0=0.0) -> CascadeState:
+    """Every loop state zero but the position controller's, at rest at ``theta0`` [rad] (:func:`rest`); the force
+    law's last ``F_6`` at ``force0`` [N]."""
+    return CascadeState(loops.pi_loop_init(drive.current),
+                        loops.pi_loop_init(drive.velocity) if mode.closed != "current" else None,
+                        _position_init(drive, mode, theta0),
+                        hybrid_law.init(force0) if mode.hybrid else None)
+
+
+def rest(drive: Drive, mode: ControlMode, current, command, theta0=0.0, force0=0.0) -> CascadeState:
+    """The cascade that has held the machine still at ``theta0`` [rad] for a long time.
+
+    ``current`` [A]: the armature currents that hold it; ``command`` [V]: the inverter commands
+    that carry them (:func:`pusupu_jax.loops.electrical_rest`); ``force0`` [N]: in hybrid mode
+    branch 6's ``F_q`` at t = 0.  Every filter at its steady value, each PI integrator holding its
+    output, the position loops at zero error.
+    """
+    i_ref = current * lti.dc_gain(drive.current.fb_filter) / lti.dc_gain(drive.current.ref_filter)
+    zero = jnp.zeros_like(current)
+    return CascadeState(loops.pi_loop_rest(drive.current, i_ref, current, command),
+                        loops.pi_loop_rest(drive.velocity, zero, zero, i_ref) if mode.closed != "current" else None,
+                        _position_init(drive, mode, theta0),
+                        hybrid_law.init(force0) if mode.hybrid else None)
+
+
+def position_tick(drive: Drive, mode: ControlMode, s: CascadeState, ref, theta, omega, hybrid=None):
+    """One position period: ``(state, w_ref [rad/s], i_force [A] or None)``.
+
+    ``ref``: motor-angle references [rad] ``(n_axes,)``, or in hybrid mode one
+    :class:`~pusupu_jax.hybrid.HybridReference` sample; ``theta``, ``omega``: the encoders [rad, rad/s];
+    ``hybrid``: the :class:`~pusupu_jax.hybrid.HybridGains` in hybrid mode.  ``i_force``: branch
+    ``mode.force_axis``'s current reference ``F_6 r / (eta Kt)`` (unclamped; :func:`velocity_tick` clamps).
+    """
+    theta_ref = mode.theta(ref)
+    if mode.law == "imc":
+        sp, w_ref = loops.imc_step(drive.imc, s.position, theta_ref, theta)
+    elif mode.law == "pid":
+        sp, w_ref = loops.pid_step(drive.pid, s.position, theta_ref, theta)
+    elif mode.law == "pid_ff":
+        sp, w_ref = loops.pid_ff_step(drive.pid, drive.velocity_ff, s.position, theta_ref, theta)
+    else:
+        sp, w_ref = loops.ros_pid_step(drive.ros, s.position, theta_ref, theta, omega)
+    if not mode.hybrid:
+        return s._replace(position=sp), w_ref, None
+    sf, force = hybrid_law.step(hybrid, s.force, (theta_ref - theta) * drive.screw, ref.coupling, ref.force_ff,
+                                drive.ros.dt)
+    k = mode.force_axis
+    return s._replace(position=sp, force=sf), w_ref, force * drive.force_current[..., k]
+
+
+def velocity_tick(drive: Drive, mode: ControlMode, s: CascadeState, w_ref, omega, i_force=None):
+    """One velocity period: ``(state, i_ref [A])``, clamped to ``+-I_max``; ``i_force`` replaces the force axis's."""
+    sv, i_ref = loops.pi_loop_step(drive.velocity, s.velocity, w_ref, omega)
+    if i_force is not None:
+        k = mode.force_axis
+        limit = drive.velocity.limit[..., k]
+        i_ref = i_ref.at[..., k].set(jnp.clip(i_force, -limit, limit))
+    return s._replace(velocity=sv), i_ref
+
+
+def current_tick(drive: Drive, s: CascadeState, i_ref, current, omega):
+    """One current period: ``(state, u [V])`` from the reference and the measured current [A] and speed [rad/s]."""
+    sc, u = loops.pi_loop_step(drive.current, s.current, i_ref, current, drive.emf_gain * omega)
+    return s._replace(current=sc), u
