@@ -9,7 +9,10 @@ whether the run completed; over the runs the spread (min, median, max) of each.
 * 4 kHz: Table 1 gains, hybrid mode: branches 1-5 CSV, branch 6 CST (the bridge closes its velocity loop at
   4 kHz and its force law at 1 kHz).
 
-    python benchmarks/bench_bridge.py [--seconds 60] [--runs 3] [--rates 1000,4000] [--out FILE]
+    python benchmarks/bench_bridge.py [--seconds 60] [--runs 3] [--rates 1000,4000] [--transport udp|can] [--out FILE]
+
+``--transport can``: the six drives as CANopen nodes on python-can's udp_multicast bus (SDO set-up, RPDO +
+SYNC, two TPDOs per drive).
 
 The path (the arc, 26 s) repeats its last sample once done: the machine then holds still.
 """
@@ -35,10 +38,12 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=60.0)
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--rates", default="1000,4000")
+    ap.add_argument("--transport", choices=("udp", "can"), default="udp")
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
     setup_jax()
-    from hw_bridge.loop import BridgeLoop
+    from hw_bridge.canopen_link import CanLink, open_bus
+    from hw_bridge.loop import BridgeLoop, plan
     from hw_bridge.protocol import FEEDBACK
     from hw_bridge.safety import Safety
     from hw_bridge.session import Bridge
@@ -48,7 +53,7 @@ def main() -> None:
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.params import LoopRates, ServoParams
 
-    results = {"seconds": args.seconds, "runs": args.runs, "cpus": os.cpu_count(), "uname": " ".join(os.uname()),
+    results = {"transport": args.transport, "seconds": args.seconds, "runs": args.runs, "cpus": os.cpu_count(), "uname": " ".join(os.uname()),
                "rates": {}}
     folder = Path(tempfile.mkdtemp())
     for rate in (float(r) for r in args.rates.split(",")):
@@ -58,14 +63,18 @@ def main() -> None:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
+        url = f"udp://127.0.0.1:{port}" if args.transport == "udp" else "can://udp_multicast/239.74.163.9"
         robot = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen",
-                                  f"udp://127.0.0.1:{port}", "--rate", str(rate)], stdout=subprocess.PIPE, text=True)
+                                  url, "--rate", str(rate)], stdout=subprocess.PIPE, text=True)
         assert "listening" in robot.stdout.readline()
-        loop = BridgeLoop(g, bridge_reference(g, "arc"), rate=rate)
+        loop = BridgeLoop(g, bridge_reference(g, "arc", plan(g, None, rate)[1]), rate=rate)
         runs = []
         try:
             for _ in range(args.runs):
-                ep = Endpoint(FEEDBACK, peer=("127.0.0.1", port))
+                if args.transport == "udp":
+                    ep = Endpoint(FEEDBACK, peer=("127.0.0.1", port))
+                else:
+                    ep = CanLink(open_bus(url), loop.drive_modes, np.asarray(g.servo.Kt * g.servo.I_max))
                 run = Bridge(loop, ep, Safety(limits_for(g.servo)), hold_s=args.seconds).run(args.seconds)
                 ep.close()
                 rep = run.report()

@@ -27,14 +27,30 @@ class RealtimeReport:
     """What the OS granted: each setting with 'granted' or the reason it was refused."""
 
     settings: dict = field(default_factory=dict)
+    previous: tuple = ()  # (policy, priority, affinity) before the setup
 
     def lines(self) -> list[str]:
         return [f"{k}: {v}" for k, v in self.settings.items()]
+
+    def restore(self) -> None:
+        """Back to the scheduling and CPUs the process had (the memory stays locked)."""
+        if not self.previous:
+            return
+        policy, priority, cpus = self.previous
+        try:
+            os.sched_setscheduler(0, policy, os.sched_param(priority))
+            os.sched_setaffinity(0, cpus)
+        except OSError:
+            pass
 
 
 def realtime_setup(priority: int = 80, cpu: int | None = None) -> RealtimeReport:
     """SCHED_FIFO at ``priority``, ``mlockall``, and CPU affinity to ``cpu`` (default: the last CPU), where allowed."""
     rep = RealtimeReport()
+    try:
+        rep.previous = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority, os.sched_getaffinity(0))
+    except (OSError, AttributeError):
+        pass
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
         rep.settings["SCHED_FIFO"] = f"granted (priority {priority})"

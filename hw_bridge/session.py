@@ -90,8 +90,9 @@ class Bridge:
         loop, ep, safety = self.loop, self.endpoint, self.safety
         n_axes = len(loop.drive_modes)
         rec = BridgeRun(loop.rate)
-        if realtime:
-            rec.realtime = realtime_setup().lines()
+        granted = realtime_setup() if realtime else None
+        if granted:
+            rec.realtime = granted.lines()
         st = {"phase": "connect", "since": 0, "feedback": None, "age": 0, "sequence": 0, "run_start": None,
               "run_cycles": None, "misses": 0, "fresh": False}
         zeros = np.zeros(n_axes)
@@ -187,8 +188,12 @@ class Bridge:
             return k - st["since"] < self.stop_cycles + 5
 
         run_s = (duration if duration is not None else len(loop.reference.theta) * loop.rates.dt_position + 30.0)
-        stats = CycleRunner(loop.rate).run(cycle, 2 * self.connect_cycles + int(run_s * loop.rate) + self.hold_cycles
-                                           + 2 * self.stop_cycles)
+        try:
+            stats = CycleRunner(loop.rate).run(cycle, 2 * self.connect_cycles + int(run_s * loop.rate)
+                                               + self.hold_cycles + 2 * self.stop_cycles)
+        finally:
+            if granted:
+                granted.restore()
         rec.cycles, rec.missed, rec.skipped = stats.cycles, stats.missed, stats.skipped
         rec.faults = list(safety.faults)
         rec.rejected = dict(ep.rejected)

@@ -2,7 +2,9 @@
 
 :class:`Endpoint` receives packets of one kind and keeps the newest valid one; malformed,
 truncated, oversized, wrong-version and replayed (or reordered: not newer than the last
-accepted) packets are dropped and counted by reason.  Nothing a peer sends can raise.
+accepted from the same peer) packets are dropped and counted by reason.  Nothing a peer sends
+can raise.  The robot's side follows the sender of the last valid command: a bridge restarted
+on a new socket starts a new sequence.
 """
 
 from __future__ import annotations
@@ -83,6 +85,8 @@ class Endpoint:
                 except protocol.ProtocolError as e:
                     self.rejected[e.reason] += 1
                     continue
+                if self.kind == protocol.COMMAND and addr != self.peer:
+                    self.last_sequence = None  # a new bridge (a new socket): its own sequence, from wherever it starts
                 if not protocol.newer(packet.sequence, self.last_sequence):
                     self.rejected["replayed"] += 1
                     continue
