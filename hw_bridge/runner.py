@@ -93,13 +93,24 @@ class CycleStats:
         return cls(period, np.zeros(n), np.zeros(n))
 
 
-class CycleRunner:
-    """Calls ``fn(k, skipped) -> bool`` once per cycle at ``rate`` [Hz] until it returns False or ``n`` cycles ran."""
+OVERRUN = ("skip", "rephase")
 
-    def __init__(self, rate: float):
+
+class CycleRunner:
+    """Calls ``fn(k, skipped) -> bool`` once per cycle at ``rate`` [Hz] until it returns False or ``n`` cycles ran.
+
+    ``overrun``: 'skip' (real time: a late cycle skips to the next deadline ahead, counted) or 'rephase' (every
+    cycle runs, and a late one moves the deadlines after it: for lock-step runs whose timing is not the point,
+    such as tests on a loaded machine).
+    """
+
+    def __init__(self, rate: float, overrun: str = "skip"):
         if not (rate > 0):
             raise ValueError(f"rate: expected a positive number of Hz, got {rate!r}")
+        if overrun not in OVERRUN:
+            raise ValueError(f"overrun: expected one of {OVERRUN}, got {overrun!r}")
         self.period = 1.0 / rate
+        self.overrun = overrun
 
     def run(self, fn, n: int) -> CycleStats:
         stats = CycleStats.allocate(self.period, n)
@@ -120,7 +131,9 @@ class CycleRunner:
                 while (now := time.monotonic()) < deadline:
                     pass
                 late = now - deadline
-                if late > T:  # the next deadline has passed too: skip to the next one ahead
+                if late > T and self.overrun == "rephase":
+                    t0 += late
+                elif late > T:  # the next deadline has passed too: skip to the next one ahead
                     behind = int(late // T)
                     stats.skipped += behind
                     skipped += behind

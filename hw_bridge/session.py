@@ -78,8 +78,12 @@ class Bridge:
     :class:`~hw_bridge.canopen_link.CanLink` (``send_command``, ``poll``, ``received_at``, ``rejected``)."""
 
     def __init__(self, loop: BridgeLoop, endpoint, safety: Safety, *, connect_s: float = 5.0, stop_cycles: int = 50,
-                 max_consecutive_misses: int = 3, hold_s: float = 0.0):
+                 max_consecutive_misses: int = 3, hold_s: float = 0.0, lockstep_s: float = 0.0):
+        """``lockstep_s`` > 0: each cycle waits up to that long for the answer to the previous command, and late
+        cycles move the deadlines after them instead of skipping (``CycleRunner`` 'rephase'): a run whose result
+        does not depend on scheduling, for tests on a shared machine.  0 (default): real time."""
         self.loop, self.endpoint, self.safety = loop, endpoint, safety
+        self.lockstep_s = lockstep_s
         self.connect_cycles = int(connect_s * loop.rate)
         self.stop_cycles = stop_cycles
         self.max_misses = max_consecutive_misses
@@ -114,6 +118,10 @@ class Bridge:
         def cycle(k, skipped):
             t_wake = time.monotonic()
             packet = ep.poll()
+            end = t_wake + self.lockstep_s
+            while self.lockstep_s and st["phase"] == "run" and (packet is None or packet.ack not in (0, st["sequence"] - 1)) \
+                    and time.monotonic() < end:
+                packet = ep.poll(timeout=min(1e-3, max(end - time.monotonic(), 1e-6))) or packet
             if packet is not None:
                 st["feedback"], st["age"], st["fresh"] = packet, 0, True
             else:
@@ -189,7 +197,7 @@ class Bridge:
 
         run_s = (duration if duration is not None else len(loop.reference.theta) * loop.rates.dt_position + 30.0)
         try:
-            stats = CycleRunner(loop.rate).run(cycle, 2 * self.connect_cycles + int(run_s * loop.rate)
+            stats = CycleRunner(loop.rate, "rephase" if self.lockstep_s else "skip").run(cycle, 2 * self.connect_cycles + int(run_s * loop.rate)
                                                + self.hold_cycles + 2 * self.stop_cycles)
         finally:
             if granted:

@@ -16,7 +16,8 @@ period per command, so it keeps the bridge's real-time rate; if commands stop fo
 A new session starts when the drives are brought up again from 'switch on disabled': the
 machine is then at rest at home, held by its drives, and the next fault of the schedule arms.
 
-Faults on demand (``--fault KIND@T[:ARG]``, one per session, ``T`` [s] after enable):
+Faults on demand (``--fault KIND@T[:ARG]``, one per session, ``T`` [s] of machine time after enable, so
+that they come at the same cycle however loaded the host is):
 ``stop`` (silent for ARG s, default 1), ``delay`` (replies ARG s late, default 0.02),
 ``drop`` (replies dropped with probability ARG, default 1), ``reorder`` (replies sent in
 reverse order in blocks of ARG, default 8), ``corrupt`` (a byte flipped with probability
@@ -165,12 +166,13 @@ class SimRobot:
         self.torque = self.model.torque0
         self.fault = self.faults[self.session] if self.session < len(self.faults) else FaultSpec()
         self.enabled_at = None
+        self.sim_time = 0.0  # s of machine time since enable (periods run)
         self.silent_until = 0.0
         self.applied = 0
 
     def active(self, kind: str, now: float) -> bool:
-        """The session's fault is ``kind`` and due."""
-        return self.fault.kind == kind and self.enabled_at is not None and now - self.enabled_at >= self.fault.at
+        """The session's fault is ``kind`` and due: ``at`` seconds of machine time (periods run) after enable."""
+        return self.fault.kind == kind and self.enabled_at is not None and self.sim_time >= self.fault.at
 
     def watch(self, now: float) -> None:
         """The drives' sync watchdog: enabled and no command for ``watchdog_s``: fault, brakes on."""
@@ -196,12 +198,17 @@ class SimRobot:
         after = {d.state for d in self.drives}
         if after == {cia402.READY} and before != {cia402.READY} and self.enabled_at is not None:
             self._new_session()  # brought up again after a session that ran
+        elif self.enabled_at is not None and cia402.OPERATION_ENABLED not in after and self.fault.kind != "none":
+            self.log(f"sim-robot: session {self.session}: stopped by the bridge; fault {self.fault.kind} ends")
+            self.fault = FaultSpec()
         if after == {cia402.OPERATION_ENABLED}:
             if self.enabled_at is None:
                 self.enabled_at = now
             self.mode = np.asarray(cmd.mode, np.int8)
+            cst = self.mode == protocol.CST
             self.state, self.torque = self.model.advance(self.data, self.state, np.asarray(cmd.target, dtype=float),
-                                                         self.mode == protocol.CST)
+                                                         cst)
+            self.sim_time += self.model.rates.dt_velocity * (1 if cst.any() else self.model.rates.n_position)
         elif after == {cia402.QUICK_STOP_ACTIVE}:
             self.state, self.torque = self.model.advance(self.data, self.state, np.zeros(len(self.drives)),
                                                          np.zeros(len(self.drives), bool))

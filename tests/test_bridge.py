@@ -251,13 +251,16 @@ def robot(tmp_path_factory):
 
 
 def _session(robot, duration, watchdog=5):
+    """A lock-step run (each cycle waits up to 0.2 s for the robot's answer): on a loaded machine a real-time run
+    reuses late samples and trips the watchdog on scheduling alone (CI's clean clone: 44 % late cycles), which
+    these tests are not about; the real-time figures are benchmarks/bench_bridge.py's."""
     from hw_bridge.session import Bridge
     from hw_bridge.udp import Endpoint
 
     g, loop, limits, port = robot
     ep = Endpoint(protocol.FEEDBACK, peer=("127.0.0.1", port))
     try:
-        run = Bridge(loop, ep, Safety(limits, watchdog)).run(duration, realtime=False)
+        run = Bridge(loop, ep, Safety(limits, watchdog), lockstep_s=0.2).run(duration, realtime=False)
     finally:
         ep.close()
     targets = np.array([c[2] for c in run.commands])
@@ -267,31 +270,31 @@ def _session(robot, duration, watchdog=5):
 
 def test_loopback_tracks_the_arc_as_the_simulation_does(robot):
     """Bridge + simulated robot (C MuJoCo) over UDP track the arc's first 1.5 s as the pure simulation (MJX) of the
-    same setup (rates, timestep) does: platform RMS error within 10 % of it, with at least 90 % of the cycles on
-    fresh feedback.  Why not closer: a cycle whose feedback arrives after its deadline uses the previous sample
-    (one period of extra delay), and the robot steps C MuJoCo in place of MJX (float64 both; the solvers'
-    arithmetic differs).  Measured: 0.03 % apart in lock step without sockets (no late cycle); over loopback at
-    1 kHz, 1-3 % with 4-17 % of the cycles late, more when another process loads the second core."""
+    same setup (rates, timestep) does: in lock step, platform RMS error within 1 % of it, every cycle on fresh
+    feedback.  The 1 %: the robot steps C MuJoCo in place of MJX (float64 both; the solvers' arithmetic differs);
+    measured 0.03 % (tuned hybrid gains, p2p, lock step without sockets).  In real time over loopback at 1 kHz
+    late cycles reuse the previous sample: 1-3 % apart with 4-17 % of the cycles late (docs/bridge.md)."""
     from pusupu_jax.machine import simulate_machine
     from pusupu_jax.plant.geometry import Geometry
     from pusupu_jax.plant.model import ModelOptions
     from pusupu_jax.trajectories import platform_path
 
     g, loop = robot[0], robot[1]
-    run = _session(robot, 1.5, watchdog=25)
+    run = _session(robot, 1.5)
     rep = run.report()
     assert rep["completed"] and not rep["faults"], rep["faults"]
-    assert len(run.platform) >= 0.9 * 1.5 * RATE, (len(run.platform), rep["feedback_age_us"])
+    assert len(run.platform) >= 1.5 * RATE - 1, (len(run.platform), rep["feedback_age_us"])
     path = platform_path("arc", Geometry.default().home, loop.rates)[:int(1.5 * RATE)]
     pure, _ = simulate_machine(g.servo, path, mode="imc", rates=loop.rates,
                                options=ModelOptions(timestep=loop.rates.dt_velocity))
-    assert rep["rms_tracking_error_mm"] == pytest.approx(pure["rms_tracking_error_mm"], rel=0.10)
+    assert rep["rms_tracking_error_mm"] == pytest.approx(pure["rms_tracking_error_mm"], rel=0.01)
 
 
 @pytest.mark.parametrize("fault", FAULTS[1:])
 def test_faults_reach_the_safe_state_within_the_watchdog(robot, fault):
     """Each fault of the robot stops the bridge (quick stop, then disable voltage) within the watchdog window
-    after the last good feedback, reports it with its cycle, and no command ever leaves the limits.
+    of its onset (0.3 s of machine time after enable), reports it with its cycle, and no command ever leaves the
+    limits.
     Garbage beside good replies is dropped and counted, and the run completes."""
     run = _session(robot, 0.8)
     if fault.startswith("garbage"):
@@ -306,9 +309,12 @@ def test_faults_reach_the_safe_state_within_the_watchdog(robot, fault):
     assert onset - 20 <= f.cycle <= onset + 5 + 2 + 20, (fault, f.line(), start, enabled_at)
     stop_words = [word for k, word, _ in run.commands if k >= f.cycle]
     assert stop_words[0] == cia402.QUICK_STOP and stop_words[-1] == cia402.DISABLE_VOLTAGE
-    kinds = {"stop": "feedback stale", "drop": "feedback stale", "delay": "feedback stale",
-             "reorder": "feedback stale", "nan": "feedback invalid", "range": "position limit"}
-    assert f.kind == kinds[fault.split("@")[0]], f.line()
+    # a robot that withholds its replies: the bridge's watchdog, or (the bridge waiting in lock step) the drives' own
+    # sync watchdog, which the bridge sees as a drive leaving 'operation enabled'
+    silent = {"feedback stale", "drive fault"}
+    kinds = {"stop": silent, "drop": silent, "delay": silent, "reorder": silent, "nan": {"feedback invalid"},
+             "range": {"position limit"}}
+    assert f.kind in kinds[fault.split("@")[0]], f.line()
 
 
 def test_a_bad_gain_file_is_refused_before_anything_is_sent(tmp_path):
@@ -334,9 +340,9 @@ CAN_RATE = 250.0  # Hz: python-can's multicast bus and canopen cost milliseconds
 def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_path):
     """Six simulated CiA 402 drive nodes (canopen LocalNode) in a subprocess, the bridge as the master: SDO set-up
     of the modes of operation and the rated torque, the state machine over controlwords, RPDO + SYNC, two TPDOs
-    per drive.  The arc's first second tracks as the pure simulation of the same rates does (mean branch RMS error
-    within 15 %: encoder counts and per-mille torques quantise, late cycles reuse a sample); then a session whose
-    drives go silent ends in a safe stop within the watchdog."""
+    per drive.  In lock step (see _session), the arc's first second tracks as the pure simulation of the same rates
+    does (mean branch RMS error within 15 %: encoder counts quantise the feedback); then a session whose drives go
+    silent ends in a safe stop."""
     from hw_bridge.canopen_link import CanLink, open_bus
     from hw_bridge.loop import plan
     from hw_bridge.session import Bridge
@@ -360,7 +366,7 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
         for _ in range(2):
             link = CanLink(open_bus(url), loop.drive_modes, np.asarray(SERVO.Kt * SERVO.I_max))
             try:
-                runs.append(Bridge(loop, link, Safety(limits_for(g.servo), 25)).run(1.0, realtime=False))
+                runs.append(Bridge(loop, link, Safety(limits_for(g.servo), 5), lockstep_s=0.2).run(1.0, realtime=False))
             finally:
                 link.close()
     finally:
