@@ -88,7 +88,8 @@ def initial_state(drive: loops.Drive, plant, aux, mode: cascade_.ControlMode, st
     force = (mode.force_axis, force_ff0) if mode.hybrid else (None, None)
     i = plant.holding_torque(aux, plant_state, *force) / drive.Kt
     electrical, u = loops.electrical_rest(drive.electrical, i)
-    return Carry(plant_state, electrical, cascade_.rest(drive, mode, i, u, theta0, 0.0 if force_ff0 is None else force_ff0))
+    force0 = 0.0 if force_ff0 is None else force_ff0
+    return Carry(plant_state, electrical, cascade_.rest(drive, mode, i, u, theta0, force0))
 
 
 def current_ticks(drive: loops.Drive, electrical, s: cascade_.CascadeState, i_ref, omega, n: int):
@@ -108,20 +109,12 @@ def current_ticks(drive: loops.Drive, electrical, s: cascade_.CascadeState, i_re
 
 
 class Pieces(NamedTuple):
-    """The pieces of a rollout: one outer period, the trace record of it, the period [s] and the initial carry.
-
-    ``mech_step`` and ``velocity_period`` are the drive side below a command, ``measure`` and ``observe`` the plant's
-    sensors: the simulated robot (:mod:`hw_bridge.sim_robot`) runs its drives and mechanism with them.
-    """
+    """The pieces of a rollout: one outer period, the trace record of it, the period [s] and the initial carry."""
 
     period: Any  # (carry, reference sample) -> (carry, (command, current references (m, n_axes)))
     record: Any  # (carry at the period's start, reference sample, (command, current references)) -> trace entries
     dt: float
     init: Any  # (start, force_ff0) -> carry
-    mech_step: Any  # (carry, i_ref [A]) -> (carry, u of the first tick [V])
-    velocity_period: Any  # (carry, w_ref [rad/s], i_force [A] or None) -> (carry, i_ref [A])
-    measure: Any  # carry -> (theta [rad], omega [rad/s])
-    observe: Any  # carry -> the plant's observation (pytree)
 
 
 def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.ControlMode, hybrid) -> Pieces:
@@ -170,8 +163,7 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
     period, dt = {"current": (current_period, rates.dt_mech), "velocity": (inner_velocity_period, rates.dt_velocity),
                   "position": (position_period, rates.dt_position)}[mode.closed]
     return Pieces(period, record, dt, lambda start, force_ff0: initial_state(drive, plant, aux, mode, start,
-                                                                               force_ff0), mech_step, velocity_period,
-                  lambda c: plant.measure(aux, c.plant), lambda c: plant.observe(aux, c.plant))
+                                                                               force_ff0))
 
 
 def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), rates: LoopRates = LoopRates(),

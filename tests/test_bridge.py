@@ -1,5 +1,6 @@
 """The hardware bridge: the simulator's own loops, its protocol, and runs on loopback against the simulated robot."""
 
+import functools
 import os
 import socket
 import subprocess
@@ -221,6 +222,23 @@ def test_safety_guards_feedback_and_clamps_commands():
 # ---------------------------------------------------------------- loopback, against the simulated robot
 
 RATE = 500.0  # Hz on loopback: the robot's drives and mechanism, the bridge and the other test worker share 2 cores
+SECONDS = 1.0  # of the arc, on both transports
+
+
+@functools.lru_cache(maxsize=1)
+def _pure_arc():
+    """The pure MJX simulation of the loopback setup: Table 1 IMC, the arc's first SECONDS at RATE (one compile)."""
+    from hw_bridge.loop import plan
+    from pusupu_jax.machine import simulate_machine
+    from pusupu_jax.plant.geometry import Geometry
+    from pusupu_jax.plant.model import ModelOptions
+    from pusupu_jax.trajectories import platform_path
+
+    with jax.enable_x64(True):
+        g = gains.parse(gains.document(SERVO, HybridGains(), RATES, mode="imc"))
+        rates = plan(g, None, RATE)[1]
+        path = platform_path("arc", Geometry.default().home, rates)[:int(SECONDS * RATE)]
+        return simulate_machine(SERVO, path, mode="imc", rates=rates, options=ModelOptions(timestep=rates.dt_velocity))[0]
 FAULTS = ["none", "stop@0.3:2", "nan@0.3", "range@0.3", "drop@0.3", "delay@0.3:0.05", "reorder@0.3:12",
           "garbage@0.0"]
 
@@ -269,24 +287,16 @@ def _session(robot, duration, watchdog=5):
 
 
 def test_loopback_tracks_the_arc_as_the_simulation_does(robot):
-    """Bridge + simulated robot (C MuJoCo) over UDP track the arc's first 1.5 s as the pure simulation (MJX) of the
+    """Bridge + simulated robot (C MuJoCo) over UDP track the arc's first second as the pure simulation (MJX) of the
     same setup (rates, timestep) does: in lock step, platform RMS error within 1 % of it, every cycle on fresh
     feedback.  The 1 %: the robot steps C MuJoCo in place of MJX (float64 both; the solvers' arithmetic differs);
     measured 0.03 % (tuned hybrid gains, p2p, lock step without sockets).  In real time over loopback at 1 kHz
     late cycles reuse the previous sample: 1-3 % apart with 4-17 % of the cycles late (docs/bridge.md)."""
-    from pusupu_jax.machine import simulate_machine
-    from pusupu_jax.plant.geometry import Geometry
-    from pusupu_jax.plant.model import ModelOptions
-    from pusupu_jax.trajectories import platform_path
-
-    g, loop = robot[0], robot[1]
-    run = _session(robot, 1.5)
+    run = _session(robot, SECONDS)
     rep = run.report()
     assert rep["completed"] and not rep["faults"], rep["faults"]
-    assert len(run.platform) >= 1.5 * RATE - 1, (len(run.platform), rep["feedback_age_us"])
-    path = platform_path("arc", Geometry.default().home, loop.rates)[:int(1.5 * RATE)]
-    pure, _ = simulate_machine(g.servo, path, mode="imc", rates=loop.rates,
-                               options=ModelOptions(timestep=loop.rates.dt_velocity))
+    assert len(run.platform) >= SECONDS * RATE - 1, (len(run.platform), rep["feedback_age_us"])
+    pure = _pure_arc()
     assert rep["rms_tracking_error_mm"] == pytest.approx(pure["rms_tracking_error_mm"], rel=0.01)
 
 
@@ -334,9 +344,6 @@ def test_a_bad_gain_file_is_refused_before_anything_is_sent(tmp_path):
 
 # ---------------------------------------------------------------- CANopen CiA 402 (python-can's udp_multicast bus)
 
-CAN_RATE = 250.0  # Hz: python-can's multicast bus and canopen cost milliseconds a cycle in Python (19 frames)
-
-
 def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_path):
     """Six simulated CiA 402 drive nodes (canopen LocalNode) in a subprocess, the bridge as the master: SDO set-up
     of the modes of operation and the rated torque, the state machine over controlwords, RPDO + SYNC, two TPDOs
@@ -347,26 +354,20 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
     from hw_bridge.loop import plan
     from hw_bridge.session import Bridge
     from pusupu_cli.bridge import bridge_reference, limits_for
-    from pusupu_jax.machine import simulate_machine
-    from pusupu_jax.plant.geometry import Geometry
-    from pusupu_jax.plant.model import ModelOptions
-    from pusupu_jax.trajectories import platform_path
-
     path = gains.write(tmp_path / "imc.yaml", SERVO, HybridGains(), RATES, mode="imc")
     url = f"can://udp_multicast/239.74.{np.random.default_rng().integers(1, 255)}.{os.getpid() % 250 + 1}"
     proc = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen", url,
-                             "--rate", str(CAN_RATE), "--seconds", str(TIMEOUT), "--fault", "none", "--fault",
+                             "--rate", str(RATE), "--seconds", str(TIMEOUT), "--fault", "none", "--fault",
                              "stop@0.3:2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert "listening" in proc.stdout.readline(), proc.stderr.read()
         g = gains.load(path)
-        _, rates = plan(g, None, CAN_RATE)
-        loop = BridgeLoop(g, bridge_reference(g, "arc", rates), rate=CAN_RATE)
+        loop = BridgeLoop(g, bridge_reference(g, "arc", plan(g, None, RATE)[1]), rate=RATE)
         runs = []
         for _ in range(2):
             link = CanLink(open_bus(url), loop.drive_modes, np.asarray(SERVO.Kt * SERVO.I_max))
             try:
-                runs.append(Bridge(loop, link, Safety(limits_for(g.servo), 5), lockstep_s=0.2).run(1.0, realtime=False))
+                runs.append(Bridge(loop, link, Safety(limits_for(g.servo), 5), lockstep_s=0.2).run(SECONDS, realtime=False))
             finally:
                 link.close()
     finally:
@@ -374,9 +375,7 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
         proc.wait(30)
     rep = runs[0].report(screw=loop.drive.screw)
     assert rep["completed"] and not rep["faults"], rep["faults"]
-    arc = platform_path("arc", Geometry.default().home, rates)[:int(CAN_RATE)]
-    pure, _ = simulate_machine(g.servo, arc, mode="imc", rates=rates, options=ModelOptions(timestep=rates.dt_velocity))
-    assert np.mean(rep["branch_rms_error_mm"]) == pytest.approx(np.mean(pure["branch_rms_error_mm"]), rel=0.15)
+    assert np.mean(rep["branch_rms_error_mm"]) == pytest.approx(np.mean(_pure_arc()["branch_rms_error_mm"]), rel=0.15)
     stopped = runs[1]
     assert stopped.faults and stopped.faults[0].kind == "feedback stale" and not stopped.completed
     targets = np.array([c[2] for run in runs for c in run.commands])
