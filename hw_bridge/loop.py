@@ -71,16 +71,6 @@ class BridgeReference:
                     raise ValueError(f"reference.{name}: expected finite values of shape {shape}, got {v.shape}")
                 object.__setattr__(self, name, v)
 
-    def save(self, path) -> None:
-        """As ``.npz`` of plain arrays (read back with :meth:`load`, never unpickled)."""
-        np.savez(path, **{f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-                          if getattr(self, f.name) is not None})
-
-    @classmethod
-    def load(cls, path) -> "BridgeReference":
-        with np.load(path, allow_pickle=False) as z:
-            return cls(**{k: z[k] for k in z.files if k in {f.name for f in dataclasses.fields(cls)}})
-
 
 def bridge_rates(rates: LoopRates, cst: bool, rate: float | None) -> LoopRates:
     """The gain file's ``rates`` scaled so that the bridge's cycle (position loop, or velocity loop with CST) is ``rate``."""

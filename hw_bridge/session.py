@@ -26,9 +26,6 @@ from .loop import BridgeLoop
 from .runner import CycleRunner, realtime_setup
 from .safety import Safety
 
-PHASES = ("connect", "enable", "run", "stop", "done")
-
-
 @dataclass
 class BridgeRun:
     """The record of one run: per-cycle arrays (``phase == 'run'`` cycles) and counters."""

@@ -49,11 +49,6 @@ class ControlMode:
         """Branch ``force_axis`` force-controlled; the reference is a :class:`~pusupu_jax.hybrid.HybridReference`."""
         return self.force_axis is not None
 
-    @property
-    def reference_unit(self) -> str:
-        """What one reference sample holds: 'A' (current), 'rad/s' (velocity) or 'rad' (motor angle)."""
-        return {"current": "A", "velocity": "rad/s", "position": "rad"}[self.closed]
-
     def theta(self, ref):
         """The motor-angle reference [rad] of a reference sample (or sequence)."""
         return ref.theta if self.hybrid else ref
@@ -147,7 +142,7 @@ def position_tick(drive: Drive, mode: ControlMode, s: CascadeState, ref, theta, 
     if not mode.hybrid:
         return s._replace(position=sp), w_ref, None
     sf, force = hybrid_law.step(hybrid, s.force, (theta_ref - theta) * drive.screw, ref.coupling, ref.force_ff,
-                                drive.ros.dt)
+                                drive.dt_position)
     k = mode.force_axis
     return s._replace(position=sp, force=sf), w_ref, force * drive.force_current[..., k]
 

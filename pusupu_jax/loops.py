@@ -203,7 +203,7 @@ def discretize(p: ServoParams, rates: LoopRates) -> Drive:
         emf_gain=p.emf_ff * p.Ke / p.Kn,
         screw=screw_ratio(p),
         force_current=screw_ratio(p) / (p.eta * p.Kt),
-        dt_position=dt_p + 0.0 * p.Kt,
+        dt_position=dt_p,
     )
 
 
@@ -238,10 +238,6 @@ def pi_loop_rest(c: PILoop, ref, meas, out) -> PIState:
     """
     return PIState(lti.dc_state(c.ref_filter, ref[..., None]), lti.dc_state(c.fb_filter, meas[..., None]),
                    lti.integrator_state(c.pi, out))
-
-
-def imc_init(c: IMC) -> IMCState:
-    return IMCState(lti.zeros_state(c.c1), lti.zeros_state(c.c2))
 
 
 def imc_rest(c: IMC, theta0) -> IMCState:
