@@ -304,6 +304,7 @@ class CanServer:
             node.rpdo.read(from_od=True)
             node.tpdo.read(from_od=True)
             self.nodes.append(node)
+        self.rated = np.array([n.sdo["Motor rated torque"].raw for n in self.nodes], float) * 1e-3  # N m, fixed
         import can
 
         self.network.notifier = can.Notifier(bus, self.network.listeners, 0.1)
@@ -317,7 +318,7 @@ class CanServer:
         now = time.monotonic()
         r = self.robot
         modes = np.array([n.sdo["Modes of operation display"].raw for n in self.nodes], np.int8)
-        rated = np.array([n.sdo["Motor rated torque"].raw for n in self.nodes], float) * 1e-3
+        rated = self.rated
         maps = [n.rpdo[1] for n in self.nodes]
         target = np.where(modes == protocol.CST, np.array([m["Target torque"].raw for m in maps]) * rated / 1000.0,
                           np.array([m["Target velocity"].raw for m in maps]) / self.scale)
