@@ -40,15 +40,14 @@ from pusupu_jax.params import ParameterError, ServoParams  # noqa: E402
 from pusupu_jax.plots import save_atomic  # noqa: E402
 
 from .config import TuneConfig  # noqa: E402
-from .run import CHECKPOINT, Problem, optimise, platform_paths, print_progress, scenario_list  # noqa: E402
+from .run import CHECKPOINT, Problem, optimise, print_progress, scenario_list  # noqa: E402
 
 METRICS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho")
 
 
 def evaluate_baselines(cfg: TuneConfig, rates) -> dict:
     """``{mode: {scenario: (metrics, arrays)}}`` of every baseline mode on the whole paths, Table 1 gains."""
-    paths = platform_paths(cfg, rates)
-    scenarios = [Scenario(paths[kind], options, name) for name, kind, options in scenario_list(cfg)]
+    scenarios = [Scenario(spec.path(rates), spec.options, spec.name) for spec in scenario_list(cfg)]
     return {mode: {sc.name: out for sc, out in zip(scenarios, simulate_scenarios(ServoParams.table1(), scenarios,
                                                                                    mode=mode, rates=rates))}
             for mode in cfg.baselines}

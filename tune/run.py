@@ -50,73 +50,124 @@ from .space import Space
 PENALTY_WEIGHT = 100.0
 
 
-def scenario_list(cfg: TuneConfig) -> list[tuple[str, str, ModelOptions]]:
-    """``(name, trajectory, model options)`` of every scenario, named ``arc``, ``arc/seed3``, ``p2p/seed3/10kg``..."""
-    return [(kind + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else ""), kind,
-             ModelOptions(kin_error_seed=seed, payload=float(payload)))
+@dataclasses.dataclass(frozen=True, eq=False)
+class ScenarioSpec:
+    """One scenario: a paper path (the first ``path_s`` seconds of it, or all) on a machine with ``options`` (seeded
+    kinematic errors, payload) and the nominal geometry ``geometry`` (None: :meth:`Geometry.default`)."""
+
+    name: str
+    trajectory: str
+    options: ModelOptions = ModelOptions()
+    geometry: Geometry | None = None
+    path_s: float | None = None
+
+    def geom(self) -> Geometry:
+        return Geometry.default() if self.geometry is None else self.geometry
+
+    def path(self, rates):
+        """The platform poses ``(N, 5)`` about the geometry's home, one per position period (checked later)."""
+        path = platform_path(self.trajectory, self.geom().home, rates)
+        return path if self.path_s is None else path[:max(3, int(round(self.path_s / rates.dt_position)))]
+
+
+def scenario_list(cfg: TuneConfig) -> list[ScenarioSpec]:
+    """Every scenario of the configuration, named ``arc``, ``arc/seed3``, ``p2p/seed3/10kg``..."""
+    return [ScenarioSpec(kind + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else ""),
+                         kind, ModelOptions(kin_error_seed=seed, payload=float(payload)), path_s=cfg.path_s)
             for kind in cfg.trajectories for seed in cfg.kin_error_seeds for payload in cfg.payloads]
-
-
-def platform_paths(cfg: TuneConfig, rates) -> dict:
-    """``{trajectory: platform poses (N, 5)}`` of the configuration's paths about the default home (the first
-    ``cfg.path_s`` seconds of each, or the whole path)."""
-    paths = {kind: platform_path(kind, Geometry.default().home, rates) for kind in cfg.trajectories}
-    if cfg.path_s is not None:
-        paths = {kind: p[:max(3, int(round(cfg.path_s / rates.dt_position)))] for kind, p in paths.items()}
-    return paths
 
 
 @dataclasses.dataclass(frozen=True)
 class Scenarios:
-    """Every (path, seed, payload) combination, and the training windows spread over each path.
+    """Scenarios, and the training windows spread over each path.
 
     Each path of ``N`` periods is padded with its last pose to ``K * every`` periods (``K =
     cfg.windows``, ``every = ceil(N / K)``); window ``k`` is its ``W`` periods from ``k * every``
     (``W = cfg.window_s``), started from the carry a forward pass over the whole path has there.
-    Seeds and payloads enter as :meth:`MJXPlant.variant` models.
+    Seeds, payloads and geometries enter as :meth:`MJXPlant.variant` models.
     """
 
     names: list
-    kinds: list  # the trajectory of each scenario
     lengths: list  # its unpadded number of periods
     paths: list  # its platform poses (N, 5), unpadded
     plant: object  # the nominal MJXPlant (structure and static fields)
-    groups: dict  # trajectory -> (scenario indices, stacked models (S_k, ...), stacked references (S_k, K every, ...))
+    groups: dict  # padded length -> (scenario indices, stacked models (S_k, ...), stacked references (S_k, K every, ...))
+    group_of: list  # the padded length of each scenario (its key in ``groups``)
     windows: int
     window_models: object  # (S K, ...) in scenario-major order
     window_reference: object  # (S K, W, ...)
     window_path: object  # (S K, W, 5)
 
     @classmethod
-    def build(cls, cfg: TuneConfig, servo: ServoParams, rates) -> "Scenarios":
-        paths = platform_paths(cfg, rates)
+    def build(cls, cfg: TuneConfig, servo: ServoParams, rates, specs: list[ScenarioSpec] | None = None) -> "Scenarios":
+        """The scenarios ``specs`` (default: the configuration's); a path outside the workspace raises
+        :class:`~pusupu_jax.plant.geometry.GeometryError` naming the scenario."""
+        specs = scenario_list(cfg) if specs is None else specs
         K, W = cfg.windows, max(3, int(round(cfg.window_s / rates.dt_position)))
         plant = machine_plant(ModelOptions())
-        names, kinds, lengths, cut, models, refs, padded_paths = [], [], [], [], [], [], []
-        for name, kind, options in scenario_list(cfg):
-            path = paths[kind]
+        lengths, cut, models, refs, padded_paths = [], [], [], [], []
+        for spec in specs:
+            path = spec.path(rates)
             every = -(-len(path) // K)
             if W > every:
-                raise ParameterError(f"tune config window_s: expected at most a {K}th of the {kind} path "
-                                     f"({every * rates.dt_position:g} s), got {cfg.window_s}")
+                raise ParameterError(f"scenario {spec.name}: window_s expected at most a {K}th of the {spec.trajectory} "
+                                     f"path ({every * rates.dt_position:g} s), got {cfg.window_s}")
             padded = np.concatenate([path, np.repeat(path[-1:], K * every - len(path), axis=0)])
-            names.append(name)
-            kinds.append(kind)
+            try:
+                refs.append(machine_reference(servo, padded, cfg.mode, options=spec.options, rates=rates,
+                                              geom=spec.geom()))
+                models.append(plant.variant(spec.options, spec.geometry))
+            except ParameterError as e:
+                raise type(e)(f"scenario {spec.name}: {e}") from None
             lengths.append(len(path))
             cut.append(path)
-            models.append(plant.variant(options))
-            refs.append(machine_reference(servo, padded, cfg.mode, options=options, rates=rates))
             padded_paths.append(padded)
+        group_of = [len(p) for p in padded_paths]
         groups = {}
-        for kind in cfg.trajectories:
-            idx = [i for i, k in enumerate(kinds) if k == kind]
-            groups[kind] = (idx, stack([models[i] for i in idx]), stack([refs[i] for i in idx]))
-        starts = [[k * (len(padded_paths[i]) // K) for k in range(K)] for i in range(len(names))]
-        pick = [(i, a) for i in range(len(names)) for a in starts[i]]
-        return cls(names, kinds, lengths, cut, plant, groups, K,
+        for n in dict.fromkeys(group_of):
+            idx = [i for i, g in enumerate(group_of) if g == n]
+            groups[n] = (idx, stack([models[i] for i in idx]), stack([refs[i] for i in idx]))
+        pick = [(i, k * (group_of[i] // K)) for i in range(len(specs)) for k in range(K)]
+        return cls([s.name for s in specs], lengths, cut, plant, groups, group_of, K,
                    stack([models[i] for i, _ in pick]),
                    stack([jax.tree.map(lambda x: np.asarray(x)[a:a + W], refs[i]) for i, a in pick]),
                    np.stack([padded_paths[i][a:a + W] for i, a in pick]))
+
+    def reference(self, i: int):
+        """Scenario ``i``'s reference over its unpadded path (host arrays)."""
+        idx, _, refs = self.groups[self.group_of[i]]
+        return jax.tree.map(lambda x: np.asarray(x)[idx.index(i), :self.lengths[i]], refs)
+
+
+def scenario_objective(cfg: TuneConfig, t: dict, baseline: dict):
+    """Each scenario's objective ``(S,)`` from its terms ``t`` and its start terms ``baseline`` (``{term: (S,)}``):
+    the weighted terms over their start values, and the penalties on the force peak and saturation."""
+    per = sum(w * t[k] / baseline[k] for k, w in cfg.weights.items())
+    per += PENALTY_WEIGHT * jax.nn.relu(t["force_peak"] / (cfg.force_peak_limit * baseline["force_peak"]) - 1.0) ** 2
+    return per + PENALTY_WEIGHT * t["saturation"]
+
+
+def aggregate(cfg: TuneConfig, per, margins: dict):
+    """The problem's objective: the scenarios' mean (or max) plus the penalties on every loop margin below the floors."""
+    total = jnp.mean(per, axis=-1) if cfg.aggregate == "mean" else jnp.max(per, axis=-1)
+    for loop in margins.values():
+        pm = jnp.minimum(loop["phase_margin_deg"], 180.0)
+        gm = jnp.minimum(loop["gain_margin_db"], 60.0)
+        total += PENALTY_WEIGHT * jnp.sum(jax.nn.relu((cfg.pm_min + 1.0 - pm) / 10.0) ** 2)
+        total += PENALTY_WEIGHT * jnp.sum(jax.nn.relu((cfg.gm_min + 0.5 - gm) / 3.0) ** 2)
+    return total
+
+
+def whole_path_metrics(cfg: TuneConfig, sc: Scenarios, i: int, trace, servo, hybrid, rates) -> tuple:
+    """:func:`~pusupu_jax.machine.machine_metrics` of scenario ``i``'s forward pass over its whole (padded) path."""
+    n = sc.lengths[i]
+    return machine_metrics(jax.tree.map(lambda x: np.asarray(x)[:n], trace), servo, sc.paths[i], sc.reference(i),
+                           cfg.mode, rates.dt_position, hybrid if control_mode(cfg.mode).hybrid else None)
+
+
+def join_windows(x, S: int, K: int):
+    """``(S K, W, ...) -> (S, K W, ...)``: each scenario's windows end to end (``(S K,) -> (S, K)``)."""
+    return x.reshape((S, K * x.shape[1]) + x.shape[2:]) if x.ndim >= 2 else x.reshape(S, K)
 
 
 class Problem:
@@ -181,11 +232,8 @@ class Problem:
 
         traces = jax.vmap(one)(sc.window_models, sc.window_reference, starts)
         S, K = len(sc.names), sc.windows
-
-        def per_scenario(x):  # (S K, W, ...) -> (S, K W, ...): each scenario's windows end to end
-            return x.reshape((S, K * x.shape[1]) + x.shape[2:]) if x.ndim >= 2 else x.reshape(S, K)
-
-        joined, path = jax.tree.map(per_scenario, traces), per_scenario(jnp.asarray(sc.window_path))
+        joined = jax.tree.map(lambda x: join_windows(x, S, K), traces)
+        path = join_windows(jnp.asarray(sc.window_path), S, K)
         terms = jax.vmap(lambda tr, p: objectives.terms(tr, servo, p, self.rates.dt_position,
                                                         sharpness_force=self.cfg.sharpness_force))(joined, path)
         return terms, traces
@@ -196,19 +244,9 @@ class Problem:
 
     def objective(self, z, baseline, starts):
         """``(J, aux)``; ``baseline`` holds each scenario's terms at the start (the normalisers)."""
-        cfg = self.cfg
         t, traces = self.scenario_terms(z, starts)
-        per = sum(w * t[k] / baseline[k] for k, w in cfg.weights.items())
-        per += PENALTY_WEIGHT * jax.nn.relu(t["force_peak"] / (cfg.force_peak_limit * baseline["force_peak"])
-                                            - 1.0) ** 2
-        per += PENALTY_WEIGHT * t["saturation"]
-        total = jnp.mean(per) if cfg.aggregate == "mean" else jnp.max(per)
-        for loop in self.margins(z).values():
-            pm = jnp.minimum(loop["phase_margin_deg"], 180.0)
-            gm = jnp.minimum(loop["gain_margin_db"], 60.0)
-            total += PENALTY_WEIGHT * jnp.sum(jax.nn.relu((cfg.pm_min + 1.0 - pm) / 10.0) ** 2)
-            total += PENALTY_WEIGHT * jnp.sum(jax.nn.relu((cfg.gm_min + 0.5 - gm) / 3.0) ** 2)
-        return total, {"scenarios": per, "terms": t}
+        per = scenario_objective(self.cfg, t, baseline)
+        return aggregate(self.cfg, per, self.margins(z)), {"scenarios": per, "terms": t}
 
     def start_baseline(self):
         """The terms at the start, from one call of the compiled gradient (normalisers of 1: no new compile)."""
@@ -232,12 +270,7 @@ class Problem:
         sc = self.scenarios
         out = {}
         for i, (trace, _) in enumerate(self.run_paths(z)):
-            n = sc.lengths[i]
-            idx, _, refs = sc.groups[sc.kinds[i]]
-            reference = jax.tree.map(lambda x: np.asarray(x)[idx.index(i), :n], refs)
-            out[sc.names[i]] = machine_metrics(jax.tree.map(lambda x: np.asarray(x)[:n], trace), servo, sc.paths[i],
-                                               reference, self.cfg.mode, self.rates.dt_position,
-                                               hybrid if control_mode(self.cfg.mode).hybrid else None)
+            out[sc.names[i]] = whole_path_metrics(self.cfg, sc, i, trace, servo, hybrid, self.rates)
         return out
 
 
@@ -251,8 +284,8 @@ def save_checkpoint(path: Path, state: dict) -> None:
     arrays |= {f"best/{k}": np.asarray(v) for k, v in (state["best_z"] or {}).items()}
     if state["opt"] is not None:
         arrays |= {f"opt/{k}": np.asarray(leaf) for k, leaf in enumerate(jax.tree.leaves(state["opt"]))}
-    meta = {k: state[k] for k in ("digest", "start", "iteration", "history", "best_value", "done")}
-    meta = {"format": CHECKPOINT_FORMAT, **meta, "best_value": float(meta["best_value"])}
+    meta = {k: v for k, v in state.items() if k not in ("z", "best_z", "opt")}
+    meta = {"format": CHECKPOINT_FORMAT, **meta, "best_value": np.asarray(meta["best_value"], dtype=float).tolist()}
     buffer = io.BytesIO()
     np.savez(buffer, meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **arrays)
     write_atomic(path, buffer.getvalue())
@@ -284,8 +317,22 @@ def load_checkpoint(path: Path, digest: str, opt_template) -> dict | None:
     opt = jax.tree.unflatten(treedef, leaves) if leaves else None
     if leaves and len(leaves) != treedef.num_leaves:
         raise ParameterError(f"{path}: checkpoint of another optimiser state; use --fresh")
-    return {**{k: meta[k] for k in ("digest", "start", "iteration", "history", "best_value", "done")},
-            "z": z, "best_z": best, "opt": opt}
+    return {**{k: v for k, v in meta.items() if k != "format"}, "z": z, "best_z": best, "opt": opt}
+
+
+def start_point(z0: dict, k: int, spread: float, seed: int, project: Callable) -> dict:
+    """Start ``k`` of a multi-start run: ``z0`` for the first, a projected log-normal perturbation (std ``spread``)
+    drawn from ``seed`` and ``k`` for the others."""
+    if k == 0:
+        return dict(z0)
+    keys = jax.random.split(jax.random.PRNGKey(seed + 1000 * k), len(z0))
+    return project({n: v + spread * jax.random.normal(key, jnp.shape(v)) for (n, v), key in zip(sorted(z0.items()), keys)})
+
+
+def optimiser(learning_rate: float, iterations: int, clip_norm: float, final_lr_fraction: float):
+    """Clipped Adam whose learning rate follows a cosine from ``learning_rate`` to ``final_lr_fraction`` of it."""
+    schedule = optax.cosine_decay_schedule(learning_rate, iterations, alpha=final_lr_fraction)
+    return optax.chain(optax.clip_by_global_norm(clip_norm), optax.adam(schedule))
 
 
 def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iterations: int, learning_rate: float,
@@ -301,8 +348,7 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
     finds one continues from it (bit-identical to an uninterrupted run: every random draw
     is made from ``seed`` and the start index).
     """
-    schedule = optax.cosine_decay_schedule(learning_rate, iterations, alpha=final_lr_fraction)
-    opt = optax.chain(optax.clip_by_global_norm(clip_norm), optax.adam(schedule))
+    opt = optimiser(learning_rate, iterations, clip_norm, final_lr_fraction)
     state = load_checkpoint(checkpoint, digest, opt.init(z0)) if checkpoint else None
     if state is None:
         state = {"digest": digest, "start": 0, "iteration": 0, "z": None, "opt": None, "history": [],
@@ -311,11 +357,7 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
     while not state["done"]:
         k = state["start"]
         if state["z"] is None:
-            z = dict(z0)
-            if k > 0:
-                keys = jax.random.split(jax.random.PRNGKey(seed + 1000 * k), len(z))
-                z = project({n: v + start_spread * jax.random.normal(key, jnp.shape(v))
-                             for (n, v), key in zip(sorted(z.items()), keys)})
+            z = start_point(z0, k, start_spread, seed, project)
             state["z"], state["opt"] = z, opt.init(z)
         z, opt_state = jax.tree.map(jnp.asarray, state["z"]), state["opt"]
 

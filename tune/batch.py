@@ -1,0 +1,261 @@
+"""Many tuning problems of one shape in one compiled, vmapped gradient (the engine of ``pusupu batch``).
+
+A *member* is one start of one problem: its log-gains ``z`` (a row of every leaf of ``zb``) and
+its scenarios.  Members of independent problems share nothing; the members of a robust problem
+share its scenarios.  Every member has the same number of scenarios, so that a *pair* (member,
+scenario) list of ``Q = P x S_p`` entries, member-major, lays out every training window of the
+batch as ``(Q K, W, ...)``: one ``rollout`` vmapped over all of them, as
+:class:`tune.run.Problem` vmaps one problem's windows.  Each member's objective is exactly a
+:class:`~tune.run.Problem`'s at its ``z`` (:func:`tune.run.scenario_objective`,
+:func:`tune.run.aggregate`); the batch minimises their sum, whose gradient with respect to
+member ``m``'s row is member ``m``'s own gradient, since no term couples two members.
+
+:func:`optimise_batch` runs :func:`tune.run.optimise`'s iteration on every member at once
+(the optax update vmapped, so clipping stays per member); a member whose objective or gradient
+turns non-finite is frozen and reported, and the others go on.  With more than one device the
+batch axis is sharded over all of them (``jax.sharding``), padded to a multiple of their number
+with copies of the last member.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from pusupu_jax import objectives
+from pusupu_jax.cascade import control_mode
+from pusupu_jax.gradients import value_and_grad
+from pusupu_jax.hybrid import HybridGains
+from pusupu_jax.machine import machine_rates
+from pusupu_jax.margins import loop_margins
+from pusupu_jax.params import AxisLoad, ServoParams
+from pusupu_jax.sim import rollout, rollout_segments
+
+from .config import TuneConfig
+from .run import (Scenarios, ScenarioSpec, aggregate, join_windows, load_checkpoint, optimiser, save_checkpoint,
+                  scenario_objective, start_point, whole_path_metrics)
+from .space import Space
+
+
+def _take(tree, index):
+    return jax.tree.map(lambda x: x[index], tree)
+
+
+class BatchProblem:
+    """``problems`` (scenario index lists into ``specs``, all of one length) x ``starts`` members, one objective.
+
+    ``devices``: the devices to shard the batch over (default every visible one).
+    """
+
+    def __init__(self, cfg: TuneConfig, specs: list[ScenarioSpec], problems: list[list[int]], servo0: ServoParams,
+                 hybrid0: HybridGains, devices=None):
+        if len({len(p) for p in problems}) != 1:
+            raise ValueError("BatchProblem: every problem needs the same number of scenarios")
+        self.cfg = cfg
+        self.rates = machine_rates()
+        self.space = Space.create(cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared,
+                                  bounds=cfg.bounds)
+        self.scenarios = sc = Scenarios.build(cfg, self.space.servo0, self.rates, specs)
+        self.load = AxisLoad.default()
+        self.problems = problems
+        self.devices = list(devices if devices is not None else jax.devices())
+        members = [(j, k) for j in range(len(problems)) for k in range(cfg.starts)]
+        self.n_real = len(members)
+        members += [members[-1]] * (-len(members) % len(self.devices))  # padding: results discarded
+        self.members = members
+        self.pairs = [(m, s) for m, (j, _) in enumerate(members) for s in problems[j]]
+        K = sc.windows
+        windows = np.array([s * K + k for _, s in self.pairs for k in range(K)])
+        self.window_member = np.array([m for m, _ in self.pairs for _ in range(K)])
+        self.pair_member = np.array([m for m, _ in self.pairs])
+        mesh = Mesh(np.array(self.devices), ("batch",))
+        self.sharding = NamedSharding(mesh, PartitionSpec("batch"))
+        self.window_models = self.shard(_take(sc.window_models, windows))
+        self.window_reference = self.shard(_take(sc.window_reference, windows))
+        self.window_path = self.shard(jnp.asarray(sc.window_path)[windows])
+        self._value_and_grad = jax.jit(value_and_grad(self.objective, cfg.gradient))
+        hybrid_mode = control_mode(cfg.mode).hybrid
+
+        def whole(z, model, reference):
+            servo, hybrid = self.space.apply(z)
+            return rollout_segments(servo, model, reference, segments=K, plant=sc.plant, rates=self.rates,
+                                    outer=cfg.mode, hybrid=hybrid if hybrid_mode else None)
+
+        self._whole = jax.jit(jax.vmap(whole))
+        self.baseline = None
+        self.starts = None
+        self._starts_z = None
+
+    def shard(self, tree):
+        """``tree`` with its leading (batch) axis spread over the devices (a no-op on one)."""
+        if len(self.devices) == 1:
+            return jax.tree.map(jnp.asarray, tree)
+        return jax.device_put(tree, self.sharding)
+
+    def member_z(self, zb, m: int) -> dict:
+        return {k: v[m] for k, v in zb.items()}
+
+    def run_paths(self, zb) -> list:
+        """The forward pass over every pair's whole path at its member's ``z``: ``[(trace, carries (K, ...))]``."""
+        sc = self.scenarios
+        out = [None] * len(self.pairs)
+        for length, (idx, models, refs) in sc.groups.items():
+            qs = [q for q, (_, s) in enumerate(self.pairs) if sc.group_of[s] == length]
+            local = np.array([idx.index(self.pairs[q][1]) for q in qs])
+            members = self.pair_member[qs]
+            traces, carries = self._whole(_take(zb, members), _take(models, local), _take(refs, local))
+            for j, q in enumerate(qs):
+                out[q] = _take((traces, carries), j)
+        return out
+
+    def refresh(self, zb) -> None:
+        runs = self.run_paths(zb)
+        self.starts = self.shard(jax.tree.map(lambda *c: jnp.concatenate(c), *[carries for _, carries in runs]))
+        self._starts_z = {k: np.asarray(v) for k, v in zb.items()}
+
+    def prepare(self, zb, iteration: int) -> None:
+        """As :meth:`tune.run.Problem.prepare`, for every member at once (they iterate in step)."""
+        same = self._starts_z is not None and all(np.array_equal(np.asarray(zb[k]), v)
+                                                  for k, v in self._starts_z.items())
+        if self.starts is None or (iteration % self.cfg.refresh_every == 0 and not same):
+            self.refresh(zb)
+
+    def objective(self, zb, baseline, starts):
+        """``(sum of the members' objectives, aux)``: aux ``value`` ``(P,)``, ``scenarios`` and ``terms`` ``(Q,)``."""
+        cfg, sc = self.cfg, self.scenarios
+        hybrid_mode = control_mode(cfg.mode).hybrid
+
+        def one(z, model, reference, init):
+            servo, hybrid = self.space.apply(z)
+            return rollout(servo, model, reference, plant=sc.plant, rates=self.rates, outer=cfg.mode,
+                           hybrid=hybrid if hybrid_mode else None, init=init)
+
+        traces = jax.vmap(one)(_take(zb, self.window_member), self.window_models, self.window_reference, starts)
+        Q, K = len(self.pairs), sc.windows
+        joined = jax.tree.map(lambda x: join_windows(x, Q, K), traces)
+        path = join_windows(self.window_path, Q, K)
+
+        def terms(z, trace, p):
+            return objectives.terms(trace, self.space.apply(z)[0], p, self.rates.dt_position,
+                                    sharpness_force=cfg.sharpness_force)
+
+        t = jax.vmap(terms)(_take(zb, self.pair_member), joined, path)
+        per = scenario_objective(cfg, t, baseline)
+
+        def member(z, per_member):
+            return aggregate(cfg, per_member, loop_margins(self.space.apply(z)[0], self.load, mode=cfg.mode))
+
+        value = jax.vmap(member)(zb, per.reshape(len(self.members), -1))
+        return jnp.sum(value), {"value": value, "scenarios": per, "terms": t}
+
+    def z0(self) -> dict:
+        return {k: jnp.broadcast_to(v, (len(self.members),) + jnp.shape(v)) for k, v in self.space.z0().items()}
+
+    def start_baseline(self):
+        """Every pair's terms at the start ``z0`` (as :meth:`tune.run.Problem.start_baseline`)."""
+        if self.baseline is None:
+            kept = (self.starts, self._starts_z)
+            z0 = self.z0()
+            self.refresh(z0)
+            ones = {k: jnp.ones(len(self.pairs)) for k in objectives.TERMS}
+            (_, aux), _ = self._value_and_grad(z0, ones, self.starts)
+            self.baseline = aux["terms"]
+            if kept[0] is not None:
+                self.starts, self._starts_z = kept
+        return self.baseline
+
+    def value_and_grad(self, zb):
+        return self._value_and_grad(self.shard(zb), self.start_baseline(), self.starts)
+
+    def path_metrics(self, zb) -> list[dict]:
+        """Per real member, ``{scenario: (metrics, plot arrays)}`` on the whole paths at its ``z``."""
+        sc = self.scenarios
+        runs = self.run_paths(zb)
+        out = [{} for _ in range(self.n_real)]
+        for q, (m, s) in enumerate(self.pairs):
+            if m < self.n_real:
+                servo, hybrid = self.space.host_values(self.member_z(zb, m))
+                out[m][sc.names[s]] = whole_path_metrics(self.cfg, sc, s, runs[q][0], servo, hybrid, self.rates)
+        return out
+
+
+def optimise_batch(problem: BatchProblem, *, checkpoint: Path | None = None, digest: str = "",
+                   progress: Callable | None = None) -> dict:
+    """:func:`tune.run.optimise` for every member of ``problem`` at once, with its configuration's settings.
+
+    Returns per real member ``best_value`` ``(P,)``, ``best_z``, ``history`` (per member, entries as
+    :func:`~tune.run.optimise`'s) and ``failed`` (``{member: message}``).  With ``checkpoint`` the state is
+    saved every ``checkpoint_every`` iterations and at the end, and a run that finds one continues from it.
+    """
+    cfg = problem.cfg
+    P = len(problem.members)
+    opt = optimiser(cfg.learning_rate, cfg.iterations, cfg.clip_norm, cfg.final_lr_fraction)
+    z0 = problem.space.z0()
+    starts = [start_point(z0, k, cfg.start_spread, cfg.seed, problem.space.project) for _, k in problem.members]
+    zb = jax.tree.map(lambda *v: jnp.stack(v), *starts)
+    opt_template = jax.vmap(opt.init)(zb)
+    state = load_checkpoint(checkpoint, digest, opt_template) if checkpoint else None
+    if state is None:
+        state = {"digest": digest, "iteration": 0, "z": zb, "opt": opt_template, "history": [[] for _ in range(P)],
+                 "best_value": np.full(P, np.inf), "best_z": {k: np.asarray(v) for k, v in zb.items()},
+                 "failed": {}, "done": False}
+    zb, opt_state = jax.tree.map(jnp.asarray, state["z"]), state["opt"]
+    best_value = np.asarray(state["best_value"], dtype=float)
+    best_z = {k: np.array(v) for k, v in state["best_z"].items()}
+    failed = {int(m): msg for m, msg in state["failed"].items()}
+    project = jax.vmap(problem.space.project)
+    update = jax.vmap(opt.update)
+    t_start = time.perf_counter()
+
+    def evaluate(zb, iteration):
+        problem.prepare(zb, iteration)
+        (_, aux), grad = problem.value_and_grad(zb)
+        values = np.asarray(aux["value"], dtype=float)
+        finite = np.isfinite(values) & np.all([np.isfinite(np.asarray(g)).reshape(P, -1).all(axis=1)
+                                               for g in grad.values()], axis=0)
+        for m in np.flatnonzero(~finite):
+            failed.setdefault(int(m), f"non-finite objective or gradient at iteration {iteration} "
+                                      f"(value {values[m]})")
+        for m in range(P):
+            if int(m) in failed:
+                continue
+            state["history"][m].append({"start": problem.members[m][1], "iteration": iteration,
+                                        "objective": float(values[m]),
+                                        "z": {n: np.asarray(v[m]).tolist() for n, v in zb.items()}})
+            if values[m] < best_value[m]:
+                best_value[m] = values[m]
+                for n, v in zb.items():
+                    best_z[n][m] = np.asarray(v[m])
+        ok = jnp.asarray([m not in failed for m in range(P)])
+        return values, grad, ok
+
+    while not state["done"]:
+        while state["iteration"] < cfg.iterations:
+            values, grad, ok = evaluate(zb, state["iteration"])
+            grad = jax.tree.map(lambda g: jnp.where(ok.reshape((P,) + (1,) * (g.ndim - 1)), g, 0.0), grad)
+            updates, new_opt = update(grad, opt_state, zb)
+            new_z = project(jax.tree.map(lambda z, u: z + u, zb, updates))
+
+            def keep(new, old):  # a failed member stays where it failed
+                return jnp.where(ok.reshape((P,) + (1,) * (new.ndim - 1)), new, old)
+
+            zb, opt_state = jax.tree.map(keep, new_z, zb), jax.tree.map(keep, new_opt, opt_state)
+            state["iteration"] += 1
+            state.update(z=zb, opt=opt_state, best_value=best_value, best_z=best_z, failed=failed)
+            if progress:
+                progress(state["iteration"], cfg.iterations, values[:problem.n_real], time.perf_counter() - t_start)
+            if checkpoint and state["iteration"] % cfg.checkpoint_every == 0:
+                save_checkpoint(checkpoint, state)
+        evaluate(zb, cfg.iterations)  # the last step's result is evaluated too: it may be the best
+        state.update(done=True, best_value=best_value, best_z=best_z, failed=failed)
+        if checkpoint:
+            save_checkpoint(checkpoint, state)
+    n = problem.n_real
+    return {"best_value": best_value[:n], "best_z": {k: v[:n] for k, v in best_z.items()},
+            "history": state["history"][:n], "failed": {m: msg for m, msg in failed.items() if m < n}}

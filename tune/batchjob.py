@@ -1,0 +1,287 @@
+"""``pusupu batch JOB.yaml --out DIR``: every job of a job file, in shards, in this process or as Ray tasks.
+
+Jobs that compile to the same shapes (:func:`tune.jobfile.groups`) are cut into shards of at
+most ``shard_size`` jobs, padded to equal size (so that one compile serves every shard of a
+group).  A shard is one call of :func:`run_shard`: one :class:`tune.batch.BatchProblem`, its
+checkpoint in ``DIR/shards/<id>/checkpoint.npz`` (a shard that is run again, or retried by Ray,
+continues from it), and each job's outputs in ``DIR/jobs/<job>/``: ``gains.yaml`` and the ROS 2
+files (only if the gains pass every check), plots, and last ``report.json``, which names the
+job's digest.  A job whose ``report.json`` carries its digest is done and is skipped when the
+batch runs again.  Last, ``DIR/summary.csv``, ``summary.md``, ``summary.json`` and
+``summary.png`` cover every job, the failed ones marked with their error.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import math
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pusupu_jax.config import setup_jax, write_atomic
+
+from . import jobfile
+from .config import TuneConfig
+
+SUMMARY_COLUMNS = ("job", "status", "scenarios", "objective_before", "objective_after", "rms_before_mm",
+                   "rms_after_mm", "max_after_mm", "force_peak_after_n", "error")
+
+
+def job_dir(out: Path, name: str) -> Path:
+    return Path(out) / "jobs" / name.replace("/", "_")
+
+
+def done_report(out: Path, job: jobfile.Job) -> dict | None:
+    """The job's report if a finished run of these very settings wrote it, else None."""
+    path = job_dir(out, job.name) / "report.json"
+    try:
+        report = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return report if isinstance(report, dict) and report.get("job_digest") == job.digest() else None
+
+
+def shards(jobs: list, shard_size: int | None) -> list[dict]:
+    """The tasks of one group's pending ``jobs``: shards of at most ``shard_size`` jobs, padded to one size."""
+    size = len(jobs) if shard_size is None else min(shard_size, len(jobs))
+    cfg = jobs[0].config
+    config = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()}
+    tasks = []
+    for a in range(0, len(jobs), size):
+        part = jobs[a:a + size]
+        entries = [{"name": j.name, "digest": j.digest(), "specs": [jobfile.spec_dict(s) for s in j.specs]}
+                   for j in part]
+        pad = size - len(part)
+        ident = hashlib.sha256(json.dumps([[e["digest"] for e in entries], pad]).encode()).hexdigest()[:12]
+        tasks.append({"id": ident, "config": config, "jobs": entries, "pad": pad})
+    return tasks
+
+
+def run_shard(task: dict, out: str, plots: bool = True, stream=None) -> list[dict]:
+    """Tune one shard's jobs in one vmapped batch; write each job's outputs; return their summary rows.
+
+    Callable in this process or as a Ray task (it sets JAX up itself, and everything it takes and returns is
+    plain data).  Its pid is in ``DIR/shards/<id>/worker.pid`` while it runs.
+    """
+    setup_jax()
+    from pusupu_jax.hybrid import HybridGains
+    from pusupu_jax.params import ServoParams
+
+    from .batch import BatchProblem, optimise_batch
+
+    stream = stream or sys.stderr
+    out = Path(out)
+    folder = out / "shards" / task["id"]
+    folder.mkdir(parents=True, exist_ok=True)
+    write_atomic(folder / "worker.pid", str(os.getpid()))
+    cfg = TuneConfig().replace(**task["config"])
+    entries = task["jobs"] + [task["jobs"][-1]] * task["pad"]
+    specs, problems = [], []
+    for e in entries:
+        problems.append(list(range(len(specs), len(specs) + len(e["specs"]))))
+        specs += [jobfile.spec_from_dict(d) for d in e["specs"]]
+    n_jobs = len(task["jobs"])
+    t0 = time.perf_counter()
+    padding = f", {task['pad']} padding" if task["pad"] else ""
+    print(f"batch: shard {task['id']}: {n_jobs} job(s) x {cfg.starts} start(s) "
+          f"({len(specs)} scenario runs{padding}); compiling",
+          file=stream, flush=True)
+    problem = BatchProblem(cfg, specs, problems, ServoParams.table1(), HybridGains())
+    result = optimise_batch(problem, checkpoint=folder / "checkpoint.npz", digest=task["id"],
+                            progress=lambda *a: print_progress(task["id"], *a, stream=stream))
+    R = cfg.starts
+    best_members = []
+    for j in range(n_jobs):
+        members = [m for m in range(j * R, (j + 1) * R) if m not in result["failed"]]
+        best_members.append(min(members, key=lambda m: result["best_value"][m]) if members else None)
+    z0 = problem.z0()
+    zb = {k: np.array(v) for k, v in z0.items()}
+    for j, m in enumerate(best_members):
+        if m is not None:
+            for k in zb:
+                zb[k][j * R] = result["best_z"][k][m]
+    before, after = problem.path_metrics(z0), problem.path_metrics(zb)
+    rows = []
+    for j, e in enumerate(task["jobs"]):
+        m = best_members[j]
+        history = [h for mm in range(j * R, (j + 1) * R) for h in result["history"][mm]]
+        failed = {mm - j * R: result["failed"][mm] for mm in range(j * R, (j + 1) * R) if mm in result["failed"]}
+        rows.append(write_job(out, e, cfg, problem, None if m is None else problem.member_z(zb, j * R), history,
+                              failed, before[j * R], after[j * R], plots))
+    print(f"batch: shard {task['id']} done in {time.perf_counter() - t0:.0f} s", file=stream, flush=True)
+    return rows
+
+
+def write_job(out: Path, entry: dict, cfg: TuneConfig, problem, z, history, failed, before, after,
+              plots: bool) -> dict:
+    """One job's outputs (gains and ROS 2 files if they pass every check, plots, report.json last); its summary row."""
+    from .job import _plots, _summary, export
+
+    folder = job_dir(out, entry["name"])
+    folder.mkdir(parents=True, exist_ok=True)
+    first = [h for h in history if h["iteration"] == 0 and h["start"] == 0]
+    objective_before = first[0]["objective"] if first else float("nan")
+    report = {"job": entry["name"], "job_digest": entry["digest"], "scenarios": entry["specs"],
+              "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
+              "tuned_fields": list(problem.space.fields), "failed_starts": {str(k): v for k, v in failed.items()},
+              "history": [{k: h[k] for k in ("start", "iteration", "objective")} for h in history],
+              "objective_before": objective_before,
+              "before": {n: _summary(r) for n, (r, _) in before.items()}}
+    if z is None:
+        report |= {"status": "failed", "error": "every start failed: " + "; ".join(failed.values())}
+    else:
+        servo, hybrid = problem.space.host_values(z)
+        best = min(h["objective"] for h in history)
+        report |= {"objective_after": best, "after": {n: _summary(r) for n, (r, _) in after.items()},
+                   "start": {f: np.asarray(v).tolist() for f, v in problem.space.values(problem.space.z0()).items()},
+                   "result": {f: np.asarray(v).tolist() for f, v in problem.space.values(z).items()}}
+        provenance = {"config_hash": cfg.digest(), "job": entry["name"], "job_digest": entry["digest"],
+                      "objective_before": objective_before, "objective_after": best,
+                      "floors": [cfg.pm_min, cfg.gm_min], "metrics_after": report["after"]}
+        report |= export(folder, cfg, servo, hybrid, problem.rates, problem.space.fields, provenance)
+        report |= ({"status": "not exported", "error": report["export_error"]} if "export_error" in report
+                   else {"status": "ok", "error": ""})
+        if plots:
+            report["plots"] = _plots(folder, history, before, after, {})
+    report["row"] = summary_row(report)
+    write_atomic(folder / "report.json", json.dumps(report, indent=2))
+    return report["row"]
+
+
+def summary_row(report: dict) -> dict:
+    def mean(side, key):
+        runs = report.get(side) or {}
+        return float(np.mean([r[key] for r in runs.values()])) if runs else float("nan")
+
+    row = {"job": report["job"], "status": report["status"], "scenarios": len(report.get("scenarios") or []),
+           "objective_before": report.get("objective_before", float("nan")),
+           "objective_after": report.get("objective_after", float("nan")),
+           "rms_before_mm": mean("before", "rms_tracking_error_mm"), "rms_after_mm": mean("after", "rms_tracking_error_mm"),
+           "max_after_mm": mean("after", "max_tracking_error_mm"),
+           "force_peak_after_n": mean("after", "highest_branch_force_peak_n"), "error": report.get("error", "")}
+    for field, value in (report.get("result") or {}).items():
+        row[field] = float(np.ravel(value)[0])
+    return row
+
+
+def print_progress(shard, iteration, iterations, values, elapsed, stream=sys.stderr):
+    """A line per iteration of a shard; the rate and the ETA leave out the first iteration (the compile)."""
+    finite = values[np.isfinite(values)]
+    med = f"{np.median(finite):.4f}" if finite.size else "nan"
+    best = f"{finite.min():.4f}" if finite.size else "nan"
+    filled = round(20 * iteration / iterations)
+    if iteration == 1:
+        print_progress.first = elapsed
+    rest = elapsed - getattr(print_progress, "first", 0.0)
+    rate = rest / (iteration - 1) if iteration > 1 else float("nan")
+    eta = "" if math.isnan(rate) else f", {rate:.1f} s/it, ETA {rate * (iterations - iteration):.0f} s"
+    first = f", first iteration (with the compile) {print_progress.first:.0f} s" if iteration == 1 else ""
+    print(f"batch [shard {shard}] [{'#' * filled}{'.' * (20 - filled)}] {iteration}/{iterations} "
+          f"J median {med} best {best} over {len(values)} member(s){first}{eta}", file=stream, flush=True)
+
+
+def run_batch(path, out, *, ray: bool = False, address: str | None = None, workers: int | None = None,
+              fresh: bool = False, stream=sys.stderr) -> tuple[dict, int]:
+    """Run a job file; returns ``(summary, exit status)``: 0 when every job exported gains, 1 otherwise."""
+    from .job import OutputLock, prepare_output
+
+    jf = jobfile.read(path)
+    out = prepare_output(Path(out))
+    lock = OutputLock(out)
+    try:
+        if fresh:
+            for sub in ("shards", "jobs"):
+                shutil.rmtree(out / sub, ignore_errors=True)
+        rows = {j.name: {"job": j.name, "status": "failed", "scenarios": 0, "error": j.error}
+                for j in jf.jobs if j.error is not None}
+        unreadable, tasks = len(rows), []
+        for jobs in jobfile.groups(jf.jobs).values():
+            pending = []
+            for j in jobs:
+                report = done_report(out, j)
+                if report is None:
+                    pending.append(j)
+                else:
+                    rows[j.name] = report["row"]
+            if pending:
+                tasks += shards(pending, jf.shard_size)
+        print(f"batch: {len(jf.jobs)} job(s) ({jf.problems}), {unreadable} failed to read, {len(rows) - unreadable} done "
+              f"before, {len(tasks)} shard(s) to run" + (" as Ray tasks" if ray else ""), file=stream, flush=True)
+        if ray:
+            from .cluster import run_tasks
+
+            results = run_tasks(tasks, out, plots=jf.plots, address=address, workers=workers, stream=stream)
+        else:
+            results = []
+            for k, task in enumerate(tasks):
+                results.append(run_shard(task, str(out), jf.plots, stream))
+                print(f"batch: {k + 1}/{len(tasks)} shard(s) done", file=stream, flush=True)
+        for task_rows in results:
+            for row in task_rows:
+                rows[row["job"]] = row
+        ordered = [rows[j.name] for j in jf.jobs]
+        summary = write_summary(out, ordered)
+        return summary, 0 if all(r["status"] == "ok" for r in ordered) else 1
+    finally:
+        lock.release()
+
+
+def write_summary(out: Path, rows: list[dict]) -> dict:
+    """``summary.csv``, ``summary.md``, ``summary.json`` and ``summary.png`` over every job."""
+    fields = sorted({k for r in rows for k in r} - set(SUMMARY_COLUMNS))
+    columns = list(SUMMARY_COLUMNS[:-1]) + fields + ["error"]
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, columns, extrasaction="ignore", lineterminator="\n")
+    writer.writeheader()
+    for r in rows:
+        writer.writerow({c: _fmt(r.get(c, "")) for c in columns})
+    write_atomic(out / "summary.csv", buffer.getvalue())
+    write_atomic(out / "summary.md", markdown(rows, columns))
+    summary = {"jobs": len(rows), "ok": sum(r["status"] == "ok" for r in rows),
+               "failed": [r["job"] for r in rows if r["status"] != "ok"], "rows": rows}
+    write_atomic(out / "summary.json", json.dumps(summary, indent=2))
+    summary_plot(out / "summary.png", rows, fields)
+    return summary
+
+
+def _fmt(v):
+    return f"{v:.6g}" if isinstance(v, float) else v
+
+
+def markdown(rows: list[dict], columns) -> str:
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    for r in rows:
+        lines.append("| " + " | ".join(str(_fmt(r.get(c, ""))).replace("|", "/") for c in columns) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def summary_plot(path: Path, rows: list[dict], fields: list[str]) -> None:
+    """The spread over jobs of each tuned gain and of the RMS tracking error before and after."""
+    import matplotlib.pyplot as plt
+
+    from pusupu_jax.plots import save_atomic
+
+    ok = [r for r in rows if r["status"] == "ok"]
+    panels = fields + ["rms_before_mm", "rms_after_mm"]
+    fig, axes = plt.subplots(1, len(panels), figsize=(2.2 * len(panels) + 1, 4), squeeze=False)
+    rng = np.random.default_rng(0)
+    for ax, key in zip(axes[0], panels):
+        values = [r[key] for r in ok if isinstance(r.get(key), float) and np.isfinite(r[key])]
+        ax.boxplot(values or [np.nan], widths=0.5, showfliers=False)
+        ax.plot(1 + rng.uniform(-0.15, 0.15, len(values)), values, ".", alpha=0.6)
+        ax.set_title(key, fontsize=9)
+        ax.set_xticks([])
+        ax.set_yscale("log")
+        ax.grid(True, alpha=0.3)
+    fig.suptitle(f"spread over {len(ok)} job(s) that exported gains ({len(rows) - len(ok)} not)")
+    fig.tight_layout()
+    save_atomic(fig, path)
+    plt.close(fig)

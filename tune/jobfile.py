@@ -1,0 +1,232 @@
+"""Batch job files (``pusupu batch JOB.yaml``): reading, checking, and splitting into jobs and compiled groups.
+
+A job file (JSON Schema: ``tune/schemas/pusupu-batch.schema.json``; ``docs/batch.md``)::
+
+    format: pusupu-batch-1
+    problems: independent      # independent: one gain set per scenario | robust: one gain set for all of them
+    name: robust               # the robust job's name (robust only)
+    shard_size: 64             # at most this many jobs (independent) or starts (robust) per task; null: one task
+    plots: true                # per-job plots (objective, paths, forces)
+    tune:                      # every pusupu tune key but the scenario ones (trajectories, kin_error_seeds,
+      iterations: 10           #   payloads, path_s, baselines): groups, weights, the optimiser, starts, ...
+      starts: 2                #   mode, windows and window_s are the scenarios' defaults
+    scenarios:
+      - name: arc-seed1        # default: trajectory/seedN/Pkg
+        trajectory: arc        # arc | p2p
+        mode: hybrid           # hybrid | imc | pid | pid_ff (default: tune.mode)
+        payload: 0.0           # kg on the platform
+        kin_error_seed: 1      # seeded 0.5 mm errors of the simulated machine (null: none)
+        geometry: {rod_lengths: [0.9, 0.9, 0.9, 0.9, 0.9, 0.9]}   # overrides of the nominal geometry's fields
+        path_s: 2.0            # s: the first path_s seconds of the path (null: all of it)
+        windows: 2             # training windows spread over the path (default: tune.windows)
+        window_s: 0.3          # s, each window's length (default: tune.window_s)
+
+A scenario that is malformed, names an unknown key or leaves the workspace fails its own job
+(:class:`Job` with ``error``); the other jobs run.  A file that is not such a mapping fails as a whole.
+Jobs whose settings compile to the same shapes (mode, windows, window_s) form one group: one
+compiled gradient serves all of them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pusupu_jax import inputs
+from pusupu_jax.machine import machine_rates
+from pusupu_jax.params import ParameterError
+from pusupu_jax.plant import kinematics
+from pusupu_jax.plant.geometry import Geometry, validate_geometry
+from pusupu_jax.plant.model import ModelOptions
+from pusupu_jax.trajectories import PLATFORM_TRAJECTORIES
+
+from .config import TuneConfig
+from .run import ScenarioSpec
+
+FORMAT = "pusupu-batch-1"
+SCHEMA_FILE = Path(__file__).resolve().parent / "schemas" / "pusupu-batch.schema.json"
+FILE_KEYS = ("format", "problems", "name", "shard_size", "plots", "tune", "scenarios")
+SCENARIO_KEYS = ("name", "trajectory", "mode", "payload", "kin_error_seed", "geometry", "path_s", "windows",
+                 "window_s")
+SCENARIO_TUNE_KEYS = ("mode", "windows", "window_s")  # per scenario, default from tune:
+NOT_IN_TUNE = ("trajectories", "kin_error_seeds", "payloads", "path_s", "baselines")  # the scenarios say these
+GEOMETRY_FIELDS = tuple(f.name for f in dataclasses.fields(Geometry))
+
+
+class JobFileError(ParameterError):
+    """A job file, or one scenario of it, is not as expected."""
+
+
+@dataclass(frozen=True, eq=False)
+class Job:
+    """One tuning problem: its scenarios and settings, or the error that keeps it from running."""
+
+    name: str
+    config: TuneConfig | None
+    specs: tuple  # ScenarioSpec
+    error: str | None = None
+
+    def group_key(self) -> tuple:
+        """Jobs with equal keys compile to the same shapes (one group, one compiled gradient)."""
+        c = self.config
+        return (c.mode, c.windows, c.window_s, len(self.specs))
+
+    def digest(self) -> str:
+        """A hash of the job's settings and scenarios (its report and its group's checkpoint carry it)."""
+        text = json.dumps([self.config.digest(), [spec_dict(s) for s in self.specs]], sort_keys=True, default=str)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+@dataclass(frozen=True, eq=False)
+class JobFile:
+    path: str
+    problems: str
+    shard_size: int | None
+    plots: bool
+    jobs: tuple  # Job
+
+
+def spec_dict(spec: ScenarioSpec) -> dict:
+    """A scenario as plain data (JSON), the inverse of :func:`spec_from_dict`."""
+    geometry = None if spec.geometry is None else {f: np.asarray(getattr(spec.geometry, f)).tolist()
+                                                   for f in GEOMETRY_FIELDS}
+    return {"name": spec.name, "trajectory": spec.trajectory, "payload": spec.options.payload,
+            "kin_error_seed": spec.options.kin_error_seed, "geometry": geometry, "path_s": spec.path_s}
+
+
+def spec_from_dict(d: dict) -> ScenarioSpec:
+    geometry = None if d["geometry"] is None else Geometry(**{k: np.asarray(v) for k, v in d["geometry"].items()})
+    return ScenarioSpec(d["name"], d["trajectory"], ModelOptions(kin_error_seed=d["kin_error_seed"],
+                                                                 payload=float(d["payload"])), geometry, d["path_s"])
+
+
+def _geometry(value, where: str) -> Geometry | None:
+    if value is None:
+        return None
+    inputs.check_keys(value, where, GEOMETRY_FIELDS, JobFileError, what="geometry field")
+    base = Geometry.default()
+    changes = {}
+    for k, v in value.items():
+        shape = np.shape(getattr(base, k))
+        try:
+            arr = np.asarray(v, dtype=float)
+        except (TypeError, ValueError):
+            raise JobFileError(f"{where}.{k}: expected numbers of shape {shape}, got {v!r}") from None
+        if arr.shape != shape:
+            raise JobFileError(f"{where}.{k}: expected shape {shape}, got {arr.shape}")
+        changes[k] = arr
+    geom = base.replace(**changes)
+    try:
+        validate_geometry(geom)
+    except ParameterError as e:
+        raise JobFileError(f"{where}: {e}") from None
+    return geom
+
+
+def _scenario(entry, k: int, base: TuneConfig) -> tuple[ScenarioSpec, TuneConfig]:
+    """Scenario ``k``'s spec and its job's configuration; raises :class:`JobFileError` naming it."""
+    where = f"scenarios[{k}]"
+    inputs.check_keys(entry, where, SCENARIO_KEYS, JobFileError, required=("trajectory",))
+    trajectory = inputs.choice(entry["trajectory"], f"{where}.trajectory", PLATFORM_TRAJECTORIES, JobFileError)
+    seed = entry.get("kin_error_seed")
+    if seed is not None:
+        seed = inputs.integer(seed, f"{where}.kin_error_seed", JobFileError, low=0)
+    payload = inputs.number(entry.get("payload", 0.0), f"{where}.payload", JobFileError, low=0.0, high=1000.0)
+    path_s = entry.get("path_s")
+    if path_s is not None:
+        path_s = inputs.number(path_s, f"{where}.path_s", JobFileError, low=0.0, low_open=True, high=3600.0)
+    default_name = trajectory + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else "")
+    name = entry.get("name", default_name)
+    if not isinstance(name, str) or not name or name.startswith(".") or not all(c.isalnum() or c in "-_./"
+                                                                                 for c in name):
+        raise JobFileError(f"{where}.name: expected letters, digits and - _ . / (not first: .), got {name!r}")
+    try:
+        cfg = base.replace(**{key: entry[key] for key in SCENARIO_TUNE_KEYS if key in entry})
+    except ParameterError as e:
+        raise JobFileError(f"{where}: {str(e).replace('tune config ', '')}") from None
+    spec = ScenarioSpec(name, trajectory, ModelOptions(kin_error_seed=seed, payload=payload),
+                        _geometry(entry.get("geometry"), f"{where}.geometry"), path_s)
+    check_scenario(spec, cfg, where)
+    return spec, cfg
+
+
+def check_scenario(spec: ScenarioSpec, cfg: TuneConfig, where: str) -> None:
+    """Before any compile: the path stays in the workspace and holds ``cfg.windows`` windows of ``cfg.window_s``."""
+    rates = machine_rates()
+    path = spec.path(rates)
+    try:
+        kinematics.check_poses(spec.geom(), path)
+    except ParameterError as e:
+        raise JobFileError(f"{where} ({spec.name}): the {spec.trajectory} path leaves the workspace: {e}") from None
+    every = -(-len(path) // cfg.windows)
+    if round(cfg.window_s / rates.dt_position) > every:
+        raise JobFileError(f"{where} ({spec.name}): window_s expected at most a {cfg.windows}th of the path "
+                           f"({every * rates.dt_position:g} s), got {cfg.window_s:g}")
+
+
+def read(path) -> JobFile:
+    """The job file at ``path``: its jobs, each ready to run or holding the error that keeps it from running.
+
+    Raises :class:`JobFileError` (one line) when the file as a whole is unusable.
+    """
+    path = Path(path)
+    data = inputs.read_yaml(path, "job file", JobFileError)
+    where = str(path)
+    inputs.check_keys({} if data is None else data, where, FILE_KEYS, JobFileError, required=("scenarios",))
+    if data.get("format", FORMAT) != FORMAT:
+        raise JobFileError(f"{where}: format: expected {FORMAT!r}, got {data['format']!r}")
+    problems = inputs.choice(data.get("problems", "independent"), f"{where}: problems", ("independent", "robust"),
+                             JobFileError)
+    shard = data.get("shard_size")
+    if shard is not None:
+        shard = inputs.integer(shard, f"{where}: shard_size", JobFileError, low=1)
+    plots = data.get("plots", True)
+    if not isinstance(plots, bool):
+        raise JobFileError(f"{where}: plots: expected true or false, got {plots!r}")
+    tune = inputs.check_keys(data.get("tune") or {}, f"{where}: tune", [f.name for f in dataclasses.fields(TuneConfig)
+                                                                        if f.name not in NOT_IN_TUNE],
+                             JobFileError)
+    try:
+        base = TuneConfig().replace(baselines=(), **tune)
+    except ParameterError as e:
+        raise JobFileError(f"{where}: {e}") from None
+    scenarios = data["scenarios"]
+    if not isinstance(scenarios, list) or not scenarios:
+        raise JobFileError(f"{where}: scenarios: expected a non-empty list of scenarios, got {scenarios!r}")
+    parsed = []
+    for k, entry in enumerate(scenarios):
+        try:
+            parsed.append(_scenario(entry, k, base))
+        except ParameterError as e:
+            name = entry.get("name") if isinstance(entry, dict) and isinstance(entry.get("name"), str) else None
+            parsed.append((name or f"scenario{k}", str(e)))
+    if problems == "independent":
+        jobs = [Job(p[0].name, p[1], (p[0],)) if isinstance(p[0], ScenarioSpec) else Job(p[0], None, (), p[1])
+                for p in parsed]
+    else:
+        name = data.get("name", "robust")
+        errors = [p[1] for p in parsed if not isinstance(p[0], ScenarioSpec)]
+        configs = {(c.mode, c.windows, c.window_s) for s, c in parsed if isinstance(s, ScenarioSpec)}
+        if not errors and len(configs) > 1:
+            errors = ["robust problems need one mode, windows and window_s for every scenario; got "
+                      f"{sorted(configs)}"]
+        jobs = [Job(name, None, (), errors[0]) if errors else Job(name, parsed[0][1], tuple(s for s, _ in parsed))]
+    names = [j.name for j in jobs]
+    dup = next((n for n in names if names.count(n) > 1), None)
+    if dup is not None:
+        raise JobFileError(f"{where}: scenarios: expected distinct names, got {dup!r} twice")
+    return JobFile(str(path), problems, shard, plots, tuple(jobs))
+
+
+def groups(jobs) -> dict:
+    """``{group key: [jobs]}`` of the runnable jobs, in file order."""
+    out = {}
+    for job in jobs:
+        if job.error is None:
+            out.setdefault(job.group_key(), []).append(job)
+    return out
