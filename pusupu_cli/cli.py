@@ -8,6 +8,7 @@
                [--kin-error SEED] [--json] [--plot PNG]
 
     pusupu tune [--config FILE] [--out DIR] [--quick] [--fresh] [--json]
+    pusupu batch JOB.yaml [--out DIR] [--ray [--address ADDR] [--workers N]] [--fresh] [--json]
     (analyze and sim also take --gains FILE, a gain file written by tune; analyze, sim and tune
     take --imc-form full|printed, sim takes --start rest|zero)
 
@@ -78,6 +79,16 @@ def _parser() -> argparse.ArgumentParser:
     t.add_argument("--quick", action="store_true", help="a short smoke run (under 2 min): one path, 5 iterations")
     t.add_argument("--fresh", action="store_true", help="ignore (delete) a checkpoint in DIR instead of resuming")
     t.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
+    b = sub.add_parser("batch", help="tune many robots and scenarios from a job file: vmapped on one device, "
+                                     "sharded over local devices, or as Ray tasks")
+    b.add_argument("job", metavar="JOB.yaml", help="the job file (docs/batch.md, tune/schemas/pusupu-batch.schema.json)")
+    b.add_argument("--out", metavar="DIR", default="batch_out", help="output folder (default batch_out)")
+    b.add_argument("--ray", action="store_true", help="run the shards as Ray tasks (the cluster extra)")
+    b.add_argument("--address", metavar="ADDR", help="join this Ray cluster instead of starting a local one")
+    b.add_argument("--workers", type=int, metavar="N", help="CPUs of the local Ray instance (default: all)")
+    b.add_argument("--fresh", action="store_true", help="delete DIR's checkpoints and job results instead of "
+                                                        "resuming")
+    b.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
     g = sub.add_parser("gains", help="read, compare, check or re-sign a gain file; export it for ROS 2 and see "
                                      "what ROS would run")
     actions = g.add_subparsers(dest="action", required=True, parser_class=_Parser)
@@ -160,7 +171,8 @@ def _version() -> str:
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
-    commands = {"analyze": _analyze, "sim": _sim, "tune": _tune, "experiment": _experiment, "gains": _gains,
+    commands = {"analyze": _analyze, "sim": _sim, "tune": _tune, "batch": _batch, "experiment": _experiment,
+                "gains": _gains,
                 "bridge": bridge_cli.run_bridge, "sim-robot": bridge_cli.run_sim_robot}
     try:
         return commands[args.command](args)
@@ -169,8 +181,8 @@ def main(argv=None) -> int:
     except OSError as e:  # a full disk, a folder that vanished: the old files are intact (atomic writes)
         _fail(f"{e.filename + ': ' if e.filename else ''}{e.strerror or e}")
     except KeyboardInterrupt:
-        where = f" (the checkpoint in {args.out} keeps the run: the same command resumes it)" if args.command == "tune" \
-            else ""
+        where = f" (the checkpoints in {args.out} keep the run: the same command resumes it)" \
+            if args.command in ("tune", "batch") else ""
         print(f"pusupu: interrupted{where}", file=sys.stderr)
         return 130
 
@@ -200,6 +212,30 @@ def _tune(args) -> int:
         print(f"wrote: {', '.join(report['exported'] + report['plots'] + [str(out / 'report.json')])}")
     if status:
         print(f"pusupu: error: {report['export_error']}", file=sys.stderr)
+    return status
+
+
+def _batch(args) -> int:
+    from pusupu_jax.config import setup_jax
+
+    setup_jax()
+    from tune.batchjob import run_batch
+
+    if (args.address or args.workers) and not args.ray:
+        raise ParameterError("--address and --workers need --ray")
+    if args.workers is not None and args.workers < 1:
+        raise ParameterError(f"--workers: expected a positive number of CPUs, got {args.workers}")
+    summary, status = run_batch(args.job, args.out, ray=args.ray, address=args.address, workers=args.workers,
+                                fresh=args.fresh)
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(open(f"{args.out}/summary.md").read(), end="")
+        print(f"{summary['ok']} of {summary['jobs']} job(s) exported gains; wrote {args.out}/summary.csv, "
+              f"summary.md, summary.json, summary.png and jobs/<job>/")
+    for name in summary["failed"]:
+        row = next(r for r in summary["rows"] if r["job"] == name)
+        print(f"pusupu: job {name}: {row['status']}: {row['error']}", file=sys.stderr)
     return status
 
 

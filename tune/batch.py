@@ -76,9 +76,9 @@ class BatchProblem:
         self.pair_member = np.array([m for m, _ in self.pairs])
         mesh = Mesh(np.array(self.devices), ("batch",))
         self.sharding = NamedSharding(mesh, PartitionSpec("batch"))
-        self.window_models = self.shard(_take(sc.window_models, windows))
-        self.window_reference = self.shard(_take(sc.window_reference, windows))
-        self.window_path = self.shard(jnp.asarray(sc.window_path)[windows])
+        # arguments of the gradient, not constants in it (as tune.run.Problem.windows)
+        self.windows = self.shard((_take(sc.window_models, windows), _take(sc.window_reference, windows),
+                                   jnp.asarray(sc.window_path)[windows]))
         self._value_and_grad = jax.jit(value_and_grad(self.objective, cfg.gradient))
         hybrid_mode = control_mode(cfg.mode).hybrid
 
@@ -126,7 +126,7 @@ class BatchProblem:
         if self.starts is None or (iteration % self.cfg.refresh_every == 0 and not same):
             self.refresh(zb)
 
-    def objective(self, zb, baseline, starts):
+    def objective(self, zb, baseline, starts, windows):
         """``(sum of the members' objectives, aux)``: aux ``value`` ``(P,)``, ``scenarios`` and ``terms`` ``(Q,)``."""
         cfg, sc = self.cfg, self.scenarios
         hybrid_mode = control_mode(cfg.mode).hybrid
@@ -136,10 +136,11 @@ class BatchProblem:
             return rollout(servo, model, reference, plant=sc.plant, rates=self.rates, outer=cfg.mode,
                            hybrid=hybrid if hybrid_mode else None, init=init)
 
-        traces = jax.vmap(one)(_take(zb, self.window_member), self.window_models, self.window_reference, starts)
+        models, reference, path = windows
+        traces = jax.vmap(one)(_take(zb, self.window_member), models, reference, starts)
         Q, K = len(self.pairs), sc.windows
         joined = jax.tree.map(lambda x: join_windows(x, Q, K), traces)
-        path = join_windows(self.window_path, Q, K)
+        path = join_windows(path, Q, K)
 
         def terms(z, trace, p):
             return objectives.terms(trace, self.space.apply(z)[0], p, self.rates.dt_position,
@@ -164,14 +165,14 @@ class BatchProblem:
             z0 = self.z0()
             self.refresh(z0)
             ones = {k: jnp.ones(len(self.pairs)) for k in objectives.TERMS}
-            (_, aux), _ = self._value_and_grad(z0, ones, self.starts)
+            (_, aux), _ = self._value_and_grad(z0, ones, self.starts, self.windows)
             self.baseline = aux["terms"]
             if kept[0] is not None:
                 self.starts, self._starts_z = kept
         return self.baseline
 
     def value_and_grad(self, zb):
-        return self._value_and_grad(self.shard(zb), self.start_baseline(), self.starts)
+        return self._value_and_grad(self.shard(zb), self.start_baseline(), self.starts, self.windows)
 
     def path_metrics(self, zb) -> list[dict]:
         """Per real member, ``{scenario: (metrics, plot arrays)}`` on the whole paths at its ``z``."""

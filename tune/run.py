@@ -171,7 +171,7 @@ def join_windows(x, S: int, K: int):
 
 
 class Problem:
-    """The objective of a :class:`TuneConfig` around the start ``servo0``, ``hybrid0``.
+    """The objective of a :class:`TuneConfig` (its scenarios, or ``specs``) around the start ``servo0``, ``hybrid0``.
 
     Training windows start from the states of a forward pass over the whole paths at the
     current gains (:meth:`refresh`, every ``cfg.refresh_every`` iterations: :meth:`prepare`); the
@@ -179,16 +179,19 @@ class Problem:
     dependence of the windows' start states on the gains (truncated backpropagation).
     """
 
-    def __init__(self, cfg: TuneConfig, servo0: ServoParams, hybrid0: HybridGains):
+    def __init__(self, cfg: TuneConfig, servo0: ServoParams, hybrid0: HybridGains,
+                 specs: list[ScenarioSpec] | None = None):
         self.cfg = cfg
         self.rates = machine_rates()
         self.space = Space.create(cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared,
                                   bounds=cfg.bounds)
-        self.scenarios = Scenarios.build(cfg, self.space.servo0, self.rates)
+        self.scenarios = sc = Scenarios.build(cfg, self.space.servo0, self.rates, specs)
+        # the windows' models, references and paths enter the gradient as arguments, not as constants folded into
+        # the compiled program (constants cost compile time, and change its cache key with their last bits)
+        self.windows = (sc.window_models, sc.window_reference, jnp.asarray(sc.window_path))
         self.load = AxisLoad.default()
         self._value_and_grad = jax.jit(value_and_grad(self.objective, cfg.gradient))
         hybrid_mode = control_mode(cfg.mode).hybrid
-        sc = self.scenarios
 
         def whole(servo, hybrid, model, reference):
             return rollout_segments(servo, model, reference, segments=sc.windows, plant=sc.plant, rates=self.rates,
@@ -221,8 +224,9 @@ class Problem:
         if self.starts is None or (iteration % self.cfg.refresh_every == 0 and not same):
             self.refresh(z)
 
-    def scenario_terms(self, z, starts) -> tuple[dict, object]:
-        """Every objective term of every scenario over its windows, ``{term: (S,)}``, and the window traces."""
+    def scenario_terms(self, z, starts, windows) -> tuple[dict, object]:
+        """Every objective term of every scenario over its ``windows`` (models, references, paths), ``{term: (S,)}``,
+        and the window traces."""
         servo, hybrid = self.space.apply(z)
         sc = self.scenarios
 
@@ -230,10 +234,11 @@ class Problem:
             return rollout(servo, model, reference, plant=sc.plant, rates=self.rates, outer=self.cfg.mode,
                            hybrid=hybrid if control_mode(self.cfg.mode).hybrid else None, init=init)
 
-        traces = jax.vmap(one)(sc.window_models, sc.window_reference, starts)
+        models, reference, path = windows
+        traces = jax.vmap(one)(models, reference, starts)
         S, K = len(sc.names), sc.windows
         joined = jax.tree.map(lambda x: join_windows(x, S, K), traces)
-        path = join_windows(jnp.asarray(sc.window_path), S, K)
+        path = join_windows(path, S, K)
         terms = jax.vmap(lambda tr, p: objectives.terms(tr, servo, p, self.rates.dt_position,
                                                         sharpness_force=self.cfg.sharpness_force))(joined, path)
         return terms, traces
@@ -242,9 +247,9 @@ class Problem:
         servo, _ = self.space.apply(z)
         return loop_margins(servo, self.load, mode=self.cfg.mode)
 
-    def objective(self, z, baseline, starts):
+    def objective(self, z, baseline, starts, windows):
         """``(J, aux)``; ``baseline`` holds each scenario's terms at the start (the normalisers)."""
-        t, traces = self.scenario_terms(z, starts)
+        t, traces = self.scenario_terms(z, starts, windows)
         per = scenario_objective(self.cfg, t, baseline)
         return aggregate(self.cfg, per, self.margins(z)), {"scenarios": per, "terms": t}
 
@@ -255,14 +260,14 @@ class Problem:
             z0 = self.space.z0()
             self.refresh(z0)
             ones = {k: jnp.ones(len(self.scenarios.names)) for k in objectives.TERMS}
-            (_, aux), _ = self._value_and_grad(z0, ones, self.starts)
+            (_, aux), _ = self._value_and_grad(z0, ones, self.starts, self.windows)
             self.baseline = aux["terms"]
             if kept[0] is not None:
                 self.starts, self._starts_z = kept
         return self.baseline
 
     def value_and_grad(self, z):
-        return self._value_and_grad(z, self.start_baseline(), self.starts)
+        return self._value_and_grad(z, self.start_baseline(), self.starts, self.windows)
 
     def path_metrics(self, z) -> dict:
         """``{scenario: (metrics, plot arrays)}`` on the whole paths at ``z``, from the same compiled forward pass."""

@@ -1,0 +1,80 @@
+"""Batch tuning throughput: one tuning iteration of B independent scenarios in one vmapped gradient (JSON on stdout).
+
+Runs :func:`tune.batch.optimise_batch` (what ``pusupu batch`` runs per shard: the vmapped
+gradient, the vmapped optax update, the window refresh every ``--refresh-every`` iterations and
+the host-side bookkeeping) on B independent problems, for each B of ``--batches``.  The
+scenarios cycle over ``--distinct`` kinematic-error seeds on both paths (building thousands of
+distinct MuJoCo models would only time the host), so every member computes its own rollouts
+and gradient.  The first iteration (trace, compile, first run) is reported apart; the
+iteration time is the median of the others, and the mean, which spreads the refreshes.
+
+    python benchmarks/bench_batch.py [--batches 1,2,64] [--iterations 6] [--path 0.2] [--window 0.05]
+                                     [--devices N] [--label NAME]
+
+``scenario_iterations_per_s`` = B / iteration time.  With ``--devices N`` the batch is sharded
+over the first N devices (``jax.sharding``), as ``pusupu batch`` does over all of them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import sys
+import time
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--batches", default="1,2,64", help="comma-separated batch sizes (scenarios)")
+    ap.add_argument("--iterations", type=int, default=6)
+    ap.add_argument("--refresh-every", type=int, default=5)
+    ap.add_argument("--path", type=float, default=0.2, help="the first seconds of each path [s]")
+    ap.add_argument("--window", type=float, default=0.05, help="one training window of this length [s]")
+    ap.add_argument("--distinct", type=int, default=8, help="distinct scenarios the batch cycles over")
+    ap.add_argument("--devices", type=int, help="shard over the first N devices (default: all)")
+    ap.add_argument("--label", default="", help="a name for the run in the JSON")
+    args = ap.parse_args()
+    from pusupu_jax.config import setup_jax
+
+    setup_jax()
+    import jax
+
+    from pusupu_jax import ServoParams
+    from pusupu_jax.hybrid import HybridGains
+    from pusupu_jax.plant.model import ModelOptions
+    from tune.batch import BatchProblem, optimise_batch
+    from tune.config import TuneConfig
+    from tune.run import ScenarioSpec
+
+    devices = jax.devices()[:args.devices] if args.devices else jax.devices()
+    cfg = TuneConfig(windows=1, window_s=args.window, iterations=args.iterations, refresh_every=args.refresh_every,
+                     checkpoint_every=args.refresh_every, baselines=())
+    specs = [ScenarioSpec(f"{kind}/seed{s}", kind, ModelOptions(kin_error_seed=s), path_s=args.path)
+             for s in range(args.distinct // 2) for kind in ("arc", "p2p")]
+    results = []
+    for B in [int(b) for b in args.batches.split(",")]:
+        t0 = time.perf_counter()
+        problem = BatchProblem(cfg, specs, [[b % len(specs)] for b in range(B)], ServoParams.table1(), HybridGains(),
+                               devices=devices)
+        t_build = time.perf_counter() - t0
+        stamps = []
+        t1 = time.perf_counter()
+        optimise_batch(problem, progress=lambda it, n, values, elapsed: stamps.append(time.perf_counter()))
+        steps = [b - a for a, b in zip(stamps, stamps[1:])]
+        med, mean = statistics.median(steps), statistics.mean(steps)
+        row = {"batch": B, "members": len(problem.members), "build_s": t_build,
+               "first_iteration_s": stamps[0] - t1, "iteration_s_median": med, "iteration_s_mean": mean,
+               "iteration_s_all": steps, "scenario_iterations_per_s": B / med}
+        results.append(row)
+        print(json.dumps(row), file=sys.stderr, flush=True)
+    print(json.dumps({"benchmark": "bench_batch", "label": args.label, "backend": jax.default_backend(),
+                      "devices": [str(d) for d in devices], "device_kind": devices[0].device_kind,
+                      "jax": jax.__version__, "x64": bool(jax.config.jax_enable_x64), "host": platform.node(),
+                      "window_s": args.window, "path_s": args.path, "iterations": args.iterations,
+                      "refresh_every": args.refresh_every, "results": results}, indent=2))
+
+
+if __name__ == "__main__":
+    main()

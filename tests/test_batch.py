@@ -1,0 +1,184 @@
+"""Batch tuning (``pusupu batch``): job files, the vmapped batch against tuning alone, resuming, and Ray.
+
+One small job file serves every test, so that the batch's gradient compiles once (the Ray
+workers load it from the persistent cache): three scenarios that run (two seeds and payloads on
+both paths, one with longer rods), one with a misspelt key and one whose home leaves the
+workspace; two starts each; 3 iterations on one 0.1 s window of the paths' first 0.3 s.
+"""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pytest
+import yaml
+
+from pusupu_jax import gains
+from pusupu_jax.hybrid import HybridGains
+from pusupu_jax.params import ServoParams
+from tune import jobfile
+from tune.batchjob import run_batch
+from tune.run import Problem, optimise
+
+TUNE = {"iterations": 3, "refresh_every": 1, "checkpoint_every": 1, "windows": 1, "window_s": 0.1, "starts": 2}
+SCENARIOS = [
+    {"name": "arc-s1", "trajectory": "arc", "kin_error_seed": 1, "path_s": 0.3},
+    {"name": "p2p-s2-5kg", "trajectory": "p2p", "kin_error_seed": 2, "payload": 5.0, "path_s": 0.3},
+    {"name": "arc-long-rods", "trajectory": "arc", "geometry": {"rod_lengths": [0.905] * 6}, "path_s": 0.3},
+    {"name": "typo", "trajectory": "arc", "payloda": 1.0},
+    {"name": "too-low", "trajectory": "arc", "geometry": {"home": [0.0, 0.0, 0.3, 0.0, 0.0]}, "path_s": 0.3},
+]
+JOB = {"format": "pusupu-batch-1", "problems": "independent", "plots": False, "tune": TUNE, "scenarios": SCENARIOS}
+RUNS = ["arc-s1", "p2p-s2-5kg", "arc-long-rods"]
+SCHEMA = json.loads(jobfile.SCHEMA_FILE.read_text())
+
+
+def _write(path: Path, doc) -> Path:
+    path.write_text(yaml.safe_dump(doc, sort_keys=False))
+    return path
+
+
+@pytest.fixture(scope="module")
+def batch(tmp_path_factory):
+    """The job file run in this process: ``(job path, out, summary, status, progress text)``."""
+    folder = tmp_path_factory.mktemp("batch")
+    job = _write(folder / "job.yaml", JOB)
+    log = _Log()
+    summary, status = run_batch(job, folder / "out", stream=log)
+    return job, folder / "out", summary, status, log.text
+
+
+class _Log:
+    def __init__(self):
+        self.text = ""
+
+    def write(self, s):
+        self.text += s
+
+    def flush(self):
+        pass
+
+
+def test_the_example_job_file_passes_the_schema_and_bad_ones_fail_both_checks(tmp_path):
+    jsonschema.validate(JOB | {"scenarios": SCENARIOS[:3]}, SCHEMA)
+    bad_docs = [
+        (JOB | {"problems": "shared"}, "problems: expected one of"),
+        (JOB | {"tune": {"trajectories": ["arc"]}}, "unknown key 'trajectories'"),
+        (JOB | {"tune": {"iterations": 0}}, "iterations: expected an integer >= 1"),
+        (JOB | {"scenarios": []}, "scenarios: expected a non-empty list"),
+        (JOB | {"format": "pusupu-batch-9"}, "format: expected 'pusupu-batch-1'"),
+    ]
+    for doc, message in bad_docs:
+        with pytest.raises(jsonschema.ValidationError):
+            jsonschema.validate(doc, SCHEMA)
+        with pytest.raises(jobfile.JobFileError, match=message):
+            jobfile.read(_write(tmp_path / "bad.yaml", doc))
+    (tmp_path / "junk.yaml").write_text("scenarios: [\n")
+    with pytest.raises(jobfile.JobFileError, match="not valid YAML"):
+        jobfile.read(tmp_path / "junk.yaml")
+
+
+def test_scenario_errors_fail_their_own_job_only(tmp_path):
+    """A misspelt key and a home out of the rails' stroke fail those jobs; the others are ready; a robust problem
+    with two modes fails as a whole."""
+    jf = jobfile.read(_write(tmp_path / "job.yaml", JOB))
+    errors = {j.name: j.error for j in jf.jobs}
+    assert [n for n, e in errors.items() if e is None] == RUNS
+    assert "unknown key 'payloda'" in errors["typo"]
+    assert "leaves the workspace" in errors["too-low"] and "out of stroke" in errors["too-low"]
+    robust = JOB | {"problems": "robust", "scenarios": SCENARIOS[:2] + [SCENARIOS[0] | {"name": "x", "mode": "imc",
+                                                                                        "windows": 1}]}
+    (job,) = jobfile.read(_write(tmp_path / "robust.yaml", robust)).jobs
+    assert "one mode, windows and window_s" in job.error
+    assert len(jobfile.groups(jf.jobs)) == 1  # the three runnable jobs share one compiled gradient
+
+
+def test_batch_writes_every_jobs_outputs_and_marks_the_failed_ones(batch):
+    job, out, summary, status, log = batch
+    assert status == 1 and summary["jobs"] == 5 and summary["ok"] == 3
+    assert summary["failed"] == ["typo", "too-low"]
+    rows = {r["job"]: r for r in summary["rows"]}
+    for name in RUNS:
+        assert rows[name]["status"] == "ok"
+        assert rows[name]["objective_after"] < rows[name]["objective_before"]  # 3 iterations: a few % lower
+        g = gains.load(out / "jobs" / name / "gains.yaml")  # checksum, values and margins checked on load
+        assert g.mode == "hybrid"
+        assert json.loads((out / "jobs" / name / "report.json").read_text())["status"] == "ok"
+    assert (out / "summary.csv").read_text().count("\n") == 6
+    assert "| typo | failed |" in (out / "summary.md").read_text()
+    assert (out / "summary.png").stat().st_size > 10_000
+    assert "first iteration (with the compile)" in log and "ETA" in log
+
+
+def test_batch_equals_tuning_each_scenario_alone(batch):
+    """Each job's history and gains equal pusupu tune's optimiser run on that scenario alone, same seed and starts.
+
+    Tolerance 1e-7 relative: the same operations, but vmapping over 6 members changes XLA's fusion and
+    summation order (last-bit differences) and 3 Adam steps carry them on; measured 3e-10 on the gains.
+    """
+    _, out, summary, _, _ = batch
+    jf = jobfile.read(out.parent / "job.yaml")
+    for job in [j for j in jf.jobs if j.name in ("arc-s1", "p2p-s2-5kg")]:
+        cfg = job.config
+        problem = Problem(cfg, ServoParams.table1(), HybridGains(), specs=list(job.specs))
+        alone = optimise(problem.value_and_grad, problem.space.z0(), problem.space.project,
+                         iterations=cfg.iterations, learning_rate=cfg.learning_rate, clip_norm=cfg.clip_norm,
+                         final_lr_fraction=cfg.final_lr_fraction, starts=cfg.starts, start_spread=cfg.start_spread,
+                         seed=cfg.seed, prepare=problem.prepare)
+        report = json.loads((out / "jobs" / job.name / "report.json").read_text())
+        assert [h["objective"] for h in report["history"]] == pytest.approx(
+            [h["objective"] for h in alone["history"]], rel=1e-7)
+        for field, value in problem.space.values(alone["z"]).items():
+            assert np.ravel(report["result"][field])[0] == pytest.approx(float(np.ravel(value)[0]), rel=1e-7)
+
+
+def test_running_again_skips_the_finished_jobs(batch):
+    job, out, summary, _, _ = batch
+    log = _Log()
+    again, status = run_batch(job, out, stream=log)
+    assert "3 done before, 0 shard(s) to run" in log.text
+    assert again["rows"] == json.loads(json.dumps(summary["rows"]))
+
+
+def test_ray_retries_a_killed_worker_and_gives_the_in_process_summary(batch, tmp_path):
+    """``pusupu batch --ray --workers 2`` (a local Ray instance): the shard's worker is killed (SIGKILL) once it has
+    checkpointed; Ray retries the task, the retry continues from the checkpoint, and every job's figures equal the
+    in-process run's (1e-9 relative: Ray's workers run numpy single-threaded, which may move last bits)."""
+    job, _, summary, _, _ = batch
+    out = tmp_path / "ray_out"
+    killed = []
+
+    def kill_after_first_checkpoint():
+        deadline = time.time() + 900
+        while time.time() < deadline and not killed:
+            for folder in out.glob("shards/*"):
+                if (folder / "checkpoint.npz").exists() and (folder / "worker.pid").exists():
+                    pid = int((folder / "worker.pid").read_text())
+                    os.kill(pid, signal.SIGKILL)
+                    killed.append((folder, pid))
+                    return
+            time.sleep(0.2)
+
+    killer = threading.Thread(target=kill_after_first_checkpoint, daemon=True)
+    killer.start()
+    r = subprocess.run([sys.executable, "-m", "pusupu_cli", "batch", str(job), "--out", str(out), "--ray",
+                        "--workers", "2", "--json"], capture_output=True, text=True, timeout=1500)
+    killer.join(timeout=1)
+    assert killed, "the shard never checkpointed"
+    folder, pid = killed[0]
+    assert int((folder / "worker.pid").read_text()) != pid  # the retry ran in another worker
+    assert r.returncode == 1, r.stderr[-2000:]  # two jobs failed to read, as in process
+    got = {row["job"]: row for row in json.loads(r.stdout)["rows"]}
+    for want in summary["rows"]:
+        row = got[want["job"]]
+        assert row["status"] == want["status"]
+        for key, value in want.items():
+            if isinstance(value, float) and np.isfinite(value):
+                assert row[key] == pytest.approx(value, rel=1e-9), key
