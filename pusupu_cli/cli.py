@@ -181,8 +181,9 @@ def main(argv=None) -> int:
     except OSError as e:  # a full disk, a folder that vanished: the old files are intact (atomic writes)
         _fail(f"{e.filename + ': ' if e.filename else ''}{e.strerror or e}")
     except KeyboardInterrupt:
-        where = f" (the checkpoints in {args.out} keep the run: the same command resumes it)" \
-            if args.command in ("tune", "batch") else ""
+        where = {"tune": f" (the checkpoint in {args.out} keeps the run: the same command resumes it)",
+                 "batch": f" (the checkpoints in {args.out} keep the run: the same command resumes it)"}
+        where = where.get(args.command, "")
         print(f"pusupu: interrupted{where}", file=sys.stderr)
         return 130
 

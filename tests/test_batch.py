@@ -87,14 +87,13 @@ def test_the_example_job_file_passes_the_schema_and_bad_ones_fail_both_checks(tm
 
 def test_scenario_errors_fail_their_own_job_only(tmp_path):
     """A misspelt key and a home out of the rails' stroke fail those jobs; the others are ready; a robust problem
-    with two modes fails as a whole."""
+    whose scenarios ask for different windows fails as a whole."""
     jf = jobfile.read(_write(tmp_path / "job.yaml", JOB))
     errors = {j.name: j.error for j in jf.jobs}
     assert [n for n, e in errors.items() if e is None] == RUNS
     assert "unknown key 'payloda'" in errors["typo"]
     assert "leaves the workspace" in errors["too-low"] and "out of stroke" in errors["too-low"]
-    robust = JOB | {"problems": "robust", "scenarios": SCENARIOS[:2] + [SCENARIOS[0] | {"name": "x", "mode": "imc",
-                                                                                        "windows": 1}]}
+    robust = JOB | {"problems": "robust", "scenarios": SCENARIOS[:2] + [SCENARIOS[0] | {"name": "x", "windows": 2}]}
     (job,) = jobfile.read(_write(tmp_path / "robust.yaml", robust)).jobs
     assert "one mode, windows and window_s" in job.error
     assert len(jobfile.groups(jf.jobs)) == 1  # the three runnable jobs share one compiled gradient
@@ -169,13 +168,13 @@ def test_ray_retries_a_killed_worker_and_gives_the_in_process_summary(batch, tmp
     killer = threading.Thread(target=kill_after_first_checkpoint, daemon=True)
     killer.start()
     r = subprocess.run([sys.executable, "-m", "pusupu_cli", "batch", str(job), "--out", str(out), "--ray",
-                        "--workers", "2", "--json"], capture_output=True, text=True, timeout=1500)
+                        "--workers", "2"], capture_output=True, text=True, timeout=1500)
     killer.join(timeout=1)
     assert killed, "the shard never checkpointed"
     folder, pid = killed[0]
     assert int((folder / "worker.pid").read_text()) != pid  # the retry ran in another worker
     assert r.returncode == 1, r.stderr[-2000:]  # two jobs failed to read, as in process
-    got = {row["job"]: row for row in json.loads(r.stdout)["rows"]}
+    got = {row["job"]: row for row in json.loads((out / "summary.json").read_text())["rows"]}
     for want in summary["rows"]:
         row = got[want["job"]]
         assert row["status"] == want["status"]

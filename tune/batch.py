@@ -102,21 +102,23 @@ class BatchProblem:
         return {k: v[m] for k, v in zb.items()}
 
     def run_paths(self, zb) -> list:
-        """The forward pass over every pair's whole path at its member's ``z``: ``[(trace, carries (K, ...))]``."""
+        """The forward pass over every pair's whole path at its member's ``z``, per group of equal path lengths:
+        ``[(pair indices, traces (n, K every, ...), carries (n, K, ...))]``."""
         sc = self.scenarios
-        out = [None] * len(self.pairs)
+        out = []
         for length, (idx, models, refs) in sc.groups.items():
-            qs = [q for q, (_, s) in enumerate(self.pairs) if sc.group_of[s] == length]
+            qs = np.array([q for q, (_, s) in enumerate(self.pairs) if sc.group_of[s] == length])
             local = np.array([idx.index(self.pairs[q][1]) for q in qs])
-            members = self.pair_member[qs]
-            traces, carries = self._whole(_take(zb, members), _take(models, local), _take(refs, local))
-            for j, q in enumerate(qs):
-                out[q] = _take((traces, carries), j)
+            traces, carries = self._whole(_take(zb, self.pair_member[qs]), _take(models, local), _take(refs, local))
+            out.append((qs, traces, carries))
         return out
 
     def refresh(self, zb) -> None:
+        """Renew the windows' start states: every pair's carries, in pair order (one gather, no per-pair copies)."""
         runs = self.run_paths(zb)
-        self.starts = self.shard(jax.tree.map(lambda *c: jnp.concatenate(c), *[carries for _, carries in runs]))
+        order = np.argsort(np.concatenate([qs for qs, _, _ in runs]), kind="stable")
+        carries = jax.tree.map(lambda *c: jnp.concatenate(c)[order], *[c for _, _, c in runs])
+        self.starts = self.shard(jax.tree.map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:]), carries))
         self._starts_z = {k: np.asarray(v) for k, v in zb.items()}
 
     def prepare(self, zb, iteration: int) -> None:
@@ -177,12 +179,15 @@ class BatchProblem:
     def path_metrics(self, zb) -> list[dict]:
         """Per real member, ``{scenario: (metrics, plot arrays)}`` on the whole paths at its ``z``."""
         sc = self.scenarios
-        runs = self.run_paths(zb)
         out = [{} for _ in range(self.n_real)]
-        for q, (m, s) in enumerate(self.pairs):
-            if m < self.n_real:
-                servo, hybrid = self.space.host_values(self.member_z(zb, m))
-                out[m][sc.names[s]] = whole_path_metrics(self.cfg, sc, s, runs[q][0], servo, hybrid, self.rates)
+        for qs, traces, _ in self.run_paths(zb):
+            traces = jax.tree.map(np.asarray, traces)
+            for j, q in enumerate(qs):
+                m, s = self.pairs[q]
+                if m < self.n_real:
+                    servo, hybrid = self.space.host_values(self.member_z(zb, m))
+                    out[m][sc.names[s]] = whole_path_metrics(self.cfg, sc, s, _take(traces, j), servo, hybrid,
+                                                             self.rates)
         return out
 
 
@@ -206,18 +211,29 @@ def optimise_batch(problem: BatchProblem, *, checkpoint: Path | None = None, dig
         state = {"digest": digest, "iteration": 0, "z": zb, "opt": opt_template, "history": [[] for _ in range(P)],
                  "best_value": np.full(P, np.inf), "best_z": {k: np.asarray(v) for k, v in zb.items()},
                  "failed": {}, "done": False}
-    zb, opt_state = jax.tree.map(jnp.asarray, state["z"]), state["opt"]
+    zb, opt_state = problem.shard(state["z"]), problem.shard(state["opt"])  # placed once: no recompiles later
     best_value = np.asarray(state["best_value"], dtype=float)
     best_z = {k: np.array(v) for k, v in state["best_z"].items()}
     failed = {int(m): msg for m, msg in state["failed"].items()}
     project = jax.vmap(problem.space.project)
-    update = jax.vmap(opt.update)
+
+    @jax.jit
+    def step(grad, opt_state, zb, ok):  # the optax update of every member; a failed member stays where it failed
+        def keep(new, old):
+            return jnp.where(ok.reshape((P,) + (1,) * (new.ndim - 1)), new, old)
+
+        grad = jax.tree.map(lambda g: keep(g, jnp.zeros_like(g)), grad)
+        updates, new_opt = jax.vmap(opt.update)(grad, opt_state, zb)
+        new_z = project(jax.tree.map(lambda z, u: z + u, zb, updates))
+        return jax.tree.map(keep, new_z, zb), jax.tree.map(keep, new_opt, opt_state)
+
     t_start = time.perf_counter()
 
     def evaluate(zb, iteration):
         problem.prepare(zb, iteration)
         (_, aux), grad = problem.value_and_grad(zb)
         values = np.asarray(aux["value"], dtype=float)
+        zh = {n: np.asarray(v) for n, v in zb.items()}  # host copies: per-member indexing without device calls
         finite = np.isfinite(values) & np.all([np.isfinite(np.asarray(g)).reshape(P, -1).all(axis=1)
                                                for g in grad.values()], axis=0)
         for m in np.flatnonzero(~finite):
@@ -228,25 +244,18 @@ def optimise_batch(problem: BatchProblem, *, checkpoint: Path | None = None, dig
                 continue
             state["history"][m].append({"start": problem.members[m][1], "iteration": iteration,
                                         "objective": float(values[m]),
-                                        "z": {n: np.asarray(v[m]).tolist() for n, v in zb.items()}})
+                                        "z": {n: v[m].tolist() for n, v in zh.items()}})
             if values[m] < best_value[m]:
                 best_value[m] = values[m]
-                for n, v in zb.items():
-                    best_z[n][m] = np.asarray(v[m])
+                for n, v in zh.items():
+                    best_z[n][m] = v[m]
         ok = jnp.asarray([m not in failed for m in range(P)])
         return values, grad, ok
 
     while not state["done"]:
         while state["iteration"] < cfg.iterations:
             values, grad, ok = evaluate(zb, state["iteration"])
-            grad = jax.tree.map(lambda g: jnp.where(ok.reshape((P,) + (1,) * (g.ndim - 1)), g, 0.0), grad)
-            updates, new_opt = update(grad, opt_state, zb)
-            new_z = project(jax.tree.map(lambda z, u: z + u, zb, updates))
-
-            def keep(new, old):  # a failed member stays where it failed
-                return jnp.where(ok.reshape((P,) + (1,) * (new.ndim - 1)), new, old)
-
-            zb, opt_state = jax.tree.map(keep, new_z, zb), jax.tree.map(keep, new_opt, opt_state)
+            zb, opt_state = step(grad, opt_state, zb, ok)
             state["iteration"] += 1
             state.update(z=zb, opt=opt_state, best_value=best_value, best_z=best_z, failed=failed)
             if progress:

@@ -10,6 +10,7 @@ the uninterrupted one.  Without ``--address`` a local Ray instance starts with `
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
@@ -28,6 +29,11 @@ def run_tasks(tasks: list[dict], out, *, plots: bool = True, address: str | None
         raise ParameterError("--ray: Ray is not installed; pip install -e \".[cluster]\"") from None
     from .batchjob import run_shard
 
+    with contextlib.redirect_stdout(stream):  # Ray's own messages (a worker died...) stay off the summary's stdout
+        return _run(ray, run_shard, tasks, out, plots, address, workers, cpus_per_task, stream)
+
+
+def _run(ray, run_shard, tasks, out, plots, address, workers, cpus_per_task, stream):
     env = {k: v for k, v in os.environ.items() if k in ("PUSUPU_JAX_CACHE", "JAX_COMPILATION_CACHE_DIR", "XLA_FLAGS",
                                                           "JAX_PLATFORMS")}
     if address is None:
