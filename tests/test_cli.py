@@ -188,7 +188,14 @@ def test_ctrl_c_during_a_tune_ends_with_one_line(tuned, tmp_path):
     while not (tmp_path / "out" / ".pusupu.lock").exists() and p.poll() is None and time.time() < deadline:
         time.sleep(0.05)
     p.send_signal(signal.SIGINT)
-    _, err = p.communicate(timeout=600)
+    # Once, in a loaded clean-clone run, the first SIGINT went unnoticed (the tune finished, exit 0): a signal that
+    # lands inside a native call can be lost there.  A user presses Ctrl-C again; so does this test, every 20 s.
+    for _ in range(30):
+        try:
+            _, err = p.communicate(timeout=20)
+            break
+        except subprocess.TimeoutExpired:
+            p.send_signal(signal.SIGINT)
     assert p.returncode == 130, err
     lines = [line for line in err.splitlines() if line.startswith("pusupu")]
     assert lines == [f"pusupu: interrupted (the checkpoint in {tmp_path / 'out'} keeps the run: the same command "
