@@ -190,6 +190,7 @@ def test_ctrl_c_during_a_tune_ends_with_one_line(tuned, tmp_path):
     p.send_signal(signal.SIGINT)
     # Once, in a loaded clean-clone run, the first SIGINT went unnoticed (the tune finished, exit 0): a signal that
     # lands inside a native call can be lost there.  A user presses Ctrl-C again; so does this test, every 20 s.
+    err = ""
     for _ in range(30):
         try:
             _, err = p.communicate(timeout=20)
