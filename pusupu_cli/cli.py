@@ -217,6 +217,8 @@ def _tune(args) -> int:
 
 
 def _batch(args) -> int:
+    from pathlib import Path
+
     from pusupu_jax.config import setup_jax
 
     setup_jax()
@@ -231,7 +233,7 @@ def _batch(args) -> int:
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
-        print(open(f"{args.out}/summary.md").read(), end="")
+        print(Path(args.out, "summary.md").read_text(), end="")
         print(f"{summary['ok']} of {summary['jobs']} job(s) exported gains; wrote {args.out}/summary.csv, "
               f"summary.md, summary.json, summary.png and jobs/<job>/")
     for name in summary["failed"]:
