@@ -38,8 +38,8 @@ from pusupu_jax.params import AxisLoad, ServoParams
 from pusupu_jax.sim import rollout, rollout_segments
 
 from .config import TuneConfig
-from .run import (Scenarios, ScenarioSpec, aggregate, join_windows, load_checkpoint, optimiser, save_checkpoint,
-                  scenario_objective, start_point, whole_path_metrics)
+from .run import (Scenarios, ScenarioSpec, WindowStarts, aggregate, join_windows, load_checkpoint, optimiser,
+                  save_checkpoint, scenario_objective, start_point, whole_path_metrics)
 from .space import Space
 
 
@@ -47,7 +47,7 @@ def _take(tree, index):
     return jax.tree.map(lambda x: x[index], tree)
 
 
-class BatchProblem:
+class BatchProblem(WindowStarts):
     """``problems`` (scenario index lists into ``specs``, all of one length) x ``starts`` members, one objective.
 
     ``devices``: the devices to shard the batch over (default every visible one).
@@ -88,9 +88,7 @@ class BatchProblem:
                                     outer=cfg.mode, hybrid=hybrid if hybrid_mode else None)
 
         self._whole = jax.jit(jax.vmap(whole))
-        self.baseline = None
-        self.starts = None
-        self._starts_z = None
+        self.rows = len(self.pairs)  # the baseline's terms are per pair
 
     def shard(self, tree):
         """``tree`` with its leading (batch) axis spread over the devices (a no-op on one)."""
@@ -113,20 +111,13 @@ class BatchProblem:
             out.append((qs, traces, carries))
         return out
 
-    def refresh(self, zb) -> None:
+    def refresh(self, zb) -> None:  # members iterate in step: prepare() renews them all at once
         """Renew the windows' start states: every pair's carries, in pair order (one gather, no per-pair copies)."""
         runs = self.run_paths(zb)
         order = np.argsort(np.concatenate([qs for qs, _, _ in runs]), kind="stable")
         carries = jax.tree.map(lambda *c: jnp.concatenate(c)[order], *[c for _, _, c in runs])
         self.starts = self.shard(jax.tree.map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:]), carries))
         self._starts_z = {k: np.asarray(v) for k, v in zb.items()}
-
-    def prepare(self, zb, iteration: int) -> None:
-        """As :meth:`tune.run.Problem.prepare`, for every member at once (they iterate in step)."""
-        same = self._starts_z is not None and all(np.array_equal(np.asarray(zb[k]), v)
-                                                  for k, v in self._starts_z.items())
-        if self.starts is None or (iteration % self.cfg.refresh_every == 0 and not same):
-            self.refresh(zb)
 
     def objective(self, zb, baseline, starts, windows):
         """``(sum of the members' objectives, aux)``: aux ``value`` ``(P,)``, ``scenarios`` and ``terms`` ``(Q,)``."""
@@ -159,19 +150,6 @@ class BatchProblem:
 
     def z0(self) -> dict:
         return {k: jnp.broadcast_to(v, (len(self.members),) + jnp.shape(v)) for k, v in self.space.z0().items()}
-
-    def start_baseline(self):
-        """Every pair's terms at the start ``z0`` (as :meth:`tune.run.Problem.start_baseline`)."""
-        if self.baseline is None:
-            kept = (self.starts, self._starts_z)
-            z0 = self.z0()
-            self.refresh(z0)
-            ones = {k: jnp.ones(len(self.pairs)) for k in objectives.TERMS}
-            (_, aux), _ = self._value_and_grad(z0, ones, self.starts, self.windows)
-            self.baseline = aux["terms"]
-            if kept[0] is not None:
-                self.starts, self._starts_z = kept
-        return self.baseline
 
     def value_and_grad(self, zb):
         return self._value_and_grad(self.shard(zb), self.start_baseline(), self.starts, self.windows)

@@ -23,6 +23,7 @@ import shutil
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -96,7 +97,7 @@ def run_shard(task: dict, out: str, plots: bool = True, stream=None) -> list[dic
           file=stream, flush=True)
     problem = BatchProblem(cfg, specs, problems, ServoParams.table1(), HybridGains())
     result = optimise_batch(problem, checkpoint=folder / "checkpoint.npz", digest=task["id"],
-                            progress=lambda *a: print_progress(task["id"], *a, stream=stream))
+                            progress=progress_printer(task["id"], stream))
     R = cfg.starts
     best_members = []
     for j in range(n_jobs):
@@ -172,18 +173,28 @@ def summary_row(report: dict) -> dict:
     return row
 
 
-def print_progress(shard, iteration, iterations, values, elapsed, stream=sys.stderr):
-    """A line per iteration of a shard; the rate and the ETA leave out the first iteration (the compile)."""
+def progress_printer(shard: str, stream=sys.stderr) -> Callable:
+    """The progress callback of a shard: a line per iteration; the rate and the ETA leave out the first iteration
+    this process ran (it includes the compile)."""
+    first = {}
+
+    def progress(iteration, iterations, values, elapsed):
+        first.setdefault("iteration", iteration)
+        first.setdefault("elapsed", elapsed)
+        print_progress(shard, iteration, iterations, values, elapsed, first["iteration"], first["elapsed"], stream)
+
+    return progress
+
+
+def print_progress(shard, iteration, iterations, values, elapsed, first_iteration, first_elapsed, stream=sys.stderr):
     finite = values[np.isfinite(values)]
     med = f"{np.median(finite):.4f}" if finite.size else "nan"
     best = f"{finite.min():.4f}" if finite.size else "nan"
     filled = round(20 * iteration / iterations)
-    if iteration == 1:
-        print_progress.first = elapsed
-    rest = elapsed - getattr(print_progress, "first", 0.0)
-    rate = rest / (iteration - 1) if iteration > 1 else float("nan")
+    done = iteration - first_iteration
+    rate = (elapsed - first_elapsed) / done if done else float("nan")
     eta = "" if math.isnan(rate) else f", {rate:.1f} s/it, ETA {rate * (iterations - iteration):.0f} s"
-    first = f", first iteration (with the compile) {print_progress.first:.0f} s" if iteration == 1 else ""
+    first = f", first iteration (with the compile) {first_elapsed:.0f} s" if not done else ""
     print(f"batch [shard {shard}] [{'#' * filled}{'.' * (20 - filled)}] {iteration}/{iterations} "
           f"J median {med} best {best} over {len(values)} member(s){first}{eta}", file=stream, flush=True)
 

@@ -170,7 +170,39 @@ def join_windows(x, S: int, K: int):
     return x.reshape((S, K * x.shape[1]) + x.shape[2:]) if x.ndim >= 2 else x.reshape(S, K)
 
 
-class Problem:
+class WindowStarts:
+    """What :class:`Problem` and :class:`tune.batch.BatchProblem` share: the training windows' start states, renewed
+    by ``refresh(z)`` (a forward pass over the whole paths), and the normalisers at the start ``z0()``.
+
+    A subclass sets ``cfg``, ``windows``, ``_value_and_grad(z, baseline, starts, windows)`` and ``rows`` (the
+    length of each term's vector) and defines ``z0()`` and ``refresh(z)``, which sets ``starts`` and ``_starts_z``.
+    """
+
+    baseline = None
+    starts = None  # window start carries (rows K, ...)
+    _starts_z = None
+
+    def prepare(self, z, iteration: int) -> None:
+        """Before iteration ``iteration``: renew the start states every ``refresh_every`` iterations (and when missing)."""
+        same = self._starts_z is not None and all(np.array_equal(np.asarray(z[k]), v) for k, v in self._starts_z.items())
+        if self.starts is None or (iteration % self.cfg.refresh_every == 0 and not same):
+            self.refresh(z)
+
+    def start_baseline(self):
+        """The terms at the start, from one call of the compiled gradient (normalisers of 1: no new compile)."""
+        if self.baseline is None:
+            kept = (self.starts, self._starts_z)  # a resumed run has its own starts already: keep them
+            z0 = self.z0()
+            self.refresh(z0)
+            ones = {k: jnp.ones(self.rows) for k in objectives.TERMS}
+            (_, aux), _ = self._value_and_grad(z0, ones, self.starts, self.windows)
+            self.baseline = aux["terms"]
+            if kept[0] is not None:
+                self.starts, self._starts_z = kept
+        return self.baseline
+
+
+class Problem(WindowStarts):
     """The objective of a :class:`TuneConfig` (its scenarios, or ``specs``) around the start ``servo0``, ``hybrid0``.
 
     Training windows start from the states of a forward pass over the whole paths at the
@@ -198,9 +230,7 @@ class Problem:
                                     outer=cfg.mode, hybrid=hybrid if hybrid_mode else None)
 
         self._whole = jax.jit(jax.vmap(whole, in_axes=(None, None, 0, 0)))
-        self.baseline = None
-        self.starts = None  # window start carries (S K, ...)
-        self._starts_z = None
+        self.rows = len(sc.names)
 
     def run_paths(self, z) -> list:
         """The forward pass over every scenario's whole path at ``z``: ``[(trace (K every, ...), carries (K, ...))]``."""
@@ -218,11 +248,8 @@ class Problem:
         self.starts = jax.tree.map(lambda *c: jnp.concatenate(c), *[carries for _, carries in runs])
         self._starts_z = {k: np.asarray(v) for k, v in z.items()}
 
-    def prepare(self, z, iteration: int) -> None:
-        """Before iteration ``iteration``: renew the start states every ``refresh_every`` iterations (and when missing)."""
-        same = self._starts_z is not None and all(np.array_equal(np.asarray(z[k]), v) for k, v in self._starts_z.items())
-        if self.starts is None or (iteration % self.cfg.refresh_every == 0 and not same):
-            self.refresh(z)
+    def z0(self) -> dict:
+        return self.space.z0()
 
     def scenario_terms(self, z, starts, windows) -> tuple[dict, object]:
         """Every objective term of every scenario over its ``windows`` (models, references, paths), ``{term: (S,)}``,
@@ -252,19 +279,6 @@ class Problem:
         t, traces = self.scenario_terms(z, starts, windows)
         per = scenario_objective(self.cfg, t, baseline)
         return aggregate(self.cfg, per, self.margins(z)), {"scenarios": per, "terms": t}
-
-    def start_baseline(self):
-        """The terms at the start, from one call of the compiled gradient (normalisers of 1: no new compile)."""
-        if self.baseline is None:
-            kept = (self.starts, self._starts_z)  # a resumed run has its own starts already: keep them
-            z0 = self.space.z0()
-            self.refresh(z0)
-            ones = {k: jnp.ones(len(self.scenarios.names)) for k in objectives.TERMS}
-            (_, aux), _ = self._value_and_grad(z0, ones, self.starts, self.windows)
-            self.baseline = aux["terms"]
-            if kept[0] is not None:
-                self.starts, self._starts_z = kept
-        return self.baseline
 
     def value_and_grad(self, z):
         return self._value_and_grad(z, self.start_baseline(), self.starts, self.windows)
