@@ -183,9 +183,9 @@ def bridge_figure(run, report: dict, path) -> None:
     """The latency histogram [us] and the tracking trace (branch 1's reference and position, every branch's error)."""
     import numpy as np
 
-    from pusupu_jax.plots import save_atomic  # selects the Agg backend first
-
     import matplotlib.pyplot as plt
+
+    from pusupu_jax.plots import save_atomic  # the command selected the Agg backend (cli.main)
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.5))
     lat = np.asarray(run.latency_us)

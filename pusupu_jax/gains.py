@@ -92,6 +92,10 @@ class GainFile:
     mode: str
     document: dict
 
+    def __repr__(self) -> str:
+        """The table of ``pusupu gains show`` (:func:`show`), not the document's nested dicts."""
+        return "GainFile: " + show(self.document)
+
 
 def margins_report(servo: ServoParams, mode: str = "imc") -> dict:
     """Phase [deg] and gain [dB] margins of every loop of every axis (``pusupu_jax.margins``, single-axis model)."""

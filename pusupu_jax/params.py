@@ -82,9 +82,16 @@ class _PerAxis:
     def replace(self, **changes):
         return dataclasses.replace(self, **changes)
 
+    def __repr__(self) -> str:
+        """A table of every field [unit] per axis (:func:`describe`), not the arrays' reprs."""
+        return describe(self)
+
+    def _repr_markdown_(self) -> str:
+        return describe(self, markdown=True)
+
 
 @_pytree
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class ServoParams(_PerAxis):
     """Servo drive of each axis: the three loops of the paper (Fig. 2) and the motor.
 
@@ -142,7 +149,7 @@ class ServoParams(_PerAxis):
 
 
 @_pytree
-@dataclass(frozen=True)
+@dataclass(frozen=True, repr=False)
 class AxisLoad(_PerAxis):
     """Load of the single-axis plant: the slider and its share of the mechanism, as a lumped mass.
 
@@ -212,6 +219,66 @@ class LoopRates:
     def finer(self, factor: int) -> "LoopRates":
         """The same loop structure with every rate multiplied by ``factor``."""
         return dataclasses.replace(self, f_current=self.f_current * factor)
+
+
+def _fmt(x: float) -> str:
+    return f"{x:.4g}"
+
+
+def axis_cells(value) -> list[str]:
+    """One cell per axis of ``value`` ``(..., n_axes)``: the value, or ``lo..hi`` over the leading (batch) dimensions."""
+    arr = np.asarray(value, dtype=float)
+    arr = arr.reshape(-1, arr.shape[-1] if arr.ndim else 1)
+    lo, hi = arr.min(axis=0), arr.max(axis=0)
+    return [_fmt(a) if a == b or not (np.isfinite(a) and np.isfinite(b)) else f"{_fmt(a)}..{_fmt(b)}"
+            for a, b in zip(lo, hi)]
+
+
+def axis_table(title: str, rows, n_axes: int = N_AXES, markdown: bool = False) -> str:
+    """``title`` and a table of ``rows`` ``[(name, unit, cells)]``, one column per axis.
+
+    As text, a row whose cells are all equal shows its value once ("every axis"); as markdown (a notebook's
+    rendering) every cell is shown.
+    """
+    head = [f"axis {k}" for k in range(n_axes)]
+    if markdown:
+        lines = [title, "", "| field | unit | " + " | ".join(head) + " |", "|---|---|" + "---:|" * n_axes]
+        lines += [f"| {name} | {unit} | " + " | ".join(cells if len(cells) == n_axes else cells * n_axes) + " |"
+                  for name, unit, cells in rows]
+        return "\n".join(lines)
+    wn = max([5] + [len(name) for name, _, _ in rows])
+    wu = max([4] + [len(unit) for _, unit, _ in rows])
+    wc = max([6] + [len(c) for _, _, cells in rows for c in cells])
+    lines = [title, f"  {'field':<{wn}}  {'unit':<{wu}}  " + "  ".join(f"{h:>{wc}}" for h in head)]
+    for name, unit, cells in rows:
+        same = len(set(cells)) == 1
+        shown = f"{cells[0]:>{wc}}  (every axis)" if same else "  ".join(f"{c:>{wc}}" for c in cells)
+        lines.append(f"  {name:<{wn}}  {unit:<{wu}}  {shown}")
+    return "\n".join(lines)
+
+
+def describe(p, markdown: bool = False) -> str:
+    """A per-axis parameter set as a table of its fields with their units (its ``repr``; ``markdown`` for notebooks).
+
+    A batch of parameter sets shows ``lo..hi`` over the batch; traced values (inside ``jit``) only their shapes.
+    """
+    cls = type(p)
+    values = arrays(p)
+    choices = ", ".join(f"{f.name}={getattr(p, f.name)!r}" for f in static_fields(cls))
+    shape = np.shape(next(iter(values.values()), ()))
+    if not all(_is_concrete(v) for v in values.values()):
+        return f"{cls.__name__}(traced, shape {shape}{', ' + choices if choices else ''})"
+    n = shape[-1] if shape else 1
+    batch = f", a batch of {int(np.prod(shape[:-1]))} sets (lo..hi over the batch)" if len(shape) > 1 else ""
+    title = f"{cls.__name__}: {n} axes{batch}" + (f", {choices}" if choices else "")
+    rows = []
+    for f in array_fields(cls):
+        try:
+            cells = axis_cells(values[f.name])
+        except (TypeError, ValueError):
+            cells = [repr(values[f.name])[:40]]
+        rows.append((f.name, f.metadata["unit"], cells))
+    return axis_table(f"**{title}**" if markdown else title, rows, n, markdown)
 
 
 def field_docs(cls) -> list[tuple[str, float, str, str]]:

@@ -1,21 +1,24 @@
-"""Figures (host-side, matplotlib Agg); every file is written atomically."""
+"""Figures (host-side).  Every ``plot_*`` returns its matplotlib ``Figure``; given a ``path``, it also writes it
+there as PNG, atomically (:func:`save_atomic`), and closes it in pyplot.
+
+Importing this module leaves matplotlib's backend alone: a notebook keeps its inline backend, and the ``pusupu``
+command selects Agg itself before it plots.
+"""
 
 from __future__ import annotations
 
 import io
 from pathlib import Path
 
-import matplotlib
+import control as ct
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import control as ct  # noqa: E402
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from . import analysis  # noqa: E402
-from .config import write_atomic  # noqa: E402
-from .metrics import tracking_error  # noqa: E402
-from .plant.axis import screw_ratio  # noqa: E402
+from . import analysis
+from .config import write_atomic
+from .metrics import tracking_error
+from .plant.axis import screw_ratio
 
 
 def save_atomic(fig, path) -> Path:
@@ -28,7 +31,14 @@ def save_atomic(fig, path) -> Path:
     return write_atomic(path, png.getvalue())
 
 
-def plot_trace(trace, params, path, axis: int = 0, title: str = "") -> Path:
+def _output(fig: Figure, path) -> Figure:
+    """``fig``, first written to ``path`` (:func:`save_atomic`) unless ``path`` is None."""
+    if path is not None:
+        save_atomic(fig, path)
+    return fig
+
+
+def plot_trace(trace, params, path=None, axis: int = 0, title: str = "") -> Figure:
     """Reference vs slider position, tracking error, and motor current/torque of one axis."""
     t = np.asarray(trace.t)
     ref = np.asarray(trace.reference)[:, axis] * float(np.asarray(screw_ratio(params))[axis]) * 1e3
@@ -49,10 +59,10 @@ def plot_trace(trace, params, path, axis: int = 0, title: str = "") -> Path:
         a.grid(True, alpha=0.3)
     fig.suptitle(title or f"axis {axis}")
     fig.tight_layout()
-    return save_atomic(fig, path)
+    return _output(fig, path)
 
 
-def plot_loops(servo, load, path, axis: int = 0, mode: str = "imc") -> Path:
+def plot_loops(servo, load, path=None, axis: int = 0, mode: str = "imc") -> Figure:
     """Bode plots of the three open loops (with margins) and step responses of the closed loops."""
     cl = analysis.closed_loops(servo, load, axis, mode=mode)
     ol = analysis.open_loops(servo, load, axis, mode, closed=cl)
@@ -80,7 +90,7 @@ def plot_loops(servo, load, path, axis: int = 0, mode: str = "imc") -> Path:
             ax[r, col].grid(True, which="both", alpha=0.3)
     fig.suptitle(f"axis {axis}, position mode {mode}")
     fig.tight_layout()
-    return save_atomic(fig, path)
+    return _output(fig, path)
 
 
 def _fmt(x):
@@ -97,7 +107,7 @@ def equal_axes_3d(ax, points) -> None:
     ax.set_zlim(mid[2] - half, mid[2] + half)
 
 
-def plot_platform_path(trace: dict, path, title: str = "") -> Path:
+def plot_platform_path(trace: dict, path=None, title: str = "") -> Figure:
     """3D reference vs actual platform path [mm] (``trace`` from :func:`pusupu_jax.machine.simulate_machine`)."""
     ref, act = np.asarray(trace["reference"]) * 1e3, np.asarray(trace["platform"]) * 1e3
     fig = plt.figure(figsize=(11, 5))
@@ -117,10 +127,10 @@ def plot_platform_path(trace: dict, path, title: str = "") -> Path:
     ax2.grid(True, alpha=0.3)
     fig.suptitle(title)
     fig.tight_layout()
-    return save_atomic(fig, path)
+    return _output(fig, path)
 
 
-def plot_identification(result: dict, path, title: str = "") -> Path:
+def plot_identification(result: dict, path=None, title: str = "") -> Figure:
     """The machine's velocity-step responses (:func:`pusupu_jax.identify.identify_T0_machine`) and their first-order fits."""
     t = np.asarray(result["t"])
     fig, axes = plt.subplots(len(result["directions"]), 1, figsize=(8, 3.2 * len(result["directions"])),
@@ -135,4 +145,4 @@ def plot_identification(result: dict, path, title: str = "") -> Path:
     axes[-1, 0].set_xlabel("time [s] (dashed: first-order fits)")
     fig.suptitle(title or "velocity steps of the machine")
     fig.tight_layout()
-    return save_atomic(fig, path)
+    return _output(fig, path)

@@ -121,3 +121,53 @@ def test_a_tune_configuration_overrides_the_defaults(tmp_path):
     assert cfg.kin_error_seeds == (None, 3) and cfg.payloads == (0.0, 10.0)
     assert cfg.bounds == {"lambda1": (0.005, 0.3)} and cfg.iterations == TuneConfig().iterations
     assert cfg.digest() != TuneConfig().digest()
+
+
+class _Stream:
+    """A stream that records what is written; ``tty``: whether it says it is a terminal."""
+
+    def __init__(self, tty: bool):
+        self.tty, self.text = tty, ""
+
+    def isatty(self):
+        return self.tty
+
+    def write(self, s):
+        self.text += s
+
+    def flush(self):
+        pass
+
+
+def _slow_first():
+    """A quadratic's ``value_and_grad`` whose first evaluation takes 0.35 s (a compile) and the others 0.05 s."""
+    import time
+
+    calls = []
+
+    def vg(z):
+        time.sleep(0.35 if not calls else 0.05)
+        calls.append(1)
+        return jax.value_and_grad(lambda z: (jnp.sum((z["a"] - 1.0) ** 2), None), has_aux=True)(z)
+
+    return vg
+
+
+@pytest.mark.parametrize("tty", [False, True])
+def test_progress_keeps_the_first_iteration_apart_from_the_rate(tty):
+    """At a terminal (or in a notebook) a tqdm bar, in logs a line per iteration; both give the first iteration's
+    time, which includes the compile, apart, and a rate and an ETA from the iterations after it."""
+    from tune.run import progress_reporter
+
+    stream = _Stream(tty)
+    optimise(_slow_first(), {"a": jnp.zeros(2)}, lambda z: z, iterations=4, learning_rate=0.1,
+             progress=progress_reporter(1, stream))
+    if not tty:
+        lines = stream.text.splitlines()
+        assert len(lines) == 4 and lines[0].startswith("tune [start 1/1] [#####...............] 1/4 J=2.0000")
+        assert "first iteration (with the compile)" in lines[0] and "ETA" not in lines[0]
+        rate = float(lines[-1].split(" s/it")[0].split()[-1])
+        assert rate < 0.2 and lines[-1].endswith("ETA 0 s")  # the compile is not in the rate
+    else:
+        assert "\r" in stream.text and "4/4" in stream.text and "first iteration (with the compile)" in stream.text
+        assert "it/s" in stream.text  # tqdm's rate over the iterations after the first: faster than 1 per second

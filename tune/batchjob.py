@@ -174,14 +174,24 @@ def summary_row(report: dict) -> dict:
 
 
 def progress_printer(shard: str, stream=sys.stderr) -> Callable:
-    """The progress callback of a shard: a line per iteration; the rate and the ETA leave out the first iteration
-    this process ran (it includes the compile)."""
+    """The progress callback of a shard: a tqdm bar at a terminal or in a notebook (:class:`tune.run.ProgressBar`),
+    else a line per iteration; the rate and the ETA leave out the first iteration this process ran (it includes
+    the compile)."""
+    from .run import ProgressBar, interactive
+
     first = {}
 
     def progress(iteration, iterations, values, elapsed):
         first.setdefault("iteration", iteration)
         first.setdefault("elapsed", elapsed)
-        print_progress(shard, iteration, iterations, values, elapsed, first["iteration"], first["elapsed"], stream)
+        first.setdefault("bar", ProgressBar(iterations, stream) if interactive(stream) else None)
+        if first["bar"] is None:
+            return print_progress(shard, iteration, iterations, values, elapsed, first["iteration"],
+                                  first["elapsed"], stream)
+        finite = values[np.isfinite(values)]
+        first["bar"].update(iteration, elapsed, f"batch [shard {shard}]",
+                            f"J median {np.median(finite):.4f} best {finite.min():.4f} over {len(values)} member(s)"
+                            if finite.size else f"J nan over {len(values)} member(s)")
 
     return progress
 

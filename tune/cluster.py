@@ -36,6 +36,7 @@ def run_tasks(tasks: list[dict], out, *, plots: bool = True, address: str | None
 def _run(ray, run_shard, tasks, out, plots, address, workers, cpus_per_task, stream):
     env = {k: v for k, v in os.environ.items() if k in ("PUSUPU_JAX_CACHE", "JAX_COMPILATION_CACHE_DIR", "XLA_FLAGS",
                                                           "JAX_PLATFORMS")}
+    env["MPLBACKEND"] = "Agg"  # the workers' figures are files (importing the packages leaves the backend alone)
     if address is None:
         ray.init(num_cpus=workers or os.cpu_count(), include_dashboard=False, runtime_env={"env_vars": env},
                  log_to_driver=True)

@@ -26,21 +26,18 @@ import tempfile
 import time
 from pathlib import Path
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+from pusupu_jax import gains, ros2
+from pusupu_jax.config import write_atomic
+from pusupu_jax.hybrid import HybridGains
+from pusupu_jax.machine import Scenario, simulate_scenarios
+from pusupu_jax.params import ParameterError, ServoParams
+from pusupu_jax.plots import save_atomic
 
-from pusupu_jax import gains, ros2  # noqa: E402
-from pusupu_jax.config import write_atomic  # noqa: E402
-from pusupu_jax.hybrid import HybridGains  # noqa: E402
-from pusupu_jax.machine import Scenario, simulate_scenarios  # noqa: E402
-from pusupu_jax.params import ParameterError, ServoParams  # noqa: E402
-from pusupu_jax.plots import save_atomic  # noqa: E402
-
-from .config import TuneConfig  # noqa: E402
-from .run import CHECKPOINT, Problem, optimise, print_progress, scenario_list  # noqa: E402
+from .config import TuneConfig
+from .run import CHECKPOINT, Problem, optimise, progress_reporter, scenario_list
 
 METRICS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho")
 
@@ -183,7 +180,7 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream) -> tuple[dict, int]:
                       final_lr_fraction=cfg.final_lr_fraction,
                       starts=cfg.starts, start_spread=cfg.start_spread, seed=cfg.seed, checkpoint=checkpoint,
                       checkpoint_every=cfg.checkpoint_every, digest=cfg.digest(), prepare=problem.prepare,
-                      progress=lambda *a: print_progress(*a, starts=cfg.starts, stream=stream))
+                      progress=progress_reporter(cfg.starts, stream))
     servo0 = problem.space.servo0
     servo1, hybrid1 = problem.space.host_values(result["z"])
     t_opt = time.perf_counter() - t0
@@ -215,7 +212,21 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream) -> tuple[dict, int]:
     report["plots"] = _plots(out, result["history"], before, after, baselines)
     report["wall_s"] = time.perf_counter() - t0
     write_atomic(out / "report.json", json.dumps(report, indent=2))
-    return report, status
+    return TuneReport(report), status
+
+
+class TuneReport(dict):
+    """What :func:`run_job` returns (``report.json``'s content, a dict), shown as the table ``pusupu tune`` prints
+    (:func:`table`) rather than the whole history."""
+
+    def __repr__(self) -> str:
+        try:
+            return "TuneReport\n" + table(self)
+        except (KeyError, TypeError, ValueError):  # not a whole report: its keys
+            return f"TuneReport(keys {sorted(self)})"
+
+    def _repr_markdown_(self) -> str:
+        return f"```\n{self!r}\n```"
 
 
 def export(out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: dict) -> dict:

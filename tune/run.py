@@ -22,6 +22,7 @@ import io
 import json
 import sys
 import time
+import warnings
 import zipfile
 from pathlib import Path
 from typing import Callable
@@ -411,17 +412,111 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
         state.update(start=k + 1, iteration=0, z=None, opt=None, done=k + 1 >= starts)
         if checkpoint:
             save_checkpoint(checkpoint, state)
-    return {"z": state["best_z"], "objective": state["best_value"], "history": state["history"]}
+    return OptimiseResult(z=state["best_z"], objective=state["best_value"], history=state["history"])
 
 
-def print_progress(start, iteration, iterations, value, best, aux, elapsed, starts=1, stream=sys.stderr):
+class OptimiseResult(dict):
+    """What :func:`optimise` returns: a dict of the best ``z``, its ``objective`` and the ``history`` (one entry per
+    evaluation), shown as a short summary (a notebook's cell output) rather than every entry of the history."""
+
+    def __repr__(self) -> str:
+        history = self.get("history") or []
+        first = f"{history[0]['objective']:.4g} at the start, " if history else ""
+        best = next((h for h in history if h["objective"] == self.get("objective")), None)
+        where = f" (start {best['start'] + 1}, iteration {best['iteration']})" if best else ""
+        starts = len({h["start"] for h in history})
+        z = ", ".join(f"{k} {_values(v)}" for k, v in (self.get("z") or {}).items())
+        return (f"OptimiseResult: objective {first}best {self.get('objective', float('nan')):.4g}{where}; "
+                f"{len(history)} evaluations over {starts} start(s)\n  z: {z}")[:2000]
+
+
+def _values(v) -> str:
+    flat = np.ravel(np.asarray(v, dtype=float))
+    return " ".join(f"{x:.4g}" for x in flat) if flat.size <= 6 else f"{flat.size} values {flat.min():.4g}..{flat.max():.4g}"
+
+
+def print_progress(start, iteration, iterations, value, best, aux, elapsed, starts=1, stream=sys.stderr, first=None):
     """A line per iteration: ``tune [start 1/1] [#####.....] 12/25 J=0.7342 best=0.7310 3.1 s/it, ETA 40 s``.
 
     The bar covers the whole run (every start); a line each, so that logs of batch jobs keep the history.
+    ``first``: ``(iterations done, elapsed s)`` at the first iteration this process ran, whose time includes the
+    compile: the rate and the ETA leave it out (the first line gives its time instead); None: the mean over all.
     """
     done = start * iterations + iteration
     total = starts * iterations
-    rate = elapsed / max(done, 1)
     filled = round(20 * done / total)
+    if first is None:
+        rate = elapsed / max(done, 1)
+        timing = f"{rate:.1f} s/it, ETA {rate * (total - done):.0f} s"
+    elif done > first[0]:
+        rate = (elapsed - first[1]) / (done - first[0])
+        timing = f"{rate:.1f} s/it, ETA {rate * (total - done):.0f} s"
+    else:
+        timing = f"first iteration (with the compile) {elapsed:.0f} s"
     print(f"tune [start {start + 1}/{starts}] [{'#' * filled}{'.' * (20 - filled)}] {iteration}/{iterations} "
-          f"J={value:.4f} best={best:.4f} {rate:.1f} s/it, ETA {rate * (total - done):.0f} s", file=stream, flush=True)
+          f"J={value:.4f} best={best:.4f} {timing}", file=stream, flush=True)
+
+
+def interactive(stream) -> bool:
+    """Whether progress on ``stream`` is best a bar: a terminal, or the standard streams of a Jupyter kernel.
+
+    Elsewhere (a log file, a pipe, a test's capture) progress stays one line per iteration.
+    """
+    if stream is sys.stderr or stream is sys.stdout:
+        shell = getattr(sys.modules.get("IPython"), "get_ipython", lambda: None)()
+        if shell is not None and "IPKernelApp" in getattr(shell, "config", {}):
+            return True
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # no isatty, or a closed stream
+        return False
+
+
+class ProgressBar:
+    """A tqdm bar (:mod:`tqdm.auto`: a widget in a notebook) of iterations, started at the first one reported.
+
+    That first iteration, which includes the compile, is kept apart: its time shows in the bar's postfix, and the
+    bar's clock starts after it, so that its rate (s/it) and ETA are those of the compiled iterations.
+    """
+
+    def __init__(self, total: int, stream=sys.stderr):
+        self.total, self.stream = total, stream
+        self.bar, self.first = None, ""
+
+    def update(self, done: int, elapsed: float, desc: str, postfix: str) -> None:
+        if self.bar is None:
+            with warnings.catch_warnings():  # a notebook without ipywidgets: tqdm's text bar, without its warning
+                warnings.simplefilter("ignore")
+                from tqdm.auto import tqdm
+
+            self.first = f"first iteration (with the compile) {elapsed:.0f} s"
+            self.bar = tqdm(total=self.total, initial=done, desc=desc, file=self.stream, unit="it",
+                            dynamic_ncols=True, postfix=f"{postfix}, {self.first}")
+        else:
+            self.bar.set_description_str(desc, refresh=False)
+            self.bar.set_postfix_str(f"{postfix}, {self.first}", refresh=False)
+            self.bar.update(done - self.bar.n)
+        if done >= self.total:
+            self.close()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def progress_reporter(starts: int = 1, stream=sys.stderr) -> Callable:
+    """The ``progress`` callback of :func:`optimise` for ``pusupu tune`` and notebooks: a :class:`ProgressBar` where
+    :func:`interactive`, else :func:`print_progress` lines; both keep the first iteration this process ran (with
+    the compile) out of the rate and the ETA."""
+    first, bar = [], []
+
+    def progress(start, iteration, iterations, value, best, aux, elapsed):
+        done = start * iterations + iteration
+        if not first:
+            first.append((done, elapsed))
+            bar.append(ProgressBar(starts * iterations, stream) if interactive(stream) else None)
+        if bar[0] is None:
+            return print_progress(start, iteration, iterations, value, best, aux, elapsed, starts, stream, first[0])
+        bar[0].update(done, elapsed, f"tune [start {start + 1}/{starts}]", f"J={value:.4f} best={best:.4f}")
+
+    return progress
