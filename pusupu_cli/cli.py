@@ -118,10 +118,14 @@ def _parser() -> argparse.ArgumentParser:
         _floors_arguments(sp)
     e = sub.add_parser("experiment", help="reproduce one of the paper's claims: runs, figures, JSON and a table")
     e.add_argument("name", metavar="NAME", help="arc (Fig. 7), p2p (section 4, Table 2), hybrid_grid (hybrid "
-                                                 "stability across lambda2) or timing (every step halved)")
+                                                 "stability across lambda2), timing (every step halved), servo "
+                                                 "(each loop: Bode, step, load-torque step, margins) or tuned "
+                                                 "(Table 1 vs pusupu tune's gains on arc and p2p, every mode)")
     e.add_argument("--out", metavar="DIR", default="experiments_out", help="output folder (default experiments_out)")
     e.add_argument("--quick", action="store_true", help="a short version (a few seconds of the paths, fewer seeds)")
     e.add_argument("--json", action="store_true", help="print the metrics as JSON instead of the table")
+    e.add_argument("--gains", metavar="FILE", help="servo and tuned only: a gain file written by pusupu tune, "
+                                                    "compared with Table 1 (tuned without it runs the tuner)")
     for sp in (a, s):
         sp.add_argument("--gains", metavar="FILE", help="a gain file written by pusupu tune (replaces the servo "
                                                          "gains, hybrid gains and rates of --params)")
@@ -171,6 +175,7 @@ def _version() -> str:
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
+    _file_backend()
     commands = {"analyze": _analyze, "sim": _sim, "tune": _tune, "batch": _batch, "experiment": _experiment,
                 "gains": _gains,
                 "bridge": bridge_cli.run_bridge, "sim-robot": bridge_cli.run_sim_robot}
@@ -186,6 +191,13 @@ def main(argv=None) -> int:
         where = where.get(args.command, "")
         print(f"pusupu: interrupted{where}", file=sys.stderr)
         return 130
+
+
+def _file_backend() -> None:
+    """The command's figures are files: matplotlib's Agg backend (importing the packages leaves the backend alone)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
 
 
 def _tune(args) -> int:
@@ -254,10 +266,11 @@ def _experiment(args) -> int:
     import experiments
 
     experiments.get(args.name)  # an unknown name fails before any work
+    g = experiments.gain_file(args.name, args.gains)  # refused for another experiment, or a bad file: before any work
     print(f"experiment {args.name}{' (quick)' if args.quick else ''}: running (the first runs compile for about "
           "20 s per control mode)", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
-    result, files = experiments.run_experiment(args.name, out, quick=args.quick)
+    result, files = experiments.run_experiment(args.name, out, quick=args.quick, gains=g)
     if args.json:
         print(json.dumps(result.metrics, indent=2))
     else:

@@ -6,13 +6,14 @@ For one axis:
 
 * :func:`blocks`: every continuous block (eq. 1-9, motor, screw and load);
 * :func:`closed_loops`: the closed current, velocity and position loops (inputs
-  ``i_ref`` [A], ``w_ref`` [rad/s], ``th_ref`` [rad]; outputs ``i``, ``w``, ``theta``),
+  ``i_ref`` [A], ``w_ref`` [rad/s], ``th_ref`` [rad], and with ``load_torque=True`` a load
+  torque ``tau_l`` [N m] on the motor shaft; outputs ``i``, ``w``, ``theta``),
   continuous, or discrete at the loop rates when ``rates`` is given (controllers sampled
   with ``rates.method``, the physical parts with a zero-order hold, each inner loop
   resampled to its outer loop's rate by :func:`hold_resample`);
 * :func:`open_loops`: the loop gains broken at each controller output, for margins;
-* :func:`loop_metrics`: crossover, phase and gain margins, closed-loop bandwidth and
-  step metrics (:func:`step_metrics`);
+* :func:`loop_metrics` (:func:`axis_metrics` for one axis): crossover, phase and gain margins,
+  closed-loop bandwidth and step metrics (:func:`step_metrics`);
 * :func:`identify_T0` / :func:`kt_for_T0`: the velocity loop's first-order time
   constant identified from a step test (the ``T0`` that C2 models) and the torque
   constant that yields it.
@@ -133,13 +134,19 @@ def _sum(a, b, out):
 
 
 def closed_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, rates: LoopRates | None = None,
-                 mode: str = "imc") -> dict:
+                 mode: str = "imc", load_torque: bool = False) -> dict:
     """Closed current, velocity and position loops of one axis (continuous, or discrete at ``rates``).
 
     Each maps its reference to the outputs ``(i, w, theta)``: ``current`` from ``i_ref``
     [A], ``velocity`` from ``w_ref`` [rad/s], ``position`` from ``th_ref`` [rad].
+    ``load_torque``: each loop gets a second input ``tau_l`` [N m], a load torque on the motor
+    shaft against the motor's (``tau = Kt i - tau_l``), for disturbance responses.
     """
     b = blocks(servo, load, axis)
+    disturbance = []
+    if load_torque:
+        b["Kt"] = ct.ss([], [], [], [[axis_values(servo, axis)["Kt"], -1.0]], inputs=["i", "tau_l"], outputs="tau")
+        disturbance = ["tau_l"]
     levels = [None, None, None] if rates is None else [rates.dt_current, rates.dt_velocity, rates.dt_position]
     out = ["i", "w", "theta"]
 
@@ -149,11 +156,12 @@ def closed_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, rates: LoopR
 
     bi = at(0)
     cl_i = ct.interconnect([bi["Gxi"], bi["Gcf"], bi["Gi"], bi["EMF"], bi["u"], bi["Kt"], bi["electrical"],
-                            bi["mechanics"], _sum("i_r", "i_f", "e_i")], inputs="i_ref", outputs=out, name="current_loop")
+                            bi["mechanics"], _sum("i_r", "i_f", "e_i")], inputs=["i_ref"] + disturbance, outputs=out,
+                           name="current_loop")
     inner = cl_i if rates is None else hold_resample(cl_i, rates.n_velocity)
     bv = at(1)
     cl_v = ct.interconnect([bv["Gxv"], bv["Gw"], bv["Gv"], inner, _sum("w_r", "w_f", "e_w")],
-                           inputs="w_ref", outputs=out, name="velocity_loop")
+                           inputs=["w_ref"] + disturbance, outputs=out, name="velocity_loop")
     inner = cl_v if rates is None else hold_resample(cl_v, rates.n_position)
     bp = at(2)
     law = control_mode(mode).law
@@ -166,7 +174,7 @@ def closed_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, rates: LoopR
                  ct.summing_junction(inputs=["w_pid", "w_ff"], output="w_ref"), _sum("th_ref", "theta", "e_p")]
     else:
         raise ValueError(f"closed_loops: expected a mode of imc, pid, pid_ff or hybrid, got {mode!r}")
-    cl_p = ct.interconnect(parts + [inner], inputs="th_ref", outputs=out, name="position_loop")
+    cl_p = ct.interconnect(parts + [inner], inputs=["th_ref"] + disturbance, outputs=out, name="position_loop")
     return {"current": cl_i, "velocity": cl_v, "position": cl_p}
 
 
@@ -204,13 +212,19 @@ def nominal_position_open_loop(servo: ServoParams, axis: int = 0):
     return c2 * ct.tf([1], [T0, 1, 0])
 
 
-def margins(L) -> dict:
-    """Gain crossover [Hz], phase margin [deg], gain margin [dB] (None when infinite) of a loop gain."""
+def margins(L, phase_crossover: bool = False) -> dict:
+    """Gain crossover [Hz], phase margin [deg], gain margin [dB] (None when infinite) of a loop gain.
+
+    ``phase_crossover``: also ``phase_crossover_hz``, where the phase crosses -180 deg and the gain margin is read.
+    """
     with np.errstate(invalid="ignore"):  # python-control compares NaNs when a crossing does not exist
-        gm, pm, _, _, wgc, _ = ct.stability_margins(L)
-    return {"crossover_hz": float(wgc) / (2 * math.pi) if np.isfinite(wgc) else None,
-            "phase_margin_deg": float(pm) if np.isfinite(pm) else None,
-            "gain_margin_db": 20 * math.log10(gm) if np.isfinite(gm) and gm > 0 else None}
+        gm, pm, _, _, wgc, wpc = ct.stability_margins(L)
+    out = {"crossover_hz": float(wgc) / (2 * math.pi) if np.isfinite(wgc) else None,
+           "phase_margin_deg": float(pm) if np.isfinite(pm) else None,
+           "gain_margin_db": 20 * math.log10(gm) if np.isfinite(gm) and gm > 0 else None}
+    if phase_crossover:
+        out["phase_crossover_hz"] = float(wpc) / (2 * math.pi) if np.isfinite(wpc) else None
+    return out
 
 
 def bandwidth_hz(sys, w_low: float = 1e-3, w_high: float = 1e6) -> float | None:
@@ -249,16 +263,18 @@ def step_metrics(sys, span: float, w_low: float = 1e-4) -> dict:
 
 def loop_metrics(servo: ServoParams, load: AxisLoad, mode: str = "imc") -> dict:
     """Per axis and loop: crossover_hz, phase_margin_deg, gain_margin_db, bandwidth_hz and :func:`step_metrics`."""
-    axes = []
-    for k in range(N_AXES):
-        cl = closed_loops(servo, load, k, mode=mode)
-        ol = open_loops(servo, load, k, mode, closed=cl)
-        row = {}
-        for name, out in zip(LOOPS, (0, 1, 2)):
-            row[name] = (margins(ol[name]) | {"bandwidth_hz": bandwidth_hz(cl[name][out, 0])}
-                         | step_metrics(cl[name][out, 0], STEP_SPAN_S[name]))
-        axes.append(row)
-    return {"mode": mode, "axes": axes}
+    return {"mode": mode, "axes": [axis_metrics(servo, load, k, mode) for k in range(N_AXES)]}
+
+
+def axis_metrics(servo: ServoParams, load: AxisLoad, axis: int = 0, mode: str = "imc", closed: dict | None = None,
+                 phase_crossover: bool = False) -> dict:
+    """One axis of :func:`loop_metrics`: ``{loop: metrics}``; ``closed`` and ``phase_crossover`` as in
+    :func:`open_loops` and :func:`margins`."""
+    cl = closed_loops(servo, load, axis, mode=mode) if closed is None else closed
+    ol = open_loops(servo, load, axis, mode, closed=cl)
+    return {name: (margins(ol[name], phase_crossover) | {"bandwidth_hz": bandwidth_hz(cl[name][out, 0])}
+                   | step_metrics(cl[name][out, 0], STEP_SPAN_S[name]))
+            for name, out in zip(LOOPS, (0, 1, 2))}
 
 
 def identify_T0(servo: ServoParams, load: AxisLoad, axis: int = 0, window: float = 0.2) -> float:

@@ -36,6 +36,117 @@ def test_hybrid_grid_quick_is_stable_at_the_smallest_admissible_lambda2(tmp_path
         assert old["highest_force_peak_n"] > 1.4 * new["highest_force_peak_n"], (rule, old, new)
 
 
+def test_arc_quick_imc_tracks_closer_than_both_pids(tmp_path):
+    """Fig. 7 on the arc's first 3 s: the 2-DOF IMC (full C1) below PID and PID + velocity feedforward, and the
+    printed eq. 9 far above it (the full run's figures are in REPRODUCTION.md)."""
+    result, files = experiments.run_experiment("arc", tmp_path, quick=True)
+    runs = result.metrics["runs"]
+    imc = runs["2-DOF IMC (full C1)"]["rms_tracking_error_mm"]
+    assert result.metrics["claim_imc_below_both_baselines"]
+    assert imc < min(runs["PID"]["rms_tracking_error_mm"], runs["PID + velocity FF"]["rms_tracking_error_mm"])
+    assert runs["2-DOF IMC (printed eq. 9)"]["rms_tracking_error_mm"] > 2 * imc
+    assert {"arc.png", "arc.json", "arc.md"} <= {f.name for f in files}
+
+
 def test_an_unknown_experiment_is_named():
     with pytest.raises(ParameterError, match="experiment: expected one of"):
         experiments.get("fig8")
+
+
+@pytest.fixture(scope="module")
+def tweaked_gains(tmp_path_factory):
+    """A valid gain file (mode hybrid) of Table 1 with faster IMC filters, a softer velocity loop and m6 lowered,
+    written by the gain file writer as ``pusupu tune`` writes its own (45 deg and 6 dB kept)."""
+    import numpy as np
+
+    from pusupu_jax import LoopRates, ServoParams, gains
+    from pusupu_jax.hybrid import HybridGains
+
+    servo = ServoParams.table1().replace(lambda1=np.full(6, 0.012), lambda2=np.full(6, 0.08), T0=np.full(6, 0.03),
+                                         Kv=np.full(6, 0.012))
+    return gains.write(tmp_path_factory.mktemp("gains") / "gains.yaml", servo, HybridGains(m6=5000.0), LoopRates(),
+                       mode="hybrid", tuned=("lambda1", "lambda2", "T0", "Kv", "m6"))
+
+
+def test_servo_quick_margins_agree_with_the_jax_margins_and_the_gain_file(tmp_path, tweaked_gains):
+    """Table 1 and the gain file, every loop and axis: python-control's phase and gain margins equal those of
+    ``pusupu_jax.margins`` (the tuner's constraint and the gain file's check; a separate implementation on a
+    4001-point grid, its documented agreement 0.5 deg and 0.1 dB, observed 5e-4), and the tuned set's equal the
+    margins stored in the gain file.  The load-torque input leaves the reference responses as ``pusupu analyze``
+    gives them, the IMC loop rejects the constant load torque (integral action: at 6 s, under 10 % of the peak
+    deviation; observed 4 %), and the three figures, JSON and table are written."""
+    import numpy as np
+
+    from pusupu_jax import AxisLoad, ServoParams, analysis, gains
+
+    result, files = experiments.run_experiment("servo", tmp_path, quick=True, gains=tweaked_gains)
+    assert {f.name for f in files} == {"servo_current.png", "servo_velocity.png", "servo_position.png",
+                                       "servo.json", "servo.md"}
+    m = json.loads((tmp_path / "servo.json").read_text())
+    g = gains.load(tweaked_gains)
+    assert m["mode"] == "hybrid" and set(m["sets"]) == {"Table 1", "tuned"}
+    for label, servo in (("Table 1", ServoParams.table1()), ("tuned", g.servo)):
+        s = m["sets"][label]
+        assert s["axis_groups"] == [[1, 2, 3, 4, 5, 6]]
+        ours = gains.margins_report(servo, "hybrid")
+        for loop in analysis.LOOPS:
+            for axis in range(6):
+                row = s["axes"][axis][loop]
+                assert row["phase_margin_deg"] == pytest.approx(ours[loop]["phase_margin_deg"][axis], abs=0.5)
+                assert row["gain_margin_db"] == pytest.approx(ours[loop]["gain_margin_db"][axis], abs=0.1)
+                assert row["phase_crossover_hz"] > row["crossover_hz"] > 0
+            if label == "tuned":
+                stored = g.document["margins"][loop]
+                assert row["phase_margin_deg"] == pytest.approx(stored["phase_margin_deg"], abs=0.5)
+                assert row["gain_margin_db"] == pytest.approx(stored["gain_margin_db"], abs=0.1)
+    before, after = (m["sets"][k]["axes"][0]["position"] for k in ("Table 1", "tuned"))
+    assert after["crossover_hz"] > 1.5 * before["crossover_hz"]  # lambda2 0.15 -> 0.08 s: a faster position loop
+    reference = analysis.axis_metrics(ServoParams.table1(), AxisLoad.default(), 0, "hybrid")
+    for loop in analysis.LOOPS:
+        for key, value in reference[loop].items():
+            assert m["sets"]["Table 1"]["axes"][0][loop][key] == pytest.approx(value, rel=1e-12), (loop, key)
+    for label, groups in result.series.items():
+        dist = next(iter(groups.values()))["position"]["dist"]
+        assert abs(dist[-1]) < 0.1 * np.max(np.abs(dist)), label
+    assert "| position | tuned | 1-6 |" in (tmp_path / "servo.md").read_text()
+
+
+def test_tuned_quick_with_a_gain_file_compares_every_mode_on_both_paths(tmp_path, tweaked_gains):
+    """The first 3 s of arc and p2p, four modes, Table 1 and the gain file (the batch shape of p2p --quick, so
+    the rollouts compiled by the p2p test above are reused: about 20 s here).  The changed fields are named; the
+    faster IMC filters track closer in IMC and hybrid mode on both paths (observed -62 to -64 %), and every mode
+    sees the new gains (no tuned run equals its Table 1 run)."""
+    result, files = experiments.run_experiment("tuned", tmp_path, quick=True, gains=tweaked_gains)
+    assert {f.name for f in files} == {"tuned.png", "tuned.json", "tuned.md"}
+    m = json.loads((tmp_path / "tuned.json").read_text())
+    assert set(m["gains"]["changed"]) == {"lambda1", "lambda2", "T0", "Kv", "m6"}
+    assert m["gains"]["changed"]["lambda2"] == {"table1": 0.15, "tuned": 0.08, "unit": "s"}
+    assert m["duration_s"] == pytest.approx({"arc": 3.0, "p2p": 3.0})
+    for path in ("arc", "p2p"):
+        assert set(m["runs"][path]) == {"PID", "PID + velocity FF", "IMC, six branches", "hybrid"}
+        for mode, r in m["runs"][path].items():
+            assert r["tuned"]["rms_tracking_error_mm"] != r["Table 1"]["rms_tracking_error_mm"], (path, mode)
+            assert r["change_pct"]["rms_tracking_error_mm"] == pytest.approx(
+                experiments.pct(r["tuned"]["rms_tracking_error_mm"], r["Table 1"]["rms_tracking_error_mm"]))
+        for mode in ("IMC, six branches", "hybrid"):
+            assert m["runs"][path][mode]["change_pct"]["rms_tracking_error_mm"] < -40, (path, mode)
+    assert m["tuned_mode"] == "hybrid"
+    assert "| p2p | hybrid |" in (tmp_path / "tuned.md").read_text()
+
+
+@pytest.mark.parametrize("name, gains, message", [
+    ("arc", "GAINS", "--gains: only the experiments servo, tuned take a gain file, not arc"),
+    ("servo", "missing.yaml", "missing.yaml: cannot read gain file"),
+])
+def test_experiment_gains_misuse_exits_2_with_one_line(tmp_path, tweaked_gains, capsys, name, gains, message):
+    """``pusupu experiment NAME --gains FILE``: an experiment that takes no gains, or a gain file that cannot be
+    read, is one line on stderr and exit status 2, before anything is written."""
+    from pusupu_cli.cli import main
+
+    gains = str(tweaked_gains) if gains == "GAINS" else str(tmp_path / gains)
+    with pytest.raises(SystemExit) as e:
+        main(["experiment", name, "--quick", "--gains", gains, "--out", str(tmp_path / "out")])
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("pusupu: error: ") and message in err[0], err
+    assert not (tmp_path / "out").exists()
