@@ -20,6 +20,7 @@ the reference hold"; :data:`MODES` names every mode the simulator and the bridge
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -52,6 +53,10 @@ class ControlMode:
     def theta(self, ref):
         """The motor-angle reference [rad] of a reference sample (or sequence)."""
         return ref.theta if self.hybrid else ref
+
+    def with_theta(self, ref, theta):
+        """The reference sample ``ref`` with its motor-angle reference [rad] replaced by ``theta``."""
+        return dataclasses.replace(ref, theta=theta) if self.hybrid else theta
 
 
 MODES = {m.name: m for m in (

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import compliance as compliance_law
 from . import hybrid as hybrid_law
 from .cascade import POSITION_MODES, control_mode
 from .objectives import branch_force
@@ -45,12 +46,13 @@ def machine_plant(options: ModelOptions = ModelOptions()) -> MJXPlant:
 
 
 @functools.lru_cache(maxsize=None)
-def _batch_runner(plant, rates, mode, start, servo_axis, hybrid_axis):
-    def one(servo, model, reference, hybrid):
+def _batch_runner(plant, rates, mode, start, servo_axis, hybrid_axis, compliant=False):
+    def one(servo, model, reference, hybrid, admittance):
         return rollout(servo, model, reference, plant=plant, rates=rates, outer=mode, start=start,
-                       hybrid=hybrid if control_mode(mode).hybrid else None)
+                       hybrid=hybrid if control_mode(mode).hybrid else None,
+                       compliance=(admittance, Geometry.default()) if compliant else None)
 
-    return jax.jit(jax.vmap(one, in_axes=(servo_axis, 0, 0, hybrid_axis)))
+    return jax.jit(jax.vmap(one, in_axes=(servo_axis, 0, 0, hybrid_axis, None)))
 
 
 def machine_reference(servo: ServoParams, path, mode: str, *, options: ModelOptions = ModelOptions(),
@@ -86,7 +88,9 @@ class Scenario:
 
 
 def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rates: LoopRates = LoopRates(),
-                       hybrid: hybrid_law.HybridGains | None = None, start: str = "rest") -> list[tuple[dict, dict]]:
+                       hybrid: hybrid_law.HybridGains | None = None, start: str = "rest",
+                       compliance: compliance_law.AdmittanceGains | None = None,
+                       force_setpoint=None) -> list[tuple[dict, dict]]:
     """Run several :class:`Scenario` on the default-geometry machine as one vmapped batch (one compile).
 
     The scenarios differ in their model's arrays (:meth:`MJXPlant.variant`: seeded errors,
@@ -94,7 +98,12 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
     holding still) to the longest, and every metric is taken over each path's own length.
     ``servo`` (and, in hybrid mode, ``hybrid``) is shared, or has a leading axis of one
     parameter set per scenario (a gain sweep).  ``options`` may differ only in
-    ``kin_error_seed`` and ``payload``.  Returns ``[(result, arrays)]`` as :func:`simulate_machine`.
+    ``kin_error_seed``, ``payload`` and the contact scene's arrays (``surface_tilt``,
+    ``hole_offset``).  ``compliance``: the admittance of :mod:`pusupu_jax.compliance` around the
+    position loops (the scenarios' models need contacts), holding the contact force
+    ``force_setpoint`` [N] on the tool (world axes; ``(3,)``, or ``(N, 3)`` along the longest
+    path; default zero).  Returns ``[(result, arrays)]`` as
+    :func:`simulate_machine`.
     """
     if mode not in MACHINE_MODES:
         raise ValueError(f"mode: expected one of {MACHINE_MODES}, got {mode!r}")
@@ -109,6 +118,10 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
         hybrid_law.validate_gains(hybrid)
     nominal = dataclasses.replace(scenarios[0].options, kin_error_seed=None, payload=0.0)
     rates = machine_rates(nominal, rates)
+    if compliance is not None:
+        if not nominal.contacts:
+            raise ValueError("compliance: expected scenarios whose models have contacts (ModelOptions.contacts)")
+        compliance_law.validate_gains(compliance, rates.dt_position)
     plant = machine_plant(nominal)
     length = max(len(sc.path) for sc in scenarios)
 
@@ -121,17 +134,23 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
     models, references = [], []
     for sc, sv in zip(scenarios, servos):
         padded = np.concatenate([sc.path, np.repeat(sc.path[-1:], length - len(sc.path), axis=0)])
-        references.append(machine_reference(sv, padded, mode, options=sc.options, rates=rates))
+        reference = machine_reference(sv, padded, mode, options=sc.options, rates=rates)
+        if compliance is not None:
+            setpoint = np.broadcast_to(np.zeros(3) if force_setpoint is None else force_setpoint, (length, 3))
+            reference = compliance_law.ComplianceReference(jnp.asarray(padded), jnp.asarray(setpoint), reference)
+        references.append(reference)
         models.append(plant.variant(sc.options))
-    run = _batch_runner(plant, rates, mode, start, 0 if batched else None, hybrid_axis)
+    run = _batch_runner(plant, rates, mode, start, 0 if batched else None, hybrid_axis, compliance is not None)
     t0 = time.perf_counter()
-    traces = jax.block_until_ready(run(servo, stack(models), stack(references), hybrid))
+    traces = jax.block_until_ready(run(servo, stack(models), stack(references), hybrid, compliance))
     wall = time.perf_counter() - t0
     out = []
     for k, sc in enumerate(scenarios):
         n = len(sc.path)
         trace = jax.tree.map(lambda x: np.asarray(x)[k, :n], traces)
         reference = jax.tree.map(lambda x: np.asarray(x)[:n], references[k])
+        if compliance is not None:
+            reference = reference.inner
         result, arrays = machine_metrics(trace, servos[k], sc.path, reference, mode, rates.dt_position, hybrids[k])
         out.append(({"name": sc.name, "mode": mode, "imc_form": servo.imc_form, "start": start,
                      "kin_error_seed": sc.options.kin_error_seed, "payload_kg": sc.options.payload}
@@ -163,7 +182,7 @@ def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: f
     ``reference``: the rollout reference the trace followed (see :func:`machine_reference`).
     """
     r = np.asarray(screw_ratio(servo))
-    s_ref = np.asarray(control_mode(mode).theta(reference)) * r
+    s_ref = np.asarray(trace.reference) * r  # the angles followed (under compliance, the recomputed ones)
     platform = np.asarray(trace.observation["platform_pos"])
     e_platform = np.linalg.norm(platform - np.asarray(path)[:, :3], axis=1)
     e_branch = np.asarray(trace.position) - s_ref
@@ -189,5 +208,7 @@ def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: f
                             "force_ff_peak_n": float(np.abs(np.asarray(reference.force_ff)).max()),
                             "f_rho_rms_n": float(np.sqrt(np.mean(f_rho**2))),
                             "f_rho_peak_n": float(np.abs(f_rho).max())}
+    contact = {k: np.asarray(trace.observation[k]) for k in ("contact_force", "compliance_offset", "platform_mat")
+               if k in trace.observation}
     return result, {"t": np.asarray(trace.t), "reference": np.asarray(path)[:, :3], "platform": platform,
-                    "branch_force": force}
+                    "branch_force": force} | contact

@@ -26,11 +26,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import cascade as cascade_
+from . import compliance as compliance_law
 from . import hybrid as hybrid_law
 from . import loops
 from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate
 from .plant import AxisPlant
 from .plant.axis import screw_ratio
+from .plant.kinematics import inverse_kinematics
 
 MODES = ("imc", "pid", "pid_ff")
 STARTS = ("rest", "zero")
@@ -59,6 +61,46 @@ class Trace:
     state: Any  # every controller state (a cascade.CascadeState)
     observation: Any  # what the plant's observe() keeps (pytree)
 
+    def __repr__(self) -> str:
+        """Duration, shapes, and per axis the slider's range and the peak current and torque (not the arrays)."""
+        return _describe_trace(self)
+
+    def _repr_markdown_(self) -> str:
+        return _describe_trace(self, markdown=True)
+
+
+def _describe_trace(tr: Trace, markdown: bool = False) -> str:
+    arrays = {k: getattr(tr, k) for k in ("t", "position", "current", "torque")}
+    shapes = {k: np.shape(v) for k, v in arrays.items()}
+    if any(isinstance(v, jax.core.Tracer) for v in arrays.values()) or len(shapes["position"]) < 2:
+        return f"Trace(shapes {shapes})"
+    try:
+        return _trace_table(tr, shapes, markdown)
+    except (TypeError, ValueError, IndexError):  # not arrays of a rollout (a tree_map's product): the shapes only
+        return f"Trace(shapes {shapes})"
+
+
+def _trace_table(tr: Trace, shapes: dict, markdown: bool) -> str:
+    from .params import axis_cells, axis_table
+
+    n, axes = shapes["position"][-2:]
+    batch = shapes["position"][:-2]
+    t = np.asarray(tr.t).reshape(-1, n)[0] if n else np.zeros(0)
+    dt = float(t[1] - t[0]) if n > 1 else float("nan")
+    title = (f"Trace: {n * dt:.4g} s, {n} periods of {dt * 1e3:.4g} ms, {axes} axes"
+             + (f", a batch of shape {batch} (lo..hi over the batch)" if batch else "")
+             + f"; arrays (..., N, axes) {shapes['position']}, current_reference {np.shape(tr.current_reference)}, "
+             "state and observation pytrees")
+    if not n:
+        return title
+    peak = lambda x: np.abs(np.asarray(x)).max(axis=-2)  # noqa: E731
+    position = np.asarray(tr.position) * 1e3
+    rows = [("slider min", "mm", axis_cells(position.min(axis=-2))),
+            ("slider max", "mm", axis_cells(position.max(axis=-2))),
+            ("peak current", "A", axis_cells(peak(tr.current))),
+            ("peak torque", "N m", axis_cells(peak(tr.torque)))]
+    return axis_table(f"**{title}**" if markdown else title, rows, axes, markdown)
+
 
 class Carry(NamedTuple):
     """The scan carry: the plant, the electrical model (inverter, armature) and the controllers."""
@@ -66,6 +108,7 @@ class Carry(NamedTuple):
     plant: Any
     electrical: Any  # (..., n_axes, 2): inverter voltage [V], armature current [A]
     cascade: cascade_.CascadeState
+    outer: Any = None  # the compliance law's state (compliance.AdmittanceState) when one runs outside the cascade
 
 
 def initial_state(drive: loops.Drive, plant, aux, mode: cascade_.ControlMode, start: str = "rest",
@@ -115,6 +158,7 @@ class Pieces(NamedTuple):
     record: Any  # (carry at the period's start, reference sample, (command, current references)) -> trace entries
     dt: float
     init: Any  # (start, force_ff0) -> carry
+    observe: Any  # carry -> what the plant's observe() returns
 
 
 def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.ControlMode, hybrid) -> Pieces:
@@ -137,7 +181,7 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
     def mech_step(c: Carry, i_ref):
         _, omega = plant.measure(aux, c.plant)
         xe, sc, torque, u = current_ticks(drive, c.electrical, c.cascade, i_ref, omega, rates.n_mech)
-        return Carry(plant.step(aux, c.plant, torque), xe, sc), u
+        return c._replace(plant=plant.step(aux, c.plant, torque), electrical=xe, cascade=sc), u
 
     def velocity_period(c: Carry, w_ref, i_force=None):
         _, omega = plant.measure(aux, c.plant)
@@ -163,12 +207,50 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
     period, dt = {"current": (current_period, rates.dt_mech), "velocity": (inner_velocity_period, rates.dt_velocity),
                   "position": (position_period, rates.dt_position)}[mode.closed]
     return Pieces(period, record, dt, lambda start, force_ff0: initial_state(drive, plant, aux, mode, start,
-                                                                               force_ff0))
+                                                                               force_ff0),
+                  lambda c: plant.observe(aux, c.plant))
+
+
+def compliant_pieces(base: Pieces, params, gains: compliance_law.AdmittanceGains, geom, *,
+                     mode: cascade_.ControlMode) -> Pieces:
+    """``base`` (closed up to the position loop) under the admittance of :mod:`pusupu_jax.compliance`.
+
+    Each position period first reads the plant's ``contact_force`` [N] (as at the period's
+    start, like every measurement), steps the admittance, and runs ``base``'s period on the
+    inner reference whose motor angles are the nominal inverse kinematics of ``geom`` at the
+    path's pose plus the offset, ``(s(q + x_c) - s(home)) / r`` [rad].  The reference is a
+    :class:`~pusupu_jax.compliance.ComplianceReference`; the trace records the angles actually
+    followed, and the observation adds ``compliance_offset`` [m] at each period's start.
+    """
+    if mode.closed != "position":
+        raise ValueError(f"rollout: compliance needs the position loop closed, got mode {mode.name!r}")
+    r = screw_ratio(params)
+    s_home = inverse_kinematics(geom, jnp.asarray(geom.home))
+
+    def inner(c: Carry, ref: compliance_law.ComplianceReference):
+        pose = ref.pose.at[:3].add(c.outer.offset)
+        return mode.with_theta(ref.inner, (inverse_kinematics(geom, pose) - s_home) / r)
+
+    def period(c: Carry, ref):
+        state = compliance_law.step(gains, c.outer, base.observe(c)["contact_force"], ref.force_setpoint, base.dt)
+        c = c._replace(outer=state)
+        inner_ref = inner(c, ref)
+        c, out = base.period(c, inner_ref)
+        return c, (out, inner_ref)
+
+    def record(c: Carry, ref, out):
+        command, inner_ref = out
+        rec = base.record(c, inner_ref, command)
+        return rec | {"observation": rec["observation"] | {"compliance_offset": c.outer.offset}}
+
+    return Pieces(period, record, base.dt,
+                  lambda start, force_ff0: base.init(start, force_ff0)._replace(outer=compliance_law.init()),
+                  base.observe)
 
 
 def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), rates: LoopRates = LoopRates(),
             outer: str = "imc", remat: bool = False, hybrid: hybrid_law.HybridGains | None = None,
-            start: str = "rest", init=None) -> Trace:
+            start: str = "rest", init=None, compliance=None) -> Trace:
     """Run the cascade closed up to ``outer`` against ``plant`` (pure; jit with plant, rates, outer, remat, start static).
 
     ``outer``: 'current', 'velocity', 'imc' (2-DOF IMC, ``params.imc_form``), 'pid', 'pid_ff'
@@ -190,11 +272,19 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
     recomputes each outer period in the backward pass instead of storing its inner steps
     (``jax.checkpoint``): reverse-mode memory then grows with the number of outer periods
     only, for about one extra forward pass.
+
+    ``compliance``: ``(AdmittanceGains, Geometry)`` runs the admittance of
+    :mod:`pusupu_jax.compliance` outside the position loops (:func:`compliant_pieces`; the
+    plant must observe a ``contact_force``); ``reference`` is then a
+    :class:`~pusupu_jax.compliance.ComplianceReference`.
     """
     mode = cascade_.control_mode(outer)
     cascade = pieces(params, plant_params, plant=plant, rates=rates, mode=mode, hybrid=hybrid)
+    if compliance is not None:
+        cascade = compliant_pieces(cascade, params, *compliance, mode=mode)
     if init is None:
-        init = cascade.init(start, reference.force_ff[0] if mode.hybrid else None)
+        first = reference.inner if compliance is not None else reference
+        init = cascade.init(start, first.force_ff[0] if mode.hybrid else None)
     _, rec = jax.lax.scan(_body(cascade, remat), init, reference)
     return _trace(rec, cascade.dt)
 

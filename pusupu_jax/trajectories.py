@@ -50,6 +50,28 @@ def _quintic(dt, length, v_max, a_max):
     return 10 * tau**3 - 15 * tau**4 + 6 * tau**5
 
 
+def _line(a, b, dt, v_max, a_max):
+    """Points from ``a`` to ``b`` with quintic timing (peak speed ``v_max`` [m/s], acceleration ``a_max`` [m/s^2])."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    return a + _quintic(dt, float(np.linalg.norm(b - a)), v_max, a_max)[:, None] * (b - a)
+
+
+def _check_limits(v_max, a_max, hold):
+    for name, v in (("v_max", v_max), ("a_max", a_max)):
+        if not (np.isfinite(v) and v > 0):
+            raise ParameterError(f"trajectory {name}: expected a positive number, got {v!r}")
+    if not (np.isfinite(hold) and hold >= 0):
+        raise ParameterError(f"trajectory hold: expected a non-negative number of seconds, got {hold!r}")
+
+
+def _poses(home, offsets, dt, hold):
+    """Level platform poses ``(N, 5)``: ``home`` plus position ``offsets`` ``(N, k <= 3)``, then ``hold`` [s] at rest."""
+    offsets = np.concatenate([offsets, np.repeat(offsets[-1:], int(round(hold / dt)), axis=0)])
+    q = np.repeat(np.asarray(home, dtype=float)[None], len(offsets), axis=0)
+    q[:, :offsets.shape[1]] += offsets
+    return q
+
+
 def platform_path(kind: str, home, rates: LoopRates = LoopRates(), v_max: float = 0.05, a_max: float = 0.2,
                   hold: float = 0.5) -> np.ndarray:
     """Platform poses ``(N, 5)`` at the position-loop rate for the paper's paths, starting and ending at rest.
@@ -64,24 +86,29 @@ def platform_path(kind: str, home, rates: LoopRates = LoopRates(), v_max: float 
     """
     if kind not in PLATFORM_TRAJECTORIES:
         raise ParameterError(f"trajectory: expected one of {PLATFORM_TRAJECTORIES} for the mechanism, got {kind!r}")
-    for name, v in (("v_max", v_max), ("a_max", a_max)):
-        if not (np.isfinite(v) and v > 0):
-            raise ParameterError(f"trajectory {name}: expected a positive number, got {v!r}")
-    if not (np.isfinite(hold) and hold >= 0):
-        raise ParameterError(f"trajectory hold: expected a non-negative number of seconds, got {hold!r}")
+    _check_limits(v_max, a_max, hold)
     dt = rates.dt_position
-
-    def line(a, b):
-        a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-        return a + _quintic(dt, float(np.linalg.norm(b - a)), v_max, a_max)[:, None] * (b - a)
-
     if kind == "arc":
         phi = 1.5 * np.pi * _quintic(dt, 0.2 * 1.5 * np.pi, v_max, a_max)
-        xy = [line([0.0, 0.0], [0.2, 0.0]), np.stack([0.2 * np.cos(phi), 0.2 * np.sin(phi)], axis=1)]
-    else:
-        xy = [line([0.0, 0.0], [-0.1, -0.1]), line([-0.1, -0.1], [0.1, 0.1])]
-    xy = np.concatenate(xy + [np.repeat(xy[-1][-1:], int(round(hold / dt)), axis=0)])
-    home = np.asarray(home, dtype=float)
-    q = np.repeat(home[None], len(xy), axis=0)
-    q[:, :2] += xy
-    return q
+        xy = [_line([0.0, 0.0], [0.2, 0.0], dt, v_max, a_max), np.stack([0.2 * np.cos(phi), 0.2 * np.sin(phi)], axis=1)]
+        return _poses(home, np.concatenate(xy), dt, hold)
+    return platform_waypoints(home, [[0.0, 0.0, 0.0], [-0.1, -0.1, 0.0], [0.1, 0.1, 0.0]], rates, v_max, a_max, hold)
+
+
+def platform_waypoints(home, waypoints, rates: LoopRates = LoopRates(), v_max=0.05, a_max: float = 0.2,
+                       hold: float = 0.5) -> np.ndarray:
+    """Level platform poses ``(N, 5)`` through position ``waypoints`` ``(K, 3)`` [m] from ``home``, straight
+    segments with :func:`platform_path`'s quintic timing (at rest at every waypoint), then ``hold`` [s] at rest.
+
+    ``v_max`` [m/s]: one peak speed, or one per segment (``K - 1``).  The machine starts at home,
+    so the first waypoint should be ``(0, 0, 0)``.
+    """
+    points = np.asarray(waypoints, dtype=float)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) < 2 or not np.isfinite(points).all():
+        raise ParameterError(f"waypoints: expected at least two finite (x, y, z) offsets [m], got shape {points.shape}")
+    speeds = np.broadcast_to(np.asarray(v_max, dtype=float), (len(points) - 1,))
+    for v in speeds:
+        _check_limits(v, a_max, hold)
+    dt = rates.dt_position
+    return _poses(home, np.concatenate([_line(a, b, dt, v, a_max) for a, b, v in zip(points[:-1], points[1:], speeds)]),
+                  dt, hold)

@@ -429,3 +429,75 @@ def test_a_run_starts_at_rest_in_every_mode(mode):
     moved = np.linalg.norm(arrays["platform"] - arrays["platform"][0], axis=1) * 1e3  # mm
     assert moved[:200].max() < 10e-3, (mode, moved[:200].max())
     assert moved.max() < 10e-3, (mode, moved.max())
+
+
+CONTACT_SCENES = {  # the contact experiments' scenes and solver settings (experiments/contact.py)
+    "peg": (M.ModelOptions(contacts=True, scene="peg_in_hole", hole_offset=(0.0048, 0.0), solver_iterations=4,
+                           cone="elliptic"), {"hole_chamfer_1", "hole_wall_1"}),
+    "tilted surface": (M.ModelOptions(contacts=True, scene="surface", surface_tilt=0.01, friction=0.2,
+                                      solver_iterations=4, cone="elliptic"), {"surface"}),
+}
+
+
+def _over_first_contact(plant, gap):
+    """qpos of the home pose lowered until the tool is ``gap`` [m] over its first contact with the scene."""
+    m = plant.mj_model
+    d = mujoco.MjData(m)
+    lo, hi = 0.0, 0.03  # m of descent: no contact at lo, contact at hi
+    for _ in range(40):
+        mid = (lo + hi) / 2
+        d.qpos[:] = M.assembled_qpos(m, G, np.asarray(G.home) - [0, 0, mid, 0, 0])
+        mujoco.mj_forward(m, d)
+        lo, hi = (lo, mid) if d.ncon else (mid, hi)
+    return M.assembled_qpos(m, G, np.asarray(G.home) - [0, 0, lo - gap, 0, 0])
+
+
+def _c_contact_force(m, d):
+    """The force [N] on the tool from every contact of C MuJoCo's ``d`` (world axes), as ``mj_contactForce`` gives."""
+    tool, total = m.geom("tool").id, np.zeros(3)
+    for k, contact in enumerate(d.contact[:d.ncon]):
+        local = np.zeros(6)
+        mujoco.mj_contactForce(m, d, k, local)
+        world = local[:3] @ contact.frame.reshape(3, 3)
+        total += world if contact.geom[1] == tool else -world
+    return total
+
+
+@pytest.mark.parametrize("scene", sorted(CONTACT_SCENES))
+def test_the_contact_scenes_land_as_in_c_mujoco(scene):
+    """The contact experiments' scenes with their solver (four Newton iterations, elliptic cone), motors off: the
+    machine drops 1 mm onto the scene (about step 190) and 400 steps (0.1 s) run.  Peg: the hole 4.8 mm off, so
+    that the tip lands mid-chamfer, slides down it and wedges between the chamfer and the wall.  Tilted surface:
+    the tool lands on the 10 mrad slope (friction 0.2) and the surface carries the machine.
+
+    MJX against C MuJoCo (float64): qpos and qvel along the whole run, observed 1.2e-9 m and 9.7e-8 m/s (peg),
+    3.1e-11 m and 1.9e-9 m/s (surface); bounds 1e-7 m and 1e-5 m/s: 100x headroom for rounding that the impact
+    amplifies.  The contact force on the tool every 25 steps at C's state (MJX's :meth:`MJXPlant.contact_force`
+    against the sum of ``mj_contactForce``): observed within 3.6e-6 (peg, 570-870 N) and 4.8e-8 (surface) of its
+    magnitude; bound 1e-4.
+    """
+    options, expected = CONTACT_SCENES[scene]
+    plant = MJXPlant.create(G, options)
+    aux = plant.prepare(SERVO, None, RATES.dt_mech)
+    q0, off = _over_first_contact(plant, 1e-3), np.zeros_like(TORQUE)
+    qpos, qvel = (np.asarray(a) for a in mjx_run(plant, aux, off, q0))
+    c_qpos, c_qvel, _, _ = c_mujoco_run(plant, aux, off, q0)
+    assert np.max(np.abs(qpos - c_qpos)) < 1e-7
+    assert np.max(np.abs(qvel - c_qvel)) < 1e-5
+    m = plant.mj_model
+    contact_force = jax.jit(lambda model, q, v: plant.contact_force(
+        model, mjx.forward(model, mjx.make_data(model).replace(qpos=q, qvel=v))))
+    touched, worst = set(), 0.0
+    for k in range(24, len(TORQUE), 25):
+        d = mujoco.MjData(m)
+        d.qpos[:], d.qvel[:] = c_qpos[k], c_qvel[k]
+        mujoco.mj_forward(m, d)
+        c_force = _c_contact_force(m, d)
+        force = np.asarray(contact_force(aux.model, c_qpos[k], c_qvel[k]))
+        touched |= {m.geom(c.geom[1]).name for c in d.contact[:d.ncon]}
+        if d.ncon:
+            worst = max(worst, np.linalg.norm(force - c_force) / np.linalg.norm(c_force))
+        else:
+            assert np.all(force == 0.0)
+    assert touched == expected
+    assert worst < 1e-4

@@ -31,6 +31,7 @@ import numpy as np
 
 with contextlib.redirect_stdout(io.StringIO()):  # MJX prints its optional GPU backends' import failures
     from mujoco import mjx
+    from mujoco.mjx._src.support import contact_force_dim  # MJX's own mj_contactForce, for every contact of a dim
 
 from .axis import screw_ratio
 from .geometry import Geometry
@@ -173,7 +174,34 @@ class MJXPlant:
         return data.qpos[self._qpos] - aux.model.qpos0[self._qpos], data.qvel[self._dofs]
 
     def observe(self, aux: MJXAux, data):
-        """Platform position [m] and orientation (3x3), and the loop-closure residual [m]."""
+        """Platform position [m] and orientation (3x3), and the loop-closure residual [m].
+
+        With contacts, also ``contact_force``: the force [N] (world axes) that the scene
+        exerts on the tool, summed over its contacts, as an ideal wrist force sensor reads it
+        (:meth:`contact_force`).
+        """
         body = self.mj_model.body("platform").id
-        return {"platform_pos": data.xpos[body], "platform_mat": data.xmat[body].reshape(3, 3),
-                "closure_residual": loop_closure_residual(self.mj_model, data.xpos, data.xmat, aux.model.eq_data)}
+        out = {"platform_pos": data.xpos[body], "platform_mat": data.xmat[body].reshape(3, 3),
+               "closure_residual": loop_closure_residual(self.mj_model, data.xpos, data.xmat, aux.model.eq_data)}
+        if self.options.contacts:
+            out["contact_force"] = self.contact_force(aux.model, data)
+        return out
+
+    def contact_force(self, model, data):
+        """Force [N] (world axes) on the tool from every contact, ``(3,)``; zero where none is active.
+
+        Each contact's force in its frame (normal, two tangents) comes from MJX's decoding of
+        the pyramidal constraint forces (``mj_contactForce``'s); its frame's rows turn it into
+        world axes.  MuJoCo's force acts on the contact's second geom along the normal, which
+        points from the first geom to the second; contacts whose first geom is the tool count
+        negated.  Every geom that collides is the tool or part of the scene, so each contact
+        involves the tool.
+        """
+        tool = self.mj_model.geom("tool").id
+        contact = data._impl.contact
+        if contact.dim.size == 0:
+            return jnp.zeros(3)
+        force, index = contact_force_dim(model, data, 3)
+        world = jnp.einsum("ci,cij->cj", force[:, :3], contact.frame[index])
+        sign = jnp.where(contact.geom[index, 0] == tool, -1.0, 1.0)
+        return jnp.sum(sign[:, None] * world, axis=0)

@@ -19,8 +19,17 @@ parameters and are set per rollout by the MJX plant, not here.
 
 ``kin_error_seed`` builds the *real* machine with seeded errors on the rail points, the
 platform joint positions and the rod lengths (normal, ``kin_error_std`` [m]); the nominal
-geometry is what inverse kinematics uses.  ``contacts=True`` adds a tool sphere under the
-platform and a work surface for the compliance experiments; by default no geom collides.
+geometry is what inverse kinematics uses.  ``contacts=True`` adds a contact scene for the
+compliance experiments (:data:`SCENES`); by default no geom collides:
+
+* ``surface``: a tool sphere (10 mm radius) 150 mm under the platform and a 600 x 600 x 20 mm
+  work surface 30 mm below it at home, tilted by ``surface_tilt`` [rad] about the world y axis
+  through its centre (its height then changes by ``x tan(tilt)``);
+* ``peg_in_hole``: a peg (a capsule, :data:`PEG`) under the platform over a square hole with
+  45 deg chamfers (:data:`HOLE`) whose axis is ``hole_offset`` (x, y) [m] from the peg's at home.
+
+The scene's geoms keep MuJoCo's default contact parameters (soft constraint, solref 20 ms,
+pyramidal cone) except the sliding friction, ``friction`` (default MuJoCo's 1).
 """
 
 from __future__ import annotations
@@ -35,6 +44,11 @@ from .geometry import Geometry, GeometryError, validate_geometry
 from .kinematics import inverse_kinematics, joint_points, upu_angles, xy_hinge_angles
 
 GROUP_VISUAL = 1
+SCENES = ("surface", "peg_in_hole")
+PEG = dict(radius=0.008, top=0.12, bottom=0.18)  # m: a capsule from 120 to 180 mm under the platform centre
+# m: half-width of the square hole (0.5 mm clearance on the peg), depth, chamfer width, and the hole's top
+# below home (7 mm under the peg's tip)
+HOLE = dict(half_width=0.0085, depth=0.03, chamfer=0.004, top=0.195)
 
 
 @dataclass(frozen=True)
@@ -46,6 +60,11 @@ class ModelOptions:
     kin_error_seed: int | None = None
     kin_error_std: float = 0.0005  # m
     contacts: bool = False
+    scene: str = "surface"  # the contact scene when contacts=True: 'surface' or 'peg_in_hole'
+    surface_tilt: float = 0.0  # rad, the work surface's tilt about the world y axis ('surface')
+    hole_offset: tuple = (0.0, 0.0)  # m, the hole's axis from the peg's at home, x and y ('peg_in_hole')
+    friction: float = 1.0  # sliding friction coefficient of the tool and the scene (MuJoCo takes the larger)
+    cone: str = "pyramidal"  # MuJoCo's friction cone: 'pyramidal' or 'elliptic'
     solver_iterations: int = 1  # Newton iterations; 1 keeps reverse-mode gradients through MJX possible
     solref_timeconst: float = 0.002  # s, stiffness time constant of the spherical-joint constraints (8 timesteps)
 
@@ -77,6 +96,8 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     """Compile the mechanism; ``geom`` is the nominal geometry (default :meth:`Geometry.default`)."""
     nominal = Geometry.default() if geom is None else geom
     validate_geometry(nominal)
+    if options.scene not in SCENES:
+        raise ValueError(f"ModelOptions.scene: expected one of {SCENES}, got {options.scene!r}")
     real = nominal if options.kin_error_seed is None else perturbed(nominal, options.kin_error_seed,
                                                                    options.kin_error_std)
     home = np.asarray(nominal.home, dtype=float)
@@ -93,6 +114,8 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     spec.option.ls_iterations = 4
     spec.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_EULER
+    spec.option.cone = {"pyramidal": mujoco.mjtCone.mjCONE_PYRAMIDAL, "elliptic": mujoco.mjtCone.mjCONE_ELLIPTIC}[
+        options.cone]
     if not options.contacts:
         spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
     spec.compiler.inertiafromgeom = False
@@ -125,8 +148,11 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     hinge(platform, "upu_beta", [1, 0, 0], beta)
     for c in np.asarray(real.platform_points):
         visual(platform, [0, 0, 0, *c], 0.02)
-    if options.contacts:
+    if options.contacts and options.scene == "surface":
         platform.add_geom(name="tool", type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=[0, 0, -0.15], size=[0.01, 0, 0])
+    elif options.contacts:
+        platform.add_geom(name="tool", type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[PEG["radius"], 0, 0],
+                          fromto=[0, 0, -PEG["top"], 0, 0, -PEG["bottom"]])
 
     for i in range(6):
         u = np.asarray(real.rail_dirs[i], dtype=float)
@@ -149,10 +175,47 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
         eq.data[0:3] = [0, 0, length]
         eq.solref = [options.solref_timeconst, 1.0]
         eq.solimp = [0.99, 0.999, 0.001, 0.5, 2.0]
-    if options.contacts:
+    if options.contacts and options.scene == "surface":
+        tilt = float(options.surface_tilt)
         world.add_geom(name="surface", type=mujoco.mjtGeom.mjGEOM_BOX, pos=[0, 0, float(home[2]) - 0.2],
-                       size=[0.3, 0.3, 0.01])
+                       size=[0.3, 0.3, 0.01], quat=[np.cos(tilt / 2), 0, -np.sin(tilt / 2), 0])
+    elif options.contacts:
+        _add_hole(world, np.asarray(home[:2]) + np.asarray(options.hole_offset, dtype=float),
+                  float(home[2]) - HOLE["top"])
+    for geom in spec.geoms:
+        if geom.contype:
+            geom.friction = [float(options.friction), *list(geom.friction)[1:]]
     return spec.compile()
+
+
+def _add_hole(world, centre, top: float):
+    """The square hole of :data:`HOLE` around ``centre`` (x, y) [m], its top at height ``top`` [m].
+
+    Each side is three boxes: a 20 mm wall up to the chamfer's foot (``chamfer`` below the top),
+    a wall set back by ``chamfer`` from the hole's edge that reaches the top, and between them a
+    2 mm-thick box at 45 deg whose upper face runs from the hole's edge at the chamfer's foot out
+    to the top (the chamfer).
+    """
+    w, d, c, t, e = HOLE["half_width"], HOLE["depth"], HOLE["chamfer"], 0.02, 0.001
+    for k, (ax, sign) in enumerate(((0, 1), (0, -1), (1, 1), (1, -1))):
+        normal = np.eye(3)[ax] * sign  # from the hole's axis out through this side
+        span = np.abs(np.eye(3)[1 - ax]) * (w + 2 * t + c)  # half-length along the side, past the corners
+        lower = np.array([*centre, top - c - (d - c) / 2]) + normal * (w + t)
+        world.add_geom(name=f"hole_wall_{k}", type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(lower),
+                       size=list(np.abs(normal) * t + span + np.array([0, 0, (d - c) / 2])))
+        upper = np.array([*centre, top - c / 2]) + normal * (w + c + (2 * t - c) / 2)
+        world.add_geom(name=f"hole_rim_{k}", type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(upper),
+                       size=list(np.abs(normal) * (2 * t - c) / 2 + span + np.array([0, 0, c / 2])))
+        inward_up = (-normal + np.array([0, 0, 1])) / np.sqrt(2)
+        quat = np.zeros(4)
+        mujoco.mju_quatZ2Vec(quat, inward_up)  # the box's z along the chamfer face's normal
+        frame = np.zeros(9)
+        mujoco.mju_quat2Mat(frame, quat)
+        along_x = abs(frame.reshape(3, 3)[:, 0] @ np.abs(np.eye(3)[1 - ax])) > 0.5  # the box's x lies along the side
+        half_across, half_along = c / np.sqrt(2), w + c
+        middle = np.array([*centre, top - c / 2]) + normal * (w + c / 2)
+        world.add_geom(name=f"hole_chamfer_{k}", type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(middle - inward_up * e),
+                       quat=list(quat), size=[half_along, half_across, e] if along_x else [half_across, half_along, e])
 
 
 def _rod_inertia(mass, length):
