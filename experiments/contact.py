@@ -11,8 +11,9 @@ measured on the surface scene (``IMC + force control``, quick path):
   every printed digit;
 * the elliptic friction cone instead of the pyramidal: with the pyramidal cone a sliding tool
   chatters, its normal force alternating between zero and twice its mean from one period to
-  the next (41 % of the periods off the surface, against 4 % with the elliptic cone, whose
-  force is smooth).
+  the next (on an earlier quick path, a 30 mm sweep: 41 % of the periods off the surface,
+  against 4 % with the elliptic cone).  The elliptic cone reduces the chatter; it does not
+  remove it (``docs/compliance.md``).
 """
 
 from __future__ import annotations

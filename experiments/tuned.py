@@ -9,8 +9,8 @@ branch force peaks [N], and the tuned gains' change against Table 1 [%].
 
 The tuned gains come from ``gains`` (a gain file of ``pusupu tune``, ``--gains FILE``), or,
 without it, from running the tuner here on its default configuration (``tune.config.TuneConfig``,
-what ``pusupu tune`` runs: about 9.5 min on 2 CPU cores), or on its quick one with ``quick``
-(``pusupu tune --quick``, about 2 min).  The tuner tunes in one mode (hybrid by default) the
+what ``pusupu tune`` runs; README gives its time), or on its quick one with ``quick``
+(``pusupu tune --quick``).  The tuner tunes in one mode (hybrid by default) the
 fields of its groups; in the other modes only the fields they use differ from Table 1 (PID and
 PID + velocity feedforward: the velocity loop's ``Kv``, ``Tv``).  Not a claim of the paper.
 ``quick`` runs the first :data:`QUICK_S` seconds of each path.

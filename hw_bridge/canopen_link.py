@@ -102,7 +102,7 @@ def open_bus(url: str):
 class CanLink:
     """The bridge's side: six remote CiA 402 drives, set up over SDO, driven by RPDO + SYNC, read by TPDO."""
 
-    def __init__(self, bus, drive_modes, rated_torque=None, sdo_timeout: float = 0.5):
+    def __init__(self, bus, drive_modes, rated_torque=None, sdo_timeout: float = 2.0, sdo_retries: int = 3):
         import can
         import canopen
 
@@ -116,7 +116,9 @@ class CanLink:
         self._last = None
         for k in range(N_AXES):
             node = self.network.add_node(k + 1, node_dictionary(k + 1))
-            node.sdo.RESPONSE_TIMEOUT = sdo_timeout
+            # set-up is not cyclic: wait [s] and retry (the transfers are idempotent writes and reads) rather than
+            # fail a bring-up on a loaded host (a clean-clone suite run lost one 0.5 s SDO response)
+            node.sdo.RESPONSE_TIMEOUT, node.sdo.MAX_RETRIES = sdo_timeout, sdo_retries
             node.rpdo.read(from_od=True)
             node.tpdo.read(from_od=True)
             for j in (1, 2):

@@ -119,8 +119,9 @@ def _parser() -> argparse.ArgumentParser:
     e = sub.add_parser("experiment", help="reproduce one of the paper's claims: runs, figures, JSON and a table")
     e.add_argument("name", metavar="NAME", help="arc (Fig. 7), p2p (section 4, Table 2), hybrid_grid (hybrid "
                                                  "stability across lambda2), timing (every step halved), servo "
-                                                 "(each loop: Bode, step, load-torque step, margins) or tuned "
-                                                 "(Table 1 vs pusupu tune's gains on arc and p2p, every mode)")
+                                                 "(each loop: Bode, step, load-torque step, margins), tuned "
+                                                 "(Table 1 vs pusupu tune's gains on arc and p2p, every mode), "
+                                                 "peg_in_hole (Fig. 9a) or surface_tracking (Fig. 9b)")
     e.add_argument("--out", metavar="DIR", default="experiments_out", help="output folder (default experiments_out)")
     e.add_argument("--quick", action="store_true", help="a short version (a few seconds of the paths, fewer seeds)")
     e.add_argument("--json", action="store_true", help="print the metrics as JSON instead of the table")

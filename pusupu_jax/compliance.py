@@ -20,7 +20,9 @@ needs ``dt D / M < 2`` (:func:`validate_gains` checks both, with margin).
 
 The gains' sizes are physical: the contact is a stiff spring (MuJoCo's default soft contact on
 this machine: about 6e5 N/m), so the force loop's time constant ``D / k_contact`` must stay
-slower than the position loop's (tens of ms), which puts ``D`` in the 1e4-1e5 N s/m range.
+slower than the IMC's reference filter (Table 1: lambda1 = 18 ms), which puts ``D`` in the
+1e4-1e5 N s/m range where the contact itself closes the loop (``docs/compliance.md`` has the
+lateral axes of the peg, an exception).
 """
 
 from __future__ import annotations
@@ -71,8 +73,10 @@ def validate_gains(gains: AdmittanceGains, dt: float) -> None:
     discretisation at ``dt`` [s] stable with a factor-2 margin."""
     for name in ("mass", "damping", "stiffness", "selection", "max_offset"):
         v = np.asarray(getattr(gains, name), dtype=float)
-        if not np.isfinite(v).all():
-            raise ParameterError(f"admittance.{name}: expected finite numbers, got {v.tolist()}")
+        if v.shape not in ((), (3,)) or not np.isfinite(v).all():
+            raise ParameterError(f"admittance.{name}: expected one finite number or three (x, y, z), got {v.tolist()}")
+    if (np.asarray(gains.max_offset) <= 0).any():
+        raise ParameterError(f"admittance.max_offset: expected a positive offset [m], got {gains.max_offset!r}")
     m, d, k = (np.broadcast_to(np.asarray(getattr(gains, n), dtype=float), (3,)) for n in
                ("mass", "damping", "stiffness"))
     if (m <= 0).any() or (d <= 0).any() or (k < 0).any():
@@ -85,6 +89,7 @@ def validate_gains(gains: AdmittanceGains, dt: float) -> None:
 
 
 def init() -> AdmittanceState:
+    """The admittance at rest: no offset [m], no rate [m/s]."""
     return AdmittanceState(jnp.zeros(3), jnp.zeros(3))
 
 

@@ -136,7 +136,11 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
         padded = np.concatenate([sc.path, np.repeat(sc.path[-1:], length - len(sc.path), axis=0)])
         reference = machine_reference(sv, padded, mode, options=sc.options, rates=rates)
         if compliance is not None:
-            setpoint = np.broadcast_to(np.zeros(3) if force_setpoint is None else force_setpoint, (length, 3))
+            setpoint = np.zeros(3) if force_setpoint is None else np.asarray(force_setpoint, dtype=float)
+            if setpoint.shape not in ((3,), (length, 3)) or not np.isfinite(setpoint).all():
+                raise ValueError(f"force_setpoint: expected finite forces [N] of shape (3,) or ({length}, 3), got "
+                                 f"shape {setpoint.shape}")
+            setpoint = np.broadcast_to(setpoint, (length, 3))
             reference = compliance_law.ComplianceReference(jnp.asarray(padded), jnp.asarray(setpoint), reference)
         references.append(reference)
         models.append(plant.variant(sc.options))
@@ -179,7 +183,9 @@ def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: f
                     hybrid: hybrid_law.HybridGains | None = None) -> tuple[dict, dict]:
     """The metrics of ``pusupu sim --plant mjx`` from a machine trace (host-side), and arrays for plots.
 
-    ``reference``: the rollout reference the trace followed (see :func:`machine_reference`).
+    ``reference``: the rollout reference of the run (see :func:`machine_reference`); branch errors are taken
+    against the angles the trace recorded (under compliance, the recomputed ones), and ``reference`` serves
+    hybrid mode's ``F_q``.
     """
     r = np.asarray(screw_ratio(servo))
     s_ref = np.asarray(trace.reference) * r  # the angles followed (under compliance, the recomputed ones)
@@ -208,7 +214,7 @@ def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: f
                             "force_ff_peak_n": float(np.abs(np.asarray(reference.force_ff)).max()),
                             "f_rho_rms_n": float(np.sqrt(np.mean(f_rho**2))),
                             "f_rho_peak_n": float(np.abs(f_rho).max())}
-    contact = {k: np.asarray(trace.observation[k]) for k in ("contact_force", "compliance_offset", "platform_mat")
-               if k in trace.observation}
+    observed = {k: np.asarray(trace.observation[k]) for k in ("contact_force", "compliance_offset", "platform_mat")
+                if k in trace.observation}
     return result, {"t": np.asarray(trace.t), "reference": np.asarray(path)[:, :3], "platform": platform,
-                    "branch_force": force} | contact
+                    "branch_force": force} | observed

@@ -158,7 +158,7 @@ class Pieces(NamedTuple):
     record: Any  # (carry at the period's start, reference sample, (command, current references)) -> trace entries
     dt: float
     init: Any  # (start, force_ff0) -> carry
-    observe: Any  # carry -> what the plant's observe() returns
+    observe: Any  # carry -> what the plant's observe() returns (for a law outside the cascade)
 
 
 def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.ControlMode, hybrid) -> Pieces:
@@ -220,7 +220,8 @@ def compliant_pieces(base: Pieces, params, gains: compliance_law.AdmittanceGains
     inner reference whose motor angles are the nominal inverse kinematics of ``geom`` at the
     path's pose plus the offset, ``(s(q + x_c) - s(home)) / r`` [rad].  The reference is a
     :class:`~pusupu_jax.compliance.ComplianceReference`; the trace records the angles actually
-    followed, and the observation adds ``compliance_offset`` [m] at each period's start.
+    followed, and the observation adds ``compliance_offset`` [m] at each period's start, before that
+    period's admittance step (so ``reference[k]`` follows from ``compliance_offset[k + 1]``).
     """
     if mode.closed != "position":
         raise ValueError(f"rollout: compliance needs the position loop closed, got mode {mode.name!r}")

@@ -56,7 +56,8 @@ def test_selection_and_clamp():
 
 @pytest.mark.parametrize("change, message", [
     (dict(mass=np.array([20.0, -1.0, 20.0])), "mass > 0"),
-    (dict(damping=np.full(3, np.nan)), "admittance.damping: expected finite"),
+    (dict(damping=np.full(3, np.nan)), "admittance.damping: expected one finite number or three"),
+    (dict(max_offset=0.0), "admittance.max_offset: expected a positive offset"),
     (dict(mass=np.full(3, 1.0)), "dt D/M < 1"),
 ])
 def test_bad_admittance_gains_are_named(change, message):
@@ -78,3 +79,24 @@ def test_a_compliant_run_with_nothing_touching_is_the_plain_run():
     np.testing.assert_allclose(b["platform"], a["platform"], rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(soft["branch_force_peak_n"], plain["branch_force_peak_n"], rtol=1e-12)
     assert LoopRates().dt_position == 1e-3  # the period the admittance's checks assume here
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(scene="wavy"), "ModelOptions.scene: expected one of"),
+    (dict(cone="round"), "ModelOptions.cone: expected one of"),
+    (dict(friction=-0.1), "ModelOptions.friction: expected a finite number >= 0"),
+    (dict(hole_offset=(0.001,)), "ModelOptions.hole_offset: expected"),
+])
+def test_bad_contact_options_are_named(change, message):
+    from pusupu_jax.plant.model import build_model
+
+    with pytest.raises(ValueError, match=message):
+        build_model(None, ModelOptions(contacts=True, **change))
+
+
+def test_a_force_setpoint_of_the_wrong_shape_is_named():
+    options = ModelOptions(contacts=True, solver_iterations=4, cone="elliptic")
+    path = np.repeat(np.asarray(Geometry.default().home)[None], 10, axis=0)
+    with pytest.raises(ValueError, match=r"force_setpoint: expected finite forces \[N\] of shape \(3,\) or \(10, 3\)"):
+        simulate_scenarios(ServoParams.table1(), [Scenario(path, options)], mode="imc", compliance=GAINS,
+                           force_setpoint=np.zeros((5, 3)))

@@ -182,9 +182,9 @@ def progress_printer(shard: str, stream=sys.stderr) -> Callable:
     first = {}
 
     def progress(iteration, iterations, values, elapsed):
-        first.setdefault("iteration", iteration)
-        first.setdefault("elapsed", elapsed)
-        first.setdefault("bar", ProgressBar(iterations, stream) if interactive(stream) else None)
+        if not first:
+            first.update(iteration=iteration, elapsed=elapsed,
+                         bar=ProgressBar(iterations, stream) if interactive(stream) else None)
         if first["bar"] is None:
             return print_progress(shard, iteration, iterations, values, elapsed, first["iteration"],
                                   first["elapsed"], stream)

@@ -31,7 +31,6 @@ import numpy as np
 
 with contextlib.redirect_stdout(io.StringIO()):  # MJX prints its optional GPU backends' import failures
     from mujoco import mjx
-    from mujoco.mjx._src.support import contact_force_dim  # MJX's own mj_contactForce, for every contact of a dim
 
 from .axis import screw_ratio
 from .geometry import Geometry
@@ -70,7 +69,8 @@ class MJXPlant:
         never reaches) and the height-field bounding radii (no height fields here).
         """
         other = mjx.put_model(build_model(geom, options))
-        if other.nq != self.mjx_model.nq or other.nv != self.mjx_model.nv or other.neq != self.mjx_model.neq:
+        if (other.nq, other.nv, other.neq, other.ngeom) != (self.mjx_model.nq, self.mjx_model.nv, self.mjx_model.neq,
+                                                            self.mjx_model.ngeom):
             raise ValueError("MJXPlant.variant: the options change the model's structure, not only its values")
         arrays = {f.name: getattr(other, f.name) for f in dataclasses.fields(other)
                   if isinstance(getattr(other, f.name), jax.Array)}
@@ -195,10 +195,17 @@ class MJXPlant:
         world axes.  MuJoCo's force acts on the contact's second geom along the normal, which
         points from the first geom to the second; contacts whose first geom is the tool count
         negated.  Every geom that collides is the tool or part of the scene, so each contact
-        involves the tool.
+        involves the tool.  Every geom of the scenes has MuJoCo's default ``condim`` 3, the only
+        dimension summed here.
         """
+        try:  # MJX's own decoding of mj_contactForce, for every contact of one dimension (not public API)
+            from mujoco.mjx._src.support import contact_force_dim
+            contact = data._impl.contact
+        except (ImportError, AttributeError) as e:
+            raise RuntimeError(f"MJXPlant.contact_force: needs MJX's JAX implementation with "
+                               f"mujoco.mjx._src.support.contact_force_dim and Data._impl.contact "
+                               f"(tested with mujoco-mjx 3.17): {e}") from None
         tool = self.mj_model.geom("tool").id
-        contact = data._impl.contact
         if contact.dim.size == 0:
             return jnp.zeros(3)
         force, index = contact_force_dim(model, data, 3)

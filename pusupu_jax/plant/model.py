@@ -45,6 +45,7 @@ from .kinematics import inverse_kinematics, joint_points, upu_angles, xy_hinge_a
 
 GROUP_VISUAL = 1
 SCENES = ("surface", "peg_in_hole")
+CONES = {"pyramidal": mujoco.mjtCone.mjCONE_PYRAMIDAL, "elliptic": mujoco.mjtCone.mjCONE_ELLIPTIC}
 PEG = dict(radius=0.008, top=0.12, bottom=0.18)  # m: a capsule from 120 to 180 mm under the platform centre
 # m: half-width of the square hole (0.5 mm clearance on the peg), depth, chamfer width, and the hole's top
 # below home (7 mm under the peg's tip)
@@ -96,8 +97,7 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     """Compile the mechanism; ``geom`` is the nominal geometry (default :meth:`Geometry.default`)."""
     nominal = Geometry.default() if geom is None else geom
     validate_geometry(nominal)
-    if options.scene not in SCENES:
-        raise ValueError(f"ModelOptions.scene: expected one of {SCENES}, got {options.scene!r}")
+    _check_options(options)
     real = nominal if options.kin_error_seed is None else perturbed(nominal, options.kin_error_seed,
                                                                    options.kin_error_std)
     home = np.asarray(nominal.home, dtype=float)
@@ -114,8 +114,7 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     spec.option.ls_iterations = 4
     spec.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_EULER
-    spec.option.cone = {"pyramidal": mujoco.mjtCone.mjCONE_PYRAMIDAL, "elliptic": mujoco.mjtCone.mjCONE_ELLIPTIC}[
-        options.cone]
+    spec.option.cone = CONES[options.cone]
     if not options.contacts:
         spec.option.disableflags |= mujoco.mjtDisableBit.mjDSBL_CONTACT
     spec.compiler.inertiafromgeom = False
@@ -191,7 +190,7 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
 def _add_hole(world, centre, top: float):
     """The square hole of :data:`HOLE` around ``centre`` (x, y) [m], its top at height ``top`` [m].
 
-    Each side is three boxes: a 20 mm wall up to the chamfer's foot (``chamfer`` below the top),
+    Each side is three boxes: a 40 mm-thick wall up to the chamfer's foot (``chamfer`` below the top),
     a wall set back by ``chamfer`` from the hole's edge that reaches the top, and between them a
     2 mm-thick box at 45 deg whose upper face runs from the hole's edge at the chamfer's foot out
     to the top (the chamfer).
@@ -216,6 +215,22 @@ def _add_hole(world, centre, top: float):
         middle = np.array([*centre, top - c / 2]) + normal * (w + c / 2)
         world.add_geom(name=f"hole_chamfer_{k}", type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(middle - inward_up * e),
                        quat=list(quat), size=[half_along, half_across, e] if along_x else [half_across, half_along, e])
+
+
+def _check_options(options: ModelOptions) -> None:
+    """One-line ValueError for a contact option out of its domain."""
+    if options.scene not in SCENES:
+        raise ValueError(f"ModelOptions.scene: expected one of {SCENES}, got {options.scene!r}")
+    if options.cone not in CONES:
+        raise ValueError(f"ModelOptions.cone: expected one of {tuple(CONES)}, got {options.cone!r}")
+    if not (np.isfinite(options.friction) and options.friction >= 0):
+        raise ValueError(f"ModelOptions.friction: expected a finite number >= 0, got {options.friction!r}")
+    if not (np.isfinite(options.surface_tilt) and abs(options.surface_tilt) < 0.5):
+        raise ValueError(f"ModelOptions.surface_tilt: expected a finite angle under 0.5 rad, got "
+                         f"{options.surface_tilt!r}")
+    offset = np.asarray(options.hole_offset, dtype=float)
+    if offset.shape != (2,) or not np.isfinite(offset).all() or np.abs(offset).max() > 0.02:
+        raise ValueError(f"ModelOptions.hole_offset: expected (x, y) within 20 mm [m], got {options.hole_offset!r}")
 
 
 def _rod_inertia(mass, length):
