@@ -4,8 +4,9 @@ The scene (``scene='surface'``): a 10 mm tool sphere 150 mm under the platform o
 surface tilted by 10 mrad about y (0.57 deg: 1 mm of height over the 100 mm sweep) that the
 path does not know: it is planned on the level surface.  Sliding friction 0.2 (a polished
 tool).  The path lowers the tool onto the nominal surface (at up to 50 mm/s, the last 3 mm at
-20 mm/s), then sweeps 100 mm along x at up to 20 mm/s.  Force setpoint: 30 N pressing down, ramped in over 0.3 s once the tool reaches
-the nominal surface.  ``--quick`` sweeps 20 mm.  Runs, Table 1 gains:
+20 mm/s), then sweeps 100 mm along x at up to 20 mm/s.  Force setpoint: 30 N pressing down,
+ramped in over 0.3 s once the tool reaches the nominal surface.  ``--quick`` sweeps 20 mm.
+Runs, Table 1 gains:
 
 * ``IMC, stiff``: position control of the planned path; it holds no force, it only presses
   where the surface rises into the path;

@@ -11,8 +11,9 @@ per world axis ``k`` selected by ``S_k = 1``::
 ``F_d`` is the contact force to hold, a profile along the path (the force on the tool, so
 ``+z`` presses the tool down onto a surface below it).  ``K_k = 0`` makes axis ``k`` a force
 controller: it moves until ``F_k = F_d,k``.  ``S_k = 0`` keeps axis ``k`` in position control
-(the selection of classic hybrid position/force control).  The references of the branches are the nominal inverse kinematics of
-the path's pose plus ``x_c`` (orientation unchanged), recomputed every position period.
+(the selection of classic hybrid position/force control).  The references of the branches are
+the nominal inverse kinematics of the path's pose plus ``x_c`` (orientation unchanged),
+recomputed every position period.
 
 Discretisation: semi-implicit (symplectic) Euler at the position period ``dt``, velocity
 first; for the undamped part it is stable while ``dt sqrt(K/M) < 2``, and the damping term
