@@ -62,7 +62,8 @@ def path(rates: LoopRates = LoopRates(), quick: bool = False):
 
 
 def _metrics(result: dict, arrays: dict) -> dict:
-    home_z = float(Geometry.default().home[2])
+    home = Geometry.default().home
+    home_z, hole_axis = float(home[2]), np.asarray(home[:2]) + np.asarray(OFFSET)
     tip = tool_point(arrays, PEG["bottom"] + PEG["radius"])
     depth = (home_z - HOLE["top"]) - tip[:, 2]
     force = np.asarray(arrays["contact_force"])
@@ -73,8 +74,10 @@ def _metrics(result: dict, arrays: dict) -> dict:
             "jammed": bool(depth[-1] < JAM_FRACTION * commanded),
             "peak_lateral_force_n": float(lateral.max()), "final_lateral_force_n": float(lateral[-1]),
             "peak_axial_force_n": float(np.abs(force[:, 2]).max()),
-            "contact_fraction": float(np.mean(np.linalg.norm(force, axis=1) > 1.0)),
-            "tip_lateral_offset_final_mm": (tip[-1, :2] * 1e3).tolist(),
+            # the share of position periods with more than 1 N of contact force on the tool
+            "periods_in_contact_fraction": float(np.mean(np.linalg.norm(force, axis=1) > 1.0)),
+            # where the peg's tip ends, x and y, from the hole's axis
+            "tip_from_hole_axis_final_mm": ((tip[-1, :2] - hole_axis) * 1e3).tolist(),
             "highest_branch_force_peak_n": max(result["branch_force_peak_n"]),
             "wall_s": result["wall_s"]}
 

@@ -155,7 +155,8 @@ class Pieces(NamedTuple):
     """The pieces of a rollout: one outer period, the trace record of it, the period [s] and the initial carry."""
 
     period: Any  # (carry, reference sample) -> (carry, (command, current references (m, n_axes)))
-    record: Any  # (carry at the period's start, reference sample, (command, current references)) -> trace entries
+    record: Any  # (carry at the period's start, reference sample, (command, current references)[, observation])
+    #              -> trace entries; the observation when the period already made it
     dt: float
     init: Any  # (start, force_ff0) -> carry
     observe: Any  # carry -> what the plant's observe() returns (for a law outside the cascade)
@@ -169,14 +170,14 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
     aux = plant.prepare(params, plant_params, rates.dt_mech)
     n_mech_steps = rates.n_velocity // rates.n_mech
 
-    def record(c: Carry, ref, out):
+    def record(c: Carry, ref, out, observation=None):
         command, i_refs = out
         theta, omega = plant.measure(aux, c.plant)
         x, v = plant.slider(aux, c.plant)
         i = loops.electrical_current(c.electrical)
         return dict(reference=mode.theta(ref), command=command, theta=theta, omega=omega,
                     position=x, velocity=v, current=i, torque=drive.Kt * i, current_reference=i_refs, state=c.cascade,
-                    observation=plant.observe(aux, c.plant))
+                    observation=plant.observe(aux, c.plant) if observation is None else observation)
 
     def mech_step(c: Carry, i_ref):
         _, omega = plant.measure(aux, c.plant)
@@ -233,15 +234,16 @@ def compliant_pieces(base: Pieces, params, gains: compliance_law.AdmittanceGains
         return mode.with_theta(ref.inner, (inverse_kinematics(geom, pose) - s_home) / r)
 
     def period(c: Carry, ref):
-        state = compliance_law.step(gains, c.outer, base.observe(c)["contact_force"], ref.force_setpoint, base.dt)
+        observation = base.observe(c)
+        state = compliance_law.step(gains, c.outer, observation["contact_force"], ref.force_setpoint, base.dt)
         c = c._replace(outer=state)
         inner_ref = inner(c, ref)
         c, out = base.period(c, inner_ref)
-        return c, (out, inner_ref)
+        return c, (out, inner_ref, observation)
 
     def record(c: Carry, ref, out):
-        command, inner_ref = out
-        rec = base.record(c, inner_ref, command)
+        command, inner_ref, observation = out
+        rec = base.record(c, inner_ref, command, observation)
         return rec | {"observation": rec["observation"] | {"compliance_offset": c.outer.offset}}
 
     return Pieces(period, record, base.dt,

@@ -17,7 +17,6 @@ import csv
 import hashlib
 import io
 import json
-import math
 import os
 import shutil
 import sys
@@ -174,39 +173,18 @@ def summary_row(report: dict) -> dict:
 
 
 def progress_printer(shard: str, stream=sys.stderr) -> Callable:
-    """The progress callback of a shard: a tqdm bar at a terminal or in a notebook (:class:`tune.run.ProgressBar`),
-    else a line per iteration; the rate and the ETA leave out the first iteration this process ran (it includes
-    the compile)."""
-    from .run import ProgressBar, interactive
+    """The progress callback of a shard (:class:`tune.run.Progress`): the median and best objective over its
+    members."""
+    from .run import Progress
 
-    first = {}
+    report = Progress(stream)
 
     def progress(iteration, iterations, values, elapsed):
-        if not first:
-            first.update(iteration=iteration, elapsed=elapsed,
-                         bar=ProgressBar(iterations, stream) if interactive(stream) else None)
-        if first["bar"] is None:
-            return print_progress(shard, iteration, iterations, values, elapsed, first["iteration"],
-                                  first["elapsed"], stream)
         finite = values[np.isfinite(values)]
-        first["bar"].update(iteration, elapsed, f"batch [shard {shard}]",
-                            f"J median {np.median(finite):.4f} best {finite.min():.4f} over {len(values)} member(s)"
-                            if finite.size else f"J nan over {len(values)} member(s)")
+        summary = f"J median {np.median(finite):.4f} best {finite.min():.4f}" if finite.size else "J nan"
+        report(iteration, iterations, elapsed, f"batch [shard {shard}]", f"{summary} over {len(values)} member(s)")
 
     return progress
-
-
-def print_progress(shard, iteration, iterations, values, elapsed, first_iteration, first_elapsed, stream=sys.stderr):
-    finite = values[np.isfinite(values)]
-    med = f"{np.median(finite):.4f}" if finite.size else "nan"
-    best = f"{finite.min():.4f}" if finite.size else "nan"
-    filled = round(20 * iteration / iterations)
-    done = iteration - first_iteration
-    rate = (elapsed - first_elapsed) / done if done else float("nan")
-    eta = "" if math.isnan(rate) else f", {rate:.1f} s/it, ETA {rate * (iterations - iteration):.0f} s"
-    first = f", first iteration (with the compile) {first_elapsed:.0f} s" if not done else ""
-    print(f"batch [shard {shard}] [{'#' * filled}{'.' * (20 - filled)}] {iteration}/{iterations} "
-          f"J median {med} best {best} over {len(values)} member(s){first}{eta}", file=stream, flush=True)
 
 
 def run_batch(path, out, *, ray: bool = False, address: str | None = None, workers: int | None = None,

@@ -435,26 +435,19 @@ def _values(v) -> str:
     return " ".join(f"{x:.4g}" for x in flat) if flat.size <= 6 else f"{flat.size} values {flat.min():.4g}..{flat.max():.4g}"
 
 
-def print_progress(start, iteration, iterations, value, best, aux, elapsed, starts=1, stream=sys.stderr, first=None):
-    """A line per iteration: ``tune [start 1/1] [#####.....] 12/25 J=0.7342 best=0.7310 3.1 s/it, ETA 40 s``.
+def progress_line(desc: str, done: int, total: int, summary: str, elapsed: float, first: tuple[int, float]) -> str:
+    """One line of progress: ``tune [start 1/1] [#####.....] 12/25 J=0.7342 best=0.7310 3.1 s/it, ETA 40 s``.
 
-    The bar covers the whole run (every start); a line each, so that logs of batch jobs keep the history.
     ``first``: ``(iterations done, elapsed s)`` at the first iteration this process ran, whose time includes the
-    compile: the rate and the ETA leave it out (the first line gives its time instead); None: the mean over all.
+    compile: the rate and the ETA leave it out, and that first line gives its time instead.
     """
-    done = start * iterations + iteration
-    total = starts * iterations
     filled = round(20 * done / total)
-    if first is None:
-        rate = elapsed / max(done, 1)
-        timing = f"{rate:.1f} s/it, ETA {rate * (total - done):.0f} s"
-    elif done > first[0]:
+    if done > first[0]:
         rate = (elapsed - first[1]) / (done - first[0])
         timing = f"{rate:.1f} s/it, ETA {rate * (total - done):.0f} s"
     else:
         timing = f"first iteration (with the compile) {elapsed:.0f} s"
-    print(f"tune [start {start + 1}/{starts}] [{'#' * filled}{'.' * (20 - filled)}] {iteration}/{iterations} "
-          f"J={value:.4f} best={best:.4f} {timing}", file=stream, flush=True)
+    return f"{desc} [{'#' * filled}{'.' * (20 - filled)}] {done}/{total} {summary} {timing}"
 
 
 def interactive(stream) -> bool:
@@ -504,19 +497,30 @@ class ProgressBar:
             self.bar.close()
 
 
+class Progress:
+    """Progress over iterations: a :class:`ProgressBar` where :func:`interactive`, else a :func:`progress_line` per
+    iteration (logs of batch jobs keep the history). Both keep the first iteration this process ran, with the
+    compile, out of the rate and the ETA. Call it with ``(done, total, elapsed s, description, summary)``."""
+
+    def __init__(self, stream=sys.stderr):
+        self.stream, self.first, self.bar = stream, None, None
+
+    def __call__(self, done: int, total: int, elapsed: float, desc: str, summary: str) -> None:
+        if self.first is None:
+            self.first = (done, elapsed)
+            self.bar = ProgressBar(total, self.stream) if interactive(self.stream) else None
+        if self.bar is not None:
+            return self.bar.update(done, elapsed, desc, summary)
+        print(progress_line(desc, done, total, summary, elapsed, self.first), file=self.stream, flush=True)
+
+
 def progress_reporter(starts: int = 1, stream=sys.stderr) -> Callable:
-    """The ``progress`` callback of :func:`optimise` for ``pusupu tune`` and notebooks: a :class:`ProgressBar` where
-    :func:`interactive`, else :func:`print_progress` lines; both keep the first iteration this process ran (with
-    the compile) out of the rate and the ETA."""
-    first, bar = [], []
+    """The ``progress`` callback of :func:`optimise` for ``pusupu tune`` and notebooks (:class:`Progress`); the
+    bar covers every start."""
+    report = Progress(stream)
 
     def progress(start, iteration, iterations, value, best, aux, elapsed):
-        done = start * iterations + iteration
-        if not first:
-            first.append((done, elapsed))
-            bar.append(ProgressBar(starts * iterations, stream) if interactive(stream) else None)
-        if bar[0] is None:
-            return print_progress(start, iteration, iterations, value, best, aux, elapsed, starts, stream, first[0])
-        bar[0].update(done, elapsed, f"tune [start {start + 1}/{starts}]", f"J={value:.4f} best={best:.4f}")
+        report(start * iterations + iteration, starts * iterations, elapsed, f"tune [start {start + 1}/{starts}]",
+               f"J={value:.4f} best={best:.4f}")
 
     return progress
