@@ -344,9 +344,10 @@ class CanServer:
             self.robot.watch(time.monotonic())
 
 
-def main_loop(model: RobotModel, listen: str, faults, max_s=None) -> int:
-    """Serve on ``listen`` (udp://HOST:PORT or can://INTERFACE/CHANNEL) until interrupted; one line when ready."""
-    robot = SimRobot(model, faults, log=lambda m: print(m, file=sys.stderr, flush=True))
+def main_loop(model: RobotModel, listen: str, faults, max_s=None, watchdog_s: float = 0.05) -> int:
+    """Serve on ``listen`` (udp://HOST:PORT or can://INTERFACE/CHANNEL) until interrupted; one line when ready.
+    ``watchdog_s``: the drives' sync watchdog (:meth:`SimRobot.watch`) [s]."""
+    robot = SimRobot(model, faults, watchdog_s, log=lambda m: print(m, file=sys.stderr, flush=True))
     if listen.startswith("can://"):
         from .canopen_link import open_bus
 

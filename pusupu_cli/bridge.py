@@ -42,6 +42,9 @@ def add_parsers(sub) -> None:
                    help="a fault for the next session (repeat for later sessions): stop, delay, drop, reorder, "
                         "corrupt, nan, range, garbage or none, S seconds after enable (hw_bridge/sim_robot.py)")
     r.add_argument("--seconds", type=float, metavar="S", help="serve for S seconds, then exit (default: until ^C)")
+    r.add_argument("--drive-watchdog", type=float, default=0.05, metavar="S",
+                   help="the drives' sync watchdog: enabled and no command for S seconds, they fault and brake "
+                        "(default 0.05)")
 
 
 def _robot_url(url: str):
@@ -218,6 +221,8 @@ def run_sim_robot(args) -> int:
             parse_url(args.listen)
         except ValueError as e:
             raise ParameterError(f"--listen: {e}") from None
+    if not 0.0 < args.drive_watchdog <= 60.0:
+        raise ParameterError(f"--drive-watchdog: expected seconds in (0, 60], got {args.drive_watchdog}")
     g = gains.load(args.gains)
     setup_jax()
     from hw_bridge.sim_robot import FaultSpec, RobotModel, main_loop
@@ -233,4 +238,4 @@ def run_sim_robot(args) -> int:
     except ValueError as e:
         raise ParameterError(str(e)) from None
     model = RobotModel(g, args.rate, args.kin_error, cst=bool((codes == 10).any()))
-    return main_loop(model, args.listen, faults, args.seconds)
+    return main_loop(model, args.listen, faults, args.seconds, args.drive_watchdog)

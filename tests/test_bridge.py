@@ -239,7 +239,12 @@ def _pure_arc():
         rates = plan(g, None, RATE)[1]
         path = platform_path("arc", Geometry.default().home, rates)[:int(SECONDS * RATE)]
         return simulate_machine(SERVO, path, mode="imc", rates=rates, options=ModelOptions(timestep=rates.dt_velocity))[0]
-FAULTS = ["none", "stop@0.3:2", "nan@0.3", "range@0.3", "drop@0.3", "delay@0.3:0.05", "reorder@0.3:12",
+# the simulated drives' own sync watchdog [s]: the lock-step sessions below wait on the bridge's scheduling, not a
+# clock, and a clean-clone CI run once saw 50 ms (the default) pass between two commands while the other test worker
+# compiled. The bridge's own watchdog, which these tests are about, counts cycles: replies delayed by 3 s (longer than
+# 5 cycles of 0.2 s lock-step waits) go stale by it alone
+DRIVE_WATCHDOG_S = 2.0
+FAULTS = ["none", "stop@0.3:2", "nan@0.3", "range@0.3", "drop@0.3", "delay@0.3:3", "reorder@0.3:12",
           "garbage@0.0"]
 
 
@@ -254,7 +259,7 @@ def robot(tmp_path_factory):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     cmd = [sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen",
-           f"udp://127.0.0.1:{port}", "--seconds", str(TIMEOUT), "--rate", str(RATE)] + [a for f in FAULTS for a in ("--fault", f)]
+           f"udp://127.0.0.1:{port}", "--seconds", str(TIMEOUT), "--rate", str(RATE), "--drive-watchdog", str(DRIVE_WATCHDOG_S)] + [a for f in FAULTS for a in ("--fault", f)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ.copy())
     line = proc.stdout.readline()
     assert "listening" in line, proc.stderr.read()
@@ -357,7 +362,8 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
     path = gains.write(tmp_path / "imc.yaml", SERVO, HybridGains(), RATES, mode="imc")
     url = f"can://udp_multicast/239.74.{np.random.default_rng().integers(1, 255)}.{os.getpid() % 250 + 1}"
     proc = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen", url,
-                             "--rate", str(RATE), "--seconds", str(TIMEOUT), "--fault", "none", "--fault",
+                             "--rate", str(RATE), "--seconds", str(TIMEOUT), "--drive-watchdog", str(DRIVE_WATCHDOG_S),
+                             "--fault", "none", "--fault",
                              "stop@0.3:2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert "listening" in proc.stdout.readline(), proc.stderr.read()
