@@ -187,7 +187,10 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
     def velocity_period(c: Carry, w_ref, i_force=None):
         _, omega = plant.measure(aux, c.plant)
         sc, i_ref = cascade_.velocity_tick(drive, mode, c.cascade, w_ref, omega, i_force)
-        c, _ = jax.lax.scan(lambda cc, _: mech_step(cc, i_ref), c._replace(cascade=sc), None, length=n_mech_steps)
+        c = c._replace(cascade=sc)
+        if n_mech_steps == 1:  # the machine's case: a scan of one step is one more level for the gradient to nest
+            return mech_step(c, i_ref)[0], i_ref
+        c, _ = jax.lax.scan(lambda cc, _: mech_step(cc, i_ref), c, None, length=n_mech_steps)
         return c, i_ref
 
     def position_period(c: Carry, ref):

@@ -1,0 +1,112 @@
+"""The tuner's cold start: trace and compile time of its programs, with an empty compile cache (JSON on stdout).
+
+``pusupu tune`` compiles two programs before its first iteration: the forward pass over the whole paths (which
+renews the training windows' start states) and the gradient over the windows.  Each is measured apart, as
+``jit(...).lower()`` (the trace, to a jaxpr and then StableHLO) and ``.compile()`` (XLA), then the gradient is run
+once.  Every measurement runs in a fresh interpreter with an empty persistent compile cache, so nothing is reused.
+
+``--against DIR`` measures another source tree the same way (for example ``git archive main`` unpacked there),
+alternating the two ``--repeat`` times, so that both see the same machine load::
+
+    python benchmarks/bench_cold_start.py [--config default|quick] [--against DIR] [--xla-flags FLAGS] [--repeat 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+CHILD = r"""
+import json, sys, time
+t0 = time.perf_counter()
+import jax, jax.numpy as jnp
+from pusupu_jax.config import setup_jax
+setup_jax(sys.argv[2])
+from pusupu_jax import objectives
+from pusupu_jax.hybrid import HybridGains
+from pusupu_jax.params import ServoParams
+from tune.config import TuneConfig
+from tune.run import Problem
+
+cfg = TuneConfig.quick() if sys.argv[1] == "quick" else TuneConfig()
+out = {"import_s": time.perf_counter() - t0}
+t = time.perf_counter()
+p = Problem(cfg, ServoParams.table1(), HybridGains())
+out["problem_s"] = time.perf_counter() - t
+z0 = p.space.z0()
+servo, hybrid = p.space.apply(z0)
+out["forward_trace_s"] = out["forward_compile_s"] = 0.0
+for idx, models, refs in p.scenarios.groups.values():
+    t = time.perf_counter()
+    lowered = p._whole.lower(servo, hybrid, models, refs)
+    out["forward_trace_s"] += time.perf_counter() - t
+    t = time.perf_counter()
+    lowered.compile()
+    out["forward_compile_s"] += time.perf_counter() - t
+p.refresh(z0)
+ones = {k: jnp.ones(p.rows) for k in objectives.TERMS}
+t = time.perf_counter()
+lowered = p._value_and_grad.lower(z0, ones, p.starts, p.windows)
+out["gradient_trace_s"] = time.perf_counter() - t
+t = time.perf_counter()
+compiled = lowered.compile()
+out["gradient_compile_s"] = time.perf_counter() - t
+for key in ("gradient_first_run_s", "gradient_run_s"):
+    t = time.perf_counter()
+    jax.block_until_ready(compiled(z0, ones, p.starts, p.windows))
+    out[key] = time.perf_counter() - t
+out["trace_and_compile_s"] = sum(out[k] for k in ("forward_trace_s", "forward_compile_s", "gradient_trace_s",
+                                                  "gradient_compile_s"))
+print(json.dumps(out))
+"""
+
+
+def measure(tree: Path, config: str, xla_flags: str = "") -> dict:
+    """One cold measurement of ``tree`` in a fresh interpreter with an empty compile cache (and ``xla_flags`` added
+    to ``XLA_FLAGS``)."""
+    with tempfile.TemporaryDirectory(prefix="pusupu-cold-") as cache:
+        env = dict(os.environ, PYTHONPATH=str(tree), XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {xla_flags}".strip())
+        env.pop("PUSUPU_JAX_CACHE", None)
+        done = subprocess.run([sys.executable, "-c", CHILD, config, cache], env=env, cwd=tree, capture_output=True,
+                              text=True, timeout=3600)
+    if done.returncode:
+        raise SystemExit(f"bench_cold_start: the run in {tree} failed: {done.stderr.strip().splitlines()[-1:]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default="default", choices=("default", "quick"),
+                    help="TuneConfig() (what plain `pusupu tune` runs) or TuneConfig.quick()")
+    ap.add_argument("--against", type=Path, help="another source tree to measure the same way")
+    ap.add_argument("--xla-flags", action="append", default=[], metavar="FLAGS",
+                    help="also measure this tree with FLAGS added to XLA_FLAGS (repeatable)")
+    ap.add_argument("--repeat", type=int, default=1, help="cold runs of each tree, alternating")
+    args = ap.parse_args()
+    here = Path(__file__).resolve().parent.parent
+    trees = {"this": (here, "")} | ({"against": (args.against.resolve(), "")} if args.against else {})
+    trees |= {f"this {flags}": (here, flags) for flags in args.xla_flags}
+    runs = {name: [] for name in trees}
+    for r in range(args.repeat):
+        for name, (tree, flags) in trees.items():
+            runs[name].append(measure(tree, args.config, flags))
+            print(f"bench_cold_start: {name} run {r + 1}/{args.repeat}: trace and compile "
+                  f"{runs[name][-1]['trace_and_compile_s']:.1f} s", file=sys.stderr, flush=True)
+    result = {"benchmark": "cold_start", "config": args.config, "machine": platform.machine(),
+              "cpus": os.cpu_count(), "trees": {k: str(v[0]) for k, v in trees.items()}, "runs": runs,
+              "median_trace_and_compile_s": {k: sorted(r["trace_and_compile_s"] for r in v)[len(v) // 2]
+                                             for k, v in runs.items()}}
+    if args.against:
+        m = result["median_trace_and_compile_s"]
+        result["ratio_this_over_against"] = m["this"] / m["against"]
+    print(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
