@@ -76,7 +76,8 @@ def measure(tree: Path, config: str, xla_flags: str = "") -> dict:
         done = subprocess.run([sys.executable, "-c", CHILD, config, cache], env=env, cwd=tree, capture_output=True,
                               text=True, timeout=3600)
     if done.returncode:
-        raise SystemExit(f"bench_cold_start: the run in {tree} failed: {done.stderr.strip().splitlines()[-1:]}")
+        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+        raise SystemExit(f"bench_cold_start: the run in {tree} failed: {last}")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
@@ -89,6 +90,10 @@ def main() -> None:
                     help="also measure this tree with FLAGS added to XLA_FLAGS (repeatable)")
     ap.add_argument("--repeat", type=int, default=1, help="cold runs of each tree, alternating")
     args = ap.parse_args()
+    if args.repeat < 1:
+        ap.error(f"--repeat: expected at least 1 run, got {args.repeat}")
+    if args.against and not (args.against / "pusupu_jax").is_dir():
+        ap.error(f"--against: expected a source tree with pusupu_jax/, got {args.against}")
     here = Path(__file__).resolve().parent.parent
     trees = {"this": (here, "")} | ({"against": (args.against.resolve(), "")} if args.against else {})
     trees |= {f"this {flags}": (here, flags) for flags in args.xla_flags}

@@ -259,7 +259,8 @@ def robot(tmp_path_factory):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     cmd = [sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen",
-           f"udp://127.0.0.1:{port}", "--seconds", str(TIMEOUT), "--rate", str(RATE), "--drive-watchdog", str(DRIVE_WATCHDOG_S)] + [a for f in FAULTS for a in ("--fault", f)]
+           f"udp://127.0.0.1:{port}", "--seconds", str(TIMEOUT), "--rate", str(RATE),
+           "--drive-watchdog", str(DRIVE_WATCHDOG_S)] + [a for f in FAULTS for a in ("--fault", f)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ.copy())
     line = proc.stdout.readline()
     assert "listening" in line, proc.stderr.read()
