@@ -20,12 +20,15 @@ Agreement with python-control is a test (0.5 deg, 0.1 dB).
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from .cascade import control_mode
 from .params import arrays
 from .plant.axis import screw_ratio
 
-W_GRID = jnp.logspace(-2, 6, 4001)  # rad/s
+# rad/s; numpy, so that it is float64 whenever it is made: a jnp array made on import, before
+# float64 is enabled (as in a Ray worker, which imports this before calling setup_jax), was float32
+W_GRID = np.logspace(-2, 6, 4001)
 
 
 def _tf(num, den, s):

@@ -97,3 +97,28 @@ def test_large_vmapped_batch_completes():
             "[jax.block_until_ready(simulate(ps, np.zeros(5))) for _ in range(2)]; print('ok')")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert r.stdout.strip() == "ok", r.stderr[-2000:]
+
+
+def test_importing_the_packages_makes_no_jax_array():
+    """No module makes a JAX array on import (fresh interpreter, float64 off as JAX starts).  Such an array takes
+    the float width in force on import: margins' frequency grid was float32 in every process that imported the
+    package before enabling float64 (the CLI, Ray's workers), so their programs differed from this suite's."""
+    import subprocess
+    import sys
+
+    code = """
+import importlib, pkgutil, sys
+import jax
+names = []
+for package in ("pusupu_jax", "tune", "hw_bridge", "experiments", "pusupu_cli"):
+    root = importlib.import_module(package)
+    names += [package] + [m.name for m in pkgutil.walk_packages(root.__path__, package + ".")
+                          if not m.name.endswith("__main__")]
+found = []
+for name in names:
+    module = importlib.import_module(name)
+    found += [f"{name}.{k}" for k, v in vars(module).items() if isinstance(v, jax.Array)]
+print(found, jax.config.jax_enable_x64)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.stdout.split() == ["[]", "False"], out.stdout + out.stderr[-2000:]
