@@ -105,11 +105,13 @@ def test_a_bad_hybrid_section_exits_2_naming_the_gain(tmp_path):
     assert r.returncode == 2 and "HybridGains.c6: expected a finite non-negative" in r.stderr, r.stderr
 
 
+# one 0.1 s window of a 0.3 s path, as tests/test_batch.py's jobs: tuning one of them alone there runs the programs
+# this command compiled (persistent cache), since a kinematic-error seed or payload only changes their arguments
 TINY_TUNE = """\
 trajectories: [p2p]
 path_s: 0.3
-windows: 2
-window_s: 0.05
+windows: 1
+window_s: 0.1
 refresh_every: 2
 iterations: 6
 checkpoint_every: 2
@@ -119,7 +121,7 @@ baselines: [pid]
 
 @pytest.fixture(scope="module")
 def tuned(tmp_path_factory):
-    """One uninterrupted tiny tuning run (hybrid mode, two 50 ms windows of the p2p path's first 0.3 s): its folder
+    """One uninterrupted tiny tuning run (hybrid mode, one 0.1 s window of the p2p path's first 0.3 s): its folder
     and report."""
     folder = tmp_path_factory.mktemp("tune")
     (folder / "tiny.yaml").write_text(TINY_TUNE)

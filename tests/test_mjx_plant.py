@@ -255,15 +255,12 @@ def test_gradient_through_contact_matches_central_differences():
     assert abs(ad - fd) <= 1e-6 * abs(fd), (ad, fd)
 
 
-def _tracking_and_torque_peak(params, hybrid, reference, outer):
-    """Mean squared motor-angle error [rad^2] + 0.01 x a smooth torque peak (log-sum-exp, sharpness 20 /(N m))."""
-    trace = rollout(params, None, reference, plant=PLANT, rates=RATES, outer=outer, hybrid=hybrid)
+def _tracking_and_torque_peak(params, reference):
+    """IMC mode: mean squared motor-angle error [rad^2] + 0.01 x a smooth torque peak (log-sum-exp, sharpness
+    20 /(N m))."""
+    trace = rollout(params, None, reference, plant=PLANT, rates=RATES, outer="imc")
     peak = jax.nn.logsumexp(20.0 * jnp.abs(trace.torque), axis=0) / 20.0
     return jnp.mean((trace.theta - trace.reference) ** 2) + 1e-2 * jnp.mean(peak)
-
-
-_objective = jax.jit(_tracking_and_torque_peak, static_argnames="outer")
-_gradient = jax.jit(jax.grad(_tracking_and_torque_peak, argnums=(0, 1)), static_argnames="outer")
 
 
 def _short_path(n=50):
@@ -279,34 +276,23 @@ def _short_move(outer):
     return machine_reference(SERVO, _short_path(), outer, rates=RATES)
 
 
-# hybrid mode with the default force law is left to test_every_objective_term_has_the_gradient_of_central_differences
-# below (lambda2, m6, c6, g among its fields, every term, both gradient modes): a case here cost a compile (130 s)
-@pytest.mark.parametrize("outer, hybrid, names", [
-    ("imc", None, ("lambda1", "lambda2", "Kv", "Tv")),
-    ("hybrid", HybridGains(form="rms"), ("lambda2", "m6", "c6", "g")),
-])
-def test_gradient_through_the_cosimulation_matches_central_differences(outer, hybrid, names):
-    """Reverse mode through cascade + MJX (50 ms: 200 MJX steps, 1000 current ticks); relative error <= 1e-3.
-
-    Observed (imc): 1.4e-6 (lambda1), 3.8e-7 (lambda2), 6.8e-10 (Kv), 1.8e-6 (Tv).  The
-    hybrid gains are scalars shared by the machine; servo gains are perturbed on axis 0.
-    """
-    ref = _short_move(outer)
-    grad = _gradient(SERVO, hybrid, ref, outer)
-    for name in names:
-        if hasattr(SERVO, name):
-            v = np.asarray(getattr(SERVO, name))
-            e = np.zeros(6)
-            e[0] = 1e-4 * abs(v[0])
-            plus, minus, step = SERVO.replace(**{name: v + e}), SERVO.replace(**{name: v - e}), e[0]
-            fd = (_objective(plus, hybrid, ref, outer) - _objective(minus, hybrid, ref, outer)) / (2 * step)
-            ad = float(np.asarray(getattr(grad[0], name))[0])
-        else:  # the force law is linear in its gains: a wider step keeps round-off out of tiny gradients
-            v = float(getattr(hybrid, name))
-            step = 1e-2 * v
-            fd = (_objective(SERVO, hybrid.replace(**{name: v + step}), ref, outer)
-                  - _objective(SERVO, hybrid.replace(**{name: v - step}), ref, outer)) / (2 * step)
-            ad = float(getattr(grad[1], name))
+# Hybrid mode is left to test_every_objective_term_has_the_gradient_of_central_differences below (lambda1, lambda2,
+# m6, c6, g, every term, both gradient modes, the default signed form); the rms form differs from it only in rho',
+# whose gradient tests/test_hybrid.py checks in the force law itself.  A hybrid case here cost a compile (100 s).
+def test_gradient_through_the_cosimulation_matches_central_differences():
+    """Reverse mode through cascade + MJX in IMC mode (50 ms: 200 MJX steps, 1000 current ticks), servo gains
+    perturbed on axis 0: relative error <= 1e-3.  Observed: 1.4e-6 (lambda1), 3.8e-7 (lambda2), 6.8e-10 (Kv),
+    1.8e-6 (Tv)."""
+    ref = _short_move("imc")
+    objective = jax.jit(_tracking_and_torque_peak)
+    grad = jax.jit(jax.grad(_tracking_and_torque_peak))(SERVO, ref)
+    for name in ("lambda1", "lambda2", "Kv", "Tv"):
+        v = np.asarray(getattr(SERVO, name))
+        e = np.zeros(6)
+        e[0] = 1e-4 * abs(v[0])
+        plus, minus = SERVO.replace(**{name: v + e}), SERVO.replace(**{name: v - e})
+        fd = (objective(plus, ref) - objective(minus, ref)) / (2 * e[0])
+        ad = float(np.asarray(getattr(grad, name))[0])
         assert fd != 0.0, name
         assert abs(ad - fd) <= 1e-3 * abs(fd), (name, ad, float(fd))
 
@@ -388,13 +374,20 @@ def test_the_spherical_joints_jacobian_is_the_derivative_of_their_gap():
     pose off home: observed 2e-16."""
     aux = PLANT.prepare(SERVO, PLANT.variant(M.ModelOptions(kin_error_seed=3)), RATES.dt_mech)
     qpos = jnp.asarray(M.assembled_qpos(PLANT.mj_model, G, POSES[0]))
-    d = mjx.forward(aux.model, PLANT.init(aux).replace(qpos=qpos))
 
-    def gap(q):
-        k = mjx.kinematics(aux.model, d.replace(qpos=q))
-        return M.connect_gap(PLANT.mj_model, k.xpos, k.xmat, aux.model.eq_data).reshape(-1)
+    @jax.jit  # one compile, not MJX's thousands of operations dispatched (and compiled) one by one
+    def both(a, q):
+        model = a.model
+        d = mjx.forward(model, PLANT.init(a).replace(qpos=q))
 
-    np.testing.assert_allclose(PLANT._connect_jacobian(aux.model, d), jax.jacfwd(gap)(qpos), atol=1e-12)
+        def gap(q):
+            k = mjx.kinematics(model, d.replace(qpos=q))
+            return M.connect_gap(PLANT.mj_model, k.xpos, k.xmat, model.eq_data).reshape(-1)
+
+        return PLANT._connect_jacobian(model, d), jax.jacfwd(gap)(q)
+
+    connect, autodiff = both(aux, qpos)
+    np.testing.assert_allclose(connect, autodiff, atol=1e-12)
 
 
 def test_printed_form_started_as_before_reproduces_the_old_figures():
