@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
+import threading
 import time
 import warnings
 
@@ -180,18 +182,43 @@ def main(argv=None) -> int:
     commands = {"analyze": _analyze, "sim": _sim, "tune": _tune, "batch": _batch, "experiment": _experiment,
                 "gains": _gains,
                 "bridge": bridge_cli.run_bridge, "sim-robot": bridge_cli.run_sim_robot}
+    interrupts, previous = _count_interrupts()
     try:
-        return commands[args.command](args)
+        status = commands[args.command](args)
+        if interrupts:  # a Ctrl-C whose KeyboardInterrupt Python dropped (see _count_interrupts)
+            raise KeyboardInterrupt
+        return status
     except (ParameterError, FloatingPointError) as e:  # bad input; a tuning run that went non-finite
         _fail(str(e))
     except OSError as e:  # a full disk, a folder that vanished: the old files are intact (atomic writes)
         _fail(f"{e.filename + ': ' if e.filename else ''}{e.strerror or e}")
     except KeyboardInterrupt:
-        where = {"tune": f" (the checkpoint in {args.out} keeps the run: the same command resumes it)",
-                 "batch": f" (the checkpoints in {args.out} keep the run: the same command resumes it)"}
-        where = where.get(args.command, "")
+        kept = {"tune": "the checkpoint in {} keeps", "batch": "the checkpoints in {} keep"}.get(args.command)
+        where = f" ({kept.format(args.out)} the run: the same command resumes it)" if kept else ""
         print(f"pusupu: interrupted{where}", file=sys.stderr)
         return 130
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+
+
+def _count_interrupts():
+    """``(count, previous handler)``: Ctrl-C raises KeyboardInterrupt as Python's own handler does, and is counted.
+
+    Python drops an exception raised inside a garbage-collector callback (JAX registers one), so a
+    Ctrl-C landing there was lost and the command ran on to exit 0; the count makes it end with 130
+    once the command returns.  Where SIGINT is ignored or handled by someone else, nothing changes.
+    """
+    seen = []
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        return seen, None
+
+    def on_sigint(signum, frame):
+        seen.append(signum)
+        raise KeyboardInterrupt
+
+    return seen, signal.signal(signal.SIGINT, on_sigint)
 
 
 def _file_backend() -> None:
