@@ -3,7 +3,8 @@
 One small job file serves every test, so that the batch's gradient compiles once (the Ray
 workers load it from the persistent cache): three scenarios that run (two seeds and payloads on
 both paths, one with longer rods), one with a misspelt key and one whose home leaves the
-workspace; two starts each; 3 iterations on one 0.1 s window of the paths' first 0.3 s.
+workspace; two starts each; 3 iterations on two 0.1 s windows of the paths' first 0.3 s (the shape of
+tests/test_cli.py's tune, so that tuning a job alone loads that command's compiled programs).
 """
 
 import json
@@ -27,7 +28,7 @@ from tune import jobfile
 from tune.batchjob import run_batch
 from tune.run import Problem, optimise
 
-TUNE = {"iterations": 3, "refresh_every": 1, "checkpoint_every": 1, "windows": 1, "window_s": 0.1, "starts": 2}
+TUNE = {"iterations": 3, "refresh_every": 1, "checkpoint_every": 1, "windows": 2, "window_s": 0.1, "starts": 2}
 SCENARIOS = [
     {"name": "arc-s1", "trajectory": "arc", "kin_error_seed": 1, "path_s": 0.3},
     {"name": "p2p-s2-5kg", "trajectory": "p2p", "kin_error_seed": 2, "payload": 5.0, "path_s": 0.3},
@@ -93,7 +94,7 @@ def test_scenario_errors_fail_their_own_job_only(tmp_path):
     assert [n for n, e in errors.items() if e is None] == RUNS
     assert "unknown key 'payloda'" in errors["typo"]
     assert "leaves the workspace" in errors["too-low"] and "out of stroke" in errors["too-low"]
-    robust = JOB | {"problems": "robust", "scenarios": SCENARIOS[:2] + [SCENARIOS[0] | {"name": "x", "windows": 2}]}
+    robust = JOB | {"problems": "robust", "scenarios": SCENARIOS[:2] + [SCENARIOS[0] | {"name": "x", "windows": 3}]}
     (job,) = jobfile.read(_write(tmp_path / "robust.yaml", robust)).jobs
     assert "one mode, windows and window_s" in job.error
     assert len(jobfile.groups(jf.jobs)) == 1  # the three runnable jobs share one compiled gradient

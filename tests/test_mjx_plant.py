@@ -277,7 +277,7 @@ def _short_move(outer):
 
 
 # Hybrid mode is left to test_every_objective_term_has_the_gradient_of_central_differences below (lambda1, lambda2,
-# m6, c6, g, every term, both gradient modes, the default signed form); the rms form differs from it only in rho',
+# T0, m6, c6, g, every term, both gradient modes, the default signed form); the rms form differs from it only in rho',
 # whose gradient tests/test_hybrid.py checks in the force law itself.  A hybrid case here cost a compile (100 s).
 def test_gradient_through_the_cosimulation_matches_central_differences():
     """Reverse mode through cascade + MJX in IMC mode (50 ms: 200 MJX steps, 1000 current ticks), servo gains
@@ -299,7 +299,7 @@ def test_gradient_through_the_cosimulation_matches_central_differences():
 
 def test_every_objective_term_has_the_gradient_of_central_differences():
     """Each term of pusupu_jax.objectives through hybrid mode on the machine (50 ms), d/d(log gain) for the
-    tuner's default fields (shared lambda1, lambda2 and m6, c6, g), in reverse and in forward mode: relative
+    tuner's default fields (shared lambda1, lambda2, T0 and m6, c6, g), in reverse and in forward mode: relative
     error <= 1e-3, or within 1e-7 of the term's size.  Observed: 1e-7 to 2e-5 where the gradient is
     substantial (lambda2, c6 on every term); up to 1e-2 only on gradients 1e-6 of the term or smaller (g and
     m6 on a 50 ms run, lambda1 on force_peak).  The two modes agree to 1e-9 of the term's size: they differ

@@ -103,22 +103,28 @@ def test_importing_the_packages_makes_no_jax_array():
     """No module makes a JAX array on import (fresh interpreter, float64 off as JAX starts).  Such an array takes
     the float width in force on import: margins' frequency grid was float32 in every process that imported the
     package before enabling float64 (the CLI, Ray's workers), so their programs differed from this suite's."""
+    import json
+    import os
     import subprocess
     import sys
 
     code = """
-import importlib, pkgutil, sys
+import importlib, json, pkgutil
 import jax
 names = []
 for package in ("pusupu_jax", "tune", "hw_bridge", "experiments", "pusupu_cli"):
     root = importlib.import_module(package)
     names += [package] + [m.name for m in pkgutil.walk_packages(root.__path__, package + ".")
                           if not m.name.endswith("__main__")]
-found = []
+named = []
 for name in names:
     module = importlib.import_module(name)
-    found += [f"{name}.{k}" for k, v in vars(module).items() if isinstance(v, jax.Array)]
-print(found, jax.config.jax_enable_x64)
+    named += [f"{name}.{k}" for k, v in vars(module).items() if isinstance(v, jax.Array)]
+print(json.dumps({"modules": names, "named": named, "live": len(jax.live_arrays()), "x64": jax.config.jax_enable_x64}))
 """
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
-    assert out.stdout.split() == ["[]", "False"], out.stdout + out.stderr[-2000:]
+    env = {k: v for k, v in os.environ.items() if k != "JAX_ENABLE_X64"}
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, env=env)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert {"pusupu_jax.margins", "pusupu_jax.plant.mjx_plant", "tune.batch", "hw_bridge.loop"} <= set(out["modules"])
+    assert out["named"] == [] and out["live"] == 0 and out["x64"] is False, out
