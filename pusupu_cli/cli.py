@@ -18,6 +18,7 @@ Errors in the input print one line ``pusupu: error: ...`` and exit with status 2
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import signal
 import sys
@@ -183,6 +184,8 @@ def main(argv=None) -> int:
                 "gains": _gains,
                 "bridge": bridge_cli.run_bridge, "sim-robot": bridge_cli.run_sim_robot}
     interrupts, previous = _count_interrupts()
+    unraisable = sys.unraisablehook
+    sys.unraisablehook = functools.partial(_quiet_dropped_interrupt, unraisable, interrupts)
     try:
         status = commands[args.command](args)
         if interrupts:  # a Ctrl-C whose KeyboardInterrupt Python dropped (see _count_interrupts)
@@ -198,8 +201,16 @@ def main(argv=None) -> int:
         print(f"pusupu: interrupted{where}", file=sys.stderr)
         return 130
     finally:
+        sys.unraisablehook = unraisable
         if previous is not None:
             signal.signal(signal.SIGINT, previous)
+
+
+def _quiet_dropped_interrupt(hook, interrupts, unraisable) -> None:
+    """Leave out Python's 'Exception ignored in ...' traceback for a dropped Ctrl-C that ``interrupts`` counted (the
+    command ends with one line and 130); pass every other dropped exception on to ``hook``."""
+    if not (interrupts and isinstance(unraisable.exc_value, KeyboardInterrupt)):
+        hook(unraisable)
 
 
 def _count_interrupts():

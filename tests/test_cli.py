@@ -205,7 +205,8 @@ def test_ctrl_c_during_a_tune_ends_with_one_line(tuned, tmp_path):
 def test_a_ctrl_c_that_python_drops_in_a_gc_callback_still_ends_with_130():
     """A Ctrl-C landing in a garbage-collector callback (JAX registers one): Python drops its KeyboardInterrupt
     ('Exception ignored in ...'), and the command used to run on to exit 0 (seen once in this suite's Ctrl-C test).
-    Here a callback sends SIGINT and lets the handler run inside it; the command finishes and exits 130.  (Before,
+    Here a callback sends SIGINT and lets the handler run inside it; the command finishes and exits 130 with the
+    one line of any Ctrl-C, Python's report of the dropped exception left out.  (Before,
     a Ctrl-C during ``analyze`` also ended in an AttributeError: the message read ``args.out``, which it has not.)"""
     code = """
 import gc, os, signal, sys
@@ -224,8 +225,10 @@ sys.exit(status)
 """
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
                        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-    assert "fired 1" in r.stderr and "Exception ignored in" in r.stderr, r.stderr[-2000:]
-    assert r.returncode == 130 and "pusupu: interrupted" in r.stderr, r.stderr[-2000:]
+    assert "fired 1" in r.stderr, r.stderr[-2000:]
+    assert r.returncode == 130, r.stderr[-2000:]
+    # one line, as for any Ctrl-C: no 'Exception ignored in ...' traceback for the dropped KeyboardInterrupt
+    assert [line for line in r.stderr.splitlines() if line.strip()] == ["pusupu: interrupted", "fired 1"], r.stderr
 
 
 def test_a_bad_gain_file_exits_2_with_one_line(tuned, tmp_path):
