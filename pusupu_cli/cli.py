@@ -18,6 +18,7 @@ Errors in the input print one line ``pusupu: error: ...`` and exit with status 2
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import json
 import signal
@@ -183,12 +184,10 @@ def main(argv=None) -> int:
     commands = {"analyze": _analyze, "sim": _sim, "tune": _tune, "batch": _batch, "experiment": _experiment,
                 "gains": _gains,
                 "bridge": bridge_cli.run_bridge, "sim-robot": bridge_cli.run_sim_robot}
-    interrupts, previous = _count_interrupts()
-    unraisable = sys.unraisablehook
-    sys.unraisablehook = functools.partial(_quiet_dropped_interrupt, unraisable, interrupts)
     try:
-        status = commands[args.command](args)
-        if interrupts:  # a Ctrl-C whose KeyboardInterrupt Python dropped (see _count_interrupts)
+        with _counted_interrupts() as interrupts:
+            status = commands[args.command](args)
+        if interrupts:  # a Ctrl-C whose KeyboardInterrupt Python dropped (see _counted_interrupts)
             raise KeyboardInterrupt
         return status
     except (ParameterError, FloatingPointError) as e:  # bad input; a tuning run that went non-finite
@@ -200,10 +199,6 @@ def main(argv=None) -> int:
         where = f" ({kept.format(args.out)} the run: the same command resumes it)" if kept else ""
         print(f"pusupu: interrupted{where}", file=sys.stderr)
         return 130
-    finally:
-        sys.unraisablehook = unraisable
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
 
 
 def _quiet_dropped_interrupt(hook, interrupts, unraisable) -> None:
@@ -213,23 +208,32 @@ def _quiet_dropped_interrupt(hook, interrupts, unraisable) -> None:
         hook(unraisable)
 
 
-def _count_interrupts():
-    """``(count, previous handler)``: Ctrl-C raises KeyboardInterrupt as Python's own handler does, and is counted.
+@contextlib.contextmanager
+def _counted_interrupts():
+    """Yield a list that counts Ctrl-C; each still raises KeyboardInterrupt, as Python's own handler does.
 
     Python drops an exception raised inside a garbage-collector callback (JAX registers one), so a
-    Ctrl-C landing there was lost and the command ran on to exit 0; the count makes it end with 130
-    once the command returns.  Where SIGINT is ignored or handled by someone else, nothing changes.
+    Ctrl-C landing there was lost and the command ran on to exit 0; the count lets it end with 130
+    once the command returns, and Python's report of the dropped exception is left out.  Where
+    SIGINT is ignored or handled by someone else, or off the main thread, nothing changes.
     """
     seen = []
     if threading.current_thread() is not threading.main_thread() or \
             signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
-        return seen, None
+        yield seen
+        return
 
     def on_sigint(signum, frame):
         seen.append(signum)
         raise KeyboardInterrupt
 
-    return seen, signal.signal(signal.SIGINT, on_sigint)
+    previous, unraisable = signal.signal(signal.SIGINT, on_sigint), sys.unraisablehook
+    sys.unraisablehook = functools.partial(_quiet_dropped_interrupt, unraisable, seen)
+    try:
+        yield seen
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        sys.unraisablehook = unraisable
 
 
 def _file_backend() -> None:
