@@ -1,7 +1,8 @@
 """The tuner's cold start: trace and compile time of its programs, with an empty compile cache (JSON on stdout).
 
-``pusupu tune`` compiles two programs before its first iteration: the forward pass over the whole paths (which
-renews the training windows' start states) and the gradient over the windows.  Each is measured apart, as
+``pusupu tune`` compiles its programs before its first iteration: the forward pass over the whole paths (which
+renews the training windows' start states: the start at rest and one chunk of :func:`pusupu_jax.sim.run_chunked`,
+once per batch size of a group of paths) and the gradient over the windows.  Each is measured apart, as
 ``jit(...).lower()`` (the trace, to a jaxpr and then StableHLO) and ``.compile()`` (XLA), then the gradient is run
 once.  Every measurement runs in a fresh interpreter with an empty persistent compile cache, so nothing is reused.
 
@@ -26,9 +27,11 @@ CHILD = r"""
 import json, sys, time
 t0 = time.perf_counter()
 import jax, jax.numpy as jnp
+import numpy as np
 from pusupu_jax.config import setup_jax
 setup_jax(sys.argv[2])
-from pusupu_jax import objectives
+from pusupu_jax import objectives, sim
+from pusupu_jax.cascade import control_mode
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import ServoParams
 from tune.config import TuneConfig
@@ -42,13 +45,36 @@ out["problem_s"] = time.perf_counter() - t
 z0 = p.space.z0()
 servo, hybrid = p.space.apply(z0)
 out["forward_trace_s"] = out["forward_compile_s"] = 0.0
-for idx, models, refs in p.scenarios.groups.values():
+
+
+def timed(lower):
     t = time.perf_counter()
-    lowered = p._whole.lower(servo, hybrid, models, refs)
+    lowered = lower()
     out["forward_trace_s"] += time.perf_counter() - t
     t = time.perf_counter()
-    lowered.compile()
+    compiled = lowered.compile()
     out["forward_compile_s"] += time.perf_counter() - t
+    return compiled
+
+
+if hasattr(p, "_whole"):  # a tree before the chunked forward pass: one program per path length
+    for idx, models, refs in p.scenarios.groups.values():
+        timed(lambda: p._whole.lower(servo, hybrid, models, refs))
+else:
+    init = sim._init_program(p.scenarios.plant, p.rates, cfg.mode, "rest", None, None)
+    chunk = sim._chunk_program(p.scenarios.plant, p.rates, cfg.mode, None, None, True)
+    hybrid_arg = hybrid if control_mode(cfg.mode).hybrid else None
+    batches = set()
+    for idx, models, refs in p.scenarios.groups.values():
+        if len(idx) in batches:  # the same two programs (a batch of this size, any path length): compiled once
+            continue
+        batches.add(len(idx))
+        refs = jax.tree.map(np.asarray, refs)
+        piece = jax.tree.map(lambda x: np.pad(x[:, :sim.CHUNK], [(0, 0), (0, max(sim.CHUNK - x.shape[1], 0))]
+                                              + [(0, 0)] * (x.ndim - 2), mode="edge"), refs)
+        first = (servo, models, jax.tree.map(lambda x: x[:, 0], refs), hybrid_arg, None)
+        carry = timed(lambda: init.lower(*first))(*first)
+        timed(lambda: chunk.lower(servo, models, piece, hybrid_arg, None, carry, np.int32(1)))
 p.refresh(z0)
 ones = {k: jnp.ones(p.rows) for k in objectives.TERMS}
 t = time.perf_counter()

@@ -26,7 +26,7 @@ from .plant.axis import screw_ratio
 from .plant.geometry import Geometry
 from .plant.mjx_plant import MJXPlant
 from .plant.model import ModelOptions
-from .sim import rollout
+from .sim import run_chunked
 
 MACHINE_MODES = POSITION_MODES
 
@@ -43,16 +43,6 @@ def machine_rates(options: ModelOptions = ModelOptions(), rates: LoopRates = Loo
 def machine_plant(options: ModelOptions = ModelOptions()) -> MJXPlant:
     """The default-geometry MJX plant for ``options``, built once per options (a static jit argument)."""
     return MJXPlant.create(Geometry.default(), options)
-
-
-@functools.lru_cache(maxsize=None)
-def _batch_runner(plant, rates, mode, start, servo_axis, hybrid_axis, compliant=False):
-    def one(servo, model, reference, hybrid, admittance):
-        return rollout(servo, model, reference, plant=plant, rates=rates, outer=mode, start=start,
-                       hybrid=hybrid if control_mode(mode).hybrid else None,
-                       compliance=(admittance, Geometry.default()) if compliant else None)
-
-    return jax.jit(jax.vmap(one, in_axes=(servo_axis, 0, 0, hybrid_axis, None)))
 
 
 def machine_reference(servo: ServoParams, path, mode: str, *, options: ModelOptions = ModelOptions(),
@@ -91,7 +81,10 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
                        hybrid: hybrid_law.HybridGains | None = None, start: str = "rest",
                        compliance: compliance_law.AdmittanceGains | None = None,
                        force_setpoint=None) -> list[tuple[dict, dict]]:
-    """Run several :class:`Scenario` on the default-geometry machine as one vmapped batch (one compile).
+    """Run several :class:`Scenario` on the default-geometry machine as one vmapped batch.
+
+    The batch runs in calls of :func:`~pusupu_jax.sim.run_chunked`'s compiled program of
+    ``CHUNK`` periods: one compile per mode and batch size, whatever the paths' length.
 
     The scenarios differ in their model's arrays (:meth:`MJXPlant.variant`: seeded errors,
     payloads) and their paths; shorter paths are padded with their last pose (the machine
@@ -144,9 +137,11 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
             reference = compliance_law.ComplianceReference(jnp.asarray(padded), jnp.asarray(setpoint), reference)
         references.append(reference)
         models.append(plant.variant(sc.options))
-    run = _batch_runner(plant, rates, mode, start, 0 if batched else None, hybrid_axis, compliance is not None)
     t0 = time.perf_counter()
-    traces = jax.block_until_ready(run(servo, stack(models), stack(references), hybrid, compliance))
+    traces, _ = run_chunked(servo, stack(models), stack(references), plant=plant, rates=rates, outer=mode,
+                            hybrid=hybrid if control_mode(mode).hybrid else None, start=start,
+                            compliance=None if compliance is None else (compliance, Geometry.default()),
+                            params_axis=0 if batched else None, hybrid_axis=hybrid_axis)
     wall = time.perf_counter() - t0
     out = []
     for k, sc in enumerate(scenarios):

@@ -162,6 +162,11 @@ class Pieces(NamedTuple):
     observe: Any  # carry -> what the plant's observe() returns (for a law outside the cascade)
 
 
+def period_dt(rates: LoopRates, mode: cascade_.ControlMode) -> float:
+    """The period [s] of the outermost loop ``mode`` closes (one sample of its reference)."""
+    return {"current": rates.dt_mech, "velocity": rates.dt_velocity, "position": rates.dt_position}[mode.closed]
+
+
 def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.ControlMode, hybrid) -> Pieces:
     """The closures of one rollout (traced: call inside a jitted function) for ``mode`` against ``plant``."""
     if mode.hybrid != (hybrid is not None):
@@ -208,9 +213,8 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
         c, i_ref = velocity_period(c, w_ref)
         return c, (i_ref, i_ref[None])
 
-    period, dt = {"current": (current_period, rates.dt_mech), "velocity": (inner_velocity_period, rates.dt_velocity),
-                  "position": (position_period, rates.dt_position)}[mode.closed]
-    return Pieces(period, record, dt, lambda start, force_ff0: initial_state(drive, plant, aux, mode, start,
+    period = {"current": current_period, "velocity": inner_velocity_period, "position": position_period}[mode.closed]
+    return Pieces(period, record, period_dt(rates, mode), lambda start, force_ff0: initial_state(drive, plant, aux, mode, start,
                                                                                force_ff0),
                   lambda c: plant.observe(aux, c.plant))
 
@@ -285,14 +289,59 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
     :class:`~pusupu_jax.compliance.ComplianceReference`.
     """
     mode = cascade_.control_mode(outer)
-    cascade = pieces(params, plant_params, plant=plant, rates=rates, mode=mode, hybrid=hybrid)
-    if compliance is not None:
-        cascade = compliant_pieces(cascade, params, *compliance, mode=mode)
+    cascade = _cascade(params, plant_params, plant, rates, mode, hybrid, compliance)
     if init is None:
-        first = reference.inner if compliance is not None else reference
-        init = cascade.init(start, first.force_ff[0] if mode.hybrid else None)
+        init = _start(cascade, mode, jax.tree.map(lambda x: x[0], reference), start, compliance)
     _, rec = jax.lax.scan(_body(cascade, remat), init, reference)
     return _trace(rec, cascade.dt)
+
+
+def _cascade(params, plant_params, plant, rates, mode, hybrid, compliance) -> Pieces:
+    cascade = pieces(params, plant_params, plant=plant, rates=rates, mode=mode, hybrid=hybrid)
+    return cascade if compliance is None else compliant_pieces(cascade, params, *compliance, mode=mode)
+
+
+def _start(cascade: Pieces, mode, first, start: str, compliance):
+    """The carry at ``start`` for a reference whose first sample is ``first``."""
+    first = first.inner if compliance is not None else first
+    return cascade.init(start, first.force_ff if mode.hybrid else None)
+
+
+def initial_carry(params: ServoParams, plant_params, first, *, plant=AxisPlant(), rates: LoopRates = LoopRates(),
+                  outer: str = "imc", hybrid: hybrid_law.HybridGains | None = None, start: str = "rest",
+                  compliance=None) -> Carry:
+    """The carry :func:`rollout` starts from, for a reference whose first sample is ``first`` (pure; arguments as
+    :func:`rollout`'s).  With :func:`rollout_chunk`, a run cut into calls of one fixed length."""
+    mode = cascade_.control_mode(outer)
+    return _start(_cascade(params, plant_params, plant, rates, mode, hybrid, compliance), mode, first, start,
+                  compliance)
+
+
+def rollout_chunk(params: ServoParams, plant_params, reference, carry: Carry, n_valid=None, *, plant=AxisPlant(),
+                  rates: LoopRates = LoopRates(), outer: str = "imc", hybrid: hybrid_law.HybridGains | None = None,
+                  compliance=None) -> tuple[dict, Carry]:
+    """``reference`` ``(C, ...)`` from ``carry``: ``(records, the carry after them)`` (pure; arguments as
+    :func:`rollout`'s).  The records are :class:`Trace`'s fields but ``t``.
+
+    ``n_valid`` (traced): the carry advances through the first ``n_valid`` periods only; the periods after them are
+    computed and recorded, but leave the carry as it was (a select per period: a run that needs the carry at any
+    period, at some 40 % more run time).  So one compiled program of length ``C`` runs a path of any length, in
+    calls that stop wherever one wants the carry (:func:`run_chunked`).
+    """
+    mode = cascade_.control_mode(outer)
+    body = _body(_cascade(params, plant_params, plant, rates, mode, hybrid, compliance), False)
+    if n_valid is None:
+        carry, rec = jax.lax.scan(body, carry, reference)
+        return rec, carry
+
+    def step(c, x):
+        ref, valid = x
+        c_next, rec = body(c, ref)
+        return jax.tree.map(lambda new, old: jnp.where(valid, new, old), c_next, c), rec
+
+    n = jax.tree.leaves(reference)[0].shape[0]
+    carry, rec = jax.lax.scan(step, carry, (reference, jnp.arange(n) < n_valid))
+    return rec, carry
 
 
 def _body(cascade: Pieces, remat: bool):
@@ -307,30 +356,71 @@ def _trace(rec: dict, dt: float) -> Trace:
     return Trace(t=jnp.arange(rec["reference"].shape[0]) * dt, **rec)
 
 
-def rollout_segments(params: ServoParams, plant_params, reference, *, segments: int, plant=AxisPlant(),
-                     rates: LoopRates = LoopRates(), outer: str = "imc", hybrid: hybrid_law.HybridGains | None = None,
-                     start: str = "rest"):
-    """:func:`rollout` over ``reference`` cut into ``segments`` equal parts; returns ``(trace, carries)``.
+CHUNK = 250  # periods per call of run_chunked's compiled program
 
-    ``reference`` has ``segments * every`` samples; ``carries`` ``(segments, ...)`` holds the
-    carry at the start of each part (periods ``0, every, 2 every, ...``): the start states of
-    windows spread over a long run, for :func:`rollout`'s ``init``.  The trace is the whole run's.
+
+@functools.lru_cache(maxsize=None)
+def _init_program(plant, rates, outer, start, params_axis, hybrid_axis):
+    """:func:`initial_carry` vmapped over a batch, jitted (cached per static arguments)."""
+    def init(params, model, first, hybrid, compliance):
+        return initial_carry(params, model, first, plant=plant, rates=rates, outer=outer, hybrid=hybrid, start=start,
+                             compliance=compliance)
+
+    return jax.jit(jax.vmap(init, in_axes=(params_axis, 0, 0, hybrid_axis, None)))
+
+
+@functools.lru_cache(maxsize=None)
+def _chunk_program(plant, rates, outer, params_axis, hybrid_axis, masked: bool):
+    """:func:`rollout_chunk` (with ``n_valid`` when ``masked``) vmapped over a batch, jitted (cached per static
+    arguments: one compile serves every path length)."""
+    def chunk(params, model, reference, hybrid, compliance, carry, n_valid):
+        return rollout_chunk(params, model, reference, carry, n_valid if masked else None, plant=plant, rates=rates,
+                             outer=outer, hybrid=hybrid, compliance=compliance)
+
+    return jax.jit(jax.vmap(chunk, in_axes=(params_axis, 0, 0, hybrid_axis, None, 0, None)))
+
+
+def run_chunked(params: ServoParams, models, reference, *, plant=AxisPlant(), rates: LoopRates = LoopRates(),
+                outer: str = "imc", hybrid: hybrid_law.HybridGains | None = None, start: str = "rest",
+                compliance=None, params_axis=None, hybrid_axis=None, marks=(), chunk: int = CHUNK):
+    """A batch of runs, each :func:`rollout` of its ``models[b]`` over ``reference[b]`` ``(B, N, ...)``, cut into
+    calls of one compiled program of ``chunk`` periods (host-side): ``(trace (B, N, ...), carries (B, len(marks),
+    ...))``.
+
+    ``params`` (and ``hybrid``) are shared, or batched along their leading axis when ``params_axis``
+    (``hybrid_axis``) is 0; ``compliance``: ``(AdmittanceGains, Geometry)``, shared, or None; ``models`` is batched
+    (the plant's per-run arrays, e.g. :meth:`MJXPlant.variant`'s).  Every path length runs the same two compiled
+    programs (the start and one chunk), so a horizon that changes compiles nothing.  The last chunk runs past the
+    path's end, on its last sample held; what it records there is dropped.
+
+    ``marks``: periods at which to keep the carry (the start states of windows, for ``rollout(init=...)``).  With
+    marks, the chunks stop at them (:func:`rollout_chunk`'s ``n_valid``: another program, whose select per period
+    costs run time); without, every chunk runs whole.  Different programs round differently: a run agrees with
+    :func:`rollout`'s to float64 rounding, not bit for bit (``tests/test_windows.py``).
     """
-    mode = cascade_.control_mode(outer)
-    cascade = pieces(params, plant_params, plant=plant, rates=rates, mode=mode, hybrid=hybrid)
-    n = jax.tree.leaves(reference)[0].shape[0]
-    if n % segments:
-        raise ValueError(f"rollout_segments: expected a reference of a multiple of {segments} samples, got {n}")
-    parts = jax.tree.map(lambda x: x.reshape((segments, n // segments) + x.shape[1:]), reference)
-    body = _body(cascade, False)
-
-    def part(c, refs):
-        end, rec = jax.lax.scan(body, c, refs)
-        return end, (c, rec)
-
-    init = cascade.init(start, reference.force_ff[0] if mode.hybrid else None)
-    _, (carries, rec) = jax.lax.scan(part, init, parts)
-    return _trace(jax.tree.map(lambda x: x.reshape((n,) + x.shape[2:]), rec), cascade.dt), carries
+    init = _init_program(plant, rates, outer, start, params_axis, hybrid_axis)
+    step = _chunk_program(plant, rates, outer, params_axis, hybrid_axis, bool(marks))
+    host = jax.tree.map(np.asarray, reference)
+    n = jax.tree.leaves(host)[0].shape[1]
+    if any(not 0 <= m < n for m in marks):
+        raise ValueError(f"run_chunked: expected marks in [0, {n}), got {list(marks)}")
+    carry = init(params, models, jax.tree.map(lambda x: x[:, 0], host), hybrid, compliance)
+    kept, records, done = {}, [], 0
+    for stop in sorted(set(marks) | {n}):
+        while done < stop:
+            k = min(chunk, stop - done)
+            piece = jax.tree.map(lambda x: np.pad(x[:, done:done + k], [(0, 0), (0, chunk - k)] + [(0, 0)] * (x.ndim - 2),
+                                                  mode="edge"), host)  # the last sample held
+            rec, carry = step(params, models, piece, hybrid, compliance, carry, np.int32(k))
+            records.append((rec, k))
+            done += k
+        if done in marks:
+            kept[done] = carry
+    rec = jax.tree.map(lambda *x: np.concatenate([np.asarray(r)[:, :k] for r, (_, k) in zip(x, records)], axis=1),
+                       *[r for r, _ in records])  # fetched at the end: the calls before queue without waiting
+    carries = jax.tree.map(lambda *c: jnp.stack(c, axis=1), *[kept[m] for m in marks]) if marks else None
+    t = np.arange(n) * period_dt(rates, cascade_.control_mode(outer))
+    return Trace(t=np.repeat(t[None], len(rec["theta"]), axis=0), **rec), carries
 
 
 _rollout_jit = jax.jit(rollout, static_argnames=("plant", "rates", "outer", "remat", "start"))

@@ -5,7 +5,9 @@ import numpy as np
 import pytest
 
 from pusupu_jax import AxisLoad, ServoParams, rollout
-from pusupu_jax.sim import rollout_segments
+from pusupu_jax.params import LoopRates, stack
+from pusupu_jax.plant import AxisPlant
+from pusupu_jax.sim import run_chunked
 from pusupu_jax.trajectories import axis_reference
 
 SERVO = ServoParams.table1()
@@ -14,15 +16,31 @@ R = float(SERVO.lead[0]) / (2 * np.pi)
 REF = axis_reference("sine", duration=1.2) / R  # motor angle [rad], 1200 position periods
 
 
-def test_a_window_started_from_a_segment_carry_is_that_stretch_of_the_whole_run():
-    """rollout_segments' carries restart the run exactly: a window from carry k equals the whole run from k on (bits)."""
-    whole = rollout(SERVO, LOAD, REF)
-    trace, carries = rollout_segments(SERVO, LOAD, REF, segments=4)
-    assert np.array_equal(np.asarray(trace.theta), np.asarray(whole.theta))
-    for k in (1, 3):
-        window = rollout(SERVO, LOAD, REF[300 * k:300 * k + 200], init=jax.tree.map(lambda x: x[k], carries))
-        assert np.array_equal(np.asarray(window.theta), np.asarray(whole.theta)[300 * k:300 * k + 200])
-        assert np.array_equal(np.asarray(window.current), np.asarray(whole.current)[300 * k:300 * k + 200])
+def _chunked(mode="imc", marks=(), chunk=128):
+    """The whole run cut into calls of ``chunk`` periods (a batch of one), and its carries at ``marks``."""
+    trace, carries = run_chunked(SERVO, stack([LOAD]), np.asarray(REF)[None], outer=mode, marks=marks, chunk=chunk)
+    return jax.tree.map(lambda x: x[0], trace), jax.tree.map(lambda x: x[0], carries)
+
+
+def test_a_run_cut_into_chunks_is_the_whole_run_and_restarts_from_its_carries():
+    """run_chunked (one program of 128 periods, called 10 times, stopping at the marks) runs what one scan over the
+    1200 periods runs, and a window restarted from a kept carry runs that stretch of it.  Different compiled programs
+    round differently, so the tolerance is float64 rounding: relative 1e-13 (observed 2e-16 on angles, 5e-15 on
+    currents)."""
+    for mode in ("imc", "pid"):
+        whole = jax.jit(lambda r: rollout(SERVO, LOAD, r, outer=mode))(REF)
+        trace, carries = _chunked(mode, marks=(0, 300, 901))
+        for run in (trace, _chunked(mode)[0]):  # stopping at the marks (the masked program), and whole chunks
+            np.testing.assert_array_equal(run.t, np.asarray(whole.t))
+            for field in ("theta", "omega", "current", "command"):
+                a, b = np.asarray(getattr(whole, field)), getattr(run, field)
+                np.testing.assert_allclose(b, a, rtol=0, atol=1e-13 * np.abs(a).max(), err_msg=f"{mode} {field}")
+        for j, k in enumerate((0, 300, 901)):
+            window = rollout(SERVO, LOAD, REF[k:k + 200], outer=mode, init=jax.tree.map(lambda x: x[j], carries))
+            for field in ("theta", "current"):
+                a = np.asarray(getattr(whole, field))
+                np.testing.assert_allclose(np.asarray(getattr(window, field)), a[k:k + 200], rtol=0,
+                                           atol=1e-13 * np.abs(a).max(), err_msg=f"{mode} {field} from {k}")
 
 
 @pytest.mark.parametrize("field", ["lambda1", "lambda2", "T0", "Kv", "Tv", "Kp_pid"])
@@ -35,10 +53,27 @@ def test_a_change_of_gains_mid_run_moves_the_command_in_proportion(field):
     1.10 to 1.91, and 10 % to 59: docs/tuning.md.)
     """
     mode = "pid" if field == "Kp_pid" else "imc"
-    _, carries = rollout_segments(SERVO, LOAD, REF, segments=2, outer=mode)
+    _, carries = _chunked(mode, marks=(600,))
     whole = rollout(SERVO, LOAD, REF, outer=mode)
     changed = SERVO.replace(**{field: np.asarray(getattr(SERVO, field)) * 1.05})
-    window = rollout(changed, LOAD, REF[600:610], outer=mode, init=jax.tree.map(lambda x: x[1], carries))
+    window = rollout(changed, LOAD, REF[600:610], outer=mode, init=jax.tree.map(lambda x: x[0], carries))
     command = np.asarray(whole.command)[:, 0]
     jump = abs(float(np.asarray(window.command)[0, 0]) - command[600])
     assert jump <= 0.05 * np.ptp(command), (field, jump, np.ptp(command))
+
+
+def test_paths_of_any_length_run_one_compiled_chunk():
+    """Two path lengths, with and without marks: one compile of the chunk that runs whole and one of the chunk that
+    stops at marks (and of the start): what lets every horizon of the experiments and the CLI share one program per
+    mode and batch size, and the tuner's forward passes another."""
+    from pusupu_jax.sim import _chunk_program, _init_program
+
+    programs = [_init_program(AxisPlant(), LoopRates(), "pid_ff", "rest", None, None)]
+    programs += [_chunk_program(AxisPlant(), LoopRates(), "pid_ff", None, None, masked) for masked in (False, True)]
+    before = [p._cache_size() for p in programs]
+    for n in (130, 700):
+        for marks in ((), (0, 101, n - 1)):
+            trace, carries = run_chunked(SERVO, stack([LOAD]), np.asarray(REF)[None, :n], outer="pid_ff", marks=marks)
+            assert trace.theta.shape == (1, n, 6) and np.isfinite(trace.theta).all()
+            assert carries is None if not marks else jax.tree.leaves(carries)[0].shape[:2] == (1, len(marks))
+    assert [p._cache_size() for p in programs] == [b + 1 for b in before]

@@ -35,7 +35,7 @@ from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import machine_rates
 from pusupu_jax.margins import loop_margins
 from pusupu_jax.params import AxisLoad, ServoParams
-from pusupu_jax.sim import rollout, rollout_segments
+from pusupu_jax.sim import rollout
 
 from .config import TuneConfig
 from .run import (Scenarios, ScenarioSpec, WindowStarts, aggregate, join_windows, load_checkpoint, optimiser,
@@ -80,14 +80,7 @@ class BatchProblem(WindowStarts):
         self.windows = self.shard((_take(sc.window_models, windows), _take(sc.window_reference, windows),
                                    jnp.asarray(sc.window_path)[windows]))
         self._value_and_grad = jax.jit(value_and_grad(self.objective, cfg.gradient))
-        hybrid_mode = control_mode(cfg.mode).hybrid
-
-        def whole(z, model, reference):
-            servo, hybrid = self.space.apply(z)
-            return rollout_segments(servo, model, reference, segments=K, plant=sc.plant, rates=self.rates,
-                                    outer=cfg.mode, hybrid=hybrid if hybrid_mode else None)
-
-        self._whole = jax.jit(jax.vmap(whole))
+        self._apply = jax.jit(jax.vmap(self.space.apply))
         self.rows = len(self.pairs)  # the baseline's terms are per pair
 
     def shard(self, tree):
@@ -107,7 +100,9 @@ class BatchProblem(WindowStarts):
         for length, (idx, models, refs) in sc.groups.items():
             qs = np.array([q for q, (_, s) in enumerate(self.pairs) if sc.group_of[s] == length])
             local = np.array([idx.index(self.pairs[q][1]) for q in qs])
-            traces, carries = self._whole(_take(zb, self.pair_member[qs]), _take(models, local), _take(refs, local))
+            servo, hybrid = self._apply(_take(zb, self.pair_member[qs]))
+            traces, carries = sc.whole(servo, hybrid, _take(models, local), _take(refs, local), self.cfg.mode,
+                                       self.rates, batched=True)
             out.append((qs, traces, carries))
         return out
 

@@ -42,7 +42,7 @@ from pusupu_jax.margins import loop_margins
 from pusupu_jax.params import AxisLoad, ParameterError, ServoParams, stack
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
-from pusupu_jax.sim import rollout, rollout_segments
+from pusupu_jax.sim import rollout, run_chunked
 from pusupu_jax.trajectories import platform_path
 
 from .config import TuneConfig
@@ -134,6 +134,17 @@ class Scenarios:
                    stack([jax.tree.map(lambda x: np.asarray(x)[a:a + W], refs[i]) for i, a in pick]),
                    np.stack([padded_paths[i][a:a + W] for i, a in pick]))
 
+    def whole(self, servo, hybrid, models, references, mode: str, rates, batched: bool = False):
+        """The forward pass over whole paths of one group (``models``, ``references`` ``(n, K every, ...)``):
+        ``(traces (n, K every, ...), carries at the window starts (n, K, ...))``.  ``servo`` and ``hybrid`` are shared,
+        or one set per path when ``batched``.  One compiled chunk of :func:`~pusupu_jax.sim.run_chunked` serves every
+        path length."""
+        length = jax.tree.leaves(references)[0].shape[1]
+        return run_chunked(servo, models, references, plant=self.plant, rates=rates, outer=mode,
+                           hybrid=hybrid if control_mode(mode).hybrid else None, params_axis=0 if batched else None,
+                           hybrid_axis=0 if batched and control_mode(mode).hybrid else None,
+                           marks=tuple(range(0, length, length // self.windows)))
+
     def reference(self, i: int):
         """Scenario ``i``'s reference over its unpadded path (host arrays)."""
         idx, _, refs = self.groups[self.group_of[i]]
@@ -224,13 +235,6 @@ class Problem(WindowStarts):
         self.windows = (sc.window_models, sc.window_reference, jnp.asarray(sc.window_path))
         self.load = AxisLoad.default()
         self._value_and_grad = jax.jit(value_and_grad(self.objective, cfg.gradient))
-        hybrid_mode = control_mode(cfg.mode).hybrid
-
-        def whole(servo, hybrid, model, reference):
-            return rollout_segments(servo, model, reference, segments=sc.windows, plant=sc.plant, rates=self.rates,
-                                    outer=cfg.mode, hybrid=hybrid if hybrid_mode else None)
-
-        self._whole = jax.jit(jax.vmap(whole, in_axes=(None, None, 0, 0)))
         self.rows = len(sc.names)
 
     def run_paths(self, z) -> list:
@@ -238,7 +242,7 @@ class Problem(WindowStarts):
         servo, hybrid = self.space.apply(z)
         out = [None] * len(self.scenarios.names)
         for idx, models, refs in self.scenarios.groups.values():
-            traces, carries = self._whole(servo, hybrid, models, refs)
+            traces, carries = self.scenarios.whole(servo, hybrid, models, refs, self.cfg.mode, self.rates)
             for j, i in enumerate(idx):
                 out[i] = jax.tree.map(lambda x: x[j], (traces, carries))
         return out
