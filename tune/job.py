@@ -174,7 +174,7 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream) -> tuple[dict, int]:
     print(f"tune: {len(problem.scenarios.names)} scenario(s) ({', '.join(problem.scenarios.names)}), "
           f"{cfg.windows} windows of {cfg.window_s:g} s spread over each {extent}, "
           f"tuning {', '.join(problem.space.fields)}; compiling the forward pass and the gradient "
-          "(about 2 min cold on 2 CPU cores)", file=stream, flush=True)
+          "(about 1.5 min cold on 2 CPU cores)", file=stream, flush=True)
     result = optimise(problem.value_and_grad, problem.space.z0(), problem.space.project,
                       iterations=cfg.iterations, learning_rate=cfg.learning_rate, clip_norm=cfg.clip_norm,
                       final_lr_fraction=cfg.final_lr_fraction,
