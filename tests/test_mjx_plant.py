@@ -19,7 +19,7 @@ from pusupu_jax.plant import kinematics as K
 from pusupu_jax.plant import model as M
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.mjx_plant import MJXPlant
-from pusupu_jax.sim import rollout
+from pusupu_jax.sim import rollout, run_chunked
 
 with contextlib.redirect_stdout(io.StringIO()):  # MJX prints its optional GPU backends' import failures
     from mujoco import mjx
@@ -345,7 +345,7 @@ def test_every_objective_term_has_the_gradient_of_central_differences():
 
 
 def test_model_variants_vmapped_equal_their_own_plants():
-    """Seeded errors and a payload as MJXPlant.variant models, vmapped through one compiled rollout, give the
+    """Seeded errors and a payload as MJXPlant.variant models, vmapped through one compiled (chunked) run, give the
     trajectories of plants built for them (observed 4e-16 m, 8e-12 N m over 0.1 s of the p2p path).
     """
     from pusupu_jax.machine import machine_reference
@@ -355,7 +355,8 @@ def test_model_variants_vmapped_equal_their_own_plants():
     path = platform_path("p2p", G.home, RATES)[:100]
     ref = machine_reference(SERVO, path, "pid", rates=RATES)
     models = stack([PLANT.variant(o) for o in options])
-    batch = jax.jit(jax.vmap(lambda m: rollout(SERVO, m, ref, plant=PLANT, rates=RATES, outer="pid")))(models)
+    # the chunked batch of simulate_scenarios (its program is the start-at-rest test's of PID, through the cache)
+    batch, _ = run_chunked(SERVO, models, np.stack([ref, ref]), plant=PLANT, rates=RATES, outer="pid")
     for k, o in enumerate(options):
         own = MJXPlant.create(G, o)
         trace = jax.jit(lambda r: rollout(SERVO, None, r, plant=own, rates=RATES, outer="pid"))(ref)
