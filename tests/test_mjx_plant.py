@@ -29,7 +29,7 @@ SERVO = ServoParams.table1()
 PLANT = MJXPlant.create()
 RATES = LoopRates(n_mech=5)  # 0.25 ms mechanical steps, the model's timestep
 POSES = [[0.15, -0.1, 0.78, 0.05, -0.07], [-0.2, 0.0, 0.8, 0.0, 0.0], [0.05, 0.12, 0.85, -0.08, 0.03]]
-HOLD_PERIODS = 3000  # 3 s: the batch shape of the quick experiments (experiments.p2p), so compiles are shared
+HOLD_PERIODS = 3000  # 3 s, the quick experiments' horizon (their batch of two seeds is what shares the compiles)
 
 
 @pytest.mark.parametrize("seed", [None, 3])
@@ -368,7 +368,8 @@ def test_model_variants_vmapped_equal_their_own_plants():
 
 
 def _hold(periods=HOLD_PERIODS):
-    """Two scenarios of the batch shape the quick experiments use: p2p's first second (padded) and holding still."""
+    """Two scenarios, the batch size of experiments.p2p's quick run (two seeds): p2p's first second (padded) and
+    holding still.  run_chunked's programs depend on the batch size, not on the horizon."""
     from pusupu_jax.machine import Scenario
     from pusupu_jax.trajectories import platform_path
 
