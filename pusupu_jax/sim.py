@@ -214,8 +214,8 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
         return c, (i_ref, i_ref[None])
 
     period = {"current": current_period, "velocity": inner_velocity_period, "position": position_period}[mode.closed]
-    return Pieces(period, record, period_dt(rates, mode), lambda start, force_ff0: initial_state(drive, plant, aux, mode, start,
-                                                                               force_ff0),
+    return Pieces(period, record, period_dt(rates, mode),
+                  lambda start, force_ff0: initial_state(drive, plant, aux, mode, start, force_ff0),
                   lambda c: plant.observe(aux, c.plant))
 
 
@@ -409,8 +409,9 @@ def run_chunked(params: ServoParams, models, reference, *, plant=AxisPlant(), ra
     for stop in sorted(set(marks) | {n}):
         while done < stop:
             k = min(chunk, stop - done)
-            piece = jax.tree.map(lambda x: np.pad(x[:, done:done + k], [(0, 0), (0, chunk - k)] + [(0, 0)] * (x.ndim - 2),
-                                                  mode="edge"), host)  # the last sample held
+            pad = [(0, 0), (0, chunk - k)]  # the last sample held
+            piece = jax.tree.map(lambda x: np.pad(x[:, done:done + k], pad + [(0, 0)] * (x.ndim - 2), mode="edge"),
+                                 host)
             rec, carry = step(params, models, piece, hybrid, compliance, carry, np.int32(k))
             records.append((rec, k))
             done += k
