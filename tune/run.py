@@ -140,9 +140,10 @@ class Scenarios:
         or one set per path when ``batched``.  One compiled chunk of :func:`~pusupu_jax.sim.run_chunked` serves every
         path length."""
         length = jax.tree.leaves(references)[0].shape[1]
+        hybrid_mode = control_mode(mode).hybrid
         return run_chunked(servo, models, references, plant=self.plant, rates=rates, outer=mode,
-                           hybrid=hybrid if control_mode(mode).hybrid else None, params_axis=0 if batched else None,
-                           hybrid_axis=0 if batched and control_mode(mode).hybrid else None,
+                           hybrid=hybrid if hybrid_mode else None, params_axis=0 if batched else None,
+                           hybrid_axis=0 if batched and hybrid_mode else None,
                            marks=tuple(range(0, length, length // self.windows)))
 
     def reference(self, i: int):
