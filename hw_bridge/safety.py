@@ -67,31 +67,42 @@ class Safety:
     def fault(self, cycle: int, kind: str, detail: str) -> None:
         self.faults.append(Fault(cycle, kind, detail))
 
+    def __post_init__(self):
+        lim, m = self.limits, self.limits.feedback_margin
+        # the bounds of (position, velocity, torque) side by side: one comparison passes a good sample (NaN fails it)
+        self._low = np.concatenate([lim.position_min, -m * lim.velocity, -m * lim.torque])
+        self._high = np.concatenate([lim.position_max, m * lim.velocity, m * lim.torque])
+        self._bound = {}  # drive modes (bytes) -> the command bound of each axis
+
     def check_feedback(self, cycle: int, age: int, position, velocity, torque) -> bool:
         """True when the sample may drive the loops: fresh (``age`` cycles old at most the watchdog), finite, in range."""
         lim = self.limits
         if age > self.watchdog_cycles:
             self.fault(cycle, "feedback stale", f"no new feedback for {age} cycles (watchdog {self.watchdog_cycles})")
             return False
-        values = np.concatenate([position, velocity, torque])
+        values = np.concatenate((position, velocity, torque))
+        if ((values >= self._low) & (values <= self._high)).all():
+            return True
+        # a fault: name it
         if not np.isfinite(values).all():
             self.fault(cycle, "feedback invalid", "NaN or inf in the measured position, velocity or torque")
-            return False
-        m = lim.feedback_margin
-        if np.any(np.abs(velocity) > m * lim.velocity) or np.any(np.abs(torque) > m * lim.torque):
-            self.fault(cycle, "feedback invalid", f"measured speed or torque beyond {m} times its limit")
-            return False
-        if np.any(position < lim.position_min) or np.any(position > lim.position_max):
+        elif ((values[len(position):] < self._low[len(position):])
+              | (values[len(position):] > self._high[len(position):])).any():
+            self.fault(cycle, "feedback invalid", f"measured speed or torque beyond {lim.feedback_margin} times its "
+                                                  "limit")
+        else:
             k = int(np.argmax((position < lim.position_min) | (position > lim.position_max)))
             self.fault(cycle, "position limit", f"axis {k + 1} at {position[k]:.4g} rad, outside "
                                                 f"[{lim.position_min[k]:.4g}, {lim.position_max[k]:.4g}]")
-            return False
-        return True
+        return False
 
     def limit_command(self, cycle: int, modes, target) -> np.ndarray:
         """``target`` clamped to the velocity (CSV) or torque (CST) limit of each axis; all zero if any is not finite."""
         if not np.isfinite(target).all():
             self.fault(cycle, "command invalid", "the loops computed a NaN or inf target")
             return np.zeros_like(target)
-        bound = np.where(np.asarray(modes) == CSV, self.limits.velocity, self.limits.torque)
-        return np.clip(target, -bound, bound)
+        modes = np.asarray(modes)
+        bound = self._bound.get(modes.tobytes())
+        if bound is None:
+            bound = self._bound[modes.tobytes()] = np.where(modes == CSV, self.limits.velocity, self.limits.torque)
+        return np.minimum(np.maximum(target, -bound), bound)
