@@ -210,6 +210,19 @@ class BridgeLoop:
             self.state, i_ref = self._velocity(self.state, self.held[0], self.held[1], omega)
         return np.where(self.drive_modes == CSV, self.held[0], self.Kt * i_ref)
 
+    def warm(self, cycle: int) -> None:
+        """Run the compiled step that cycle ``cycle`` will run, on the present state, and drop its result.
+
+        Called just before the cycle's deadline (:class:`~hw_bridge.runner.CycleRunner`'s ``prepare``): the
+        step's code and data are then in the CPU's caches when the cycle needs them.  Measured on this 2-core VM
+        at 1 kHz, a step right after an idle sleep takes 4-5 times as long as one right after another.
+        """
+        z = self.held[0]
+        if cycle % self.n_position == 0:
+            self._position(self.state, self.stream[min(cycle // self.n_position, len(self.stream) - 1)], z, z)
+        else:
+            self._velocity(self.state, self.held[0], self.held[1], z)
+
     def reference_at(self, cycle: int) -> np.ndarray:
         """The motor-angle reference [rad] in force at ``cycle`` (for the tracking error)."""
         p = min(cycle // self.n_position, len(self.stream) - 1)

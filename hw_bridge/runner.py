@@ -1,7 +1,8 @@
 """A fixed-rate cycle on the monotonic clock (host-side): real-time settings, deadlines, overruns, timing statistics.
 
 Cycle ``k``'s deadline is ``t0 + k T``.  The runner sleeps until ``SPIN`` before it (the kernel's
-timer slack on a non-RT kernel is tens of microseconds) and spins the rest.  A deadline is
+timer slack on a non-RT kernel is tens of microseconds), runs the optional ``prepare(k)`` (work
+that readies the cycle, such as warming the caches for its step), and spins the rest.  A deadline is
 *missed* when a cycle's work ends after the next deadline.  Overrun policy: when a cycle would
 start after the next deadline has passed, the runner skips to the
 next deadline in the future (it never runs cycles back to back to catch up), counts the skipped
@@ -112,7 +113,9 @@ class CycleRunner:
         self.period = 1.0 / rate
         self.overrun = overrun
 
-    def run(self, fn, n: int) -> CycleStats:
+    def run(self, fn, n: int, prepare=None) -> CycleStats:
+        """``prepare(k)``, if given, runs after the sleep before cycle ``k``'s deadline, inside the spin window (work
+        that readies the cycle without being part of it: warming the caches)."""
         stats = CycleStats.allocate(self.period, n)
         T = self.period
         gc.collect()
@@ -128,6 +131,8 @@ class CycleRunner:
                 now = time.monotonic()
                 if now < deadline - SPIN:
                     time.sleep(deadline - SPIN - now)
+                    if prepare is not None:
+                        prepare(k)
                 while (now := time.monotonic()) < deadline:
                     pass
                 late = now - deadline

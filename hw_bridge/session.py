@@ -194,8 +194,9 @@ class Bridge:
 
         run_s = (duration if duration is not None else len(loop.reference.theta) * loop.rates.dt_position + 30.0)
         try:
-            stats = CycleRunner(loop.rate, "rephase" if self.lockstep_s else "skip").run(cycle, 2 * self.connect_cycles + int(run_s * loop.rate)
-                                               + self.hold_cycles + 2 * self.stop_cycles)
+            stats = CycleRunner(loop.rate, "rephase" if self.lockstep_s else "skip").run(
+                cycle, 2 * self.connect_cycles + int(run_s * loop.rate) + self.hold_cycles + 2 * self.stop_cycles,
+                prepare=lambda k: st["phase"] == "run" and loop.warm(k - st["run_start"]))
         finally:
             if granted:
                 granted.restore()

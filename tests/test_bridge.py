@@ -112,6 +112,8 @@ def test_the_bridge_commands_what_the_simulator_scans(mode, drive, monkeypatch, 
     got = []
     for k in range(N_POS * loop.n_position):
         m = k * per_cycle * (1 if loop.cst else RATES.n_position)
+        if k % 3:  # the cycle runner's warm-up before a deadline: a step whose result is dropped changes nothing
+            loop.warm(k)
         got.append(loop.step(k, theta[m], omega[m]))
     got = np.array(got)
     kt = np.asarray(SERVO.Kt)
@@ -145,6 +147,31 @@ def test_what_each_layer_does_not_import(modules, absent):
 
 FEEDBACK = protocol.Feedback(7, 123456789, 6, np.full(6, 0x27, np.uint16), np.full(6, 9, np.int8),
                              np.linspace(-1, 1, 6), np.arange(6.0), np.ones(6), np.array([0.1, 0.2, 0.8]))
+
+
+def test_packets_have_the_documented_layout_and_round_trip_every_field():
+    """The payloads, byte for byte, are the layout of protocol.py's docstring, written here independently as numpy
+    structured arrays (little-endian, no padding), after the 26-byte header; decoding gives every field back."""
+    command = protocol.Command(3, 42, 7, np.array([0x0F, 0x06, 0x07, 0x0F, 0x0F, 0x02], np.uint16),
+                               np.array([9, 9, 10, 9, 10, 9], np.int8), np.linspace(-3, 2, 6))
+    layouts = {
+        protocol.COMMAND: (command, np.dtype([("w", "<u2"), ("m", "i1"), ("pad", "u1"), ("target", "<f8")]),
+                           ("controlword", "mode", "target"), b""),
+        protocol.FEEDBACK: (FEEDBACK, np.dtype([("w", "<u2"), ("m", "i1"), ("pad", "u1"), ("position", "<f8"),
+                                                ("velocity", "<f8"), ("torque", "<f8")]),
+                            ("statusword", "mode", "position", "velocity", "torque"), FEEDBACK.platform.astype("<f8").tobytes()),
+    }
+    for kind, (packet, dtype, names, tail) in layouts.items():
+        data = (protocol.encode_command if kind == protocol.COMMAND else protocol.encode_feedback)(packet)
+        a = np.zeros(6, dtype)
+        for field, name in zip(dtype.names[:2] + dtype.names[3:], names):
+            a[field] = getattr(packet, name)
+        assert data[26:-4] == a.tobytes() + tail
+        back = protocol.decode(data, kind)
+        assert (back.sequence, back.timestamp_ns, back.ack) == (packet.sequence, packet.timestamp_ns, packet.ack)
+        for name in names + (("platform",) if kind == protocol.FEEDBACK else ()):
+            np.testing.assert_array_equal(getattr(back, name), getattr(packet, name))
+            assert getattr(back, name).dtype == np.asarray(getattr(packet, name)).dtype, name
 
 
 def test_packets_round_trip_and_every_check_refuses_its_corruption():
@@ -214,8 +241,14 @@ def test_safety_guards_feedback_and_clamps_commands():
     assert not s.check_feedback(1, 4, z, z, z) and s.faults[-1].kind == "feedback stale"
     assert not s.check_feedback(2, 0, z * np.nan, z, z) and s.faults[-1].kind == "feedback invalid"
     assert not s.check_feedback(3, 0, z + 1.5, z, z) and s.faults[-1].kind == "position limit"
+    assert "axis 1 at 1.5 rad" in s.faults[-1].detail
+    assert s.check_feedback(3, 0, z + 1.0, z - 20.0, z + 4.0)  # on the bounds (2 x the limits): still a sample
+    for v, t in ((z - 20.01, z), (z, z + np.inf), (z, z - 4.01)):
+        assert not s.check_feedback(3, 0, z, v, t) and s.faults[-1].kind == "feedback invalid"
     modes = np.array([9, 9, 9, 10, 10, 10])
     np.testing.assert_array_equal(s.limit_command(4, modes, np.full(6, 50.0)), [10, 10, 10, 2, 2, 2])
+    np.testing.assert_array_equal(s.limit_command(4, modes, np.array([-50.0, 3, -3, -50, 1.5, -1.5])),
+                                  [-10, 3, -3, -2, 1.5, -1.5])
     np.testing.assert_array_equal(s.limit_command(5, modes, np.full(6, np.nan)), z)
 
 
