@@ -215,7 +215,7 @@ class BridgeLoop:
 
         Called just before the cycle's deadline (:class:`~hw_bridge.runner.CycleRunner`'s ``prepare``): the
         step's code and data are then in the CPU's caches when the cycle needs them.  Measured on this 2-core VM
-        at 1 kHz, a step right after an idle sleep takes 4-5 times as long as one right after another.
+        at 1 kHz, a step right after an idle sleep takes 3 to 5 times as long as one right after another.
         """
         z = self.held[0]
         if cycle % self.n_position == 0:

@@ -60,19 +60,19 @@ class Safety:
     watchdog_cycles: int = 5  # feedback older than this many cycles stops the machine
     faults: list = field(default_factory=list)
 
-    @property
-    def tripped(self) -> bool:
-        return bool(self.faults)
-
-    def fault(self, cycle: int, kind: str, detail: str) -> None:
-        self.faults.append(Fault(cycle, kind, detail))
-
     def __post_init__(self):
         lim, m = self.limits, self.limits.feedback_margin
         # the bounds of (position, velocity, torque) side by side: one comparison passes a good sample (NaN fails it)
         self._low = np.concatenate([lim.position_min, -m * lim.velocity, -m * lim.torque])
         self._high = np.concatenate([lim.position_max, m * lim.velocity, m * lim.torque])
         self._bound = {}  # drive modes (bytes) -> the command bound of each axis
+
+    @property
+    def tripped(self) -> bool:
+        return bool(self.faults)
+
+    def fault(self, cycle: int, kind: str, detail: str) -> None:
+        self.faults.append(Fault(cycle, kind, detail))
 
     def check_feedback(self, cycle: int, age: int, position, velocity, torque) -> bool:
         """True when the sample may drive the loops: fresh (``age`` cycles old at most the watchdog), finite, in range."""
