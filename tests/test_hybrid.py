@@ -102,7 +102,7 @@ def test_force_law_gradient_is_that_of_central_differences(form):
     within 1e-6 relative, or 1e-6 absolute for derivatives below 1 (m6, c6, g).  Observed 6e-8 or less, the
     round-off of the differences: F_6 is linear in all but the errors, and smooth in those away from equal errors.
     With this, the gradient through the machine is checked in the default (signed) form only
-    (tests/test_mjx_gradients.py), since the forms differ in nothing but ``rho'``."""
+    (tests/test_mjx_plant.py), since the forms differ in nothing but ``rho'``."""
     x0 = np.array([1e-3, 2e-3, -1e-3, 0.0, 7e-4, 7.0, 2.0, 3e3, 4e4, 0.01, 1e-4])
     w = jnp.array([0.2, -0.1, 0.3, 0.5, 0.1])
 
