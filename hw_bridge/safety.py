@@ -81,17 +81,18 @@ class Safety:
             self.fault(cycle, "feedback stale", f"no new feedback for {age} cycles (watchdog {self.watchdog_cycles})")
             return False
         values = np.concatenate((position, velocity, torque))
-        if ((values >= self._low) & (values <= self._high)).all():
+        inside = (values >= self._low) & (values <= self._high)
+        if inside.all():
             return True
-        # a fault: name it
+        # a fault: name it (NaN is outside every bound, so it is looked for first)
+        n = len(position)
         if not np.isfinite(values).all():
             self.fault(cycle, "feedback invalid", "NaN or inf in the measured position, velocity or torque")
-        elif ((values[len(position):] < self._low[len(position):])
-              | (values[len(position):] > self._high[len(position):])).any():
+        elif not inside[n:].all():
             self.fault(cycle, "feedback invalid", f"measured speed or torque beyond {lim.feedback_margin} times its "
                                                   "limit")
         else:
-            k = int(np.argmax((position < lim.position_min) | (position > lim.position_max)))
+            k = int(np.argmin(inside[:n]))  # the first axis outside its stroke
             self.fault(cycle, "position limit", f"axis {k + 1} at {position[k]:.4g} rad, outside "
                                                 f"[{lim.position_min[k]:.4g}, {lim.position_max[k]:.4g}]")
         return False
