@@ -2,9 +2,10 @@
 
 1. Build the problem (:class:`tune.run.Problem`) from the configuration; the start is
    Table 1 with the default hybrid gains.
-2. Optimise (:func:`tune.run.optimise`) on training windows spread over the whole paths,
-   checkpointing to ``DIR/checkpoint.npz`` (arrays and JSON, never a pickle); a run that finds a
-   checkpoint of the same configuration continues from it.  ``DIR`` is locked while a run uses it.
+2. Optimise (:meth:`tune.run.Problem.tune`: :func:`tune.run.optimise` with the config's settings) on
+   training windows spread over the whole paths, checkpointing to ``DIR/checkpoint.npz`` (arrays and
+   JSON, never a pickle); a run that finds a checkpoint of the same configuration continues from it.
+   ``DIR`` is locked while a run uses it.
 3. Evaluate the start and the result on the whole paths with the problem's own forward pass
    (no second compile), and the baselines (``cfg.baselines``: PID and PID with velocity
    feedforward, Table 1 gains) with :func:`pusupu_jax.machine.simulate_scenarios`.
@@ -37,7 +38,7 @@ from pusupu_jax.params import ParameterError, ServoParams
 from pusupu_jax.plots import save_atomic
 
 from .config import TuneConfig
-from .run import CHECKPOINT, Problem, optimise, progress_reporter, scenario_list
+from .run import CHECKPOINT, Problem, progress_reporter, scenario_list
 
 METRICS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho")
 
@@ -175,12 +176,7 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream) -> tuple[dict, int]:
           f"{cfg.windows} windows of {cfg.window_s:g} s spread over each {extent}, "
           f"tuning {', '.join(problem.space.fields)}; compiling the forward pass and the gradient "
           "(about 1.5 min cold on 2 CPU cores)", file=stream, flush=True)
-    result = optimise(problem.value_and_grad, problem.space.z0(), problem.space.project,
-                      iterations=cfg.iterations, learning_rate=cfg.learning_rate, clip_norm=cfg.clip_norm,
-                      final_lr_fraction=cfg.final_lr_fraction,
-                      starts=cfg.starts, start_spread=cfg.start_spread, seed=cfg.seed, checkpoint=checkpoint,
-                      checkpoint_every=cfg.checkpoint_every, digest=cfg.digest(), prepare=problem.prepare,
-                      progress=progress_reporter(cfg.starts, stream))
+    result = problem.tune(checkpoint=checkpoint, progress=progress_reporter(cfg.starts, stream))
     servo0 = problem.space.servo0
     servo1, hybrid1 = problem.space.host_values(result["z"])
     t_opt = time.perf_counter() - t0

@@ -18,6 +18,7 @@ lines on stderr.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import io
 import json
 import sys
@@ -49,6 +50,7 @@ from .config import TuneConfig
 from .space import Space
 
 PENALTY_WEIGHT = 100.0
+GRADIENTS_KEPT = 4  # compiled gradients kept for Problems built again with the same structure (Problem.__init__)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -235,7 +237,7 @@ class Problem(WindowStarts):
         # the compiled program (constants cost compile time, and change its cache key with their last bits)
         self.windows = (sc.window_models, sc.window_reference, jnp.asarray(sc.window_path))
         self.load = AxisLoad.default()
-        self._value_and_grad = jax.jit(value_and_grad(self.objective, cfg.gradient))
+        self._value_and_grad = _shared_gradient(self)
         self.rows = len(sc.names)
 
     def run_paths(self, z) -> list:
@@ -289,6 +291,16 @@ class Problem(WindowStarts):
     def value_and_grad(self, z):
         return self._value_and_grad(z, self.start_baseline(), self.starts, self.windows)
 
+    def tune(self, *, checkpoint: Path | None = None, progress: Callable | None = None) -> "OptimiseResult":
+        """:func:`optimise` from the start gains with the config's optimiser, starts and seed (what ``pusupu tune``
+        runs); ``checkpoint``: its file (saved every ``cfg.checkpoint_every`` iterations, resumed from)."""
+        cfg = self.cfg
+        return optimise(self.value_and_grad, self.space.z0(), self.space.project, iterations=cfg.iterations,
+                        learning_rate=cfg.learning_rate, clip_norm=cfg.clip_norm,
+                        final_lr_fraction=cfg.final_lr_fraction, starts=cfg.starts, start_spread=cfg.start_spread,
+                        seed=cfg.seed, checkpoint=checkpoint, checkpoint_every=cfg.checkpoint_every,
+                        digest=cfg.digest(), prepare=self.prepare, progress=progress)
+
     def path_metrics(self, z) -> dict:
         """``{scenario: (metrics, plot arrays)}`` on the whole paths at ``z``, from the same compiled forward pass."""
         servo, hybrid = self.space.host_values(z)
@@ -300,6 +312,40 @@ class Problem(WindowStarts):
 
 
 CHECKPOINT, CHECKPOINT_FORMAT = "checkpoint.npz", "pusupu-checkpoint-1"
+
+
+_GRADIENTS: dict = {}
+
+
+def _fingerprint(*trees) -> str:
+    """A hash of pytrees: their structure (static fields included) and every leaf's dtype, shape and bytes."""
+    h = hashlib.sha256()
+    for tree in trees:
+        leaves, treedef = jax.tree.flatten(tree)
+        h.update(str(treedef).encode())
+        for leaf in leaves:
+            a = np.asarray(leaf)
+            h.update(f"{a.dtype}{a.shape}".encode() + a.tobytes())
+    return h.hexdigest()
+
+
+def _shared_gradient(problem: Problem):
+    """The jitted ``value_and_grad`` of ``problem.objective``, or that of an earlier Problem of the same structure.
+
+    The objective reads from its Problem only what this key holds: the configuration (every setting), the tuned
+    fields around their start (``space``), the nominal plant and rates, the load of the margins and the number of
+    scenarios; the scenarios' windows, start states and normalisers are arguments.  So Problems that differ only in
+    their scenarios (seeds, payloads, geometry arrays, paths) share one trace and one compile: tracing the gradient
+    of the MJX rollout takes about half a minute on this CPU, each time a new function is jitted.
+    """
+    space = problem.space
+    key = (problem.cfg.digest(), problem.scenarios.plant, problem.rates, len(problem.scenarios.names), space.fields,
+           space.shared, _fingerprint(space.servo0, space.hybrid0, problem.load))
+    if key not in _GRADIENTS:
+        while len(_GRADIENTS) >= GRADIENTS_KEPT:
+            _GRADIENTS.pop(next(iter(_GRADIENTS)))
+        _GRADIENTS[key] = jax.jit(value_and_grad(problem.objective, problem.cfg.gradient))
+    return _GRADIENTS[key]
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
