@@ -266,8 +266,8 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
     ``outer``: 'current', 'velocity', 'imc' (2-DOF IMC, ``params.imc_form``), 'pid', 'pid_ff'
     (PID with velocity feedforward), 'ros_pid' (the PID fields run as ROS's PID does:
     :func:`pusupu_jax.loops.ros_pid_step`) or 'hybrid'.  ``start``: 'rest' (the static equilibrium,
-    :func:`initial_state`) or 'zero'.  ``init``: a carry to start from instead (one of
-    :func:`rollout_segments`'s, for a window of a longer run); its trace's ``t`` starts at 0.
+    :func:`initial_state`) or 'zero'.  ``init``: a carry to start from instead (one that
+    :func:`run_chunked` kept at a mark, for a window of a longer run); its trace's ``t`` starts at 0.
 
     ``reference`` has shape ``(N, n_axes)`` in the outer loop's units, one sample per
     outer period: motor angle [rad] for 'imc' and 'pid', motor speed [rad/s] for

@@ -1,5 +1,5 @@
-"""The admittance outer loop (pusupu_jax.compliance): its discretisation against python-control, its checks, and
-the compliant rollout, which must be the plain one while nothing touches."""
+"""The admittance outer loop (pusupu_jax.compliance): its discretisation against python-control, and its checks (the
+compliant rollout with nothing touching is checked in tests/test_contact_experiments.py, beside the peg run)."""
 
 import control as ct
 import jax
@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pusupu_jax import LoopRates, ServoParams
+from pusupu_jax import ServoParams
 from pusupu_jax import compliance as C
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.params import ParameterError
@@ -63,22 +63,6 @@ def test_selection_and_clamp():
 def test_bad_admittance_gains_are_named(change, message):
     with pytest.raises(ParameterError, match=message):
         C.validate_gains(GAINS.replace(**change), 1e-3)
-
-
-def test_a_compliant_run_with_nothing_touching_is_the_plain_run():
-    """The peg scene at home (the peg 7 mm over the hole), holding still for 0.1 s: no contact force, so the
-    admittance stays at zero and the references recomputed from the pose every period are the precomputed
-    ones: every recorded signal agrees with the plain run to 1e-12 relative (the inverse kinematics is the same
-    closed form, evaluated in the scan instead of before it)."""
-    options = ModelOptions(contacts=True, scene="peg_in_hole", hole_offset=(0.003, 0.0), solver_iterations=4,
-                           cone="elliptic")
-    path = np.repeat(np.asarray(Geometry.default().home)[None], 100, axis=0)
-    (plain, a), = simulate_scenarios(ServoParams.table1(), [Scenario(path, options)], mode="imc")
-    (soft, b), = simulate_scenarios(ServoParams.table1(), [Scenario(path, options)], mode="imc", compliance=GAINS)
-    assert np.all(b["contact_force"] == 0.0) and np.all(b["compliance_offset"] == 0.0)
-    np.testing.assert_allclose(b["platform"], a["platform"], rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(soft["branch_force_peak_n"], plain["branch_force_peak_n"], rtol=1e-12)
-    assert LoopRates().dt_position == 1e-3  # the period the admittance's checks assume here
 
 
 @pytest.mark.parametrize("change, message", [
