@@ -72,7 +72,8 @@ def main() -> int:
     folder.mkdir(parents=True, exist_ok=True)
     job = folder / "job.yaml"
     job.write_text(yaml.safe_dump(job_document(args.scenarios, args.iterations), sort_keys=False))
-    done_before = sum(done_report(folder / "out", j) is not None for j in jobfile.read(job).jobs)
+    jobs = jobfile.read(job).jobs
+    done_before = sum(done_report(folder / "out", j) is not None for j in jobs)
     t0 = time.perf_counter()
     summary, _ = run_batch(job, folder / "out")  # an --out that holds this batch's finished jobs skips them
     t_batch = time.perf_counter() - t0
@@ -81,7 +82,7 @@ def main() -> int:
               f"(failed: {summary['failed']})", file=sys.stderr)
         return 1
     rows, t_alone = [], 0.0
-    for k, j in enumerate(jobfile.read(job).jobs):
+    for k, j in enumerate(jobs):
         t1 = time.perf_counter()
         problem = Problem(j.config, ServoParams.table1(), HybridGains(), specs=list(j.specs))
         alone = problem.tune()

@@ -237,8 +237,8 @@ class Problem(WindowStarts):
         # the compiled program (constants cost compile time, and change its cache key with their last bits)
         self.windows = (sc.window_models, sc.window_reference, jnp.asarray(sc.window_path))
         self.load = AxisLoad.default()
-        self._value_and_grad = _shared_gradient(self)
         self.rows = len(sc.names)
+        self._value_and_grad = _shared_gradient(self)
 
     def run_paths(self, z) -> list:
         """The forward pass over every scenario's whole path at ``z``: ``[(trace (K every, ...), carries (K, ...))]``."""
@@ -339,8 +339,8 @@ def _shared_gradient(problem: Problem):
     of the MJX rollout takes about half a minute on this CPU, each time a new function is jitted.
     """
     space = problem.space
-    key = (problem.cfg.digest(), problem.scenarios.plant, problem.rates, len(problem.scenarios.names), space.fields,
-           space.shared, _fingerprint(space.servo0, space.hybrid0, problem.load))
+    key = (problem.cfg.digest(), problem.scenarios.plant, problem.rates, problem.rows, space.fields, space.shared,
+           _fingerprint(space.servo0, space.hybrid0, problem.load))
     if key not in _GRADIENTS:
         while len(_GRADIENTS) >= GRADIENTS_KEPT:
             _GRADIENTS.pop(next(iter(_GRADIENTS)))
