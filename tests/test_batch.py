@@ -16,6 +16,7 @@ import threading
 import time
 from pathlib import Path
 
+import jax
 import jsonschema
 import numpy as np
 import pytest
@@ -26,6 +27,7 @@ from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import ServoParams
 from tune import jobfile
 from tune.batchjob import run_batch
+from tune import run
 from tune.run import Problem
 
 TUNE = {"iterations": 3, "refresh_every": 1, "checkpoint_every": 1, "windows": 2, "window_s": 0.1, "starts": 2}
@@ -124,7 +126,8 @@ def test_batch_equals_tuning_each_scenario_alone(batch):
     summation order (last-bit differences) and 3 Adam steps carry them on; measured 3e-10 on the gains.
     The two lone problems differ only in their scenarios, so they share one traced and compiled gradient
     (tune.run._shared_gradient): each still equals its own batch member.  A problem started elsewhere does not
-    share it (here the current loop's gain, which is not tuned and enters the program as a constant).
+    share it (here the current loop's gain, which is not tuned and enters the program as a constant).  Built again
+    with nothing in memory, a problem reads the traced program from disk (pusupu_jax.programs) instead of tracing.
     benchmarks/batch_equivalence.py checks every scenario of a 64-scenario batch the same way.
     """
     _, out, summary, _, _ = batch
@@ -143,6 +146,13 @@ def test_batch_equals_tuning_each_scenario_alone(batch):
     elsewhere = Problem(cfg, ServoParams.table1().replace(Ki=ServoParams.table1().Ki * 1.1), HybridGains(),
                         specs=list(job.specs))
     assert elsewhere._value_and_grad is not problems[1]._value_and_grad
+    # as a new process would: the gradient's traced program is read from disk, not traced, and gives the same numbers
+    run._GRADIENTS.clear()
+    again = Problem(cfg, ServoParams.table1(), HybridGains(), specs=list(job.specs))
+    args = (again.z0(), again.start_baseline(), again.starts, again.windows)
+    assert again._value_and_grad.loaded == 1
+    got, want = again._value_and_grad(*args), problems[1]._value_and_grad(*args)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)))
 
 
 def test_running_again_skips_the_finished_jobs(batch):

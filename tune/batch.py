@@ -28,6 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+import tune
+
 from pusupu_jax import objectives
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.gradients import value_and_grad
@@ -35,11 +37,12 @@ from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import machine_rates
 from pusupu_jax.margins import loop_margins
 from pusupu_jax.params import AxisLoad, ServoParams
+from pusupu_jax.programs import Program
 from pusupu_jax.sim import rollout
 
 from .config import TuneConfig
 from .run import (Scenarios, ScenarioSpec, WindowStarts, aggregate, join_windows, load_checkpoint, optimiser,
-                  save_checkpoint, scenario_objective, start_point, whole_path_metrics)
+                  save_checkpoint, scenario_objective, start_point, structure_key, whole_path_metrics)
 from .space import Space
 
 
@@ -79,9 +82,14 @@ class BatchProblem(WindowStarts):
         # arguments of the gradient, not constants in it (as tune.run.Problem.windows)
         self.windows = self.shard((_take(sc.window_models, windows), _take(sc.window_reference, windows),
                                    jnp.asarray(sc.window_path)[windows]))
-        self._value_and_grad = jax.jit(value_and_grad(self.objective, cfg.gradient))
         self._apply = jax.jit(jax.vmap(self.space.apply))
         self.rows = len(self.pairs)  # the baseline's terms are per pair
+        gradient = value_and_grad(self.objective, cfg.gradient)
+        if len(self.devices) == 1:  # traced once for every process (Ray's workers, a resumed batch) that runs this layout
+            self._value_and_grad = Program(gradient, lambda: structure_key(self, len(members), self.window_member,
+                                                                           self.pair_member), packages=(tune,))
+        else:  # sharded arguments: jitted as it is (an exported program is kept for one device)
+            self._value_and_grad = jax.jit(gradient)
 
     def shard(self, tree):
         """``tree`` with its leading (batch) axis spread over the devices (a no-op on one)."""

@@ -18,7 +18,6 @@ lines on stderr.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import io
 import json
 import sys
@@ -33,6 +32,8 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+import tune
+
 from pusupu_jax import objectives
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.config import write_atomic
@@ -43,6 +44,7 @@ from pusupu_jax.margins import loop_margins
 from pusupu_jax.params import AxisLoad, ParameterError, ServoParams, stack
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
+from pusupu_jax.programs import Program, describe
 from pusupu_jax.sim import rollout, run_chunked
 from pusupu_jax.trajectories import platform_path
 
@@ -317,34 +319,33 @@ CHECKPOINT, CHECKPOINT_FORMAT = "checkpoint.npz", "pusupu-checkpoint-1"
 _GRADIENTS: dict = {}
 
 
-def _fingerprint(*trees) -> str:
-    """A hash of pytrees: their structure (static fields included) and every leaf's dtype, shape and bytes."""
-    h = hashlib.sha256()
-    for tree in trees:
-        leaves, treedef = jax.tree.flatten(tree)
-        h.update(str(treedef).encode())
-        for leaf in leaves:
-            a = np.asarray(leaf)
-            h.update(f"{a.dtype}{a.shape}".encode() + a.tobytes())
-    return h.hexdigest()
+def structure_key(problem: WindowStarts, *layout) -> str:
+    """A stable description (:func:`pusupu_jax.programs.describe`) of what a problem's objective reads from it besides
+    its arguments: the configuration (every setting), the tuned fields around their start (``space``), the nominal
+    plant's options, the rates, the load of the margins, the number of rows, and ``layout`` (a subclass's own)."""
+    space = problem.space
+    start = (space.servo0, space.hybrid0, problem.load)
+    return describe((problem.cfg.digest(), problem.scenarios.plant.options, problem.rates, problem.rows, space.fields,
+                     space.shared, start, jax.tree.structure(start), layout))
 
 
-def _shared_gradient(problem: Problem):
+def _shared_gradient(problem: Problem) -> Program:
     """The jitted ``value_and_grad`` of ``problem.objective``, or that of an earlier Problem of the same structure.
 
-    The objective reads from its Problem only what this key holds: the configuration (every setting), the tuned
-    fields around their start (``space``), the nominal plant and rates, the load of the margins and the number of
-    scenarios; the scenarios' windows, start states and normalisers are arguments.  So Problems that differ only in
-    their scenarios (seeds, payloads, geometry arrays, paths) share one trace and one compile: tracing the gradient
-    of the MJX rollout takes about half a minute on this CPU, each time a new function is jitted.
+    The objective reads from its Problem only what :func:`structure_key` holds; the scenarios' windows, start states
+    and normalisers are arguments.  So Problems that differ only in their scenarios (seeds, payloads, geometry
+    arrays, paths) share one trace and one compile: tracing the gradient of the MJX rollout takes about half a minute
+    on this CPU, each time a new function is jitted.  The same key names the traced program on disk
+    (:class:`pusupu_jax.programs.Program`), so that a later process loads it instead of tracing.
     """
-    space = problem.space
-    key = (problem.cfg.digest(), problem.scenarios.plant, problem.rates, problem.rows, space.fields, space.shared,
-           _fingerprint(space.servo0, space.hybrid0, problem.load))
+    key = structure_key(problem)
     if key not in _GRADIENTS:
         while len(_GRADIENTS) >= GRADIENTS_KEPT:
             _GRADIENTS.pop(next(iter(_GRADIENTS)))
-        _GRADIENTS[key] = jax.jit(value_and_grad(problem.objective, problem.cfg.gradient))
+        # the file's name is taken again when it is traced: a configuration whose dicts (weights, bounds) were edited
+        # in place since this Problem was built is traced under its own name, not under this key's
+        _GRADIENTS[key] = Program(value_and_grad(problem.objective, problem.cfg.gradient),
+                                  lambda: structure_key(problem), packages=(tune,))
     return _GRADIENTS[key]
 
 

@@ -1,0 +1,186 @@
+"""Traced programs kept on disk beside JAX's compilation cache, so that a new process need not trace them again.
+
+JAX's persistent compilation cache (:func:`pusupu_jax.config.setup_jax`) keeps what XLA compiled, but every
+process first traces and lowers its functions in Python to find it there.  For the tuner's gradient through the
+MJX rollout that is about 25 s on a 2-core CPU, paid again by every ``pusupu tune``, resumed run and notebook
+kernel.  A :class:`Program` exports its function's lowered program (:mod:`jax.export`: StableHLO in a flatbuffer,
+read without unpickling anything) at its first call for each argument signature, keeps it under ``programs/`` in
+the compilation cache's folder, and in a later process loads that file instead of tracing.  Both processes run
+the exported program (``jax.jit(exported.call)``), so they compile the same module, and the second one finds its
+executable in the compilation cache; results are bitwise those of the function jitted directly.
+
+A file is named by a hash of everything its program depends on: the caller's ``key`` (all that the function reads
+besides its arguments), the source of this package and of the ``packages`` named, the versions of jax, jaxlib,
+mujoco and numpy, the backend, and the arguments' structure, shapes and dtypes.  The files trust the same folder
+as the compilation cache's executables, which are machine code.  A file that does not load is traced again and
+replaced, with a warning; with no compilation cache configured, nothing is kept and the function is only jitted.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+import hashlib
+import importlib.metadata
+import warnings
+from pathlib import Path
+from types import ModuleType
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import export
+
+from .config import write_atomic
+
+SUFFIX = ".jaxexport"
+HERE = Path(__file__).parent
+_VERSIONED = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")
+
+
+class UnstableKey(ValueError):
+    """A value whose description would differ between processes (an object known only by its address)."""
+
+
+def describe(x) -> str:
+    """A description of ``x`` that is the same in every process for equal values: containers, scalars, strings,
+    arrays (dtype, shape and a hash of the bytes), enums, dataclasses and NamedTuples by their fields, pytree
+    definitions node by node (their static data included), and objects that wrap one array as ``.array`` (MJX's
+    static arrays).  Anything else raises :class:`UnstableKey`."""
+    if x is None or isinstance(x, (bool, int, float, complex, str, bytes, np.generic)):
+        return repr(x)
+    if isinstance(x, enum.Enum):
+        return f"{type(x).__qualname__}.{x.name}"
+    if isinstance(x, jax.Array):
+        x = np.asarray(x)
+    if isinstance(x, np.ndarray):
+        return f"array({x.dtype},{x.shape},{hashlib.sha256(np.ascontiguousarray(x).tobytes()).hexdigest()[:24]})"
+    if isinstance(x, jax.tree_util.PyTreeDef):
+        return _describe_treedef(x)
+    if isinstance(x, tuple) and hasattr(x, "_fields"):
+        return f"{type(x).__qualname__}({','.join(describe(v) for v in x)})"
+    if isinstance(x, (list, tuple)):
+        return f"{type(x).__name__}[{','.join(describe(v) for v in x)}]"
+    if isinstance(x, dict):
+        return "{" + ",".join(f"{describe(k)}:{describe(v)}" for k, v in sorted(x.items(), key=lambda kv: repr(kv[0]))) + "}"
+    if isinstance(x, type):
+        return f"{x.__module__}.{x.__qualname__}"
+    if dataclasses.is_dataclass(x):
+        return f"{type(x).__qualname__}({','.join(describe(getattr(x, f.name)) for f in dataclasses.fields(x))})"
+    if isinstance(getattr(x, "array", None), np.ndarray):  # MJX's static arrays, wrapped to hash by content
+        return f"{type(x).__qualname__}({describe(x.array)})"
+    raise UnstableKey(f"no stable description of a {type(x).__module__}.{type(x).__qualname__}")
+
+
+def _describe_treedef(treedef) -> str:
+    node = treedef.node_data()
+    head = "*" if node is None else f"{describe(node[0])}{describe(node[1])}"
+    return head + "(" + ",".join(_describe_treedef(c) for c in treedef.children()) + ")"
+
+
+@functools.lru_cache(maxsize=None)
+def _source_digest(folder: str) -> str:
+    h = hashlib.sha256()
+    for path in sorted(Path(folder).rglob("*.py")):
+        h.update(str(path.relative_to(folder)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def _versions() -> str:
+    out = []
+    for name in _VERSIONED:
+        try:
+            out.append(f"{name}={importlib.metadata.version(name)}")
+        except importlib.metadata.PackageNotFoundError:
+            out.append(f"{name}=-")
+    return ",".join(out)
+
+
+def cache_folder() -> Path | None:
+    """``programs/`` in JAX's compilation cache folder (set by :func:`pusupu_jax.config.setup_jax`), or None."""
+    folder = jax.config.jax_compilation_cache_dir
+    return None if not folder else Path(folder) / "programs"
+
+
+class Program:
+    """``fun`` jitted through an exported program kept on disk (module docstring); call it as ``fun``.
+
+    ``key``: a stable description (:func:`describe`) of all that ``fun`` reads besides its arguments, or a function
+    that returns one (called when a signature is first traced or loaded, so that the name is taken from the state
+    the trace reads, should that have changed since);
+    ``packages``: packages whose source ``fun``'s program is traced from, besides this one; ``folder``: where the
+    programs are kept (default :func:`cache_folder`).  ``loaded`` counts the signatures read from disk.  The outputs
+    come back as host copies (uncommitted arrays, as a plain jit returns them): this is for programs with small
+    outputs, such as a value and its gradient.
+    """
+
+    def __init__(self, fun: Callable, key: str | Callable[[], str], packages: tuple[ModuleType, ...] = (), folder: Path | None = None):
+        self.fun, self.key, self.folder = fun, key, folder
+        self.packages = tuple(packages)
+        self.loaded = 0
+        self._calls: dict = {}
+
+    def __call__(self, *args):
+        leaves, tree = jax.tree.flatten(args)
+        call = self._call(leaves, tree)
+        # an exported call's outputs are committed to their device, a plain jit's (of uncommitted arguments) are not;
+        # fed back (the optimiser's next step, the next start states) they would change the arguments' placement, and
+        # every program they reach, this one included, would be lowered and compiled again for it: small outputs
+        # (a value and its gradient) come back as plain jit's would
+        return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), call(*leaves))
+
+    def lower(self, *args):
+        """The lowered program for ``args`` (traced and exported, or loaded), to time or inspect; its ``compile()``
+        takes the arguments' leaves (``jax.tree.leaves(args)``) and returns the outputs as placed by the device."""
+        leaves, tree = jax.tree.flatten(args)
+        return self._call(leaves, tree).lower(*leaves)
+
+    def _call(self, leaves, tree):
+        signature = (tree, tuple(str(jax.typeof(x)) for x in leaves))
+        call = self._calls.get(signature)
+        if call is None:
+            call = self._calls[signature] = self._program(leaves, tree, signature[1])
+        return call
+
+    def digest(self, tree, avals) -> str:
+        """The file name's hash for arguments of structure ``tree`` and types ``avals``."""
+        h = hashlib.sha256()
+        for part in (self.key() if callable(self.key) else self.key, _versions(), jax.default_backend(), describe(tree), ";".join(avals),
+                     *(_source_digest(str(folder)) for folder in (HERE, *(Path(p.__file__).parent for p in self.packages)))):
+            h.update(part.encode() + b"\0")
+        return h.hexdigest()
+
+    def _program(self, leaves, tree, avals):
+        def flat(*xs):
+            return self.fun(*jax.tree.unflatten(tree, xs))
+
+        folder = self.folder or cache_folder()
+        if folder is None:
+            return jax.jit(flat)
+        try:
+            path = folder / (self.digest(tree, avals) + SUFFIX)
+        except UnstableKey as e:
+            warnings.warn(f"pusupu_jax.programs: not kept on disk ({e})", stacklevel=3)
+            return jax.jit(flat)
+        exported = None
+        if path.exists():
+            try:
+                exported = export.deserialize(bytearray(path.read_bytes()))
+                self.loaded += 1
+            except Exception as e:  # a truncated or foreign file: trace again and replace it
+                warnings.warn(f"pusupu_jax.programs: {path} did not load ({type(e).__name__}: {e}); tracing again",
+                              stacklevel=3)
+        if exported is None:
+            try:
+                exported = export.export(jax.jit(flat))(*leaves)
+            except ValueError as e:  # a custom call that jax.export refuses: jit it as it is
+                warnings.warn(f"pusupu_jax.programs: not exported ({e})", stacklevel=3)
+                return jax.jit(flat)
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                write_atomic(path, exported.serialize())
+            except (OSError, ValueError) as e:  # a full disk, or an output pytree jax.export cannot write
+                warnings.warn(f"pusupu_jax.programs: could not keep {path} ({e})", stacklevel=3)
+        return jax.jit(exported.call)

@@ -1,0 +1,108 @@
+"""Traced programs kept on disk (pusupu_jax.programs): loaded instead of traced, bitwise the same, keyed on all they
+depend on, and a bad file traced again.  Small functions: the tuner's gradient goes through the same class in
+tests/test_batch.py (a Problem built again loads it) and in tests/test_cli.py (the resumed run loads it)."""
+
+import warnings
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from pusupu_jax.programs import SUFFIX, Program, UnstableKey, describe
+
+
+class Pair(NamedTuple):
+    a: jax.Array
+    b: jax.Array
+
+
+def _counted():
+    traces = []
+
+    def fun(x, p: Pair, table: dict):
+        traces.append(1)  # runs only while tracing
+        y = jnp.sin(x) * p.a + table["k"] @ p.b
+        return {"y": y, "sum": (jnp.sum(y), jax.grad(lambda v: jnp.sum(jnp.cos(v) * p.a))(x))}
+
+    return fun, traces
+
+
+ARGS = (jnp.linspace(0.0, 1.0, 3), Pair(jnp.arange(3.0), jnp.ones(2)), {"k": jnp.eye(3, 2)})
+
+
+def _same(a, b):
+    assert jax.tree.structure(a) == jax.tree.structure(b)
+    assert all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+def test_a_second_program_loads_the_first_ones_file_instead_of_tracing(tmp_path):
+    fun, traces = _counted()
+    first = Program(fun, "key", folder=tmp_path)
+    out = first(*ARGS)
+    assert len(traces) == 1 and first.loaded == 0
+    assert len(list(tmp_path.glob("*" + SUFFIX))) == 1
+    _same(out, jax.jit(fun)(*ARGS))  # the exported program's results are the function's, bitwise
+    traces.clear()
+    second = Program(fun, "key", folder=tmp_path)
+    _same(second(*ARGS), out)
+    assert traces == [] and second.loaded == 1
+    fed_back = second(ARGS[0] + out["sum"][1], *ARGS[1:])  # outputs placed as plain jit's: no second compile
+    assert second.loaded == 1 and next(iter(second._calls.values()))._cache_size() == 1  # one load per signature
+    _same(fed_back, jax.jit(fun)(ARGS[0] + out["sum"][1], *ARGS[1:]))
+
+
+def test_another_key_or_signature_is_another_program(tmp_path):
+    fun, traces = _counted()
+    Program(fun, "key", folder=tmp_path)(*ARGS)
+    Program(fun, "other key", folder=tmp_path)(*ARGS)
+    longer = (jnp.zeros(4), Pair(jnp.arange(4.0), jnp.ones(2)), {"k": jnp.ones((4, 2))})
+    p = Program(fun, "key", folder=tmp_path)
+    p(*longer)
+    p(*(x.astype(jnp.float32) for x in jax.tree.leaves(ARGS[:1])), *ARGS[1:])
+    assert len(traces) == 4 and p.loaded == 0
+    assert len(list(tmp_path.glob("*" + SUFFIX))) == 4
+    named_late = Program(fun, lambda: "other key", folder=tmp_path)  # a key taken when the program is first needed
+    named_late(*ARGS)
+    assert named_late.loaded == 1 and len(traces) == 4
+
+
+def test_a_damaged_file_is_traced_again_and_replaced(tmp_path):
+    fun, traces = _counted()
+    want = Program(fun, "key", folder=tmp_path)(*ARGS)
+    (path,) = tmp_path.glob("*" + SUFFIX)
+    path.write_bytes(path.read_bytes()[:100])
+    with pytest.warns(UserWarning, match="did not load"):
+        got = Program(fun, "key", folder=tmp_path)(*ARGS)
+    _same(got, want)
+    assert len(traces) == 2
+    again = Program(fun, "key", folder=tmp_path)
+    again(*ARGS)
+    assert again.loaded == 1 and len(traces) == 2
+
+
+def test_what_has_no_stable_description_is_only_jitted(tmp_path):
+    fun, traces = _counted()
+    args = (jax.tree_util.Partial(lambda v: v, ARGS[0]), *ARGS[1:])  # a function in the arguments' structure
+
+    def unwrap(x, p, table):
+        return fun(x(), p, table)
+
+    with pytest.warns(UserWarning, match="not kept on disk"):
+        out = Program(unwrap, "key", folder=tmp_path)(*args)
+    _same(out, jax.jit(fun)(*ARGS))
+    assert not list(tmp_path.iterdir())
+
+
+def test_descriptions_are_equal_for_equal_values_only():
+    a = {"x": np.arange(3.0), "p": Pair(1, "s"), "t": (None, 2.5)}
+    assert describe(a) == describe({"t": (None, 2.5), "p": Pair(1, "s"), "x": np.arange(3.0)})
+    assert describe(a) != describe(a | {"x": np.nextafter(np.arange(3.0), 9)})  # last bit of one element
+    assert describe(Pair(1, 2)) != describe((1, 2))
+    assert describe(jax.tree.structure(Pair(1, 2))) != describe(jax.tree.structure((1, 2)))
+    with pytest.raises(UnstableKey, match="builtins.object"):
+        describe(object())
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        describe(jnp.ones(2))  # a jax array by its values
