@@ -79,9 +79,9 @@ p.refresh(z0)
 ones = {k: jnp.ones(p.rows) for k in objectives.TERMS}
 t = time.perf_counter()
 args = (z0, ones, p.starts, p.windows)
-lowered = p._value_and_grad.lower(*args)  # a tree with pusupu_jax.programs: the trace includes the export
+lowered = p._value_and_grad.lower(*args)  # a tree with pusupu_jax.programs: the trace includes the export and write
 out["gradient_trace_s"] = time.perf_counter() - t
-if "pusupu_jax.programs" in sys.modules:  # the exported program's compiled call takes the arguments' leaves
+if hasattr(p._value_and_grad, "loaded"):  # a pusupu_jax.programs.Program: its compiled call takes the leaves
     args = jax.tree.leaves(args)
 t = time.perf_counter()
 compiled = lowered.compile()

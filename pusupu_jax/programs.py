@@ -10,22 +10,23 @@ the exported program (``jax.jit(exported.call)``), so they compile the same modu
 executable in the compilation cache; results are bitwise those of the function jitted directly.
 
 A file is named by a hash of everything its program depends on: the caller's ``key`` (all that the function reads
-besides its arguments), the source of this package and of the ``packages`` named, the versions of jax, jaxlib,
-mujoco and numpy, the backend, and the arguments' structure, shapes and dtypes.  The files trust the same folder
-as the compilation cache's executables, which are machine code.  A file that does not load is traced again and
-replaced, with a warning; with no compilation cache configured, nothing is kept and the function is only jitted.
+besides its arguments), the source of this package and of the ``sources`` folders named, the versions of jax,
+jaxlib, mujoco, mujoco-mjx and numpy, the backend, the JAX settings that change a trace (float64, matmul precision,
+dtype promotion), and the arguments' structure, shapes and dtypes.  It starts with the SHA-256 of the rest, checked
+on reading.  The files trust the same folder as the compilation cache's executables, which are machine code.  A
+file that fails its checksum, does not deserialise, was made for other arguments or does not lower is traced again
+and replaced, with a warning; a function that cannot be exported is only jitted, with a warning; with no
+compilation cache configured nothing is kept and the function is only jitted.  The folder can be deleted.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import enum
-import functools
 import hashlib
 import importlib.metadata
 import warnings
 from pathlib import Path
-from types import ModuleType
 from typing import Callable
 
 import jax
@@ -38,40 +39,47 @@ from .config import write_atomic
 SUFFIX = ".jaxexport"
 HERE = Path(__file__).parent
 _VERSIONED = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")
+_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion")
 
 
 class UnstableKey(ValueError):
     """A value whose description would differ between processes (an object known only by its address)."""
 
 
+def _name(t: type) -> str:
+    return f"{t.__module__}.{t.__qualname__}"
+
+
 def describe(x) -> str:
     """A description of ``x`` that is the same in every process for equal values: containers, scalars, strings,
-    arrays (dtype, shape and a hash of the bytes), enums, dataclasses and NamedTuples by their fields, pytree
-    definitions node by node (their static data included), and objects that wrap one array as ``.array`` (MJX's
-    static arrays).  Anything else raises :class:`UnstableKey`."""
+    arrays (dtype, shape and a hash of the bytes), enums, dataclasses and NamedTuples by their class and fields,
+    pytree definitions node by node (their static data included), and objects that wrap one array as ``.array``
+    (MJX's static arrays).  Anything else (an array of objects included) raises :class:`UnstableKey`."""
     if x is None or isinstance(x, (bool, int, float, complex, str, bytes, np.generic)):
         return repr(x)
     if isinstance(x, enum.Enum):
-        return f"{type(x).__qualname__}.{x.name}"
+        return f"{_name(type(x))}.{x.name}"
     if isinstance(x, jax.Array):
         x = np.asarray(x)
     if isinstance(x, np.ndarray):
+        if x.dtype.hasobject:
+            raise UnstableKey("no stable description of an array of Python objects")
         return f"array({x.dtype},{x.shape},{hashlib.sha256(np.ascontiguousarray(x).tobytes()).hexdigest()[:24]})"
     if isinstance(x, jax.tree_util.PyTreeDef):
         return _describe_treedef(x)
-    if isinstance(x, tuple) and hasattr(x, "_fields"):
-        return f"{type(x).__qualname__}({','.join(describe(v) for v in x)})"
-    if isinstance(x, (list, tuple)):
-        return f"{type(x).__name__}[{','.join(describe(v) for v in x)}]"
-    if isinstance(x, dict):
-        return "{" + ",".join(f"{describe(k)}:{describe(v)}" for k, v in sorted(x.items(), key=lambda kv: repr(kv[0]))) + "}"
     if isinstance(x, type):
-        return f"{x.__module__}.{x.__qualname__}"
+        return _name(x)
+    if isinstance(x, tuple) and hasattr(x, "_fields"):
+        return f"{_name(type(x))}({','.join(f'{f}={describe(v)}' for f, v in zip(x._fields, x))})"
+    if isinstance(x, (list, tuple, dict)):
+        items = (sorted(x.items(), key=lambda kv: repr(kv[0])) if isinstance(x, dict) else enumerate(x))
+        return f"{_name(type(x))}[{','.join(f'{describe(k)}:{describe(v)}' for k, v in items)}]"
     if dataclasses.is_dataclass(x):
-        return f"{type(x).__qualname__}({','.join(describe(getattr(x, f.name)) for f in dataclasses.fields(x))})"
+        fields = ",".join(f"{f.name}={describe(getattr(x, f.name))}" for f in dataclasses.fields(x))
+        return f"{_name(type(x))}({fields})"
     if isinstance(getattr(x, "array", None), np.ndarray):  # MJX's static arrays, wrapped to hash by content
-        return f"{type(x).__qualname__}({describe(x.array)})"
-    raise UnstableKey(f"no stable description of a {type(x).__module__}.{type(x).__qualname__}")
+        return f"{_name(type(x))}({describe(x.array)})"
+    raise UnstableKey(f"no stable description of a {_name(type(x))}")
 
 
 def _describe_treedef(treedef) -> str:
@@ -80,10 +88,10 @@ def _describe_treedef(treedef) -> str:
     return head + "(" + ",".join(_describe_treedef(c) for c in treedef.children()) + ")"
 
 
-@functools.lru_cache(maxsize=None)
-def _source_digest(folder: str) -> str:
+def _source_digest(folder: Path) -> str:
+    """Every ``.py`` file under ``folder``, names and bytes (read again each time: a notebook may have edited one)."""
     h = hashlib.sha256()
-    for path in sorted(Path(folder).rglob("*.py")):
+    for path in sorted(folder.rglob("*.py")):
         h.update(str(path.relative_to(folder)).encode() + b"\0" + path.read_bytes() + b"\0")
     return h.hexdigest()
 
@@ -109,16 +117,16 @@ class Program:
 
     ``key``: a stable description (:func:`describe`) of all that ``fun`` reads besides its arguments, or a function
     that returns one (called when a signature is first traced or loaded, so that the name is taken from the state
-    the trace reads, should that have changed since);
-    ``packages``: packages whose source ``fun``'s program is traced from, besides this one; ``folder``: where the
-    programs are kept (default :func:`cache_folder`).  ``loaded`` counts the signatures read from disk.  The outputs
-    come back as host copies (uncommitted arrays, as a plain jit returns them): this is for programs with small
-    outputs, such as a value and its gradient.
+    the trace reads, should that have changed since).  ``sources``: folders of Python code that ``fun``'s program is
+    traced from, besides this package.  ``folder``: where the programs are kept (default :func:`cache_folder`).
+    ``loaded`` counts the signatures read from disk.  The outputs come back as host copies (uncommitted arrays, as
+    a plain jit returns them): this is for programs with small outputs, such as a value and its gradient.
     """
 
-    def __init__(self, fun: Callable, key: str | Callable[[], str], packages: tuple[ModuleType, ...] = (), folder: Path | None = None):
+    def __init__(self, fun: Callable, key: str | Callable[[], str], sources: tuple[Path, ...] = (),
+                 folder: Path | None = None):
         self.fun, self.key, self.folder = fun, key, folder
-        self.packages = tuple(packages)
+        self.sources = tuple(Path(s) for s in sources)
         self.loaded = 0
         self._calls: dict = {}
 
@@ -147,8 +155,9 @@ class Program:
     def digest(self, tree, avals) -> str:
         """The file name's hash for arguments of structure ``tree`` and types ``avals``."""
         h = hashlib.sha256()
-        for part in (self.key() if callable(self.key) else self.key, _versions(), jax.default_backend(), describe(tree), ";".join(avals),
-                     *(_source_digest(str(folder)) for folder in (HERE, *(Path(p.__file__).parent for p in self.packages)))):
+        settings = ",".join(f"{name}={getattr(jax.config, name)}" for name in _SETTINGS)
+        for part in (self.key() if callable(self.key) else self.key, _versions(), jax.default_backend(), settings,
+                     describe(tree), ";".join(avals), *(_source_digest(f) for f in (HERE, *self.sources))):
             h.update(part.encode() + b"\0")
         return h.hexdigest()
 
@@ -162,25 +171,41 @@ class Program:
         try:
             path = folder / (self.digest(tree, avals) + SUFFIX)
         except UnstableKey as e:
-            warnings.warn(f"pusupu_jax.programs: not kept on disk ({e})", stacklevel=3)
+            warnings.warn(f"pusupu_jax.programs: not kept on disk ({e})", stacklevel=4)
             return jax.jit(flat)
-        exported = None
         if path.exists():
             try:
-                exported = export.deserialize(bytearray(path.read_bytes()))
+                call = self._load(path, leaves)
                 self.loaded += 1
-            except Exception as e:  # a truncated or foreign file: trace again and replace it
+                return call
+            except Exception as e:  # damaged, foreign, or for other arguments: trace again and replace it
                 warnings.warn(f"pusupu_jax.programs: {path} did not load ({type(e).__name__}: {e}); tracing again",
-                              stacklevel=3)
-        if exported is None:
-            try:
-                exported = export.export(jax.jit(flat))(*leaves)
-            except ValueError as e:  # a custom call that jax.export refuses: jit it as it is
-                warnings.warn(f"pusupu_jax.programs: not exported ({e})", stacklevel=3)
-                return jax.jit(flat)
-            try:
-                folder.mkdir(parents=True, exist_ok=True)
-                write_atomic(path, exported.serialize())
-            except (OSError, ValueError) as e:  # a full disk, or an output pytree jax.export cannot write
-                warnings.warn(f"pusupu_jax.programs: could not keep {path} ({e})", stacklevel=3)
+                              stacklevel=4)
+        try:
+            exported = export.export(jax.jit(flat))(*leaves)
+        except Exception as e:  # what jax.export refuses (host callbacks, some custom calls): jit it as it is
+            warnings.warn(f"pusupu_jax.programs: not exported, traced in this process only ({type(e).__name__}: {e})",
+                          stacklevel=4)
+            return jax.jit(flat)
+        try:
+            blob = bytes(exported.serialize())
+            folder.mkdir(parents=True, exist_ok=True)
+            write_atomic(path, hashlib.sha256(blob).digest() + blob)
+        except Exception as e:  # a full or read-only disk, an output jax.export cannot write, no flatbuffers
+            warnings.warn(f"pusupu_jax.programs: could not keep {path} ({type(e).__name__}: {e})", stacklevel=4)
         return jax.jit(exported.call)
+
+    @staticmethod
+    def _load(path: Path, leaves):
+        """The jitted call of the program in ``path``, checked: its checksum, its arguments' types, and a lowering."""
+        data = path.read_bytes()
+        blob = data[32:]
+        if hashlib.sha256(blob).digest() != data[:32]:
+            raise ValueError("checksum mismatch")
+        exported = export.deserialize(bytearray(blob))
+        want = [jax.typeof(x) for x in leaves]
+        if [(a.shape, a.dtype) for a in exported.in_avals] != [(a.shape, a.dtype) for a in want]:
+            raise ValueError("made for other argument types")
+        call = jax.jit(exported.call)
+        call.lower(*leaves)  # parses the module (cached: the first call does not lower again)
+        return call

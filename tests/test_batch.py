@@ -25,9 +25,8 @@ import yaml
 from pusupu_jax import gains
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import ServoParams
-from tune import jobfile
+from tune import jobfile, run
 from tune.batchjob import run_batch
-from tune import run
 from tune.run import Problem
 
 TUNE = {"iterations": 3, "refresh_every": 1, "checkpoint_every": 1, "windows": 2, "window_s": 0.1, "starts": 2}
@@ -119,7 +118,7 @@ def test_batch_writes_every_jobs_outputs_and_marks_the_failed_ones(batch):
     assert "first iteration (with the compile)" in log and "ETA" in log
 
 
-def test_batch_equals_tuning_each_scenario_alone(batch):
+def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
     """Each job's history and gains equal pusupu tune's optimiser run on that scenario alone, same seed and starts.
 
     Tolerance 1e-7 relative: the same operations, but vmapping over 6 members changes XLA's fusion and
@@ -147,7 +146,7 @@ def test_batch_equals_tuning_each_scenario_alone(batch):
                         specs=list(job.specs))
     assert elsewhere._value_and_grad is not problems[1]._value_and_grad
     # as a new process would: the gradient's traced program is read from disk, not traced, and gives the same numbers
-    run._GRADIENTS.clear()
+    monkeypatch.setattr(run, "_GRADIENTS", {})
     again = Problem(cfg, ServoParams.table1(), HybridGains(), specs=list(job.specs))
     args = (again.z0(), again.start_baseline(), again.starts, again.windows)
     assert again._value_and_grad.loaded == 1

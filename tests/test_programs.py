@@ -1,6 +1,7 @@
 """Traced programs kept on disk (pusupu_jax.programs): loaded instead of traced, bitwise the same, keyed on all they
-depend on, and a bad file traced again.  Small functions: the tuner's gradient goes through the same class in
-tests/test_batch.py (a Problem built again loads it) and in tests/test_cli.py (the resumed run loads it)."""
+depend on, and a bad file traced again.  Small functions here: the tuner's gradient goes through the same class in
+tests/test_batch.py (a Problem built again with nothing in memory loads it and gives the same numbers), and every
+tuning run of the suite (tests/test_cli.py's resumed run, Ray's workers) runs through it."""
 
 import warnings
 from typing import NamedTuple
@@ -10,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from pusupu_jax import programs
 from pusupu_jax.programs import SUFFIX, Program, UnstableKey, describe
 
 
@@ -30,6 +32,7 @@ def _counted():
 
 
 ARGS = (jnp.linspace(0.0, 1.0, 3), Pair(jnp.arange(3.0), jnp.ones(2)), {"k": jnp.eye(3, 2)})
+LONGER = (jnp.zeros(4), Pair(jnp.arange(4.0), jnp.ones(2)), {"k": jnp.ones((4, 2))})
 
 
 def _same(a, b):
@@ -57,9 +60,8 @@ def test_another_key_or_signature_is_another_program(tmp_path):
     fun, traces = _counted()
     Program(fun, "key", folder=tmp_path)(*ARGS)
     Program(fun, "other key", folder=tmp_path)(*ARGS)
-    longer = (jnp.zeros(4), Pair(jnp.arange(4.0), jnp.ones(2)), {"k": jnp.ones((4, 2))})
     p = Program(fun, "key", folder=tmp_path)
-    p(*longer)
+    p(*LONGER)
     p(*(x.astype(jnp.float32) for x in jax.tree.leaves(ARGS[:1])), *ARGS[1:])
     assert len(traces) == 4 and p.loaded == 0
     assert len(list(tmp_path.glob("*" + SUFFIX))) == 4
@@ -68,18 +70,50 @@ def test_another_key_or_signature_is_another_program(tmp_path):
     assert named_late.loaded == 1 and len(traces) == 4
 
 
-def test_a_damaged_file_is_traced_again_and_replaced(tmp_path):
+@pytest.mark.parametrize("damage", ["truncated", "one byte flipped", "made for other arguments"])
+def test_a_damaged_or_misplaced_file_is_traced_again_and_replaced(tmp_path, damage):
     fun, traces = _counted()
     want = Program(fun, "key", folder=tmp_path)(*ARGS)
     (path,) = tmp_path.glob("*" + SUFFIX)
-    path.write_bytes(path.read_bytes()[:100])
-    with pytest.warns(UserWarning, match="did not load"):
-        got = Program(fun, "key", folder=tmp_path)(*ARGS)
+    data = path.read_bytes()
+    if damage == "truncated":
+        path.write_bytes(data[:100])
+    elif damage == "one byte flipped":  # in the module's bytes: the checksum, not the parser, has to catch it
+        path.write_bytes(data[:len(data) // 2] + bytes([data[len(data) // 2] ^ 1]) + data[len(data) // 2 + 1:])
+    else:  # this file under the name of the program for a longer x
+        leaves, tree = jax.tree.flatten(LONGER)
+        path = tmp_path / (Program(fun, "key").digest(tree, [str(jax.typeof(x)) for x in leaves]) + SUFFIX)
+        path.write_bytes(data)
+        want = jax.jit(_counted()[0])(*LONGER)  # a function of its own: its trace is not counted
+    reason = "other argument types" if damage == "made for other arguments" else "checksum|did not load"
+    p = Program(fun, "key", folder=tmp_path)
+    with pytest.warns(UserWarning, match=reason):
+        got = p(*(LONGER if damage == "made for other arguments" else ARGS))
     _same(got, want)
-    assert len(traces) == 2
+    assert len(traces) == 2 and p.loaded == 0
     again = Program(fun, "key", folder=tmp_path)
-    again(*ARGS)
+    again(*(LONGER if damage == "made for other arguments" else ARGS))
     assert again.loaded == 1 and len(traces) == 2
+
+
+def test_other_library_versions_name_another_file(tmp_path, monkeypatch):
+    fun, traces = _counted()
+    Program(fun, "key", folder=tmp_path)(*ARGS)
+    monkeypatch.setattr(programs, "_versions", lambda: "jax=0.0.0")
+    p = Program(fun, "key", folder=tmp_path)
+    p(*ARGS)
+    assert p.loaded == 0 and len(traces) == 2 and len(list(tmp_path.glob("*" + SUFFIX))) == 2
+
+
+def test_a_function_jax_export_refuses_is_only_jitted(tmp_path):
+    def noisy(x):
+        jax.debug.callback(lambda v: None, x)  # a host callback: jax.export refuses it
+        return 2.0 * x
+
+    with pytest.warns(UserWarning, match="not exported"):
+        out = Program(noisy, "key", folder=tmp_path)(ARGS[0])
+    _same(out, 2.0 * ARGS[0])
+    assert not list(tmp_path.iterdir())
 
 
 def test_what_has_no_stable_description_is_only_jitted(tmp_path):

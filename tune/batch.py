@@ -28,8 +28,6 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-import tune
-
 from pusupu_jax import objectives
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.gradients import value_and_grad
@@ -41,7 +39,7 @@ from pusupu_jax.programs import Program
 from pusupu_jax.sim import rollout
 
 from .config import TuneConfig
-from .run import (Scenarios, ScenarioSpec, WindowStarts, aggregate, join_windows, load_checkpoint, optimiser,
+from .run import (HERE, Scenarios, ScenarioSpec, WindowStarts, aggregate, join_windows, load_checkpoint, optimiser,
                   save_checkpoint, scenario_objective, start_point, structure_key, whole_path_metrics)
 from .space import Space
 
@@ -87,7 +85,7 @@ class BatchProblem(WindowStarts):
         gradient = value_and_grad(self.objective, cfg.gradient)
         if len(self.devices) == 1:  # traced once for every process (Ray's workers, a resumed batch) that runs this layout
             self._value_and_grad = Program(gradient, lambda: structure_key(self, len(members), self.window_member,
-                                                                           self.pair_member), packages=(tune,))
+                                                                           self.pair_member), sources=(HERE,))
         else:  # sharded arguments: jitted as it is (an exported program is kept for one device)
             self._value_and_grad = jax.jit(gradient)
 

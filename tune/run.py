@@ -32,8 +32,6 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-import tune
-
 from pusupu_jax import objectives
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.config import write_atomic
@@ -51,6 +49,7 @@ from pusupu_jax.trajectories import platform_path
 from .config import TuneConfig
 from .space import Space
 
+HERE = Path(__file__).parent  # the tuner's source, which its traced programs depend on (pusupu_jax.programs)
 PENALTY_WEIGHT = 100.0
 GRADIENTS_KEPT = 4  # compiled gradients kept for Problems built again with the same structure (Problem.__init__)
 
@@ -322,11 +321,13 @@ _GRADIENTS: dict = {}
 def structure_key(problem: WindowStarts, *layout) -> str:
     """A stable description (:func:`pusupu_jax.programs.describe`) of what a problem's objective reads from it besides
     its arguments: the configuration (every setting), the tuned fields around their start (``space``), the nominal
-    plant's options, the rates, the load of the margins, the number of rows, and ``layout`` (a subclass's own)."""
+    plant's options, the rates, the load of the margins, the number of rows, and ``layout`` (a subclass's own), with
+    the problem's class."""
     space = problem.space
     start = (space.servo0, space.hybrid0, problem.load)
-    return describe((problem.cfg.digest(), problem.scenarios.plant.options, problem.rates, problem.rows, space.fields,
-                     space.shared, start, jax.tree.structure(start), layout))
+    # the weights' order too: the objective sums its terms in it, and the digest sorts them
+    return describe((type(problem), problem.cfg.digest(), tuple(problem.cfg.weights), problem.scenarios.plant.options,
+                     problem.rates, problem.rows, space.fields, space.shared, start, jax.tree.structure(start), layout))
 
 
 def _shared_gradient(problem: Problem) -> Program:
@@ -345,7 +346,7 @@ def _shared_gradient(problem: Problem) -> Program:
         # the file's name is taken again when it is traced: a configuration whose dicts (weights, bounds) were edited
         # in place since this Problem was built is traced under its own name, not under this key's
         _GRADIENTS[key] = Program(value_and_grad(problem.objective, problem.cfg.gradient),
-                                  lambda: structure_key(problem), packages=(tune,))
+                                  lambda: structure_key(problem), sources=(HERE,))
     return _GRADIENTS[key]
 
 
