@@ -19,6 +19,7 @@ Agreement with python-control is a test (0.5 deg, 0.1 dB).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -77,31 +78,59 @@ def _crossings(f, log_w):
     return mask, log_w[:-1] + frac * (log_w[1:] - log_w[:-1])
 
 
+CANDIDATES = 4  # crossings refined per loop and kind: those of the smallest margins on the grid
+
+
 def margins(gain_fn, w=W_GRID) -> dict:
     """Smallest phase margin [deg] and gain margin [dB] of ``gain_fn(w) -> L(jw)`` (``inf`` where none).
 
     Also the gain crossover [rad/s] of the smallest phase margin.  Differentiable
     almost everywhere in whatever ``gain_fn`` closes over.
+
+    The grid only finds the crossings (no gradient flows through it); the :data:`CANDIDATES`
+    crossings of each kind with the smallest margins read on the grid are refined on the exact
+    response, and the gradient flows through those few points.  Refining every grid interval, as
+    this did before, kept about 100 MB of the gradient's intermediates per parameter set (6
+    axes, 3 loops): 6.6 GB for a batch of 64 on the CPU, and a batch of 4096 asked a GPU for
+    135 GiB.
     """
     log_w = jnp.log(w)
 
-    def refine(g, x):  # two secant steps on g(log w) = 0 from the interpolated root, kept on the grid's span
+    def refine(g, x, mask):
+        """Two secant steps on g(log w) = 0 from the interpolated roots, kept on the grid's span.
+
+        Only where ``mask`` holds a root: elsewhere x stays, and its step is not formed at all. Its
+        gradient is taken all the same (with a zero cotangent), and in float32 a fast loop's
+        near-equal tiny values far from any root made that step's derivative overflow: zero times
+        inf is NaN, which reached every gain (the same holds for ``at_roots``).
+        """
         x0, x1 = x, x + 1e-4
         for _ in range(2):
             g0, g1 = g(x0), g(x1)
-            x0, x1 = x1, jnp.clip(x1 - g1 * (x1 - x0) / jnp.where(g1 == g0, 1.0, g1 - g0), log_w[0], log_w[-1])
+            use = mask & (g1 != g0)
+            step = jnp.where(use, g1 * (x1 - x0) / jnp.where(use, g1 - g0, 1.0), 0.0)
+            x0, x1 = x1, jnp.clip(x1 - step, log_w[0], log_w[-1])
         return x1
 
-    L = gain_fn(w)
-    mask_g, x_g = _crossings(jnp.log(jnp.abs(L)), log_w)
-    x_g = refine(lambda x: jnp.log(jnp.abs(gain_fn(jnp.exp(x)))), x_g)
-    pm = jnp.mod(jnp.degrees(jnp.angle(gain_fn(jnp.exp(x_g)))) + 180.0, 360.0)
-    pm_all = jnp.where(mask_g, pm, jnp.inf)
+    def at_roots(x, mask):  # L at the roots, 1 elsewhere: there the angle's and the log's gradients would be NaN
+        return jnp.where(mask, gain_fn(jnp.exp(x)), 1.0)
+
+    def candidates(mask, x, margin_on_grid):  # the crossings of the smallest margins: (mask, log w), K per loop
+        k = jnp.argsort(jnp.where(mask, margin_on_grid, jnp.inf), axis=-1)[..., :CANDIDATES]
+        return jnp.take_along_axis(mask, k, axis=-1), jnp.take_along_axis(x, k, axis=-1)
+
+    def phase_margin(L):
+        return jnp.mod(jnp.degrees(jnp.angle(L)) + 180.0, 360.0)
+
+    L = jax.lax.stop_gradient(gain_fn(w))
+    mask_g, x_g = candidates(*_crossings(jnp.log(jnp.abs(L)), log_w), phase_margin(L[..., :-1]))
+    x_g = refine(lambda x: jnp.log(jnp.abs(gain_fn(jnp.exp(x)))), x_g, mask_g)
+    pm_all = jnp.where(mask_g, phase_margin(at_roots(x_g, mask_g)), jnp.inf)
     k = jnp.argmin(pm_all, axis=-1)
     mask_p, x_p = _crossings(jnp.imag(L), log_w)
-    mask_p = mask_p & (jnp.real(L[..., :-1]) < 0)
-    x_p = refine(lambda x: jnp.imag(gain_fn(jnp.exp(x))), x_p)
-    gm = jnp.where(mask_p, -20 * jnp.log10(jnp.abs(gain_fn(jnp.exp(x_p)))), jnp.inf)
+    mask_p, x_p = candidates(mask_p & (jnp.real(L[..., :-1]) < 0), x_p, -jnp.log(jnp.abs(L[..., :-1])))
+    x_p = refine(lambda x: jnp.imag(gain_fn(jnp.exp(x))), x_p, mask_p)
+    gm = jnp.where(mask_p, -20 * jnp.log10(jnp.abs(at_roots(x_p, mask_p))), jnp.inf)
     return {"phase_margin_deg": jnp.min(pm_all, axis=-1), "gain_margin_db": jnp.min(gm, axis=-1),
             "crossover_rad_s": jnp.take_along_axis(jnp.exp(x_g), k[..., None], axis=-1)[..., 0]}
 

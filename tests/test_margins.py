@@ -1,5 +1,9 @@
 """JAX loop margins (the tuner's constraints) against python-control, and their gradients."""
 
+import json
+import subprocess
+import sys
+
 import jax
 import numpy as np
 import pytest
@@ -50,3 +54,39 @@ def test_margin_gradients_match_central_differences(name, x, loop, key):
     ad = jax.grad(f)(x)
     assert abs(float(fd)) > 1e-3
     assert float(ad) == pytest.approx(float(fd), rel=1e-4)
+
+
+# the gradient of every loop's margins in some of the gains, as JSON on stdout; run with float64 on or off
+_MARGIN_GRADIENTS = """
+import json, sys
+from pusupu_jax.config import setup_jax
+setup_jax(x64=sys.argv[1] == "float64")
+import jax, jax.numpy as jnp, numpy as np
+from pusupu_jax import AxisLoad, ServoParams
+from pusupu_jax.margins import loop_margins
+servo, load = ServoParams.table1(), AxisLoad.default()
+fields = ("lambda2", "T0", "Kv", "Tv", "Ki", "Ti")
+def total(x):
+    m = loop_margins(servo.replace(**x), load)
+    assert all(v.dtype == jnp.dtype(sys.argv[1]) for v in jax.tree.leaves(m))
+    return sum(jnp.minimum(loop[k], 60.0).sum() for loop in m.values() for k in ("phase_margin_deg", "gain_margin_db"))
+g = jax.jit(jax.grad(total))({f: np.asarray(getattr(servo, f)) for f in fields})
+print(json.dumps({f: np.asarray(v, dtype=float).tolist() for f, v in g.items()}))
+"""
+
+
+def test_margin_gradients_are_finite_in_float32():
+    """With float64 off, every margin's gradient is finite and float64's within 1e-4 of its largest (observed 6e-6).
+
+    Far from any crossover a fast loop's |L| is tiny (1e-21 for the position loop at 1e6 rad/s), and in float32 the
+    unused secant steps and angles there had overflowing derivatives: zero cotangent times inf gave NaN in every gain.
+    Each precision runs in its own interpreter: JAX's float64 switch is process-wide.
+    """
+    wide, narrow = ({f: np.asarray(v) for f, v in json.loads(subprocess.run(
+        [sys.executable, "-c", _MARGIN_GRADIENTS, dtype], capture_output=True, text=True, timeout=600,
+        check=True).stdout).items()} for dtype in ("float64", "float32"))
+    for f, w in wide.items():
+        assert np.all(np.isfinite(narrow[f])), f
+        scale = np.max(np.abs(w))
+        assert scale > 0, f
+        np.testing.assert_allclose(narrow[f], w, atol=1e-4 * scale, err_msg=f)
