@@ -9,10 +9,11 @@ and gradient.  The first iteration (trace, compile, first run) is reported apart
 iteration time is the median of the others, and the mean, which spreads the refreshes.
 
     python benchmarks/bench_batch.py [--batches 1,2,64] [--iterations 6] [--path 0.2] [--window 0.05]
-                                     [--devices N] [--label NAME]
+                                     [--devices N] [--remat] [--label NAME]
 
 ``scenario_iterations_per_s`` = B / iteration time.  With ``--devices N`` the batch is sharded
-over the first N devices (``jax.sharding``), as ``pusupu batch`` does over all of them.
+over the first N devices (``jax.sharding``), as ``pusupu batch`` does over all of them; ``--remat`` sets the
+configuration's ``remat`` (reverse mode keeps one carry per position period: large batches fit in memory).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ def main() -> None:
     ap.add_argument("--window", type=float, default=0.05, help="one training window of this length [s]")
     ap.add_argument("--distinct", type=int, default=8, help="distinct scenarios the batch cycles over")
     ap.add_argument("--devices", type=int, help="shard over the first N devices (default: all)")
+    ap.add_argument("--remat", action="store_true", help="the tune configuration's remat: true")
     ap.add_argument("--label", default="", help="a name for the run in the JSON")
     args = ap.parse_args()
     from pusupu_jax.config import setup_jax
@@ -50,7 +52,7 @@ def main() -> None:
 
     devices = jax.devices()[:args.devices] if args.devices else jax.devices()
     cfg = TuneConfig(windows=1, window_s=args.window, iterations=args.iterations, refresh_every=args.refresh_every,
-                     checkpoint_every=args.refresh_every, baselines=())
+                     checkpoint_every=args.refresh_every, baselines=(), remat=args.remat)
     specs = [ScenarioSpec(f"{kind}/seed{s}", kind, ModelOptions(kin_error_seed=s), path_s=args.path)
              for s in range(args.distinct // 2) for kind in ("arc", "p2p")]
     results = []
@@ -71,7 +73,8 @@ def main() -> None:
         print(json.dumps(row), file=sys.stderr, flush=True)
     print(json.dumps({"benchmark": "bench_batch", "label": args.label, "backend": jax.default_backend(),
                       "devices": [str(d) for d in devices], "device_kind": devices[0].device_kind,
-                      "jax": jax.__version__, "x64": bool(jax.config.jax_enable_x64), "host": platform.node(),
+                      "jax": jax.__version__, "x64": bool(jax.config.jax_enable_x64), "remat": args.remat,
+                      "host": platform.node(),
                       "window_s": args.window, "path_s": args.path, "iterations": args.iterations,
                       "refresh_every": args.refresh_every, "results": results}, indent=2))
 

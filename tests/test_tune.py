@@ -87,6 +87,7 @@ def test_per_axis_space_tunes_each_axis_and_checks_bounds():
     ("weights: {speed: 1}", "weights: expected a mapping of some of"),
     ("aggregate: median", "aggregate: expected mean or max"),
     ("gradient: backward", "gradient: expected one of \\('reverse', 'forward'\\)"),
+    ("remat: 1", "remat: expected true or false, got 1"),
     ("pm_min: -1000", "pm_min: expected a number >= 0"),
     ("pm_min: .nan", "pm_min: expected a finite number"),
     ("payloads: [.inf]", r"payloads\[0\]: expected a finite number"),

@@ -128,7 +128,7 @@ class BatchProblem(WindowStarts):
         def one(z, model, reference, init):
             servo, hybrid = self.space.apply(z)
             return rollout(servo, model, reference, plant=sc.plant, rates=self.rates, outer=cfg.mode,
-                           hybrid=hybrid if hybrid_mode else None, init=init)
+                           hybrid=hybrid if hybrid_mode else None, init=init, remat=cfg.remat)
 
         models, reference, path = windows
         traces = jax.vmap(one)(_take(zb, self.window_member), models, reference, starts)

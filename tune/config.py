@@ -32,6 +32,7 @@ Every key of :class:`TuneConfig` may appear in the file (unknown keys are errors
     sharpness_force: 1.0       # 1/N, smooth peak of the branch forces
     bounds: {lambda2: [0.01, 0.5]}   # per tuned field [lower, upper]; default start/10 .. start*10
     gradient: reverse          # reverse | forward: how the gradient is taken (pusupu_jax.gradients)
+    remat: false               # true: reverse mode keeps each position period's carry only and runs it again
     baselines: [pid, pid_ff]   # modes run beside the start and the result on the whole paths, Table 1 gains
     ros_joints: [slide_1, slide_2, slide_3, slide_4, slide_5, slide_6]   # joint names of the ROS 2 export
 """
@@ -86,6 +87,7 @@ class TuneConfig:
     sharpness_force: float = 1.0
     bounds: dict = field(default_factory=lambda: {"lambda2": (0.01, 0.5)})
     gradient: str = "reverse"
+    remat: bool = False
     baselines: tuple = ("pid", "pid_ff")
     ros_joints: tuple = JOINTS
 
@@ -156,6 +158,7 @@ class TuneConfig:
             integer(key)
         integer("seed", low=None)
         need(isinstance(self.shared, bool), "shared", "true or false", self.shared)
+        need(isinstance(self.remat, bool), "remat", "true or false", self.remat)
         need(isinstance(self.weights, dict) and set(self.weights) <= set(TERMS) and self.weights, "weights",
              f"a mapping of some of {TERMS} to non-negative numbers", self.weights)
         for term, w in self.weights.items():

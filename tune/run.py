@@ -268,7 +268,8 @@ class Problem(WindowStarts):
 
         def one(model, reference, init):
             return rollout(servo, model, reference, plant=sc.plant, rates=self.rates, outer=self.cfg.mode,
-                           hybrid=hybrid if control_mode(self.cfg.mode).hybrid else None, init=init)
+                           hybrid=hybrid if control_mode(self.cfg.mode).hybrid else None, init=init,
+                           remat=self.cfg.remat)
 
         models, reference, path = windows
         traces = jax.vmap(one)(models, reference, starts)
