@@ -13,7 +13,8 @@ iteration time is the median of the others, and the mean, which spreads the refr
 
 ``scenario_iterations_per_s`` = B / iteration time.  With ``--devices N`` the batch is sharded
 over the first N devices (``jax.sharding``), as ``pusupu batch`` does over all of them; ``--remat`` sets the
-configuration's ``remat`` (reverse mode keeps one carry per position period: large batches fit in memory).
+configuration's ``remat`` (reverse mode keeps one carry per position period and runs each period again; on an
+H200 it did not bring batch 4096 into memory before the margins' fix, and is not needed for it since).
 """
 
 from __future__ import annotations
