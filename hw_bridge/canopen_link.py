@@ -6,9 +6,15 @@ the predefined PDO mapping below).  Node IDs 1-6 are axes 1-6.
 * set-up over SDO: the bridge writes each drive's mode of operation (0x6060: 9 CSV, 10 CST),
   reads it back (0x6061), and reads the motor's rated torque (0x6076, mN m) that scales torques;
 * each cycle the bridge sends one RPDO per drive (controlword 0x6040, target velocity 0x60FF,
-  target torque 0x6071), then SYNC; on SYNC each drive applies its RPDO, runs one period, and
-  answers with two TPDOs: (statusword 0x6041, position actual 0x6064, torque actual 0x6077) and
-  (velocity actual 0x606C, mode display 0x6061).
+  target torque 0x6071), then SYNC with a counter (CiA 301: 1 to :data:`SYNC_OVERFLOW`); on SYNC
+  each drive applies its RPDO, runs one period, and answers with two TPDOs: (statusword 0x6041,
+  position actual 0x6064, torque actual 0x6077) and (velocity actual 0x606C, mode display 0x6061,
+  the counter of the SYNC answered, :data:`SYNC_ECHO`).
+
+The echoed counter tells the bridge which command an answer belongs to, as the UDP protocol's ack
+does: without it an answer that comes after the next SYNC would be taken for that SYNC's, and on a
+loaded host the feedback then lagged a cycle for stretches of a run.  A drive that does not map
+the echo answers 0, read as "unknown" (the answer is then taken for the last SYNC's).
 
 Units on the bus, as drives use them: positions in increments of a 20-bit encoder
 (:data:`COUNTS_PER_RAD`), speeds in increments per second, torques in thousandths of the rated
@@ -32,6 +38,8 @@ from . import protocol
 COUNTS_PER_RAD = 2**20 / (2 * math.pi)  # increments per motor radian (20-bit encoder)
 N_AXES = 6
 DEVICE_TYPE = 0x00020192  # CiA 402, servo drive
+SYNC_OVERFLOW = 240  # the SYNC counter runs 1..240 (CiA 301 object 0x1019)
+SYNC_ECHO = 0x2000  # manufacturer-specific: the counter of the SYNC a drive's TPDOs answer (u8, 0: none)
 
 
 def drive_dictionary():
@@ -57,7 +65,8 @@ def drive_dictionary():
                                       (0x6071, "Target torque", INTEGER16, "rw"),
                                       (0x6076, "Motor rated torque", UNSIGNED32, "rw"),
                                       (0x6077, "Torque actual value", INTEGER16, "ro"),
-                                      (0x60FF, "Target velocity", INTEGER32, "rw")):
+                                      (0x60FF, "Target velocity", INTEGER32, "rw"),
+                                      (SYNC_ECHO, "SYNC counter echo", UNSIGNED8, "ro")):
         od.add_object(var(index, name, kind, access))
 
     def pdo(comm_index, map_index, cob_id, entries, name):
@@ -75,7 +84,7 @@ def drive_dictionary():
 
     pdo(0x1400, 0x1600, 0x200, [(0x6040, 16), (0x60FF, 32), (0x6071, 16)], "RPDO1")
     pdo(0x1800, 0x1A00, 0x180, [(0x6041, 16), (0x6064, 32), (0x6077, 16)], "TPDO1")
-    pdo(0x1801, 0x1A01, 0x280, [(0x606C, 32), (0x6061, 8)], "TPDO2")
+    pdo(0x1801, 0x1A01, 0x280, [(0x606C, 32), (0x6061, 8), (SYNC_ECHO, 8)], "TPDO2")
     return od
 
 
@@ -113,7 +122,7 @@ class CanLink:
         self.received_at = 0.0
         self._fresh = np.zeros((N_AXES, 2), bool)
         self._sequence = 0
-        self._last = None
+        self._sent = None  # the sequence of the last command sent
         for k in range(N_AXES):
             node = self.network.add_node(k + 1, node_dictionary(k + 1))
             # set-up is not cyclic: wait [s] and retry (the transfers are idempotent writes and reads) rather than
@@ -150,21 +159,28 @@ class CanLink:
             m["Target torque"].raw = int(np.clip(torque[k], -2**15, 2**15 - 1))
             m.transmit()
         self._fresh[:] = False
-        self.network.sync.transmit()
+        self._sent = cmd.sequence
+        self.network.sync.transmit(cmd.sequence % SYNC_OVERFLOW + 1)
+
+    def _acknowledged(self, echo: int) -> int:
+        """The command sequence whose SYNC carried counter ``echo``: the latest sent with that counter (0: unknown)."""
+        if not echo or self._sent is None:
+            return 0
+        return max(self._sent - (self._sent % SYNC_OVERFLOW + 1 - echo) % SYNC_OVERFLOW, 0)
 
     def poll(self, timeout: float = 0.0):
-        """The drives' answer to the last SYNC as a :class:`~hw_bridge.protocol.Feedback` once all of it arrived."""
-        if timeout > 0:
-            end = time.monotonic() + timeout
-            while not self._fresh.all() and time.monotonic() < end:
-                time.sleep(20e-6)
-        if not self._fresh.all():
+        """The drives' newest answer as a :class:`~hw_bridge.protocol.Feedback` once all six drives' TPDOs of one
+        SYNC arrived; its ``ack`` is the command that SYNC followed (0: unknown)."""
+        end = time.monotonic() + timeout
+        while not self._complete() and time.monotonic() < end:
+            time.sleep(20e-6)
+        if not self._complete():
             return None
         self._fresh[:] = False
         t1 = [n.tpdo[1] for n in self.nodes]
         t2 = [n.tpdo[2] for n in self.nodes]
         fb = protocol.Feedback(
-            self._sequence, int(self.received_at * 1e9), 0,
+            self._sequence, int(self.received_at * 1e9), self._acknowledged(int(t2[0]["SYNC counter echo"].raw)),
             np.array([m["Statusword"].raw for m in t1], np.uint16),
             np.array([m["Modes of operation display"].raw for m in t2], np.int8),
             np.array([m["Position actual value"].raw for m in t1], float) / COUNTS_PER_RAD,
@@ -173,6 +189,11 @@ class CanLink:
             np.full(3, np.nan))
         self._sequence += 1
         return fb
+
+    def _complete(self) -> bool:
+        """Both TPDOs of every drive arrived since the last SYNC, all answering the same SYNC (frames of a late
+        answer mixed with the next one's wait for the rest of the next one)."""
+        return bool(self._fresh.all()) and len({int(n.tpdo[2]["SYNC counter echo"].raw) for n in self.nodes}) == 1
 
     def close(self) -> None:
         self.network.notifier.stop()

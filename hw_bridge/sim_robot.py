@@ -284,7 +284,7 @@ class CanServer:
     """The robot behind CANopen: six CiA 402 drive nodes (``canopen.LocalNode``) on one bus, driven by SYNC.
 
     Each drive answers SDO requests from its dictionary; on SYNC the robot takes every drive's last
-    RPDO, runs one period, and sends each drive's two TPDOs.  Faults: ``stop`` and ``drop`` (no
+    RPDO, runs one period, and sends each drive's two TPDOs (the second echoes the SYNC's counter).  Faults: ``stop`` and ``drop`` (no
     TPDOs), ``range`` (positions off); NaN has no integer encoding on the bus.
     """
 
@@ -335,6 +335,7 @@ class CanServer:
             t1["Torque actual value"].raw = int(np.clip(round(fb.torque[k] / rated[k] * 1000.0), -2**15, 2**15 - 1))
             t2["Velocity actual value"].raw = int(np.clip(round(fb.velocity[k] * self.scale), -2**31, 2**31 - 1))
             t2["Modes of operation display"].raw = int(modes[k])
+            t2["SYNC counter echo"].raw = data[0] if data else 0
             t1.transmit()
             t2.transmit()
 
