@@ -28,6 +28,7 @@ On a real bus, bit timing limits the rate: 19 frames per cycle at 1 Mbit/s take 
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections import Counter
 
@@ -120,9 +121,13 @@ class CanLink:
         self.nodes = []
         self.rejected: Counter = Counter()
         self.received_at = 0.0
-        self._fresh = np.zeros((N_AXES, 2), bool)
         self._sequence = 0
         self._sent = None  # the sequence of the last command sent
+        self._lock = threading.Lock()
+        self._first = [None] * N_AXES  # each drive's TPDO1 values, until its TPDO2 completes the answer
+        self._answers = [{} for _ in range(N_AXES)]  # per drive, its last two answers: echo -> values
+        self._count = np.zeros(N_AXES, int)  # answers completed, per drive
+        self._taken = (None, np.zeros(N_AXES, int))  # the command of the answer last returned, and the counts then
         for k in range(N_AXES):
             node = self.network.add_node(k + 1, node_dictionary(k + 1))
             # set-up is not cyclic: wait [s] and retry (the transfers are idempotent writes and reads) rather than
@@ -145,8 +150,26 @@ class CanLink:
             raise RuntimeError(f"drives' rated torque {self.rated} N m, expected {rated_torque}")
 
     def _on_tpdo(self, k: int, j: int) -> None:
-        self._fresh[k, j - 1] = True
-        self.received_at = time.monotonic()
+        """A TPDO of drive ``k`` (the notifier's thread): its values are kept as they arrive, since the next answer
+        overwrites the PDO maps; a TPDO2 after a TPDO1 completes the drive's answer to the SYNC it echoes."""
+        node = self.nodes[k]
+        if j == 1:
+            m = node.tpdo[1]
+            self._first[k] = (m["Statusword"].raw, m["Position actual value"].raw, m["Torque actual value"].raw)
+            return
+        first, self._first[k] = self._first[k], None
+        if first is None:  # its TPDO1 was lost: no complete answer
+            return
+        m = node.tpdo[2]
+        echo = m["SYNC counter echo"].raw
+        with self._lock:
+            answers = self._answers[k]
+            answers.pop(echo, None)
+            answers[echo] = first + (m["Velocity actual value"].raw, m["Modes of operation display"].raw)
+            if len(answers) > 2:
+                answers.pop(next(iter(answers)))
+            self._count[k] += 1
+            self.received_at = time.monotonic()
 
     def send_command(self, cmd: protocol.Command) -> None:
         """One RPDO per drive, then SYNC."""
@@ -158,7 +181,6 @@ class CanLink:
             m["Target velocity"].raw = int(np.clip(velocity[k], -2**31, 2**31 - 1))
             m["Target torque"].raw = int(np.clip(torque[k], -2**15, 2**15 - 1))
             m.transmit()
-        self._fresh[:] = False
         self._sent = cmd.sequence
         self.network.sync.transmit(cmd.sequence % SYNC_OVERFLOW + 1)
 
@@ -169,31 +191,40 @@ class CanLink:
         return max(self._sent - (self._sent % SYNC_OVERFLOW + 1 - echo) % SYNC_OVERFLOW, 0)
 
     def poll(self, timeout: float = 0.0):
-        """The drives' newest answer as a :class:`~hw_bridge.protocol.Feedback` once all six drives' TPDOs of one
-        SYNC arrived; its ``ack`` is the command that SYNC followed (0: unknown)."""
+        """The newest answer that all six drives gave, to one SYNC, since the last one returned (waiting up to
+        ``timeout`` [s] for it), as a :class:`~hw_bridge.protocol.Feedback` whose ``ack`` is the command that SYNC
+        followed (0: unknown); None if there is none.  While the drives' TPDOs of one SYNC are still arriving, the
+        answer before it is the newest complete one.  Drives that do not echo the counter (0) give each drive's last
+        answer, once every drive has a new one."""
         end = time.monotonic() + timeout
-        while not self._complete() and time.monotonic() < end:
+        while (answer := self._take()) is None and time.monotonic() < end:
             time.sleep(20e-6)
-        if not self._complete():
+        if answer is None:
             return None
-        self._fresh[:] = False
-        t1 = [n.tpdo[1] for n in self.nodes]
-        t2 = [n.tpdo[2] for n in self.nodes]
+        echo, rows = answer
+        status, position, torque, velocity, mode = (np.array(c) for c in zip(*rows))
         fb = protocol.Feedback(
-            self._sequence, int(self.received_at * 1e9), self._acknowledged(int(t2[0]["SYNC counter echo"].raw)),
-            np.array([m["Statusword"].raw for m in t1], np.uint16),
-            np.array([m["Modes of operation display"].raw for m in t2], np.int8),
-            np.array([m["Position actual value"].raw for m in t1], float) / COUNTS_PER_RAD,
-            np.array([m["Velocity actual value"].raw for m in t2], float) / COUNTS_PER_RAD,
-            np.array([m["Torque actual value"].raw for m in t1], float) * self.rated / 1000.0,
-            np.full(3, np.nan))
+            self._sequence, int(self.received_at * 1e9), self._acknowledged(echo), status.astype(np.uint16),
+            mode.astype(np.int8), position / COUNTS_PER_RAD, velocity / COUNTS_PER_RAD,
+            torque * self.rated / 1000.0, np.full(3, np.nan))
         self._sequence += 1
         return fb
 
-    def _complete(self) -> bool:
-        """Both TPDOs of every drive arrived since the last SYNC, all answering the same SYNC (frames of a late
-        answer mixed with the next one's wait for the rest of the next one)."""
-        return bool(self._fresh.all()) and len({int(n.tpdo[2]["SYNC counter echo"].raw) for n in self.nodes}) == 1
+    def _take(self):
+        """``(echo, one row of values per drive)`` of the newest answer not yet returned, or None."""
+        with self._lock:
+            common = set(self._answers[0]).intersection(*self._answers[1:])
+            last, counts = self._taken
+            if common - {0}:
+                echo = max(common - {0}, key=self._acknowledged)
+                if last is not None and self._acknowledged(echo) <= last:
+                    return None
+            elif common and (self._count > counts).all():
+                echo = 0
+            else:
+                return None
+            self._taken = (self._acknowledged(echo), self._count.copy())
+            return echo, [self._answers[k][echo] for k in range(N_AXES)]
 
     def close(self) -> None:
         self.network.notifier.stop()

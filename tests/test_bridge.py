@@ -424,7 +424,8 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
 
 def test_canopen_feedback_names_the_sync_it_answers():
     """The drives echo the SYNC counter in their second TPDO, so an answer that arrives after the next SYNC is known
-    for the older command's, and frames of two answers are never read as one.  (Without it, on a loaded host the
+    for the older command's, frames of two answers are never read as one, and while one answer is arriving the one
+    before it is the newest whole answer.  (Without it, on a loaded host the
     lock-step CANopen test above read late answers as the next cycle's: mean branch error 0.0036-0.0044 mm against
     0.0027 with the bridge, the robot and two CPU hogs on one core.)  The drives here are six canopen LocalNodes on
     python-can's in-process virtual bus, whose TPDOs this test sends by hand."""
@@ -475,6 +476,13 @@ def test_canopen_feedback_names_the_sync_it_answers():
         answer(1, 333, which=range(3))  # the rest of the current one
         fresh = link.poll(timeout=2.0)
         assert fresh.ack == SYNC_OVERFLOW and np.allclose(fresh.position * COUNTS_PER_RAD, 333)
+        assert link.poll(timeout=0.1) is None  # nothing new
+        for s in (SYNC_OVERFLOW + 1, SYNC_OVERFLOW + 2):  # counters 2 and 3
+            command(s)
+        answer(2, 444)
+        answer(3, 555, which=range(3))  # the newest answer still arriving: the one before it is the newest whole
+        older = link.poll(timeout=2.0)
+        assert older.ack == SYNC_OVERFLOW + 1 and np.allclose(older.position * COUNTS_PER_RAD, 444)
     finally:
         link.close()
         drives.notifier.stop()
