@@ -284,8 +284,9 @@ class CanServer:
     """The robot behind CANopen: six CiA 402 drive nodes (``canopen.LocalNode``) on one bus, driven by SYNC.
 
     Each drive answers SDO requests from its dictionary; on SYNC the robot takes every drive's last
-    RPDO, runs one period, and sends each drive's two TPDOs (the second echoes the SYNC's counter).  Faults: ``stop`` and ``drop`` (no
-    TPDOs), ``range`` (positions off); NaN has no integer encoding on the bus.
+    RPDO, runs one period, and sends each drive's two TPDOs (the second echoes the SYNC's counter).
+    Faults: ``stop`` and ``drop`` (no TPDOs), ``range`` (positions off); NaN has no integer encoding
+    on the bus.
     """
 
     def __init__(self, robot: SimRobot, bus):

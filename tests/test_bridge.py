@@ -425,10 +425,10 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
 def test_canopen_feedback_names_the_sync_it_answers():
     """The drives echo the SYNC counter in their second TPDO, so an answer that arrives after the next SYNC is known
     for the older command's, frames of two answers are never read as one, and while one answer is arriving the one
-    before it is the newest whole answer.  (Without it, on a loaded host the
-    lock-step CANopen test above read late answers as the next cycle's: mean branch error 0.0036-0.0044 mm against
-    0.0027 with the bridge, the robot and two CPU hogs on one core.)  The drives here are six canopen LocalNodes on
-    python-can's in-process virtual bus, whose TPDOs this test sends by hand."""
+    before it is the newest whole answer.  (Without it, on a loaded host the lock-step CANopen test above read late
+    answers as the next cycle's: mean branch error 0.0036-0.0044 mm against 0.0027 with the bridge, the robot and
+    two CPU hogs on one core.)  The drives here are six canopen LocalNodes on python-can's in-process virtual bus,
+    whose TPDOs this test sends by hand."""
     import can
     import canopen
 
