@@ -30,17 +30,40 @@ SECTIONS = ("servo", "load", "rates", "hybrid")
 # must be in XLA_FLAGS before the CPU backend starts, so the package applies it on import.
 XLA_CPU_WORKAROUND = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 
+# XLA's CPU compiler, jaxlib 0.10.2: the MLIR fusion emitters and LLVM's expensive passes cost
+# compile time and, on these programs, buy no speed.  Measured on the 2-core CPU, compile from an
+# empty cache then the compiled call (benchmarks/bench_cold_start.py --xla-flags, and the contact
+# gradient of tests/test_mjx_plant.py): the contact gradient 49.9 -> 29.2 s to compile, 0.50 -> 0.35 s
+# a call; the default tune's forward pass 26.4 -> 20.2 s to compile, its gradient 85-86 s either way
+# and 13.0 -> 11.3 s a call.  The LLVM flag also reaches a GPU's code generator, which was not
+# measured: it is added only when no GPU plugin for jax is installed.
+XLA_CPU_COMPILE = ("--xla_cpu_use_fusion_emitters=false",)
+XLA_LLVM_CPU_ONLY = ("--xla_llvm_disable_expensive_passes=true",)
+
+
+def _gpu_plugin_installed() -> bool:
+    """Whether a GPU plugin for jax (``jax_plugins.xla_cuda12`` and the like) is installed; nothing is imported."""
+    import importlib.util
+    import pkgutil
+
+    spec = importlib.util.find_spec("jax_plugins")
+    return spec is not None and any(True for _ in pkgutil.iter_modules(spec.submodule_search_locations or []))
+
 
 def apply_xla_workaround() -> None:
-    """Add :data:`XLA_CPU_WORKAROUND` to ``XLA_FLAGS`` unless the user set that flag themselves.
+    """Add :data:`XLA_CPU_WORKAROUND` and the compile-time flags (:data:`XLA_CPU_COMPILE`; :data:`XLA_LLVM_CPU_ONLY`
+    where no GPU plugin is installed) to ``XLA_FLAGS``, each unless the user set that flag themselves.
 
-    ``PUSUPU_XLA_WORKAROUND=0`` leaves ``XLA_FLAGS`` alone (for a jaxlib that no longer knows the flag).
+    ``PUSUPU_XLA_WORKAROUND=0`` leaves ``XLA_FLAGS`` alone (for a jaxlib that no longer knows the flags).
     """
-    flags = os.environ.get("XLA_FLAGS", "")
     if os.environ.get("PUSUPU_XLA_WORKAROUND") == "0":
         return
-    if "xla_cpu_enable_concurrency_optimized_scheduler" not in flags:
-        os.environ["XLA_FLAGS"] = f"{flags} {XLA_CPU_WORKAROUND}".strip()
+    wanted = (XLA_CPU_WORKAROUND, *XLA_CPU_COMPILE, *(() if _gpu_plugin_installed() else XLA_LLVM_CPU_ONLY))
+    flags = os.environ.get("XLA_FLAGS", "")
+    for flag in wanted:
+        if flag.split("=")[0] not in flags:
+            flags = f"{flags} {flag}".strip()
+    os.environ["XLA_FLAGS"] = flags
 
 
 class ParamsFile(NamedTuple):

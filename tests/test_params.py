@@ -99,6 +99,35 @@ def test_large_vmapped_batch_completes():
     assert r.stdout.strip() == "ok", r.stderr[-2000:]
 
 
+def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
+    """On import: the thread-pool workaround and the CPU compile flags are added to XLA_FLAGS; a flag the user set
+    keeps the user's value; the LLVM flag is left out when a GPU plugin for jax is installed (a package in the
+    ``jax_plugins`` namespace, made here as an empty one); ``PUSUPU_XLA_WORKAROUND=0`` leaves XLA_FLAGS alone."""
+    import os
+    import subprocess
+    import sys
+
+    from pusupu_jax import config
+
+    def flags(extra_env, path=None):
+        env = {k: v for k, v in os.environ.items() if k != "PUSUPU_XLA_WORKAROUND"}
+        env.update(XLA_FLAGS="--xla_cpu_use_fusion_emitters=true", **extra_env)
+        if path:
+            env["PYTHONPATH"] = os.pathsep.join([str(path), env.get("PYTHONPATH", "")])
+        code = "import os, pusupu_jax; print(os.environ['XLA_FLAGS'])"
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+        assert r.returncode == 0, r.stderr[-2000:]
+        return r.stdout.split()
+
+    plain = flags({})
+    assert plain.count("--xla_cpu_use_fusion_emitters=true") == 1 and "--xla_cpu_use_fusion_emitters=false" not in plain
+    assert {config.XLA_CPU_WORKAROUND, *config.XLA_LLVM_CPU_ONLY} <= set(plain)
+    (tmp_path / "jax_plugins" / "xla_gpu_stand_in").mkdir(parents=True)
+    (tmp_path / "jax_plugins" / "xla_gpu_stand_in" / "__init__.py").write_text("")
+    assert not set(config.XLA_LLVM_CPU_ONLY) & set(flags({}, tmp_path))
+    assert flags({"PUSUPU_XLA_WORKAROUND": "0"}) == ["--xla_cpu_use_fusion_emitters=true"]
+
+
 def test_importing_the_packages_makes_no_jax_array():
     """No module makes a JAX array on import (fresh interpreter, float64 off as JAX starts).  Such an array takes
     the float width in force on import: margins' frequency grid was float32 in every process that imported the
