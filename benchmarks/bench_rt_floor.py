@@ -31,6 +31,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from timing import spread  # beside this script
 
 ECHO = r"""
 import os, sys, time
@@ -52,12 +53,6 @@ while time.monotonic() < end:
 """
 
 
-def percentiles(x: np.ndarray) -> dict:
-    us = 1e6 * np.asarray(x)
-    return {k: float(np.percentile(us, q)) for k, q in (("p50", 50), ("p99", 99), ("p99.9", 99.9))} | {
-        "max": float(us.max())}
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rate", type=float, default=1000.0, help="Hz")
@@ -76,7 +71,7 @@ def main() -> None:
 
     from hw_bridge import protocol
     from hw_bridge.compiled import FlatStep
-    from hw_bridge.runner import CycleRunner, realtime_setup
+    from hw_bridge.runner import CycleRunner, percentiles, realtime_setup
     from hw_bridge.udp import Endpoint
 
     n = 6
@@ -133,16 +128,13 @@ def main() -> None:
                 st = runner.run(fn, cycles, prepare)
                 runs[name].append({"cycles": st.cycles, "missed_deadlines": st.missed,
                                    "missed_fraction": st.missed / max(cycles, 1),
-                                   "busy_us": percentiles(st.busy), "wake_late_us": percentiles(st.wake_late)})
+                                   "busy_us": percentiles(1e6 * st.busy), "wake_late_us": percentiles(1e6 * st.wake_late)})
                 print(json.dumps({"stage": name, "round": r + 1, **runs[name][-1]}), file=sys.stderr, flush=True)
     finally:
         rt.restore()
         echo.terminate()
         echo.wait(30)
         ep.close()
-
-    def spread(v):
-        return {"min": float(np.min(v)), "median": float(np.median(v)), "max": float(np.max(v))}
 
     result = {"benchmark": "rt_floor", "rate_hz": args.rate, "seconds": args.seconds, "rounds": args.rounds,
               "cpus": os.cpu_count(), "uname": " ".join(os.uname()), "realtime": rt.settings, "runs": runs,

@@ -17,3 +17,10 @@ def median_time(fn, repeats: int) -> float:
         jax.block_until_ready(fn())
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
+
+
+def spread(values) -> dict | None:
+    """min, median and max of ``values`` over a benchmark's runs, or None when there are none."""
+    if not len(values):
+        return None
+    return {"min": float(min(values)), "median": float(statistics.median(values)), "max": float(max(values))}

@@ -94,6 +94,14 @@ class CycleStats:
         return cls(period, np.zeros(n), np.zeros(n))
 
 
+def percentiles(x) -> dict | None:
+    """p50, p99, p99.9 and max of ``x`` (in its own unit), or None when it is empty."""
+    x = np.asarray(x)
+    if not len(x):
+        return None
+    return {f"p{p}": float(np.percentile(x, p)) for p in (50, 99, 99.9)} | {"max": float(x.max())}
+
+
 OVERRUN = ("skip", "rephase")
 
 

@@ -23,7 +23,7 @@ import numpy as np
 
 from . import cia402, protocol
 from .loop import BridgeLoop
-from .runner import CycleRunner, realtime_setup
+from .runner import CycleRunner, percentiles, realtime_setup
 from .safety import Safety
 
 @dataclass
@@ -49,15 +49,9 @@ class BridgeRun:
 
     def report(self, screw=None) -> dict:
         """The run's figures: cycles, missed deadlines, latency percentiles [us], faults, tracking error [mm]."""
-        def pct(x):
-            x = np.asarray(x)
-            if not len(x):
-                return None
-            return {f"p{p}": float(np.percentile(x, p)) for p in (50, 99, 99.9)} | {"max": float(x.max())}
-
         out = {"rate_hz": self.rate, "cycles": self.cycles, "missed_deadlines": self.missed,
                "missed_fraction": self.missed / max(self.cycles + self.skipped, 1), "skipped_cycles": self.skipped,
-               "latency_us": pct(self.latency_us), "feedback_age_us": pct(self.feedback_age_us), "faults": [f.line() for f in self.faults],
+               "latency_us": percentiles(self.latency_us), "feedback_age_us": percentiles(self.feedback_age_us), "faults": [f.line() for f in self.faults],
                "rejected_packets": dict(self.rejected), "realtime": self.realtime, "completed": self.completed}
         if self.position and screw is not None:
             e = (np.asarray(self.position) - np.asarray(self.reference)) * np.asarray(screw) * 1e3
