@@ -39,6 +39,11 @@ XLA_CPU_WORKAROUND = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 # measured: it is added only when no GPU plugin for jax is installed.
 XLA_CPU_COMPILE = ("--xla_cpu_use_fusion_emitters=false",)
 XLA_LLVM_CPU_ONLY = ("--xla_llvm_disable_expensive_passes=true",)
+# A jaxlib that does not know a flag in XLA_FLAGS aborts the process when its backend starts ("Unknown flag in
+# XLA_FLAGS"): jaxlib 0.11.2 (the GPU machines' image, stop 28) has no --xla_cpu_use_fusion_emitters.  So the
+# compile flags are added only for the jaxlib series they were measured with; the thread-pool workaround, whose flag
+# 0.11.2 knows too, for every jaxlib.
+XLA_COMPILE_MEASURED_ON = ("0.10.",)
 
 
 def _gpu_plugin_installed() -> bool:
@@ -50,15 +55,28 @@ def _gpu_plugin_installed() -> bool:
     return spec is not None and any(True for _ in pkgutil.iter_modules(spec.submodule_search_locations or []))
 
 
+def _jaxlib_version() -> str:
+    """The installed jaxlib's version ('' when none is installed); nothing is imported."""
+    import importlib.metadata
+
+    try:
+        return importlib.metadata.version("jaxlib")
+    except importlib.metadata.PackageNotFoundError:
+        return ""
+
+
 def apply_xla_workaround() -> None:
-    """Add :data:`XLA_CPU_WORKAROUND` and the compile-time flags (:data:`XLA_CPU_COMPILE`; :data:`XLA_LLVM_CPU_ONLY`
-    where no GPU plugin is installed) to ``XLA_FLAGS``, each unless the user set that flag themselves.
+    """Add :data:`XLA_CPU_WORKAROUND` and, with a jaxlib of :data:`XLA_COMPILE_MEASURED_ON`, the compile-time flags
+    (:data:`XLA_CPU_COMPILE`; :data:`XLA_LLVM_CPU_ONLY` where no GPU plugin is installed) to ``XLA_FLAGS``, each
+    unless the user set that flag themselves.
 
     ``PUSUPU_XLA_WORKAROUND=0`` leaves ``XLA_FLAGS`` alone (for a jaxlib that no longer knows the flags).
     """
     if os.environ.get("PUSUPU_XLA_WORKAROUND") == "0":
         return
-    wanted = (XLA_CPU_WORKAROUND, *XLA_CPU_COMPILE, *(() if _gpu_plugin_installed() else XLA_LLVM_CPU_ONLY))
+    wanted = (XLA_CPU_WORKAROUND,)
+    if _jaxlib_version().startswith(XLA_COMPILE_MEASURED_ON):
+        wanted += (*XLA_CPU_COMPILE, *(() if _gpu_plugin_installed() else XLA_LLVM_CPU_ONLY))
     flags = os.environ.get("XLA_FLAGS", "")
     for flag in wanted:
         if flag.split("=")[0] not in flags:

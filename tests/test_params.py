@@ -102,7 +102,8 @@ def test_large_vmapped_batch_completes():
 def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
     """On import: the thread-pool workaround and the CPU compile flags are added to XLA_FLAGS; a flag the user set
     keeps the user's value; the LLVM flag is left out when a GPU plugin for jax is installed (a package in the
-    ``jax_plugins`` namespace, made here as an empty one); ``PUSUPU_XLA_WORKAROUND=0`` leaves XLA_FLAGS alone."""
+    ``jax_plugins`` namespace, made here as an empty one); ``PUSUPU_XLA_WORKAROUND=0`` leaves XLA_FLAGS alone; with
+    a jaxlib of a series the compile flags were not measured on, only the workaround is added."""
     import os
     import subprocess
     import sys
@@ -126,6 +127,12 @@ def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
     (tmp_path / "jax_plugins" / "xla_gpu_stand_in" / "__init__.py").write_text("")
     assert not set(config.XLA_LLVM_CPU_ONLY) & set(flags({}, tmp_path))
     assert flags({"PUSUPU_XLA_WORKAROUND": "0"}) == ["--xla_cpu_use_fusion_emitters=true"]
+    # a jaxlib of another series (its metadata found first on the path): the compile flags, which such a jaxlib may
+    # not know (0.11.2 aborts on the fusion-emitter flag), are left out
+    other = tmp_path / "other" / "jaxlib-0.11.2.dist-info"
+    other.mkdir(parents=True)
+    (other / "METADATA").write_text("Metadata-Version: 2.1\nName: jaxlib\nVersion: 0.11.2\n")
+    assert flags({}, other.parent) == ["--xla_cpu_use_fusion_emitters=true", config.XLA_CPU_WORKAROUND]
 
 
 def test_importing_the_packages_makes_no_jax_array():
