@@ -45,6 +45,9 @@ def add_parsers(sub) -> None:
     r.add_argument("--drive-watchdog", type=float, default=0.05, metavar="S",
                    help="the drives' sync watchdog: enabled and no command for S seconds, they fault and brake "
                         "(default 0.05)")
+    r.add_argument("--no-realtime", action="store_true",
+                   help="do not ask for SCHED_FIFO, mlockall or CPU affinity (default: ask, on the first CPU, "
+                        "leaving the last to the bridge)")
 
 
 def _robot_url(url: str):
@@ -238,4 +241,4 @@ def run_sim_robot(args) -> int:
     except ValueError as e:
         raise ParameterError(str(e)) from None
     model = RobotModel(g, args.rate, args.kin_error, cst=bool((codes == 10).any()))
-    return main_loop(model, args.listen, faults, args.seconds, args.drive_watchdog)
+    return main_loop(model, args.listen, faults, args.seconds, args.drive_watchdog, not args.no_realtime)

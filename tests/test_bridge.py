@@ -293,7 +293,7 @@ def robot(tmp_path_factory):
         port = s.getsockname()[1]
     cmd = [sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen",
            f"udp://127.0.0.1:{port}", "--seconds", str(TIMEOUT), "--rate", str(RATE),
-           "--drive-watchdog", str(DRIVE_WATCHDOG_S)] + [a for f in FAULTS for a in ("--fault", f)]
+           "--drive-watchdog", str(DRIVE_WATCHDOG_S), "--no-realtime"] + [a for f in FAULTS for a in ("--fault", f)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ.copy())
     line = proc.stdout.readline()
     assert "listening" in line, proc.stderr.read()
@@ -397,7 +397,7 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
     url = f"can://udp_multicast/239.74.{np.random.default_rng().integers(1, 255)}.{os.getpid() % 250 + 1}"
     proc = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen", url,
                              "--rate", str(RATE), "--seconds", str(TIMEOUT), "--drive-watchdog", str(DRIVE_WATCHDOG_S),
-                             "--fault", "none", "--fault",
+                             "--no-realtime", "--fault", "none", "--fault",
                              "stop@0.3:2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert "listening" in proc.stdout.readline(), proc.stderr.read()
