@@ -287,8 +287,9 @@ class CanServer:
 
     Each drive answers SDO requests from its dictionary; on SYNC the robot takes every drive's last
     RPDO, runs one period, and sends each drive's two TPDOs (the second echoes the SYNC's counter).
-    Faults: ``stop`` and ``drop`` (no TPDOs), ``range`` (positions off); NaN has no integer encoding
-    on the bus.
+    Faults: ``stop`` and ``drop`` (no TPDOs), ``range`` (positions off), ``delay`` (each SYNC's TPDOs
+    sent ARG s late) and ``reorder`` (the TPDOs of ARG SYNCs held, then sent newest first); NaN has no
+    integer encoding on the bus.
     """
 
     def __init__(self, robot: SimRobot, bus):
@@ -309,6 +310,9 @@ class CanServer:
             node.tpdo.read(from_od=True)
             self.nodes.append(node)
         self.rated = np.array([n.sdo["Motor rated torque"].raw for n in self.nodes], float) * 1e-3  # N m, fixed
+        self.held = []  # (due time, order, frames): answers held back (delay)
+        self.block = []  # answers held back to be sent newest first (reorder)
+        self.session = robot.session
         import can
 
         self.network.notifier = can.Notifier(bus, self.network.listeners, 0.1)
@@ -331,6 +335,7 @@ class CanServer:
         fb = r.handle(cmd, now)
         if fb is None or (r.active("drop", now) and r.fault.arg >= 1.0):
             return
+        frames = []  # the answer: each drive's two TPDOs, as (COB-ID, bytes) to send now or later
         for k, node in enumerate(self.nodes):
             t1, t2 = node.tpdo[1], node.tpdo[2]
             t1["Statusword"].raw = int(fb.statusword[k])
@@ -339,14 +344,34 @@ class CanServer:
             t2["Velocity actual value"].raw = int(np.clip(round(fb.velocity[k] * self.scale), -2**31, 2**31 - 1))
             t2["Modes of operation display"].raw = int(modes[k])
             t2["SYNC counter echo"].raw = data[0] if data else 0
-            t1.transmit()
-            t2.transmit()
+            frames += [(t1.cob_id, bytes(t1.data)), (t2.cob_id, bytes(t2.data))]
+        if r.session != self.session:
+            self.session, self.held, self.block = r.session, [], []
+        if r.active("reorder", now):
+            self.block.append(frames)
+            if len(self.block) >= int(r.fault.arg):
+                for answer in reversed(self.block):
+                    self._send(answer)
+                self.block = []
+        elif r.active("delay", now):
+            heapq.heappush(self.held, (now + r.fault.arg, fb.sequence, frames))
+        else:
+            self._send(frames)
+
+    def _send(self, frames) -> None:
+        for cob_id, payload in frames:
+            self.network.send_message(cob_id, payload)
 
     def serve(self, max_s: float | None = None) -> None:
         end = None if max_s is None else time.monotonic() + max_s
         while end is None or time.monotonic() < end:
             time.sleep(0.001)
-            self.robot.watch(time.monotonic())
+            now = time.monotonic()
+            # the SYNC callback's thread pushes, this one pops: each heapq call is atomic under the GIL, and
+            # what is pushed later is due later
+            while self.held and self.held[0][0] <= now:
+                self._send(heapq.heappop(self.held)[2])
+            self.robot.watch(now)
 
 
 def main_loop(model: RobotModel, listen: str, faults, max_s=None, watchdog_s: float = 0.05,

@@ -339,6 +339,20 @@ def test_loopback_tracks_the_arc_as_the_simulation_does(robot):
     assert rep["rms_tracking_error_mm"] == pytest.approx(pure["rms_tracking_error_mm"], rel=0.01)
 
 
+def _stopped_at_onset(run, fault: str):
+    """The run's first fault, asserted to come within the watchdog window of the fault's onset (0.3 s of machine time
+    after enable: 5 cycles of watchdog, 2 of transport, 20 of slack for the machine time the robot counts) and to be
+    followed by a quick stop, then disable voltage."""
+    assert run.faults and not run.completed, fault
+    f = run.faults[0]
+    enabled_at = next(k for k, word, _ in run.commands if word == cia402.ENABLE_OPERATION)
+    onset = enabled_at + int(0.3 * RATE)
+    assert onset - 20 <= f.cycle <= onset + 5 + 2 + 20, (fault, f.line(), run.commands[0][0], enabled_at)
+    stop_words = [word for k, word, _ in run.commands if k >= f.cycle]
+    assert stop_words[0] == cia402.QUICK_STOP and stop_words[-1] == cia402.DISABLE_VOLTAGE
+    return f
+
+
 @pytest.mark.parametrize("fault", FAULTS[1:])
 def test_faults_reach_the_safe_state_within_the_watchdog(robot, fault):
     """Each fault of the robot stops the bridge (quick stop, then disable voltage) within the watchdog window
@@ -350,14 +364,7 @@ def test_faults_reach_the_safe_state_within_the_watchdog(robot, fault):
         assert run.completed and not run.faults
         assert {"size", "version", "replayed"} <= set(run.rejected), run.rejected
         return
-    assert run.faults and not run.completed, fault
-    f = run.faults[0]
-    start = run.commands[0][0]
-    enabled_at = next(k for k, word, _ in run.commands if word == cia402.ENABLE_OPERATION)
-    onset = enabled_at + int(0.3 * RATE)
-    assert onset - 20 <= f.cycle <= onset + 5 + 2 + 20, (fault, f.line(), start, enabled_at)
-    stop_words = [word for k, word, _ in run.commands if k >= f.cycle]
-    assert stop_words[0] == cia402.QUICK_STOP and stop_words[-1] == cia402.DISABLE_VOLTAGE
+    f = _stopped_at_onset(run, fault)
     # a robot that withholds its replies: the bridge's watchdog, or (the bridge waiting in lock step) the drives' own
     # sync watchdog, which the bridge sees as a drive leaving 'operation enabled'
     silent = {"feedback stale", "drive fault"}
@@ -383,12 +390,16 @@ def test_a_bad_gain_file_is_refused_before_anything_is_sent(tmp_path):
 
 # ---------------------------------------------------------------- CANopen CiA 402 (python-can's udp_multicast bus)
 
+CAN_FAULTS = ["none", "stop@0.3:2", "delay@0.3:3", "reorder@0.3:12"]
+
+
 def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_path):
     """Six simulated CiA 402 drive nodes (canopen LocalNode) in a subprocess, the bridge as the master: SDO set-up
     of the modes of operation and the rated torque, the state machine over controlwords, RPDO + SYNC, two TPDOs
     per drive.  In lock step (see _session), the arc's first second tracks as the pure simulation of the same rates
-    does (mean branch RMS error within 15 %: encoder counts quantise the feedback); then a session whose drives go
-    silent ends in a safe stop."""
+    does (mean branch RMS error within 15 %: encoder counts quantise the feedback); then sessions whose drives go
+    silent, answer 3 s late, or hold 12 answers and send them newest first each end in a safe stop on stale
+    feedback."""
     from hw_bridge.canopen_link import CanLink, open_bus
     from hw_bridge.loop import plan
     from hw_bridge.session import Bridge
@@ -397,14 +408,14 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
     url = f"can://udp_multicast/239.74.{np.random.default_rng().integers(1, 255)}.{os.getpid() % 250 + 1}"
     proc = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen", url,
                              "--rate", str(RATE), "--seconds", str(TIMEOUT), "--drive-watchdog", str(DRIVE_WATCHDOG_S),
-                             "--no-realtime", "--fault", "none", "--fault",
-                             "stop@0.3:2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                             "--no-realtime"] + [a for f in CAN_FAULTS for a in ("--fault", f)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert "listening" in proc.stdout.readline(), proc.stderr.read()
         g = gains.load(path)
         loop = BridgeLoop(g, bridge_reference(g, "arc", plan(g, None, RATE)[1]), rate=RATE)
         runs = []
-        for _ in range(2):
+        for _ in CAN_FAULTS:
             link = CanLink(open_bus(url), loop.drive_modes, np.asarray(SERVO.Kt * SERVO.I_max))
             try:
                 runs.append(Bridge(loop, link, Safety(limits_for(g.servo), 5), lockstep_s=0.2).run(SECONDS, realtime=False))
@@ -416,8 +427,8 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
     rep = runs[0].report(screw=loop.drive.screw)
     assert rep["completed"] and not rep["faults"], rep["faults"]
     assert np.mean(rep["branch_rms_error_mm"]) == pytest.approx(np.mean(_pure_arc()["branch_rms_error_mm"]), rel=0.15)
-    stopped = runs[1]
-    assert stopped.faults and stopped.faults[0].kind == "feedback stale" and not stopped.completed
+    for fault, stopped in zip(CAN_FAULTS[1:], runs[1:]):
+        assert _stopped_at_onset(stopped, fault).kind == "feedback stale", fault
     targets = np.array([c[2] for run in runs for c in run.commands])
     assert np.all(np.abs(targets) <= limits_for(g.servo).velocity)
 
