@@ -341,8 +341,8 @@ def test_loopback_tracks_the_arc_as_the_simulation_does(robot):
 
 def _stopped_at_onset(run, fault: str):
     """The run's first fault, asserted to come within the watchdog window of the fault's onset (0.3 s of machine time
-    after enable: 5 cycles of watchdog, 2 of transport, 20 of slack for the machine time the robot counts) and to be
-    followed by a quick stop, then disable voltage."""
+    after enable; the window: 5 cycles of watchdog and 2 of transport after it, and 20 cycles of slack either side)
+    and to be followed by a quick stop, then disable voltage."""
     assert run.faults and not run.completed, fault
     f = run.faults[0]
     enabled_at = next(k for k, word, _ in run.commands if word == cia402.ENABLE_OPERATION)
