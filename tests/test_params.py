@@ -103,7 +103,8 @@ def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
     """On import: the thread-pool workaround and the CPU compile flags are added to XLA_FLAGS; a flag the user set
     keeps the user's value; the LLVM flag is left out when a GPU plugin for jax is installed (a package in the
     ``jax_plugins`` namespace, made here as an empty one); ``PUSUPU_XLA_WORKAROUND=0`` leaves XLA_FLAGS alone; with
-    a jaxlib of a series the compile flags were not measured on, only the workaround is added."""
+    a jaxlib of a series the compile flags were not measured on, only the workaround is added (the compile flags'
+    checks run where the installed jaxlib is of the measured series, as CI's is)."""
     import os
     import subprocess
     import sys
@@ -122,10 +123,12 @@ def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
 
     plain = flags({})
     assert plain.count("--xla_cpu_use_fusion_emitters=true") == 1 and "--xla_cpu_use_fusion_emitters=false" not in plain
-    assert {config.XLA_CPU_WORKAROUND, *config.XLA_LLVM_CPU_ONLY} <= set(plain)
-    (tmp_path / "jax_plugins" / "xla_gpu_stand_in").mkdir(parents=True)
-    (tmp_path / "jax_plugins" / "xla_gpu_stand_in" / "__init__.py").write_text("")
-    assert not set(config.XLA_LLVM_CPU_ONLY) & set(flags({}, tmp_path))
+    assert config.XLA_CPU_WORKAROUND in plain
+    if config._jaxlib_version().startswith(config.XLA_COMPILE_MEASURED_ON):  # the jaxlib installed here (CI's: 0.10)
+        assert set(config.XLA_LLVM_CPU_ONLY) <= set(plain)
+        (tmp_path / "jax_plugins" / "xla_gpu_stand_in").mkdir(parents=True)
+        (tmp_path / "jax_plugins" / "xla_gpu_stand_in" / "__init__.py").write_text("")
+        assert not set(config.XLA_LLVM_CPU_ONLY) & set(flags({}, tmp_path))
     assert flags({"PUSUPU_XLA_WORKAROUND": "0"}) == ["--xla_cpu_use_fusion_emitters=true"]
     # a jaxlib of another series (its metadata found first on the path): the compile flags, which such a jaxlib may
     # not know (0.11.2 aborts on the fusion-emitter flag), are left out
