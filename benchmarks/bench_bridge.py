@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from pusupu_jax.config import setup_jax
-from timing import spread  # beside this script
+from timing import percentile_spreads, spread  # beside this script
 
 
 def main() -> None:
@@ -87,16 +87,10 @@ def main() -> None:
             robot.terminate()
             robot.wait(30)
 
-        def over_runs(get):
-            return spread([get(r) for r in runs if get(r) is not None])
-
         results["rates"][f"{rate:g}"] = {
             "mode": mode, "drive_modes": [int(m) for m in loop.drive_modes], "runs": runs,
-            "spread": {"latency_p50_us": over_runs(lambda r: (r["latency_us"] or {}).get("p50")),
-                       "latency_p99_us": over_runs(lambda r: (r["latency_us"] or {}).get("p99")),
-                       "latency_p99.9_us": over_runs(lambda r: (r["latency_us"] or {}).get("p99.9")),
-                       "latency_max_us": over_runs(lambda r: (r["latency_us"] or {}).get("max")),
-                       "missed_fraction": over_runs(lambda r: r["missed_fraction"])}}
+            "spread": {**percentile_spreads(runs, "latency_us", ("p50", "p99", "p99.9", "max")),
+                       "missed_fraction": spread([r["missed_fraction"] for r in runs])}}
     text = json.dumps(results, indent=2)
     print(text)
     if args.out:

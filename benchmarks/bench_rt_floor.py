@@ -31,7 +31,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from timing import spread  # beside this script
+from timing import percentile_spreads, spread  # beside this script
 
 ECHO = r"""
 import os, sys, time
@@ -138,10 +138,8 @@ def main() -> None:
 
     result = {"benchmark": "rt_floor", "rate_hz": args.rate, "seconds": args.seconds, "rounds": args.rounds,
               "cpus": os.cpu_count(), "uname": " ".join(os.uname()), "realtime": rt.settings, "runs": runs,
-              "spread": {name: {"busy_p50_us": spread([x["busy_us"]["p50"] for x in v]),
-                                "busy_p99_us": spread([x["busy_us"]["p99"] for x in v]),
-                                "busy_p99.9_us": spread([x["busy_us"]["p99.9"] for x in v]),
-                                "wake_late_p99_us": spread([x["wake_late_us"]["p99"] for x in v]),
+              "spread": {name: {**percentile_spreads(v, "busy_us", ("p50", "p99", "p99.9")),
+                                **percentile_spreads(v, "wake_late_us", ("p99",)),
                                 "missed_fraction": spread([x["missed_fraction"] for x in v])}
                          for name, v in runs.items()}}
     text = json.dumps(result, indent=1)

@@ -24,3 +24,10 @@ def spread(values) -> dict | None:
     if not len(values):
         return None
     return {"min": float(min(values)), "median": float(statistics.median(values)), "max": float(max(values))}
+
+
+def percentile_spreads(runs, field: str, points) -> dict:
+    """``{'<stem>_<point>_us': spread}`` of each percentile ``point`` of ``run[field]`` (a
+    :func:`hw_bridge.runner.percentiles` dict, ``<stem>_us``) over ``runs``, leaving out runs where it is None."""
+    stem = field.removesuffix("_us")
+    return {f"{stem}_{p}_us": spread([r[field][p] for r in runs if r[field] is not None]) for p in points}
