@@ -228,14 +228,50 @@ class SimRobot:
         return fb
 
 
+class HeldReplies:
+    """The replies that the ``delay`` and ``reorder`` faults hold back, for either transport: ``send(reply)`` sends one.
+
+    ``reply`` sends at once, holds until ``now + ARG`` (delay: sent by :meth:`release`), or collects blocks of
+    ARG replies sent newest first (reorder).  :meth:`follow` drops what is held when the robot starts a new session.
+    """
+
+    def __init__(self, robot: SimRobot, send):
+        self.robot, self.send = robot, send
+        self.session = robot.session
+        self.queue = []  # (due time, order, reply): replies held back (delay)
+        self.block = []  # replies held back to be sent in reverse (reorder)
+
+    def follow(self) -> None:
+        if self.robot.session != self.session:
+            self.session, self.queue, self.block = self.robot.session, [], []
+
+    def reply(self, reply, order: int, now: float) -> None:
+        r = self.robot
+        if r.active("reorder", now):
+            self.block.append(reply)
+            if len(self.block) >= int(r.fault.arg):
+                for held in reversed(self.block):
+                    self.send(held)
+                self.block = []
+        elif r.active("delay", now):
+            heapq.heappush(self.queue, (now + r.fault.arg, order, reply))
+        else:
+            self.send(reply)
+
+    def release(self, now: float) -> None:
+        """Send the delayed replies that are due.  (Over CAN the SYNC callback's thread adds them and the serving
+        thread releases them: each heapq call is atomic under the GIL, and what is added later is due later.)"""
+        while self.queue and self.queue[0][0] <= now:
+            self.send(heapq.heappop(self.queue)[2])
+
+
 class UdpServer:
     """The robot behind UDP, with the faults of its packets: ``drop``, ``corrupt``, ``garbage``, ``reorder``, ``delay``."""
 
     def __init__(self, robot: SimRobot, endpoint: Endpoint, seed: int = 0):
         self.robot, self.ep = robot, endpoint
         self.rng = np.random.default_rng(seed)
-        self.queue = []  # (due time, order, bytes): replies held back (delay)
-        self.block = []  # replies held back to be sent in reverse (reorder)
+        self.held = HeldReplies(robot, endpoint.send)
         self._last = b""
 
     def _send(self, fb: protocol.Feedback, now: float) -> None:
@@ -251,33 +287,20 @@ class UdpServer:
                         b"\x00" * len(data), self._last or data):
                 self.ep.send(bad)
             self._last = data
-        if r.active("reorder", now):
-            self.block.append(data)
-            if len(self.block) >= int(r.fault.arg):
-                for d in reversed(self.block):
-                    self.ep.send(d)
-                self.block = []
-            return
-        if r.active("delay", now):
-            heapq.heappush(self.queue, (now + r.fault.arg, fb.sequence, data))
-            return
-        self.ep.send(data)
+        self.held.reply(data, fb.sequence, now)
 
     def serve(self, max_s: float | None = None) -> None:
         """Serve commands until ``max_s`` [s] pass (None: until interrupted)."""
         end = None if max_s is None else time.monotonic() + max_s
-        session = self.robot.session
         while end is None or time.monotonic() < end:
             cmd = self.ep.poll(timeout=0.001)
             now = time.monotonic()
-            while self.queue and self.queue[0][0] <= now:
-                self.ep.send(heapq.heappop(self.queue)[2])
+            self.held.release(now)
             self.robot.watch(now)
             if cmd is None:
                 continue
             fb = self.robot.handle(cmd, now)
-            if self.robot.session != session:
-                session, self.queue, self.block = self.robot.session, [], []
+            self.held.follow()
             if fb is not None:
                 self._send(fb, now)
 
@@ -310,9 +333,7 @@ class CanServer:
             node.tpdo.read(from_od=True)
             self.nodes.append(node)
         self.rated = np.array([n.sdo["Motor rated torque"].raw for n in self.nodes], float) * 1e-3  # N m, fixed
-        self.held = []  # (due time, order, frames): answers held back (delay)
-        self.block = []  # answers held back to be sent newest first (reorder)
-        self.session = robot.session
+        self.held = HeldReplies(robot, self._send)
         import can
 
         self.network.notifier = can.Notifier(bus, self.network.listeners, 0.1)
@@ -333,6 +354,7 @@ class CanServer:
         cmd = protocol.Command(r.applied + 1, 0, 0, np.array([m["Controlword"].raw for m in maps], np.uint16), modes,
                                target)
         fb = r.handle(cmd, now)
+        self.held.follow()
         if fb is None or (r.active("drop", now) and r.fault.arg >= 1.0):
             return
         frames = []  # the answer: each drive's two TPDOs, as (COB-ID, bytes) to send now or later
@@ -345,18 +367,7 @@ class CanServer:
             t2["Modes of operation display"].raw = int(modes[k])
             t2["SYNC counter echo"].raw = data[0] if data else 0
             frames += [(t1.cob_id, bytes(t1.data)), (t2.cob_id, bytes(t2.data))]
-        if r.session != self.session:
-            self.session, self.held, self.block = r.session, [], []
-        if r.active("reorder", now):
-            self.block.append(frames)
-            if len(self.block) >= int(r.fault.arg):
-                for answer in reversed(self.block):
-                    self._send(answer)
-                self.block = []
-        elif r.active("delay", now):
-            heapq.heappush(self.held, (now + r.fault.arg, fb.sequence, frames))
-        else:
-            self._send(frames)
+        self.held.reply(frames, fb.sequence, now)
 
     def _send(self, frames) -> None:
         for cob_id, payload in frames:
@@ -367,10 +378,7 @@ class CanServer:
         while end is None or time.monotonic() < end:
             time.sleep(0.001)
             now = time.monotonic()
-            # the SYNC callback's thread pushes, this one pops: each heapq call is atomic under the GIL, and
-            # what is pushed later is due later
-            while self.held and self.held[0][0] <= now:
-                self._send(heapq.heappop(self.held)[2])
+            self.held.release(now)
             self.robot.watch(now)
 
 
