@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from pusupu_jax.config import setup_jax
-from timing import percentile_spreads, spread  # beside this script
+from timing import emit, percentile_spreads, spread  # beside this script
 
 
 def main() -> None:
@@ -91,10 +91,7 @@ def main() -> None:
             "mode": mode, "drive_modes": [int(m) for m in loop.drive_modes], "runs": runs,
             "spread": {**percentile_spreads(runs, "latency_us", ("p50", "p99", "p99.9", "max")),
                        "missed_fraction": spread([r["missed_fraction"] for r in runs])}}
-    text = json.dumps(results, indent=2)
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
+    emit(results, args.out, indent=2)
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from timing import percentile_spreads, spread  # beside this script
+from timing import emit, percentile_spreads, spread  # beside this script
 
 ECHO = r"""
 import os, sys, time
@@ -142,10 +142,7 @@ def main() -> None:
                                 **percentile_spreads(v, "wake_late_us", ("p99",)),
                                 "missed_fraction": spread([x["missed_fraction"] for x in v])}
                          for name, v in runs.items()}}
-    text = json.dumps(result, indent=1)
-    print(text)
-    if args.out:
-        Path(args.out).write_text(text + "\n")
+    emit(result, args.out)
 
 
 if __name__ == "__main__":

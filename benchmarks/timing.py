@@ -31,3 +31,15 @@ def percentile_spreads(runs, field: str, points) -> dict:
     :func:`hw_bridge.runner.percentiles` dict, ``<stem>_us``) over ``runs``, leaving out runs where it is None."""
     stem = field.removesuffix("_us")
     return {f"{stem}_{p}_us": spread([r[field][p] for r in runs if r[field] is not None]) for p in points}
+
+
+def emit(result: dict, out: str | None, indent: int = 1) -> None:
+    """Print ``result`` as JSON, and write it to ``out`` too when given (atomically, with the umask's mode)."""
+    import json
+
+    from pusupu_jax.config import write_atomic
+
+    text = json.dumps(result, indent=indent)
+    print(text)
+    if out:
+        write_atomic(out, text + "\n")
