@@ -9,7 +9,7 @@ and gradient.  The first iteration (trace, compile, first run) is reported apart
 iteration time is the median of the others, and the mean, which spreads the refreshes.
 
     python benchmarks/bench_batch.py [--batches 1,2,64] [--iterations 6] [--path 0.2] [--window 0.05]
-                                     [--devices N] [--remat] [--label NAME]
+                                     [--devices N] [--remat] [--label NAME] [--parts N]
 
 ``scenario_iterations_per_s`` = B / iteration time.  With ``--devices N`` the batch is sharded
 over the first N devices (``jax.sharding``), as ``pusupu batch`` does over all of them; ``--remat`` sets the
@@ -26,6 +26,21 @@ import statistics
 import sys
 import time
 
+from timing import median_time  # beside this script
+
+
+def parts(problem, n: int) -> dict:
+    """The iteration's two device programs timed alone, ``n`` calls each after one untimed (medians [s]): the
+    vmapped gradient (``gradient_s``) and the window refresh, the forward pass over the whole paths (``refresh_s``,
+    run every ``--refresh-every`` iterations).  What is left of the iteration is the optax update and the host."""
+    zb = problem.shard(problem.z0())
+
+    def refresh():
+        problem.refresh(zb)
+        return problem.starts
+
+    return {"gradient_s": median_time(lambda: problem.value_and_grad(zb), n), "refresh_s": median_time(refresh, n)}
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -38,6 +53,9 @@ def main() -> None:
     ap.add_argument("--devices", type=int, help="shard over the first N devices (default: all)")
     ap.add_argument("--remat", action="store_true", help="the tune configuration's remat: true")
     ap.add_argument("--label", default="", help="a name for the run in the JSON")
+    ap.add_argument("--parts", type=int, default=0, metavar="N",
+                    help="after the iterations, time the compiled gradient alone and the window refresh alone, "
+                         "N calls each (medians; 0: not)")
     args = ap.parse_args()
     from pusupu_jax.config import setup_jax
 
@@ -70,6 +88,8 @@ def main() -> None:
         row = {"batch": B, "members": len(problem.members), "build_s": t_build,
                "first_iteration_s": stamps[0] - t1, "iteration_s_median": med, "iteration_s_mean": mean,
                "iteration_s_all": steps, "scenario_iterations_per_s": B / med}
+        if args.parts:
+            row.update(parts(problem, args.parts))
         results.append(row)
         print(json.dumps(row), file=sys.stderr, flush=True)
     print(json.dumps({"benchmark": "bench_batch", "label": args.label, "backend": jax.default_backend(),
