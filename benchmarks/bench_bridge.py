@@ -9,7 +9,12 @@ whether the run completed; over the runs the spread (min, median, max) of each.
 * 4 kHz: Table 1 gains, hybrid mode: branches 1-5 CSV, branch 6 CST (the bridge closes its velocity loop at
   4 kHz and its force law at 1 kHz).
 
-    python benchmarks/bench_bridge.py [--seconds 60] [--runs 3] [--rates 1000,4000] [--transport udp|can] [--out FILE]
+    python benchmarks/bench_bridge.py [--seconds 60] [--runs 3] [--rates 1000,4000] [--transport udp|can]
+                                      [--watchdog N] [--out FILE]
+
+``steal_ms_per_cpu``: per CPU, the time the hypervisor gave it to others during the run (``/proc/stat``, 10 ms
+ticks), a stall no setting inside the VM prevents; ``robot_stalls``: the simulated robot's own reports of its
+serving loop not turning for more than 5 ms, with the steal on each CPU since its previous report.
 
 ``--transport can``: the six drives as CANopen nodes on python-can's udp_multicast bus (SDO set-up, RPDO +
 SYNC, two TPDOs per drive).
@@ -40,12 +45,15 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--rates", default="1000,4000")
     ap.add_argument("--transport", choices=("udp", "can"), default="udp")
+    ap.add_argument("--watchdog", type=int, default=5, metavar="N",
+                    help="the bridge's watchdog: cycles without fresh feedback before a safe stop (pusupu bridge's default)")
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
     setup_jax()
     from hw_bridge.canopen_link import CanLink, open_bus
     from hw_bridge.loop import BridgeLoop, plan
     from hw_bridge.protocol import FEEDBACK
+    from hw_bridge.runner import steal_seconds
     from hw_bridge.safety import Safety
     from hw_bridge.session import Bridge
     from hw_bridge.udp import Endpoint
@@ -54,8 +62,8 @@ def main() -> None:
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.params import LoopRates, ServoParams
 
-    results = {"transport": args.transport, "seconds": args.seconds, "runs": args.runs, "cpus": os.cpu_count(), "uname": " ".join(os.uname()),
-               "rates": {}}
+    results = {"transport": args.transport, "seconds": args.seconds, "runs": args.runs, "watchdog_cycles": args.watchdog,
+               "cpus": os.cpu_count(), "uname": " ".join(os.uname()), "rates": {}}
     folder = Path(tempfile.mkdtemp())
     for rate in (float(r) for r in args.rates.split(",")):
         mode = "imc" if rate <= 1000 else "hybrid"
@@ -65,8 +73,10 @@ def main() -> None:
             s.bind(("127.0.0.1", 0))
             port = s.getsockname()[1]
         url = f"udp://127.0.0.1:{port}" if args.transport == "udp" else "can://udp_multicast/239.74.163.9"
-        robot = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen",
-                                  url, "--rate", str(rate)], stdout=subprocess.PIPE, text=True)
+        robot_log = folder / f"robot_{rate:g}.log"
+        with open(robot_log, "w") as err:
+            robot = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen",
+                                      url, "--rate", str(rate)], stdout=subprocess.PIPE, stderr=err, text=True)
         assert "listening" in robot.stdout.readline()
         loop = BridgeLoop(g, bridge_reference(g, "arc", plan(g, None, rate)[1]), rate=rate)
         runs = []
@@ -76,19 +86,23 @@ def main() -> None:
                     ep = Endpoint(FEEDBACK, peer=("127.0.0.1", port))
                 else:
                     ep = CanLink(open_bus(url), loop.drive_modes, np.asarray(g.servo.Kt * g.servo.I_max))
-                run = Bridge(loop, ep, Safety(limits_for(g.servo)), hold_s=args.seconds).run(args.seconds)
+                stolen = steal_seconds()
+                run = Bridge(loop, ep, Safety(limits_for(g.servo), args.watchdog), hold_s=args.seconds).run(args.seconds)
+                stolen = None if stolen is None else (1e3 * (steal_seconds() - stolen)).tolist()
                 ep.close()
                 rep = run.report()
-                runs.append({k: rep[k] for k in ("cycles", "missed_deadlines", "missed_fraction", "skipped_cycles",
-                                                 "latency_us", "feedback_age_us", "completed", "faults",
-                                                 "realtime")})
+                runs.append({**{k: rep[k] for k in ("cycles", "missed_deadlines", "missed_fraction", "skipped_cycles",
+                                                    "latency_us", "feedback_age_us", "completed", "faults",
+                                                    "realtime")}, "steal_ms_per_cpu": stolen})
                 print(json.dumps({"rate_hz": rate, **runs[-1]}), file=sys.stderr)
         finally:
             robot.terminate()
             robot.wait(30)
 
+        stalls = [line.strip() for line in robot_log.read_text().splitlines() if ": stall " in line]
+        print("\n".join(stalls), file=sys.stderr)
         results["rates"][f"{rate:g}"] = {
-            "mode": mode, "drive_modes": [int(m) for m in loop.drive_modes], "runs": runs,
+            "mode": mode, "drive_modes": [int(m) for m in loop.drive_modes], "runs": runs, "robot_stalls": stalls,
             "spread": {**percentile_spreads(runs, "latency_us", ("p50", "p99", "p99.9", "max")),
                        "missed_fraction": spread([r["missed_fraction"] for r in runs])}}
     emit(results, args.out, indent=2)

@@ -74,6 +74,20 @@ def realtime_setup(priority: int = 80, cpu: int | None = None) -> RealtimeReport
     return rep
 
 
+def steal_seconds() -> np.ndarray | None:
+    """Per CPU (index: its number), the time [s] since boot that the hypervisor ran something else while the CPU had
+    work (Linux ``/proc/stat``, 'steal', in clock ticks: 10 ms); None where the kernel does not count it.  A stall
+    of a real-time thread that no setting inside a virtual machine prevents."""
+    try:
+        with open("/proc/stat") as f:
+            rows = {int(r[0][3:]): int(r[8]) for r in (line.split() for line in f) if r[0][3:].isdigit()}
+        ticks = np.zeros(max(rows) + 1)
+        ticks[list(rows)] = list(rows.values())
+        return ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 @dataclass
 class CycleStats:
     """Per-cycle timing [s] in preallocated arrays: wake-up lateness and the cycle function's own time."""

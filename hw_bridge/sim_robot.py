@@ -49,7 +49,7 @@ from pusupu_jax.plant.model import ModelOptions, build_model, slide_dofs, slide_
 
 from . import cia402, protocol
 from .compiled import FlatStep, cpu
-from .runner import realtime_setup
+from .runner import realtime_setup, steal_seconds
 from .udp import Endpoint
 
 FAULTS = ("none", "stop", "delay", "drop", "reorder", "corrupt", "nan", "range", "garbage")
@@ -161,6 +161,7 @@ class SimRobot:
         self.session = -1
         self.sequence = 0
         self.last = time.monotonic()
+        self.stalls = Stalls(log)
         self._new_session()
 
     def _new_session(self):
@@ -178,7 +179,9 @@ class SimRobot:
         return self.fault.kind == kind and self.enabled_at is not None and self.sim_time >= self.fault.at
 
     def watch(self, now: float) -> None:
-        """The drives' sync watchdog: enabled and no command for ``watchdog_s``: fault, brakes on."""
+        """Each turn of the serving loop: the drives' sync watchdog (enabled and no command for ``watchdog_s``: fault,
+        brakes on), and the loop's own stalls (:class:`Stalls`)."""
+        self.stalls.turn(now)
         if all(d.enabled for d in self.drives) and now - self.last > self.watchdog_s:
             for d in self.drives:
                 d.fault()
@@ -226,6 +229,34 @@ class SimRobot:
                                self.torque, platform)
         self.sequence += 1
         return fb
+
+
+class Stalls:
+    """The serving loop's turns that came more than ``threshold`` [s] after the one before (the robot did not run:
+    its CPU was taken, or a command took that long), each logged with the hypervisor's steal time per CPU since the
+    previous report (:func:`~hw_bridge.runner.steal_seconds`), the first ``shown`` of them; ``count`` counts all."""
+
+    def __init__(self, log, threshold: float = 5e-3, shown: int = 20):
+        self.log, self.threshold, self.shown = log, threshold, shown
+        self.count = 0
+        self.last = None
+        self.steal = steal_seconds()
+
+    def turn(self, now: float) -> None:
+        gap = 0.0 if self.last is None else now - self.last
+        self.last = now
+        if gap <= self.threshold:
+            return
+        self.count += 1
+        if self.count > self.shown:
+            return
+        steal, before = steal_seconds(), self.steal
+        self.steal = steal
+        stolen = "not counted" if steal is None or before is None else ", ".join(
+            f"CPU {k} {1e3 * d:.0f} ms" for k, d in enumerate(steal - before))
+        more = " (the last shown; later stalls are counted only)" if self.count == self.shown else ""
+        self.log(f"sim-robot: stall {self.count}: the serving loop did not turn for {gap * 1e3:.1f} ms; "
+                 f"hypervisor steal since the previous report: {stolen}{more}")
 
 
 class HeldReplies:
