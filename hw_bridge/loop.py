@@ -140,6 +140,11 @@ class BridgeLoop:
         self.rate = self.rates.f_current / self.rates.n_velocity / (1 if self.cst else self.rates.n_position)
         self.gains = gains
         self.reference = reference
+        # the path's rows as the steps take them, built once here: start() then computes only the takeover ramp (a
+        # copy of the whole path at the first cycle of a run took 1-7 ms there, and the cycle missed its deadline)
+        self.path_rows = np.ascontiguousarray(
+            np.column_stack([reference.theta, reference.force_ff, reference.coupling]) if self.mode.hybrid
+            else reference.theta, dtype=float)
         self.drive = jax.jit(loops.discretize, static_argnums=1)(jax.device_put(gains.servo, cpu()), self.rates)
         self.hybrid = gains.hybrid if self.mode.hybrid else None
         self.Kt = np.asarray(gains.servo.Kt, dtype=float)
@@ -187,12 +192,11 @@ class BridgeLoop:
         m = int(np.ceil(duration / self.rates.dt_position)) if duration > 1e-9 else 0
         tau = np.arange(1, m + 1) / max(m, 1)
         blend = (10 * tau**3 - 15 * tau**4 + 6 * tau**5)[:, None]
-        stream = np.concatenate([theta + blend * (ref.theta[0] - theta), ref.theta])
+        ramp = theta + blend * (ref.theta[0] - theta)
         if self.mode.hybrid:  # HybridReference's fields in order: theta, force_ff, coupling
-            force = np.concatenate([force0 + blend[:, 0] * (ref.force_ff[0] - force0), ref.force_ff])
-            coupling = np.concatenate([np.repeat(ref.coupling[:1], m, axis=0), ref.coupling])
-            stream = np.concatenate([stream, force[:, None], coupling], axis=1)
-        self.stream, self.takeover_periods = np.ascontiguousarray(stream), m
+            force = force0 + blend * (ref.force_ff[0] - force0)
+            ramp = np.column_stack([ramp, force, np.repeat(ref.coupling[:1], m, axis=0)])
+        self.takeover, self.takeover_periods = np.ascontiguousarray(ramp), m
         self.held = (np.zeros(len(theta)), np.zeros(()))
 
     def step(self, cycle: int, theta, omega) -> np.ndarray:
@@ -223,8 +227,12 @@ class BridgeLoop:
             self._velocity(self.state, w_ref, i_ff, w_ref)
 
     def _row(self, cycle: int) -> np.ndarray:
-        """The streamed reference row in force at ``cycle`` (the last one after the path's end)."""
-        return self.stream[min(cycle // self.n_position, len(self.stream) - 1)]
+        """The streamed reference row in force at ``cycle``: the takeover ramp's, then the path's (its last one after
+        its end)."""
+        p = cycle // self.n_position
+        if p < self.takeover_periods:
+            return self.takeover[p]
+        return self.path_rows[min(p - self.takeover_periods, len(self.path_rows) - 1)]
 
     def reference_at(self, cycle: int) -> np.ndarray:
         """The motor-angle reference [rad] in force at ``cycle`` (for the tracking error)."""
@@ -233,4 +241,4 @@ class BridgeLoop:
     @property
     def cycles(self) -> int:
         """Cycles to the end of the path, the takeover ramp included."""
-        return len(self.stream) * self.n_position
+        return (self.takeover_periods + len(self.path_rows)) * self.n_position
