@@ -151,16 +151,19 @@ class CanLink:
 
     def _on_tpdo(self, k: int, j: int) -> None:
         """A TPDO of drive ``k`` (the notifier's thread): its values are kept as they arrive, since the next answer
-        overwrites the PDO maps; a TPDO2 after a TPDO1 completes the drive's answer to the SYNC it echoes."""
-        node = self.nodes[k]
+        overwrites the PDO maps; a TPDO2 after a TPDO1 completes the drive's answer to the SYNC it echoes.  A TPDO
+        shorter than its mapping is dropped and counted (``rejected['PDO length']``), and changes nothing."""
+        m = self.nodes[k].tpdo[j]
+        if len(m.data) * 8 < m.length:  # CiA 301: a PDO shorter than its mapping is not processed
+            with self._lock:
+                self.rejected["PDO length"] += 1
+            return
         if j == 1:
-            m = node.tpdo[1]
             self._first[k] = (m["Statusword"].raw, m["Position actual value"].raw, m["Torque actual value"].raw)
             return
         first, self._first[k] = self._first[k], None
         if first is None:  # its TPDO1 was lost: no complete answer
             return
-        m = node.tpdo[2]
         echo = m["SYNC counter echo"].raw
         with self._lock:
             answers = self._answers[k]

@@ -21,9 +21,10 @@ that they come at the same cycle however loaded the host is):
 ``stop`` (silent for ARG s, default 1), ``delay`` (replies ARG s late, default 0.02),
 ``drop`` (replies dropped with probability ARG, default 1), ``reorder`` (replies sent in
 reverse order in blocks of ARG, default 8), ``corrupt`` (a byte flipped with probability
-ARG, default 1), ``nan`` (NaN positions), ``range`` (positions ARG rad off, default 1e4: metres of travel),
+ARG, default 1; over CANopen a frame cut short), ``nan`` (NaN positions; not over CANopen, whose
+values are integers), ``range`` (positions ARG rad off, default 1e4: metres of travel),
 ``garbage`` (every reply comes with malformed, truncated, oversized, wrong-version and replayed
-packets), ``none``.
+packets; over CANopen, cut-short frames and the previous answer again), ``none``.
 """
 
 from __future__ import annotations
@@ -347,16 +348,21 @@ class CanServer:
     Each drive answers SDO requests from its dictionary; on SYNC the robot takes every drive's last
     RPDO, runs one period, and sends each drive's two TPDOs (the second echoes the SYNC's counter).
     Faults: ``stop`` and ``drop`` (no TPDOs), ``range`` (positions off), ``delay`` (each SYNC's TPDOs
-    sent ARG s late) and ``reorder`` (the TPDOs of ARG SYNCs held, then sent newest first); NaN has no
-    integer encoding on the bus.
+    sent ARG s late), ``reorder`` (the TPDOs of ARG SYNCs held, then sent newest first), ``corrupt``
+    (each TPDO cut short with probability ARG: a CAN controller's CRC drops frames with flipped bits, so
+    the damage that reaches software is a wrong length) and ``garbage`` (each answer comes after a cut-short
+    copy of each of its TPDOs and before the previous answer, sent again); NaN has no integer encoding on
+    the bus.
     """
 
-    def __init__(self, robot: SimRobot, bus):
+    def __init__(self, robot: SimRobot, bus, seed: int = 0):
         import canopen
 
         from .canopen_link import COUNTS_PER_RAD, N_AXES, node_dictionary
 
         self.robot, self.scale = robot, COUNTS_PER_RAD
+        self.rng = np.random.default_rng(seed)
+        self._last = []  # the previous answer's frames (garbage: sent again)
         self.network = canopen.Network(bus)
         self.nodes = []
         for k in range(N_AXES):
@@ -403,7 +409,16 @@ class CanServer:
             t2["Modes of operation display"].raw = int(modes[k])
             t2["SYNC counter echo"].raw = data[0] if data else 0
             frames += [(t1.cob_id, bytes(t1.data)), (t2.cob_id, bytes(t2.data))]
+        if r.active("corrupt", now):
+            frames = [self._cut(f) if self.rng.random() < r.fault.arg else f for f in frames]
+        if r.active("garbage", now):
+            frames, self._last = [self._cut(f) for f in frames] + frames + self._last, frames
         self.held.reply(frames, fb.sequence, now)
+
+    def _cut(self, frame):
+        """``frame`` with its data cut to a shorter length (0 to all but one byte)."""
+        cob_id, payload = frame
+        return cob_id, payload[:int(self.rng.integers(len(payload)))]
 
     def _send(self, frames) -> None:
         for cob_id, payload in frames:

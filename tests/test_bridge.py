@@ -390,16 +390,17 @@ def test_a_bad_gain_file_is_refused_before_anything_is_sent(tmp_path):
 
 # ---------------------------------------------------------------- CANopen CiA 402 (python-can's udp_multicast bus)
 
-CAN_FAULTS = ["none", "stop@0.3:2", "delay@0.3:3", "reorder@0.3:12"]
+CAN_FAULTS = ["none", "garbage@0.3", "stop@0.3:2", "delay@0.3:3", "reorder@0.3:12", "corrupt@0.3:1"]
 
 
 def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_path):
     """Six simulated CiA 402 drive nodes (canopen LocalNode) in a subprocess, the bridge as the master: SDO set-up
     of the modes of operation and the rated torque, the state machine over controlwords, RPDO + SYNC, two TPDOs
     per drive.  In lock step (see _session), the arc's first second tracks as the pure simulation of the same rates
-    does (mean branch RMS error within 15 %: encoder counts quantise the feedback); then sessions whose drives go
-    silent, answer 3 s late, or hold 12 answers and send them newest first each end in a safe stop on stale
-    feedback."""
+    does (mean branch RMS error within 15 %: encoder counts quantise the feedback), and so it does when from 0.3 s
+    each answer comes after cut-short copies of its TPDOs and before the previous answer again (the short frames
+    dropped and counted); then sessions whose drives go silent, answer 3 s late, hold 12 answers and send them
+    newest first, or cut every TPDO short each end in a safe stop on stale feedback."""
     from hw_bridge.canopen_link import CanLink, open_bus
     from hw_bridge.loop import plan
     from hw_bridge.session import Bridge
@@ -424,11 +425,15 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
     finally:
         proc.terminate()
         proc.wait(30)
-    rep = runs[0].report(screw=loop.drive.screw)
-    assert rep["completed"] and not rep["faults"], rep["faults"]
-    assert np.mean(rep["branch_rms_error_mm"]) == pytest.approx(np.mean(_pure_arc()["branch_rms_error_mm"]), rel=0.15)
-    for fault, stopped in zip(CAN_FAULTS[1:], runs[1:]):
+    pure = np.mean(_pure_arc()["branch_rms_error_mm"])
+    for run in runs[:2]:  # none, garbage
+        rep = run.report(screw=loop.drive.screw)
+        assert rep["completed"] and not rep["faults"], rep["faults"]
+        assert np.mean(rep["branch_rms_error_mm"]) == pytest.approx(pure, rel=0.15)
+    assert not runs[0].rejected and runs[1].rejected["PDO length"] >= 12 * int(0.3 * RATE), runs[1].rejected
+    for fault, stopped in zip(CAN_FAULTS[2:], runs[2:]):
         assert _stopped_at_onset(stopped, fault).kind == "feedback stale", fault
+    assert runs[-1].rejected["PDO length"] > 0
     targets = np.array([c[2] for run in runs for c in run.commands])
     assert np.all(np.abs(targets) <= limits_for(g.servo).velocity)
 
@@ -439,7 +444,7 @@ def test_canopen_feedback_names_the_sync_it_answers():
     before it is the newest whole answer.  (Without it, on a loaded host the lock-step CANopen test above read late
     answers as the next cycle's: mean branch error 0.0036-0.0044 mm against 0.0027 with the bridge, the robot and
     two CPU hogs on one core.)  The drives here are six canopen LocalNodes on python-can's in-process virtual bus,
-    whose TPDOs this test sends by hand."""
+    whose TPDOs this test sends by hand.  TPDOs shorter than their mapping are dropped and counted."""
     import can
     import canopen
 
@@ -459,11 +464,14 @@ def test_canopen_feedback_names_the_sync_it_answers():
     drives.subscribe(0x80, lambda can_id, data, timestamp: syncs.append(bytes(data)))
     link = CanLink(can.Bus(interface="virtual", channel=channel), np.full(6, protocol.CSV))
 
-    def answer(echo, position, which=range(6)):
+    def answer(echo, position, which=range(6), cut=False):
         for k in which:
             t1, t2 = nodes[k].tpdo[1], nodes[k].tpdo[2]
             t1["Position actual value"].raw, t2["SYNC counter echo"].raw = position, echo
             t1.transmit()
+            if cut:  # copies of both cut short, between the two: dropped and counted, and they change nothing
+                for m in (t1, t2):
+                    drives.send_message(m.cob_id, bytes(m.data)[:3])
             t2.transmit()
 
     def command(sequence):
@@ -494,6 +502,12 @@ def test_canopen_feedback_names_the_sync_it_answers():
         answer(3, 555, which=range(3))  # the newest answer still arriving: the one before it is the newest whole
         older = link.poll(timeout=2.0)
         assert older.ack == SYNC_OVERFLOW + 1 and np.allclose(older.position * COUNTS_PER_RAD, 444)
+        assert not link.rejected
+        command(SYNC_OVERFLOW + 3)  # counter 4
+        answer(4, 666, cut=True)  # frames shorter than their PDO mapping (CiA 301: not processed)
+        whole = link.poll(timeout=2.0)
+        assert whole.ack == SYNC_OVERFLOW + 3 and np.allclose(whole.position * COUNTS_PER_RAD, 666)
+        assert link.rejected == {"PDO length": 12}
     finally:
         link.close()
         drives.notifier.stop()
