@@ -43,4 +43,3 @@ def emit(result: dict, out: str | None, indent: int = 1) -> None:
     print(text)
     if out:
         write_atomic(out, text + "\n")
-
