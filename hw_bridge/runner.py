@@ -15,6 +15,7 @@ from __future__ import annotations
 import ctypes
 import gc
 import os
+import struct
 import time
 from dataclasses import dataclass, field
 
@@ -29,18 +30,23 @@ class RealtimeReport:
 
     settings: dict = field(default_factory=dict)
     previous: tuple = ()  # (policy, priority, affinity) before the setup
+    latency_fd: int | None = None  # /dev/cpu_dma_latency, held open while the request stands
 
     def lines(self) -> list[str]:
         return [f"{k}: {v}" for k, v in self.settings.items()]
 
     def restore(self) -> None:
-        """Back to the scheduling and CPUs the process had (the memory stays locked)."""
+        """Back to the scheduling and CPUs the process had, and the CPUs' idle states released (the memory stays
+        locked)."""
+        if self.latency_fd is not None:
+            os.close(self.latency_fd)
+            self.latency_fd = None
         if not self.previous:
             return
         policy, priority, cpus = self.previous
         try:
             os.sched_setscheduler(0, policy, os.sched_param(priority))
-            os.sched_setaffinity(0, cpus)
+            _set_affinity(cpus)
         except OSError:
             pass
 
@@ -61,8 +67,8 @@ def realtime_setup(priority: int = 80, cpu: int | None = None) -> RealtimeReport
     try:
         cpus = sorted(os.sched_getaffinity(0))
         target = cpus[-1] if cpu is None else cpu
-        os.sched_setaffinity(0, {target})
-        rep.settings["affinity"] = f"granted (CPU {target} of {len(cpus)})"
+        threads = _set_affinity({target})
+        rep.settings["affinity"] = f"granted (CPU {target} of {len(cpus)}, {threads} threads)"
     except (OSError, AttributeError) as e:
         rep.settings["affinity"] = f"refused ({e})"
     try:
@@ -77,7 +83,32 @@ def realtime_setup(priority: int = 80, cpu: int | None = None) -> RealtimeReport
         rep.settings["SCHED_FIFO"] = f"granted (priority {priority})"
     except (OSError, AttributeError) as e:
         rep.settings["SCHED_FIFO"] = f"refused ({getattr(e, 'strerror', None) or e}); running SCHED_OTHER"
+    try:
+        fd = os.open("/dev/cpu_dma_latency", os.O_WRONLY)
+        os.write(fd, struct.pack("<i", 0))
+        rep.latency_fd = fd
+        rep.settings["cpu_dma_latency"] = "granted (0 us: idle CPUs poll instead of halting)"
+    except OSError as e:
+        rep.settings["cpu_dma_latency"] = f"refused ({e.strerror or e}); an idle CPU may halt and wake late"
     return rep
+
+
+def _set_affinity(cpus) -> int:
+    """Every thread of the process on ``cpus`` (Linux: each task of ``/proc/self/task``; elsewhere the calling
+    thread); returns how many.  Every thread, not only the calling one: XLA's CPU runtime hands parts of a compiled
+    step to its thread pool, and a pool thread left on the other CPU waited there behind the other process's real-time
+    thread while this one waited for it (seen in a scheduler trace of the simulated robot: its 'tf_XLAEigen' threads
+    woken on the bridge's CPU in each step)."""
+    try:
+        tids = [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        tids = [0]
+    for tid in tids:
+        try:
+            os.sched_setaffinity(tid, cpus)
+        except ProcessLookupError:  # a thread that ended meanwhile
+            pass
+    return len(tids)
 
 
 def steal_seconds() -> np.ndarray | None:
