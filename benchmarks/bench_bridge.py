@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pusupu_jax.config import setup_jax
+from pusupu_jax.config import apply_xla_workaround, setup_jax
 from timing import emit, percentile_spreads, spread  # beside this script
 
 
@@ -49,6 +49,7 @@ def main() -> None:
                     help="the bridge's watchdog: cycles without fresh feedback before a safe stop (pusupu bridge's default)")
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
+    apply_xla_workaround(one_thread=True)  # as pusupu bridge does, before any computation
     setup_jax()
     from hw_bridge.canopen_link import CanLink, open_bus
     from hw_bridge.loop import BridgeLoop, plan

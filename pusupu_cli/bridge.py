@@ -115,7 +115,9 @@ def run_bridge(args) -> int:
     import numpy as np
 
     from pusupu_jax import gains
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.config import apply_xla_workaround, setup_jax
+
+    apply_xla_workaround(one_thread=True)  # before any computation: the gain file's checks run on JAX
 
     address = _robot_url(args.robot)
     modes = _drive_modes(args.drive_modes)
@@ -215,7 +217,9 @@ def bridge_figure(run, report: dict, path) -> None:
 
 def run_sim_robot(args) -> int:
     from pusupu_jax import gains
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.config import apply_xla_workaround, setup_jax
+
+    apply_xla_workaround(one_thread=True)  # before any computation: the gain file's checks run on JAX
 
     from hw_bridge.udp import parse_url
 

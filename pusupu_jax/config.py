@@ -44,6 +44,12 @@ XLA_LLVM_CPU_ONLY = ("--xla_llvm_disable_expensive_passes=true",)
 # compile flags are added only for the jaxlib series they were measured with; the thread-pool workaround, whose flag
 # 0.11.2 knows too, for every jaxlib.
 XLA_COMPILE_MEASURED_ON = ("0.10.",)
+# The bridge's and the simulated robot's processes (hw_bridge) run small compiled steps at a fixed rate on one CPU:
+# XLA's multi-threaded Eigen hands parts of them to its pool threads, whose wake-ups cost more than they save.  The
+# simulated robot's command, timed in its real-time process at 1 kHz (jaxlib 0.10.2): p50 240 us either way, p99 719
+# -> 305 us, max 3.3 -> 0.56 ms.  Added for those processes only (apply_xla_workaround(one_thread=True)), and, as the
+# compile flags, only with a jaxlib of the series it was measured with.
+XLA_CPU_ONE_THREAD = ("--xla_cpu_multi_thread_eigen=false",)
 
 
 def _gpu_plugin_installed() -> bool:
@@ -65,10 +71,11 @@ def _jaxlib_version() -> str:
         return ""
 
 
-def apply_xla_workaround() -> None:
+def apply_xla_workaround(one_thread: bool = False) -> None:
     """Add :data:`XLA_CPU_WORKAROUND` and, with a jaxlib of :data:`XLA_COMPILE_MEASURED_ON`, the compile-time flags
     (:data:`XLA_CPU_COMPILE`; :data:`XLA_LLVM_CPU_ONLY` where no GPU plugin is installed) to ``XLA_FLAGS``, each
-    unless the user set that flag themselves.
+    unless the user set that flag themselves.  ``one_thread``: :data:`XLA_CPU_ONE_THREAD` too, for a real-time
+    process; it takes effect only when called before JAX's CPU backend starts (the process's first computation).
 
     ``PUSUPU_XLA_WORKAROUND=0`` leaves ``XLA_FLAGS`` alone (for a jaxlib that no longer knows the flags).
     """
@@ -76,7 +83,8 @@ def apply_xla_workaround() -> None:
         return
     wanted = (XLA_CPU_WORKAROUND,)
     if _jaxlib_version().startswith(XLA_COMPILE_MEASURED_ON):
-        wanted += (*XLA_CPU_COMPILE, *(() if _gpu_plugin_installed() else XLA_LLVM_CPU_ONLY))
+        wanted += (*XLA_CPU_COMPILE, *(() if _gpu_plugin_installed() else XLA_LLVM_CPU_ONLY),
+                   *(XLA_CPU_ONE_THREAD if one_thread else ()))
     flags = os.environ.get("XLA_FLAGS", "")
     for flag in wanted:
         if flag.split("=")[0] not in flags:

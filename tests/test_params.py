@@ -104,19 +104,20 @@ def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
     keeps the user's value; the LLVM flag is left out when a GPU plugin for jax is installed (a package in the
     ``jax_plugins`` namespace, made here as an empty one); ``PUSUPU_XLA_WORKAROUND=0`` leaves XLA_FLAGS alone; with
     a jaxlib of a series the compile flags were not measured on, only the workaround is added (the compile flags'
-    checks run where the installed jaxlib is of the measured series, as CI's is)."""
+    checks run where the installed jaxlib is of the measured series, as CI's is); the single-threaded CPU flag only
+    when asked for (pusupu bridge, pusupu sim-robot)."""
     import os
     import subprocess
     import sys
 
     from pusupu_jax import config
 
-    def flags(extra_env, path=None):
+    def flags(extra_env, path=None, then=""):
         env = {k: v for k, v in os.environ.items() if k != "PUSUPU_XLA_WORKAROUND"}
         env.update(XLA_FLAGS="--xla_cpu_use_fusion_emitters=true", **extra_env)
         if path:
             env["PYTHONPATH"] = os.pathsep.join([str(path), env.get("PYTHONPATH", "")])
-        code = "import os, pusupu_jax; print(os.environ['XLA_FLAGS'])"
+        code = f"import os, pusupu_jax; {then or 'pass'}; print(os.environ['XLA_FLAGS'])"
         r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
         assert r.returncode == 0, r.stderr[-2000:]
         return r.stdout.split()
@@ -124,8 +125,11 @@ def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
     plain = flags({})
     assert plain.count("--xla_cpu_use_fusion_emitters=true") == 1 and "--xla_cpu_use_fusion_emitters=false" not in plain
     assert config.XLA_CPU_WORKAROUND in plain
+    assert not set(config.XLA_CPU_ONE_THREAD) & set(plain)  # for the real-time processes only
     if config._jaxlib_version().startswith(config.XLA_COMPILE_MEASURED_ON):  # the jaxlib installed here (CI's: 0.10)
         assert set(config.XLA_LLVM_CPU_ONLY) <= set(plain)
+        real_time = flags({}, then="pusupu_jax.config.apply_xla_workaround(one_thread=True)")
+        assert set(config.XLA_CPU_ONE_THREAD) <= set(real_time) and len(real_time) == len(set(real_time))
         (tmp_path / "jax_plugins" / "xla_gpu_stand_in").mkdir(parents=True)
         (tmp_path / "jax_plugins" / "xla_gpu_stand_in" / "__init__.py").write_text("")
         assert not set(config.XLA_LLVM_CPU_ONLY) & set(flags({}, tmp_path))
