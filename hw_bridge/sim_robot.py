@@ -438,12 +438,11 @@ def main_loop(model: RobotModel, listen: str, faults, max_s=None, watchdog_s: fl
     """Serve on ``listen`` (udp://HOST:PORT or can://INTERFACE/CHANNEL) until interrupted; one line when ready.
     ``watchdog_s``: the drives' sync watchdog (:meth:`SimRobot.watch`) [s].
 
-    ``realtime``: ask for what a robot controller has, SCHED_FIFO (priority 70), ``mlockall`` and one CPU, the
-    first, since the bridge takes the last (:func:`hw_bridge.runner.realtime_setup`); what the OS refused is
-    said on stderr.  Each 1 kHz command costs the robot about half a core (four compiled drive steps and C MuJoCo
-    steps), so a stall of a few ms on its CPU leaves the bridge without feedback past its watchdog: as an ordinary
-    process three 60 s runs on this 2-core VM stopped after 0.9-57 s, at SCHED_FIFO one ran the 60 s and two
-    stopped after 31 and 54 s (README, "The real-time figures")."""
+    ``realtime``: ask for what a robot controller has (:func:`hw_bridge.runner.realtime_setup`: SCHED_FIFO at
+    priority 70 on the first CPU, since the bridge takes the last); what the OS refused is said on stderr.  A 1 kHz
+    command costs the robot about a quarter of a core (four compiled drive steps and C MuJoCo steps), so a stall of a
+    few ms on its CPU leaves the bridge without feedback past its watchdog (:class:`Stalls` reports them; README,
+    "The real-time figures")."""
     robot = SimRobot(model, faults, watchdog_s, log=lambda m: print(m, file=sys.stderr, flush=True))
     if listen.startswith("can://"):
         from .canopen_link import open_bus
