@@ -101,7 +101,8 @@ def main() -> None:
             robot.wait(30)
 
         stalls = [line.strip() for line in robot_log.read_text().splitlines() if ": stall " in line]
-        print("\n".join(stalls), file=sys.stderr)
+        for line in stalls:
+            print(line, file=sys.stderr)
         results["rates"][f"{rate:g}"] = {
             "mode": mode, "drive_modes": [int(m) for m in loop.drive_modes], "runs": runs, "robot_stalls": stalls,
             "spread": {**percentile_spreads(runs, "latency_us", ("p50", "p99", "p99.9", "max")),
