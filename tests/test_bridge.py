@@ -223,6 +223,51 @@ def test_the_endpoint_drops_and_counts_bad_and_replayed_packets():
     ep.close()
 
 
+REALTIME_PROBE = r"""
+import json, os, threading
+from hw_bridge.runner import realtime_setup
+go, ready = threading.Event(), threading.Event()
+tid = []
+def helper():
+    tid.append(threading.get_native_id())
+    ready.set()
+    go.wait()
+t = threading.Thread(target=helper)
+t.start()
+ready.wait()
+def seen():
+    return {name: [os.sched_getscheduler(x), os.sched_getparam(x).sched_priority, sorted(os.sched_getaffinity(x))]
+            for name, x in (("main", 0), ("helper", tid[0]))}
+before = seen()
+rt = realtime_setup(priority=10, cpu=sorted(os.sched_getaffinity(0))[-1])
+during = seen()
+rt.restore()
+after = seen()
+go.set()
+t.join()
+print(json.dumps({"fifo": rt.settings["SCHED_FIFO"], "before": before, "during": during, "after": after,
+                  "SCHED_FIFO": os.SCHED_FIFO}))
+"""
+
+
+def test_realtime_setup_puts_every_thread_on_the_cpu_and_the_others_just_below_and_restores_them():
+    """The calling thread at SCHED_FIFO 10, a thread it would hand work to at 9 (where the OS grants it), both on the
+    last CPU; ``restore`` puts both back as they were (fresh interpreter)."""
+    import json
+
+    out = subprocess.run([sys.executable, "-c", REALTIME_PROBE], capture_output=True, text=True, timeout=TIMEOUT,
+                         check=True)
+    r = json.loads(out.stdout)
+    last = r["before"]["main"][2][-1:]
+    assert r["during"]["main"][2] == r["during"]["helper"][2] == last
+    if r["fifo"].startswith("granted"):
+        assert r["during"]["main"][:2] == [r["SCHED_FIFO"], 10] and r["during"]["helper"][:2] == [r["SCHED_FIFO"], 9]
+        assert "other threads at 9" in r["fifo"]  # the helper and any a library started (OpenBLAS's)
+    else:  # refused (no privilege): nothing changed
+        assert r["during"]["helper"][:2] == r["before"]["helper"][:2]
+    assert r["after"] == r["before"]
+
+
 def test_cia402_state_machine_walks_up_and_faults():
     d = cia402.DriveStateMachine()
     for word, state in ((cia402.SHUTDOWN, cia402.READY), (cia402.SWITCH_ON, cia402.SWITCHED_ON),
