@@ -124,15 +124,14 @@ class RobotModel:
         self.drive0 = self._drive.state
         self.torque0 = self.Kt * np.asarray(loops.electrical_current(carry0.electrical))
 
-    def reset(self, d=None):
-        """The machine at rest at home, held by its drives: ``(MjData, drive state)``; ``d``, an ``MjData`` of this
-        model, is reset in place (a new one is made when None).  In place, since allocating one in the serving
-        process, whose memory is locked (``mlockall``: new pages are faulted in at once), took 32 ms at the start
-        of a bridge session, and the bridge's watchdog stopped the session."""
-        d = mujoco.MjData(self.m) if d is None else d
+    def reset(self, d):
+        """``d``, an ``MjData`` of this model, reset in place to the machine at rest at home, held by its drives; returns
+        the drives' state.  In place, since allocating one in the serving process, whose memory is locked
+        (``mlockall``: new pages are faulted in at once), took 32 ms at the start of a bridge session, and the
+        bridge's watchdog stopped the session."""
         mujoco.mj_resetData(self.m, d)
         mujoco.mj_forward(self.m, d)
-        return d, self.drive0
+        return self.drive0
 
     def actual(self, d):
         """``(theta [rad], omega [rad/s], platform [m])`` of the machine in ``d``."""
@@ -167,12 +166,12 @@ class SimRobot:
         self.sequence = 0
         self.last = time.monotonic()
         self.stalls = Stalls(log)
-        self.data = None
+        self.data = mujoco.MjData(model.m)  # made once, before the serving process locks its memory
         self._new_session()
 
     def _new_session(self):
         self.session += 1
-        self.data, self.state = self.model.reset(self.data)
+        self.state = self.model.reset(self.data)
         self.torque = self.model.torque0
         self.fault = self.faults[self.session] if self.session < len(self.faults) else FaultSpec()
         self.enabled_at = None
