@@ -120,7 +120,6 @@ class CanLink:
         self.network.notifier = can.Notifier(bus, self.network.listeners, 0.1)
         self.nodes = []
         self.rejected: Counter = Counter()
-        self.received_at = 0.0
         self._sequence = 0
         self._sent = None  # the sequence of the last command sent
         self._lock = threading.Lock()
@@ -172,7 +171,6 @@ class CanLink:
             if len(answers) > 2:
                 answers.pop(next(iter(answers)))
             self._count[k] += 1
-            self.received_at = time.monotonic()
 
     def send_command(self, cmd: protocol.Command) -> None:
         """One RPDO per drive, then SYNC."""
@@ -206,8 +204,8 @@ class CanLink:
             return None
         echo, rows = answer
         status, position, torque, velocity, mode = (np.array(c) for c in zip(*rows))
-        fb = protocol.Feedback(
-            self._sequence, int(self.received_at * 1e9), self._acknowledged(echo), status.astype(np.uint16),
+        fb = protocol.Feedback(  # timestamp 0: a CAN frame carries no send time (the bridge reports no feedback age)
+            self._sequence, 0, self._acknowledged(echo), status.astype(np.uint16),
             mode.astype(np.int8), position / COUNTS_PER_RAD, velocity / COUNTS_PER_RAD,
             torque * self.rated / 1000.0, np.full(3, np.nan))
         self._sequence += 1

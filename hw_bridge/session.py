@@ -11,7 +11,8 @@ loops (:class:`~hw_bridge.loop.BridgeLoop`), clamp the targets, send the command
 ``latency`` of a cycle: from its wake-up to its command sent: reading the feedback socket, the
 checks, the step, the encoding and the ``sendto``.  ``feedback_age``: from the robot's send stamp to
 our read of that feedback at the start of the cycle that used it (one monotonic clock on loopback):
-the transport *plus* the wait for our next cycle, so at most one period more than the transport.
+the transport *plus* the wait for our next cycle, so at most one period more than the transport; none
+over CANopen, whose frames carry no send time (its feedback's timestamp is 0).
 """
 
 from __future__ import annotations
@@ -66,7 +67,8 @@ class BridgeRun:
 
 class Bridge:
     """Runs ``loop`` against the drives behind ``endpoint``: a :class:`~hw_bridge.udp.Endpoint` of FEEDBACK or a
-    :class:`~hw_bridge.canopen_link.CanLink` (``send_command``, ``poll``, ``received_at``, ``rejected``)."""
+    :class:`~hw_bridge.canopen_link.CanLink` (``send_command``, ``poll``, ``rejected``; and ``received_at`` [s, monotonic]
+    where its feedback carries a send time)."""
 
     def __init__(self, loop: BridgeLoop, endpoint, safety: Safety, *, connect_s: float = 5.0, stop_cycles: int = 50,
                  max_consecutive_misses: int = 3, hold_s: float = 0.0, lockstep_s: float = 0.0):
@@ -162,7 +164,7 @@ class Bridge:
                 else:
                     target = safety.limit_command(k, loop.drive_modes, loop.step(j, fb.position, fb.velocity))
                     rec.latency_us.append(send(k, cia402.ENABLE_OPERATION, target, t_wake) * 1e6)
-                    if st["fresh"]:
+                    if st["fresh"] and fb.timestamp_ns:
                         rec.feedback_age_us.append((ep.received_at - fb.timestamp_ns * 1e-9) * 1e6)
                     # the fresh feedback shows the machine after the command it acknowledges (over CANopen, which
                     # has no acknowledgement: the last one): compare it with the reference of the cycle after that
