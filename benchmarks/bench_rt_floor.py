@@ -13,7 +13,12 @@ sockets, JAX's dispatch) can be read apart from the rest:
   feedback packet;
 * ``udp+jit``: the same, plus one call of a jitted function that adds its input to its state (the dispatch of a
   compiled step that computes nothing, through :class:`hw_bridge.compiled.FlatStep` as the bridge calls its loops),
-  with the bridge's warming: the runner's ``prepare`` calls it once before the deadline and drops the result.
+  with the bridge's warming: the runner's ``prepare`` calls it once before the deadline and drops the result;
+* ``udp+loops``: the bridge's own calls of a run's cycle, in its order, on the echo's feedback: ``Endpoint.poll``,
+  :meth:`hw_bridge.safety.Safety.check_feedback`, :meth:`hw_bridge.loop.BridgeLoop.step` (Table 1 gains, IMC, the
+  arc, every drive in CSV, warmed as the bridge warms it), :meth:`~hw_bridge.safety.Safety.limit_command` and the
+  command sent; each part is timed too (``parts_us``).  What is left between this stage and the bridge's own
+  latency is the session's bookkeeping and the simulated robot in place of the echo.
 
 Then, for ``--pause-seconds``, the machine's own pauses: one process on each CPU, with the bridge's real-time
 settings (SCHED_FIFO, memory locked, pinned, idle CPUs polling), sleeps 0.5 ms at a time and records every return
@@ -35,6 +40,9 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
+import time
+from pathlib import Path
 
 import numpy as np
 from timing import emit, percentile_spreads, spread  # beside this script
@@ -111,18 +119,31 @@ def main() -> None:
         ap.error(f"expected a positive rate and seconds, at least one round and pause seconds >= 0, got {args.rate}, "
                  f"{args.seconds}, {args.rounds}, {args.pause_seconds}")
 
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.config import apply_xla_workaround, setup_jax
 
+    apply_xla_workaround(one_thread=True)  # as pusupu bridge has it
     setup_jax()
     import jax.numpy as jnp
 
     from hw_bridge import protocol
     from hw_bridge.compiled import FlatStep
+    from hw_bridge.loop import BridgeLoop
     from hw_bridge.runner import CycleRunner, percentiles, realtime_setup
+    from hw_bridge.safety import Safety
     from hw_bridge.udp import Endpoint
+    from pusupu_cli.bridge import bridge_reference, limits_for
+    from pusupu_jax import gains
+    from pusupu_jax.hybrid import HybridGains
+    from pusupu_jax.params import LoopRates, ServoParams
 
     n = 6
-    total = 4 * args.rounds * args.seconds + 30
+    with tempfile.TemporaryDirectory() as folder:
+        g = gains.load(gains.write(Path(folder) / "imc.yaml", ServoParams.table1(), HybridGains(), LoopRates(),
+                                   mode="imc"))
+    loop = BridgeLoop(g, bridge_reference(g, "arc"))
+    safety = Safety(limits_for(g.servo), 1)
+    loop.start(np.zeros(n), np.zeros(n))
+    total = 5 * args.rounds * args.seconds + 30
     echo = subprocess.Popen([sys.executable, "-c", ECHO, str(total)], stdout=subprocess.PIPE, text=True)
     port = int(echo.stdout.readline())
     ep = Endpoint(protocol.FEEDBACK, peer=("127.0.0.1", port))
@@ -159,11 +180,32 @@ def main() -> None:
     def warm(k):
         step(state[0], np.zeros(n))
 
+    cycles = int(args.rate * args.seconds)
+    parts = np.zeros((cycles, 5))  # the udp+loops stage's parts of each cycle [s]
+    enabled = np.full(n, 0x0F, np.uint16)  # controlword: enable operation
+
+    def io_loops(k, skipped):
+        t0 = time.perf_counter()
+        fb = ep.poll()
+        t1 = time.perf_counter()
+        theta, omega = (fb.position, fb.velocity) if fb is not None else (np.zeros(n), np.zeros(n))
+        if fb is not None:
+            safety.check_feedback(k, 0, fb.position, fb.velocity, fb.torque)
+        t2 = time.perf_counter()
+        out = loop.step(k % loop.cycles, theta, omega)
+        t3 = time.perf_counter()
+        target = safety.limit_command(k, loop.drive_modes, out)
+        t4 = time.perf_counter()
+        seq[0] += 1
+        ep.send_command(protocol.Command(seq[0], time.monotonic_ns(), 0, enabled, loop.drive_modes, target))
+        parts[k] = (t1 - t0, t2 - t1, t3 - t2, t4 - t3, time.perf_counter() - t4)
+        return True
+
     stages = {"empty": (lambda k, skipped: True, None), "udp-raw": (io_raw, None), "udp": (io, None),
-              "udp+jit": (io_jit, warm)}
+              "udp+jit": (io_jit, warm), "udp+loops": (io_loops, lambda k: loop.warm(k % loop.cycles))}
+    part_names = ("poll", "check_feedback", "step", "limit_command", "send")
     rt = realtime_setup()
     runner = CycleRunner(args.rate)
-    cycles = int(args.rate * args.seconds)
     runs = {name: [] for name in stages}
     try:
         for r in range(args.rounds):
@@ -172,10 +214,14 @@ def main() -> None:
                     raw[:] = [protocol.encode_command(protocol.Command(seq[0] + 1 + k, 0, 0, *zeros, np.zeros(n)))
                               for k in range(cycles)]
                     seq[0] += cycles
+                parts[:] = np.nan  # cycles skipped on overrun time nothing
                 st = runner.run(fn, cycles, prepare)
                 runs[name].append({"cycles": st.cycles, "missed_deadlines": st.missed,
                                    "missed_fraction": st.missed / max(cycles, 1),
                                    "busy_us": percentiles(1e6 * st.busy), "wake_late_us": percentiles(1e6 * st.wake_late)})
+                if name == "udp+loops":
+                    timed = parts[~np.isnan(parts[:, 0])]
+                    runs[name][-1]["parts_us"] = {p: percentiles(1e6 * timed[:, j]) for j, p in enumerate(part_names)}
                 print(json.dumps({"stage": name, "round": r + 1, **runs[name][-1]}), file=sys.stderr, flush=True)
     finally:
         rt.restore()
@@ -189,6 +235,8 @@ def main() -> None:
                                 **percentile_spreads(v, "wake_late_us", ("p99",)),
                                 "missed_fraction": spread([x["missed_fraction"] for x in v])}
                          for name, v in runs.items()}}
+    result["spread"]["udp+loops"]["parts_us"] = {p: {q: spread([r["parts_us"][p][q] for r in runs["udp+loops"]])
+                                                     for q in ("p50", "p99")} for p in part_names}
     if args.pause_seconds:
         result["pauses"] = pauses(args.pause_seconds)
     emit(result, args.out)
