@@ -10,11 +10,16 @@ whether the run completed; over the runs the spread (min, median, max) of each.
   4 kHz and its force law at 1 kHz).
 
     python benchmarks/bench_bridge.py [--seconds 60] [--runs 3] [--rates 1000,4000] [--transport udp|can]
-                                      [--watchdog N] [--out FILE]
+                                      [--watchdog N] [--pause-probe] [--out FILE]
 
 ``steal_ms_per_cpu``: per CPU, the time the hypervisor gave it to others during the run (``/proc/stat``, 10 ms
 ticks), a stall no setting inside the VM prevents; ``robot_stalls``: the simulated robot's own reports of its
 serving loop not turning for more than 5 ms, with the steal on each CPU since its previous report.
+
+``--pause-probe``: during each run, :class:`timing.PauseProbe` (a real-time sleeper on each CPU above the bridge and
+the robot) records the intervals in which every CPU stopped at once; each run gets ``pauses`` and
+``pauses_in_last_s`` (those that began in the last second of the run, which a stop on a fault ends 55 cycles
+after the fault).  For diagnosis: the probe's wake-ups take a little from the bridge's latency.
 
 ``--transport can``: the six drives as CANopen nodes on python-can's udp_multicast bus (SDO set-up, RPDO +
 SYNC, two TPDOs per drive).
@@ -31,12 +36,13 @@ import socket
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
 
 from pusupu_jax.config import apply_xla_workaround, setup_jax
-from timing import emit, percentile_spreads, spread  # beside this script
+from timing import PauseProbe, emit, percentile_spreads, spread  # beside this script
 
 
 def main() -> None:
@@ -47,6 +53,7 @@ def main() -> None:
     ap.add_argument("--transport", choices=("udp", "can"), default="udp")
     ap.add_argument("--watchdog", type=int, default=5, metavar="N",
                     help="the bridge's watchdog: cycles without fresh feedback before a safe stop (pusupu bridge's default)")
+    ap.add_argument("--pause-probe", action="store_true", help="record whole-machine pauses during each run")
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
     apply_xla_workaround(one_thread=True)  # as pusupu bridge does, before any computation
@@ -87,14 +94,21 @@ def main() -> None:
                     ep = Endpoint(FEEDBACK, peer=("127.0.0.1", port))
                 else:
                     ep = CanLink(open_bus(url), loop.drive_modes, np.asarray(g.servo.Kt * g.servo.I_max))
+                probe = PauseProbe() if args.pause_probe else None
                 stolen = steal_seconds()
                 run = Bridge(loop, ep, Safety(limits_for(g.servo), args.watchdog), hold_s=args.seconds).run(args.seconds)
                 stolen = None if stolen is None else (1e3 * (steal_seconds() - stolen)).tolist()
+                end = time.monotonic()
                 ep.close()
                 rep = run.report()
                 runs.append({**{k: rep[k] for k in ("cycles", "missed_deadlines", "missed_fraction", "skipped_cycles",
                                                     "latency_us", "feedback_age_us", "completed", "faults",
                                                     "realtime")}, "steal_ms_per_cpu": stolen})
+                if probe is not None:
+                    pauses = probe.stop()
+                    runs[-1]["pauses"] = pauses
+                    runs[-1]["pauses_in_last_s"] = [(round(end - t, 4), ms) for t, ms in
+                                                    pauses["all_cpus_stopped"]["spans"] if end - 1.0 <= t <= end]
                 print(json.dumps({"rate_hz": rate, **runs[-1]}), file=sys.stderr)
         finally:
             robot.terminate()

@@ -20,12 +20,10 @@ sockets, JAX's dispatch) can be read apart from the rest:
   command sent; each part is timed too (``parts_us``).  What is left between this stage and the bridge's own
   latency is the session's bookkeeping and the simulated robot in place of the echo.
 
-Then, for ``--pause-seconds``, the machine's own pauses: one process on each CPU, with the bridge's real-time
-settings (SCHED_FIFO, memory locked, pinned, idle CPUs polling), sleeps 0.5 ms at a time and records every return
-that comes more than 2 ms after the one before, with its monotonic time.  Nothing else at real-time priority runs
-then, and each process uses a few per cent of its CPU, so a gap is time in which the guest kernel did not run
-the highest-priority thread of that CPU; gaps that overlap on both CPUs are the whole machine stopping at once (a
-hypervisor pause, counted as steal time or not: ``steal_ms_per_cpu`` says which).
+Then, for ``--pause-seconds``, the machine's own pauses with nothing else running (``timing.PauseProbe``: a
+real-time process on each CPU sleeps 0.5 ms at a time and records every return more than 2 ms after the one
+before; gaps that overlap on every CPU are the whole machine stopping at once, a hypervisor pause counted as
+steal time or not).
 
 Per stage: cycles, missed deadlines, busy-time percentiles (wake-up to return, us) and wake-up lateness.  The
 stages alternate ``--rounds`` times, so that each sees the same load::
@@ -45,9 +43,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from timing import emit, percentile_spreads, spread  # beside this script
-
-PAUSE_GAP = 2e-3  # s between two returns of a 0.5 ms sleep: the probe's threshold
+from timing import PauseProbe, emit, percentile_spreads, spread  # beside this script
 
 ECHO = r"""
 import os, sys, time
@@ -67,45 +63,6 @@ while time.monotonic() < end:
     ep.send(protocol.encode_feedback(protocol.Feedback(seq, time.monotonic_ns(), cmd.sequence, np.zeros(n, np.uint16),
             np.zeros(n, np.int8), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(3))))
 """
-
-PROBE = r"""
-import json, sys, time
-from hw_bridge.runner import realtime_setup
-rt = realtime_setup(priority=80, cpu=int(sys.argv[1]))
-gaps, last, end = [], time.monotonic(), time.monotonic() + float(sys.argv[2])
-while last < end:
-    time.sleep(0.0005)
-    now = time.monotonic()
-    if now - last > float(sys.argv[3]):
-        gaps.append((last, now - last))
-    last = now
-rt.restore()
-print(json.dumps({"realtime": rt.settings, "gaps": gaps}))
-"""
-
-
-def pauses(seconds: float) -> dict:
-    """The probe on every CPU at once for ``seconds``: each CPU's gaps, and the intervals in which all were stopped."""
-    from hw_bridge.runner import steal_seconds
-
-    cpus = sorted(os.sched_getaffinity(0))
-    steal = steal_seconds()
-    procs = [subprocess.Popen([sys.executable, "-c", PROBE, str(c), str(seconds), str(PAUSE_GAP)],
-                              stdout=subprocess.PIPE, text=True) for c in cpus]
-    found = [json.loads(p.communicate(timeout=seconds + 120)[0]) for p in procs]
-    stolen = None if steal is None else (1e3 * (steal_seconds() - steal)).tolist()
-    spans = [[(a, a + d) for a, d in f["gaps"]] for f in found]
-    together = spans[0]
-    for other in spans[1:]:  # the intersection of every CPU's gaps
-        together = [(max(a, c), min(b, d)) for a, b in together for c, d in other if max(a, c) < min(b, d)]
-    lengths = [1e3 * (b - a) for a, b in together]
-    return {"seconds": seconds, "threshold_ms": 1e3 * PAUSE_GAP, "realtime": [f["realtime"] for f in found],
-            "steal_ms_per_cpu": stolen,
-            "per_cpu": [{"cpu": c, "gaps": len(f["gaps"]), "max_ms": 1e3 * max((d for _, d in f["gaps"]), default=0.0)}
-                        for c, f in zip(cpus, found)],
-            "all_cpus_stopped": {"count": len(together), "max_ms": max(lengths, default=0.0),
-                                 "total_ms": sum(lengths), "lengths_ms": sorted(lengths, reverse=True)[:20]}}
-
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -238,7 +195,9 @@ def main() -> None:
     result["spread"]["udp+loops"]["parts_us"] = {p: {q: spread([r["parts_us"][p][q] for r in runs["udp+loops"]])
                                                      for q in ("p50", "p99")} for p in part_names}
     if args.pause_seconds:
-        result["pauses"] = pauses(args.pause_seconds)
+        probe = PauseProbe()
+        time.sleep(args.pause_seconds)
+        result["pauses"] = probe.stop()
     emit(result, args.out)
 
 

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import os
 import statistics
+import subprocess
+import sys
 import time
 
 
@@ -43,3 +47,69 @@ def emit(result: dict, out: str | None, indent: int = 1) -> None:
     print(text)
     if out:
         write_atomic(out, text + "\n")
+
+
+PROBE = r"""
+import json, signal, sys, time
+from hw_bridge.runner import realtime_setup
+signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+rt = realtime_setup(priority=int(sys.argv[2]), cpu=int(sys.argv[1]))
+print("ready", flush=True)
+gaps, last = [], time.monotonic()
+try:
+    while True:
+        time.sleep(0.0005)
+        now = time.monotonic()
+        if now - last > float(sys.argv[3]):
+            gaps.append((last, now - last))
+        last = now
+finally:
+    rt.restore()
+    print(json.dumps({"realtime": rt.settings, "gaps": gaps}), flush=True)
+"""
+
+
+class PauseProbe:
+    """The machine's own pauses while it runs: one process on each CPU, with the bridge's real-time settings at
+    ``priority`` (default 90, above the bridge's 80 and the simulated robot's 70), sleeps 0.5 ms at a time and records
+    every return more than ``gap`` [s] after the one before, with its monotonic time, until :meth:`stop`.
+
+    Above every other real-time thread and using a few per cent of its CPU, a probe that does not return for ``gap``
+    means the guest kernel did not run that CPU's highest-priority thread; gaps that overlap on every CPU are the
+    whole machine stopping at once (a hypervisor pause, counted as steal or not).  Each wake-up takes a few us from
+    whatever runs on that CPU, so runs with the probe are for diagnosis, not for latency figures."""
+
+    def __init__(self, priority: int = 90, gap: float = 2e-3):
+        from hw_bridge.runner import steal_seconds
+
+        self.gap = gap
+        self.cpus = sorted(os.sched_getaffinity(0))
+        self.steal = steal_seconds()
+        self.procs = [subprocess.Popen([sys.executable, "-c", PROBE, str(c), str(priority), str(gap)],
+                                       stdout=subprocess.PIPE, text=True) for c in self.cpus]
+        for p in self.procs:
+            assert p.stdout.readline().strip() == "ready"
+        self.started = time.monotonic()
+
+    def stop(self) -> dict:
+        """Each CPU's gaps, and the intervals in which all CPUs were stopped (``spans``: monotonic start [s], length
+        [ms], the first 50)."""
+        from hw_bridge.runner import steal_seconds
+
+        for p in self.procs:
+            p.terminate()
+        found = [json.loads(p.communicate(timeout=60)[0]) for p in self.procs]
+        stolen = None if self.steal is None else (1e3 * (steal_seconds() - self.steal)).tolist()
+        spans = [[(a, a + d) for a, d in f["gaps"]] for f in found]
+        together = spans[0]
+        for other in spans[1:]:  # the intersection of every CPU's gaps
+            together = [(max(a, c), min(b, d)) for a, b in together for c, d in other if max(a, c) < min(b, d)]
+        lengths = [1e3 * (b - a) for a, b in together]
+        return {"seconds": time.monotonic() - self.started, "threshold_ms": 1e3 * self.gap,
+                "realtime": [f["realtime"] for f in found], "steal_ms_per_cpu": stolen,
+                "per_cpu": [{"cpu": c, "gaps": len(f["gaps"]),
+                             "max_ms": 1e3 * max((d for _, d in f["gaps"]), default=0.0)}
+                            for c, f in zip(self.cpus, found)],
+                "all_cpus_stopped": {"count": len(together), "max_ms": max(lengths, default=0.0),
+                                     "total_ms": sum(lengths),
+                                     "spans": [(a, 1e3 * (b - a)) for a, b in sorted(together)][:50]}}
