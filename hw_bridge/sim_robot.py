@@ -439,7 +439,7 @@ def main_loop(model: RobotModel, listen: str, faults, max_s=None, watchdog_s: fl
 
     ``realtime``: ask for what a robot controller has (:func:`hw_bridge.runner.realtime_setup`: SCHED_FIFO at
     priority 70 on the first CPU, since the bridge takes the last); what the OS refused is said on stderr.  A 1 kHz
-    command costs the robot about a quarter of a core (four compiled drive steps and C MuJoCo steps), so a stall of a
+    command costs the robot about 140 us at p50 (four compiled drive steps and C MuJoCo steps), so a stall of a
     few ms on its CPU leaves the bridge without feedback past its watchdog (:class:`Stalls` reports them; README,
     "The real-time figures")."""
     robot = SimRobot(model, faults, watchdog_s, log=lambda m: print(m, file=sys.stderr, flush=True))
