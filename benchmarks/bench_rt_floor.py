@@ -64,6 +64,7 @@ while time.monotonic() < end:
             np.zeros(n, np.int8), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(3))))
 """
 
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--rate", type=float, default=1000.0, help="Hz")
