@@ -91,9 +91,10 @@ def realtime_setup(priority: int = 80, cpu: int | None = None) -> RealtimeReport
         rep.settings["mlockall"] = f"refused ({getattr(e, 'strerror', None) or e}); pages may fault in the loop"
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-        rep.helpers = _helpers_fifo(max(priority - 1, 1))
+        below = max(priority - 1, 1)
+        rep.helpers = _helpers_fifo(below)
         rep.settings["SCHED_FIFO"] = (f"granted (priority {priority}; the process's {len(rep.helpers)} other threads "
-                                      f"at {max(priority - 1, 1)})")
+                                      f"at {below})")
     except (OSError, AttributeError) as e:
         rep.settings["SCHED_FIFO"] = f"refused ({getattr(e, 'strerror', None) or e}); running SCHED_OTHER"
     try:
@@ -106,21 +107,27 @@ def realtime_setup(priority: int = 80, cpu: int | None = None) -> RealtimeReport
     return rep
 
 
+def _thread_ids() -> list[int]:
+    """The ids of the process's threads (Linux: the tasks of ``/proc/self/task``; elsewhere none)."""
+    try:
+        return [int(t) for t in os.listdir("/proc/self/task")]
+    except OSError:
+        return []
+
+
 def _helpers_fifo(priority: int) -> dict:
     """The process's threads other than the calling one at SCHED_FIFO ``priority``; ``{tid: (policy, priority)}``
     before, of those changed.  The calling thread may hand them work and wait: XLA's CPU runtime can run parts of a
     compiled step on its pool (the simulated robot's drive step woke two 'tf_XLAEigen' threads and waited for them,
     2.4 times per call, until :class:`~hw_bridge.compiled.FlatStep` closed over its constants), and python-can's
-    notifier thread runs the CANopen robot's whole period.  Left at
-    SCHED_OTHER, that work waits behind any ordinary task on the CPU while the real-time thread waits for it; one
-    step below the calling thread, it runs before ordinary tasks and never preempts the thread that waits for it."""
+    notifier thread runs the CANopen robot's whole period.  Left at SCHED_OTHER, that work waits behind any ordinary
+    task on the CPU while the real-time thread waits for it; one step below the calling thread, it runs before
+    ordinary tasks and never preempts the thread that waits for it."""
     me = threading.get_native_id()
-    try:
-        tids = [int(t) for t in os.listdir("/proc/self/task") if int(t) != me]
-    except OSError:
-        return {}
     before = {}
-    for tid in tids:
+    for tid in _thread_ids():
+        if tid == me:
+            continue
         try:
             was = (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority)
             os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
@@ -136,10 +143,7 @@ def _set_affinity(cpus) -> int:
     step to its thread pool, and a pool thread left on the other CPU waited there behind the other process's real-time
     thread while this one waited for it (seen in a scheduler trace of the simulated robot: its 'tf_XLAEigen' threads
     woken on the bridge's CPU in each step)."""
-    try:
-        tids = [int(t) for t in os.listdir("/proc/self/task")]
-    except OSError:
-        tids = [0]
+    tids = _thread_ids() or [0]
     for tid in tids:
         try:
             os.sched_setaffinity(tid, cpus)
