@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from pusupu_jax.config import apply_xla_workaround, setup_jax
-from timing import PauseProbe, emit, percentile_spreads, spread  # beside this script
+from timing import PauseProbe, emit, percentile_spreads, spread, steal_ms_since  # beside this script
 
 
 def main() -> None:
@@ -95,9 +95,9 @@ def main() -> None:
                 else:
                     ep = CanLink(open_bus(url), loop.drive_modes, np.asarray(g.servo.Kt * g.servo.I_max))
                 probe = PauseProbe() if args.pause_probe else None
-                stolen = steal_seconds()
+                steal = steal_seconds()
                 run = Bridge(loop, ep, Safety(limits_for(g.servo), args.watchdog), hold_s=args.seconds).run(args.seconds)
-                stolen = None if stolen is None else (1e3 * (steal_seconds() - stolen)).tolist()
+                stolen = steal_ms_since(steal)
                 end = time.monotonic()
                 ep.close()
                 rep = run.report()

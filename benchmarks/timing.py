@@ -49,6 +49,15 @@ def emit(result: dict, out: str | None, indent: int = 1) -> None:
         write_atomic(out, text + "\n")
 
 
+def steal_ms_since(before) -> list | None:
+    """Per CPU, the hypervisor's steal time [ms] since ``before`` (a :func:`hw_bridge.runner.steal_seconds` reading),
+    or None where either reading is missing."""
+    from hw_bridge.runner import steal_seconds
+
+    now = steal_seconds()
+    return None if before is None or now is None else (1e3 * (now - before)).tolist()
+
+
 PROBE = r"""
 import json, signal, sys, time
 from hw_bridge.runner import realtime_setup
@@ -94,12 +103,10 @@ class PauseProbe:
     def stop(self) -> dict:
         """Each CPU's gaps, and the intervals in which all CPUs were stopped (``spans``: monotonic start [s], length
         [ms], the first 50)."""
-        from hw_bridge.runner import steal_seconds
-
         for p in self.procs:
             p.terminate()
         found = [json.loads(p.communicate(timeout=60)[0]) for p in self.procs]
-        stolen = None if self.steal is None else (1e3 * (steal_seconds() - self.steal)).tolist()
+        stolen = steal_ms_since(self.steal)
         spans = [[(a, a + d) for a, d in f["gaps"]] for f in found]
         together = spans[0]
         for other in spans[1:]:  # the intersection of every CPU's gaps
