@@ -101,17 +101,12 @@ def main() -> None:
     loop = BridgeLoop(g, bridge_reference(g, "arc"))
     safety = Safety(limits_for(g.servo), 1)
     loop.start(np.zeros(n), np.zeros(n))
-    total = 5 * args.rounds * args.seconds + 30
-    echo = subprocess.Popen([sys.executable, "-c", ECHO, str(total)], stdout=subprocess.PIPE, text=True)
-    port = int(echo.stdout.readline())
-    ep = Endpoint(protocol.FEEDBACK, peer=("127.0.0.1", port))
     step = FlatStep(lambda s, u: (s + u, s), (), jnp.zeros(n), (np.zeros(n),))
     state = [step.state]
     seq = [0]
     zeros = (np.zeros(n, np.uint16), np.full(n, 9, np.int8))
 
     raw = []  # the udp-raw stage's datagrams, encoded before each of its runs (the echo drops replayed sequences)
-    peer = ("127.0.0.1", port)
 
     def io_raw(k, skipped):
         try:
@@ -119,7 +114,7 @@ def main() -> None:
                 pass
         except BlockingIOError:
             pass
-        ep.sock.sendto(raw[k], peer)
+        ep.sock.sendto(raw[k], ep.peer)
         return True
 
     def io(k, skipped):
@@ -162,6 +157,9 @@ def main() -> None:
     stages = {"empty": (lambda k, skipped: True, None), "udp-raw": (io_raw, None), "udp": (io, None),
               "udp+jit": (io_jit, warm), "udp+loops": (io_loops, lambda k: loop.warm(k % loop.cycles))}
     part_names = ("poll", "check_feedback", "step", "limit_command", "send")
+    total = len(stages) * args.rounds * args.seconds + 30  # s: the echo's own limit, past every stage
+    echo = subprocess.Popen([sys.executable, "-c", ECHO, str(total)], stdout=subprocess.PIPE, text=True)
+    ep = Endpoint(protocol.FEEDBACK, peer=("127.0.0.1", int(echo.stdout.readline())))
     rt = realtime_setup()
     runner = CycleRunner(args.rate)
     runs = {name: [] for name in stages}
