@@ -9,9 +9,10 @@ call with a few small arrays.  What is fixed for a run (a drive's coefficients, 
 over: constants of the compiled step, not arguments.  As one argument vector (4.4 kB for a drive's
 coefficients) it made XLA's CPU runtime run the step's parts on its thread pool, which it does when
 a buffer passes 512 bytes, and the calling thread woke the pool and waited for it twice a call: the
-simulated robot's drive step took 73 us a call at p50 in a tight loop, and 15 us with no hand-off as constants.  The call
-goes through ``jax.jit``'s C++ dispatch (an ahead-of-time ``Compiled`` object dispatches in Python,
-about 40 us slower here); the construction compiles and runs it once, so no cycle ever compiles.
+simulated robot's drive step took 73 us a call at p50 in a tight loop, and 15 us with no hand-off as
+constants.  The call goes through ``jax.jit``'s C++ dispatch (an ahead-of-time ``Compiled`` object
+dispatches in Python, about 40 us slower here); the construction compiles and runs it once, so no
+cycle ever compiles.
 """
 
 from __future__ import annotations
