@@ -127,6 +127,11 @@ class ServoParams(_PerAxis):
     I_max: Any = _f(10.0, "A", "chosen: current limit on the velocity PI output (13 N*m peak torque)", section="limits")
     V_max: Any = _f(300.0, "V", "chosen: armature voltage limit (310 V DC bus less margin); the current PI "
                     "output saturates at V_max/Kn", section="limits")
+    following_error: Any = _f(0.005, "m", "chosen: following-error window (CiA 402 object 0x6065), in slider travel: "
+                              "a branch whose position error stays beyond it for following_error_time stops the "
+                              "machine", section="limits")
+    following_error_time: Any = _f(0.05, "s", "chosen: following-error time-out (CiA 402 object 0x6066)",
+                                   section="limits")
     # --- drive train (chosen) ---
     lead: Any = _f(0.01, "m/rev", "chosen: ball-screw lead (10 mm per motor revolution)", section="plant")
     eta: Any = _f(0.9, "1", "chosen: ball-screw efficiency (0 < eta <= 1); the load seen by the motor is divided by eta", section="plant")
