@@ -1,31 +1,35 @@
 """Gain files: the tuned servo gains for people as well as programs, validated on load (host-side).
 
-Schema ``pusupu-gains`` version 2, every key required, in this order (``docs/gains.md`` shows a
+Schema ``pusupu-gains`` version 3, every key required, in this order (``docs/gains.md`` shows a
 whole file; ``pusupu_jax/schemas/pusupu-gains.schema.json`` is its JSON Schema)::
 
     schema: pusupu-gains
-    version: 2
+    version: 3
     mode: hybrid                       # the control mode the gains are for: imc | pid | pid_ff | hybrid
-    controller:                        # what the drives and the position loop run
+    controller:                        # what the controller is told: gains, limits it enforces
       position: {imc_form: full, lambda1: {value: 0.0105, unit: s, tuned: true}, ...}
       velocity: {Kv: {value: .., unit: A/(rad/s), tuned: true}, ...}
       current: {...}, limits: {...}, pid: {...}
       hybrid: {form: signed, m6: {value: .., unit: N*s/m, tuned: true}, ...}
-    plant: {J: {value: .., unit: kg*m^2}, ...}   # the model the gains were tuned on; not gains
     rates: {f_current: 20000.0, n_velocity: 5, n_position: 4, n_mech: 5, method: tustin}
     discrete:                          # each controller block at its rate: x+ = A x + B u, y = C x + D u
       current_pi: {sample_period_s: 5.0e-05, input: .., output: .., clamp: .., A: .., B: .., C: .., D: ..}
     margins: {current: {phase_margin_deg: .., gain_margin_db: ..}, velocity: .., position: ..}
+    stability: {current: {spectral_radius: ..}, velocity: .., position: ..}
     provenance: {package, package_version, jax_version, mujoco_version, git_commit, created_utc, ...}
     checksum: <sha256 of everything above>
 
 A value shared by the six axes is written once; otherwise as a list of six.  A field the
-tuner moved carries ``tuned: true``.
+tuner moved carries ``tuned: true``.  The plant (motor, inverter, screw: the ``plant`` fields of
+:class:`~pusupu_jax.params.ServoParams`) is not in the file: it is the built-in one
+(:func:`builtin_plant`).  Version 2 files carried it in a ``plant`` section; they are read only
+when that section equals the built-in plant, and :func:`migrate` rewrites them as version 3.
 
 :func:`load` checks everything and raises :class:`~pusupu_jax.params.ParameterError` with one
 line naming the problem: the schema and version, unknown and missing keys, units, kinds and
-ranges of every value, that the discrete blocks are the discretisation of the gains at the
-stated rates, that every loop is stable with at least :data:`FLOORS` of margin (or the
+bounds of every value, that the discrete blocks are the discretisation of the gains at the
+stated rates, that every loop is stable by its discrete poles and keeps at least
+:data:`~pusupu_jax.stability.FLOORS` of margin (:func:`pusupu_jax.stability.check`; or the
 caller's explicit floors, never thresholds read from the file), and last the checksum.  The
 checksum detects accidents (a truncated or edited file), not attacks: anyone can compute it.
 :func:`sign` recomputes the derived blocks and the checksum of a deliberately edited file once
@@ -45,17 +49,22 @@ import jax
 import numpy as np
 import yaml
 
-from . import __version__, inputs, loops
+from . import __version__, inputs, loops, stability
 from .config import rates_from_mapping, write_atomic
-from .hybrid import HybridGains, gain_fields, validate_gains
+from .hybrid import HybridGains, gain_fields
 from .margins import loop_margins
-from .params import AxisLoad, LoopRates, ParameterError, ServoParams, array_fields, static_fields, validate
+from .params import AxisLoad, LoopRates, ParameterError, ServoParams, array_fields, bounds, static_fields
+from .stability import FLOORS
 
-SCHEMA, VERSION = "pusupu-gains", 2
-KEYS = ("schema", "version", "mode", "controller", "plant", "rates", "discrete", "margins", "provenance", "checksum")
+SCHEMA, VERSION = "pusupu-gains", 3
+KEYS = ("schema", "version", "mode", "controller", "rates", "discrete", "margins", "stability", "provenance",
+        "checksum")
+KEYS_V2 = ("schema", "version", "mode", "controller", "plant", "rates", "discrete", "margins", "provenance",
+           "checksum")
 MODES = ("imc", "pid", "pid_ff", "hybrid")
 CONTROLLER_SECTIONS = ("position", "velocity", "current", "limits", "pid", "hybrid")
-FLOORS = (45.0, 6.0)  # deg, dB: every loop of every axis, unless the caller says otherwise (and logs it)
+PLANT_V2 = ("Kn", "Tn", "R", "L", "J", "Kt", "Ke", "lead", "eta")  # a version 2 file's plant section
+LIMITS_SINCE_V3 = ("following_error", "following_error_time")  # limits a version 2 file lacks: the defaults
 
 # each discrete block: where it sits in loops.Drive, its sample period (a LoopRates property), what flows
 # in and out, and what clamps it
@@ -105,20 +114,12 @@ def margins_report(servo: ServoParams, mode: str = "imc") -> dict:
             for loop, v in m.items()}
 
 
-def check_gains(servo: ServoParams, hybrid: HybridGains, mode: str = "imc", floors=FLOORS) -> dict:
-    """Validate values and margins against ``floors`` = (deg, dB); returns :func:`margins_report` or raises."""
-    validate(servo)
-    validate_gains(hybrid)
-    pm_min, gm_min = floors
-    m = margins_report(servo, mode)
-    for loop, v in m.items():
-        pm, gm = np.asarray(v["phase_margin_deg"]), np.asarray(v["gain_margin_db"])
-        if not np.isfinite(pm).all() and not np.isinf(pm).all() or (pm < pm_min).any() or (gm < gm_min).any():
-            a = int(np.argmin(np.minimum(pm - pm_min, gm - gm_min)))
-            raise ParameterError(f"gains: the {loop} loop of axis {a + 1} has {pm[a]:.1f} deg phase margin and "
-                                 f"{gm[a]:.1f} dB gain margin; expected at least {pm_min:g} deg and {gm_min:g} dB "
-                                 "(unstable or too little margin)")
-    return m
+def builtin_plant() -> dict:
+    """``{field: (6,) array}`` of the plant a gain file's gains run on: the ``plant`` fields of Table 1's
+    :class:`~pusupu_jax.params.ServoParams`."""
+    base = ServoParams.table1()
+    return {f.name: np.asarray(getattr(base, f.name)) for f in array_fields(ServoParams)
+            if f.metadata["section"] == "plant"}
 
 
 def _compact(values):
@@ -175,24 +176,27 @@ def _field(value, unit: str, tuned: bool) -> dict:
 
 
 def document(servo: ServoParams, hybrid: HybridGains, rates: LoopRates, *, mode: str, tuned=(),
-             provenance: dict | None = None, floors=FLOORS, margins: dict | None = None) -> str:
-    """The YAML text of a gain file (validated: raises ParameterError rather than describe unstable gains)."""
+             provenance: dict | None = None, floors=FLOORS) -> str:
+    """The YAML text of a gain file (checked first: raises ParameterError rather than describe gains that
+    :func:`pusupu_jax.stability.check` refuses, or a plant other than the built-in one)."""
     if mode not in MODES:
         raise ParameterError(f"gains mode: expected one of {MODES}, got {mode!r}")
-    margins = check_gains(servo, hybrid, mode, floors) if margins is None else margins
-    controller = {name: {} for name in CONTROLLER_SECTIONS}
-    plant = {}
+    _check_plant({name: getattr(servo, name) for name in builtin_plant()}, "servo")
+    found = stability.check(servo, hybrid, rates, mode, floors)
+    controller = {name: {} for name in CONTROLLER_SECTIONS if name != "hybrid"}
     for f in static_fields(ServoParams):
         controller[f.metadata["section"]][f.name] = getattr(servo, f.name)
     for f in array_fields(ServoParams):
-        section = plant if f.metadata["section"] == "plant" else controller[f.metadata["section"]]
-        section[f.name] = _field(getattr(servo, f.name), f.metadata["unit"], f.name in tuned)
+        if f.metadata["section"] != "plant":
+            controller[f.metadata["section"]][f.name] = _field(getattr(servo, f.name), f.metadata["unit"],
+                                                               f.name in tuned)
     controller["hybrid"] = {"form": hybrid.form, **{f.name: _field(float(getattr(hybrid, f.name)), f.metadata["unit"],
                                                                     f.name in tuned) for f in gain_fields()}}
     doc = {
-        "schema": SCHEMA, "version": VERSION, "mode": mode, "controller": controller, "plant": plant,
+        "schema": SCHEMA, "version": VERSION, "mode": mode, "controller": controller,
         "rates": dataclasses.asdict(rates), "discrete": _discrete(servo, rates),
-        "margins": {loop: {k: _compact(v) for k, v in m.items()} for loop, m in margins.items()},
+        "margins": {loop: {k: _compact(v) for k, v in m.items()} for loop, m in found.margins().items()},
+        "stability": {loop: {"spectral_radius": _compact(r)} for loop, r in found.radii().items()},
         "provenance": {**_versions(),
                        "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
                        "tuned_fields": sorted(tuned), **(provenance or {})},
@@ -206,35 +210,43 @@ def write(path, servo: ServoParams, hybrid: HybridGains, rates: LoopRates, **kw)
     return write_atomic(path, document(servo, hybrid, rates, **kw))
 
 
-def load(path, floors=FLOORS) -> GainFile:
-    """Read and check a gain file (see the module docstring); stability is checked against ``floors``."""
+def load(path, floors=FLOORS, check_stability: bool = True) -> GainFile:
+    """Read and check a gain file (see the module docstring); stability is checked against ``floors``.
+
+    ``check_stability=False`` leaves out :func:`pusupu_jax.stability.check`'s poles and margins (every value's bounds
+    are still checked): for a diagnosis of a refused file, never to run or export its gains."""
     path = Path(path)
     text = inputs.read_text(path, "gain file", ParameterError)
     try:
-        return parse(text, floors=floors)
+        return parse(text, floors=floors, check_stability=check_stability)
     except ParameterError as e:
         raise ParameterError(f"{path}: {e}") from None
 
 
-def parse(text: str, floors=FLOORS, checksum: bool = True) -> GainFile:
+def parse(text: str, floors=FLOORS, checksum: bool = True, check_stability: bool = True) -> GainFile:
     """:func:`load` on text; ``checksum=False`` skips the checksum and the derived blocks (for :func:`sign`)."""
     doc = inputs.parse_yaml(text, "gain file", ParameterError)
     if not isinstance(doc, dict):
         raise ParameterError(f"expected a {SCHEMA} mapping, got {type(doc).__name__}")
     if doc.get("schema") != SCHEMA:
-        raise ParameterError(f"schema: expected {SCHEMA!r}, got {doc.get('schema')!r}")
-    if doc.get("version") != VERSION:
+        raise ParameterError(f"schema: expected {SCHEMA!r}, got {inputs.shown(doc.get('schema'))}")
+    version = doc.get("version")
+    if version not in (2, VERSION) or isinstance(version, bool):
         extra = (": version 1 files predate the choice of IMC prefilter (they meant eq. 9 as printed); re-run "
-                 "pusupu tune" if doc.get("version") == 1 else " (this pusupu_jax reads only that)")
-        raise ParameterError(f"version: expected {VERSION}, got {doc.get('version')!r}{extra}")
-    inputs.check_keys(doc, "gain file", KEYS, ParameterError, required=KEYS)
+                 "pusupu tune" if version == 1 else " (this pusupu_jax reads 3, and 2 whose plant is the built-in one)")
+        raise ParameterError(f"version: expected {VERSION}, got {inputs.shown(version)}{extra}")
+    keys = KEYS if version == VERSION else KEYS_V2
+    inputs.check_keys(doc, "gain file", keys, ParameterError, required=keys)
     mode = inputs.choice(doc["mode"], "mode", MODES, ParameterError)
-    servo, hybrid = _parameters(doc)
+    servo, hybrid = _parameters(doc, version)
     names = [f.name for f in dataclasses.fields(LoopRates)]
     rates = rates_from_mapping(inputs.check_keys(doc["rates"], "rates", names, ParameterError, required=names))
     if not isinstance(doc["provenance"], dict):
         raise ParameterError(f"provenance: expected a mapping, got {type(doc['provenance']).__name__}")
-    check_gains(servo, hybrid, mode, floors)
+    if check_stability:
+        stability.check(servo, hybrid, rates, mode, floors)
+    else:
+        stability.check_values(servo, hybrid, rates)
     if checksum:
         fresh = _discrete(servo, rates)
         inputs.check_keys(doc["discrete"], "discrete", fresh, ParameterError, required=fresh, what="block")
@@ -262,14 +274,33 @@ def _same_block(stored, fresh) -> bool:
         return False
 
 
-def _parameters(doc) -> tuple[ServoParams, HybridGains]:
+def _controller_fields(version: int) -> dict:
+    """``{section: [field names]}`` that a file of ``version`` holds (its controller sections; version 2's plant)."""
+    expected = {name: [] for name in CONTROLLER_SECTIONS}
+    for f in dataclasses.fields(ServoParams):
+        section = f.metadata["section"]
+        if section != "plant" and not (version == 2 and f.name in LIMITS_SINCE_V3):
+            expected[section].append(f.name)
+    expected["hybrid"] = ["form"] + [f.name for f in gain_fields()]
+    if version == 2:
+        expected["plant"] = list(PLANT_V2)
+    return expected
+
+
+def _check_plant(values: dict, where: str) -> None:
+    """Refuse plant values other than the built-in plant's (:func:`builtin_plant`), to 1e-12 relative."""
+    for name, v in values.items():
+        ours = builtin_plant()[name]
+        if not np.allclose(np.broadcast_to(np.asarray(v, dtype=float), ours.shape), ours, rtol=1e-12, atol=0):
+            raise ParameterError(f"{where}.{name}: expected the built-in plant's {_compact(ours)!r}, got "
+                                 f"{inputs.shown(_compact(v))} (gains tuned on another plant are not these gains)")
+
+
+def _parameters(doc, version: int) -> tuple[ServoParams, HybridGains]:
+    expected = _controller_fields(version)
     controller = inputs.check_keys(doc["controller"], "controller", CONTROLLER_SECTIONS, ParameterError,
                                    required=CONTROLLER_SECTIONS, what="section")
-    expected = {name: [] for name in CONTROLLER_SECTIONS + ("plant",)}
-    for f in dataclasses.fields(ServoParams):
-        expected[f.metadata["section"]].append(f.name)
-    expected["hybrid"] = ["form"] + [f.name for f in gain_fields()]
-    sections = dict(controller, plant=doc["plant"])
+    sections = dict(controller, plant=doc["plant"]) if version == 2 else controller
     values, units = {}, {f.name: f.metadata["unit"] for f in array_fields(ServoParams)}
     units |= {f.name: f.metadata["unit"] for f in gain_fields()}
     for section, names in expected.items():
@@ -281,36 +312,69 @@ def _parameters(doc) -> tuple[ServoParams, HybridGains]:
                 entry = inputs.check_keys(v, f"{where}.{name}", ("value", "unit", "tuned"), ParameterError,
                                           required=("value", "unit"))
                 if entry["unit"] != units[name]:
-                    raise ParameterError(f"{where}.{name}.unit: expected {units[name]!r}, got {entry['unit']!r}")
+                    raise ParameterError(f"{where}.{name}.unit: expected {units[name]!r}, got "
+                                         f"{inputs.shown(entry['unit'])}")
                 if "tuned" in entry and not isinstance(entry["tuned"], bool):
-                    raise ParameterError(f"{where}.{name}.tuned: expected true or false, got {entry['tuned']!r}")
+                    raise ParameterError(f"{where}.{name}.tuned: expected true or false, got "
+                                         f"{inputs.shown(entry['tuned'])}")
                 v = entry["value"]
             values[name] = v
     hybrid = HybridGains.from_mapping({k: values.pop(k) for k in expected["hybrid"]})
+    if version == 2:
+        plant = ServoParams.from_mapping({k: values.pop(k) for k in PLANT_V2})
+        try:
+            _check_plant({k: getattr(plant, k) for k in PLANT_V2}, "plant")
+        except ParameterError as e:
+            raise ParameterError(f"{e}; a version 2 file is read only on the built-in plant") from None
     return ServoParams.from_mapping(values), hybrid
 
 
 def sign(path, floors=FLOORS) -> Path:
     """Re-sign a deliberately edited gain file: its gains must pass every check; the derived blocks (discrete
-    coefficients, margins) are recomputed and the checksum written anew (atomically, same mode and tuned marks)."""
+    coefficients, margins, stability) are recomputed and the checksum written anew (atomically, same mode and tuned
+    marks).  A version 2 file is refused: :func:`migrate` converts it."""
     path = Path(path)
     text = inputs.read_text(path, "gain file", ParameterError)
     try:
         g = parse(text, floors=floors, checksum=False)
     except ParameterError as e:
         raise ParameterError(f"{path}: {e}") from None
+    if g.document["version"] != VERSION:
+        raise ParameterError(f"{path}: version: expected {VERSION}, got {g.document['version']} (pusupu gains migrate "
+                             "converts a version 2 file)")
+    return _rewrite(path, g, floors, "signed")
+
+
+def migrate(path, out=None, floors=FLOORS) -> Path:
+    """Rewrite a version 2 gain file as version 3 at ``out`` (default: in its place, atomically).
+
+    The file must pass every check of a version 2 file (checksum included), and its plant section must be the
+    built-in plant: the plant leaves the file, and gains tuned on another plant would silently change meaning."""
+    path = Path(path)
+    g = load(path, floors)
+    if g.document["version"] != 2:
+        raise ParameterError(f"{path}: version: expected 2 to migrate, got {g.document['version']}")
+    return _rewrite(Path(out) if out is not None else path, g, floors, "migrated")
+
+
+def _rewrite(path: Path, g: GainFile, floors, action: str) -> Path:
+    """``g`` written anew at ``path``: its gains, mode and tuned marks, and its provenance less what :func:`document`
+    writes itself; ``action`` ('signed' or 'migrated') stamps when (``<action>_utc``), beside the creation time the
+    file had (``created_utc_before``) and, for 'migrated', the version it came from."""
     tuned = g.document["provenance"].get("tuned_fields", [])
     provenance = {k: v for k, v in g.document["provenance"].items()
                   if k not in ("tuned_fields", "created_utc") and k not in _versions()}
-    provenance["signed_utc"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-    provenance["created_utc_before_signing"] = g.document["provenance"].get("created_utc")
+    provenance[f"{action}_utc"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+    provenance["created_utc_before"] = g.document["provenance"].get("created_utc")
+    if action == "migrated":
+        provenance["migrated_from_version"] = g.document["version"]
     return write(path, g.servo, g.hybrid, g.rates, mode=g.mode, tuned=tuned, provenance=provenance, floors=floors)
 
 
 def rows(doc: dict) -> list[tuple[str, str, object, str, bool]]:
-    """``(section, field, value, unit, tuned)`` of every gain and plant value of a document, in file order."""
+    """``(section, field, value, unit, tuned)`` of every gain (and a version 2 file's plant value), in file order."""
     out = []
-    for section, fields in list(doc["controller"].items()) + [("plant", doc["plant"])]:
+    for section, fields in list(doc["controller"].items()) + [("plant", doc.get("plant", {}))]:
         for name, v in fields.items():
             if isinstance(v, dict):
                 out.append((section, name, v["value"], v["unit"], bool(v.get("tuned"))))
@@ -331,6 +395,9 @@ def show(doc: dict) -> str:
     for loop, m in doc["margins"].items():
         pm, gm = np.min(m["phase_margin_deg"]), np.min(m["gain_margin_db"])
         lines.append(f"margins   {loop:<10} {pm:.1f} deg, {gm:.1f} dB (smallest over the axes)")
+    for loop, st in doc.get("stability", {}).items():
+        lines.append(f"poles     {loop:<10} largest modulus {np.max(st['spectral_radius']):.6f} over one period "
+                     "(stable below 1)")
     p = doc["provenance"]
     lines.append(f"made by {p.get('package')} {p.get('package_version')} (jax {p.get('jax_version')}, mujoco "
                  f"{p.get('mujoco_version')}, commit {p.get('git_commit')}) at {p.get('created_utc')}")
@@ -355,24 +422,36 @@ def diff(a: dict, b: dict) -> list[str]:
 
 def json_schema() -> dict:
     """The JSON Schema of a gain file, built from the parameter classes' metadata (shipped as a file; a test keeps the
-    two equal)."""
+    two equal).  Each bounded value carries its range and the reason for it."""
     number = {"type": "number"}
-    per_axis = {"oneOf": [number, {"type": "array", "items": number, "minItems": 6, "maxItems": 6}]}
 
-    def field_schema(unit):
-        return {"type": "object", "required": ["value", "unit"], "additionalProperties": False,
-                "properties": {"value": per_axis, "unit": {"const": unit}, "tuned": {"type": "boolean"}}}
+    def per_axis(low=None, high=None):
+        item = dict(number) | ({"minimum": low} if low is not None else {}) | (
+            {"maximum": high} if isinstance(high, (int, float)) else {})
+        return {"oneOf": [item, {"type": "array", "items": item, "minItems": 6, "maxItems": 6}]}
+
+    def field_schema(f):
+        b = bounds(f)
+        value = per_axis(*b[:2]) if b else per_axis()
+        out = {"type": "object", "required": ["value", "unit"], "additionalProperties": False,
+               "description": f.metadata["doc"] + (f" Range {b[0]:g} to {b[1]:g}" if b and not isinstance(b[1], str)
+                                                   else f" Range {b[0]:g} to the plant's {b[1]}" if b else "")
+               + (f": {b[2]}." if b else ""),
+               "properties": {"value": value, "unit": {"const": f.metadata["unit"]}, "tuned": {"type": "boolean"}}}
+        return out
 
     sections = {name: {"type": "object", "additionalProperties": False, "properties": {}, "required": []}
-                for name in CONTROLLER_SECTIONS + ("plant",)}
+                for name in CONTROLLER_SECTIONS}
     for f in dataclasses.fields(ServoParams):
+        if f.metadata["section"] == "plant":
+            continue
         sec = sections[f.metadata["section"]]
         sec["properties"][f.name] = ({"enum": list(f.metadata["choices"])} if f.metadata.get("static")
-                                     else field_schema(f.metadata["unit"]))
+                                     else field_schema(f))
         sec["required"].append(f.name)
     sections["hybrid"]["properties"]["form"] = {"enum": ["rms", "signed"]}
     for f in gain_fields():
-        sections["hybrid"]["properties"][f.name] = field_schema(f.metadata["unit"])
+        sections["hybrid"]["properties"][f.name] = field_schema(f)
     sections["hybrid"]["required"] = ["form"] + [f.name for f in gain_fields()]
     matrix = {"type": "array", "items": {"type": "array", "items": number}}
     coefficients = {k: matrix for k in "ABCD"}
@@ -382,7 +461,13 @@ def json_schema() -> dict:
                             "per_axis": {"type": "array", "minItems": 6, "maxItems": 6,
                                          "items": {"type": "object", "properties": coefficients,
                                                    "required": list("ABCD")}}}}
-    loop = {"type": "object", "properties": {"phase_margin_deg": per_axis, "gain_margin_db": per_axis}}
+    loop = {"type": "object", "properties": {"phase_margin_deg": per_axis(), "gain_margin_db": per_axis()}}
+    radius = {"type": "object", "required": ["spectral_radius"],
+              "properties": {"spectral_radius": per_axis(0, 1)},
+              "description": "the largest eigenvalue modulus of the loop's closed-loop map over one period, at the "
+                             "file's rates with the built-in plant (pusupu_jax.stability): stable below 1"}
+    rates = {name: (low, high, why) for name, (low, high, why) in (
+        ("current", stability.F_CURRENT), ("velocity", stability.F_VELOCITY), ("position", stability.F_POSITION))}
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "$id": "https://pusupu-jax/schemas/pusupu-gains.schema.json",
@@ -392,16 +477,21 @@ def json_schema() -> dict:
             "schema": {"const": SCHEMA}, "version": {"const": VERSION}, "mode": {"enum": list(MODES)},
             "controller": {"type": "object", "additionalProperties": False, "required": list(CONTROLLER_SECTIONS),
                            "properties": {name: sections[name] for name in CONTROLLER_SECTIONS}},
-            "plant": sections["plant"],
             "rates": {"type": "object", "additionalProperties": False,
                       "required": [f.name for f in dataclasses.fields(LoopRates)],
-                      "properties": {"f_current": number, "n_velocity": {"type": "integer", "minimum": 1},
+                      "description": "; ".join(f"the {k} loop's rate {lo:g} to {hi:g} Hz ({why})"
+                                               for k, (lo, hi, why) in rates.items()),
+                      "properties": {"f_current": number | {"minimum": stability.F_CURRENT[0],
+                                                            "maximum": stability.F_CURRENT[1]},
+                                     "n_velocity": {"type": "integer", "minimum": 1},
                                      "n_position": {"type": "integer", "minimum": 1},
                                      "n_mech": {"type": "integer", "minimum": 1},
                                      "method": {"enum": ["tustin", "zoh"]}}},
             "discrete": {"type": "object", "additionalProperties": False, "required": list(BLOCKS),
                          "properties": {name: block for name in BLOCKS}},
             "margins": {"type": "object", "properties": {k: loop for k in ("current", "velocity", "position")}},
+            "stability": {"type": "object", "required": list(stability.LOOPS),
+                          "properties": {k: radius for k in stability.LOOPS}},
             "provenance": {"type": "object"},
             "checksum": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
         },

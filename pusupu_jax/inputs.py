@@ -136,3 +136,12 @@ def _kind(value) -> str:
     """How an unexpected value is named in errors: its repr when short, else its type."""
     text = repr(value)
     return f"{type(value).__name__} {text}" if len(text) <= 40 else f"a {type(value).__name__}"
+
+
+SHOWN_CHARS = 200  # an echoed value is cut to this many characters
+
+
+def shown(value) -> str:
+    """``value`` as an error message echoes it: its repr (control characters escaped), cut to :data:`SHOWN_CHARS`."""
+    text = repr(value)
+    return text if len(text) <= SHOWN_CHARS else f"{text[:SHOWN_CHARS]}... ({len(text)} characters)"

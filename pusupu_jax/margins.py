@@ -9,11 +9,14 @@ frequency responses ``L(jw)`` so that they can be traced:
 * velocity: ``L_v = Gv T_i M Gw``, ``T_i = Gxi Gi P_u / (1 + Gi P_u Gcf)`` the closed current loop;
 * position: ``L_p = C T_v / s``, ``T_v = Gxv Gv T_i M / (1 + L_v)``, ``C = C2`` (IMC) or the PID.
 
-Margins are read on a log-spaced grid (:data:`W_GRID`): the gain crossover where ``|L|``
+Margins are read on a log-spaced grid (:data:`W_GRID`, 1e-4 to 1e7 rad/s): the gain crossover where ``|L|``
 falls through 1 and the phase crossover where ``L`` crosses the negative real axis, each
 located by linear interpolation of the grid and refined by two secant steps on the exact
-response.  Where a loop has several crossings, the smallest margin is taken (as
-python-control's ``stability_margins`` does); where it has none, the margin is ``inf``.
+response.  The phase margin is ``180 deg`` plus the phase unwrapped along the grid from its lowest
+frequency (:func:`unwrapped_phase`), so it can be negative.  Where a loop has several crossings, the
+smallest margin is taken (as python-control's ``stability_margins`` does); where it has none, the
+margin is ``inf``; :func:`in_band` says whether every gain crossover lies on the grid.  Margins describe robustness
+only: whether a loop is stable is read from its poles (:mod:`pusupu_jax.stability`).
 Agreement with python-control is a test (0.5 deg, 0.1 dB).
 """
 
@@ -29,7 +32,7 @@ from .plant.axis import screw_ratio
 
 # rad/s; numpy, so that it is float64 whenever it is made: a jnp array made on import, before
 # float64 is enabled (as in a Ray worker, which imports this before calling setup_jax), was float32
-W_GRID = np.logspace(-2, 6, 4001)
+W_GRID = np.logspace(-4, 7, 5501)
 
 
 def _tf(num, den, s):
@@ -78,6 +81,17 @@ def _crossings(f, log_w):
     return mask, log_w[:-1] + frac * (log_w[1:] - log_w[:-1])
 
 
+def unwrapped_phase(angle):
+    """The phase [rad] of a frequency response along the grid (last axis), continuous, its first sample in (-2 pi, 0].
+
+    A loop gain's phase at the grid's lowest frequency is ``-90 deg`` per integrator (and a lag or lead); anchored
+    there, a phase that falls through ``-180 deg`` reads ``-200 deg``, not ``+160 deg``, so that a loop at -20 deg of
+    phase margin says so (a margin taken modulo 360 deg read 340 deg).
+    """
+    u = jnp.unwrap(angle, axis=-1)
+    return u - 2 * jnp.pi * jnp.ceil(u[..., :1] / (2 * jnp.pi))
+
+
 CANDIDATES = 4  # crossings refined per loop and kind: those of the smallest margins on the grid
 
 
@@ -120,13 +134,16 @@ def margins(gain_fn, w=W_GRID) -> dict:
         k = jnp.argsort(jnp.where(mask, margin_on_grid, jnp.inf), axis=-1)[..., :CANDIDATES]
         return jnp.take_along_axis(mask, k, axis=-1), jnp.take_along_axis(x, k, axis=-1)
 
-    def phase_margin(L):
-        return jnp.mod(jnp.degrees(jnp.angle(L)) + 180.0, 360.0)
-
     L = jax.lax.stop_gradient(gain_fn(w))
-    mask_g, x_g = candidates(*_crossings(jnp.log(jnp.abs(L)), log_w), phase_margin(L[..., :-1]))
+    wrapped = jnp.angle(L)
+    unwrapped = unwrapped_phase(wrapped)
+    mask_g, x_g = candidates(*_crossings(jnp.log(jnp.abs(L)), log_w), 180.0 + jnp.degrees(unwrapped[..., :-1]))
     x_g = refine(lambda x: jnp.log(jnp.abs(gain_fn(jnp.exp(x)))), x_g, mask_g)
-    pm_all = jnp.where(mask_g, phase_margin(at_roots(x_g, mask_g)), jnp.inf)
+    # the exact response's phase at each refined crossing, continued from the nearest grid point's unwrapped phase
+    near = jnp.clip(jnp.searchsorted(log_w, x_g), 0, len(w) - 1)
+    on_grid = [jnp.take_along_axis(a, near, axis=-1) for a in (wrapped, unwrapped)]
+    step = jnp.mod(jnp.angle(at_roots(x_g, mask_g)) - on_grid[0] + jnp.pi, 2 * jnp.pi) - jnp.pi
+    pm_all = jnp.where(mask_g, 180.0 + jnp.degrees(on_grid[1] + step), jnp.inf)
     k = jnp.argmin(pm_all, axis=-1)
     mask_p, x_p = _crossings(jnp.imag(L), log_w)
     mask_p, x_p = candidates(mask_p & (jnp.real(L[..., :-1]) < 0), x_p, -jnp.log(jnp.abs(L[..., :-1])))
@@ -151,3 +168,10 @@ def loop_margins(servo, load, mode: str = "imc") -> dict:
 
     stacked = margins(stack)
     return {name: {k: v[i] for k, v in stacked.items()} for i, name in enumerate(LOOPS)}
+
+
+def in_band(servo, load, mode: str = "imc") -> dict:
+    """``{loop: (..., 6) bool}``: ``|L|`` above 1 at the grid's lowest frequency and below 1 at its highest, so that
+    every gain crossover of the loop lies on :data:`W_GRID` and :func:`loop_margins` has seen it (host-side)."""
+    ends = loop_gains(servo, load, W_GRID[[0, -1]], mode)
+    return {loop: np.asarray((jnp.abs(ends[loop][..., 0]) > 1) & (jnp.abs(ends[loop][..., 1]) < 1)) for loop in LOOPS}

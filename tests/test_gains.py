@@ -34,7 +34,10 @@ def test_a_gain_file_reads_back_exactly(tmp_path):
     assert position["imc_form"] == "full"
     assert position["lambda1"]["value"] == GOOD.lambda1.tolist() and position["lambda1"]["tuned"] is True
     assert position["lambda2"] == {"value": 0.1, "unit": "s", "tuned": True}  # shared by the six axes: written once
-    assert "tuned" not in position["T0"] and doc["plant"]["J"] == {"value": 0.000188, "unit": "kg*m^2"}
+    assert "tuned" not in position["T0"] and "plant" not in doc  # the plant is the built-in one, not the file's
+    assert doc["controller"]["limits"]["following_error"] == {"value": 0.005, "unit": "m"}
+    assert set(doc["stability"]) == {"current", "velocity", "position"}
+    assert all(0 < np.max(v["spectral_radius"]) < 1 for v in doc["stability"].values())
     assert doc["controller"]["hybrid"]["c6"]["tuned"] is True and doc["controller"]["hybrid"]["form"] == "rms"
     block = doc["discrete"]["velocity_pi"]
     assert block["sample_period_s"] == RATES.dt_velocity and "current reference" in block["output"]
@@ -61,8 +64,7 @@ def _rewrite(path, change):
 
 def _set(section, name, value):
     def change(d):
-        where = d["plant"] if section == "plant" else d["controller"][section]
-        where[name]["value"] = value
+        d["controller"][section][name]["value"] = value
     return change
 
 
@@ -78,8 +80,18 @@ BAD = {
     "a boolean": (_set("velocity", "Kv", True), "ServoParams.Kv: expected a number, got bool"),
     "NaN": (_set("current", "Ti", [0.00208] * 2 + [float("nan")] + [0.00208] * 3), r"ServoParams.Ti\[2\]: expected a number, got nan"),
     "negative time constant": (_set("velocity", "Tv", -5.0), "ServoParams.Tv: expected a positive"),
-    "unstable gains": (_set("velocity", "Kv", [0.015] * 5 + [2.0]), "velocity loop of axis 6 has"),
-    "schema version": (lambda d: d.update(version=3), "version: expected 2"),
+    "unstable gains": (_set("velocity", "Kv", [0.015] * 5 + [2.0]), "velocity loop of axis 6 is unstable"),
+    "too little margin": (_set("position", "lambda2", 0.02), "position loop of axis 1 has .* expected at least 45"),
+    "emf_ff beyond the whole back-EMF": (_set("current", "emf_ff", 3.0), r"ServoParams.emf_ff: expected 0 to 1 "),
+    "a current limit above the drive's rating": (_set("limits", "I_max", 1e6), r"ServoParams.I_max: expected 0 to "
+                                                                               r"I_peak = 10 \[A\]"),
+    "a voltage limit above the DC bus": (_set("limits", "V_max", 1e6), r"ServoParams.V_max: expected 0 to V_dc"),
+    "a hybrid gain beyond what the machine kept stable": (lambda d: d["controller"]["hybrid"]["g"].update(value=1e12),
+                                                          r"HybridGains.g: expected a number from 0 to 300000"),
+    "loop rates too slow": (lambda d: d["rates"].update(n_velocity=100, n_mech=100),
+                            r"rates: f_current / n_velocity is 200 Hz|position\) is 50 Hz; expected 100"),
+    "a plant section (version 2's) in a version 3 file": (lambda d: d.update(plant={}), "unknown key 'plant'"),
+    "schema version": (lambda d: d.update(version=4), "version: expected 3"),
     "version 1 (printed-form era)": (lambda d: d.update(version=1), "version 1 files predate the choice of IMC"),
     "unknown IMC form": (lambda d: d["controller"]["position"].update(imc_form="exact"),
                          "ServoParams.imc_form: expected one of"),
@@ -104,19 +116,24 @@ def test_bad_gain_files_are_refused_with_one_line(tmp_path, case):
 
 
 def test_stability_is_checked_against_fixed_floors_never_the_files_own(tmp_path):
-    """Probe row 2: Kv = 1000 (velocity loop far past its gain margin), thresholds of -1000 written into the file's
-    provenance and margins, checksum recomputed: refused.  An explicit, lower floor is the caller's choice."""
+    """lambda2 = 0.02 s (a position loop under 45 deg), thresholds of -1000 written into the file's provenance and
+    margins, checksum recomputed: refused.  An explicit, lower floor is the caller's choice; an unstable loop is
+    refused whatever the floors (Kv = 3: a velocity-loop pole outside the unit circle)."""
     path = _write(tmp_path / "gains.yaml")
 
     def attack(d):
-        d["controller"]["velocity"]["Kv"]["value"] = 1000.0
+        d["controller"]["position"]["lambda2"]["value"] = 0.02
         d["provenance"].update(pm_min=-1000, gm_min=-1000, floors=[-1000, -1000])
+        d["margins"]["position"] = {"phase_margin_deg": 90.0, "gain_margin_db": 60.0}
 
     _rewrite(path, attack)
-    with pytest.raises(ParameterError, match="velocity loop of axis 1 has .* expected at least 45 deg and 6 dB"):
+    with pytest.raises(ParameterError, match="position loop of axis 1 has .* expected at least 45 deg and 6 dB"):
         gains.load(path)
-    with pytest.raises(ParameterError, match="expected at least 0 deg and 0 dB"):
-        gains.load(path, floors=(0.0, 0.0))  # unstable: even a floor of zero refuses it
+    with pytest.raises(ParameterError, match="discrete.imc_c1: not the discretisation"):
+        gains.load(path, floors=(20.0, 3.0))  # the caller's lower floors pass; the edit's stale blocks are caught next
+    _rewrite(path, _set("velocity", "Kv", 3.0))
+    with pytest.raises(ParameterError, match="velocity loop of axis 1 is unstable"):
+        gains.load(path, floors=(-1000.0, -1000.0))
 
 
 def test_edited_and_truncated_files_are_caught_and_a_deliberate_edit_is_re_signed(tmp_path):
@@ -131,7 +148,7 @@ def test_edited_and_truncated_files_are_caught_and_a_deliberate_edit_is_re_signe
     assert g.document["provenance"]["tuned_fields"] == sorted(TUNED)
     signed = path.read_text()
     path.write_text(signed.replace("Kv: {value: 0.015", "Kv: {value: 3.0"))
-    with pytest.raises(ParameterError, match="velocity loop"):
+    with pytest.raises(ParameterError, match="velocity loop of axis 1 is unstable"):
         gains.sign(path)  # an unstable edit is not signed ...
     assert "Kv: {value: 3.0" in path.read_text()  # ... nor the file rewritten
     for cut in (len(text) // 2, text.rfind("checksum:"), len(text) - 10):
@@ -143,8 +160,10 @@ def test_edited_and_truncated_files_are_caught_and_a_deliberate_edit_is_re_signe
 def test_unstable_gains_are_never_written_and_the_old_file_survives(tmp_path):
     path = _write(tmp_path / "gains.yaml")
     before = path.read_bytes()
-    with pytest.raises(ParameterError, match="unstable or too little margin"):
+    with pytest.raises(ParameterError, match="velocity loop of axis 1 is unstable"):
         _write(path, servo=GOOD.replace(Kv=np.full(6, 2.0)))
+    with pytest.raises(ParameterError, match="servo.Kt: expected the built-in plant's"):
+        _write(path, servo=GOOD.replace(Kt=GOOD.Kt / 100))  # gains tuned on another plant
     with pytest.raises(ParameterError, match="ServoParams.lambda2: expected finite"):
         _write(path, servo=GOOD.replace(lambda2=np.full(6, np.nan)))
     assert path.read_bytes() == before

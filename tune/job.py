@@ -30,7 +30,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from pusupu_jax import gains, ros2
+from pusupu_jax import gains, ros2, stability
 from pusupu_jax.config import write_atomic
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, simulate_scenarios
@@ -234,9 +234,9 @@ def export(out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: 
     """
     gains_path = out / "gains.yaml"
     try:
-        margins = gains.check_gains(servo, hybrid, cfg.mode, (cfg.pm_min, cfg.gm_min))
+        margins = stability.check(servo, hybrid, rates, cfg.mode, (cfg.pm_min, cfg.gm_min)).margins()
         gains.write(gains_path, servo, hybrid, rates, mode=cfg.mode, tuned=tuned, provenance=provenance,
-                    floors=(cfg.pm_min, cfg.gm_min), margins=margins)
+                    floors=(cfg.pm_min, cfg.gm_min))
         ros = ros2.write_files(out, servo, cfg.mode, rates, source=str(gains_path), joints=cfg.ros_joints)
         return {"margins_after": margins, "exported": [str(gains_path)] + [str(p) for p in ros],
                 "gains_file": {"path": str(gains_path), "sha256": _sha256(gains_path)}}
