@@ -106,6 +106,10 @@ def _parser() -> argparse.ArgumentParser:
     g_check.add_argument("file", metavar="FILE")
     g_sign = actions.add_parser("sign", help="re-sign a deliberately edited gain file once its gains validate")
     g_sign.add_argument("file", metavar="FILE")
+    g_migrate = actions.add_parser("migrate", help="rewrite a version 2 gain file as version 3 (its plant section "
+                                                   "must be the built-in plant)")
+    g_migrate.add_argument("file", metavar="FILE")
+    g_migrate.add_argument("--out", metavar="FILE", help="write the version 3 file here (default: FILE, in place)")
     g_export = actions.add_parser("export-ros", help="write the ROS 2 pid_controller and joint trajectory "
                                                       "controller parameter files")
     g_export.add_argument("file", metavar="FILE")
@@ -118,7 +122,7 @@ def _parser() -> argparse.ArgumentParser:
     g_ros.add_argument("--trajectory", choices=("arc", "p2p", "both"), default="both", help="default both")
     g_ros.add_argument("--seconds", type=float, metavar="S", help="only the first S seconds of each path")
     g_ros.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    for sp in (g_show, g_diff, g_check, g_sign, g_export, g_ros):
+    for sp in (g_show, g_diff, g_check, g_sign, g_migrate, g_export, g_ros):
         _floors_arguments(sp)
     e = sub.add_parser("experiment", help="reproduce one of the paper's claims: runs, figures, JSON and a table")
     e.add_argument("name", metavar="NAME", help="arc (Fig. 7), p2p (section 4, Table 2), hybrid_grid (hybrid "
@@ -185,6 +189,7 @@ def main(argv=None) -> int:
                 "gains": _gains,
                 "bridge": bridge_cli.run_bridge, "sim-robot": bridge_cli.run_sim_robot}
     try:
+        args.floors = _floors(args) if hasattr(args, "min_pm") else None
         with _counted_interrupts() as interrupts:
             status = commands[args.command](args)
         if interrupts:  # a Ctrl-C whose KeyboardInterrupt Python dropped (see _counted_interrupts)
@@ -322,17 +327,28 @@ def _experiment(args) -> int:
     return 0
 
 
-def _load(args):
-    from pusupu_jax.config import load_params_file
+def _load(args, check: bool = True):
+    """The params file (or defaults) with a gain file's gains and rates in place, checked by
+    :func:`pusupu_jax.stability.check` for ``args.mode`` (``check=False``: bounds only, for a diagnosis)."""
+    from pusupu_jax import stability
+    from pusupu_jax.config import load_params_file, setup_jax
 
+    setup_jax()  # the checks' compiled programs come from the persistent cache after the first run
     loaded = load_params_file(args.params)
     if getattr(args, "gains", None):
         from pusupu_jax import gains
 
-        g = gains.load(args.gains, _floors(args))
+        g = gains.load(args.gains, args.floors, check_stability=False)
         loaded = loaded._replace(servo=g.servo, hybrid=g.hybrid, rates=g.rates)
     if args.imc_form:
         loaded = loaded._replace(servo=loaded.servo.replace(imc_form=args.imc_form))
+    if check:
+        try:
+            stability.check(loaded.servo, loaded.hybrid, loaded.rates, args.mode, args.floors, load=loaded.load)
+        except ParameterError as e:
+            raise ParameterError(f"{args.gains or args.params or 'the defaults'}: {e}") from None
+    else:
+        stability.check_values(loaded.servo, loaded.hybrid, loaded.rates)
     return loaded
 
 
@@ -340,21 +356,27 @@ def _gains(args) -> int:
     from pathlib import Path
 
     from pusupu_jax import gains
+    from pusupu_jax.config import setup_jax
 
-    floors = _floors(args)
+    setup_jax()  # the checks' compiled programs come from the persistent cache after the first run
+    floors = args.floors
     if args.action == "sign":  # the checks of load() less the checksum, then the derived blocks written anew
         gains.sign(args.file, floors)
         print(f"{args.file}: its gains pass every check; re-signed")
+        return 0
+    if args.action == "migrate":
+        path = gains.migrate(args.file, args.out, floors)
+        print(f"{path}: {gains.SCHEMA} v{gains.VERSION}, migrated from version 2 (the built-in plant)")
         return 0
     g = gains.load(args.file, floors)
     if args.action == "show":
         print(json.dumps(g.document, indent=2) if args.json else gains.show(g.document))
     elif args.action == "diff":
         lines = gains.diff(g.document, gains.load(args.other, floors).document)
-        print("\n".join(lines) if lines else "no difference in gains, plant values, rates or mode")
+        print("\n".join(lines) if lines else "no difference in gains, rates or mode")
     elif args.action == "check":
-        print(f"{args.file}: valid {gains.SCHEMA} v{gains.VERSION}, mode {g.mode}; every loop has at least "
-              f"{floors[0]:g} deg and {floors[1]:g} dB")
+        print(f"{args.file}: valid {gains.SCHEMA} v{g.document['version']}, mode {g.mode}; every loop stable at the "
+              f"file's rates and has at least {floors[0]:g} deg and {floors[1]:g} dB")
     elif args.action == "export-ros":
         from pusupu_jax import ros2
 
@@ -431,7 +453,7 @@ def _check_plot_path(path):
 def _analyze(args) -> int:
     from pusupu_jax import analysis
 
-    servo, load, rates, _ = _load(args)
+    servo, load, rates, hybrid = _load(args, check=False)  # analysed as a diagnosis, then checked
     if args.plot:
         _check_plot_path(args.plot)
     if args.identify_T0:
@@ -447,7 +469,7 @@ def _analyze(args) -> int:
             plot_loops(servo, load, args.plot, mode=args.mode)
     if args.json:
         print(json.dumps(result, indent=2))
-        return 0
+        return _refuse_unstable(args, servo, hybrid, rates, load)
     print(f"position mode: {args.mode}")
     cols = [("crossover_hz", "crossover Hz", 13), ("phase_margin_deg", "PM deg", 8), ("gain_margin_db", "GM dB", 8),
             ("bandwidth_hz", "bandwidth Hz", 13), ("rise_time_s", "rise s", 9), ("settling_time_s", "settle s", 9),
@@ -458,7 +480,19 @@ def _analyze(args) -> int:
             print(f"{k:>4} {name:<9} " + " ".join(f"{_num(m[key]):>{w}}" for key, _, w in cols))
     if args.plot:
         print(f"plot: {args.plot}")
-    return 0
+    return _refuse_unstable(args, servo, hybrid, rates, load)
+
+
+def _refuse_unstable(args, servo, hybrid, rates, load) -> int:
+    """After ``analyze`` printed its diagnosis: 0 if the gains pass :func:`pusupu_jax.stability.check`, else its
+    reason on stderr and 2."""
+    from pusupu_jax import stability
+
+    problem = stability.check(servo, hybrid, rates, args.mode, args.floors, raise_error=False, load=load).problem()
+    if problem is None:
+        return 0
+    print(f"pusupu: error: gains: {problem}", file=sys.stderr)
+    return 2
 
 
 def _identify(args, servo, load, rates) -> int:

@@ -172,6 +172,6 @@ def loop_margins(servo, load, mode: str = "imc") -> dict:
 
 def in_band(servo, load, mode: str = "imc") -> dict:
     """``{loop: (..., 6) bool}``: ``|L|`` above 1 at the grid's lowest frequency and below 1 at its highest, so that
-    every gain crossover of the loop lies on :data:`W_GRID` and :func:`loop_margins` has seen it (host-side)."""
+    every gain crossover of the loop lies on :data:`W_GRID` and :func:`loop_margins` has seen it."""
     ends = loop_gains(servo, load, W_GRID[[0, -1]], mode)
-    return {loop: np.asarray((jnp.abs(ends[loop][..., 0]) > 1) & (jnp.abs(ends[loop][..., 1]) < 1)) for loop in LOOPS}
+    return {loop: (jnp.abs(ends[loop][..., 0]) > 1) & (jnp.abs(ends[loop][..., 1]) < 1) for loop in LOOPS}

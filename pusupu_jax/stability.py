@@ -75,6 +75,12 @@ def _monodromy_program(rates: LoopRates, mode: cascade.ControlMode):
     return jax.jit(program)
 
 
+@functools.lru_cache(maxsize=8)
+def _margins_program(mode: str):
+    """A jitted ``(servo, load) -> (loop_margins, in_band)`` for one position law."""
+    return jax.jit(lambda servo, load: (loop_margins(servo, load, mode), in_band(servo, load, mode)))
+
+
 def _in_loop(m: np.ndarray) -> np.ndarray:
     """Mask of the states that take part in the loop: not those whose column is a unit vector (pure integrators that
     nothing reads, as the motor angle below the position loop)."""
@@ -207,8 +213,8 @@ def check_values(servo: ServoParams, hybrid, rates: LoopRates) -> None:
     check_rates(rates)
 
 
-def check(servo: ServoParams, hybrid, rates: LoopRates, mode="imc", floors=FLOORS, raise_error: bool = True
-          ) -> GainCheck:
+def check(servo: ServoParams, hybrid, rates: LoopRates, mode="imc", floors=FLOORS, raise_error: bool = True,
+          load: AxisLoad | None = None) -> GainCheck:
     """The one check every gain set passes before it is simulated, run, exported or signed.
 
     In order: every field inside its documented bounds (:func:`pusupu_jax.params.validate`, the hybrid gains'
@@ -217,15 +223,15 @@ def check(servo: ServoParams, hybrid, rates: LoopRates, mode="imc", floors=FLOOR
     the margins' grid and its margins at least ``floors`` = (deg, dB) (:func:`pusupu_jax.margins.loop_margins`,
     phase unwrapped).  Raises :class:`~pusupu_jax.params.ParameterError` with the first problem in one line;
     ``raise_error=False`` returns the :class:`GainCheck` of gains whose values are in bounds, stable or not, for a
-    diagnosis (``pusupu analyze``), and the caller asks :meth:`GainCheck.problem`.
+    diagnosis (``pusupu analyze``), and the caller asks :meth:`GainCheck.problem`.  ``load``: the single-axis load
+    the loops are analysed with (default :meth:`AxisLoad.default`, the built-in machine's).
     """
     check_values(servo, hybrid, rates)
-    radii = spectral_radii(servo, rates, mode)
-    load = AxisLoad.default()
-    margin_mode = loop_mode("position", mode).name
+    load = AxisLoad.default() if load is None else load
+    radii = spectral_radii(servo, rates, mode, load)
     with jax.enable_x64(True):
-        m = loop_margins(servo, load, margin_mode)
-        band = in_band(servo, load, margin_mode)
+        m, band = jax.tree.map(np.asarray, _margins_program(loop_mode("position", mode).name)(
+            *(jax.tree.map(lambda x: np.asarray(x, dtype=np.float64), p) for p in (servo, load))))
     loops = {loop: LoopCheck(radii[loop], loop_period(rates, loop),
                              *(np.asarray(m[loop][k], dtype=float) for k in ("phase_margin_deg", "gain_margin_db")),
                              np.asarray(band[loop]))

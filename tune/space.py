@@ -9,6 +9,7 @@ step ``z`` is projected onto the box ``[log lo, log hi]``.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import jax.numpy as jnp
@@ -16,6 +17,7 @@ import numpy as np
 
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import ParameterError, ServoParams, arrays
+from pusupu_jax.params import bounds as bounds_of
 
 GROUPS = {
     "imc": ("lambda1", "lambda2", "T0"),
@@ -26,6 +28,12 @@ GROUPS = {
     "hybrid": ("m6", "c6", "g"),
 }
 HYBRID_FIELDS = GROUPS["hybrid"]
+
+
+def field_bounds(name: str) -> tuple[float, float, str]:
+    """``(low, high, why)`` of a tuned field: its documented range (:func:`pusupu_jax.params.bounds`)."""
+    cls = HybridGains if name in HYBRID_FIELDS else ServoParams
+    return bounds_of(next(f for f in dataclasses.fields(cls) if f.name == name))
 
 
 @dataclass(frozen=True)
@@ -42,7 +50,8 @@ class Space:
     @classmethod
     def create(cls, groups, servo0: ServoParams, hybrid0: HybridGains, shared: bool = True,
                bounds: dict | None = None, span: float = 10.0) -> "Space":
-        """Fields of ``groups``; default bounds ``start / span`` to ``start * span``, overridden by ``bounds``."""
+        """Fields of ``groups``; default bounds ``start / span`` to ``start * span`` within the field's own
+        (:func:`field_bounds`), overridden by ``bounds``, which must lie within the field's own too."""
         unknown = [g for g in groups if g not in GROUPS]
         if unknown or not groups:
             raise ParameterError(f"tune groups: expected some of {sorted(GROUPS)}, got {list(groups)}")
@@ -56,8 +65,12 @@ class Space:
         for f in fields:
             lo, hi = bounds.get(f, (None, None))
             v = np.asarray(start[f])
-            space.lower[f] = np.full_like(v, v / span if lo is None else lo, dtype=float)
-            space.upper[f] = np.full_like(v, v * span if hi is None else hi, dtype=float)
+            low, high, why = field_bounds(f)
+            if (lo is not None and lo < low) or (hi is not None and hi > high):
+                raise ParameterError(f"tune bounds.{f}: expected within the field's range {low:g} to {high:g} "
+                                     f"({why}), got [{lo}, {hi}]")
+            space.lower[f] = np.full_like(v, np.maximum(v / span, low) if lo is None else lo, dtype=float)
+            space.upper[f] = np.full_like(v, np.minimum(v * span, high) if hi is None else hi, dtype=float)
             if not ((0 < space.lower[f]) & (space.lower[f] <= v) & (v <= space.upper[f])).all():
                 raise ParameterError(f"tune bounds.{f}: expected 0 < lower <= start ({v.ravel()[0]:.6g}) <= upper, "
                                      f"got [{space.lower[f].ravel()[0]:.6g}, {space.upper[f].ravel()[0]:.6g}]")
