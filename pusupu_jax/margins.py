@@ -13,9 +13,11 @@ Margins are read on a log-spaced grid (:data:`W_GRID`, 1e-4 to 1e7 rad/s): the g
 falls through 1 and the phase crossover where ``L`` crosses the negative real axis, each
 located by linear interpolation of the grid and refined by two secant steps on the exact
 response.  The phase margin is ``180 deg`` plus the phase unwrapped along the grid from its lowest
-frequency (:func:`unwrapped_phase`), so it can be negative.  Where a loop has several crossings, the
-smallest margin is taken (as python-control's ``stability_margins`` does); where it has none, the
-margin is ``inf``; :func:`in_band` says whether every gain crossover lies on the grid.  Margins describe robustness
+frequency (:func:`unwrapped_phase`), so it can be negative.  Where a loop has several gain
+crossovers, the smallest phase margin is taken; of several phase crossovers, the one whose gain
+margin is smallest in size, with its sign (as python-control's ``stability_margins`` does: a
+conditionally stable loop whose phase dips below -180 deg where its gain is high reports the margin
+nearest 0 dB); where a loop has none, the margin is ``inf``; :func:`in_band` says whether every gain crossover lies on the grid.  Margins describe robustness
 only: whether a loop is stable is read from its poles (:mod:`pusupu_jax.stability`).
 Agreement with python-control is a test (0.5 deg, 0.1 dB).
 """
@@ -146,10 +148,11 @@ def margins(gain_fn, w=W_GRID) -> dict:
     pm_all = jnp.where(mask_g, 180.0 + jnp.degrees(on_grid[1] + step), jnp.inf)
     k = jnp.argmin(pm_all, axis=-1)
     mask_p, x_p = _crossings(jnp.imag(L), log_w)
-    mask_p, x_p = candidates(mask_p & (jnp.real(L[..., :-1]) < 0), x_p, -jnp.log(jnp.abs(L[..., :-1])))
+    mask_p, x_p = candidates(mask_p & (jnp.real(L[..., :-1]) < 0), x_p, jnp.abs(jnp.log(jnp.abs(L[..., :-1]))))
     x_p = refine(lambda x: jnp.imag(gain_fn(jnp.exp(x))), x_p, mask_p)
     gm = jnp.where(mask_p, -20 * jnp.log10(jnp.abs(at_roots(x_p, mask_p))), jnp.inf)
-    return {"phase_margin_deg": jnp.min(pm_all, axis=-1), "gain_margin_db": jnp.min(gm, axis=-1),
+    gm = jnp.take_along_axis(gm, jnp.argmin(jnp.abs(gm), axis=-1)[..., None], axis=-1)[..., 0]
+    return {"phase_margin_deg": jnp.min(pm_all, axis=-1), "gain_margin_db": gm,
             "crossover_rad_s": jnp.take_along_axis(jnp.exp(x_g), k[..., None], axis=-1)[..., 0]}
 
 
