@@ -451,7 +451,7 @@ def main_loop(model: RobotModel, listen: str, faults, max_s=None, watchdog_s: fl
     else:
         from .udp import parse_url
 
-        ep = Endpoint(protocol.COMMAND, bind=parse_url(listen))
+        ep = Endpoint(protocol.COMMAND, n_axes=len(model.Kt), bind=parse_url(listen))
         server = UdpServer(robot, ep)
         where = "udp://{}:{}".format(*ep.address)
     # the objects of the set-up (JAX, MuJoCo, the compiled steps) leave the collector's view: a full collection

@@ -1,10 +1,10 @@
 """UDP endpoints of the protocol (:mod:`hw_bridge.protocol`): non-blocking sockets, every datagram checked and counted.
 
-:class:`Endpoint` receives packets of one kind and keeps the newest valid one; malformed,
-truncated, oversized, wrong-version and replayed (or reordered: not newer than the last
-accepted from the same peer) packets are dropped and counted by reason.  Nothing a peer sends
-can raise.  The robot's side follows the sender of the last valid command: a bridge restarted
-on a new socket starts a new sequence.
+:class:`Endpoint` receives packets of one kind and of the session's axis count and keeps the
+newest valid one; malformed, truncated, oversized, wrong-version, other-axis-count and replayed
+(or reordered: not newer than the last accepted from the same peer) packets are dropped and
+counted by reason.  Nothing a peer sends can raise.  The robot's side follows the sender of the
+last valid command: a bridge restarted on a new socket starts a new sequence.
 """
 
 from __future__ import annotations
@@ -30,14 +30,15 @@ def parse_url(url: str, scheme: str = "udp") -> tuple[str, int]:
 
 
 class Endpoint:
-    """A UDP socket that sends packets and receives packets of kind ``kind`` (COMMAND or FEEDBACK).
+    """A UDP socket that sends packets and receives packets of kind ``kind`` (COMMAND or FEEDBACK) with ``n_axes`` axes.
 
     ``bind``: local address (default loopback, a free port); ``peer``: where to send (None: to
     whoever sent the last valid packet).
     """
 
-    def __init__(self, kind: int, bind=("127.0.0.1", 0), peer=None):
+    def __init__(self, kind: int, *, n_axes: int, bind=("127.0.0.1", 0), peer=None):
         self.kind = kind
+        self.n_axes = n_axes
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
         self.sock.bind(bind)
@@ -81,7 +82,7 @@ class Endpoint:
                         self.sock.setblocking(False)
                         timeout = 0.0
                 try:
-                    packet = protocol.decode(data, self.kind)
+                    packet = protocol.decode(data, self.kind, self.n_axes)
                 except protocol.ProtocolError as e:
                     self.rejected[e.reason] += 1
                     continue

@@ -150,7 +150,7 @@ def run_bridge(args) -> int:
         except Exception as e:  # no drive answers the SDO set-up, a bus that does not open
             raise ParameterError(f"--robot {args.robot}: CANopen set-up failed: {e}") from None
     else:
-        endpoint = Endpoint(FEEDBACK, bind=(args.bind, 0), peer=address)
+        endpoint = Endpoint(FEEDBACK, n_axes=len(loop.drive_modes), bind=(args.bind, 0), peer=address)
     print(f"bridge: {g.mode} loops at {loop.rate:g} Hz (position every {loop.n_position} cycle(s)), drives "
           f"{','.join('cst' if m == 10 else 'csv' for m in loop.drive_modes)}, robot {args.robot}", file=sys.stderr)
     try:

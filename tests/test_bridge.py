@@ -211,7 +211,7 @@ def test_any_flipped_byte_of_a_valid_packet_is_refused(position, xor):
 def test_the_endpoint_drops_and_counts_bad_and_replayed_packets():
     from hw_bridge.udp import Endpoint
 
-    ep = Endpoint(protocol.FEEDBACK)
+    ep = Endpoint(protocol.FEEDBACK, n_axes=6)
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     good = protocol.encode_feedback(FEEDBACK)
     for d in (good[:10], good + bytes(protocol.MAX_PACKET), good[:4] + b"\x09" + good[5:], good, good):
@@ -360,7 +360,7 @@ def _session(robot, duration, watchdog=5):
     from hw_bridge.udp import Endpoint
 
     g, loop, limits, port = robot
-    ep = Endpoint(protocol.FEEDBACK, peer=("127.0.0.1", port))
+    ep = Endpoint(protocol.FEEDBACK, n_axes=len(loop.drive_modes), peer=("127.0.0.1", port))
     try:
         run = Bridge(loop, ep, Safety(limits, watchdog), lockstep_s=0.2).run(duration, realtime=False)
     finally:

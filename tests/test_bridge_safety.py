@@ -1,0 +1,235 @@
+"""The bridge and the simulated robot under fault injection: what each side refuses, and how every way out of a run ends.
+
+The bridge runs in this process, in lock step (``Bridge(lockstep_s=...)``: the results do not depend on how loaded the
+machine is), against :class:`WireRobot`, a robot on a real loopback socket that keeps every command reaching it; the
+simulated robot's controller (:class:`~hw_bridge.sim_robot.SimRobot`) is tested alone, and behind its own UDP server.
+Every packet goes through the real protocol.
+"""
+
+import socket
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from hw_bridge import cia402, protocol
+from hw_bridge.loop import BridgeLoop, plan
+from hw_bridge.safety import Limits, Safety
+from hw_bridge.session import Bridge
+from hw_bridge.udp import Endpoint
+from pusupu_cli.bridge import bridge_reference, limits_for
+from pusupu_jax import gains
+from pusupu_jax.hybrid import HybridGains
+from pusupu_jax.params import LoopRates, ServoParams
+
+SERVO = ServoParams.table1()
+RATE = 500.0  # Hz, as the loopback runs of test_bridge.py
+N = 6
+WAIT = 10.0  # s: the longest any step of these tests waits for the other side on a loaded machine
+
+
+@dataclass(frozen=True)
+class Setup:
+    path: object  # the gain file
+    loop: BridgeLoop  # compiled once for the module
+    limits: Limits
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    """Table 1's gains in IMC, every drive CSV, rates scaled to a 500 Hz position loop; the bridge's loops on the arc."""
+    path = gains.write(tmp_path_factory.mktemp("safety") / "imc.yaml", SERVO, HybridGains(), LoopRates(), mode="imc")
+    g = gains.load(path)
+    loop = BridgeLoop(g, bridge_reference(g, "arc", plan(g, None, RATE)[1]), rate=RATE)
+    return Setup(path, loop, limits_for(g.servo))
+
+
+def _resized(fb: protocol.Feedback, n: int) -> protocol.Feedback:
+    """``fb`` with ``n`` axes (the first ones, or the first ones repeated): a valid packet of another axis count."""
+    return protocol.Feedback(fb.sequence, fb.timestamp_ns, fb.ack, *(np.resize(a, n) for a in (
+        fb.statusword, fb.mode, fb.position, fb.velocity, fb.torque)), fb.platform)
+
+
+class WireRobot:
+    """Six ideal CSV drives behind a loopback UDP socket, in a thread.
+
+    Every command that arrives is decoded with the protocol and kept (``commands``); the drives' CiA 402 state
+    machines take its controlwords, and while all six are enabled each position integrates its speed target over one
+    period (``enabled`` counts those commands).  The reply is the drives' feedback, unless ``act(robot, feedback)``
+    returns other datagrams to send, as ``(bytes, socket)`` pairs: the faults of the tests (``foreign`` is a second
+    socket, on another port).
+    """
+
+    def __init__(self, act=None):
+        self.sock, self.foreign = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+        for s in (self.sock, self.foreign):
+            s.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.05)
+        self.act = act or (lambda robot, fb: [(protocol.encode_feedback(fb), robot.sock)])
+        self.drives = [cia402.DriveStateMachine() for _ in range(N)]
+        self.theta = np.zeros(N)
+        self.commands = []
+        self.enabled = 0
+        self.error = None
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._serve, daemon=True)
+        self._thread.start()
+
+    @property
+    def port(self) -> int:
+        return self.sock.getsockname()[1]
+
+    def _serve(self):
+        sequence = 0
+        try:
+            while not self._done.is_set():
+                try:
+                    data, addr = self.sock.recvfrom(protocol.MAX_PACKET)
+                except socket.timeout:
+                    continue
+                cmd = protocol.decode(data, protocol.COMMAND, N)
+                self.commands.append(cmd)
+                for d, word in zip(self.drives, cmd.controlword):
+                    d.command(int(word))
+                speed = np.zeros(N)
+                if all(d.enabled for d in self.drives):
+                    speed = cmd.target
+                    self.theta = self.theta + speed / RATE
+                    self.enabled += 1
+                fb = protocol.Feedback(sequence, time.monotonic_ns(), cmd.sequence,
+                                       np.array([d.statusword for d in self.drives], np.uint16), cmd.mode,
+                                       self.theta.copy(), speed, np.zeros(N), np.full(3, np.nan))
+                sequence += 1
+                for datagram, s in self.act(self, fb):
+                    s.sendto(datagram, addr)
+        except Exception as e:  # raised again in the test by close()
+            self.error = e
+
+    def close(self, sent: int) -> None:
+        """Wait until the ``sent`` commands of the run have arrived, stop, and raise what the thread raised."""
+        end = time.monotonic() + WAIT
+        while len(self.commands) < sent and time.monotonic() < end and self.error is None:
+            time.sleep(1e-3)
+        self._done.set()
+        self._thread.join(WAIT)
+        for s in (self.sock, self.foreign):
+            s.close()
+        if self.error is not None:
+            raise self.error
+        assert len(self.commands) == sent
+
+
+def _from(enabled: int, fault):
+    """An ``act`` that answers as the drives do until ``enabled`` commands ran enabled, then as ``fault`` does."""
+    def act(robot, fb):
+        return fault(robot, fb) if robot.enabled >= enabled else [(protocol.encode_feedback(fb), robot.sock)]
+    return act
+
+
+def _bridge_run(setup: Setup, robot: WireRobot, duration=0.6):
+    """The bridge in lock step against ``robot`` for ``duration`` [s] of the arc: the run's record, once every command
+    it sent has reached the robot."""
+    ep = Endpoint(protocol.FEEDBACK, n_axes=N, peer=("127.0.0.1", robot.port))
+    try:
+        run = Bridge(setup.loop, ep, Safety(setup.limits, 5), connect_s=1.0, lockstep_s=0.05).run(duration,
+                                                                                                     realtime=False)
+    finally:
+        ep.close()
+    robot.close(len(run.commands))
+    return run
+
+
+def _ended_safe(robot: WireRobot, limits: Limits, stop_cycles=50) -> None:
+    """What reached the robot ends with the stop: quick stop for ``stop_cycles`` commands, then disable voltage; and no
+    command it received was outside the limits (finite, within each axis's speed or torque limit)."""
+    words = [set(c.controlword.tolist()) for c in robot.commands]
+    assert all(len(w) == 1 for w in words)
+    words = [w.pop() for w in words]
+    first = words.index(cia402.QUICK_STOP)
+    assert words[first:first + stop_cycles] == [cia402.QUICK_STOP] * stop_cycles
+    assert words[first + stop_cycles:] and set(words[first + stop_cycles:]) == {cia402.DISABLE_VOLTAGE}
+    for c in robot.commands:
+        bound = np.where(c.mode == protocol.CSV, limits.velocity, limits.torque)
+        assert np.isfinite(c.target).all() and np.all(np.abs(c.target) <= bound), c
+
+
+# ---------------------------------------------------------------- packets of another axis count
+
+def test_packets_are_decoded_only_at_their_versions_length_and_the_sessions_axis_count():
+    """A valid packet (CRC and all) whose axis count is not the session's is refused ("axes"), and so is one a byte
+    longer or shorter than its version's layout gives for its kind and axis count ("length")."""
+    import zlib
+
+    fb = protocol.Feedback(3, 0, 2, np.full(N, 0x27, np.uint16), np.full(N, 9, np.int8), np.ones(N), np.ones(N),
+                           np.ones(N), np.zeros(3))
+    assert len(protocol.encode_feedback(fb)) == 26 + 28 * N + 24 + 4  # version 1: header, axes, platform, CRC
+    assert protocol.decode(protocol.encode_feedback(fb), protocol.FEEDBACK, N).sequence == 3
+    for n in (1, N - 1, N + 1, protocol.MAX_AXES):
+        data = protocol.encode_feedback(_resized(fb, n))
+        assert protocol.decode(data, protocol.FEEDBACK).position.shape == (n,)  # valid in itself
+        with pytest.raises(protocol.ProtocolError) as e:
+            protocol.decode(data, protocol.FEEDBACK, N)
+        assert e.value.reason == "axes" and f"expected {N} axes (the session's), got {n}" in str(e.value)
+    body = protocol.encode_feedback(fb)[:-4]
+    for bad in (body + b"\0", body[:-1]):
+        with pytest.raises(protocol.ProtocolError) as e:
+            protocol.decode(bad + zlib.crc32(bad).to_bytes(4, "little"), protocol.FEEDBACK, N)
+        assert e.value.reason == "length"
+
+
+@pytest.mark.parametrize("n", [1, N + 1])
+def test_feedback_of_another_axis_count_is_refused_and_the_run_stops_safely(setup, n):
+    """A robot whose replies turn into valid packets of 1 or 7 axes (short and long feedback) mid-run: each is refused
+    and counted ("axes"), the feedback goes stale, and the bridge stops the machine: quick stop, then disable voltage,
+    on the wire; no command outside the limits."""
+    robot = WireRobot(_from(50, lambda robot, fb: [(protocol.encode_feedback(_resized(fb, n)), robot.sock)]))
+    run = _bridge_run(setup, robot)
+    rep = run.report()
+    assert [f.kind for f in run.faults] == ["feedback stale"], rep["faults"]
+    assert rep["rejected_packets"]["axes"] >= 5 and not rep["completed"]
+    _ended_safe(robot, setup.limits)
+
+
+@pytest.fixture(scope="module")
+def robot_model(setup):
+    """The simulated robot's machine and drives (C MuJoCo and the compiled drive step) for the gain file, at RATE."""
+    from hw_bridge.sim_robot import RobotModel
+
+    return RobotModel(gains.load(setup.path), RATE)
+
+
+def _command(sequence, word, target=np.zeros(N), mode=protocol.CSV):
+    return protocol.Command(sequence, 0, 0, np.full(N, word, np.uint16), np.broadcast_to(np.asarray(mode, np.int8), N),
+                            np.asarray(target, float))
+
+
+def test_the_simulated_robot_refuses_a_command_of_another_axis_count_and_serves_on(robot_model):
+    """The simulated robot behind its UDP server, enabled: a valid one-axis command (CRC and all) is refused and counted
+    ("axes"), and the next six-axis command is answered as any other."""
+    from hw_bridge.sim_robot import SimRobot, UdpServer
+
+    ep = Endpoint(protocol.COMMAND, n_axes=N)
+    server = UdpServer(SimRobot(robot_model, watchdog_s=WAIT, log=lambda line: None), ep)
+    serving = threading.Thread(target=server.serve, args=(2.0,), daemon=True)
+    serving.start()
+    bridge = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    bridge.settimeout(WAIT)
+    try:
+        replies = []
+        words = (cia402.SHUTDOWN, cia402.SWITCH_ON, cia402.ENABLE_OPERATION, cia402.ENABLE_OPERATION)
+        for seq, word in enumerate(words):
+            if seq == 3:
+                one = protocol.Command(seq + 100, 0, 0, np.array([word], np.uint16), np.array([protocol.CSV], np.int8),
+                                       np.array([1.0]))
+                bridge.sendto(protocol.encode_command(one), ep.address)
+            bridge.sendto(protocol.encode_command(_command(seq + 200, word, np.full(N, 1.0))), ep.address)
+            replies.append(protocol.decode(bridge.recvfrom(protocol.MAX_PACKET)[0], protocol.FEEDBACK, N))
+        serving.join(WAIT)
+    finally:
+        bridge.close()
+        ep.close()
+    assert [r.ack for r in replies] == [200, 201, 202, 203]
+    assert {cia402.state_of(int(w)) for w in replies[-1].statusword} == {cia402.OPERATION_ENABLED}
+    assert ep.rejected == {"axes": 1}
