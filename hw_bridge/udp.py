@@ -3,18 +3,29 @@
 :class:`Endpoint` receives packets of one kind and of the session's axis count and keeps the
 newest valid one; malformed, truncated, oversized, wrong-version, other-axis-count and replayed
 (or reordered: not newer than the last accepted from the same peer) packets are dropped and
-counted by reason.  Nothing a peer sends can raise.  The robot's side follows the sender of the
-last valid command: a bridge restarted on a new socket starts a new sequence.
+counted by reason, and so is feedback from any address and port but the robot's.  Nothing a
+peer sends can raise.  The robot's side follows the sender of the last valid command: a bridge
+restarted on a new socket starts a new sequence.
 """
 
 from __future__ import annotations
 
+import enum
 import socket
 import time
 from collections import Counter
 from urllib.parse import urlparse
 
 from . import protocol
+
+
+class Refusal(enum.StrEnum):
+    """What an endpoint counts beside the decoder's reasons (:data:`hw_bridge.protocol.REASONS`)."""
+
+    REPLAYED = "replayed"  # not newer than the last packet accepted from the same peer
+    SENDER = "sender"  # feedback from an address or port other than the robot's
+    SOCKET_ERROR = "socket error"  # e.g. ICMP port unreachable reported on the socket
+    SEND_FAILED = "send failed"
 
 
 def parse_url(url: str, scheme: str = "udp") -> tuple[str, int]:
@@ -33,7 +44,9 @@ class Endpoint:
     """A UDP socket that sends packets and receives packets of kind ``kind`` (COMMAND or FEEDBACK) with ``n_axes`` axes.
 
     ``bind``: local address (default loopback, a free port); ``peer``: where to send (None: to
-    whoever sent the last valid packet).
+    whoever sent the last valid packet).  Feedback is taken from ``peer`` alone (its address
+    resolved here), or, without one, from the first sender of a valid packet alone; a command
+    from a new sender starts a new sequence (a restarted bridge).
     """
 
     def __init__(self, kind: int, *, n_axes: int, bind=("127.0.0.1", 0), peer=None):
@@ -43,7 +56,8 @@ class Endpoint:
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
         self.sock.bind(bind)
         self.sock.setblocking(False)
-        self.peer = peer
+        # as recvfrom names senders: a numeric address (a host name given here would never match one)
+        self.peer = None if peer is None else socket.getaddrinfo(*peer, socket.AF_INET, socket.SOCK_DGRAM)[0][4]
         self.rejected: Counter = Counter()
         self.accepted = 0
         self.last_sequence = None
@@ -58,7 +72,7 @@ class Endpoint:
             try:
                 self.sock.sendto(data, self.peer)
             except OSError:
-                self.rejected["send failed"] += 1
+                self.rejected[Refusal.SEND_FAILED] += 1
 
     def send_command(self, cmd: protocol.Command) -> None:
         self.send(protocol.encode_command(cmd))
@@ -75,12 +89,15 @@ class Endpoint:
                 except (BlockingIOError, socket.timeout):
                     break
                 except OSError:  # e.g. ICMP port unreachable reported on a connected peer
-                    self.rejected["socket error"] += 1
+                    self.rejected[Refusal.SOCKET_ERROR] += 1
                     continue
                 finally:
                     if timeout > 0:
                         self.sock.setblocking(False)
                         timeout = 0.0
+                if self.kind == protocol.FEEDBACK and self.peer is not None and addr != self.peer:
+                    self.rejected[Refusal.SENDER] += 1  # not decoded: only the robot's bytes are
+                    continue
                 try:
                     packet = protocol.decode(data, self.kind, self.n_axes)
                 except protocol.ProtocolError as e:
@@ -89,7 +106,7 @@ class Endpoint:
                 if self.kind == protocol.COMMAND and addr != self.peer:
                     self.last_sequence = None  # a new bridge (a new socket): its own sequence, from wherever it starts
                 if not protocol.newer(packet.sequence, self.last_sequence):
-                    self.rejected["replayed"] += 1
+                    self.rejected[Refusal.REPLAYED] += 1
                     continue
                 self.last_sequence = packet.sequence
                 self.accepted += 1

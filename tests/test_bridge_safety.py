@@ -233,3 +233,39 @@ def test_the_simulated_robot_refuses_a_command_of_another_axis_count_and_serves_
     assert [r.ack for r in replies] == [200, 201, 202, 203]
     assert {cia402.state_of(int(w)) for w in replies[-1].statusword} == {cia402.OPERATION_ENABLED}
     assert ep.rejected == {"axes": 1}
+
+
+# ---------------------------------------------------------------- feedback from the robot alone
+
+def test_the_endpoint_takes_feedback_from_the_robots_address_and_port_alone():
+    """The peer named by host name is resolved to the address senders are seen from; the same valid packet from
+    another port of the same host is refused and counted ("sender"), before it is decoded."""
+    robot, other = (socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2))
+    for s in (robot, other):
+        s.bind(("127.0.0.1", 0))
+    ep = Endpoint(protocol.FEEDBACK, n_axes=N, peer=("localhost", robot.getsockname()[1]))
+    fb = protocol.Feedback(1, 0, 0, np.zeros(N, np.uint16), np.zeros(N, np.int8), *np.zeros((3, N)), np.zeros(3))
+    try:
+        other.sendto(protocol.encode_feedback(fb), ep.address)
+        other.sendto(b"not a packet", ep.address)
+        robot.sendto(protocol.encode_feedback(fb), ep.address)
+        got = ep.poll(timeout=WAIT)
+        assert got is not None and got.sequence == 1
+        assert ep.rejected == {"sender": 2} and ep.accepted == 1
+    finally:
+        for s in (robot, other):
+            s.close()
+        ep.close()
+
+
+def test_feedback_from_another_port_is_refused_and_the_run_stops_safely(setup):
+    """An impostor: from mid-run the robot's replies come from another port (valid packets, answering the commands): each
+    is refused and counted ("sender"), the feedback goes stale, and the bridge stops the machine: quick stop, then
+    disable voltage, on the wire; no command outside the limits."""
+    robot = WireRobot(_from(50, lambda robot, fb: [(protocol.encode_feedback(fb), robot.foreign)]))
+    run = _bridge_run(setup, robot)
+    rep = run.report()
+    assert [f.kind for f in run.faults] == ["feedback stale"], rep["faults"]
+    assert rep["rejected_packets"] == {"sender": rep["rejected_packets"]["sender"]} and \
+        rep["rejected_packets"]["sender"] >= 5 and not rep["completed"]
+    _ended_safe(robot, setup.limits)
