@@ -15,6 +15,12 @@ import numpy as np
 from .protocol import CSV
 
 
+def command_limits(servo) -> tuple[np.ndarray, np.ndarray]:
+    """The largest speed [rad/s] and torque [N m] target of each axis, ``V_max/Ke`` and ``Kt I_max``: what the bridge
+    clamps its targets to, and what a drive takes."""
+    return np.asarray(servo.V_max / servo.Ke, dtype=float), np.asarray(servo.Kt * servo.I_max, dtype=float)
+
+
 @dataclass(frozen=True)
 class Limits:
     """Per-axis limits, arrays ``(n_axes,)``, motor side.

@@ -3,8 +3,10 @@
 The one module of ``hw_bridge`` that imports the mechanism (MuJoCo MJX); the bridge never
 imports it.  ``pusupu sim-robot --listen udp://127.0.0.1:PORT`` runs it.
 
-Each valid command from the bridge goes to the six drives' CiA 402 state machines; while they
-are 'operation enabled' the machine advances one bridge period under the command (CSV: each
+Each valid command from the bridge goes to the six drives' CiA 402 state machines, and a drive
+faults, as a CiA 402 drive does, on a mode of operation it does not have (it has CSV and CST) or
+a target that is not finite or beyond its limit (:func:`~hw_bridge.safety.command_limits`); a
+faulted drive applies no torque.  While all six are 'operation enabled' the machine advances one bridge period under the command (CSV: each
 drive's velocity loop follows the speed target; CST: its current loop follows the torque
 target), with the same drive-side functions the simulator scans (:func:`pusupu_jax.sim.pieces`,
 :func:`pusupu_jax.cascade.velocity_tick`).  Then the robot replies with the actual values.  In
@@ -51,9 +53,11 @@ from pusupu_jax.plant.model import ModelOptions, build_model, slide_dofs, slide_
 from . import cia402, protocol
 from .compiled import FlatStep, cpu
 from .runner import realtime_setup, steal_seconds
+from .safety import command_limits
 from .udp import Endpoint
 
 FAULTS = ("none", "stop", "delay", "drop", "reorder", "corrupt", "nan", "range", "garbage")
+TARGET_TOLERANCE = 1e-3  # of a limit: a target beyond it by less is taken (CANopen rounds a torque to 1/1000 of rated)
 DEFAULT_ARG = {"stop": 1.0, "delay": 0.02, "drop": 1.0, "reorder": 8, "corrupt": 1.0, "range": 1.0e4}
 
 
@@ -108,6 +112,7 @@ class RobotModel:
         self.m.dof_armature[self.dofs] = np.asarray(servo.eta * servo.J, dtype=float) / r**2
         self.r, self.force_gain = r, np.asarray(servo.eta, dtype=float) / r
         self.Kt = np.asarray(servo.Kt, dtype=float)
+        self.velocity_limit, self.torque_limit = command_limits(servo)  # rad/s, N m: a drive faults on more
         self.platform = self.m.body("platform").id
 
         def velocity_period(d, state, target, cst_mask, omega):
@@ -206,6 +211,7 @@ class SimRobot:
         before = {d.state for d in self.drives}
         for d, w in zip(self.drives, cmd.controlword):
             d.command(int(w))
+        self._refuse(cmd)
         after = {d.state for d in self.drives}
         if after == {cia402.READY} and before != {cia402.READY} and self.enabled_at is not None:
             self._new_session()  # brought up again after a session that ran
@@ -229,11 +235,28 @@ class SimRobot:
             theta = theta * np.nan
         if self.active("range", now):
             theta = theta + self.fault.arg
+        faulted = np.array([d.state == cia402.FAULT for d in self.drives])
         fb = protocol.Feedback(self.sequence, time.monotonic_ns(), self.applied,
                                np.array([d.statusword for d in self.drives], np.uint16), self.mode, theta, omega,
-                               self.torque, platform)
+                               np.where(faulted, 0.0, self.torque), platform)  # a faulted drive's power stage is off
         self.sequence += 1
         return fb
+
+    def _refuse(self, cmd: protocol.Command) -> None:
+        """Fault each drive whose command a CiA 402 drive would not take: a mode of operation other than CSV and CST, or
+        a target that is not finite or beyond its limit (CSV: ``V_max/Ke`` [rad/s], CST: ``Kt I_max`` [N m]; by more
+        than :data:`TARGET_TOLERANCE` of it)."""
+        mode, target = np.asarray(cmd.mode), np.asarray(cmd.target, dtype=float)
+        known = (mode == protocol.CSV) | (mode == protocol.CST)
+        bound = np.where(mode == protocol.CST, self.model.torque_limit, self.model.velocity_limit)
+        bad = ~known | ~(np.abs(target) <= bound * (1 + TARGET_TOLERANCE))  # NaN is beyond every bound
+        for k in np.flatnonzero(bad):
+            if self.drives[k].state == cia402.FAULT:
+                continue
+            self.drives[k].fault()
+            why = (f"target {target[k]:.6g}, expected a finite number within +-{bound[k]:.6g}" if known[k] else
+                   f"mode of operation {mode[k]}, expected {protocol.CSV} (CSV) or {protocol.CST} (CST)")
+            self.log(f"sim-robot: session {self.session}: drive {k + 1} faulted: {why}")
 
 
 class Stalls:

@@ -79,7 +79,7 @@ def limits_for(servo):
     import jax.numpy as jnp
     import numpy as np
 
-    from hw_bridge.safety import Limits
+    from hw_bridge.safety import Limits, command_limits
     from pusupu_jax.plant import kinematics
     from pusupu_jax.plant.geometry import Geometry
 
@@ -87,7 +87,7 @@ def limits_for(servo):
     r = np.asarray(servo.lead, dtype=float) / (2 * np.pi)
     s_home = np.asarray(kinematics.inverse_kinematics(geom, jnp.asarray(geom.home)))
     return Limits((np.asarray(geom.stroke_min) - s_home) / r, (np.asarray(geom.stroke_max) - s_home) / r,
-                  np.asarray(servo.V_max / servo.Ke, dtype=float), np.asarray(servo.Kt * servo.I_max, dtype=float))
+                  *command_limits(servo))
 
 
 def bridge_reference(g, trajectory: str, rates=None):

@@ -269,3 +269,36 @@ def test_feedback_from_another_port_is_refused_and_the_run_stops_safely(setup):
     assert rep["rejected_packets"] == {"sender": rep["rejected_packets"]["sender"]} and \
         rep["rejected_packets"]["sender"] >= 5 and not rep["completed"]
     _ended_safe(robot, setup.limits)
+
+
+# ---------------------------------------------------------------- the simulated drives check their targets
+
+def test_a_simulated_drive_faults_on_a_target_beyond_its_limits_or_a_mode_it_does_not_have(robot_model, setup):
+    """As a CiA 402 drive does: enabled, a drive given a NaN, inf, 1e308 or beyond-the-limit target (CSV: V_max/Ke, CST:
+    Kt I_max) or a mode of operation other than CSV and CST faults (statusword), reports no torque, and the brakes hold
+    the machine; the other drives stay enabled, and a target at the limit (what the bridge clamps to) is taken."""
+    from hw_bridge.sim_robot import SimRobot
+
+    vmax, tmax = setup.limits.velocity[1], setup.limits.torque[1]
+    cases = {"nan": (np.nan, protocol.CSV), "inf": (-np.inf, protocol.CSV), "1e308": (1e308, protocol.CSV),
+             "speed": (1.01 * vmax, protocol.CSV), "torque": (-1.01 * tmax, protocol.CST), "mode 8 (CSP)": (0.0, 8),
+             "mode -1": (0.0, -1)}
+    for name, (bad, mode_2) in cases.items():
+        log = []
+        robot = SimRobot(robot_model, watchdog_s=WAIT, log=log.append)
+        for seq, word in enumerate((cia402.SHUTDOWN, cia402.SWITCH_ON, cia402.ENABLE_OPERATION)):
+            robot.handle(_command(seq, word), time.monotonic())
+        cst = protocol.CST if mode_2 == protocol.CST else protocol.CSV
+        modes = np.where(np.arange(N) == 1, cst, protocol.CSV)
+        moved = robot.handle(_command(3, cia402.ENABLE_OPERATION, np.where(modes == protocol.CST, tmax, vmax), modes),
+                             time.monotonic())
+        assert {cia402.state_of(int(w)) for w in moved.statusword} == {cia402.OPERATION_ENABLED}, name
+        target = np.where(np.arange(N) == 1, bad, 0.0)
+        modes[1] = mode_2
+        faulted = robot.handle(_command(4, cia402.ENABLE_OPERATION, target, modes), time.monotonic())
+        held = robot.handle(_command(5, cia402.ENABLE_OPERATION, np.full(N, 0.5 * vmax)), time.monotonic())
+        states = [cia402.state_of(int(w)) for w in held.statusword]
+        assert states == [cia402.OPERATION_ENABLED] + [cia402.FAULT] + [cia402.OPERATION_ENABLED] * 4, name
+        assert faulted.torque[1] == held.torque[1] == 0.0 and np.abs(moved.torque[1]) > 0, name
+        np.testing.assert_array_equal(held.position, faulted.position)  # the brakes hold
+        assert len(log) == 1 and log[0].startswith("sim-robot: session 0: drive 2 faulted:"), (name, log)
