@@ -134,7 +134,7 @@ def run_bridge(args) -> int:
     from hw_bridge.loop import BridgeLoop, plan
     from hw_bridge.protocol import FEEDBACK
     from hw_bridge.safety import Safety
-    from hw_bridge.session import Bridge
+    from hw_bridge.session import Bridge, End
     from hw_bridge.udp import Endpoint
 
     try:
@@ -167,7 +167,10 @@ def run_bridge(args) -> int:
         bridge_figure(run, report, args.plot)
     for line in report["faults"]:
         print(f"pusupu: fault: {line}", file=sys.stderr)
-    return 0 if report["completed"] else 1
+    if run.ended in (End.SIGINT, End.SIGTERM):
+        print(f"pusupu: {run.ended}: the run stopped (quick stop, then disable voltage)", file=sys.stderr)
+    # 1: a safe stop on a fault, the bridge's own errors included; 128 + the signal's number: the run stopped on it
+    return {End.COMPLETED: 0, End.FAULT: 1, End.SIGINT: 130, End.SIGTERM: 143}[run.ended]
 
 
 def _table(rep: dict) -> str:
@@ -183,7 +186,8 @@ def _table(rep: dict) -> str:
                      f"max {rep['max_tracking_error_mm']:.4f} mm")
     lines.append(f"rejected packets: {rep['rejected_packets'] or 'none'}")
     lines += [f"real-time {line}" for line in rep["realtime"]]
-    lines.append("completed" if rep["completed"] else f"stopped: {len(rep['faults'])} fault(s)")
+    lines.append({"completed": "completed", "fault": f"stopped: {len(rep['faults'])} fault(s)"}.get(
+        rep["ended"], f"stopped: {rep['ended']}"))
     return "\n".join(lines)
 
 

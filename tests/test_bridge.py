@@ -489,7 +489,8 @@ def test_canopen_feedback_names_the_sync_it_answers():
     before it is the newest whole answer.  (Without it, on a loaded host the lock-step CANopen test above read late
     answers as the next cycle's: mean branch error 0.0036-0.0044 mm against 0.0027 with the bridge, the robot and
     two CPU hogs on one core.)  The drives here are six canopen LocalNodes on python-can's in-process virtual bus,
-    whose TPDOs this test sends by hand.  TPDOs shorter than their mapping are dropped and counted."""
+    whose TPDOs this test sends by hand.  TPDOs shorter than their mapping are dropped and counted, and so is a command
+    the bus does not take (the bridge's stop goes on)."""
     import can
     import canopen
 
@@ -553,6 +554,9 @@ def test_canopen_feedback_names_the_sync_it_answers():
         whole = link.poll(timeout=2.0)
         assert whole.ack == SYNC_OVERFLOW + 3 and np.allclose(whole.position * COUNTS_PER_RAD, 666)
         assert link.rejected == {"PDO length": 12}
+        link.network.bus.shutdown()  # a bus that takes no frame: the command's failed send is counted, not raised
+        command(SYNC_OVERFLOW + 4)
+        assert link.rejected == {"PDO length": 12, "send failed": 1}
     finally:
         link.close()
         drives.notifier.stop()

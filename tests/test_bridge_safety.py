@@ -6,7 +6,12 @@ simulated robot's controller (:class:`~hw_bridge.sim_robot.SimRobot`) is tested 
 Every packet goes through the real protocol.
 """
 
+import json
+import os
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -28,6 +33,7 @@ SERVO = ServoParams.table1()
 RATE = 500.0  # Hz, as the loopback runs of test_bridge.py
 N = 6
 WAIT = 10.0  # s: the longest any step of these tests waits for the other side on a loaded machine
+TIMEOUT = 600  # s: for a subprocess, which compiles cold on a slow machine
 
 
 @dataclass(frozen=True)
@@ -141,15 +147,16 @@ def _bridge_run(setup: Setup, robot: WireRobot, duration=0.6):
     return run
 
 
-def _ended_safe(robot: WireRobot, limits: Limits, stop_cycles=50) -> None:
-    """What reached the robot ends with the stop: quick stop for ``stop_cycles`` commands, then disable voltage; and no
-    command it received was outside the limits (finite, within each axis's speed or torque limit)."""
+def _ended_safe(robot: WireRobot, limits: Limits) -> None:
+    """What reached the robot ends with the stop: quick stop, then disable voltage (each for as long as the bridge's
+    stop gives it: a real-time run counts skipped cycles too); and no command it received was outside the limits
+    (finite, within each axis's speed or torque limit)."""
     words = [set(c.controlword.tolist()) for c in robot.commands]
     assert all(len(w) == 1 for w in words)
     words = [w.pop() for w in words]
     first = words.index(cia402.QUICK_STOP)
-    assert words[first:first + stop_cycles] == [cia402.QUICK_STOP] * stop_cycles
-    assert words[first + stop_cycles:] and set(words[first + stop_cycles:]) == {cia402.DISABLE_VOLTAGE}
+    disable = words.index(cia402.DISABLE_VOLTAGE, first)
+    assert set(words[first:disable]) == {cia402.QUICK_STOP} and set(words[disable:]) == {cia402.DISABLE_VOLTAGE}
     for c in robot.commands:
         bound = np.where(c.mode == protocol.CSV, limits.velocity, limits.torque)
         assert np.isfinite(c.target).all() and np.all(np.abs(c.target) <= bound), c
@@ -302,3 +309,98 @@ def test_a_simulated_drive_faults_on_a_target_beyond_its_limits_or_a_mode_it_doe
         assert faulted.torque[1] == held.torque[1] == 0.0 and np.abs(moved.torque[1]) > 0, name
         np.testing.assert_array_equal(held.position, faulted.position)  # the brakes hold
         assert len(log) == 1 and log[0].startswith("sim-robot: session 0: drive 2 faulted:"), (name, log)
+
+
+# ---------------------------------------------------------------- every way out of a run ends in the stop
+
+@pytest.mark.parametrize("where", ["step", "decoder"])
+def test_an_exception_inside_a_cycle_ends_in_the_stop_and_the_report(setup, monkeypatch, where):
+    """An exception raised by the bridge's own code in a cycle (injected into the loops' step, or into the decoder of
+    the robot's feedback) is a fault ("internal error", with the exception): quick stop, then disable voltage, on
+    the wire, and the run's record and report; no command outside the limits."""
+    if where == "step":
+        real_step = BridgeLoop.step
+
+        def step(loop, cycle, theta, omega):
+            if cycle == 50:
+                raise FloatingPointError("injected into the step")
+            return real_step(loop, cycle, theta, omega)
+
+        monkeypatch.setattr(BridgeLoop, "step", step)
+    else:
+        real_decode, decoded = protocol.decode, []
+
+        def decode(data, kind=None, n_axes=None):
+            if kind == protocol.FEEDBACK:
+                decoded.append(data)
+                if len(decoded) == 60:
+                    raise IndexError("injected into the decoder")
+            return real_decode(data, kind, n_axes)
+
+        monkeypatch.setattr(protocol, "decode", decode)
+    robot = WireRobot()
+    run = _bridge_run(setup, robot)
+    rep = run.report()
+    error = "FloatingPointError: injected into the step" if where == "step" else "IndexError: injected into the decoder"
+    assert [(f.kind, f.detail) for f in run.faults] == [("internal error", error)], rep["faults"]
+    assert rep["ended"] == "fault" and not rep["completed"] and rep["cycles"] == len(robot.commands)
+    _ended_safe(robot, setup.limits)
+
+
+def _signal_at(enabled: int, sig):
+    """An ``act`` that answers as the drives do and sends this process ``sig`` at the ``enabled``-th enabled command, if
+    a handler other than the one of before the run is set (so a run that ended early fails its test, and SIGTERM never
+    ends the test process)."""
+    usual = signal.getsignal(sig)
+
+    def act(robot, fb):
+        if robot.enabled == enabled and signal.getsignal(sig) is not usual:
+            os.kill(os.getpid(), sig)
+        return [(protocol.encode_feedback(fb), robot.sock)]
+    return act
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_mid_run_ends_in_the_stop_and_the_run_puts_the_handlers_back(setup, sig):
+    """SIGINT or SIGTERM at the robot's tenth enabled command: the run stops at the next cycle, quick stop then disable
+    voltage on the wire, its record says the signal ended it (no fault), and the signal handlers of before are back."""
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    robot = WireRobot(_signal_at(10, sig))
+    run = _bridge_run(setup, robot)
+    assert run.ended == sig.name and not run.faults and not run.completed
+    assert {s: signal.getsignal(s) for s in before} == before
+    assert 10 <= robot.enabled <= 11  # the next cycle stopped
+    _ended_safe(robot, setup.limits)
+
+
+def test_pusupu_bridge_on_sigint_or_sigterm_prints_its_report_and_exits_130_or_143(setup):
+    """``pusupu bridge`` processes against wire robots, one sent SIGINT and one SIGTERM once their robot saw ten enabled
+    commands: each ends with quick stop then disable voltage on the wire, prints the report a completed run prints
+    (here JSON) with the signal as the reason it ended and a line on stderr, and exits 130 or 143.  (At 100 Hz, a
+    real-time run whose deadlines survive a loaded machine.)"""
+    runs = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        robot = WireRobot()
+        proc = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "bridge", "--gains", str(setup.path), "--robot",
+                                 f"udp://127.0.0.1:{robot.port}", "--rate", "100", "--duration", "30", "--watchdog",
+                                 "50", "--no-realtime", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True)
+        runs[sig] = (robot, proc)
+    try:
+        for sig, (robot, proc) in runs.items():
+            end = time.monotonic() + TIMEOUT
+            while robot.enabled < 10 and proc.poll() is None and time.monotonic() < end:
+                time.sleep(1e-3)
+            proc.send_signal(sig)
+        for sig, (robot, proc) in runs.items():
+            out, err = proc.communicate(timeout=TIMEOUT)
+            assert proc.returncode == 128 + sig, (sig, proc.returncode, err)
+            rep = json.loads(out)
+            robot.close(rep["cycles"])
+            assert rep["ended"] == sig.name and not rep["completed"] and not rep["faults"], rep
+            assert f"pusupu: {sig.name}: the run stopped (quick stop, then disable voltage)" in err.splitlines()
+            _ended_safe(robot, setup.limits)
+    finally:
+        for robot, proc in runs.values():
+            proc.kill()
+            proc.wait()
