@@ -1,7 +1,8 @@
 """One bridge run (host-side): bring the drives up through CiA 402, take over, run the loops, stop, report.
 
-Per cycle: read the newest feedback, check it (:class:`~hw_bridge.safety.Safety`), step the
-loops (:class:`~hw_bridge.loop.BridgeLoop`), clamp the targets, send the command.  Phases:
+Per cycle: read the newest feedback, check it (:class:`~hw_bridge.safety.Safety`: fresh, finite, in range, and
+within the following-error window of the reference the machine was following), step the loops
+(:class:`~hw_bridge.loop.BridgeLoop`), clamp the targets, send the command.  Phases:
 
 1. *connect*: send shutdown until every drive reports 'ready to switch on' (``connect_s``);
 2. *enable*: switch on, then enable operation, until every drive reports 'operation enabled';
@@ -209,7 +210,11 @@ class Bridge:
             if ok and states() - {cia402.OPERATION_ENABLED}:
                 safety.fault(k, "drive fault", f"a drive left 'operation enabled' (states: {sorted(states())})")
                 ok = False
-            ok = ok and safety.check_feedback(k, st["age"], fb.position, fb.velocity, fb.torque)
+            # the feedback shows the machine after the command it acknowledges (over CANopen, which has no
+            # acknowledgement: the last one): compare it with the reference of the cycle after that
+            ja = sent.get(fb.ack, -1) if fb.ack else j - 1
+            ok = ok and safety.check_feedback(k, st["age"], fb.position, fb.velocity, fb.torque) and \
+                safety.check_following(k, j / loop.rate, loop.reference_at(ja + 1), fb.position)
             if not ok:
                 stop(k, End.FAULT)
                 return False
@@ -217,9 +222,6 @@ class Bridge:
             rec.latency_us.append(send(k, cia402.ENABLE_OPERATION, target, t_wake) * 1e6)
             if st["fresh"] and fb.timestamp_ns:
                 rec.feedback_age_us.append((ep.received_at - fb.timestamp_ns * 1e-9) * 1e6)
-            # the fresh feedback shows the machine after the command it acknowledges (over CANopen, which
-            # has no acknowledgement: the last one): compare it with the reference of the cycle after that
-            ja = sent.get(fb.ack, -1) if fb.ack else j - 1
             if st["fresh"] and ja >= 0:
                 rec.t.append((ja + 1) / loop.rate)
                 rec.reference.append(loop.reference_at(ja + 1))

@@ -75,7 +75,8 @@ def _drive_modes(text: str, n: int = 6):
 
 
 def limits_for(servo):
-    """The bridge's limits on the default geometry: strokes from home, V_max/Ke, Kt I_max (host-side)."""
+    """The bridge's limits on the default geometry: strokes from home, V_max/Ke, Kt I_max, the following-error window
+    and time-out (host-side)."""
     import jax.numpy as jnp
     import numpy as np
 
@@ -87,7 +88,8 @@ def limits_for(servo):
     r = np.asarray(servo.lead, dtype=float) / (2 * np.pi)
     s_home = np.asarray(kinematics.inverse_kinematics(geom, jnp.asarray(geom.home)))
     return Limits((np.asarray(geom.stroke_min) - s_home) / r, (np.asarray(geom.stroke_max) - s_home) / r,
-                  *command_limits(servo))
+                  *command_limits(servo), np.asarray(servo.following_error, dtype=float),
+                  np.asarray(servo.following_error_time, dtype=float), r)
 
 
 def bridge_reference(g, trajectory: str, rates=None):

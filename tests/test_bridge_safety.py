@@ -404,3 +404,60 @@ def test_pusupu_bridge_on_sigint_or_sigterm_prints_its_report_and_exits_130_or_1
         for robot, proc in runs.values():
             proc.kill()
             proc.wait()
+
+
+# ---------------------------------------------------------------- the following error (CiA 402 0x6065, 0x6066)
+
+def test_the_following_error_trips_once_an_error_stays_beyond_its_window_past_its_time_out(setup):
+    """Cycle by cycle at 1 kHz: an error beyond the window (converted from slider travel with the screw ratio) for up to
+    the time-out passes, one cycle more does not; an error back inside the window restarts the count."""
+    lim = setup.limits
+    safety = Safety(lim)
+    beyond = np.zeros(N)
+    beyond[2] = 1.01 * lim.following_error[2] / lim.screw[2]  # rad of motor angle
+    inside = 0.99 * beyond
+    steps = int(round(lim.following_error_time[2] * 1e3))  # 50 cycles of 1 ms
+    for k in range(steps + 1):
+        assert safety.check_following(k, k * 1e-3, beyond, np.zeros(N)), k
+    assert safety.check_following(steps + 1, (steps + 1) * 1e-3, inside, np.zeros(N))  # back inside: no count
+    for k in range(steps + 2, 2 * steps + 3):
+        assert safety.check_following(k, k * 1e-3, np.zeros(N), -beyond), k
+    assert not safety.check_following(2 * steps + 3, (2 * steps + 3) * 1e-3, np.zeros(N), -beyond)
+    assert [f.kind for f in safety.faults] == ["following error"]
+    assert safety.faults[0].detail == "axis 3 5.05 mm of slider travel from its reference, beyond its 5 mm window " \
+                                      "for 51 ms (time-out 50 ms)"
+
+
+def _axis_1_stuck(offset: float):
+    """The fault of an ``act``: axis 1 holds still ``offset`` [rad] from where it was, whatever its target."""
+    held = []
+
+    def fault(robot, fb):
+        if not held:
+            held.append(robot.theta[0] + offset)
+        robot.theta[0] = fb.position[0] = held[0]
+        return [(protocol.encode_feedback(fb), robot.sock)]
+    return fault
+
+
+def test_an_axis_that_stops_following_its_path_trips_the_following_error_and_a_clean_run_does_not(setup):
+    """From the robot's 50th enabled command axis 1 holds still 10 mm of slider travel off (twice the window): the
+    following error trips once its 50 ms time-out has passed (the 26th cycle at 500 Hz after the bridge reads the
+    first such reply), and the bridge stops the machine; the same robot without the fault completes its run with no
+    fault (its axes follow their path).  Quick stop, then disable voltage, on the wire, both times."""
+    lim = setup.limits
+    robot = WireRobot(_from(50, _axis_1_stuck(2 * lim.following_error[0] / lim.screw[0])))
+    run = _bridge_run(setup, robot)
+    assert [f.kind for f in run.faults] == ["following error"] and run.faults[0].detail.startswith("axis 1 "), \
+        run.report()["faults"]
+    enabled = next(k for k, word, _ in run.commands if word == cia402.ENABLE_OPERATION)
+    stuck = enabled + 50  # the robot's 50th enabled command is the bridge's of cycle enabled + 49, answered in lock step
+    assert stuck + 26 <= run.faults[0].cycle <= stuck + 26 + 3, (run.faults[0].line(), enabled)  # late replies: later
+    assert run.report()["ended"] == "fault"
+    _ended_safe(robot, lim)
+    clean = WireRobot()
+    run = _bridge_run(setup, clean)
+    rep = run.report(screw=setup.loop.drive.screw)
+    assert rep["completed"] and rep["ended"] == "completed" and not rep["faults"], rep["faults"]
+    assert max(rep["branch_max_error_mm"]) < 0.1 * 1e3 * min(lim.following_error)
+    _ended_safe(clean, lim)
