@@ -11,6 +11,7 @@ restarted on a new socket starts a new sequence.
 from __future__ import annotations
 
 import enum
+import ipaddress
 import socket
 import time
 from collections import Counter
@@ -38,6 +39,17 @@ def parse_url(url: str, scheme: str = "udp") -> tuple[str, int]:
     if u.scheme != scheme or not u.hostname or port is None:
         raise ValueError(f"expected {scheme}://HOST:PORT, got {url!r}")
     return u.hostname, port
+
+
+def beyond_loopback(host: str) -> str | None:
+    """Where a socket bound to ``host`` takes packets from, when that is more than this machine: 'every interface
+    (0.0.0.0)' or the address ``host`` resolves to; None for a loopback address.  ``OSError`` when ``host`` does not
+    resolve."""
+    address = socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_DGRAM)[0][4][0]
+    ip = ipaddress.ip_address(address)
+    if ip.is_loopback:
+        return None
+    return f"every interface ({address})" if ip.is_unspecified else f"the interface of {address}"
 
 
 class Endpoint:

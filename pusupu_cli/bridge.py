@@ -25,7 +25,8 @@ def add_parsers(sub) -> None:
                         "cst (default csv)")
     b.add_argument("--watchdog", type=int, default=5, metavar="N", help="cycles without fresh feedback before a "
                                                                          "safe stop (default 5)")
-    b.add_argument("--bind", metavar="HOST", default="127.0.0.1", help="local address (default loopback)")
+    b.add_argument("--bind", metavar="HOST", default="127.0.0.1",
+                   help="local address (default loopback; another is said on stderr)")
     b.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO, mlockall or CPU affinity")
     b.add_argument("--json", action="store_true", help="print the report as JSON")
     b.add_argument("--plot", metavar="PNG", help="write the latency histogram and the tracking trace")
@@ -63,6 +64,20 @@ def _robot_url(url: str):
         return parse_url(url)
     except ValueError as e:
         raise ParameterError(f"--robot: {e}") from None
+
+
+def _warn_beyond_loopback(option: str, value: str, host: str, what: str) -> None:
+    """One line on stderr when ``host`` (of ``option``'s ``value``) is not a loopback address: ``what`` then takes
+    packets from the network."""
+    from hw_bridge.udp import beyond_loopback
+
+    try:
+        where = beyond_loopback(host)
+    except OSError as e:
+        raise ParameterError(f"{option}: expected a host that resolves to an IPv4 address, got {host!r} "
+                             f"({e.strerror or e})") from None
+    if where is not None:
+        print(f"pusupu: warning: {option} {value}: {what} on {where}, not on loopback alone", file=sys.stderr)
 
 
 def _drive_modes(text: str, n: int = 6):
@@ -122,6 +137,8 @@ def run_bridge(args) -> int:
     apply_xla_workaround(one_thread=True)  # before any computation: the gain file's checks run on JAX
 
     address = _robot_url(args.robot)
+    if address is not None:
+        _warn_beyond_loopback("--bind", args.bind, args.bind, "the bridge takes packets")
     modes = _drive_modes(args.drive_modes)
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ParameterError(f"--duration: expected a positive number of seconds, got {args.duration}")
@@ -231,9 +248,10 @@ def run_sim_robot(args) -> int:
 
     if not args.listen.startswith("can://"):
         try:
-            parse_url(args.listen)
+            host, _ = parse_url(args.listen)
         except ValueError as e:
             raise ParameterError(f"--listen: {e}") from None
+        _warn_beyond_loopback("--listen", args.listen, host, "the simulated robot takes commands")
     if not 0.0 < args.drive_watchdog <= 60.0:
         raise ParameterError(f"--drive-watchdog: expected seconds in (0, 60], got {args.drive_watchdog}")
     g = gains.load(args.gains)

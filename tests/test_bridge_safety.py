@@ -377,14 +377,16 @@ def test_pusupu_bridge_on_sigint_or_sigterm_prints_its_report_and_exits_130_or_1
     """``pusupu bridge`` processes against wire robots, one sent SIGINT and one SIGTERM once their robot saw ten enabled
     commands: each ends with quick stop then disable voltage on the wire, prints the report a completed run prints
     (here JSON) with the signal as the reason it ended and a line on stderr, and exits 130 or 143.  (At 100 Hz, a
-    real-time run whose deadlines survive a loaded machine.)"""
+    real-time run whose deadlines survive a loaded machine.)  The first binds to 0.0.0.0 (it sends to 127.0.0.1
+    alone) and says so on stderr, in one line."""
     runs = {}
     for sig in (signal.SIGINT, signal.SIGTERM):
         robot = WireRobot()
+        bind = ["--bind", "0.0.0.0"] if sig == signal.SIGINT else []
         proc = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "bridge", "--gains", str(setup.path), "--robot",
                                  f"udp://127.0.0.1:{robot.port}", "--rate", "100", "--duration", "30", "--watchdog",
-                                 "50", "--no-realtime", "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                text=True)
+                                 "50", "--no-realtime", "--json", *bind], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, text=True)
         runs[sig] = (robot, proc)
     try:
         for sig, (robot, proc) in runs.items():
@@ -399,6 +401,9 @@ def test_pusupu_bridge_on_sigint_or_sigterm_prints_its_report_and_exits_130_or_1
             robot.close(rep["cycles"])
             assert rep["ended"] == sig.name and not rep["completed"] and not rep["faults"], rep
             assert f"pusupu: {sig.name}: the run stopped (quick stop, then disable voltage)" in err.splitlines()
+            warnings = [line for line in err.splitlines() if line.startswith("pusupu: warning:")]
+            assert warnings == (["pusupu: warning: --bind 0.0.0.0: the bridge takes packets on every interface "
+                                 "(0.0.0.0), not on loopback alone"] if sig == signal.SIGINT else []), err
             _ended_safe(robot, setup.limits)
     finally:
         for robot, proc in runs.values():
@@ -461,3 +466,19 @@ def test_an_axis_that_stops_following_its_path_trips_the_following_error_and_a_c
     assert rep["completed"] and rep["ended"] == "completed" and not rep["faults"], rep["faults"]
     assert max(rep["branch_max_error_mm"]) < 0.1 * 1e3 * min(lim.following_error)
     _ended_safe(clean, lim)
+
+
+def test_the_simulated_robot_says_so_when_it_listens_beyond_loopback(setup, monkeypatch, capsys):
+    """``pusupu sim-robot --listen udp://0.0.0.0:PORT`` (its ``main``, in this process): one line on stderr as soon as
+    the address is read, naming it, before anything else (here a bad option ends the command there, nothing bound)."""
+    from pusupu_cli.cli import main
+
+    monkeypatch.setenv("PUSUPU_XLA_WORKAROUND", "0")  # this process's XLA flags are set already
+    with pytest.raises(SystemExit) as e:
+        main(["sim-robot", "--gains", str(setup.path), "--listen", "udp://0.0.0.0:5600", "--drive-watchdog", "0"])
+    err = capsys.readouterr().err.splitlines()
+    assert e.value.code == 2 and err[0] == "pusupu: warning: --listen udp://0.0.0.0:5600: the simulated robot takes " \
+        "commands on every interface (0.0.0.0), not on loopback alone" and err[1].startswith("pusupu: error:"), err
+    with pytest.raises(SystemExit):
+        main(["sim-robot", "--gains", str(setup.path), "--listen", "udp://localhost:5600", "--drive-watchdog", "0"])
+    assert not capsys.readouterr().err.startswith("pusupu: warning:")
