@@ -26,7 +26,8 @@ reverse order in blocks of ARG, default 8), ``corrupt`` (a byte flipped with pro
 ARG, default 1; over CANopen a frame cut short), ``nan`` (NaN positions; not over CANopen, whose
 values are integers), ``range`` (positions ARG rad off, default 1e4: metres of travel),
 ``garbage`` (every reply comes with malformed, truncated, oversized, wrong-version and replayed
-packets; over CANopen, cut-short frames and the previous answer again), ``none``.
+packets; over CANopen, cut-short frames and the previous answer again), ``none``.  ARG's bounds
+are in :data:`ARGS` (at most 60 s of silence or delay, blocks of 1 to 1000 replies).
 """
 
 from __future__ import annotations
@@ -57,6 +58,10 @@ from .safety import command_limits
 from .udp import Endpoint
 
 FAULTS = ("none", "stop", "delay", "drop", "reorder", "corrupt", "nan", "range", "garbage")
+# the argument of each fault that takes one: its bounds and what it is (a reorder block, in replies, is a whole number)
+ARGS = {"stop": (0.0, 60.0, "seconds of silence"), "delay": (0.0, 60.0, "seconds of delay"),
+        "drop": (0.0, 1.0, "a probability"), "reorder": (1, 1000, "a whole number of replies"),
+        "corrupt": (0.0, 1.0, "a probability"), "range": (-1e6, 1e6, "rad of motor angle")}
 TARGET_TOLERANCE = 1e-3  # of a limit: a target beyond it by less is taken (CANopen rounds a torque to 1/1000 of rated)
 DEFAULT_ARG = {"stop": 1.0, "delay": 0.02, "drop": 1.0, "reorder": 8, "corrupt": 1.0, "range": 1.0e4}
 
@@ -69,15 +74,24 @@ class FaultSpec:
 
     @classmethod
     def parse(cls, text: str) -> "FaultSpec":
-        """``KIND@T[:ARG]`` or ``none``; ValueError naming what was expected."""
+        """``KIND@T[:ARG]`` or ``none``, ``T`` finite and not negative and ``ARG`` within :data:`ARGS` (no ``ARG`` for
+        the kinds that take none); ValueError naming what was expected."""
         kind, _, rest = text.partition("@")
         at, _, arg = rest.partition(":")
         try:
             spec = cls(kind, float(at) if at else 0.0, float(arg) if arg else DEFAULT_ARG.get(kind))
         except ValueError:
             raise ValueError(f"--fault: expected KIND@SECONDS[:ARG] with numbers, got {text!r}") from None
-        if kind not in FAULTS or spec.at < 0 or (spec.arg is not None and not np.isfinite(spec.arg)):
-            raise ValueError(f"--fault: expected KIND@SECONDS[:ARG], KIND one of {FAULTS}, got {text!r}")
+        if kind not in FAULTS or not 0 <= spec.at < np.inf:
+            raise ValueError(f"--fault: expected KIND@SECONDS[:ARG], KIND one of {FAULTS} and SECONDS finite and not "
+                             f"negative, got {text!r}")
+        if kind not in ARGS and arg:
+            raise ValueError(f"--fault {text}: expected no ARG for {kind}, got {arg!r}")
+        if kind in ARGS:
+            low, high, what = ARGS[kind]
+            whole = isinstance(low, int)
+            if not (low <= spec.arg <= high and (not whole or spec.arg == int(spec.arg))):
+                raise ValueError(f"--fault {text}: expected ARG {what} in [{low:g}, {high:g}], got {arg}")
         return spec
 
 

@@ -15,10 +15,11 @@ def add_parsers(sub) -> None:
     b.add_argument("--robot", metavar="URL", required=True,
                    help="udp://HOST:PORT of a robot controller, or can://INTERFACE/CHANNEL of a CANopen bus with CiA "
                         "402 drives at node IDs 1-6 (python-can interfaces) (pusupu sim-robot for a simulated one)")
-    b.add_argument("--rate", type=float, metavar="HZ", help="cycle rate, up to 4000 (default: the gain file's rate "
+    b.add_argument("--rate", type=float, metavar="HZ", help="cycle rate, 1 to 4000 (default: the gain file's rate "
                                                              "of the fastest loop the bridge closes: 1000 in CSV, "
                                                              "4000 with CST axes)")
-    b.add_argument("--duration", type=float, metavar="S", help="seconds of the path (default all of it)")
+    b.add_argument("--duration", type=float, metavar="S", help="seconds of the path (default all of it; at most what "
+                                                                 "half of the memory holds of the run's record)")
     b.add_argument("--trajectory", choices=("arc", "p2p"), default="arc", help="default arc")
     b.add_argument("--drive-modes", metavar="M[,M...]", default="csv",
                    help="csv or cst, one for all axes or six comma-separated; hybrid mode always runs branch 6 in "
@@ -150,15 +151,24 @@ def run_bridge(args) -> int:
         _check_plot_path(args.plot)
     g = gains.load(args.gains)  # refused here (one line, exit 2) before any socket opens
     setup_jax()
-    from hw_bridge.loop import BridgeLoop, plan
-    from hw_bridge.protocol import FEEDBACK
+    from hw_bridge.loop import BridgeLoop, cycle_rate, plan
+    from hw_bridge.protocol import CST, FEEDBACK
     from hw_bridge.safety import Safety
-    from hw_bridge.session import Bridge, End
+    from hw_bridge.session import RECORD_BYTES, Bridge, End, longest_run, record_memory
     from hw_bridge.udp import Endpoint
 
+    modes = modes if args.drive_modes != "csv" else None
     try:
-        modes = modes if args.drive_modes != "csv" else None
-        loop = BridgeLoop(g, bridge_reference(g, args.trajectory, plan(g, modes, args.rate)[1]), modes, args.rate)
+        codes, rates = plan(g, modes, args.rate)
+    except ValueError as e:
+        raise ParameterError(str(e)) from None
+    rate = cycle_rate(rates, bool((codes == CST).any()))
+    if args.duration is not None and args.duration > longest_run(rate):
+        raise ParameterError(f"--duration: expected at most {longest_run(rate):.6g} s at {rate:g} Hz (a run's record "
+                             f"takes up to {RECORD_BYTES} bytes a cycle, in half of this machine's memory, "
+                             f"{record_memory() / 2**30:.3g} GiB), got {args.duration:g}")
+    try:
+        loop = BridgeLoop(g, bridge_reference(g, args.trajectory, rates), modes, args.rate)
     except ValueError as e:
         raise ParameterError(str(e)) from None
     if address is None:
@@ -239,6 +249,8 @@ def bridge_figure(run, report: dict, path) -> None:
 
 
 def run_sim_robot(args) -> int:
+    import math
+
     from pusupu_jax import gains
     from pusupu_jax.config import apply_xla_workaround, setup_jax
 
@@ -254,14 +266,18 @@ def run_sim_robot(args) -> int:
         _warn_beyond_loopback("--listen", args.listen, host, "the simulated robot takes commands")
     if not 0.0 < args.drive_watchdog <= 60.0:
         raise ParameterError(f"--drive-watchdog: expected seconds in (0, 60], got {args.drive_watchdog}")
-    g = gains.load(args.gains)
-    setup_jax()
+    if args.kin_error is not None and args.kin_error < 0:
+        raise ParameterError(f"--kin-error: expected a non-negative integer seed, got {args.kin_error}")
+    if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
+        raise ParameterError(f"--seconds: expected a positive number of seconds, got {args.seconds}")
     from hw_bridge.sim_robot import FaultSpec, RobotModel, main_loop
 
     try:
         faults = [FaultSpec.parse(f) for f in args.fault]
     except ValueError as e:
         raise ParameterError(str(e)) from None
+    g = gains.load(args.gains)
+    setup_jax()
     from hw_bridge.loop import plan
 
     try:

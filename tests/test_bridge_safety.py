@@ -6,6 +6,7 @@ simulated robot's controller (:class:`~hw_bridge.sim_robot.SimRobot`) is tested 
 Every packet goes through the real protocol.
 """
 
+import contextlib
 import json
 import os
 import signal
@@ -50,6 +51,21 @@ def setup(tmp_path_factory):
     g = gains.load(path)
     loop = BridgeLoop(g, bridge_reference(g, "arc", plan(g, None, RATE)[1]), rate=RATE)
     return Setup(path, loop, limits_for(g.servo))
+
+
+@contextlib.contextmanager
+def _time_limit(seconds: int):
+    """The block ends in TimeoutError after ``seconds`` (for what runs in this process and could hang if it regressed)."""
+    def expire(signum, frame):
+        raise TimeoutError(f"more than {seconds} s")
+
+    before = signal.signal(signal.SIGALRM, expire)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, before)
 
 
 def _resized(fb: protocol.Feedback, n: int) -> protocol.Feedback:
@@ -482,3 +498,39 @@ def test_the_simulated_robot_says_so_when_it_listens_beyond_loopback(setup, monk
     with pytest.raises(SystemExit):
         main(["sim-robot", "--gains", str(setup.path), "--listen", "udp://localhost:5600", "--drive-watchdog", "0"])
     assert not capsys.readouterr().err.startswith("pusupu: warning:")
+
+
+# ---------------------------------------------------------------- bounds on the work a command line asks for
+
+BEYOND = [
+    (["bridge", "--rate", "0.001"], "rate: expected a number of Hz in [1, 4000], got 0.001"),
+    (["bridge", "--rate", "2e4"], "rate: expected a number of Hz in [1, 4000], got 20000.0"),
+    (["bridge", "--duration", "1e9"], "--duration: expected at most "),
+    (["sim-robot", "--kin-error", "-1"], "--kin-error: expected a non-negative integer seed, got -1"),
+    (["sim-robot", "--seconds", "nan"], "--seconds: expected a positive number of seconds, got nan"),
+    (["sim-robot", "--rate", "0.001"], "rate: expected a number of Hz in [1, 4000], got 0.001"),
+    (["sim-robot", "--fault", "reorder@0.3:1e18"],
+     "--fault reorder@0.3:1e18: expected ARG a whole number of replies in [1, 1000], got 1e18"),
+    (["sim-robot", "--fault", "drop@0.3:2"], "--fault drop@0.3:2: expected ARG a probability in [0, 1], got 2"),
+]
+
+
+@pytest.mark.parametrize("argv,expected", BEYOND, ids=[" ".join(argv) for argv, _ in BEYOND])
+def test_numbers_beyond_their_bounds_are_refused_in_one_line(setup, monkeypatch, capsys, argv, expected):
+    """``pusupu bridge`` and ``pusupu sim-robot`` (their ``main``, in this process, with a time limit): a rate below
+    1 Hz or above 4 kHz, a run whose record would not fit in half of the memory (``--duration 1e9`` asked for
+    terabytes), a negative seed, a non-finite time, an unbounded or impossible fault argument: one line on stderr
+    naming what was expected and what was found, exit 2, nothing sent or bound."""
+    from pusupu_cli.cli import main
+
+    monkeypatch.setenv("PUSUPU_XLA_WORKAROUND", "0")  # this process's XLA flags are set already
+    command, *options = argv
+    where = ["--robot", "udp://127.0.0.1:9"] if command == "bridge" else []
+    with _time_limit(120), pytest.raises(SystemExit) as e:
+        main([command, "--gains", str(setup.path), *where, "--no-realtime", *options])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1 and err.startswith("pusupu: error: ") and expected in err, err
+    if command == "bridge" and "--duration" in options:  # the limit, for the rate of the gain file: 1 kHz
+        from hw_bridge.session import longest_run
+
+        assert f"expected at most {longest_run(1000.0):.6g} s at 1000 Hz" in err and "got 1e+09" in err, err
