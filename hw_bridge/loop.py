@@ -78,8 +78,8 @@ def cycle_rate(rates: LoopRates, cst: bool) -> float:
 
 
 def bridge_rates(rates: LoopRates, cst: bool, rate: float | None) -> LoopRates:
-    """The gain file's ``rates`` scaled so that the bridge's cycle (position loop, or velocity loop with CST) is ``rate``
-    (default the gain file's own), which must be in [:data:`MIN_RATE`, :data:`MAX_RATE`]."""
+    """The gain file's ``rates`` scaled so that the bridge's cycle (position loop, or velocity loop with CST) is
+    ``rate`` (default the gain file's own), which must be in [:data:`MIN_RATE`, :data:`MAX_RATE`]."""
     cycle = cycle_rate(rates, cst)
     if rate is None:
         rate = cycle

@@ -121,7 +121,7 @@ def encode_command(c: Command) -> bytes:
 def encode_feedback(f: Feedback) -> bytes:
     n = len(f.position)
     payload = _payload(VERSION, FEEDBACK, n).pack(*_interleave(f.statusword, f.mode, np.zeros(n, int), f.position,
-                                                      f.velocity, f.torque), *np.asarray(f.platform).tolist())
+                                                               f.velocity, f.torque), *np.asarray(f.platform).tolist())
     return _pack(FEEDBACK, f.sequence, f.timestamp_ns, f.ack, n, payload)
 
 

@@ -4,16 +4,17 @@ The one module of ``hw_bridge`` that imports the mechanism (MuJoCo MJX); the bri
 imports it.  ``pusupu sim-robot --listen udp://127.0.0.1:PORT`` runs it.
 
 Each valid command from the bridge goes to the six drives' CiA 402 state machines, and a drive
-faults, as a CiA 402 drive does, on a mode of operation it does not have (it has CSV and CST) or
-a target that is not finite or beyond its limit (:func:`~hw_bridge.safety.command_limits`); a
-faulted drive applies no torque.  While all six are 'operation enabled' the machine advances one bridge period under the command (CSV: each
-drive's velocity loop follows the speed target; CST: its current loop follows the torque
-target), with the same drive-side functions the simulator scans (:func:`pusupu_jax.sim.pieces`,
-:func:`pusupu_jax.cascade.velocity_tick`).  Then the robot replies with the actual values.  In
-'quick stop active' the drives stop the machine with their own velocity loops (speed zero);
-in any other state the brakes hold it (the mechanism does not move).  The machine runs one
-period per command, so it keeps the bridge's real-time rate; if commands stop for
-``watchdog_s`` while enabled, the drives fault (their own sync watchdog) and the brakes engage.
+faults, as a CiA 402 drive does, on a mode of operation it does not have (it has CSV and CST) or a
+target that is not finite or beyond its limit (:func:`~hw_bridge.safety.command_limits`); a
+faulted drive applies no torque.  While all six are 'operation enabled' the machine advances one
+bridge period under the command (CSV: each drive's velocity loop follows the speed target; CST:
+its current loop follows the torque target), with the same drive-side functions the simulator
+scans (:func:`pusupu_jax.sim.pieces`, :func:`pusupu_jax.cascade.velocity_tick`).  Then the robot
+replies with the actual values.  In 'quick stop active' the drives stop the machine with their own
+velocity loops (speed zero); in any other state the brakes hold it (the mechanism does not
+move).  The machine runs one period per command, so it keeps the bridge's real-time rate; if
+commands stop for ``watchdog_s`` while enabled, the drives fault (their own sync watchdog) and the
+brakes engage.
 
 A new session starts when the drives are brought up again from 'switch on disabled': the
 machine is then at rest at home, held by its drives, and the next fault of the schedule arms.

@@ -1,9 +1,10 @@
-"""The bridge and the simulated robot under fault injection: what each side refuses, and how every way out of a run ends.
+"""The bridge and the simulated robot under fault injection: what each side refuses, how every way out of a run ends.
 
-The bridge runs in this process, in lock step (``Bridge(lockstep_s=...)``: the results do not depend on how loaded the
-machine is), against :class:`WireRobot`, a robot on a real loopback socket that keeps every command reaching it; the
-simulated robot's controller (:class:`~hw_bridge.sim_robot.SimRobot`) is tested alone, and behind its own UDP server.
-Every packet goes through the real protocol.
+The bridge runs against :class:`WireRobot`, a robot on a real loopback socket that keeps every command reaching it: in
+this process and in lock step (``Bridge(lockstep_s=...)``: the results do not depend on how loaded the machine is), or
+as ``pusupu bridge`` processes for their signals and exit status.  The simulated robot's controller
+(:class:`~hw_bridge.sim_robot.SimRobot`) is tested alone, and behind its own UDP server; the command lines' checks run
+their ``main`` in this process.  Every packet goes through the real protocol.
 """
 
 import contextlib
@@ -46,7 +47,7 @@ class Setup:
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
-    """Table 1's gains in IMC, every drive CSV, rates scaled to a 500 Hz position loop; the bridge's loops on the arc."""
+    """Table 1's gains in IMC, all drives CSV, rates scaled to a 500 Hz position loop; the bridge's loops on the arc."""
     path = gains.write(tmp_path_factory.mktemp("safety") / "imc.yaml", SERVO, HybridGains(), LoopRates(), mode="imc")
     g = gains.load(path)
     loop = BridgeLoop(g, bridge_reference(g, "arc", plan(g, None, RATE)[1]), rate=RATE)
@@ -55,7 +56,7 @@ def setup(tmp_path_factory):
 
 @contextlib.contextmanager
 def _time_limit(seconds: int):
-    """The block ends in TimeoutError after ``seconds`` (for what runs in this process and could hang if it regressed)."""
+    """The block ends in TimeoutError after ``seconds`` (what runs in this process would hang if it regressed)."""
     def expire(signum, frame):
         raise TimeoutError(f"more than {seconds} s")
 
@@ -282,7 +283,7 @@ def test_the_endpoint_takes_feedback_from_the_robots_address_and_port_alone():
 
 
 def test_feedback_from_another_port_is_refused_and_the_run_stops_safely(setup):
-    """An impostor: from mid-run the robot's replies come from another port (valid packets, answering the commands): each
+    """An impostor: from mid-run the robot's replies come from another port (valid packets answering the commands): each
     is refused and counted ("sender"), the feedback goes stale, and the bridge stops the machine: quick stop, then
     disable voltage, on the wire; no command outside the limits."""
     robot = WireRobot(_from(50, lambda robot, fb: [(protocol.encode_feedback(fb), robot.foreign)]))
@@ -376,14 +377,15 @@ def _signal_at(enabled: int, sig):
     return act
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=lambda s: s.name)
 def test_a_signal_mid_run_ends_in_the_stop_and_the_run_puts_the_handlers_back(setup, sig):
     """SIGINT or SIGTERM at the robot's tenth enabled command: the run stops at the next cycle, quick stop then disable
     voltage on the wire, its record says the signal ended it (no fault), and the signal handlers of before are back."""
     before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     robot = WireRobot(_signal_at(10, sig))
     run = _bridge_run(setup, robot)
-    assert run.ended == sig.name and not run.faults and not run.completed
+    rep = run.report()
+    assert rep["ended"] == sig.name and not rep["faults"] and not rep["completed"], rep
     assert {s: signal.getsignal(s) for s in before} == before
     assert 10 <= robot.enabled <= 11  # the next cycle stopped
     _ended_safe(robot, setup.limits)
@@ -472,7 +474,7 @@ def test_an_axis_that_stops_following_its_path_trips_the_following_error_and_a_c
     assert [f.kind for f in run.faults] == ["following error"] and run.faults[0].detail.startswith("axis 1 "), \
         run.report()["faults"]
     enabled = next(k for k, word, _ in run.commands if word == cia402.ENABLE_OPERATION)
-    stuck = enabled + 50  # the robot's 50th enabled command is the bridge's of cycle enabled + 49, answered in lock step
+    stuck = enabled + 50  # the robot's 50th enabled command: the bridge's of cycle enabled + 49, answered in lock step
     assert stuck + 26 <= run.faults[0].cycle <= stuck + 26 + 3, (run.faults[0].line(), enabled)  # late replies: later
     assert run.report()["ended"] == "fault"
     _ended_safe(robot, lim)
@@ -483,6 +485,8 @@ def test_an_axis_that_stops_following_its_path_trips_the_following_error_and_a_c
     assert max(rep["branch_max_error_mm"]) < 0.1 * 1e3 * min(lim.following_error)
     _ended_safe(clean, lim)
 
+
+# ---------------------------------------------------------------- an address beyond loopback is said
 
 def test_the_simulated_robot_says_so_when_it_listens_beyond_loopback(setup, monkeypatch, capsys):
     """``pusupu sim-robot --listen udp://0.0.0.0:PORT`` (its ``main``, in this process): one line on stderr as soon as
