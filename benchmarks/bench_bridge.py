@@ -91,7 +91,7 @@ def main() -> None:
         try:
             for _ in range(args.runs):
                 if args.transport == "udp":
-                    ep = Endpoint(FEEDBACK, peer=("127.0.0.1", port))
+                    ep = Endpoint(FEEDBACK, n_axes=len(loop.drive_modes), peer=("127.0.0.1", port))
                 else:
                     ep = CanLink(open_bus(url), loop.drive_modes, np.asarray(g.servo.Kt * g.servo.I_max))
                 probe = PauseProbe() if args.pause_probe else None

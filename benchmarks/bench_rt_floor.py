@@ -52,7 +52,7 @@ from hw_bridge import protocol
 from hw_bridge.udp import Endpoint
 cpus = sorted(os.sched_getaffinity(0))
 os.sched_setaffinity(0, {cpus[0]})
-ep = Endpoint(protocol.COMMAND)
+ep = Endpoint(protocol.COMMAND, n_axes=6)
 print(ep.address[1], flush=True)
 n, seq, end = 6, 0, time.monotonic() + float(sys.argv[1])
 while time.monotonic() < end:
@@ -159,7 +159,7 @@ def main() -> None:
     part_names = ("poll", "check_feedback", "step", "limit_command", "send")
     total = len(stages) * args.rounds * args.seconds + 30  # s: the echo's own limit, past every stage
     echo = subprocess.Popen([sys.executable, "-c", ECHO, str(total)], stdout=subprocess.PIPE, text=True)
-    ep = Endpoint(protocol.FEEDBACK, peer=("127.0.0.1", int(echo.stdout.readline())))
+    ep = Endpoint(protocol.FEEDBACK, n_axes=n, peer=("127.0.0.1", int(echo.stdout.readline())))
     rt = realtime_setup()
     runner = CycleRunner(args.rate)
     runs = {name: [] for name in stages}

@@ -35,6 +35,7 @@ from collections import Counter
 import numpy as np
 
 from . import protocol
+from .udp import Refusal
 
 COUNTS_PER_RAD = 2**20 / (2 * math.pi)  # increments per motor radian (20-bit encoder)
 N_AXES = 6
@@ -118,6 +119,7 @@ class CanLink:
 
         self.network = canopen.Network(bus)
         self.network.notifier = can.Notifier(bus, self.network.listeners, 0.1)
+        self._can_error = can.CanError
         self.nodes = []
         self.rejected: Counter = Counter()
         self._sequence = 0
@@ -173,17 +175,21 @@ class CanLink:
             self._count[k] += 1
 
     def send_command(self, cmd: protocol.Command) -> None:
-        """One RPDO per drive, then SYNC."""
+        """One RPDO per drive, then SYNC; a frame the bus does not take ends the command's frames and is counted
+        (``rejected['send failed']``), as a UDP endpoint counts a failed send."""
         velocity = np.round(np.where(self.modes == protocol.CSV, cmd.target, 0.0) * COUNTS_PER_RAD)
         torque = np.round(np.where(self.modes == protocol.CST, cmd.target, 0.0) / self.rated * 1000.0)
-        for k, node in enumerate(self.nodes):
-            m = node.rpdo[1]
-            m["Controlword"].raw = int(cmd.controlword[k])
-            m["Target velocity"].raw = int(np.clip(velocity[k], -2**31, 2**31 - 1))
-            m["Target torque"].raw = int(np.clip(torque[k], -2**15, 2**15 - 1))
-            m.transmit()
-        self._sent = cmd.sequence
-        self.network.sync.transmit(cmd.sequence % SYNC_OVERFLOW + 1)
+        try:
+            for k, node in enumerate(self.nodes):
+                m = node.rpdo[1]
+                m["Controlword"].raw = int(cmd.controlword[k])
+                m["Target velocity"].raw = int(np.clip(velocity[k], -2**31, 2**31 - 1))
+                m["Target torque"].raw = int(np.clip(torque[k], -2**15, 2**15 - 1))
+                m.transmit()
+            self._sent = cmd.sequence
+            self.network.sync.transmit(cmd.sequence % SYNC_OVERFLOW + 1)
+        except self._can_error:  # a full transmit queue, a bus-off controller
+            self.rejected[Refusal.SEND_FAILED] += 1
 
     def _acknowledged(self, echo: int) -> int:
         """The command sequence whose SYNC carried counter ``echo``: the latest sent with that counter (0: unknown)."""

@@ -39,7 +39,7 @@ from .compiled import FlatStep, cpu
 from .protocol import CSV, CST
 
 DRIVE_MODES = {"csv": CSV, "cst": CST}
-MAX_RATE = 4000.0  # Hz
+MIN_RATE, MAX_RATE = 1.0, 4000.0  # Hz: the bridge's cycle rates
 TAKEOVER_SPEED = 0.25  # of the velocity limit: the speed of the ramp from where the machine stands to the path
 
 
@@ -72,13 +72,19 @@ class BridgeReference:
                 object.__setattr__(self, name, v)
 
 
+def cycle_rate(rates: LoopRates, cst: bool) -> float:
+    """The bridge's cycle rate [Hz] at ``rates``: its position loop's, or with CST axes its velocity loop's."""
+    return rates.f_current / rates.n_velocity / (1 if cst else rates.n_position)
+
+
 def bridge_rates(rates: LoopRates, cst: bool, rate: float | None) -> LoopRates:
-    """The gain file's ``rates`` scaled so that the bridge's cycle (position loop, or velocity loop with CST) is ``rate``."""
-    cycle = rates.f_current / rates.n_velocity / (1 if cst else rates.n_position)
+    """The gain file's ``rates`` scaled so that the bridge's cycle (position loop, or velocity loop with CST) is
+    ``rate`` (default the gain file's own), which must be in [:data:`MIN_RATE`, :data:`MAX_RATE`]."""
+    cycle = cycle_rate(rates, cst)
     if rate is None:
         rate = cycle
-    if not (isinstance(rate, (int, float)) and 0 < rate <= MAX_RATE):
-        raise ValueError(f"rate: expected a number of Hz in (0, {MAX_RATE:g}], got {rate!r}")
+    if not (isinstance(rate, (int, float)) and MIN_RATE <= rate <= MAX_RATE):
+        raise ValueError(f"rate: expected a number of Hz in [{MIN_RATE:g}, {MAX_RATE:g}], got {rate!r}")
     return dataclasses.replace(rates, f_current=rates.f_current * rate / cycle)
 
 
@@ -137,7 +143,7 @@ class BridgeLoop:
             raise ValueError(f"reference.theta: expected {n} axes, got {reference.theta.shape[1]}")
         self.cst = bool((self.drive_modes == CST).any())
         self.n_position = self.rates.n_position if self.cst else 1
-        self.rate = self.rates.f_current / self.rates.n_velocity / (1 if self.cst else self.rates.n_position)
+        self.rate = cycle_rate(self.rates, self.cst)
         self.gains = gains
         self.reference = reference
         # the path's rows as the steps take them, built once here: start() then computes only the takeover ramp (a

@@ -23,8 +23,12 @@ Feedback payload: per axis (28 bytes) statusword (u16, 0x6041), mode display (i8
 (u8), position (f64, motor angle from home [rad]), velocity (f64, [rad/s]), torque (f64, actual
 motor torque [N m]); then the platform position (3 f64, [m]; NaN when the robot does not know it).
 
-:func:`decode` refuses anything else with a :class:`ProtocolError` whose ``reason`` names the
-check that failed; the receiver counts refusals by reason and drops the packet.
+:data:`LAYOUTS` holds these layouts per version, and a packet is decoded only when its length is
+its version's for its kind and axis count, to the byte, and its axis count is the session's (the
+receiver's ``n_axes``): a later version that carries more signals (measured currents, say) gets
+its own row and leaves version 1's checks as they are.  :func:`decode` refuses anything else with
+a :class:`ProtocolError` whose ``reason`` names the check that failed; the receiver counts
+refusals by reason and drops the packet.
 """
 
 from __future__ import annotations
@@ -45,13 +49,16 @@ CSV, CST = 9, 10  # CiA 402 modes of operation (object 0x6060)
 
 _HEADER = struct.Struct("<4sBBBBIqIH")
 _CRC = struct.Struct("<I")
-_AXIS = {COMMAND: "HbBd", FEEDBACK: "HbBddd"}  # per axis: word, mode, pad, then the f64 fields
-_PLATFORM = "3d"
+# per version and kind: the struct codes (one per value) of one axis's fields, then of the fields after the axes.
+# Version 1's fields keep their places in a later version (which may append to an axis or to the tail), so the decoder
+# reads them there
+LAYOUTS = {1: {COMMAND: ("HbBd", ""),  # controlword, mode, pad, target
+               FEEDBACK: ("HbBddd", "3d")}}  # statusword, mode, pad, position, velocity, torque; the platform
 REASONS = ("size", "magic", "version", "kind", "axes", "length", "crc")
 
 
 class ProtocolError(ValueError):
-    """A packet that is not a valid version-1 packet; ``reason`` is one of :data:`REASONS`."""
+    """A packet that is not a valid packet of a version in :data:`LAYOUTS`; ``reason`` is one of :data:`REASONS`."""
 
     def __init__(self, reason: str, detail: str):
         super().__init__(f"{reason}: {detail}")
@@ -92,11 +99,12 @@ def _pack(kind: int, sequence: int, timestamp_ns: int, ack: int, n_axes: int, pa
     return body + _CRC.pack(zlib.crc32(body))
 
 
-@functools.lru_cache(maxsize=2 * MAX_AXES)
-def _payload(kind: int, n: int) -> struct.Struct:
-    """The payload layout of a ``kind`` packet of ``n`` axes (one ``struct`` call packs or unpacks it whole:
-    a numpy structured array costs several times more per field at kilohertz rates)."""
-    return struct.Struct("<" + _AXIS[kind] * n + (_PLATFORM if kind == FEEDBACK else ""))
+@functools.lru_cache(maxsize=2 * MAX_AXES * len(LAYOUTS))
+def _payload(version: int, kind: int, n: int) -> struct.Struct:
+    """The payload layout of a ``kind`` packet of ``n`` axes in ``version`` (one ``struct`` call packs or unpacks it
+    whole: a numpy structured array costs several times more per field at kilohertz rates)."""
+    axis, tail = LAYOUTS[version][kind]
+    return struct.Struct("<" + axis * n + tail)
 
 
 def _interleave(*columns) -> list:
@@ -106,31 +114,33 @@ def _interleave(*columns) -> list:
 
 def encode_command(c: Command) -> bytes:
     n = len(c.target)
-    payload = _payload(COMMAND, n).pack(*_interleave(c.controlword, c.mode, np.zeros(n, int), c.target))
+    payload = _payload(VERSION, COMMAND, n).pack(*_interleave(c.controlword, c.mode, np.zeros(n, int), c.target))
     return _pack(COMMAND, c.sequence, c.timestamp_ns, c.ack, n, payload)
 
 
 def encode_feedback(f: Feedback) -> bytes:
     n = len(f.position)
-    payload = _payload(FEEDBACK, n).pack(*_interleave(f.statusword, f.mode, np.zeros(n, int), f.position,
-                                                      f.velocity, f.torque), *np.asarray(f.platform).tolist())
+    payload = _payload(VERSION, FEEDBACK, n).pack(*_interleave(f.statusword, f.mode, np.zeros(n, int), f.position,
+                                                               f.velocity, f.torque), *np.asarray(f.platform).tolist())
     return _pack(FEEDBACK, f.sequence, f.timestamp_ns, f.ack, n, payload)
 
 
-def decode(data: bytes, kind: int | None = None) -> Command | Feedback:
-    """The packet in ``data`` (of ``kind`` if given); :class:`ProtocolError` for anything malformed."""
+def decode(data: bytes, kind: int | None = None, n_axes: int | None = None) -> Command | Feedback:
+    """The packet in ``data`` (of ``kind`` and ``n_axes`` axes, the session's, if given); :class:`ProtocolError` for
+    anything malformed or of another axis count."""
     if not (_HEADER.size + _CRC.size <= len(data) <= MAX_PACKET):
         raise ProtocolError("size", f"expected {_HEADER.size + _CRC.size}..{MAX_PACKET} bytes, got {len(data)}")
     magic, version, k, n, _, seq, stamp, ack, length = _HEADER.unpack_from(data)
     if magic != MAGIC:
         raise ProtocolError("magic", f"expected {MAGIC!r}, got {magic!r}")
-    if version != VERSION:
-        raise ProtocolError("version", f"expected {VERSION}, got {version}")
+    if version not in LAYOUTS:
+        raise ProtocolError("version", f"expected one of {sorted(LAYOUTS)}, got {version}")
     if k not in (COMMAND, FEEDBACK) or (kind is not None and k != kind):
         raise ProtocolError("kind", f"expected {kind or (COMMAND, FEEDBACK)}, got {k}")
-    if not 1 <= n <= MAX_AXES:
-        raise ProtocolError("axes", f"expected 1..{MAX_AXES} axes, got {n}")
-    layout = _payload(k, n)
+    if not 1 <= n <= MAX_AXES or (n_axes is not None and n != n_axes):
+        wanted = f"1..{MAX_AXES} axes" if n_axes is None else f"{n_axes} axes (the session's)"
+        raise ProtocolError("axes", f"expected {wanted}, got {n}")
+    layout = _payload(version, k, n)
     expected = layout.size
     if length != expected or len(data) != _HEADER.size + length + _CRC.size:
         raise ProtocolError("length", f"expected a payload of {expected} bytes in a packet of "
@@ -139,13 +149,14 @@ def decode(data: bytes, kind: int | None = None) -> Command | Feedback:
     if crc != zlib.crc32(data[:-_CRC.size]):
         raise ProtocolError("crc", "the CRC-32 does not match the packet")
     v = layout.unpack_from(data, _HEADER.size)
+    step = len(LAYOUTS[version][k][0])  # values per axis
     if k == COMMAND:
-        return Command(seq, stamp, ack, np.array(v[0::4], np.uint16), np.array(v[1::4], np.int8),
-                       np.array(v[3::4], float))
-    end = 6 * n
-    return Feedback(seq, stamp, ack, np.array(v[0:end:6], np.uint16), np.array(v[1:end:6], np.int8),
-                    np.array(v[3:end:6], float), np.array(v[4:end:6], float), np.array(v[5:end:6], float),
-                    np.array(v[end:], float))
+        return Command(seq, stamp, ack, np.array(v[0::step], np.uint16), np.array(v[1::step], np.int8),
+                       np.array(v[3::step], float))
+    end = step * n
+    return Feedback(seq, stamp, ack, np.array(v[0:end:step], np.uint16), np.array(v[1:end:step], np.int8),
+                    np.array(v[3:end:step], float), np.array(v[4:end:step], float), np.array(v[5:end:step], float),
+                    np.array(v[end:end + 3], float))
 
 
 def newer(sequence: int, last: int | None) -> bool:

@@ -1,9 +1,10 @@
-"""Limits, guards, the feedback watchdog and the fault log of the bridge (host-side, plain numpy).
+"""Limits, guards, the feedback watchdog, the following error and the fault log of the bridge (host-side, plain numpy).
 
-Every feedback sample passes :meth:`Safety.check_feedback` and every command
-:meth:`Safety.limit_command` before it is sent, so no command outside the limits ever leaves
-the bridge: targets are clamped, and a non-finite target is a fault (the command sent is then
-the safe one, zero).  A fault latches: the bridge sends CiA 402 quick stop, then disable voltage.
+Every feedback sample passes :meth:`Safety.check_feedback` and :meth:`Safety.check_following`,
+and every command :meth:`Safety.limit_command` before it is sent, so no command outside the
+limits ever leaves the bridge: targets are clamped, and a non-finite target is a fault (the
+command sent is then the safe one, zero).  A fault latches: the bridge sends CiA 402 quick stop,
+then disable voltage.
 """
 
 from __future__ import annotations
@@ -15,37 +16,52 @@ import numpy as np
 from .protocol import CSV
 
 
+def command_limits(servo) -> tuple[np.ndarray, np.ndarray]:
+    """The largest speed [rad/s] and torque [N m] target of each axis, ``V_max/Ke`` and ``Kt I_max``: what the bridge
+    clamps its targets to, and what a drive takes."""
+    return np.asarray(servo.V_max / servo.Ke, dtype=float), np.asarray(servo.Kt * servo.I_max, dtype=float)
+
+
 @dataclass(frozen=True)
 class Limits:
     """Per-axis limits, arrays ``(n_axes,)``, motor side.
 
     ``position_min``/``position_max`` [rad from home]: the strokes; ``velocity`` [rad/s]: the largest
-    speed command; ``torque`` [N m]: the largest torque command (``Kt I_max``); ``feedback_margin``:
-    measured speeds and torques beyond ``margin`` times their limit are faults (a broken encoder or
-    a corrupted packet, not a motion).
+    speed command; ``torque`` [N m]: the largest torque command (``Kt I_max``); ``following_error``
+    [m of slider travel] and ``following_error_time`` [s]: the following-error window and time-out
+    (CiA 402 objects 0x6065, 0x6066); ``screw`` [m of slider travel per rad of motor angle]: the
+    screw ratio ``lead/2 pi``; ``feedback_margin``: measured speeds and torques beyond ``margin``
+    times their limit are faults (a broken encoder or a corrupted packet, not a motion).
     """
 
     position_min: np.ndarray
     position_max: np.ndarray
     velocity: np.ndarray
     torque: np.ndarray
+    following_error: np.ndarray
+    following_error_time: np.ndarray
+    screw: np.ndarray
     feedback_margin: float = 2.0
 
     def __post_init__(self):
-        for name in ("position_min", "position_max", "velocity", "torque"):
+        for name in ("position_min", "position_max", "velocity", "torque", "following_error", "following_error_time",
+                     "screw"):
             v = np.asarray(getattr(self, name), dtype=float)
             if v.ndim != 1 or np.isnan(v).any():
                 raise ValueError(f"limits.{name}: expected one number per axis, got {v}")
             object.__setattr__(self, name, v)
         if not (np.all(self.position_min < self.position_max) and np.all(self.velocity > 0)
-                and np.all(self.torque > 0)):
-            raise ValueError("limits: expected position_min < position_max and positive velocity and torque limits")
+                and np.all(self.torque > 0) and np.all(self.following_error > 0)
+                and np.all(self.following_error_time >= 0) and np.all(self.screw > 0)):
+            raise ValueError("limits: expected position_min < position_max, positive velocity, torque, following-error "
+                             "and screw values and a following-error time of at least 0")
 
 
 @dataclass
 class Fault:
     cycle: int
-    kind: str  # 'feedback stale', 'feedback invalid', 'position limit', 'command invalid', 'deadline', 'drive fault'
+    kind: str  # 'feedback stale', 'feedback invalid', 'position limit', 'following error', 'command invalid',
+    # 'deadline', 'drive fault', 'internal error'
     detail: str
 
     def line(self) -> str:
@@ -66,6 +82,8 @@ class Safety:
         self._low = np.concatenate([lim.position_min, -m * lim.velocity, -m * lim.torque])
         self._high = np.concatenate([lim.position_max, m * lim.velocity, m * lim.torque])
         self._bound = {}  # drive modes (bytes) -> the command bound of each axis
+        self._window = lim.following_error / lim.screw  # rad of motor angle
+        self._beyond_since = np.full(len(lim.screw), np.inf)  # s: since when each axis is beyond its window (inf: not)
 
     @property
     def tripped(self) -> bool:
@@ -95,6 +113,24 @@ class Safety:
             k = int(np.argmin(inside[:n]))  # the first axis outside its stroke
             self.fault(cycle, "position limit", f"axis {k + 1} at {position[k]:.4g} rad, outside "
                                                 f"[{lim.position_min[k]:.4g}, {lim.position_max[k]:.4g}]")
+        return False
+
+    def check_following(self, cycle: int, t: float, reference, position) -> bool:
+        """True unless an axis's position error ``reference - position`` [rad of motor angle] has stayed beyond its
+        following-error window for longer than its time-out (CiA 402 0x6065, 0x6066); ``t`` [s]: the cycle's time in
+        the run.  Called once per cycle of a run, whose first call starts it."""
+        lim = self.limits
+        error = reference - position
+        beyond = np.abs(error) > self._window
+        self._beyond_since = np.where(beyond, np.minimum(self._beyond_since, t), np.inf)
+        late = t - self._beyond_since > lim.following_error_time
+        if not late.any():
+            return True
+        k = int(np.argmax(late))
+        self.fault(cycle, "following error", f"axis {k + 1} {error[k] * lim.screw[k] * 1e3:.3g} mm of slider travel "
+                                             f"from its reference, beyond its {lim.following_error[k] * 1e3:.3g} mm "
+                                             f"window for {(t - self._beyond_since[k]) * 1e3:.0f} ms (time-out "
+                                             f"{lim.following_error_time[k] * 1e3:.0f} ms)")
         return False
 
     def limit_command(self, cycle: int, modes, target) -> np.ndarray:

@@ -3,15 +3,18 @@
 The one module of ``hw_bridge`` that imports the mechanism (MuJoCo MJX); the bridge never
 imports it.  ``pusupu sim-robot --listen udp://127.0.0.1:PORT`` runs it.
 
-Each valid command from the bridge goes to the six drives' CiA 402 state machines; while they
-are 'operation enabled' the machine advances one bridge period under the command (CSV: each
-drive's velocity loop follows the speed target; CST: its current loop follows the torque
-target), with the same drive-side functions the simulator scans (:func:`pusupu_jax.sim.pieces`,
-:func:`pusupu_jax.cascade.velocity_tick`).  Then the robot replies with the actual values.  In
-'quick stop active' the drives stop the machine with their own velocity loops (speed zero);
-in any other state the brakes hold it (the mechanism does not move).  The machine runs one
-period per command, so it keeps the bridge's real-time rate; if commands stop for
-``watchdog_s`` while enabled, the drives fault (their own sync watchdog) and the brakes engage.
+Each valid command from the bridge goes to the six drives' CiA 402 state machines, and a drive
+faults, as a CiA 402 drive does, on a mode of operation it does not have (it has CSV and CST) or a
+target that is not finite or beyond its limit (:func:`~hw_bridge.safety.command_limits`); a
+faulted drive applies no torque.  While all six are 'operation enabled' the machine advances one
+bridge period under the command (CSV: each drive's velocity loop follows the speed target; CST:
+its current loop follows the torque target), with the same drive-side functions the simulator
+scans (:func:`pusupu_jax.sim.pieces`, :func:`pusupu_jax.cascade.velocity_tick`).  Then the robot
+replies with the actual values.  In 'quick stop active' the drives stop the machine with their own
+velocity loops (speed zero); in any other state the brakes hold it (the mechanism does not
+move).  The machine runs one period per command, so it keeps the bridge's real-time rate; if
+commands stop for ``watchdog_s`` while enabled, the drives fault (their own sync watchdog) and the
+brakes engage.
 
 A new session starts when the drives are brought up again from 'switch on disabled': the
 machine is then at rest at home, held by its drives, and the next fault of the schedule arms.
@@ -24,7 +27,8 @@ reverse order in blocks of ARG, default 8), ``corrupt`` (a byte flipped with pro
 ARG, default 1; over CANopen a frame cut short), ``nan`` (NaN positions; not over CANopen, whose
 values are integers), ``range`` (positions ARG rad off, default 1e4: metres of travel),
 ``garbage`` (every reply comes with malformed, truncated, oversized, wrong-version and replayed
-packets; over CANopen, cut-short frames and the previous answer again), ``none``.
+packets; over CANopen, cut-short frames and the previous answer again), ``none``.  ARG's bounds
+are in :data:`ARGS` (at most 60 s of silence or delay, blocks of 1 to 1000 replies).
 """
 
 from __future__ import annotations
@@ -51,9 +55,15 @@ from pusupu_jax.plant.model import ModelOptions, build_model, slide_dofs, slide_
 from . import cia402, protocol
 from .compiled import FlatStep, cpu
 from .runner import realtime_setup, steal_seconds
+from .safety import command_limits
 from .udp import Endpoint
 
 FAULTS = ("none", "stop", "delay", "drop", "reorder", "corrupt", "nan", "range", "garbage")
+# the argument of each fault that takes one: its bounds and what it is (a reorder block, in replies, is a whole number)
+ARGS = {"stop": (0.0, 60.0, "seconds of silence"), "delay": (0.0, 60.0, "seconds of delay"),
+        "drop": (0.0, 1.0, "a probability"), "reorder": (1, 1000, "a whole number of replies"),
+        "corrupt": (0.0, 1.0, "a probability"), "range": (-1e6, 1e6, "rad of motor angle")}
+TARGET_TOLERANCE = 1e-3  # of a limit: a target beyond it by less is taken (CANopen rounds a torque to 1/1000 of rated)
 DEFAULT_ARG = {"stop": 1.0, "delay": 0.02, "drop": 1.0, "reorder": 8, "corrupt": 1.0, "range": 1.0e4}
 
 
@@ -65,15 +75,24 @@ class FaultSpec:
 
     @classmethod
     def parse(cls, text: str) -> "FaultSpec":
-        """``KIND@T[:ARG]`` or ``none``; ValueError naming what was expected."""
+        """``KIND@T[:ARG]`` or ``none``, ``T`` finite and not negative and ``ARG`` within :data:`ARGS` (no ``ARG`` for
+        the kinds that take none); ValueError naming what was expected."""
         kind, _, rest = text.partition("@")
         at, _, arg = rest.partition(":")
         try:
             spec = cls(kind, float(at) if at else 0.0, float(arg) if arg else DEFAULT_ARG.get(kind))
         except ValueError:
             raise ValueError(f"--fault: expected KIND@SECONDS[:ARG] with numbers, got {text!r}") from None
-        if kind not in FAULTS or spec.at < 0 or (spec.arg is not None and not np.isfinite(spec.arg)):
-            raise ValueError(f"--fault: expected KIND@SECONDS[:ARG], KIND one of {FAULTS}, got {text!r}")
+        if kind not in FAULTS or not 0 <= spec.at < np.inf:
+            raise ValueError(f"--fault: expected KIND@SECONDS[:ARG], KIND one of {FAULTS} and SECONDS finite and not "
+                             f"negative, got {text!r}")
+        if kind not in ARGS and arg:
+            raise ValueError(f"--fault {text}: expected no ARG for {kind}, got {arg!r}")
+        if kind in ARGS:
+            low, high, what = ARGS[kind]
+            whole = isinstance(low, int)
+            if not (low <= spec.arg <= high and (not whole or spec.arg == int(spec.arg))):
+                raise ValueError(f"--fault {text}: expected ARG {what} in [{low:g}, {high:g}], got {arg}")
         return spec
 
 
@@ -108,6 +127,7 @@ class RobotModel:
         self.m.dof_armature[self.dofs] = np.asarray(servo.eta * servo.J, dtype=float) / r**2
         self.r, self.force_gain = r, np.asarray(servo.eta, dtype=float) / r
         self.Kt = np.asarray(servo.Kt, dtype=float)
+        self.velocity_limit, self.torque_limit = command_limits(servo)  # rad/s, N m: a drive faults on more
         self.platform = self.m.body("platform").id
 
         def velocity_period(d, state, target, cst_mask, omega):
@@ -206,6 +226,7 @@ class SimRobot:
         before = {d.state for d in self.drives}
         for d, w in zip(self.drives, cmd.controlword):
             d.command(int(w))
+        self._refuse(cmd)
         after = {d.state for d in self.drives}
         if after == {cia402.READY} and before != {cia402.READY} and self.enabled_at is not None:
             self._new_session()  # brought up again after a session that ran
@@ -229,11 +250,28 @@ class SimRobot:
             theta = theta * np.nan
         if self.active("range", now):
             theta = theta + self.fault.arg
+        faulted = np.array([d.state == cia402.FAULT for d in self.drives])
         fb = protocol.Feedback(self.sequence, time.monotonic_ns(), self.applied,
                                np.array([d.statusword for d in self.drives], np.uint16), self.mode, theta, omega,
-                               self.torque, platform)
+                               np.where(faulted, 0.0, self.torque), platform)  # a faulted drive's power stage is off
         self.sequence += 1
         return fb
+
+    def _refuse(self, cmd: protocol.Command) -> None:
+        """Fault each drive whose command a CiA 402 drive would not take: a mode of operation other than CSV and CST, or
+        a target that is not finite or beyond its limit (CSV: ``V_max/Ke`` [rad/s], CST: ``Kt I_max`` [N m]; by more
+        than :data:`TARGET_TOLERANCE` of it)."""
+        mode, target = np.asarray(cmd.mode), np.asarray(cmd.target, dtype=float)
+        known = (mode == protocol.CSV) | (mode == protocol.CST)
+        bound = np.where(mode == protocol.CST, self.model.torque_limit, self.model.velocity_limit)
+        bad = ~known | ~(np.abs(target) <= bound * (1 + TARGET_TOLERANCE))  # NaN is beyond every bound
+        for k in np.flatnonzero(bad):
+            if self.drives[k].state == cia402.FAULT:
+                continue
+            self.drives[k].fault()
+            why = (f"target {target[k]:.6g}, expected a finite number within +-{bound[k]:.6g}" if known[k] else
+                   f"mode of operation {mode[k]}, expected {protocol.CSV} (CSV) or {protocol.CST} (CST)")
+            self.log(f"sim-robot: session {self.session}: drive {k + 1} faulted: {why}")
 
 
 class Stalls:
@@ -451,7 +489,7 @@ def main_loop(model: RobotModel, listen: str, faults, max_s=None, watchdog_s: fl
     else:
         from .udp import parse_url
 
-        ep = Endpoint(protocol.COMMAND, bind=parse_url(listen))
+        ep = Endpoint(protocol.COMMAND, n_axes=len(model.Kt), bind=parse_url(listen))
         server = UdpServer(robot, ep)
         where = "udp://{}:{}".format(*ep.address)
     # the objects of the set-up (JAX, MuJoCo, the compiled steps) leave the collector's view: a full collection

@@ -1,20 +1,32 @@
 """UDP endpoints of the protocol (:mod:`hw_bridge.protocol`): non-blocking sockets, every datagram checked and counted.
 
-:class:`Endpoint` receives packets of one kind and keeps the newest valid one; malformed,
-truncated, oversized, wrong-version and replayed (or reordered: not newer than the last
-accepted from the same peer) packets are dropped and counted by reason.  Nothing a peer sends
-can raise.  The robot's side follows the sender of the last valid command: a bridge restarted
-on a new socket starts a new sequence.
+:class:`Endpoint` receives packets of one kind and of the session's axis count and keeps the
+newest valid one; malformed, truncated, oversized, wrong-version, other-axis-count and replayed
+(or reordered: not newer than the last accepted from the same peer) packets are dropped and
+counted by reason, and so is feedback from any address and port but the robot's.  Nothing a
+peer sends can raise.  The robot's side follows the sender of the last valid command: a bridge
+restarted on a new socket starts a new sequence.
 """
 
 from __future__ import annotations
 
+import enum
+import ipaddress
 import socket
 import time
 from collections import Counter
 from urllib.parse import urlparse
 
 from . import protocol
+
+
+class Refusal(enum.StrEnum):
+    """What an endpoint counts beside the decoder's reasons (:data:`hw_bridge.protocol.REASONS`)."""
+
+    REPLAYED = "replayed"  # not newer than the last packet accepted from the same peer
+    SENDER = "sender"  # feedback from an address or port other than the robot's
+    SOCKET_ERROR = "socket error"  # e.g. ICMP port unreachable reported on the socket
+    SEND_FAILED = "send failed"
 
 
 def parse_url(url: str, scheme: str = "udp") -> tuple[str, int]:
@@ -29,20 +41,35 @@ def parse_url(url: str, scheme: str = "udp") -> tuple[str, int]:
     return u.hostname, port
 
 
+def beyond_loopback(host: str) -> str | None:
+    """Where a socket bound to ``host`` takes packets from, when that is more than this machine: 'every interface
+    (0.0.0.0)' or the address ``host`` resolves to; None for a loopback address.  ``OSError`` when ``host`` does not
+    resolve."""
+    address = socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_DGRAM)[0][4][0]
+    ip = ipaddress.ip_address(address)
+    if ip.is_loopback:
+        return None
+    return f"every interface ({address})" if ip.is_unspecified else f"the interface of {address}"
+
+
 class Endpoint:
-    """A UDP socket that sends packets and receives packets of kind ``kind`` (COMMAND or FEEDBACK).
+    """A UDP socket that sends packets and receives packets of kind ``kind`` (COMMAND or FEEDBACK) with ``n_axes`` axes.
 
     ``bind``: local address (default loopback, a free port); ``peer``: where to send (None: to
-    whoever sent the last valid packet).
+    whoever sent the last valid packet).  Feedback is taken from ``peer`` alone (its address
+    resolved here), or, without one, from the first sender of a valid packet alone; a command
+    from a new sender starts a new sequence (a restarted bridge).
     """
 
-    def __init__(self, kind: int, bind=("127.0.0.1", 0), peer=None):
+    def __init__(self, kind: int, *, n_axes: int, bind=("127.0.0.1", 0), peer=None):
         self.kind = kind
+        self.n_axes = n_axes
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
         self.sock.bind(bind)
         self.sock.setblocking(False)
-        self.peer = peer
+        # as recvfrom names senders: a numeric address (a host name given here would never match one)
+        self.peer = None if peer is None else socket.getaddrinfo(*peer, socket.AF_INET, socket.SOCK_DGRAM)[0][4]
         self.rejected: Counter = Counter()
         self.accepted = 0
         self.last_sequence = None
@@ -57,7 +84,7 @@ class Endpoint:
             try:
                 self.sock.sendto(data, self.peer)
             except OSError:
-                self.rejected["send failed"] += 1
+                self.rejected[Refusal.SEND_FAILED] += 1
 
     def send_command(self, cmd: protocol.Command) -> None:
         self.send(protocol.encode_command(cmd))
@@ -74,21 +101,24 @@ class Endpoint:
                 except (BlockingIOError, socket.timeout):
                     break
                 except OSError:  # e.g. ICMP port unreachable reported on a connected peer
-                    self.rejected["socket error"] += 1
+                    self.rejected[Refusal.SOCKET_ERROR] += 1
                     continue
                 finally:
                     if timeout > 0:
                         self.sock.setblocking(False)
                         timeout = 0.0
+                if self.kind == protocol.FEEDBACK and self.peer is not None and addr != self.peer:
+                    self.rejected[Refusal.SENDER] += 1  # not decoded: only the robot's bytes are
+                    continue
                 try:
-                    packet = protocol.decode(data, self.kind)
+                    packet = protocol.decode(data, self.kind, self.n_axes)
                 except protocol.ProtocolError as e:
                     self.rejected[e.reason] += 1
                     continue
                 if self.kind == protocol.COMMAND and addr != self.peer:
                     self.last_sequence = None  # a new bridge (a new socket): its own sequence, from wherever it starts
                 if not protocol.newer(packet.sequence, self.last_sequence):
-                    self.rejected["replayed"] += 1
+                    self.rejected[Refusal.REPLAYED] += 1
                     continue
                 self.last_sequence = packet.sequence
                 self.accepted += 1

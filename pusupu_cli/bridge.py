@@ -15,17 +15,19 @@ def add_parsers(sub) -> None:
     b.add_argument("--robot", metavar="URL", required=True,
                    help="udp://HOST:PORT of a robot controller, or can://INTERFACE/CHANNEL of a CANopen bus with CiA "
                         "402 drives at node IDs 1-6 (python-can interfaces) (pusupu sim-robot for a simulated one)")
-    b.add_argument("--rate", type=float, metavar="HZ", help="cycle rate, up to 4000 (default: the gain file's rate "
+    b.add_argument("--rate", type=float, metavar="HZ", help="cycle rate, 1 to 4000 (default: the gain file's rate "
                                                              "of the fastest loop the bridge closes: 1000 in CSV, "
                                                              "4000 with CST axes)")
-    b.add_argument("--duration", type=float, metavar="S", help="seconds of the path (default all of it)")
+    b.add_argument("--duration", type=float, metavar="S", help="seconds of the path (default all of it; at most what "
+                                                                 "half of the memory holds of the run's record)")
     b.add_argument("--trajectory", choices=("arc", "p2p"), default="arc", help="default arc")
     b.add_argument("--drive-modes", metavar="M[,M...]", default="csv",
                    help="csv or cst, one for all axes or six comma-separated; hybrid mode always runs branch 6 in "
                         "cst (default csv)")
     b.add_argument("--watchdog", type=int, default=5, metavar="N", help="cycles without fresh feedback before a "
                                                                          "safe stop (default 5)")
-    b.add_argument("--bind", metavar="HOST", default="127.0.0.1", help="local address (default loopback)")
+    b.add_argument("--bind", metavar="HOST", default="127.0.0.1",
+                   help="local address (default loopback; another is said on stderr)")
     b.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO, mlockall or CPU affinity")
     b.add_argument("--json", action="store_true", help="print the report as JSON")
     b.add_argument("--plot", metavar="PNG", help="write the latency histogram and the tracking trace")
@@ -65,6 +67,20 @@ def _robot_url(url: str):
         raise ParameterError(f"--robot: {e}") from None
 
 
+def _warn_beyond_loopback(option: str, value: str, host: str, what: str) -> None:
+    """One line on stderr when ``host`` (of ``option``'s ``value``) is not a loopback address: ``what`` then takes
+    packets from the network."""
+    from hw_bridge.udp import beyond_loopback
+
+    try:
+        where = beyond_loopback(host)
+    except OSError as e:
+        raise ParameterError(f"{option}: expected a host that resolves to an IPv4 address, got {host!r} "
+                             f"({e.strerror or e})") from None
+    if where is not None:
+        print(f"pusupu: warning: {option} {value}: {what} on {where}, not on loopback alone", file=sys.stderr)
+
+
 def _drive_modes(text: str, n: int = 6):
     names = text.split(",")
     if len(names) == 1:
@@ -75,11 +91,12 @@ def _drive_modes(text: str, n: int = 6):
 
 
 def limits_for(servo):
-    """The bridge's limits on the default geometry: strokes from home, V_max/Ke, Kt I_max (host-side)."""
+    """The bridge's limits on the default geometry: strokes from home, V_max/Ke, Kt I_max, the following-error window
+    and time-out (host-side)."""
     import jax.numpy as jnp
     import numpy as np
 
-    from hw_bridge.safety import Limits
+    from hw_bridge.safety import Limits, command_limits
     from pusupu_jax.plant import kinematics
     from pusupu_jax.plant.geometry import Geometry
 
@@ -87,7 +104,8 @@ def limits_for(servo):
     r = np.asarray(servo.lead, dtype=float) / (2 * np.pi)
     s_home = np.asarray(kinematics.inverse_kinematics(geom, jnp.asarray(geom.home)))
     return Limits((np.asarray(geom.stroke_min) - s_home) / r, (np.asarray(geom.stroke_max) - s_home) / r,
-                  np.asarray(servo.V_max / servo.Ke, dtype=float), np.asarray(servo.Kt * servo.I_max, dtype=float))
+                  *command_limits(servo), np.asarray(servo.following_error, dtype=float),
+                  np.asarray(servo.following_error_time, dtype=float), r)
 
 
 def bridge_reference(g, trajectory: str, rates=None):
@@ -120,6 +138,8 @@ def run_bridge(args) -> int:
     apply_xla_workaround(one_thread=True)  # before any computation: the gain file's checks run on JAX
 
     address = _robot_url(args.robot)
+    if address is not None:
+        _warn_beyond_loopback("--bind", args.bind, args.bind, "the bridge takes packets")
     modes = _drive_modes(args.drive_modes)
     if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
         raise ParameterError(f"--duration: expected a positive number of seconds, got {args.duration}")
@@ -131,15 +151,24 @@ def run_bridge(args) -> int:
         _check_plot_path(args.plot)
     g = gains.load(args.gains)  # refused here (one line, exit 2) before any socket opens
     setup_jax()
-    from hw_bridge.loop import BridgeLoop, plan
-    from hw_bridge.protocol import FEEDBACK
+    from hw_bridge.loop import BridgeLoop, cycle_rate, plan
+    from hw_bridge.protocol import CST, FEEDBACK
     from hw_bridge.safety import Safety
-    from hw_bridge.session import Bridge
+    from hw_bridge.session import RECORD_BYTES, Bridge, End, longest_run, record_memory
     from hw_bridge.udp import Endpoint
 
+    modes = modes if args.drive_modes != "csv" else None
     try:
-        modes = modes if args.drive_modes != "csv" else None
-        loop = BridgeLoop(g, bridge_reference(g, args.trajectory, plan(g, modes, args.rate)[1]), modes, args.rate)
+        codes, rates = plan(g, modes, args.rate)
+    except ValueError as e:
+        raise ParameterError(str(e)) from None
+    rate = cycle_rate(rates, bool((codes == CST).any()))
+    if args.duration is not None and args.duration > longest_run(rate):
+        raise ParameterError(f"--duration: expected at most {longest_run(rate):.6g} s at {rate:g} Hz (a run's record "
+                             f"takes up to {RECORD_BYTES} bytes a cycle, in half of this machine's memory, "
+                             f"{record_memory() / 2**30:.3g} GiB), got {args.duration:g}")
+    try:
+        loop = BridgeLoop(g, bridge_reference(g, args.trajectory, rates), modes, args.rate)
     except ValueError as e:
         raise ParameterError(str(e)) from None
     if address is None:
@@ -150,7 +179,7 @@ def run_bridge(args) -> int:
         except Exception as e:  # no drive answers the SDO set-up, a bus that does not open
             raise ParameterError(f"--robot {args.robot}: CANopen set-up failed: {e}") from None
     else:
-        endpoint = Endpoint(FEEDBACK, bind=(args.bind, 0), peer=address)
+        endpoint = Endpoint(FEEDBACK, n_axes=len(loop.drive_modes), bind=(args.bind, 0), peer=address)
     print(f"bridge: {g.mode} loops at {loop.rate:g} Hz (position every {loop.n_position} cycle(s)), drives "
           f"{','.join('cst' if m == 10 else 'csv' for m in loop.drive_modes)}, robot {args.robot}", file=sys.stderr)
     try:
@@ -167,7 +196,10 @@ def run_bridge(args) -> int:
         bridge_figure(run, report, args.plot)
     for line in report["faults"]:
         print(f"pusupu: fault: {line}", file=sys.stderr)
-    return 0 if report["completed"] else 1
+    if run.ended in (End.SIGINT, End.SIGTERM):
+        print(f"pusupu: {run.ended}: the run stopped (quick stop, then disable voltage)", file=sys.stderr)
+    # 1: a safe stop on a fault, the bridge's own errors included; 128 + the signal's number: the run stopped on it
+    return {End.COMPLETED: 0, End.FAULT: 1, End.SIGINT: 130, End.SIGTERM: 143}[run.ended]
 
 
 def _table(rep: dict) -> str:
@@ -183,7 +215,8 @@ def _table(rep: dict) -> str:
                      f"max {rep['max_tracking_error_mm']:.4f} mm")
     lines.append(f"rejected packets: {rep['rejected_packets'] or 'none'}")
     lines += [f"real-time {line}" for line in rep["realtime"]]
-    lines.append("completed" if rep["completed"] else f"stopped: {len(rep['faults'])} fault(s)")
+    lines.append({"completed": "completed", "fault": f"stopped: {len(rep['faults'])} fault(s)"}.get(
+        rep["ended"], f"stopped: {rep['ended']}"))
     return "\n".join(lines)
 
 
@@ -216,6 +249,8 @@ def bridge_figure(run, report: dict, path) -> None:
 
 
 def run_sim_robot(args) -> int:
+    import math
+
     from pusupu_jax import gains
     from pusupu_jax.config import apply_xla_workaround, setup_jax
 
@@ -225,19 +260,24 @@ def run_sim_robot(args) -> int:
 
     if not args.listen.startswith("can://"):
         try:
-            parse_url(args.listen)
+            host, _ = parse_url(args.listen)
         except ValueError as e:
             raise ParameterError(f"--listen: {e}") from None
+        _warn_beyond_loopback("--listen", args.listen, host, "the simulated robot takes commands")
     if not 0.0 < args.drive_watchdog <= 60.0:
         raise ParameterError(f"--drive-watchdog: expected seconds in (0, 60], got {args.drive_watchdog}")
-    g = gains.load(args.gains)
-    setup_jax()
+    if args.kin_error is not None and args.kin_error < 0:
+        raise ParameterError(f"--kin-error: expected a non-negative integer seed, got {args.kin_error}")
+    if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
+        raise ParameterError(f"--seconds: expected a positive number of seconds, got {args.seconds}")
     from hw_bridge.sim_robot import FaultSpec, RobotModel, main_loop
 
     try:
         faults = [FaultSpec.parse(f) for f in args.fault]
     except ValueError as e:
         raise ParameterError(str(e)) from None
+    g = gains.load(args.gains)
+    setup_jax()
     from hw_bridge.loop import plan
 
     try:

@@ -211,7 +211,7 @@ def test_any_flipped_byte_of_a_valid_packet_is_refused(position, xor):
 def test_the_endpoint_drops_and_counts_bad_and_replayed_packets():
     from hw_bridge.udp import Endpoint
 
-    ep = Endpoint(protocol.FEEDBACK)
+    ep = Endpoint(protocol.FEEDBACK, n_axes=6)
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     good = protocol.encode_feedback(FEEDBACK)
     for d in (good[:10], good + bytes(protocol.MAX_PACKET), good[:4] + b"\x09" + good[5:], good, good):
@@ -279,7 +279,8 @@ def test_cia402_state_machine_walks_up_and_faults():
 
 
 def test_safety_guards_feedback_and_clamps_commands():
-    lim = Limits(np.full(6, -1.0), np.full(6, 1.0), np.full(6, 10.0), np.full(6, 2.0))
+    lim = Limits(np.full(6, -1.0), np.full(6, 1.0), np.full(6, 10.0), np.full(6, 2.0), np.full(6, 0.005),
+                 np.full(6, 0.05), np.full(6, 0.01 / (2 * np.pi)))
     s = Safety(lim, watchdog_cycles=3)
     z = np.zeros(6)
     assert s.check_feedback(0, 3, z, z, z)
@@ -322,7 +323,10 @@ def _pure_arc():
 # compiled. The bridge's own watchdog, which these tests are about, counts cycles: replies delayed by 3 s (longer than
 # 5 cycles of 0.2 s lock-step waits) go stale by it alone
 DRIVE_WATCHDOG_S = 2.0
-FAULTS = ["none", "stop@0.3:2", "nan@0.3", "range@0.3", "drop@0.3", "delay@0.3:3", "reorder@0.3:12",
+# every encoder 20 mm of slider travel off (12.57 rad of motor angle): within the strokes, beyond the following-error
+# window (5 mm) for longer than its time-out (50 ms) while the loops bring the machine back to it
+FOLLOWING = "range@0.3:12.57"
+FAULTS = ["none", "stop@0.3:2", "nan@0.3", "range@0.3", FOLLOWING, "drop@0.3", "delay@0.3:3", "reorder@0.3:12",
           "garbage@0.0"]
 
 
@@ -360,7 +364,7 @@ def _session(robot, duration, watchdog=5):
     from hw_bridge.udp import Endpoint
 
     g, loop, limits, port = robot
-    ep = Endpoint(protocol.FEEDBACK, peer=("127.0.0.1", port))
+    ep = Endpoint(protocol.FEEDBACK, n_axes=len(loop.drive_modes), peer=("127.0.0.1", port))
     try:
         run = Bridge(loop, ep, Safety(limits, watchdog), lockstep_s=0.2).run(duration, realtime=False)
     finally:
@@ -384,15 +388,15 @@ def test_loopback_tracks_the_arc_as_the_simulation_does(robot):
     assert rep["rms_tracking_error_mm"] == pytest.approx(pure["rms_tracking_error_mm"], rel=0.01)
 
 
-def _stopped_at_onset(run, fault: str):
+def _stopped_at_onset(run, fault: str, late: int = 0):
     """The run's first fault, asserted to come within the watchdog window of the fault's onset (0.3 s of machine time
-    after enable; the window: 5 cycles of watchdog and 2 of transport after it, and 20 cycles of slack either side)
-    and to be followed by a quick stop, then disable voltage."""
+    after enable; the window: 5 cycles of watchdog and 2 of transport after it, ``late`` cycles of the fault's own
+    time-out, and 20 cycles of slack either side) and to be followed by a quick stop, then disable voltage."""
     assert run.faults and not run.completed, fault
     f = run.faults[0]
     enabled_at = next(k for k, word, _ in run.commands if word == cia402.ENABLE_OPERATION)
     onset = enabled_at + int(0.3 * RATE)
-    assert onset - 20 <= f.cycle <= onset + 5 + 2 + 20, (fault, f.line(), run.commands[0][0], enabled_at)
+    assert onset - 20 <= f.cycle <= onset + 5 + 2 + late + 20, (fault, f.line(), run.commands[0][0], enabled_at)
     stop_words = [word for k, word, _ in run.commands if k >= f.cycle]
     assert stop_words[0] == cia402.QUICK_STOP and stop_words[-1] == cia402.DISABLE_VOLTAGE
     return f
@@ -401,13 +405,17 @@ def _stopped_at_onset(run, fault: str):
 @pytest.mark.parametrize("fault", FAULTS[1:])
 def test_faults_reach_the_safe_state_within_the_watchdog(robot, fault):
     """Each fault of the robot stops the bridge (quick stop, then disable voltage) within the watchdog window
-    of its onset (0.3 s of machine time after enable), reports it with its cycle, and no command ever leaves the
-    limits.
+    of its onset (0.3 s of machine time after enable; the following error's once its time-out has passed), reports
+    it with its cycle, and no command ever leaves the limits.
     Garbage beside good replies is dropped and counted, and the run completes."""
     run = _session(robot, 0.8)
     if fault.startswith("garbage"):
         assert run.completed and not run.faults
         assert {"size", "version", "replayed"} <= set(run.rejected), run.rejected
+        return
+    if fault == FOLLOWING:
+        f = _stopped_at_onset(run, fault, late=int(np.max(SERVO.following_error_time) * RATE))
+        assert f.kind == "following error", f.line()
         return
     f = _stopped_at_onset(run, fault)
     # a robot that withholds its replies: the bridge's watchdog, or (the bridge waiting in lock step) the drives' own
@@ -489,7 +497,8 @@ def test_canopen_feedback_names_the_sync_it_answers():
     before it is the newest whole answer.  (Without it, on a loaded host the lock-step CANopen test above read late
     answers as the next cycle's: mean branch error 0.0036-0.0044 mm against 0.0027 with the bridge, the robot and
     two CPU hogs on one core.)  The drives here are six canopen LocalNodes on python-can's in-process virtual bus,
-    whose TPDOs this test sends by hand.  TPDOs shorter than their mapping are dropped and counted."""
+    whose TPDOs this test sends by hand.  TPDOs shorter than their mapping are dropped and counted, and so is a command
+    the bus does not take (the bridge's stop goes on)."""
     import can
     import canopen
 
@@ -553,6 +562,9 @@ def test_canopen_feedback_names_the_sync_it_answers():
         whole = link.poll(timeout=2.0)
         assert whole.ack == SYNC_OVERFLOW + 3 and np.allclose(whole.position * COUNTS_PER_RAD, 666)
         assert link.rejected == {"PDO length": 12}
+        link.network.bus.shutdown()  # a bus that takes no frame: the command's failed send is counted, not raised
+        command(SYNC_OVERFLOW + 4)
+        assert link.rejected == {"PDO length": 12, "send failed": 1}
     finally:
         link.close()
         drives.notifier.stop()
