@@ -16,7 +16,7 @@ import numpy as np
 from scipy.optimize import brentq
 
 from pusupu_jax import AxisLoad, LoopRates, ServoParams
-from pusupu_jax.hybrid import HybridGains
+from pusupu_jax.hybrid import HybridGains, gain_fields
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.margins import loop_margins
 from pusupu_jax.params import stack
@@ -30,6 +30,7 @@ from . import Result
 PM_MIN, GM_MIN = 45.0, 6.0
 LAMBDA2_MAX = 0.3
 DIVERGED_MM, DIVERGED_N = 20.0, 1000.0
+SWEEP_DIVERGED_MM = 2.0  # the gain sweep's runs are 3 s of p2p from rest: the stable ones stay under 1 mm
 OLD_M6 = 0.1
 
 
@@ -66,14 +67,40 @@ def run(quick: bool = False) -> Result:
                 rows.append({"m6": m6, "rule": l1_rule, "lambda2": l2, "seed": s, "rms_tracking_error_mm": rms,
                              "max_tracking_error_mm": mx, "highest_force_peak_n": peak,
                              "diverged": bool(not np.isfinite(rms) or mx > DIVERGED_MM or peak > DIVERGED_N)})
+    sweep = [] if quick else gain_sweep(path[:SWEEP_SAMPLES], l2_min)
     default = [r for r in rows if r["m6"] == HybridGains().m6]
     worst = max(default, key=lambda r: r["max_tracking_error_mm"])
     metrics = {"duration_s": len(path) * LoopRates().dt_position, "lambda2_min": l2_min, "lambda2": lambdas,
                "seeds": list(seeds), "m6_default": HybridGains().m6, "rows": rows,
                "default_m6_diverged": int(sum(r["diverged"] for r in default)),
                "old_m6_diverged": int(sum(r["diverged"] for r in rows if r["m6"] == OLD_M6)),
-               "runs_per_m6": len(default), "worst_default": worst}
+               "runs_per_m6": len(default), "worst_default": worst, "gain_sweep": sweep}
     return Result("hybrid_grid", metrics)
+
+
+SWEEP = {"m6": (1.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0), "c6": (1.0, 100.0, 1e3, 2e3, 3e3, 5e3, 1e4),
+         "g": (1.0, 1e2, 1e3, 1e4, 1e5)}  # multiples of each default
+SWEEP_SEED = 3
+SWEEP_SAMPLES = 3000  # the first 3 s of p2p, as the quick grid
+
+
+def gain_sweep(path, l2_min: float) -> list:
+    """Each hybrid gain alone at multiples of its default (:data:`SWEEP`), the others at theirs, at lambda2 = 0.15 s
+    (Table 1) and ``l2_min``, seed :data:`SWEEP_SEED`: one row per run, diverged as in the lambda2 grid.  What bounds
+    the gains a gain file may hold (:data:`pusupu_jax.hybrid.HYBRID_BOUNDS_WHY`)."""
+    base = HybridGains()
+    grid = [(name, k, l2) for l2 in (0.15, l2_min) for name, ks in SWEEP.items() for k in ks]
+    hybrid = HybridGains(**{name: np.array([getattr(base, name) * (k if n == name else 1.0) for n, k, _ in grid])
+                            for name in SWEEP})
+    servo = stack([ServoParams.table1().replace(lambda2=np.full(6, l2)) for *_, l2 in grid])
+    scenarios = [Scenario(path, ModelOptions(kin_error_seed=SWEEP_SEED), f"seed{SWEEP_SEED}") for _ in grid]
+    rows = []
+    for (name, k, l2), (r, _) in zip(grid, simulate_scenarios(servo, scenarios, mode="hybrid", hybrid=hybrid)):
+        rms, mx, peak = r["rms_tracking_error_mm"], r["max_tracking_error_mm"], max(r["branch_force_peak_n"])
+        rows.append({"gain": name, "value": float(getattr(base, name) * k), "lambda2": l2, "rms_tracking_error_mm": rms,
+                     "max_tracking_error_mm": mx, "highest_force_peak_n": peak,
+                     "diverged": bool(not np.isfinite(rms) or mx > SWEEP_DIVERGED_MM or peak > DIVERGED_N)})
+    return rows
 
 
 def plot(result: Result, out) -> list:
@@ -114,6 +141,17 @@ def table(result: Result) -> str:
                      f"{max(r['highest_force_peak_n'] for r in rows):.1f} | {sum(r['diverged'] for r in rows)}"
                      f"/{len(rows)} |")
     w = m["worst_default"]
+    if m.get("gain_sweep"):
+        lines += ["", f"Each hybrid gain alone, the others at their defaults (seed {SWEEP_SEED}, both lambda2): the "
+                  "largest value at which no run diverged, the smallest at which one did, and the bound a gain file "
+                  "may hold.", "", "| gain | largest stable | smallest diverged | bound |", "|---|---|---|---|"]
+        for name in SWEEP:
+            rows = [r for r in m["gain_sweep"] if r["gain"] == name]
+            values = sorted({r["value"] for r in rows})
+            bad = [v for v in values if any(r["diverged"] for r in rows if r["value"] == v)]
+            good = [v for v in values if not bad or v < bad[0]]
+            bound = [f.metadata["bounds"][1] for f in gain_fields() if f.name == name][0]
+            lines.append(f"| {name} | {good[-1]:g} | {f'{bad[0]:g}' if bad else 'none'} | {bound:g} |")
     lines += ["", f"Default m6: {m['default_m6_diverged']} of {m['runs_per_m6']} runs diverged; worst error "
               f"{w['max_tracking_error_mm']:.3f} mm max ({w['rms_tracking_error_mm']:.3f} mm RMS) at lambda2 = "
               f"{w['lambda2']:.4f} s, {w['rule']}, seed {w['seed']}.  Old m6 = {OLD_M6}: {m['old_m6_diverged']} of "

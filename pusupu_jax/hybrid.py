@@ -91,8 +91,11 @@ def gain_fields() -> list[dataclasses.Field]:
     return [f for f in dataclasses.fields(HybridGains) if not f.metadata.get("static")]
 
 
-def validate_gains(h: HybridGains) -> None:
-    """Raise :class:`ParameterError` unless every gain lies within its bounds and the form is known."""
+def validate_gains(h: HybridGains, bounded: bool = True) -> None:
+    """Raise :class:`ParameterError` unless every gain lies within its bounds and the form is known.
+
+    ``bounded=False``: finite and non-negative only, for a simulation that explores beyond what a gain file may hold
+    (:func:`pusupu_jax.machine.simulate_scenarios`; the bounds are measured by such runs)."""
     if h.form not in RHO_FORMS:
         raise ParameterError(f"HybridGains.form: expected one of {RHO_FORMS}, got {h.form!r}")
     for f in gain_fields():
@@ -101,7 +104,7 @@ def validate_gains(h: HybridGains) -> None:
         except (TypeError, ValueError):
             raise ParameterError(f"HybridGains.{f.name}: expected a number [{f.metadata['unit']}], "
                                  f"got {getattr(h, f.name)!r}") from None
-        low, high, why = f.metadata["bounds"]
+        low, high, why = f.metadata["bounds"] if bounded else (0.0, np.inf, "finite and non-negative")
         bad = ~(np.isfinite(v) & (v >= low) & (v <= high))
         if bad.any():
             raise ParameterError(f"HybridGains.{f.name}: expected a number from {low:g} to {high:g} "

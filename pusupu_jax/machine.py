@@ -108,7 +108,7 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
                          f"got {np.shape(servo.lambda1)[0]}")
     if control_mode(mode).hybrid:
         hybrid = hybrid_law.HybridGains() if hybrid is None else hybrid
-        hybrid_law.validate_gains(hybrid)
+        hybrid_law.validate_gains(hybrid, bounded=False)  # a gain file's bounds are checked where one is read
     nominal = dataclasses.replace(scenarios[0].options, kin_error_seed=None, payload=0.0)
     rates = machine_rates(nominal, rates)
     if compliance is not None:
