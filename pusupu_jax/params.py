@@ -103,17 +103,17 @@ class ServoParams(_PerAxis):
 
     # --- position loop, 2-DOF IMC (eq. 9) ---
     lambda1: Any = _f(0.018, "s", "IMC reference (tracking) filter time parameter, C1", section="position",
-        bounds=(0.0001, 10.0, "a reference filter faster than 0.1 ms is faster than any position loop (at most 10 "
-                              "kHz); one of 10 s takes a minute to follow"))
+        bounds=(5e-05, 10.0, "a filter faster than one period of the fastest position loop (20 kHz) does nothing; one "
+                             "of 10 s takes a minute to follow"))
     lambda2: Any = _f(0.15, "s", "IMC feedback (robustness) filter time parameter, C1 and C2", section="position",
-        bounds=(0.0001, 10.0, "as lambda1: 0.1 ms is faster than any position loop, 10 s leaves the axis nearly "
-                              "uncontrolled"))
+        bounds=(5e-05, 10.0, "as lambda1: faster than one period of the fastest position loop does nothing, 10 s "
+                             "leaves the axis nearly uncontrolled"))
     T0: Any = _f(0.01475, "s", "time constant of the closed velocity loop as modelled by C2", section="position",
         bounds=(0.0001, 1.0, "a velocity loop closed faster than 0.1 ms or slower than 1 s is no servo drive's"))
     # --- velocity loop (eq. 6-8) ---
     Kv: Any = _f(0.015, "A/(rad/s)", "velocity PI proportional gain", section="velocity",
-        bounds=(1e-05, 10.0, "10 A per rad/s is the whole current limit for a tenth of a revolution per minute; "
-                             "1e-5 leaves the axis uncontrolled"))
+        bounds=(1e-05, 10.0, "10 A per rad/s spends the whole 10 A current limit on 1 rad/s (10 rpm) of speed "
+                             "error; 1e-5 A per rad/s leaves the axis uncontrolled"))
     Tv: Any = _f(5.0, "s", "velocity PI integral time", section="velocity",
         bounds=(0.0001, 100.0, "an integral time beyond 100 s is no integral action; below 0.1 ms it is faster than "
                                "the velocity loop"))

@@ -41,7 +41,7 @@ from jax.flatten_util import ravel_pytree
 from . import cascade
 from .hybrid import validate_gains
 from .margins import W_GRID, in_band, loop_margins
-from .params import N_AXES, AxisLoad, LoopRates, ParameterError, ServoParams, validate
+from .params import N_AXES, AxisLoad, LoopRates, ParameterError, ServoParams, bounds, validate
 from .plant.axis import AxisPlant
 
 LOOPS = ("current", "velocity", "position")
@@ -241,3 +241,23 @@ def check(servo: ServoParams, hybrid, rates: LoopRates, mode="imc", floors=FLOOR
     if raise_error and problem is not None:
         raise ParameterError(f"gains: {problem}")
     return out
+
+
+def bounds_table() -> str:
+    """Every bounded value a gain or parameter file holds, as a markdown table: range, unit and why (``docs/safety.md``
+    holds it; a test keeps the two equal)."""
+    from dataclasses import fields
+
+    from .hybrid import HybridGains
+
+    rows = ["| value | range | unit | why |", "|---|---|---|---|"]
+    for cls in (ServoParams, HybridGains, AxisLoad):
+        for f in fields(cls):
+            b = bounds(f)
+            if b is not None:
+                high = b[1] if isinstance(b[1], str) else f"{b[1]:g}"
+                rows.append(f"| `{cls.__name__}.{f.name}` | {b[0]:g} to {high} | {f.metadata['unit']} | {b[2]} |")
+    for name, (low, high, why) in (("current loop rate", F_CURRENT), ("velocity loop rate", F_VELOCITY),
+                                   ("position loop rate", F_POSITION)):
+        rows.append(f"| {name} | {low:g} to {high:g} | Hz | {why} |")
+    return "\n".join(rows)

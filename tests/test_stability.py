@@ -143,3 +143,10 @@ def test_a_crossover_below_the_old_grid_is_seen():
     assert found.loops["position"].in_band.all()
     assert found.loops["position"].phase_margin_deg[0] == pytest.approx(margins["position"]["phase_margin_deg"],
                                                                         abs=0.5)
+
+
+def test_docs_give_every_range_as_the_code_has_it():
+    """docs/safety.md holds the ranges table as :func:`pusupu_jax.stability.bounds_table` makes it."""
+    from pathlib import Path
+
+    assert stability.bounds_table() in (Path(__file__).parent.parent / "docs" / "safety.md").read_text()
