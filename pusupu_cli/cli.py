@@ -27,6 +27,7 @@ import threading
 import time
 import warnings
 
+from pusupu_jax.inputs import one_line
 from pusupu_jax.params import IMC_FORMS, ParameterError
 
 from . import bridge as bridge_cli
@@ -37,8 +38,14 @@ class _Parser(argparse.ArgumentParser):
         _fail(message)
 
 
+def _say(message: str) -> None:
+    """Print ``message`` on stderr as one line (:func:`pusupu_jax.inputs.one_line`: escaped, cut): every error line
+    of the command goes through here, so that no input is echoed raw or whole."""
+    print(one_line(message), file=sys.stderr)
+
+
 def _fail(message: str):
-    print(f"pusupu: error: {message}", file=sys.stderr)
+    _say(f"pusupu: error: {message}")
     sys.exit(2)
 
 
@@ -197,7 +204,7 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         kept = {"tune": "the checkpoint in {} keeps", "batch": "the checkpoints in {} keep"}.get(args.command)
         where = f" ({kept.format(args.out)} the run: the same command resumes it)" if kept else ""
-        print(f"pusupu: interrupted{where}", file=sys.stderr)
+        _say(f"pusupu: interrupted{where}")
         return 130
 
 
@@ -267,7 +274,7 @@ def _tune(args) -> int:
         print(table(report))
         print(f"wrote: {', '.join(report['exported'] + report['plots'] + [str(out / 'report.json')])}")
     if status:
-        print(f"pusupu: error: {report['export_error']}", file=sys.stderr)
+        _say(f"pusupu: error: {report['export_error']}")
     return status
 
 
@@ -293,7 +300,7 @@ def _batch(args) -> int:
               f"summary.md, summary.json, summary.png and jobs/<job>/")
     for name in summary["failed"]:
         row = next(r for r in summary["rows"] if r["job"] == name)
-        print(f"pusupu: job {name}: {row['status']}: {row['error']}", file=sys.stderr)
+        _say(f"pusupu: job {name}: {row['status']}: {row['error']}")
     return status
 
 

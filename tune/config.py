@@ -120,7 +120,7 @@ class TuneConfig:
         """Every key's kind and range (one line naming the key); numbers must be finite unless a key says so."""
         def need(ok, key, expected, got):
             if not ok:
-                raise ParameterError(f"tune config {key}: expected {expected}, got {got!r}")
+                raise ParameterError(f"tune config {key}: expected {expected}, got {inputs.shown(got)}")
 
         def num(key, **kw):
             inputs.number(getattr(self, key), f"tune config {key}", ParameterError, **kw)
