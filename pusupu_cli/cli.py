@@ -426,6 +426,8 @@ def _check_ros(args, g) -> int:
 def _check_plot_path(path):
     import os
 
+    from pusupu_jax.config import check_output
+
     folder = os.path.dirname(os.path.abspath(path))
     if not path or os.path.isdir(path):
         raise ParameterError(f"--plot: expected the path of a PNG file, got the folder {path!r}")
@@ -433,6 +435,10 @@ def _check_plot_path(path):
         raise ParameterError(f"--plot: expected a PNG path in an existing folder, got {path!r}")
     if not os.access(folder, os.W_OK):
         raise ParameterError(f"--plot: cannot write in the folder {folder!r}")
+    try:
+        check_output(path)
+    except ParameterError as e:
+        raise ParameterError(f"--plot: {e}") from None
 
 
 def _analyze(args) -> int:

@@ -70,6 +70,74 @@ def special(tmp_path, kind: str):
     return path
 
 
+def same_node(path, kind: str) -> bool:
+    st = os.lstat(path)
+    return {"fifo": stat.S_ISFIFO, "socket": stat.S_ISSOCK, "device": stat.S_ISCHR, "folder": stat.S_ISDIR,
+            "symlink": stat.S_ISLNK}[kind](st.st_mode) and (
+        kind != "symlink" or Path(os.readlink(path)).read_text() == "the target's own text\n")
+
+
+@pytest.mark.parametrize("kind", ["fifo", "socket", "device", "folder", "symlink"])
+def test_only_a_regular_file_is_ever_replaced(tmp_path, kind):
+    """Every output (gain, ROS, report, plot, checkpoint, summary files) goes through config.write_atomic: it renamed
+    its temporary over whatever stood at the path, a device node or FIFO included, and over a symlink instead of
+    refusing it.  Now anything but a regular file is refused, left as it is, and no temporary is left behind."""
+    path = special(tmp_path, kind)
+    with pytest.raises(ParameterError, match=f"expected a regular file to write .or nothing., found a"):
+        write_atomic(path, b"\x89PNG")
+    assert same_node(path, kind)
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_a_plot_onto_a_device_ends_in_one_line_before_any_work(tmp_path):
+    """``--plot /dev/null`` as root replaced the device node with a PNG.  A device node made here (a FIFO where the
+    suite does not run as root) is refused before the analysis, and stays."""
+    kind = "device" if ROOT else "fifo"
+    path = special(tmp_path, kind)
+    one_line_exit_2(pusupu("analyze", "--plot", path), "--plot: ", "expected a regular file to write")
+    assert same_node(path, kind)
+
+
+@pytest.fixture(scope="module")
+def gain_file(tmp_path_factory):
+    """A valid gain file (Table 1, imc mode), its bytes."""
+    from pusupu_jax import LoopRates, ServoParams, gains
+    from pusupu_jax.hybrid import HybridGains
+
+    path = gains.write(tmp_path_factory.mktemp("gains") / "gains.yaml", ServoParams.table1(), HybridGains(),
+                       LoopRates(n_mech=5), mode="imc")
+    return path.read_bytes()
+
+
+def test_gains_sign_keeps_the_mode_and_refuses_a_symlink(tmp_path, gain_file):
+    """``gains sign`` turned a 0600 file into 0644 and replaced a symlink by a file.  A file written again keeps its
+    permission bits (and, written by root, its owner); a symlink as output is refused, the link and its target left
+    as they were."""
+    private = tmp_path / "private.yaml"
+    private.write_bytes(gain_file)
+    private.chmod(0o600)
+    if ROOT:  # a user's file signed by root stays the user's
+        os.chown(private, 4321, 4321)
+    r = pusupu("gains", "sign", private)
+    assert r.returncode == 0, r.stderr
+    assert stat.S_IMODE(private.stat().st_mode) == 0o600 and private.read_bytes() != gain_file  # signed anew
+    assert not ROOT or (private.stat().st_uid, private.stat().st_gid) == (4321, 4321)
+    (tmp_path / "target").write_bytes(gain_file)
+    link = tmp_path / "link.yaml"
+    link.symlink_to(tmp_path / "target")
+    one_line_exit_2(pusupu("gains", "sign", link), "link.yaml: expected a regular file to write", "a symlink")
+    assert link.is_symlink() and (tmp_path / "target").read_bytes() == gain_file
+
+
+def test_a_new_file_gets_the_umask_mode(tmp_path):
+    old = os.umask(0o027)
+    try:
+        path = write_atomic(tmp_path / "new.txt", "text")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(path.stat().st_mode) == 0o640
+
+
 def test_every_loader_refuses_a_fifo_without_blocking(tmp_path):
     """A FIFO given as ``--params``, a gain file, a tune configuration or a job file blocked its reader forever.  The
     one reader (inputs.read_text) now stats the path, opens it without blocking and refuses anything but a regular
