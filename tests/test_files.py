@@ -200,3 +200,40 @@ def test_a_job_named_with_a_newline_is_reported_on_one_line(tmp_path):
     errors = [line for line in r.stderr.splitlines() if line.startswith("pusupu")]
     assert r.returncode == 1 and errors == [r"pusupu: job two\nlines: failed: scenarios[0].name: expected letters, "
                                             r"digits and - _ . / (not first: .), got 'two\nlines'"], r.stderr[-3000:]
+
+
+@pytest.mark.parametrize("kind", ["symlink", "fifo", "device", "hard link"])
+def test_a_planted_lock_file_is_refused_and_its_target_untouched(tmp_path, kind):
+    """A symlink planted as ``DIR/.pusupu.lock`` made ``tune`` truncate its target (open 'a+', then truncate).  The
+    lock is opened without following a symlink or truncating, and must be a regular file of one link."""
+    from tune.job import OutputLock
+
+    out = tmp_path / "out"
+    out.mkdir()
+    lock = out / ".pusupu.lock"
+    if kind == "hard link":
+        (tmp_path / "target").write_text("the target's own text\n")
+        os.link(tmp_path / "target", lock)
+    else:
+        special(tmp_path, kind).rename(lock)
+    with pytest.raises(ParameterError, match=r"\.pusupu\.lock: expected a (regular file to write \(or nothing\)|lock "
+                                             r"file of one link), found (a symlink|a FIFO|a character device|2 hard "
+                                             r"links)"):
+        OutputLock(out)
+    if kind == "hard link":
+        assert (tmp_path / "target").read_text() == "the target's own text\n" and lock.stat().st_nlink == 2
+    else:
+        assert same_node(lock, kind)
+
+
+def test_the_lock_is_still_exclusive_and_names_its_holder(tmp_path):
+    from tune.job import OutputLock
+
+    first = OutputLock(tmp_path)
+    try:
+        with pytest.raises(ParameterError, match=f"in use by another pusupu tune \\(pid {os.getpid()} on "):
+            OutputLock(tmp_path)
+    finally:
+        first.release()
+    OutputLock(tmp_path).release()
+    assert stat.S_ISREG(os.lstat(tmp_path / ".pusupu.lock").st_mode)

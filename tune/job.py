@@ -22,6 +22,7 @@ import hashlib
 import json
 import os
 import socket
+import stat
 import sys
 import tempfile
 import time
@@ -30,8 +31,8 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from pusupu_jax import gains, ros2
-from pusupu_jax.config import write_atomic
+from pusupu_jax import gains, inputs, ros2
+from pusupu_jax.config import check_output, write_atomic
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.params import ParameterError, ServoParams
@@ -127,16 +128,31 @@ def prepare_output(out: Path) -> Path:
 
 
 class OutputLock:
-    """An exclusive lock on an output folder (``DIR/.pusupu.lock``, held by this process until it exits)."""
+    """An exclusive lock on an output folder (``DIR/.pusupu.lock``, held by this process until it exits).
+
+    The lock file is opened without following a symlink and without truncating it, and must be a regular file of one
+    link: a symlink, FIFO, device or hard link planted there is refused (one line) and whatever it names is never
+    opened or written.  Only once the lock is held is the file emptied and given this holder's pid.
+    """
 
     def __init__(self, out: Path):
         self.path = out / ".pusupu.lock"
-        self.file = open(self.path, "a+")
+        check_output(self.path)  # refused before it is opened: opening a device can act on it
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o666)
+        except OSError as e:  # ELOOP: a symlink put there since the check
+            raise ParameterError(f"{self.path}: cannot open the lock file ({e.strerror})") from None
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink != 1:
+            os.close(fd)
+            found = inputs.file_kind(st.st_mode) if not stat.S_ISREG(st.st_mode) else f"{st.st_nlink} hard links"
+            raise ParameterError(f"{self.path}: expected a lock file of one link, found {found}; left as it is")
+        self.file = os.fdopen(fd, "r+")
         try:
             fcntl.flock(self.file, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             self.file.seek(0)
-            holder = self.file.read().strip() or "unknown"
+            holder = self.file.read(200).strip() or "unknown"
             self.file.close()
             raise ParameterError(f"--out: {out} is in use by another pusupu tune ({holder}); wait for it or choose "
                                  "another --out") from None
