@@ -237,3 +237,157 @@ def test_the_lock_is_still_exclusive_and_names_its_holder(tmp_path):
         first.release()
     OutputLock(tmp_path).release()
     assert stat.S_ISREG(os.lstat(tmp_path / ".pusupu.lock").st_mode)
+
+
+# A tiny optimisation whose checkpoints are crafted below: the imc gains' log-parameters, a quadratic objective.
+OPTIMISATION = """
+from pusupu_jax.config import setup_jax
+setup_jax()
+import jax.numpy as jnp
+from pusupu_jax import ServoParams
+from pusupu_jax.hybrid import HybridGains
+from pusupu_jax.params import ParameterError
+from tune.run import optimise
+from tune.space import Space
+
+space = Space.create(("imc",), ServoParams.table1(), HybridGains())
+
+
+def vg(z):
+    return (sum(jnp.sum(v ** 2) for v in z.values()), None), {k: 2 * v for k, v in z.items()}
+
+
+def resume(path, digest="d", value_and_grad=vg):
+    return optimise(value_and_grad, space.z0(), space.project, iterations=4, learning_rate=0.1, checkpoint=path,
+                    checkpoint_every=2, digest=digest)
+"""
+
+
+@pytest.fixture(scope="module")
+def optimisation():
+    namespace = {}
+    exec(OPTIMISATION, namespace)
+    return namespace
+
+
+@pytest.fixture(scope="module")
+def finished(optimisation, tmp_path_factory):
+    """The bytes of the checkpoint of a finished run of :data:`OPTIMISATION`."""
+    path = tmp_path_factory.mktemp("checkpoint") / "checkpoint.npz"
+    optimisation["resume"](path)
+    return path.read_bytes()
+
+
+def npy(array=None, *, descr: str = "", shape=(), data: bytes = b"") -> bytes:
+    """An .npy file: ``array``'s, or a bare header (``descr``, ``shape``) followed by ``data``."""
+    buffer = io.BytesIO()
+    if array is not None:
+        np.save(buffer, array)
+    else:
+        np.lib.format.write_array_header_1_0(buffer, {"descr": descr, "fortran_order": False, "shape": shape})
+        buffer.write(data)
+    return buffer.getvalue()
+
+
+def rezip(data: bytes, drop=(), add=None, meta=None) -> bytes:
+    """The checkpoint ``data`` without the members ``drop``, with ``add`` ({name: .npy bytes}, deflated) and with
+    ``meta``'s keys set (None: removed)."""
+    add = add or {}
+    out = io.BytesIO()
+    with zipfile.ZipFile(io.BytesIO(data)) as src, zipfile.ZipFile(out, "w") as dst:
+        for name in src.namelist():
+            if name in drop or name in add:
+                continue
+            body = src.read(name)
+            if name == "meta.npy" and meta:
+                doc = json.loads(bytes(np.load(io.BytesIO(body))).decode()) | meta
+                text = json.dumps({k: v for k, v in doc.items() if v is not None})
+                body = npy(np.frombuffer(text.encode(), np.uint8))
+            dst.writestr(name, body)
+        for name, body in add.items():
+            dst.writestr(name, body, compress_type=zipfile.ZIP_DEFLATED)
+    return out.getvalue()
+
+
+def zip_bomb(name: str, header: bytes, mib: int) -> bytes:
+    """A zip of one member ``name``: ``header`` then ``mib`` MiB of zeros, deflated to about a thousandth (1 MiB of
+    zeros compressed once, each piece ending in a full flush so that it stands alone, then repeated)."""
+    c = zlib.compressobj(9, zlib.DEFLATED, -15)
+    stream = c.compress(header) + c.flush(zlib.Z_FULL_FLUSH)
+    stream += (c.compress(bytes(1 << 20)) + c.flush(zlib.Z_FULL_FLUSH)) * mib + c.flush()
+    size, n = len(header) + (mib << 20), name.encode()
+    local = struct.pack("<4s5H3L2H", b"PK\x03\x04", 20, 0, 8, 0, 0x21, 0, len(stream), size, len(n), 0) + n
+    central = struct.pack("<4s6H3L5H2L", b"PK\x01\x02", 20, 20, 0, 8, 0, 0x21, 0, len(stream), size, len(n), 0, 0, 0,
+                          0, 0, 0) + n
+    end = struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, 1, 1, len(central), len(local) + len(stream), 0)
+    return local + stream + central + end
+
+
+def test_crafted_checkpoints_end_in_one_line_without_loading_them(tmp_path, finished):
+    """A 5.8 MB zip bomb as checkpoint.npz took ``tune`` past 4 GB in 18 s, read before the configuration's check.
+    Now the file's size, then ``meta`` and the configuration's digest, then every member's declared size, shape and
+    dtype are checked before any array is loaded; every crafted checkpoint ends in one ParameterError.  Loaded in a
+    subprocess of at most 3 GiB, as ``tune`` resumes."""
+    lambda1 = zipfile.ZipFile(io.BytesIO(finished)).read("best/lambda1.npy")
+    shape = np.load(io.BytesIO(lambda1)).shape
+    bomb = npy(descr="|u1", shape=(3800 << 20,))
+    cases = {
+        "bomb": (zip_bomb("meta.npy", bomb, 3800), "expected a pusupu checkpoint of at most"),
+        "small bomb": (rezip(finished, add={"best/lambda1.npy": npy(descr="<f8", shape=(5 << 20,),
+                                                                    data=bytes(40 << 20))}),
+                       "best/lambda1.npy' declares 41943168 bytes, expected at most"),
+        "meta's header": (rezip(finished, add={"meta.npy": npy(descr="|u1", shape=(4 << 30,), data=b"{}")}),
+                          "meta: expected at most"),
+        "member name": (rezip(finished, add={"evil.npy": npy(np.zeros(3))}), "unexpected member 'evil.npy'"),
+        "shape": (rezip(finished, add={"best/lambda1.npy": npy(np.zeros(7))}),
+                  f"best/lambda1: expected float64 of shape {shape}, got float64 of shape (7,)"),
+        "dtype": (rezip(finished, add={"best/lambda1.npy": npy(np.zeros(shape, np.float32))}),
+                  "best/lambda1: expected float64"),
+        "object array": (rezip(finished, add={"best/lambda1.npy": npy(descr="|O", shape=shape, data=b"\x80\x04N.")}),
+                         "an object array, expected numbers"),
+        "a missing key": (rezip(finished, meta={"history": None}), "meta: missing key 'history'"),
+        "a key's kind": (rezip(finished, meta={"iteration": "4"}), "meta.iteration: expected an integer, got str"),
+        "an entry": (rezip(finished, meta={"history": [{"start": 0}]}), "meta.history[0]: missing key 'iteration'"),
+        "nesting": (rezip(finished, add={"meta.npy": npy(np.frombuffer(b"[" * 5000, np.uint8))}),
+                    "not a pusupu checkpoint (maximum recursion depth exceeded"),
+        "another configuration": (rezip(finished, meta={"digest": "e"}, add={"best/lambda1.npy": bomb}),
+                                  "checkpoint of another configuration (hash 'e', this one d)"),
+        "not a zip": (b"\x80\x04N.", "not a pusupu checkpoint (File is not a zip file)"),
+    }
+    for name, (data, _) in cases.items():
+        (tmp_path / f"{name}.npz").write_bytes(data)
+    os.mkfifo(tmp_path / "fifo.npz")
+    cases["fifo"] = (None, "expected a pusupu checkpoint, got a FIFO")
+    r = limited(OPTIMISATION + f"""
+for name in {list(cases)!r}:
+    try:
+        resume({str(tmp_path)!r} + f"/{{name}}.npz")
+    except ParameterError as e:
+        print(name, "|", e)
+    else:
+        print(name, "| resumed")
+""")
+    assert r.returncode == 0, r.stderr[-3000:]
+    got = dict(line.split(" | ", 1) for line in r.stdout.splitlines())
+    for name, (_, message) in cases.items():
+        assert message in got[name], (name, got[name])
+        assert got[name].endswith(("; delete it or use --fresh", "; use --fresh or another --out")), got[name]
+
+
+def test_a_finished_checkpoint_missing_a_field_is_refused_before_anything_is_exported(optimisation, finished, tmp_path):
+    """A finished checkpoint missing one best value resumed to a result holding the start value for it, which the
+    tuner exported marked as tuned (and then crashed).  Each group of arrays must be whole."""
+    path = tmp_path / "checkpoint.npz"
+    path.write_bytes(rezip(finished, drop=("best/lambda2.npy",)))
+
+    def never(z):
+        raise AssertionError("a finished run is not evaluated again")
+
+    with pytest.raises(ParameterError, match=r"not a pusupu checkpoint \(best/lambda2 missing\); delete it or use "
+                                             r"--fresh"):
+        optimisation["resume"](path, value_and_grad=never)
+    path.write_bytes(rezip(finished, drop=[f"best/{k}.npy" for k in ("lambda1", "lambda2", "T0")]))
+    with pytest.raises(ParameterError, match="missing arrays: best"):
+        optimisation["resume"](path, value_and_grad=never)
+    path.write_bytes(finished)
+    assert set(optimisation["resume"](path, value_and_grad=never)["z"]) == {"lambda1", "lambda2", "T0"}
