@@ -391,3 +391,62 @@ def test_a_finished_checkpoint_missing_a_field_is_refused_before_anything_is_exp
         optimisation["resume"](path, value_and_grad=never)
     path.write_bytes(finished)
     assert set(optimisation["resume"](path, value_and_grad=never)["z"]) == {"lambda1", "lambda2", "T0"}
+
+
+def test_ros_joint_names_are_checked_with_the_tune_config(tmp_path):
+    """A joint name the ROS exporter refuses passed the tune configuration, and the run failed only at its export.
+    The configuration now applies the exporter's own rule, before any work."""
+    from tune.config import TuneConfig
+
+    config = tmp_path / "tune.yaml"
+    config.write_text("ros_joints: [slide 1, slide_2, slide_3, slide_4, slide_5, slide_6]\n")
+    with pytest.raises(ParameterError, match=r"tune config ros_joints: expected 6 distinct names of letters, digits "
+                                             r"and _, got \('slide 1', "):
+        TuneConfig.load(config)
+
+
+@pytest.mark.parametrize("refused", ["joint names", "a FIFO among the outputs"])
+def test_the_export_writes_every_file_or_none(tmp_path, refused):
+    """The export wrote gains.yaml, then failed on the ROS files: a new gains.yaml beside the old ROS files, and a
+    report saying that no gain file was written.  Now every file is made and every path checked first."""
+    import dataclasses
+
+    from pusupu_jax import ServoParams
+    from pusupu_jax.hybrid import HybridGains
+    from pusupu_jax.machine import machine_rates
+    from tune.config import TuneConfig
+    from tune.job import export
+
+    cfg = TuneConfig()
+    old = {name: f"the earlier {name}\n" for name in ("gains.yaml", "ros2_pid_controller.yaml",
+                                                      "ros2_joint_trajectory_controller.yaml")}
+    for name, text in old.items():
+        (tmp_path / name).write_text(text)
+    if refused == "joint names":  # a configuration made without its checks, as an older pusupu_jax's was
+        cfg = dataclasses.replace(cfg, ros_joints=("slide 1",) + cfg.ros_joints[1:])
+        message = "ROS joints: expected 6 distinct names"
+    else:
+        fifo = tmp_path / "ros2_joint_trajectory_controller.yaml"
+        fifo.unlink()
+        os.mkfifo(fifo)
+        del old[fifo.name]
+        message = "expected a regular file to write (or nothing), found a FIFO"
+    report = export(tmp_path, cfg, ServoParams.table1(), HybridGains(), machine_rates(), ("lambda1",), {})
+    assert report["exported"] == [] and message in report["export_error"]
+    assert report["gains_file"]["left_as_it_was"]["path"] == str(tmp_path / "gains.yaml")
+    assert {name: (tmp_path / name).read_text() for name in old} == old
+    assert refused == "joint names" or stat.S_ISFIFO(os.lstat(fifo).st_mode)
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+    if refused == "joint names":  # with the default names, all three
+        report = export(tmp_path, TuneConfig(), ServoParams.table1(), HybridGains(), machine_rates(), ("lambda1",), {})
+        assert len(report["exported"]) == 3 and "export_error" not in report
+
+
+def test_a_tune_refuses_outputs_that_are_not_regular_files_before_any_work(tmp_path):
+    """Every file ``tune`` writes into --out (gains, ROS files, report, plots, checkpoint) is checked before the lock
+    is taken and anything compiles."""
+    out = tmp_path / "out"
+    out.mkdir()
+    os.mkfifo(out / "path_arc.png")
+    line = one_line_exit_2(pusupu("tune", "--quick", "--out", out), "path_arc.png: expected a regular file to write")
+    assert "a FIFO" in line and not (out / ".pusupu.lock").exists()

@@ -33,6 +33,7 @@ from pusupu_jax.params import ParameterError
 from . import jobfile
 from .config import TuneConfig
 
+SUMMARY_FILES = ("summary.csv", "summary.md", "summary.json", "summary.png")
 MAX_REPORT_BYTES = 64 << 20  # a job's report.json: its history, a few hundred bytes an iteration
 SUMMARY_COLUMNS = ("job", "status", "scenarios", "objective_before", "objective_after", "rms_before_mm",
                    "rms_after_mm", "max_after_mm", "force_peak_after_n", "error")
@@ -196,7 +197,7 @@ def run_batch(path, out, *, ray: bool = False, address: str | None = None, worke
     from .job import OutputLock, prepare_output
 
     jf = jobfile.read(path)
-    out = prepare_output(Path(out))
+    out = prepare_output(Path(out), SUMMARY_FILES)
     lock = OutputLock(out)
     try:
         if fresh:

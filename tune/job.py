@@ -32,7 +32,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from pusupu_jax import gains, inputs, ros2
-from pusupu_jax.config import check_output, write_atomic
+from pusupu_jax.config import check_output, write_atomic, write_files
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.params import ParameterError, ServoParams
@@ -64,7 +64,6 @@ def _plots(out: Path, history, before, after, baselines) -> list[str]:
     ax.legend()
     files.append(str(save_atomic(fig, out / "objective.png")))
     for name in before:
-        tag = name.replace("/", "_")
         (_, tb), (_, ta) = before[name], after[name]
         fig = plt.figure(figsize=(12, 5))
         ax = fig.add_subplot(1, 2, 1)
@@ -90,7 +89,7 @@ def _plots(out: Path, history, before, after, baselines) -> list[str]:
         ax2.legend()
         fig.suptitle(f"{name}: reference vs tracked path")
         fig.tight_layout()
-        files.append(str(save_atomic(fig, out / f"path_{tag}.png")))
+        files.append(str(save_atomic(fig, out / plot_file("path", name))))
         fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True, sharey=True)
         for ax, (label, tr) in zip(axes, (("before (Table 1)", tb), ("after (tuned)", ta))):
             for b in range(6):
@@ -101,7 +100,7 @@ def _plots(out: Path, history, before, after, baselines) -> list[str]:
         axes[1].set_xlabel("time [s]")
         fig.suptitle(f"{name}: branch forces")
         fig.tight_layout()
-        files.append(str(save_atomic(fig, out / f"forces_{tag}.png")))
+        files.append(str(save_atomic(fig, out / plot_file("forces", name))))
     return files
 
 
@@ -110,8 +109,20 @@ def _summary(result: dict) -> dict:
     return result | {"highest_branch_force_peak_n": max(result["branch_force_peak_n"])}
 
 
-def prepare_output(out: Path) -> Path:
-    """Check ``out`` before any work: a folder that exists or can be made, writable, holding no pickled checkpoint."""
+def plot_file(kind: str, scenario: str) -> str:
+    """The name of a run's ``kind`` plot (path, forces) of ``scenario``."""
+    return f"{kind}_{scenario.replace('/', '_')}.png"
+
+
+def run_files(scenarios) -> tuple:
+    """The files a run with ``scenarios`` (names) writes into its folder, besides its checkpoint."""
+    return ("gains.yaml", *ros2.FILES, "report.json", "objective.png",
+            *(plot_file(kind, name) for name in scenarios for kind in ("path", "forces")))
+
+
+def prepare_output(out: Path, files=()) -> Path:
+    """Check ``out`` before any work: a folder that exists or can be made, writable, holding no pickled checkpoint,
+    in which each of ``files`` (names) is a regular file or absent (:func:`pusupu_jax.config.check_output`)."""
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out: expected a folder, got the file {str(out)!r}")
     try:
@@ -124,6 +135,8 @@ def prepare_output(out: Path) -> Path:
     if legacy.exists():
         raise ParameterError(f"{legacy}: a pickled checkpoint (an older pusupu_jax's, or someone else's) is never read, "
                              "since loading a pickle can run code; delete it or choose another --out")
+    for name in files:
+        check_output(out / name)
     return out
 
 
@@ -172,7 +185,7 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) 
     The outputs of one run are written gains first, report last; the report names the gain
     file it describes by its checksum (or says that none was written and why).
     """
-    prepare_output(out)
+    prepare_output(out, (*run_files(s.name for s in scenario_list(cfg)), CHECKPOINT))
     lock = OutputLock(out)
     try:
         return _run(cfg, out, fresh, stream)
@@ -244,26 +257,30 @@ class TuneReport(dict):
 def export(out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: dict) -> dict:
     """Write ``gains.yaml`` and the ROS 2 files if the gains pass every check; the report's entries about them.
 
-    ``gains_file`` names the gain file the report describes (path and sha256), or says that none was written and
-    why, and which earlier ``gains.yaml`` (if any) was left as it was: a report never silently describes gains that
-    are not in ``gains.yaml``.
+    All or nothing: every file's text is made (the gains checked, the joint names too) and every path checked before
+    the first is written (:func:`pusupu_jax.config.write_files`), so that a refusal leaves the earlier files as they
+    were.  ``gains_file`` names the gain file the report describes (path and sha256), or says that none was written
+    and why, and which earlier ``gains.yaml`` (if any) was left as it was: a report never silently describes gains
+    that are not in ``gains.yaml``.
     """
     gains_path = out / "gains.yaml"
     try:
         margins = gains.check_gains(servo, hybrid, cfg.mode, (cfg.pm_min, cfg.gm_min))
-        gains.write(gains_path, servo, hybrid, rates, mode=cfg.mode, tuned=tuned, provenance=provenance,
-                    floors=(cfg.pm_min, cfg.gm_min), margins=margins)
-        ros = ros2.write_files(out, servo, cfg.mode, rates, source=str(gains_path), joints=cfg.ros_joints)
-        return {"margins_after": margins, "exported": [str(gains_path)] + [str(p) for p in ros],
+        texts = {gains_path: gains.document(servo, hybrid, rates, mode=cfg.mode, tuned=tuned, provenance=provenance,
+                                            floors=(cfg.pm_min, cfg.gm_min), margins=margins)}
+        texts |= {out / name: text for name, text in ros2.files(servo, cfg.mode, rates, source=str(gains_path),
+                                                                 joints=cfg.ros_joints).items()}
+        written = write_files(texts)
+        return {"margins_after": margins, "exported": [str(p) for p in written],
                 "gains_file": {"path": str(gains_path), "sha256": _sha256(gains_path)}}
     except ParameterError as e:
-        left = {"path": str(gains_path), "sha256": _sha256(gains_path)} if gains_path.exists() else None
+        left = {"path": str(gains_path), "sha256": _sha256(gains_path)} if gains_path.is_file() else None
         return {"margins_after": gains.margins_report(servo, cfg.mode), "exported": [], "export_error": str(e),
                 "gains_file": {"path": None, "not_written": str(e), "left_as_it_was": left}}
 
 
 def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    return hashlib.sha256(inputs.read_bytes(path, "gain file", ParameterError)).hexdigest()
 
 
 def table(report: dict) -> str:
