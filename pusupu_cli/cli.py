@@ -380,17 +380,20 @@ def _check_ros(args, g) -> int:
     from pusupu_jax.config import setup_jax
 
     setup_jax()
-    from pusupu_jax import gains, ros2
+    from pusupu_jax import gains, inputs, ros2, workload
     from pusupu_jax.cascade import control_mode
-    from pusupu_jax.machine import Scenario, simulate_scenarios
+    from pusupu_jax.machine import Scenario, machine_rates, simulate_scenarios
     from pusupu_jax.plant.geometry import Geometry
-    from pusupu_jax.trajectories import platform_path
+    from pusupu_jax.trajectories import path_seconds, platform_path
 
     kinds = ("arc", "p2p") if args.trajectory == "both" else (args.trajectory,)
+    if args.seconds is not None:
+        inputs.number(args.seconds, "--seconds", ParameterError, low=0.0, low_open=True)
+    seconds = sum(path_seconds(k) if args.seconds is None else min(args.seconds, path_seconds(k)) for k in kinds)
+    workload.check_run(f"gains check-ros ({' and '.join(kinds)}, two controllers)", 2 * seconds,
+                       machine_rates(rates=g.rates), machine=True)
     paths = {k: platform_path(k, Geometry.default().home, g.rates) for k in kinds}
     if args.seconds is not None:
-        if not (args.seconds > 0):
-            raise ParameterError(f"--seconds: expected a positive number, got {args.seconds}")
         paths = {k: p[:max(3, int(args.seconds / g.rates.dt_position))] for k, p in paths.items()}
     scenarios = [Scenario(p, name=k) for k, p in paths.items()]
     print(f"simulating {', '.join(kinds)} with the full pusupu controller ({g.mode}) and with what ROS's PID runs "
@@ -573,15 +576,18 @@ def _sim(args) -> int:
 
 
 def _sim_machine(args, servo, rates, hybrid) -> int:
-    from pusupu_jax.machine import simulate_machine
+    from pusupu_jax import workload
+    from pusupu_jax.machine import machine_rates, simulate_machine
     from pusupu_jax.plant.model import ModelOptions
-    from pusupu_jax.trajectories import platform_path
+    from pusupu_jax.trajectories import path_seconds, platform_path
     from pusupu_jax.plant.geometry import Geometry
 
     if args.duration is not None:
         raise ParameterError("--duration: the mjx paths have their own timing (velocity and acceleration limits)")
-    path = platform_path(args.trajectory, Geometry.default().home, rates)
     options = ModelOptions(kin_error_seed=args.kin_error)
+    workload.check_run(f"--trajectory {args.trajectory}", path_seconds(args.trajectory), machine_rates(options, rates),
+                       machine=True)
+    path = platform_path(args.trajectory, Geometry.default().home, rates)
     print(f"simulating {len(path) * rates.dt_position:.1f} s of the {args.trajectory} path on the MJX machine "
           f"({args.mode} mode); the first run compiles for about 15 s", file=sys.stderr)
     result, trace = simulate_machine(servo, path, mode=args.mode, options=options, rates=rates, hybrid=hybrid,

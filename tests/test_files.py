@@ -450,3 +450,85 @@ def test_a_tune_refuses_outputs_that_are_not_regular_files_before_any_work(tmp_p
     os.mkfifo(out / "path_arc.png")
     line = one_line_exit_2(pusupu("tune", "--quick", "--out", out), "path_arc.png: expected a regular file to write")
     assert "a FIFO" in line and not (out / ".pusupu.lock").exists()
+
+
+def commands(*argvs, timeout: float = 300) -> list:
+    """``[(exit status, stderr)]`` of each ``pusupu`` command line of ``argvs``, run by ``cli.main`` one after the other
+    in one :func:`limited` subprocess (the imports paid once)."""
+    r = limited(f"""
+import contextlib, io, json
+from pusupu_cli import cli
+out = []
+for argv in {[[str(a) for a in argv] for argv in argvs]!r}:
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            status = cli.main(argv)
+        except SystemExit as e:
+            status = e.code
+    out.append((status, err.getvalue()))
+print(json.dumps(out))
+""", timeout)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return json.loads(r.stdout.splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def fast_rates(tmp_path_factory):
+    """A parameter file and a gain file (Table 1, imc) with a 1 MHz current loop and 1000 velocity periods per
+    position period: legal rates of 50 times the default's work per simulated second."""
+    from pusupu_jax import LoopRates, ServoParams, gains
+    from pusupu_jax.hybrid import HybridGains
+
+    folder = tmp_path_factory.mktemp("rates")
+    (folder / "params.yaml").write_text("rates: {f_current: 1.0e+6, n_velocity: 1000, n_position: 1000}\n")
+    gains.write(folder / "gains.yaml", ServoParams.table1(), HybridGains(),
+                LoopRates(f_current=1e6, n_velocity=1000, n_position=1000), mode="imc")
+    return folder
+
+
+def test_every_duration_rate_and_horizon_is_bounded_by_its_work(tmp_path, fast_rates, gain_file):
+    """``sim`` at 1 MHz for 2000 s ran unbounded (2e9 current-loop ticks), ``gains check-ros --seconds inf`` ended in a
+    traceback, and the machine's paths, the tuned experiment's runs, a tune's iterations or windows and a job file's
+    were bounded by nothing.  Each is now checked against the work it implies (steps at the given rates, not
+    seconds) before anything compiles, with one line that gives the limit.  One subprocess runs every command."""
+    params, fast = fast_rates / "params.yaml", fast_rates / "gains.yaml"
+    (tmp_path / "gains.yaml").write_bytes(gain_file)
+    (tmp_path / "tune.yaml").write_text("iterations: 100000\n")
+    (tmp_path / "wide.yaml").write_text(f"kin_error_seeds: {list(range(100))}\n")
+    (tmp_path / "job.yaml").write_text("tune: {iterations: 100000}\nscenarios: [{trajectory: p2p}]\n")
+    cases = [
+        (["sim", "--params", params, "--duration", "2000"],
+         "trajectory duration: expected at most 40 s at these rates (4e+07 current-loop ticks of 1 us), got 2000 s"),
+        (["sim", "--plant", "mjx", "--gains", fast], "--trajectory arc: expected at most 40 s at these rates"),
+        (["gains", "check-ros", tmp_path / "gains.yaml", "--seconds", "inf"],
+         "--seconds: expected a finite number, got inf"),
+        (["gains", "check-ros", fast], "gains check-ros (arc and p2p, two controllers): expected at most 40 s"),
+        (["experiment", "tuned", "--gains", fast, "--out", tmp_path / "exp"],
+         "experiment tuned, the tuned gains' rates: expected at most 40 s at these rates"),
+        (["tune", "--config", tmp_path / "tune.yaml", "--out", tmp_path / "tune"],
+         "tune config: expected at most 5e+08 mechanical steps of the machine in all"),
+        (["tune", "--config", tmp_path / "wide.yaml", "--out", tmp_path / "tune"],
+         "tune config: expected at most 1e+06 mechanical steps of the machine in one gradient"),
+        (["batch", tmp_path / "job.yaml", "--out", tmp_path / "batch"],
+         "pusupu: job p2p: failed: its tuning work: expected at most 5e+08 mechanical steps"),
+    ]
+    results = commands(*(argv for argv, _ in cases))
+    for (argv, message), (status, err) in zip(cases, results):
+        lines = [line for line in err.splitlines() if line.startswith("pusupu")]
+        assert status == (1 if argv[0] == "batch" else 2) and len(lines) == 1 and message in lines[0], (argv, err)
+    assert not (tmp_path / "tune").exists() and not (tmp_path / "exp" / "tuned.json").exists()
+
+
+def test_the_work_limits_leave_the_defaults_far_inside():
+    from pusupu_jax import LoopRates, workload
+    from tune.config import TuneConfig
+    from tune.run import check_work
+
+    workload.check_run("sim", 2000.0, LoopRates())  # the longest axis run the default rates always allowed
+    workload.check_run("both paths, two controllers", 2 * 60.0, LoopRates(n_mech=5), machine=True)
+    check_work(TuneConfig())
+    check_work(TuneConfig().replace(iterations=250, starts=4))
+    with pytest.raises(ParameterError, match=r"sim: expected at most 2000 s at these rates \(4e\+07 current-loop "
+                                             r"ticks of 50 us\), got 2001 s"):
+        workload.check_run("sim", 2001.0, LoopRates())

@@ -39,7 +39,7 @@ from pusupu_jax.params import ParameterError, ServoParams
 from pusupu_jax.plots import save_atomic
 
 from .config import TuneConfig
-from .run import CHECKPOINT, Problem, progress_reporter, scenario_list
+from .run import CHECKPOINT, Problem, check_work, progress_reporter, scenario_list
 
 METRICS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho")
 
@@ -180,11 +180,13 @@ class OutputLock:
 
 
 def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) -> tuple[dict, int]:
-    """Run the whole job; returns ``(report, exit status)`` (1 when the tuned gains fail a check).
+    """Run the whole job; returns ``(report, exit status)`` (1 when the tuned gains fail a check).  The work it implies
+    (:func:`tune.run.check_work`) and the output folder are checked before anything is built.
 
     The outputs of one run are written gains first, report last; the report names the gain
     file it describes by its checksum (or says that none was written and why).
     """
+    check_work(cfg)
     prepare_output(out, (*run_files(s.name for s in scenario_list(cfg)), CHECKPOINT))
     lock = OutputLock(out)
     try:

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from pusupu_jax import inputs, objectives
+from pusupu_jax import inputs, objectives, workload
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.config import write_atomic
 from pusupu_jax.gradients import value_and_grad
@@ -156,6 +156,26 @@ class Scenarios:
         """Scenario ``i``'s reference over its unpadded path (host arrays)."""
         idx, _, refs = self.groups[self.group_of[i]]
         return jax.tree.map(lambda x: np.asarray(x)[idx.index(i), :self.lengths[i]], refs)
+
+
+GRADIENT_COST = 3  # forward passes a reverse-mode gradient costs, about (its forward pass, then the backward one)
+
+
+def check_work(cfg: TuneConfig, specs: list[ScenarioSpec] | None = None, where: str = "tune config") -> None:
+    """Before anything is built: the mechanical steps of the machine that tuning ``specs`` (default: the
+    configuration's scenarios) with ``cfg`` implies, within :func:`pusupu_jax.workload.check_tuning`: one gradient's
+    (scenarios x windows x window length) and all of them: ``cfg.starts x (iterations + 1)`` gradients and the start's
+    (:data:`GRADIENT_COST` forward passes each), forward passes over the whole paths every ``refresh_every`` iterations
+    of each start, and before and after the run and the baselines."""
+    rates = machine_rates()
+    specs = scenario_list(cfg) if specs is None else specs
+    per_period = rates.n_velocity * rates.n_position // rates.n_mech
+    window = max(3, int(round(cfg.window_s / rates.dt_position)))
+    gradient = len(specs) * cfg.windows * window * per_period
+    paths = sum(len(spec.path(rates)) for spec in specs) * per_period
+    passes = cfg.starts * (-(-cfg.iterations // cfg.refresh_every) + 1) + 3 + len(cfg.baselines)
+    workload.check_tuning(where, gradient, (cfg.starts * (cfg.iterations + 1) + 1) * GRADIENT_COST * gradient
+                          + passes * paths)
 
 
 def scenario_objective(cfg: TuneConfig, t: dict, baseline: dict):
