@@ -12,7 +12,9 @@
     (analyze and sim also take --gains FILE, a gain file written by tune; analyze, sim and tune
     take --imc-form full|printed, sim takes --start rest|zero)
 
-Errors in the input print one line ``pusupu: error: ...`` and exit with status 2.
+Errors in the input print one line ``pusupu: error: ...`` and exit with status 2: a ParameterError, and a ValueError,
+OverflowError or FloatingPointError raised while the inputs are read and checked (:func:`_checking`).  Any other
+exception, or one raised in the work, is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -27,8 +29,10 @@ import threading
 import time
 import warnings
 
+import numpy as np
+
 from pusupu_jax.inputs import one_line
-from pusupu_jax.params import IMC_FORMS, ParameterError
+from pusupu_jax.params import IMC_FORMS, N_AXES, ParameterError
 
 from . import bridge as bridge_cli
 
@@ -47,6 +51,20 @@ def _say(message: str) -> None:
 def _fail(message: str):
     _say(f"pusupu: error: {message}")
     sys.exit(2)
+
+
+@contextlib.contextmanager
+def _checking(source: str):
+    """The inputs named ``source`` are read and checked inside: a ValueError, OverflowError or FloatingPointError
+    raised there (by numpy, python-control or float arithmetic on an absurd value) is the input's fault and becomes a
+    ParameterError naming ``source`` (one line, exit 2).  Raised later, in the work, such an error is a bug and keeps
+    its traceback, as every other exception does."""
+    try:
+        yield
+    except ParameterError:
+        raise
+    except (ValueError, OverflowError, FloatingPointError) as e:
+        raise ParameterError(f"{source}: cannot use these values ({type(e).__name__}: {e})") from None
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -263,7 +281,8 @@ def _tune(args) -> int:
         raise ParameterError("--out: expected a folder, got an empty name")
     cfg = TuneConfig.quick() if args.quick else TuneConfig()
     if args.config:
-        cfg = TuneConfig.load(args.config, base=cfg)
+        with _checking(f"--config {args.config}"):
+            cfg = TuneConfig.load(args.config, base=cfg)
     if args.imc_form:
         cfg = cfg.replace(imc_form=args.imc_form)
     out = Path(args.out)
@@ -316,7 +335,8 @@ def _experiment(args) -> int:
     import experiments
 
     experiments.get(args.name)  # an unknown name fails before any work
-    g = experiments.gain_file(args.name, args.gains)  # refused for another experiment, or a bad file: before any work
+    with _checking(f"--gains {args.gains}"):  # refused for another experiment, or a bad file: before any work
+        g = experiments.gain_file(args.name, args.gains)
     print(f"experiment {args.name}{' (quick)' if args.quick else ''}: running (the first runs compile for about "
           "20 s per control mode)", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
@@ -332,11 +352,13 @@ def _experiment(args) -> int:
 def _load(args):
     from pusupu_jax.config import load_params_file
 
-    loaded = load_params_file(args.params)
+    with _checking(f"--params {args.params}" if args.params else "the default parameters"):
+        loaded = load_params_file(args.params)
     if getattr(args, "gains", None):
         from pusupu_jax import gains
 
-        g = gains.load(args.gains, _floors(args))
+        with _checking(f"--gains {args.gains}"):
+            g = gains.load(args.gains, _floors(args))
         loaded = loaded._replace(servo=g.servo, hybrid=g.hybrid, rates=g.rates)
     if args.imc_form:
         loaded = loaded._replace(servo=loaded.servo.replace(imc_form=args.imc_form))
@@ -350,14 +372,18 @@ def _gains(args) -> int:
 
     floors = _floors(args)
     if args.action == "sign":  # the checks of load() less the checksum, then the derived blocks written anew
-        gains.sign(args.file, floors)
+        with _checking(args.file):
+            gains.sign(args.file, floors)
         print(f"{args.file}: its gains pass every check; re-signed")
         return 0
-    g = gains.load(args.file, floors)
+    with _checking(args.file):
+        g = gains.load(args.file, floors)
     if args.action == "show":
         print(json.dumps(g.document, indent=2) if args.json else gains.show(g.document))
     elif args.action == "diff":
-        lines = gains.diff(g.document, gains.load(args.other, floors).document)
+        with _checking(args.other):
+            other = gains.load(args.other, floors)
+        lines = gains.diff(g.document, other.document)
         print("\n".join(lines) if lines else "no difference in gains, plant values, rates or mode")
     elif args.action == "check":
         print(f"{args.file}: valid {gains.SCHEMA} v{gains.VERSION}, mode {g.mode}; every loop has at least "
@@ -456,6 +482,12 @@ def _analyze(args) -> int:
         raise ParameterError("--kin-error: only with --identify-T0 (the loop analysis uses the single-axis load)")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
+        # the check of the values: every axis's closed loops can be built (0.1 s), with numpy's overflow, invalid and
+        # divide-by-zero raising; what python-control or numpy cannot use ends in one line here, not in the analysis
+        with _checking(" and ".join(f"--{k} {getattr(args, k)}" for k in ("params", "gains") if getattr(args, k))
+                       or "Table 1"), np.errstate(over="raise", invalid="raise", divide="raise"):
+            for axis in range(N_AXES):
+                analysis.closed_loops(servo, load, axis, mode=args.mode)
         result = analysis.loop_metrics(servo, load, args.mode)
         if args.plot:
             from pusupu_jax.plots import plot_loops

@@ -454,9 +454,10 @@ def test_a_tune_refuses_outputs_that_are_not_regular_files_before_any_work(tmp_p
 
 def commands(*argvs, timeout: float = 300) -> list:
     """``[(exit status, stderr)]`` of each ``pusupu`` command line of ``argvs``, run by ``cli.main`` one after the other
-    in one :func:`limited` subprocess (the imports paid once)."""
+    in one :func:`limited` subprocess (the imports paid once); an exception out of ``main`` is status 1 and its
+    traceback, as Python would end the command."""
     r = limited(f"""
-import contextlib, io, json
+import contextlib, io, json, traceback
 from pusupu_cli import cli
 out = []
 for argv in {[[str(a) for a in argv] for argv in argvs]!r}:
@@ -466,6 +467,9 @@ for argv in {[[str(a) for a in argv] for argv in argvs]!r}:
             status = cli.main(argv)
         except SystemExit as e:
             status = e.code
+        except Exception:
+            status = 1
+            traceback.print_exc()
     out.append((status, err.getvalue()))
 print(json.dumps(out))
 """, timeout)
@@ -532,3 +536,33 @@ def test_the_work_limits_leave_the_defaults_far_inside():
     with pytest.raises(ParameterError, match=r"sim: expected at most 2000 s at these rates \(4e\+07 current-loop "
                                              r"ticks of 50 us\), got 2001 s"):
         workload.check_run("sim", 2001.0, LoopRates())
+
+
+@pytest.mark.parametrize("values, needs_field_bounds", [
+    ("servo: {Kv: 1.0e+308}", False), ("servo: {lambda2: 1.0e-300}", False), ("servo: {lead: 1.0e+300}", False),
+    ("servo: {Tw: 1.0e+5}", True), ("load: {mass: 1.0e+308}", True)])
+def test_absurd_parameters_end_in_one_line(tmp_path, values, needs_field_bounds):
+    """``analyze --params`` with these values ended in tracebacks from python-control and numpy.  Those the loop
+    model cannot be built from (a ValueError, OverflowError or FloatingPointError while the inputs are checked) end
+    in one line and exit 2.  The other two get through every check to the step metrics (python-control's step_info
+    on a step that never rises): they need per-field bounds on the parameters, and end in one line once those
+    refuse them as the file is read."""
+    params = tmp_path / "params.yaml"
+    params.write_text(values + "\n")
+    [(status, err)] = commands(["analyze", "--params", params])
+    lines = err.strip().splitlines()
+    assert status != 0 and len(lines) == 1 and "Traceback" not in err, err[-3000:]
+    assert needs_field_bounds or (status == 2 and lines[0].startswith(f"pusupu: error: --params {params}: "))
+
+
+def test_an_internal_error_keeps_its_traceback(monkeypatch):
+    """Only the inputs' checks turn a ValueError into one line: raised in the work, it is a bug, and shows."""
+    from pusupu_cli import cli
+    from pusupu_jax import analysis
+
+    def broken(*args, **kwargs):
+        raise ValueError("a bug in the analysis")
+
+    monkeypatch.setattr(analysis, "loop_metrics", broken)
+    with pytest.raises(ValueError, match="a bug in the analysis"):
+        cli.main(["analyze"])
