@@ -35,17 +35,43 @@ def limited(code: str, timeout: float = 120, memory: int = 3 << 30) -> subproces
         pytest.fail(f"still running after {timeout} s: {code}")
 
 
-def pusupu(*args, timeout: float = 120, memory: int = 3 << 30) -> subprocess.CompletedProcess:
-    """The ``pusupu`` command in a :func:`limited` subprocess."""
-    return limited(f"import runpy, sys; sys.argv = ['pusupu', *{[str(a) for a in args]!r}]; "
-                   "runpy.run_module('pusupu_cli', run_name='__main__')", timeout, memory)
+def commands(*argvs, timeout: float = 300) -> list:
+    """``[(exit status, stderr)]`` of each ``pusupu`` command line of ``argvs``, run by ``cli.main`` one after the other
+    in one :func:`limited` subprocess (the imports paid once); an exception out of ``main`` is status 1 and its
+    traceback, as Python would end the command."""
+    r = limited(f"""
+import contextlib, io, json, traceback
+from pusupu_cli import cli
+out = []
+for argv in {[[str(a) for a in argv] for argv in argvs]!r}:
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            status = cli.main(argv)
+        except SystemExit as e:
+            status = e.code
+        except Exception:
+            status = 1
+            traceback.print_exc()
+    out.append((status, err.getvalue()))
+print(json.dumps(out))
+""", timeout)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return json.loads(r.stdout.splitlines()[-1])
 
 
-def one_line_exit_2(r: subprocess.CompletedProcess, *expected: str) -> str:
-    """The error line of a command that had to end with one line and exit status 2, holding each of ``expected``."""
-    lines = r.stderr.splitlines()
-    assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("pusupu: error: "), r.stderr[-3000:]
-    assert "Traceback" not in r.stderr and all(e in lines[0] for e in expected), lines[0]
+def pusupu(*args, timeout: float = 300) -> tuple:
+    """``(exit status, stderr)`` of one ``pusupu`` command (:func:`commands`)."""
+    return commands(args, timeout=timeout)[0]
+
+
+def one_line_exit_2(result: tuple, *expected: str) -> str:
+    """The error line of a command (``(exit status, stderr)``) that had to end with one line and exit status 2,
+    holding each of ``expected``."""
+    status, err = result
+    lines = err.splitlines()
+    assert status == 2 and len(lines) == 1 and lines[0].startswith("pusupu: error: "), err[-3000:]
+    assert "Traceback" not in err and all(e in lines[0] for e in expected), lines[0]
     return lines[0]
 
 
@@ -118,14 +144,14 @@ def test_gains_sign_keeps_the_mode_and_refuses_a_symlink(tmp_path, gain_file):
     private.chmod(0o600)
     if ROOT:  # a user's file signed by root stays the user's
         os.chown(private, 4321, 4321)
-    r = pusupu("gains", "sign", private)
-    assert r.returncode == 0, r.stderr
-    assert stat.S_IMODE(private.stat().st_mode) == 0o600 and private.read_bytes() != gain_file  # signed anew
-    assert not ROOT or (private.stat().st_uid, private.stat().st_gid) == (4321, 4321)
     (tmp_path / "target").write_bytes(gain_file)
     link = tmp_path / "link.yaml"
     link.symlink_to(tmp_path / "target")
-    one_line_exit_2(pusupu("gains", "sign", link), "link.yaml: expected a regular file to write", "a symlink")
+    signed, refused = commands(["gains", "sign", private], ["gains", "sign", link])
+    assert signed[0] == 0, signed[1]
+    assert stat.S_IMODE(private.stat().st_mode) == 0o600 and private.read_bytes() != gain_file  # signed anew
+    assert not ROOT or (private.stat().st_uid, private.stat().st_gid) == (4321, 4321)
+    one_line_exit_2(refused, "link.yaml: expected a regular file to write", "a symlink")
     assert link.is_symlink() and (tmp_path / "target").read_bytes() == gain_file
 
 
@@ -178,16 +204,14 @@ def test_an_input_larger_than_its_limit_is_refused_before_it_is_read(tmp_path):
 def test_echoed_values_are_cut_and_escaped(tmp_path):
     """A 500 kB value came back as a 500 kB error line, and newlines in names were printed raw (a path, a job's
     name).  Every error is one line: echoed values cut to a few hundred characters, control characters escaped."""
-    value = tmp_path / "value.yaml"
+    value, key, named = tmp_path / "value.yaml", tmp_path / "key.yaml", tmp_path / "new\nline.yaml"
     value.write_text("rates: {method: '" + "A" * 500_000 + "'}\n")
-    line = one_line_exit_2(pusupu("sim", "--params", value),
-                           "rates.method: expected one of ('tustin', 'zoh'), got 'AAA", "... (500002 characters)")
-    assert len(line) < 1000
-    key = tmp_path / "key.yaml"
     key.write_text('rates: {"f_cur\\nrent\\u001b[31m": 5}\n')
-    one_line_exit_2(pusupu("sim", "--params", key), r"unknown key 'f_cur\nrent\x1b[31m'")
-    named = tmp_path / "new\nline.yaml"
-    one_line_exit_2(pusupu("sim", "--params", named), r"new\nline.yaml: cannot read YAML file")
+    long, control, newline = commands(*(["sim", "--params", path] for path in (value, key, named)))
+    line = one_line_exit_2(long, "rates.method: expected one of ('tustin', 'zoh'), got 'AAA", "... (500002 characters)")
+    assert len(line) < 1000
+    one_line_exit_2(control, r"unknown key 'f_cur\nrent\x1b[31m'")
+    one_line_exit_2(newline, r"new\nline.yaml: cannot read YAML file")
     assert inputs.one_line("a\nb\tc\u202ed") == r"a\nb\tc\u202ed"
     assert inputs.shown("x" * 1000).endswith("... (1002 characters)") and len(inputs.shown("x" * 1000)) < 250
 
@@ -196,10 +220,10 @@ def test_a_job_named_with_a_newline_is_reported_on_one_line(tmp_path):
     """A scenario whose name fails its check names its failed job: that name was printed raw."""
     job = tmp_path / "job.yaml"
     job.write_text('scenarios: [{name: "two\\nlines", trajectory: p2p}]\n')
-    r = pusupu("batch", job, "--out", tmp_path / "out")
-    errors = [line for line in r.stderr.splitlines() if line.startswith("pusupu")]
-    assert r.returncode == 1 and errors == [r"pusupu: job two\nlines: failed: scenarios[0].name: expected letters, "
-                                            r"digits and - _ . / (not first: .), got 'two\nlines'"], r.stderr[-3000:]
+    status, err = pusupu("batch", job, "--out", tmp_path / "out")
+    errors = [line for line in err.splitlines() if line.startswith("pusupu")]
+    assert status == 1 and errors == [r"pusupu: job two\nlines: failed: scenarios[0].name: expected letters, digits "
+                                      r"and - _ . / (not first: .), got 'two\nlines'"], err[-3000:]
 
 
 @pytest.mark.parametrize("kind", ["symlink", "fifo", "device", "hard link"])
@@ -450,31 +474,6 @@ def test_a_tune_refuses_outputs_that_are_not_regular_files_before_any_work(tmp_p
     os.mkfifo(out / "path_arc.png")
     line = one_line_exit_2(pusupu("tune", "--quick", "--out", out), "path_arc.png: expected a regular file to write")
     assert "a FIFO" in line and not (out / ".pusupu.lock").exists()
-
-
-def commands(*argvs, timeout: float = 300) -> list:
-    """``[(exit status, stderr)]`` of each ``pusupu`` command line of ``argvs``, run by ``cli.main`` one after the other
-    in one :func:`limited` subprocess (the imports paid once); an exception out of ``main`` is status 1 and its
-    traceback, as Python would end the command."""
-    r = limited(f"""
-import contextlib, io, json, traceback
-from pusupu_cli import cli
-out = []
-for argv in {[[str(a) for a in argv] for argv in argvs]!r}:
-    err = io.StringIO()
-    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        try:
-            status = cli.main(argv)
-        except SystemExit as e:
-            status = e.code
-        except Exception:
-            status = 1
-            traceback.print_exc()
-    out.append((status, err.getvalue()))
-print(json.dumps(out))
-""", timeout)
-    assert r.returncode == 0, r.stderr[-3000:]
-    return json.loads(r.stdout.splitlines()[-1])
 
 
 @pytest.fixture(scope="module")
