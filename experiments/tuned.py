@@ -25,15 +25,15 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from pusupu_jax import LoopRates, ServoParams
+from pusupu_jax import LoopRates, ServoParams, workload
 from pusupu_jax import gains as gain_files
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.hybrid import HybridGains
-from pusupu_jax.machine import Scenario, simulate_scenarios
+from pusupu_jax.machine import Scenario, machine_rates, simulate_scenarios
 from pusupu_jax.params import ParameterError
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plots import save_atomic
-from pusupu_jax.trajectories import platform_path
+from pusupu_jax.trajectories import path_seconds, platform_path
 
 from . import Result, pct
 from .arc import QUICK_S  # 3 s, as arc and p2p: two 3 s paths are the batch shape of p2p --quick (one compile)
@@ -84,6 +84,10 @@ def run(quick: bool = False, gains=None) -> Result:
                   "config_hash": p.get("config_hash")}
     sets = {"Table 1": (ServoParams.table1(), None, LoopRates()), "tuned": (gains.servo, gains.hybrid, gains.rates)}
     runs, series, duration = {}, {}, {}
+    for set_label, (_, _, rates) in sets.items():  # every mode on both paths: bounded before any of it runs
+        seconds = sum(min(QUICK_S, path_seconds(kind)) if quick else path_seconds(kind) for kind in PATHS)
+        workload.check_run(f"experiment tuned, the {set_label} gains' rates", len(MODES) * seconds,
+                           machine_rates(rates=rates), machine=True)
     for set_label, (servo, hybrid, rates) in sets.items():
         scenarios = []
         for kind in PATHS:

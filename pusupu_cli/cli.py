@@ -12,7 +12,9 @@
     (analyze and sim also take --gains FILE, a gain file written by tune; analyze, sim and tune
     take --imc-form full|printed, sim takes --start rest|zero)
 
-Errors in the input print one line ``pusupu: error: ...`` and exit with status 2.
+Errors in the input print one line ``pusupu: error: ...`` and exit with status 2: a ParameterError, and a ValueError,
+OverflowError or FloatingPointError raised while the inputs are read and checked (:func:`_checking`).  Any other
+exception, or one raised in the work, is a bug and keeps its traceback.
 """
 
 from __future__ import annotations
@@ -27,7 +29,10 @@ import threading
 import time
 import warnings
 
-from pusupu_jax.params import IMC_FORMS, ParameterError
+import numpy as np
+
+from pusupu_jax.inputs import one_line
+from pusupu_jax.params import IMC_FORMS, N_AXES, ParameterError
 
 from . import bridge as bridge_cli
 
@@ -37,9 +42,29 @@ class _Parser(argparse.ArgumentParser):
         _fail(message)
 
 
+def _say(message: str) -> None:
+    """Print ``message`` on stderr as one line (:func:`pusupu_jax.inputs.one_line`: escaped, cut): every error line
+    of the command goes through here, so that no input is echoed raw or whole."""
+    print(one_line(message), file=sys.stderr)
+
+
 def _fail(message: str):
-    print(f"pusupu: error: {message}", file=sys.stderr)
+    _say(f"pusupu: error: {message}")
     sys.exit(2)
+
+
+@contextlib.contextmanager
+def _checking(source: str):
+    """The inputs named ``source`` are read and checked inside: a ValueError, OverflowError or FloatingPointError
+    raised there (by numpy, python-control or float arithmetic on an absurd value) is the input's fault and becomes a
+    ParameterError naming ``source`` (one line, exit 2).  Raised later, in the work, such an error is a bug and keeps
+    its traceback, as every other exception does."""
+    try:
+        yield
+    except ParameterError:
+        raise
+    except (ValueError, OverflowError, FloatingPointError) as e:
+        raise ParameterError(f"{source}: cannot use these values ({type(e).__name__}: {e})") from None
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -202,7 +227,7 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         kept = {"tune": "the checkpoint in {} keeps", "batch": "the checkpoints in {} keep"}.get(args.command)
         where = f" ({kept.format(args.out)} the run: the same command resumes it)" if kept else ""
-        print(f"pusupu: interrupted{where}", file=sys.stderr)
+        _say(f"pusupu: interrupted{where}")
         return 130
 
 
@@ -261,7 +286,8 @@ def _tune(args) -> int:
         raise ParameterError("--out: expected a folder, got an empty name")
     cfg = TuneConfig.quick() if args.quick else TuneConfig()
     if args.config:
-        cfg = TuneConfig.load(args.config, base=cfg)
+        with _checking(f"--config {args.config}"):
+            cfg = TuneConfig.load(args.config, base=cfg)
     if args.imc_form:
         cfg = cfg.replace(imc_form=args.imc_form)
     out = Path(args.out)
@@ -272,7 +298,7 @@ def _tune(args) -> int:
         print(table(report))
         print(f"wrote: {', '.join(report['exported'] + report['plots'] + [str(out / 'report.json')])}")
     if status:
-        print(f"pusupu: error: {report['export_error']}", file=sys.stderr)
+        _say(f"pusupu: error: {report['export_error']}")
     return status
 
 
@@ -298,7 +324,7 @@ def _batch(args) -> int:
               f"summary.md, summary.json, summary.png and jobs/<job>/")
     for name in summary["failed"]:
         row = next(r for r in summary["rows"] if r["job"] == name)
-        print(f"pusupu: job {name}: {row['status']}: {row['error']}", file=sys.stderr)
+        _say(f"pusupu: job {name}: {row['status']}: {row['error']}")
     return status
 
 
@@ -314,7 +340,8 @@ def _experiment(args) -> int:
     import experiments
 
     experiments.get(args.name)  # an unknown name fails before any work
-    g = experiments.gain_file(args.name, args.gains)  # refused for another experiment, or a bad file: before any work
+    with _checking(f"--gains {args.gains}"):  # refused for another experiment, or a bad file: before any work
+        g = experiments.gain_file(args.name, args.gains)
     print(f"experiment {args.name}{' (quick)' if args.quick else ''}: running (the first runs compile for about "
           "20 s per control mode)", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
@@ -334,11 +361,13 @@ def _load(args, check: bool = True):
     from pusupu_jax.config import load_params_file, setup_jax
 
     setup_jax()  # the checks' compiled programs come from the persistent cache after the first run
-    loaded = load_params_file(args.params)
+    with _checking(f"--params {args.params}" if args.params else "the default parameters"):
+        loaded = load_params_file(args.params)
     if getattr(args, "gains", None):
         from pusupu_jax import gains
 
-        g = gains.load(args.gains, args.floors, check_stability=False)
+        with _checking(f"--gains {args.gains}"):
+            g = gains.load(args.gains, args.floors, check_stability=False)
         loaded = loaded._replace(servo=g.servo, hybrid=g.hybrid, rates=g.rates)
     if args.imc_form:
         loaded = loaded._replace(servo=loaded.servo.replace(imc_form=args.imc_form))
@@ -361,18 +390,23 @@ def _gains(args) -> int:
     setup_jax()  # the checks' compiled programs come from the persistent cache after the first run
     floors = args.floors
     if args.action == "sign":  # the checks of load() less the checksum, then the derived blocks written anew
-        gains.sign(args.file, floors)
+        with _checking(args.file):
+            gains.sign(args.file, floors)
         print(f"{args.file}: its gains pass every check; re-signed")
         return 0
     if args.action == "migrate":
-        path = gains.migrate(args.file, args.out, floors)
+        with _checking(args.file):
+            path = gains.migrate(args.file, args.out, floors)
         print(f"{path}: {gains.SCHEMA} v{gains.VERSION}, migrated from version 2 (the built-in plant)")
         return 0
-    g = gains.load(args.file, floors)
+    with _checking(args.file):
+        g = gains.load(args.file, floors)
     if args.action == "show":
         print(json.dumps(g.document, indent=2) if args.json else gains.show(g.document))
     elif args.action == "diff":
-        lines = gains.diff(g.document, gains.load(args.other, floors).document)
+        with _checking(args.other):
+            other = gains.load(args.other, floors)
+        lines = gains.diff(g.document, other.document)
         print("\n".join(lines) if lines else "no difference in gains, rates or mode")
     elif args.action == "check":
         print(f"{args.file}: valid {gains.SCHEMA} v{g.document['version']}, mode {g.mode}; every loop stable at the "
@@ -395,17 +429,20 @@ def _check_ros(args, g) -> int:
     from pusupu_jax.config import setup_jax
 
     setup_jax()
-    from pusupu_jax import gains, ros2
+    from pusupu_jax import gains, inputs, ros2, workload
     from pusupu_jax.cascade import control_mode
-    from pusupu_jax.machine import Scenario, simulate_scenarios
+    from pusupu_jax.machine import Scenario, machine_rates, simulate_scenarios
     from pusupu_jax.plant.geometry import Geometry
-    from pusupu_jax.trajectories import platform_path
+    from pusupu_jax.trajectories import path_seconds, platform_path
 
     kinds = ("arc", "p2p") if args.trajectory == "both" else (args.trajectory,)
+    if args.seconds is not None:
+        inputs.number(args.seconds, "--seconds", ParameterError, low=0.0, low_open=True)
+    seconds = sum(path_seconds(k) if args.seconds is None else min(args.seconds, path_seconds(k)) for k in kinds)
+    workload.check_run(f"gains check-ros ({' and '.join(kinds)}, two controllers)", 2 * seconds,
+                       machine_rates(rates=g.rates), machine=True)
     paths = {k: platform_path(k, Geometry.default().home, g.rates) for k in kinds}
     if args.seconds is not None:
-        if not (args.seconds > 0):
-            raise ParameterError(f"--seconds: expected a positive number, got {args.seconds}")
         paths = {k: p[:max(3, int(args.seconds / g.rates.dt_position))] for k, p in paths.items()}
     scenarios = [Scenario(p, name=k) for k, p in paths.items()]
     print(f"simulating {', '.join(kinds)} with the full pusupu controller ({g.mode}) and with what ROS's PID runs "
@@ -441,6 +478,8 @@ def _check_ros(args, g) -> int:
 def _check_plot_path(path):
     import os
 
+    from pusupu_jax.config import check_output
+
     folder = os.path.dirname(os.path.abspath(path))
     if not path or os.path.isdir(path):
         raise ParameterError(f"--plot: expected the path of a PNG file, got the folder {path!r}")
@@ -448,6 +487,10 @@ def _check_plot_path(path):
         raise ParameterError(f"--plot: expected a PNG path in an existing folder, got {path!r}")
     if not os.access(folder, os.W_OK):
         raise ParameterError(f"--plot: cannot write in the folder {folder!r}")
+    try:
+        check_output(path)
+    except ParameterError as e:
+        raise ParameterError(f"--plot: {e}") from None
 
 
 def _analyze(args) -> int:
@@ -462,6 +505,12 @@ def _analyze(args) -> int:
         raise ParameterError("--kin-error: only with --identify-T0 (the loop analysis uses the single-axis load)")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
+        # the check of the values: every axis's closed loops can be built (0.1 s), with numpy's overflow, invalid and
+        # divide-by-zero raising; what python-control or numpy cannot use ends in one line here, not in the analysis
+        with _checking(" and ".join(f"--{k} {getattr(args, k)}" for k in ("params", "gains") if getattr(args, k))
+                       or "Table 1"), np.errstate(over="raise", invalid="raise", divide="raise"):
+            for axis in range(N_AXES):
+                analysis.closed_loops(servo, load, axis, mode=args.mode)
         result = analysis.loop_metrics(servo, load, args.mode)
         if args.plot:
             from pusupu_jax.plots import plot_loops
@@ -594,15 +643,18 @@ def _sim(args) -> int:
 
 
 def _sim_machine(args, servo, rates, hybrid) -> int:
-    from pusupu_jax.machine import simulate_machine
+    from pusupu_jax import workload
+    from pusupu_jax.machine import machine_rates, simulate_machine
     from pusupu_jax.plant.model import ModelOptions
-    from pusupu_jax.trajectories import platform_path
+    from pusupu_jax.trajectories import path_seconds, platform_path
     from pusupu_jax.plant.geometry import Geometry
 
     if args.duration is not None:
         raise ParameterError("--duration: the mjx paths have their own timing (velocity and acceleration limits)")
-    path = platform_path(args.trajectory, Geometry.default().home, rates)
     options = ModelOptions(kin_error_seed=args.kin_error)
+    workload.check_run(f"--trajectory {args.trajectory}", path_seconds(args.trajectory), machine_rates(options, rates),
+                       machine=True)
+    path = platform_path(args.trajectory, Geometry.default().home, rates)
     print(f"simulating {len(path) * rates.dt_position:.1f} s of the {args.trajectory} path on the MJX machine "
           f"({args.mode} mode); the first run compiles for about 15 s", file=sys.stderr)
     result, trace = simulate_machine(servo, path, mode=args.mode, options=options, rates=rates, hybrid=hybrid,

@@ -12,8 +12,10 @@ scalar applies to every axis, a list gives one value per axis; SI units as docum
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import NamedTuple
@@ -133,26 +135,63 @@ def umask() -> int:
     return mask
 
 
-def write_atomic(path, data: str | bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file in the same folder, synced, then renamed over it.
+def check_output(path) -> os.stat_result | None:
+    """What stands at ``path``, an output about to be written: nothing (None) or a regular file (its ``lstat``).
 
-    A reader sees the old file or the new one, never a part; a failure (a full disk included)
-    leaves the old file and no temporary behind.  The file gets the mode a plain ``open`` would
-    give it: ``0666`` less the umask (``0644`` under the usual ``022``).
+    Anything else (a symlink, folder, FIFO, socket or device node) raises :class:`ParameterError` in one line and is
+    left as it is: a rename over it would replace the node itself (as root, ``--plot /dev/null`` replaced the device
+    with a PNG), and a symlink is not followed to whatever it names.
     """
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
-        os.fchmod(fd, 0o666 & ~umask())
-        with os.fdopen(fd, "wb") as f:
-            f.write(data.encode() if isinstance(data, str) else data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return None
+    if not stat.S_ISREG(st.st_mode):
+        raise ParameterError(f"{path}: expected a regular file to write (or nothing), found "
+                             f"{inputs.file_kind(st.st_mode)}; left as it is")
+    return st
+
+
+def write_files(files: dict) -> list[Path]:
+    """Write ``{path: data}`` (str or bytes) atomically, every file or none as far as the file system allows.
+
+    Every path is checked first (:func:`check_output`); then each file's data goes to a temporary file in its
+    folder, synced; then, every path checked again, each temporary is renamed over its path.  A reader sees an old
+    file or a new one, never a part; a failure before the renames (a full disk included) leaves every old file and no
+    temporary behind.  A new file gets the mode a plain ``open`` would give it (``0666`` less the umask: ``0644``
+    under the usual ``022``); a file written again keeps its permission bits (not a set-user or set-group ID) and,
+    where the process may give it away (root), its owner and group.
+    """
+    items = [(Path(path), data.encode() if isinstance(data, str) else data) for path, data in files.items()]
+    temps = []
+    try:
+        for path, data in items:
+            old = check_output(path)
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+            temps.append(tmp)
+            with os.fdopen(fd, "wb") as f:
+                if old is not None and (old.st_uid, old.st_gid) != (os.geteuid(), os.getegid()):
+                    with contextlib.suppress(PermissionError):  # only root may give a file away
+                        os.fchown(fd, old.st_uid, old.st_gid)
+                os.fchmod(fd, 0o666 & ~umask() if old is None else stat.S_IMODE(old.st_mode) & 0o777)
+                f.write(data)
+                f.flush()
+                os.fsync(fd)
+        for path, _ in items:
+            check_output(path)
+        for (path, _), tmp in zip(items, temps):
+            os.replace(tmp, path)
     finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-    return path
+        for tmp in temps:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    return [path for path, _ in items]
+
+
+def write_atomic(path, data: str | bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (:func:`write_files`: a regular file or nothing at ``path``, its mode
+    kept)."""
+    return write_files({path: data})[0]
 
 
 MAX_F_CURRENT = 1e6  # Hz: 50x the default current loop; higher rates are a typo, and a second of them fills memory

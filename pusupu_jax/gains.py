@@ -183,7 +183,7 @@ def document(servo: ServoParams, hybrid: HybridGains, rates: LoopRates, *, mode:
         raise ParameterError(f"gains mode: expected one of {MODES}, got {mode!r}")
     _check_plant({name: getattr(servo, name) for name in builtin_plant()}, "servo")
     found = stability.check(servo, hybrid, rates, mode, floors)
-    controller = {name: {} for name in CONTROLLER_SECTIONS if name != "hybrid"}
+    controller = {name: {} for name in CONTROLLER_SECTIONS}
     for f in static_fields(ServoParams):
         controller[f.metadata["section"]][f.name] = getattr(servo, f.name)
     for f in array_fields(ServoParams):

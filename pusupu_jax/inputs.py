@@ -1,5 +1,8 @@
 """Reading what users and other programs hand us (host-side): one place for every loader's checks.
 
+* :func:`read_bytes`: a regular file of at most a given size, opened without blocking: a folder,
+  FIFO, socket or device given as an input is refused before it is opened (a FIFO would block
+  the read forever, a device can be endless or act when opened);
 * :func:`read_yaml`: a file of at most :data:`MAX_FILE_BYTES`, in UTF-8, parsed as YAML with no
   aliases or anchors (a few hundred bytes of nested aliases expand to gigabytes) and no
   duplicate keys, whose mappings have string keys;
@@ -7,7 +10,9 @@
 * :func:`number`, :func:`integer`, :func:`choice`: one value of the expected kind.
 
 Every failure raises the caller's error class (a :class:`~pusupu_jax.params.ParameterError`)
-with one line: where, what was expected, what was found.
+with one line: where, what was expected, what was found.  A value echoed back is cut to
+:data:`MAX_SHOWN` characters and escaped (:func:`shown`); :func:`one_line` makes any message one
+printable line (the ``pusupu`` command prints its errors through it).
 
 What YAML users write and is accepted: an integer where a real is expected (``5`` for ``5.0``),
 exponents (``1.0e-3``), YAML 1.1 integers in hex or octal (``0x10``), ``null`` where a key says
@@ -19,11 +24,15 @@ aliases and anchors, keys that are not strings (``{1: 2}``).
 from __future__ import annotations
 
 import math
+import os
+import stat
 from pathlib import Path
 
 import yaml
 
 MAX_FILE_BYTES = 1 << 20  # 1 MiB: a parameter, gain, configuration or job file is a few kB
+MAX_SHOWN = 200  # characters of a value echoed in an error (a 500 kB value is not printed back)
+MAX_LINE = 1000  # characters of a whole error line
 
 
 class _Strict(yaml.SafeLoader):
@@ -42,9 +51,9 @@ class _Strict(yaml.SafeLoader):
         for key_node, _ in node.value:
             key = self.construct_object(key_node, deep=True)
             if not isinstance(key, str):
-                raise yaml.YAMLError(f"expected string keys, got {key!r} (line {key_node.start_mark.line + 1})")
+                raise yaml.YAMLError(f"expected string keys, got {shown(key)} (line {key_node.start_mark.line + 1})")
             if key in seen:
-                raise yaml.YAMLError(f"duplicate key {key!r} (line {key_node.start_mark.line + 1})")
+                raise yaml.YAMLError(f"duplicate key {shown(key)} (line {key_node.start_mark.line + 1})")
             seen.add(key)
         return super().construct_mapping(node, deep=deep)
 
@@ -57,24 +66,55 @@ def parse_yaml(text: str, where: str, error):
         raise error(f"{where}: not valid YAML ({str(e).splitlines()[0]})") from None
     except RecursionError:
         raise error(f"{where}: not valid YAML (nested too deeply)") from None
+    except ValueError as e:  # a value Python refuses to build: an integer of more than 4300 digits
+        raise error(f"{where}: not valid YAML ({str(e).split(': ')[0]})") from None
+
+
+def file_kind(mode: int) -> str:
+    """What a file of ``st_mode`` ``mode`` is, as errors name it: 'a regular file', 'a folder', 'a FIFO', ..."""
+    for test, name in ((stat.S_ISREG, "a regular file"), (stat.S_ISDIR, "a folder"), (stat.S_ISLNK, "a symlink"),
+                       (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return name
+    return "a special file"
+
+
+def read_bytes(path, what: str, error, limit: int = MAX_FILE_BYTES) -> bytes:
+    """The bytes of the regular file ``path`` (a symlink to one is followed), at most ``limit`` bytes.
+
+    Anything else is refused before it is opened; the file is then opened without blocking and
+    checked again (``fstat``), so that a FIFO or device put in its place meanwhile is refused too,
+    and its size is checked before it is read.  ``what`` names the file in errors.
+    """
+    path = Path(path)
+
+    def regular(mode):
+        if not stat.S_ISREG(mode):
+            raise error(f"{path}: expected a {what}, got {file_kind(mode)}")
+
+    try:
+        regular(os.stat(path).st_mode)
+        with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC), "rb") as f:
+            st = os.fstat(f.fileno())
+            regular(st.st_mode)
+            size = st.st_size
+            data = f.read(limit + 1) if size <= limit else b""
+    except OSError as e:
+        raise error(f"{path}: cannot read {what} ({e.strerror})") from None
+    if size > limit or len(data) > limit:
+        raise error(f"{path}: expected a {what} of at most {limit / 1024:.0f} KiB, got a larger file")
+    return data
 
 
 def read_text(path, what: str, error) -> str:
-    """The UTF-8 text of a file of at most :data:`MAX_FILE_BYTES` (``what`` names it in errors)."""
-    path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            data = f.read(MAX_FILE_BYTES + 1)
-    except IsADirectoryError:
-        raise error(f"{path}: expected a {what}, got a folder") from None
-    except OSError as e:
-        raise error(f"{path}: cannot read {what} ({e.strerror})") from None
-    if len(data) > MAX_FILE_BYTES:
-        raise error(f"{path}: expected a {what} of at most {MAX_FILE_BYTES // 1024} KiB, got a larger file")
+    """The UTF-8 text of a regular file of at most :data:`MAX_FILE_BYTES` (:func:`read_bytes`; ``what`` names it in
+    errors)."""
+    data = read_bytes(path, what, error)
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as e:
-        raise error(f"{path}: expected a UTF-8 text {what}, found a byte 0x{data[e.start]:02x} at {e.start} "
+        raise error(f"{Path(path)}: expected a UTF-8 text {what}, found a byte 0x{data[e.start]:02x} at {e.start} "
                     "that is not UTF-8") from None
 
 
@@ -89,10 +129,10 @@ def check_keys(value, where: str, known, error, required=(), what: str = "key") 
         raise error(f"{where}: expected a mapping of {what}s, got {_kind(value)}")
     bad = [k for k in value if not isinstance(k, str)]
     if bad:
-        raise error(f"{where}: expected string keys, got {bad[0]!r}")
+        raise error(f"{where}: expected string keys, got {shown(bad[0])}")
     unknown = sorted(set(value) - set(known))
     if unknown:
-        raise error(f"{where}: unknown {what} {unknown[0]!r}; expected some of {sorted(known)}")
+        raise error(f"{where}: unknown {what} {shown(unknown[0])}; expected some of {sorted(known)}")
     missing = [k for k in required if k not in value]
     if missing:
         raise error(f"{where}: missing {what} {missing[0]!r}")
@@ -128,7 +168,7 @@ def integer(value, where: str, error, *, low=None, high=None) -> int:
 def choice(value, where: str, choices, error) -> str:
     """One of ``choices`` (strings)."""
     if not isinstance(value, str) or value not in choices:
-        raise error(f"{where}: expected one of {tuple(choices)}, got {value!r}")
+        raise error(f"{where}: expected one of {tuple(choices)}, got {shown(value)}")
     return value
 
 
@@ -138,10 +178,16 @@ def _kind(value) -> str:
     return f"{type(value).__name__} {text}" if len(text) <= 40 else f"a {type(value).__name__}"
 
 
-SHOWN_CHARS = 200  # an echoed value is cut to this many characters
-
-
-def shown(value) -> str:
-    """``value`` as an error message echoes it: its repr (control characters escaped), cut to :data:`SHOWN_CHARS`."""
+def shown(value, limit: int = MAX_SHOWN) -> str:
+    """``value`` as an error echoes it: its repr (quoted, newlines and control characters escaped), cut to ``limit``
+    characters."""
     text = repr(value)
-    return text if len(text) <= SHOWN_CHARS else f"{text[:SHOWN_CHARS]}... ({len(text)} characters)"
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
+def one_line(message: str, limit: int = MAX_LINE) -> str:
+    """``message`` as one printable line of at most about ``limit`` characters: newlines, control and other
+    non-printable characters escaped as in a repr, the rest cut."""
+    cut = message[:limit]
+    text = "".join(c if c.isprintable() else repr(c)[1:-1] for c in cut)[:limit]
+    return text if len(message) <= limit and len(text) <= limit else f"{text}... ({len(message)} characters)"

@@ -20,7 +20,7 @@ from . import compliance as compliance_law
 from . import hybrid as hybrid_law
 from .cascade import POSITION_MODES, control_mode
 from .objectives import branch_force
-from .params import LoopRates, ServoParams, stack, validate
+from .params import LoopRates, ParameterError, ServoParams, stack, validate
 from .plant import dynamics, kinematics
 from .plant.axis import screw_ratio
 from .plant.geometry import Geometry
@@ -32,10 +32,13 @@ MACHINE_MODES = POSITION_MODES
 
 
 def machine_rates(options: ModelOptions = ModelOptions(), rates: LoopRates = LoopRates()) -> LoopRates:
-    """``rates`` with the mechanical step set to the model's timestep."""
+    """``rates`` with the mechanical step set to the model's timestep (ParameterError when it is not a whole number of
+    current-loop ticks, or not a divisor of the velocity period)."""
     n_mech = rates.f_current * options.timestep
-    if abs(n_mech - round(n_mech)) > 1e-9:
-        raise ValueError(f"the model timestep {options.timestep} s is not a whole number of current-loop ticks")
+    if abs(n_mech - round(n_mech)) > 1e-9 or round(n_mech) < 1:
+        raise ParameterError(f"rates.f_current: expected a multiple of {1 / options.timestep:g} Hz (the machine's "
+                             f"{options.timestep * 1e3:g} ms mechanical step a whole number of current-loop ticks), "
+                             f"got {rates.f_current:g} Hz")
     return dataclasses.replace(rates, n_mech=int(round(n_mech)))
 
 

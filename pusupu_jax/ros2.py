@@ -28,17 +28,21 @@ machine, beside the full controller, so that the price of running on ROS shows b
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import yaml
 
-from .config import write_atomic
+from . import config
 from .cascade import MODES, control_mode
+from .inputs import shown
 from .params import LoopRates, ParameterError, ServoParams
 from .plant.axis import screw_ratio
 
 ANTIWINDUP = "conditional_integration"  # what our PIs do (integration held while the clamp and the error agree)
 JOINTS = tuple(f"slide_{k}" for k in range(1, 7))
 PID_CONTROLLER, TRAJECTORY_CONTROLLER = "pusupu_pid_controller", "pusupu_trajectory_controller"
+FILES = ("ros2_pid_controller.yaml", "ros2_joint_trajectory_controller.yaml")
 
 
 def ros_gains(servo: ServoParams, mode: str) -> dict:
@@ -85,7 +89,7 @@ def _gains_block(servo, mode, joints, ff_key):
 def pid_controller_params(servo: ServoParams, mode: str, rates: LoopRates, joints=JOINTS,
                           name: str = PID_CONTROLLER) -> dict:
     """A ``pid_controller/PidController`` on the six slider joints, commanding velocity, with its controller_manager."""
-    _check_joints(joints)
+    check_joints(joints)
     return {"controller_manager": {"ros__parameters": {"update_rate": update_rate(rates),
                                                        name: {"type": "pid_controller/PidController"}}},
             name: {"ros__parameters": {"dof_names": list(joints), "command_interface": "velocity",
@@ -96,7 +100,7 @@ def pid_controller_params(servo: ServoParams, mode: str, rates: LoopRates, joint
 def trajectory_controller_params(servo: ServoParams, mode: str, rates: LoopRates, joints=JOINTS,
                                  name: str = TRAJECTORY_CONTROLLER) -> dict:
     """A ``joint_trajectory_controller/JointTrajectoryController`` commanding velocity, with the same PIDs."""
-    _check_joints(joints)
+    check_joints(joints)
     return {"controller_manager": {"ros__parameters": {
                 "update_rate": update_rate(rates),
                 name: {"type": "joint_trajectory_controller/JointTrajectoryController"}}},
@@ -105,10 +109,12 @@ def trajectory_controller_params(servo: ServoParams, mode: str, rates: LoopRates
                                        "gains": _gains_block(servo, mode, joints, "ff_velocity_scale")}}}
 
 
-def _check_joints(joints):
-    if (len(joints) != 6 or len(set(joints)) != 6
-            or not all(isinstance(j, str) and j and j.replace("_", "").isalnum() for j in joints)):
-        raise ParameterError(f"ROS joints: expected 6 distinct names of letters, digits and _, got {list(joints)}")
+def check_joints(joints, where: str = "ROS joints") -> None:
+    """The exporter's rule for joint names: 6 distinct names of letters, digits and ``_`` (ParameterError naming
+    ``where`` otherwise)."""
+    if (not isinstance(joints, (list, tuple)) or len(joints) != 6 or len(set(joints)) != 6
+            or not all(isinstance(j, str) and j and j.replace("_", "").isalnum() and j.isascii() for j in joints)):
+        raise ParameterError(f"{where}: expected 6 distinct names of letters, digits and _, got {shown(joints)}")
 
 
 def header(mode: str, source: str) -> str:
@@ -125,11 +131,14 @@ def header(mode: str, source: str) -> str:
             "# pusupu gains check-ros shows what that costs on the simulated machine.\n")
 
 
+def files(servo: ServoParams, mode: str, rates: LoopRates, source: str, joints=JOINTS) -> dict:
+    """``{file name: text}`` of the two parameter files (:data:`FILES`), each with its :func:`header`."""
+    params = (pid_controller_params(servo, mode, rates, joints),
+              trajectory_controller_params(servo, mode, rates, joints))
+    return {name: header(mode, source) + yaml.safe_dump(p, sort_keys=False) for name, p in zip(FILES, params)}
+
+
 def write_files(folder, servo: ServoParams, mode: str, rates: LoopRates, source: str, joints=JOINTS) -> list:
-    """Write ``ros2_pid_controller.yaml`` and ``ros2_joint_trajectory_controller.yaml`` into ``folder`` (atomically)."""
-    out = []
-    for filename, params in (("ros2_pid_controller.yaml", pid_controller_params(servo, mode, rates, joints)),
-                             ("ros2_joint_trajectory_controller.yaml",
-                              trajectory_controller_params(servo, mode, rates, joints))):
-        out.append(write_atomic(folder / filename, header(mode, source) + yaml.safe_dump(params, sort_keys=False)))
-    return out
+    """Write the two parameter files (:func:`files`) into ``folder`` (atomically, both or neither)."""
+    return config.write_files({Path(folder) / name: text for name, text in
+                               files(servo, mode, rates, source, joints).items()})

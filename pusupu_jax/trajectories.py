@@ -7,14 +7,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import workload
 from .params import N_AXES, LoopRates, ParameterError
 
 AXIS_TRAJECTORIES = ("step", "ramp", "sine")
-MAX_PERIODS = 2_000_000  # position periods of one axis-plant run (its trace holds ~1 kB per period)
 
 
 def axis_reference(kind: str, rates: LoopRates = LoopRates(), duration: float | None = None) -> np.ndarray:
-    """Slider reference of shape ``(N, 6)`` [m], ``N = duration / rates.dt_position``.
+    """Slider reference of shape ``(N, 6)`` [m], ``N = duration / rates.dt_position``; a duration of more work than
+    :func:`pusupu_jax.workload.check_run` allows is refused.
 
     * ``step``: 5 mm step at t = 0 (default 2 s);
     * ``ramp``: 50 mm/s from t = 0.1 s (default 1 s);
@@ -25,10 +26,7 @@ def axis_reference(kind: str, rates: LoopRates = LoopRates(), duration: float | 
     duration = {"step": 2.0, "ramp": 1.0, "sine": 2.0}[kind] if duration is None else duration
     if not (np.isfinite(duration) and duration > 0):
         raise ParameterError(f"trajectory duration: expected a positive number of seconds, got {duration!r}")
-    if duration / rates.dt_position > MAX_PERIODS:
-        raise ParameterError(f"trajectory duration: expected at most {MAX_PERIODS * rates.dt_position:g} s at this "
-                             f"position-loop rate ({MAX_PERIODS} periods: the trace of a longer run does not fit in "
-                             f"memory), got {duration:g} s")
+    workload.check_run("trajectory duration", duration, rates)
     t = np.arange(max(1, int(round(duration / rates.dt_position)))) * rates.dt_position
     if kind == "step":
         x = np.full_like(t, 0.005)
@@ -93,6 +91,12 @@ def platform_path(kind: str, home, rates: LoopRates = LoopRates(), v_max: float 
         xy = [_line([0.0, 0.0], [0.2, 0.0], dt, v_max, a_max), np.stack([0.2 * np.cos(phi), 0.2 * np.sin(phi)], axis=1)]
         return _poses(home, np.concatenate(xy), dt, hold)
     return platform_waypoints(home, [[0.0, 0.0, 0.0], [-0.1, -0.1, 0.0], [0.1, 0.1, 0.0]], rates, v_max, a_max, hold)
+
+
+def path_seconds(kind: str) -> float:
+    """The duration [s] of :func:`platform_path` ``kind`` (its timing does not depend on the rate it is sampled at),
+    known before a path is built at a rate that would make it too long to hold."""
+    return len(platform_path(kind, np.zeros(5))) * LoopRates().dt_position
 
 
 def platform_waypoints(home, waypoints, rates: LoopRates = LoopRates(), v_max=0.05, a_max: float = 0.2,

@@ -101,7 +101,7 @@ def test_per_axis_space_tunes_each_axis_and_checks_bounds():
     ("checkpoint_every: 3", "checkpoint_every: expected a multiple of refresh_every"),
     ("imc_form: exact", "imc_form: expected one of"),
     ("baselines: [hybrid]", "baselines: expected a list of distinct modes"),
-    ("ros_joints: [a, b]", "ros_joints: expected 6 distinct joint names"),
+    ("ros_joints: [a, b]", "ros_joints: expected 6 distinct names of letters, digits and _"),
     ("a: &x 1\nb: *x", "anchors are not accepted"),
 ])
 def test_bad_tune_configurations_are_rejected(tmp_path, text, message):

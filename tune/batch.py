@@ -39,8 +39,9 @@ from pusupu_jax.programs import Program
 from pusupu_jax.sim import rollout
 
 from .config import TuneConfig
-from .run import (HERE, Scenarios, ScenarioSpec, WindowStarts, aggregate, join_windows, load_checkpoint, optimiser,
-                  save_checkpoint, scenario_objective, start_point, structure_key, whole_path_metrics)
+from .run import (HERE, CheckpointLayout, Scenarios, ScenarioSpec, WindowStarts, aggregate, join_windows,
+                  load_checkpoint, optimiser, save_checkpoint, scenario_objective, start_point, structure_key,
+                  whole_path_metrics)
 from .space import Space
 
 
@@ -185,7 +186,8 @@ def optimise_batch(problem: BatchProblem, *, checkpoint: Path | None = None, dig
     starts = [start_point(z0, k, cfg.start_spread, cfg.seed, problem.space.project) for _, k in problem.members]
     zb = jax.tree.map(lambda *v: jnp.stack(v), *starts)
     opt_template = jax.vmap(opt.init)(zb)
-    state = load_checkpoint(checkpoint, digest, opt_template) if checkpoint else None
+    layout = CheckpointLayout(zb, opt_template, cfg.iterations, cfg.starts, members=P)
+    state = load_checkpoint(checkpoint, digest, layout) if checkpoint else None
     if state is None:
         state = {"digest": digest, "iteration": 0, "z": zb, "opt": opt_template, "history": [[] for _ in range(P)],
                  "best_value": np.full(P, np.inf), "best_z": {k: np.asarray(v) for k, v in zb.items()},

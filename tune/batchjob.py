@@ -26,11 +26,15 @@ from typing import Callable
 
 import numpy as np
 
+from pusupu_jax import inputs
 from pusupu_jax.config import setup_jax, write_atomic
+from pusupu_jax.params import ParameterError
 
 from . import jobfile
 from .config import TuneConfig
 
+SUMMARY_FILES = ("summary.csv", "summary.md", "summary.json", "summary.png")
+MAX_REPORT_BYTES = 64 << 20  # a job's report.json: its history, a few hundred bytes an iteration
 SUMMARY_COLUMNS = ("job", "status", "scenarios", "objective_before", "objective_after", "rms_before_mm",
                    "rms_after_mm", "max_after_mm", "force_peak_after_n", "error")
 
@@ -43,8 +47,8 @@ def done_report(out: Path, job: jobfile.Job) -> dict | None:
     """The job's report if a finished run of these very settings wrote it, else None."""
     path = job_dir(out, job.name) / "report.json"
     try:
-        report = json.loads(path.read_text())
-    except (OSError, ValueError):
+        report = json.loads(inputs.read_bytes(path, "job report", ParameterError, limit=MAX_REPORT_BYTES))
+    except (ValueError, RecursionError):  # none, not a regular file, too large, not JSON (ParameterError: a ValueError)
         return None
     return report if isinstance(report, dict) and report.get("job_digest") == job.digest() else None
 
@@ -193,7 +197,7 @@ def run_batch(path, out, *, ray: bool = False, address: str | None = None, worke
     from .job import OutputLock, prepare_output
 
     jf = jobfile.read(path)
-    out = prepare_output(Path(out))
+    out = prepare_output(Path(out), SUMMARY_FILES)
     lock = OutputLock(out)
     try:
         if fresh:

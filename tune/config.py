@@ -52,7 +52,7 @@ from pusupu_jax.machine import MACHINE_MODES
 from pusupu_jax.objectives import TERMS
 from pusupu_jax import inputs
 from pusupu_jax.params import IMC_FORMS, ParameterError
-from pusupu_jax.ros2 import JOINTS
+from pusupu_jax.ros2 import JOINTS, check_joints
 from pusupu_jax.trajectories import PLATFORM_TRAJECTORIES
 
 from .space import GROUPS
@@ -120,7 +120,7 @@ class TuneConfig:
         """Every key's kind and range (one line naming the key); numbers must be finite unless a key says so."""
         def need(ok, key, expected, got):
             if not ok:
-                raise ParameterError(f"tune config {key}: expected {expected}, got {got!r}")
+                raise ParameterError(f"tune config {key}: expected {expected}, got {inputs.shown(got)}")
 
         def num(key, **kw):
             inputs.number(getattr(self, key), f"tune config {key}", ParameterError, **kw)
@@ -179,9 +179,7 @@ class TuneConfig:
              "a list of distinct modes from pid, pid_ff, imc, ros_pid", self.baselines)
         need(self.mode in ("pid", "pid_ff") or not {"pid", "feedforward"} & set(self.groups), "groups",
              "the pid and feedforward groups only in the pid and pid_ff modes", self.groups)
-        need(isinstance(self.ros_joints, tuple) and len(self.ros_joints) == 6 and len(set(self.ros_joints)) == 6
-             and all(isinstance(j, str) and j for j in self.ros_joints), "ros_joints",
-             "6 distinct joint names", self.ros_joints)
+        check_joints(self.ros_joints, "tune config ros_joints")  # the exporter's own rule, before any work
 
     def digest(self) -> str:
         """A hash of every setting (the checkpoint and the gain file's provenance carry it)."""

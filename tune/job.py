@@ -22,6 +22,7 @@ import hashlib
 import json
 import os
 import socket
+import stat
 import sys
 import tempfile
 import time
@@ -30,15 +31,15 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from pusupu_jax import gains, ros2, stability
-from pusupu_jax.config import write_atomic
+from pusupu_jax import gains, inputs, ros2, stability
+from pusupu_jax.config import check_output, write_atomic, write_files
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.params import ParameterError, ServoParams
 from pusupu_jax.plots import save_atomic
 
 from .config import TuneConfig
-from .run import CHECKPOINT, Problem, progress_reporter, scenario_list
+from .run import CHECKPOINT, Problem, check_work, progress_reporter, scenario_list
 
 METRICS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho")
 
@@ -63,7 +64,6 @@ def _plots(out: Path, history, before, after, baselines) -> list[str]:
     ax.legend()
     files.append(str(save_atomic(fig, out / "objective.png")))
     for name in before:
-        tag = name.replace("/", "_")
         (_, tb), (_, ta) = before[name], after[name]
         fig = plt.figure(figsize=(12, 5))
         ax = fig.add_subplot(1, 2, 1)
@@ -89,7 +89,7 @@ def _plots(out: Path, history, before, after, baselines) -> list[str]:
         ax2.legend()
         fig.suptitle(f"{name}: reference vs tracked path")
         fig.tight_layout()
-        files.append(str(save_atomic(fig, out / f"path_{tag}.png")))
+        files.append(str(save_atomic(fig, out / plot_file("path", name))))
         fig, axes = plt.subplots(2, 1, figsize=(9, 6), sharex=True, sharey=True)
         for ax, (label, tr) in zip(axes, (("before (Table 1)", tb), ("after (tuned)", ta))):
             for b in range(6):
@@ -100,7 +100,7 @@ def _plots(out: Path, history, before, after, baselines) -> list[str]:
         axes[1].set_xlabel("time [s]")
         fig.suptitle(f"{name}: branch forces")
         fig.tight_layout()
-        files.append(str(save_atomic(fig, out / f"forces_{tag}.png")))
+        files.append(str(save_atomic(fig, out / plot_file("forces", name))))
     return files
 
 
@@ -109,8 +109,20 @@ def _summary(result: dict) -> dict:
     return result | {"highest_branch_force_peak_n": max(result["branch_force_peak_n"])}
 
 
-def prepare_output(out: Path) -> Path:
-    """Check ``out`` before any work: a folder that exists or can be made, writable, holding no pickled checkpoint."""
+def plot_file(kind: str, scenario: str) -> str:
+    """The name of a run's ``kind`` plot (path, forces) of ``scenario``."""
+    return f"{kind}_{scenario.replace('/', '_')}.png"
+
+
+def run_files(scenarios) -> tuple:
+    """The files a run with ``scenarios`` (names) writes into its folder, besides its checkpoint."""
+    return ("gains.yaml", *ros2.FILES, "report.json", "objective.png",
+            *(plot_file(kind, name) for name in scenarios for kind in ("path", "forces")))
+
+
+def prepare_output(out: Path, files=()) -> Path:
+    """Check ``out`` before any work: a folder that exists or can be made, writable, holding no pickled checkpoint,
+    in which each of ``files`` (names) is a regular file or absent (:func:`pusupu_jax.config.check_output`)."""
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out: expected a folder, got the file {str(out)!r}")
     try:
@@ -123,20 +135,37 @@ def prepare_output(out: Path) -> Path:
     if legacy.exists():
         raise ParameterError(f"{legacy}: a pickled checkpoint (an older pusupu_jax's, or someone else's) is never read, "
                              "since loading a pickle can run code; delete it or choose another --out")
+    for name in files:
+        check_output(out / name)
     return out
 
 
 class OutputLock:
-    """An exclusive lock on an output folder (``DIR/.pusupu.lock``, held by this process until it exits)."""
+    """An exclusive lock on an output folder (``DIR/.pusupu.lock``, held by this process until it exits).
+
+    The lock file is opened without following a symlink and without truncating it, and must be a regular file of one
+    link: a symlink, FIFO, device or hard link planted there is refused (one line) and whatever it names is never
+    opened or written.  Only once the lock is held is the file emptied and given this holder's pid.
+    """
 
     def __init__(self, out: Path):
         self.path = out / ".pusupu.lock"
-        self.file = open(self.path, "a+")
+        check_output(self.path)  # refused before it is opened: opening a device can act on it
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, 0o666)
+        except OSError as e:  # ELOOP: a symlink put there since the check
+            raise ParameterError(f"{self.path}: cannot open the lock file ({e.strerror})") from None
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode) or st.st_nlink != 1:
+            os.close(fd)
+            found = inputs.file_kind(st.st_mode) if not stat.S_ISREG(st.st_mode) else f"{st.st_nlink} hard links"
+            raise ParameterError(f"{self.path}: expected a lock file of one link, found {found}; left as it is")
+        self.file = os.fdopen(fd, "r+")
         try:
             fcntl.flock(self.file, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             self.file.seek(0)
-            holder = self.file.read().strip() or "unknown"
+            holder = self.file.read(200).strip() or "unknown"
             self.file.close()
             raise ParameterError(f"--out: {out} is in use by another pusupu tune ({holder}); wait for it or choose "
                                  "another --out") from None
@@ -151,12 +180,14 @@ class OutputLock:
 
 
 def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) -> tuple[dict, int]:
-    """Run the whole job; returns ``(report, exit status)`` (1 when the tuned gains fail a check).
+    """Run the whole job; returns ``(report, exit status)`` (1 when the tuned gains fail a check).  The work it implies
+    (:func:`tune.run.check_work`) and the output folder are checked before anything is built.
 
     The outputs of one run are written gains first, report last; the report names the gain
     file it describes by its checksum (or says that none was written and why).
     """
-    prepare_output(out)
+    check_work(cfg)
+    prepare_output(out, (*run_files(s.name for s in scenario_list(cfg)), CHECKPOINT))
     lock = OutputLock(out)
     try:
         return _run(cfg, out, fresh, stream)
@@ -228,26 +259,30 @@ class TuneReport(dict):
 def export(out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: dict) -> dict:
     """Write ``gains.yaml`` and the ROS 2 files if the gains pass every check; the report's entries about them.
 
-    ``gains_file`` names the gain file the report describes (path and sha256), or says that none was written and
-    why, and which earlier ``gains.yaml`` (if any) was left as it was: a report never silently describes gains that
-    are not in ``gains.yaml``.
+    All or nothing: every file's text is made (the gains checked, the joint names too) and every path checked before
+    the first is written (:func:`pusupu_jax.config.write_files`), so that a refusal leaves the earlier files as they
+    were.  ``gains_file`` names the gain file the report describes (path and sha256), or says that none was written
+    and why, and which earlier ``gains.yaml`` (if any) was left as it was: a report never silently describes gains
+    that are not in ``gains.yaml``.
     """
     gains_path = out / "gains.yaml"
     try:
         margins = stability.check(servo, hybrid, rates, cfg.mode, (cfg.pm_min, cfg.gm_min)).margins()
-        gains.write(gains_path, servo, hybrid, rates, mode=cfg.mode, tuned=tuned, provenance=provenance,
-                    floors=(cfg.pm_min, cfg.gm_min))
-        ros = ros2.write_files(out, servo, cfg.mode, rates, source=str(gains_path), joints=cfg.ros_joints)
-        return {"margins_after": margins, "exported": [str(gains_path)] + [str(p) for p in ros],
+        texts = {gains_path: gains.document(servo, hybrid, rates, mode=cfg.mode, tuned=tuned, provenance=provenance,
+                                            floors=(cfg.pm_min, cfg.gm_min))}
+        texts |= {out / name: text for name, text in ros2.files(servo, cfg.mode, rates, source=str(gains_path),
+                                                                 joints=cfg.ros_joints).items()}
+        written = write_files(texts)
+        return {"margins_after": margins, "exported": [str(p) for p in written],
                 "gains_file": {"path": str(gains_path), "sha256": _sha256(gains_path)}}
     except ParameterError as e:
-        left = {"path": str(gains_path), "sha256": _sha256(gains_path)} if gains_path.exists() else None
+        left = {"path": str(gains_path), "sha256": _sha256(gains_path)} if gains_path.is_file() else None
         return {"margins_after": gains.margins_report(servo, cfg.mode), "exported": [], "export_error": str(e),
                 "gains_file": {"path": None, "not_written": str(e), "left_as_it_was": left}}
 
 
 def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
+    return hashlib.sha256(inputs.read_bytes(path, "gain file", ParameterError)).hexdigest()
 
 
 def table(report: dict) -> str:

@@ -21,8 +21,9 @@ A job file (JSON Schema: ``tune/schemas/pusupu-batch.schema.json``; ``docs/batch
         windows: 2             # training windows spread over the path (default: tune.windows)
         window_s: 0.3          # s, each window's length (default: tune.window_s)
 
-A scenario that is malformed, names an unknown key or leaves the workspace fails its own job
-(:class:`Job` with ``error``); the other jobs run.  A file that is not such a mapping fails as a whole.
+A scenario that is malformed, names an unknown key or leaves the workspace, or a job of more work than
+:func:`tune.run.check_work` allows, fails its own job (:class:`Job` with ``error``); the other jobs run.
+A file that is not such a mapping fails as a whole.
 Jobs whose settings compile to the same shapes (mode, windows, window_s) form one group: one
 compiled gradient serves all of them.
 """
@@ -46,7 +47,7 @@ from pusupu_jax.plant.model import ModelOptions
 from pusupu_jax.trajectories import PLATFORM_TRAJECTORIES
 
 from .config import TuneConfig
-from .run import ScenarioSpec
+from .run import ScenarioSpec, check_work
 
 FORMAT = "pusupu-batch-1"
 SCHEMA_FILE = Path(__file__).resolve().parent / "schemas" / "pusupu-batch.schema.json"
@@ -169,6 +170,16 @@ def check_scenario(spec: ScenarioSpec, cfg: TuneConfig, where: str) -> None:
                            f"({every * rates.dt_position:g} s), got {cfg.window_s:g}")
 
 
+def bounded(job: Job) -> Job:
+    """``job``, or ``job`` failed when the tuning work it implies is beyond the limits (:func:`tune.run.check_work`)."""
+    if job.error is None:
+        try:
+            check_work(job.config, list(job.specs), where="its tuning work")
+        except ParameterError as e:
+            return Job(job.name, None, (), str(e))
+    return job
+
+
 def read(path) -> JobFile:
     """The job file at ``path``: its jobs, each ready to run or holding the error that keeps it from running.
 
@@ -216,6 +227,7 @@ def read(path) -> JobFile:
             errors = ["robust problems need one mode, windows and window_s for every scenario; got "
                       f"{sorted(configs)}"]
         jobs = [Job(name, None, (), errors[0]) if errors else Job(name, parsed[0][1], tuple(s for s, _ in parsed))]
+    jobs = [bounded(job) for job in jobs]
     names = [j.name for j in jobs]
     dup = next((n for n in names if names.count(n) > 1), None)
     if dup is not None:

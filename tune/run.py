@@ -20,10 +20,12 @@ from __future__ import annotations
 import dataclasses
 import io
 import json
+import os
 import sys
 import time
 import warnings
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Callable
 
@@ -32,11 +34,12 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from pusupu_jax import objectives
+from pusupu_jax import inputs, objectives, workload
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.config import write_atomic
 from pusupu_jax.gradients import value_and_grad
 from pusupu_jax.hybrid import HybridGains
+from pusupu_jax.inputs import shown
 from pusupu_jax.machine import machine_metrics, machine_plant, machine_rates, machine_reference
 from pusupu_jax.margins import loop_margins
 from pusupu_jax.params import AxisLoad, ParameterError, ServoParams, stack
@@ -153,6 +156,26 @@ class Scenarios:
         """Scenario ``i``'s reference over its unpadded path (host arrays)."""
         idx, _, refs = self.groups[self.group_of[i]]
         return jax.tree.map(lambda x: np.asarray(x)[idx.index(i), :self.lengths[i]], refs)
+
+
+GRADIENT_COST = 3  # forward passes a reverse-mode gradient costs, about (its forward pass, then the backward one)
+
+
+def check_work(cfg: TuneConfig, specs: list[ScenarioSpec] | None = None, where: str = "tune config") -> None:
+    """Before anything is built: the mechanical steps of the machine that tuning ``specs`` (default: the
+    configuration's scenarios) with ``cfg`` implies, within :func:`pusupu_jax.workload.check_tuning`: one gradient's
+    (scenarios x windows x window length) and all of them: ``cfg.starts x (iterations + 1)`` gradients and the start's
+    (:data:`GRADIENT_COST` forward passes each), forward passes over the whole paths every ``refresh_every`` iterations
+    of each start, and before and after the run and the baselines."""
+    rates = machine_rates()
+    specs = scenario_list(cfg) if specs is None else specs
+    per_period = rates.n_velocity * rates.n_position // rates.n_mech
+    window = max(3, int(round(cfg.window_s / rates.dt_position)))
+    gradient = len(specs) * cfg.windows * window * per_period
+    paths = sum(len(spec.path(rates)) for spec in specs) * per_period
+    passes = cfg.starts * (-(-cfg.iterations // cfg.refresh_every) + 1) + 3 + len(cfg.baselines)
+    workload.check_tuning(where, gradient, (cfg.starts * (cfg.iterations + 1) + 1) * GRADIENT_COST * gradient
+                          + passes * paths)
 
 
 def scenario_objective(cfg: TuneConfig, t: dict, baseline: dict):
@@ -365,32 +388,169 @@ def save_checkpoint(path: Path, state: dict) -> None:
     write_atomic(path, buffer.getvalue())
 
 
-def load_checkpoint(path: Path, digest: str, opt_template) -> dict | None:
-    """The checkpoint at ``path`` if it exists (None otherwise); ``opt_template``: an optax state of the right structure.
+NPY_HEADER = 4096  # bytes: at most an array's .npy header in a checkpoint (numpy writes 128)
+ZIP_RECORD = 1024  # bytes: at most a member's records in the zip (local and central headers, name, zip64 fields)
+# what reading a crafted zip, .npy or JSON raises (ValueError covers JSON's and UTF-8's errors; RecursionError: nesting)
+CHECKPOINT_ERRORS = (OSError, ValueError, KeyError, EOFError, NotImplementedError, RecursionError, zipfile.BadZipFile,
+                     zlib.error)
 
-    Read as plain arrays (``allow_pickle=False``): a file that is not such a checkpoint is refused with one line and
-    nothing in it runs.  A checkpoint of another configuration is refused too.
+
+@dataclasses.dataclass(frozen=True)
+class CheckpointLayout:
+    """What a checkpoint of one optimisation may hold, from its settings: :func:`load_checkpoint` checks a file against
+    it before it loads any array.
+
+    ``z``: the log-parameters ``{field: array}``, whose shapes and dtypes ``z/<field>`` and ``best/<field>`` have;
+    ``opt``: an optax state of the right structure, whose leaves ``opt/<k>`` are; ``iterations``, ``starts``: each
+    start evaluates ``iterations + 1`` points, one history entry each; ``members``: a batch's number of members (a
+    history per member, of one start each, a best value per member, and the failed members), None for one problem.
     """
-    if not path.exists():
+
+    z: dict
+    opt: object
+    iterations: int
+    starts: int = 1
+    members: int | None = None
+
+    def arrays(self) -> dict:
+        """``{name: (shape, dtype)}`` of every array but ``meta`` that a checkpoint may hold."""
+        out = {f"{group}/{k}": (np.shape(v), np.asarray(v).dtype) for group in ("z", "best") for k, v in self.z.items()}
+        return out | {f"opt/{k}": (np.shape(leaf), np.asarray(leaf).dtype)
+                      for k, leaf in enumerate(jax.tree.leaves(self.opt))}
+
+    def entries(self) -> int:
+        """History entries of one history (a member's in a batch) at most."""
+        return (self.iterations + 1) * (1 if self.members else self.starts)
+
+    def meta_bytes(self) -> int:
+        """At most the JSON ``meta`` [bytes]: every history entry with its ``z`` (32 characters a number), a best value
+        and a failure message per member."""
+        members = self.members or 1
+        values = sum(np.size(v) for v in self.z.values()) // members
+        return 4096 + members * (self.entries() * (256 + 32 * (values + len(self.z))) + 256)
+
+    def file_bytes(self) -> int:
+        """At most the whole file [bytes]: ``meta`` and every array, with their headers and records in the zip."""
+        arrays = [int(np.prod(shape)) * dtype.itemsize for shape, dtype in self.arrays().values()]
+        return self.meta_bytes() + sum(arrays) + (len(arrays) + 1) * (NPY_HEADER + ZIP_RECORD) + ZIP_RECORD
+
+
+def _array_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int) -> tuple:
+    """``(shape, dtype)`` of the array in member ``info``, from its declared size (at most ``limit`` bytes of data) and
+    its .npy header alone: nothing else of it is decompressed."""
+    if info.file_size > limit + NPY_HEADER:
+        raise ValueError(f"{shown(info.filename)} declares {info.file_size} bytes, expected at most "
+                         f"{limit + NPY_HEADER}")
+    with zf.open(info) as f:
+        version = np.lib.format.read_magic(f)
+        if version not in ((1, 0), (2, 0)):
+            raise ValueError(f"{shown(info.filename)}: .npy version {version}, expected 1.0 or 2.0")
+        read = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+        shape, _, dtype = read(f)
+    if dtype.hasobject:
+        raise ValueError(f"{shown(info.filename)}: an object array, expected numbers")
+    return shape, dtype
+
+
+def _check_meta(meta: dict, layout: CheckpointLayout) -> None:
+    """The JSON ``meta`` of a checkpoint of ``layout``'s settings: its keys, counters and history entries."""
+    batch = layout.members is not None
+    keys = ("format", "digest", "iteration", "history", "best_value", "done") + (("failed",) if batch else ("start",))
+    inputs.check_keys(meta, "meta", keys, ValueError, required=keys)
+    inputs.integer(meta["iteration"], "meta.iteration", ValueError, low=0, high=layout.iterations)
+    if not isinstance(meta["done"], bool):
+        raise ValueError(f"meta.done: expected true or false, got {shown(meta['done'])}")
+    if batch:
+        histories, best = meta["history"], meta["best_value"]
+        if not (isinstance(histories, list) and isinstance(best, list)
+                and len(histories) == len(best) == layout.members):
+            raise ValueError(f"meta: expected a history and a best value for each of {layout.members} members")
+        for m, value in enumerate(best):
+            inputs.number(value, f"meta.best_value[{m}]", ValueError, finite=False)
+        for m, message in inputs.check_keys(meta["failed"], "meta.failed", [str(m) for m in range(layout.members)],
+                                            ValueError, what="member").items():
+            if not isinstance(message, str):
+                raise ValueError(f"meta.failed.{m}: expected a message, got {shown(message)}")
+    else:
+        histories = [meta["history"]]
+        inputs.integer(meta["start"], "meta.start", ValueError, low=0, high=layout.starts)
+        inputs.number(meta["best_value"], "meta.best_value", ValueError, finite=False)
+    for m, history in enumerate(histories):
+        where = f"meta.history[{m}]" if batch else "meta.history"
+        if not isinstance(history, list) or len(history) > layout.entries():
+            raise ValueError(f"{where}: expected a list of at most {layout.entries()} entries")
+        for k, h in enumerate(history):
+            inputs.check_keys(h, f"{where}[{k}]", ("start", "iteration", "objective", "z"), ValueError,
+                              required=("start", "iteration", "objective", "z"))
+            inputs.integer(h["start"], f"{where}[{k}].start", ValueError, low=0, high=layout.starts - 1)
+            inputs.integer(h["iteration"], f"{where}[{k}].iteration", ValueError, low=0, high=layout.iterations)
+            if isinstance(h["objective"], bool) or not isinstance(h["objective"], (int, float)):
+                raise ValueError(f"{where}[{k}].objective: expected a number, got {shown(h['objective'])}")
+            inputs.check_keys(h["z"], f"{where}[{k}].z", layout.z, ValueError, required=layout.z, what="field")
+
+
+def load_checkpoint(path: Path, digest: str, layout: CheckpointLayout) -> dict | None:
+    """The checkpoint at ``path`` if there is one (None otherwise), checked against ``layout`` (the run's settings).
+
+    A regular file no larger than ``layout`` implies, read as plain arrays (``allow_pickle=False``: nothing in it
+    runs).  Its ``meta`` is read first, and a checkpoint of another configuration (``digest``) refused; then every
+    member's declared size, shape and dtype are checked from the zip's directory and the arrays' headers before any
+    array is loaded (a zip bomb or a crafted header is refused, not decompressed), and its JSON; each group of arrays
+    (``z``, ``best``, ``opt``) is whole or absent, and a run that evaluated anything has its best point.  Anything else
+    is refused with one line (:class:`ParameterError`), never a traceback.
+    """
+    if not os.path.lexists(path):
         return None
+    fix = "delete it or use --fresh"
     try:
-        with np.load(path, allow_pickle=False) as f:
-            meta = json.loads(bytes(f["meta"]).decode())
-            if not isinstance(meta, dict) or meta.get("format") != CHECKPOINT_FORMAT:
-                raise ValueError(f"not a {CHECKPOINT_FORMAT} file")
-            arrays = {k: np.asarray(f[k]) for k in f.files if k != "meta"}
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ParameterError(f"{path}: not a pusupu checkpoint ({e}); delete it or use --fresh") from None
-    if meta.get("digest") != digest:
-        raise ParameterError(f"{path}: checkpoint of another configuration (hash {meta.get('digest')}, this one "
-                             f"{digest}); use --fresh or another --out")
+        data = inputs.read_bytes(path, "pusupu checkpoint", ParameterError, limit=layout.file_bytes())
+    except ParameterError as e:
+        raise ParameterError(f"{e}; {fix}") from None
+    try:
+        with zipfile.ZipFile(io.BytesIO(data)) as zf:
+            infos = {info.filename: info for info in zf.infolist()}
+            if len(infos) != len(zf.infolist()) or "meta.npy" not in infos:
+                raise ValueError("expected one member of each name, meta.npy among them")
+            shape, dtype = _array_header(zf, infos["meta.npy"], layout.meta_bytes())
+            if dtype != np.uint8 or len(shape) != 1 or shape[0] > layout.meta_bytes():
+                raise ValueError(f"meta: expected at most {layout.meta_bytes()} bytes, got {dtype} of shape {shape}")
+            with np.load(io.BytesIO(data), allow_pickle=False) as f:
+                meta = json.loads(bytes(f["meta"]).decode())
+                if not isinstance(meta, dict) or meta.get("format") != CHECKPOINT_FORMAT:
+                    raise ValueError(f"not a {CHECKPOINT_FORMAT} file")
+                if meta.get("digest") != digest:
+                    raise ParameterError(f"{path}: checkpoint of another configuration (hash "
+                                         f"{shown(meta.get('digest'))}, this one {digest}); use --fresh or another --out")
+                expected = layout.arrays()
+                for name, info in infos.items():
+                    key = name.removesuffix(".npy")
+                    if key == "meta":
+                        continue
+                    if not name.endswith(".npy") or key not in expected:
+                        raise ValueError(f"unexpected member {shown(name)}")
+                    want = expected[key]
+                    got = _array_header(zf, info, int(np.prod(want[0])) * want[1].itemsize)
+                    if got != want:
+                        raise ValueError(f"{key}: expected {want[1]} of shape {want[0]}, got {got[1]} of shape {got[0]}")
+                _check_meta(meta, layout)
+                groups = {g: sorted(k for k in expected if k.startswith(g + "/")) for g in ("z", "best", "opt")}
+                held = {g: [k for k in names if k + ".npy" in infos] for g, names in groups.items()}
+                for g, names in held.items():
+                    if names and names != groups[g]:
+                        raise ValueError(f"{next(k for k in groups[g] if k not in names)} missing")
+                needed = {"z": held["opt"], "best": meta["history"], "opt": held["z"]}  # or every group in a batch
+                missing = [g for g, need in needed.items() if (need or layout.members) and not held[g]]
+                if missing:
+                    raise ValueError(f"missing arrays: {', '.join(missing)}")
+                arrays = {k: np.asarray(f[k]) for k in f.files if k != "meta"}
+    except ParameterError:
+        raise
+    except CHECKPOINT_ERRORS as e:
+        raise ParameterError(f"{path}: not a pusupu checkpoint ({e}); {fix}") from None
     z = {k[2:]: v for k, v in arrays.items() if k.startswith("z/")} or None
     best = {k[5:]: v for k, v in arrays.items() if k.startswith("best/")} or None
-    leaves = [arrays[f"opt/{k}"] for k in range(len([a for a in arrays if a.startswith("opt/")]))]
-    treedef = jax.tree.structure(opt_template)
-    opt = jax.tree.unflatten(treedef, leaves) if leaves else None
-    if leaves and len(leaves) != treedef.num_leaves:
-        raise ParameterError(f"{path}: checkpoint of another optimiser state; use --fresh")
+    leaves = [arrays[f"opt/{k}"] for k in range(len(held["opt"]))]
+    opt = jax.tree.unflatten(jax.tree.structure(layout.opt), leaves) if leaves else None
     return {**{k: v for k, v in meta.items() if k != "format"}, "z": z, "best_z": best, "opt": opt}
 
 
@@ -423,7 +583,8 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
     is made from ``seed`` and the start index).
     """
     opt = optimiser(learning_rate, iterations, clip_norm, final_lr_fraction)
-    state = load_checkpoint(checkpoint, digest, opt.init(z0)) if checkpoint else None
+    layout = CheckpointLayout(z0, opt.init(z0), iterations, starts)
+    state = load_checkpoint(checkpoint, digest, layout) if checkpoint else None
     if state is None:
         state = {"digest": digest, "start": 0, "iteration": 0, "z": None, "opt": None, "history": [],
                  "best_value": np.inf, "best_z": None, "done": False}
