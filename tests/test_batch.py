@@ -198,3 +198,11 @@ def test_ray_retries_a_killed_worker_and_gives_the_in_process_summary(batch, tmp
         for key, value in want.items():
             if isinstance(value, float) and np.isfinite(value):
                 assert row[key] == value, key
+
+
+def test_the_example_job_file_of_the_readme_reads():
+    """docs/examples/batch.yaml, the README tour's batch, is a valid job file of two jobs."""
+    from pathlib import Path
+
+    job = jobfile.read(Path(__file__).parent.parent / "docs" / "examples" / "batch.yaml")
+    assert [j.name for j in job.jobs] == ["arc-empty", "arc-5kg"]

@@ -160,7 +160,7 @@ def test_tune_writes_gains_ros_files_report_and_plots(tuned):
     assert len(a["axes"]) == 6
     shown = pusupu("gains", "show", str(out / "gains.yaml")).stdout
     assert "lambda2" in shown and "yes" in shown
-    assert "valid pusupu-gains v2" in pusupu("gains", "check", str(out / "gains.yaml")).stdout
+    assert "valid pusupu-gains v3" in pusupu("gains", "check", str(out / "gains.yaml")).stdout
 
 
 def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
@@ -182,7 +182,7 @@ def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
 
 
 def test_ctrl_c_during_a_tune_ends_with_one_line(tuned, tmp_path):
-    """Probe row 11: a KeyboardInterrupt traceback; now one line saying how to resume, and exit status 130."""
+    """Ctrl-C used to end in a KeyboardInterrupt traceback; now one line saying how to resume, and exit status 130."""
     folder, _ = tuned
     cmd = [sys.executable, "-m", "pusupu_cli", "tune", "--config", str(folder / "tiny.yaml"),
            "--out", str(tmp_path / "out")]
@@ -234,12 +234,12 @@ sys.exit(status)
 def test_a_bad_gain_file_exits_2_with_one_line(tuned, tmp_path):
     folder, _ = tuned
     bad = tmp_path / "gains.yaml"
-    bad.write_text((folder / "out" / "gains.yaml").read_text().replace("version: 2", "version: 7"))
+    bad.write_text((folder / "out" / "gains.yaml").read_text().replace("version: 3", "version: 7"))
     for command in (["analyze"], ["sim"], ["gains", "show"], ["gains", "check"]):
         args = [*command, str(bad)] if command[0] == "gains" else [*command, "--gains", str(bad)]
         r = pusupu(*args, check=False)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
-        assert "version: expected 2" in r.stderr
+        assert "version: expected 3" in r.stderr
 
 
 def test_gains_check_ros_prints_both_controllers(tuned):
@@ -253,7 +253,7 @@ def test_gains_check_ros_prints_both_controllers(tuned):
 
 
 def test_a_foreign_checkpoint_is_refused_without_running(tmp_path):
-    """Probe row 1: a crafted checkpoint.pkl in --out ran its code.  Now nothing reads a pickle."""
+    """A crafted checkpoint.pkl in --out used to run its code.  Now nothing reads a pickle."""
     out = tmp_path / "out"
     out.mkdir()
     marker = tmp_path / "pwned"
@@ -269,7 +269,7 @@ def test_a_foreign_checkpoint_is_refused_without_running(tmp_path):
 
 
 def test_a_second_run_into_a_busy_folder_is_refused(tmp_path):
-    """Probe row 4: two runs into one --out both said they wrote gains.yaml; now the second names the holder."""
+    """Two runs into one --out used to both say they wrote gains.yaml; now the second names the holder."""
     from tune.job import OutputLock
 
     out = tmp_path / "out"
@@ -300,7 +300,7 @@ def test_a_second_run_into_a_busy_folder_is_refused(tmp_path):
     (["sim", "--plant", "mjx", "--mode", "hybrid", "--params", "{hybrid_list}"], "HybridGains.m6: expected a number"),
 ])
 def test_every_probe_input_ends_in_one_line_and_exit_2(tmp_path, args, message):
-    """Issue 14's reliability probe: inputs that ended in tracebacks, hangs or silent acceptance, each one line now,
+    """A reliability probe: inputs that ended in tracebacks, hangs or silent acceptance, each one line now,
     before any compile."""
     files = {"file": ("f.txt", b"x"), "dir": ("d", None), "config": ("c.yaml", b"pm_min: .nan\n"),
              "rates": ("r.yaml", b"rates: {f_current: 1.0e+12}\n"), "binary": ("b.yaml", bytes(range(256))),
@@ -330,7 +330,7 @@ def test_version_and_python_m():
 
 
 def test_a_write_that_fails_midway_keeps_the_old_file_and_ends_in_one_line(tmp_path):
-    """Probe row 6 (a full disk gave an ENOSPC traceback): the process may write at most 4 kB per file
+    """A full disk gave an ENOSPC traceback.  The process may write at most 4 kB per file
     (RLIMIT_FSIZE; the write fails with EFBIG where a full disk gives ENOSPC, through the same code).  Re-signing a
     gain file must end with one line and exit 2, the old file intact and no temporary left behind."""
     from pusupu_jax import LoopRates, ServoParams, gains
