@@ -42,7 +42,7 @@ XLA_CPU_WORKAROUND = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 XLA_CPU_COMPILE = ("--xla_cpu_use_fusion_emitters=false",)
 XLA_LLVM_CPU_ONLY = ("--xla_llvm_disable_expensive_passes=true",)
 # A jaxlib that does not know a flag in XLA_FLAGS aborts the process when its backend starts ("Unknown flag in
-# XLA_FLAGS"): jaxlib 0.11.2 (the GPU machines' image, stop 28) has no --xla_cpu_use_fusion_emitters.  So the
+# XLA_FLAGS"): jaxlib 0.11.2 (seen with a GPU plugin) has no --xla_cpu_use_fusion_emitters.  So the
 # compile flags are added only for the jaxlib series they were measured with; the thread-pool workaround, whose flag
 # 0.11.2 knows too, for every jaxlib.
 XLA_COMPILE_MEASURED_ON = ("0.10.",)
