@@ -172,7 +172,7 @@ def test_unstable_gains_are_never_written_and_the_old_file_survives(tmp_path):
 
 @pytest.mark.parametrize("mask, mode", [(0o022, 0o644), (0o077, 0o600), (0o002, 0o664)])
 def test_files_get_the_mode_the_umask_gives(tmp_path, mask, mode):
-    """Probe row 14: every file used to be 0600 whatever the umask; an existing 0644 file stayed 0600 after a rewrite."""
+    """Every file used to be 0600 whatever the umask; an existing 0644 file stayed 0600 after a rewrite."""
     old = os.umask(mask)
     try:
         path = _write(tmp_path / "gains.yaml")
@@ -205,7 +205,7 @@ BAD_BYTES = {
 
 @pytest.mark.parametrize("case", sorted(BAD_BYTES))
 def test_malformed_files_end_in_one_line(tmp_path, case):
-    """Probe rows 8, 10, 13: never a traceback, never gigabytes."""
+    """Never a traceback, never gigabytes."""
     path = tmp_path / "gains.yaml"
     path.write_bytes(BAD_BYTES[case])
     with pytest.raises(ParameterError) as e:
@@ -214,7 +214,7 @@ def test_malformed_files_end_in_one_line(tmp_path, case):
 
 
 def test_a_refused_export_says_so_and_names_the_file_left_in_place(tmp_path):
-    """Probe row 12: a report and plots used to describe gains that were not in gains.yaml.  Refused gains write
+    """A report and plots used to describe gains that were not in gains.yaml.  Refused gains write
     nothing, and the report's entry names the earlier gains.yaml left as it was (by its sha256)."""
     import hashlib
 
