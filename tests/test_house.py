@@ -1,8 +1,8 @@
 """The project speaks of itself alone: no development-process words in the tracked files' contents or names.
 
-What is looked for: numbered work steps ("stop 28", "_stop29"), issue numbers in prose ("issue 13"), and remarks
-on which machines were lent.  History lives in git; the tree says what was measured, on what machine, with which
-command.
+What is looked for: numbered work steps (the word for such a step followed by its number, in prose or in a file
+name), issue numbers in prose, and remarks on which machines were lent for the work.  History lives in git; the
+tree says what was measured, on what machine, with which command.
 """
 
 import re
@@ -12,8 +12,10 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-PROCESS_WORDS = re.compile(r"\bstops? [0-9]+(-[0-9]+)?\b|_stop[0-9]+|\bissues? [0-9]+\b|\bwas lent\b|\bsame session\b",
-                           re.IGNORECASE)
+# written in pieces, so that this file does not hold the phrases it looks for
+PROCESS_WORDS = re.compile("|".join((r"\b" + "stop" + r"s? [0-9]+(-[0-9]+)?\b", "_" + "stop" + r"[0-9]+",
+                                     r"\b" + "issue" + r"s? [0-9]+\b", r"\b" + "was" + r" lent\b",
+                                     r"\b" + "same" + r" session\b")), re.IGNORECASE)
 
 
 def _tracked() -> list[str]:
@@ -27,8 +29,6 @@ def _tracked() -> list[str]:
 def test_no_tracked_file_speaks_of_the_development_process():
     found = []
     for name in _tracked():
-        if name == "tests/test_house.py":  # the patterns themselves
-            continue
         if PROCESS_WORDS.search(name):
             found.append(f"{name}: its name")
         path = ROOT / name
