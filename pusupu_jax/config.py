@@ -23,6 +23,7 @@ from typing import NamedTuple
 from . import inputs
 from .hybrid import HybridGains
 from .params import AxisLoad, LoopRates, ParameterError, ServoParams
+from .stability import check_rates
 
 SECTIONS = ("servo", "load", "rates", "hybrid")
 
@@ -194,23 +195,24 @@ def write_atomic(path, data: str | bytes) -> Path:
     return write_files({path: data})[0]
 
 
-MAX_F_CURRENT = 1e6  # Hz: 50x the default current loop; higher rates are a typo, and a second of them fills memory
-
-
 def rates_from_mapping(values) -> LoopRates:
-    """A :class:`LoopRates` from a mapping of its fields (a params file's or gain file's ``rates``), checked."""
+    """A :class:`LoopRates` from a mapping of its fields (a params file's or gain file's ``rates``), checked: each
+    field of its kind, and each loop's rate in its range (:func:`pusupu_jax.stability.check_rates`)."""
+
     where = "rates"
     inputs.check_keys(values, where, [f.name for f in dataclasses.fields(LoopRates)], ParameterError)
     out = dict(values)
     if "f_current" in out:
         out["f_current"] = inputs.number(out["f_current"], f"{where}.f_current", ParameterError, low=0.0,
-                                         low_open=True, high=MAX_F_CURRENT)
+                                         low_open=True)
     for name in ("n_velocity", "n_position", "n_mech"):
         if name in out:
             out[name] = inputs.integer(out[name], f"{where}.{name}", ParameterError, low=1, high=1000)
     if "method" in out:
         inputs.choice(out["method"], f"{where}.method", ("tustin", "zoh"), ParameterError)
-    return LoopRates(**out)
+    rates = LoopRates(**out)
+    check_rates(rates)
+    return rates
 
 
 def setup_jax(cache_dir: str | os.PathLike | None = None, x64: bool = True) -> Path:

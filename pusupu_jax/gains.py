@@ -52,8 +52,7 @@ import yaml
 from . import __version__, inputs, loops, stability
 from .config import rates_from_mapping, write_atomic
 from .hybrid import HybridGains, gain_fields
-from .margins import loop_margins
-from .params import AxisLoad, LoopRates, ParameterError, ServoParams, array_fields, bounds, static_fields
+from .params import LoopRates, ParameterError, ServoParams, array_fields, bounds, static_fields
 from .stability import FLOORS
 
 SCHEMA, VERSION = "pusupu-gains", 3
@@ -107,11 +106,10 @@ class GainFile:
 
 
 def margins_report(servo: ServoParams, mode: str = "imc") -> dict:
-    """Phase [deg] and gain [dB] margins of every loop of every axis (``pusupu_jax.margins``, single-axis model)."""
-    with jax.enable_x64(True):
-        m = loop_margins(servo, AxisLoad.default(), mode=mode)
-    return {loop: {k: np.asarray(v[k], dtype=float).tolist() for k in ("phase_margin_deg", "gain_margin_db")}
-            for loop, v in m.items()}
+    """Phase [deg] and gain [dB] margins of every loop of every axis as lists (:func:`pusupu_jax.stability.margins`,
+    single-axis model with the default load)."""
+    m, _ = stability.margins(servo, mode)
+    return {loop: {k: v[k].tolist() for k in ("phase_margin_deg", "gain_margin_db")} for loop, v in m.items()}
 
 
 def builtin_plant() -> dict:

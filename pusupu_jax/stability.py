@@ -81,6 +81,17 @@ def _margins_program(mode: str):
     return jax.jit(lambda servo, load: (loop_margins(servo, load, mode), in_band(servo, load, mode)))
 
 
+def margins(servo: ServoParams, mode="imc", load: AxisLoad | None = None) -> tuple[dict, dict]:
+    """``(margins, in_band)`` of every loop of every axis, as numpy float64: :func:`pusupu_jax.margins.loop_margins`
+    and :func:`pusupu_jax.margins.in_band` in one jitted program per position law (``mode``'s: IMC for hybrid; ROS's
+    PID for ``ros_pid``); ``load`` default :meth:`AxisLoad.default`."""
+    load = AxisLoad.default() if load is None else load
+    law = cascade.control_mode(mode).law
+    with jax.enable_x64(True):
+        return jax.tree.map(np.asarray, _margins_program(law)(
+            *(jax.tree.map(lambda x: np.asarray(x, dtype=np.float64), p) for p in (servo, load))))
+
+
 def _in_loop(m: np.ndarray) -> np.ndarray:
     """Mask of the states that take part in the loop: not those whose column is a unit vector (pure integrators that
     nothing reads, as the motor angle below the position loop)."""
@@ -229,9 +240,7 @@ def check(servo: ServoParams, hybrid, rates: LoopRates, mode="imc", floors=FLOOR
     check_values(servo, hybrid, rates)
     load = AxisLoad.default() if load is None else load
     radii = spectral_radii(servo, rates, mode, load)
-    with jax.enable_x64(True):
-        m, band = jax.tree.map(np.asarray, _margins_program(loop_mode("position", mode).name)(
-            *(jax.tree.map(lambda x: np.asarray(x, dtype=np.float64), p) for p in (servo, load))))
+    m, band = margins(servo, mode, load)
     loops = {loop: LoopCheck(radii[loop], loop_period(rates, loop),
                              *(np.asarray(m[loop][k], dtype=float) for k in ("phase_margin_deg", "gain_margin_db")),
                              np.asarray(band[loop]))

@@ -5,8 +5,8 @@ that gives the limit.
 A run's cost is its steps times the state each step advances, counted where it is spent:
 
 * *current-loop ticks*: every plant runs the six drives' current loops, filters and motor electrics at
-  ``rates.f_current``, a tick each (a few dozen numbers of state); a 1 MHz current loop at 1000 velocity periods
-  per position period is as legal as the default 20 kHz and costs 50 times as much per simulated second;
+  ``rates.f_current``, a tick each (a few dozen numbers of state); a 100 kHz current loop, the fastest a file may
+  hold (:func:`pusupu_jax.stability.check_rates`), costs 5 times the default 20 kHz per simulated second;
 * *mechanical steps* of the MJX machine, one every ``ModelOptions.timestep`` (0.25 ms): the whole mechanism's
   state, its kinematics and its constraint forces, far dearer than a tick;
 * *trace entries*: a run keeps one per position period (about 1 kB each), so that a short position period fills
