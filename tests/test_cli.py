@@ -289,7 +289,7 @@ def test_a_second_run_into_a_busy_folder_is_refused(tmp_path):
     (["tune", "--config", "{config}"], "pm_min: expected a finite number"),
     (["sim", "--plot", "{dir}"], "--plot: expected the path of a PNG file, got the folder"),
     (["sim", "--duration", "1e4"], "trajectory duration: expected at most 2000 s"),
-    (["sim", "--params", "{rates}"], "rates.f_current: expected a number <= 1e+06"),
+    (["sim", "--params", "{rates}"], "rates: f_current is 1e+12 Hz; expected 1000 to 100000 Hz"),
     (["sim", "--plant", "mjx", "--kin-error", "-1"], "expected a non-negative integer seed"),
     (["sim", "--params", "{binary}"], "expected a UTF-8 text"),
     (["sim", "--params", "{bomb}"], "anchors are not accepted"),
