@@ -50,7 +50,7 @@ def blocks(servo: ServoParams, load: AxisLoad, axis: int = 0) -> dict:
     p, q = axis_values(servo, axis), axis_values(load, axis)
     r = p["lead"] / (2 * math.pi)
     j_eff = p["J"] + q["mass"] * r**2 / p["eta"]
-    b_eff = q["viscous"] * r**2 / p["eta"]
+    b_eff = p["viscous"] * r**2 / p["eta"]
     l1, l2, T0 = p["lambda1"], p["lambda2"], p["T0"]
     elec = ct.ss([[-1 / p["Tn"], 0], [1 / p["L"], -p["R"] / p["L"]]],
                  [[p["Kn"] / p["Tn"], 0], [0, -p["Ke"] / p["L"]]], [[0, 1]], [[0, 0]],

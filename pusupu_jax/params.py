@@ -152,6 +152,9 @@ class ServoParams(_PerAxis):
         bounds=(0.001, 1000.0, "peak current ratings of servo drives: milliamps to a kiloamp"))
     V_dc: Any = _f(310.0, "V", "chosen: the drive's DC bus voltage; V_max may not exceed it", section="plant",
         bounds=(1.0, 10000.0, "DC bus voltages of servo drives"))
+    speed_max: Any = _f(314.16, "rad/s", "chosen: the motor's rated maximum speed (3000 rpm); a path whose motor "
+                        "speed exceeds it is refused", section="plant",
+        bounds=(1.0, 20000.0, "maximum speeds of servo motors: 10 rpm to 190 000 rpm"))
     emf_ff: Any = _f(1.0, "1", "chosen: fraction of the back-EMF Ke*w fed forward into the current PI output "
                      "(decoupling, as PMSM drives do; 1 = full, 0 = none)", kind="nonnegative", section="current",
         bounds=(0.0, 1.0, "more than the whole back-EMF fed forward is positive speed feedback: from 1.7 on, Table "
@@ -175,6 +178,17 @@ class ServoParams(_PerAxis):
         bounds=(0.0001, 0.1, "ball-screw leads: 0.1 mm to 100 mm per revolution"))
     eta: Any = _f(0.9, "1", "chosen: ball-screw efficiency (0 < eta <= 1); the load seen by the motor is divided by eta", section="plant",
         bounds=(0.001, 1.0, "an efficiency: at most 1"))
+    # --- drive-train friction at the slider (chosen; F = coulomb tanh(v / v_coulomb) + viscous v, opposing the
+    # slider's speed v: pusupu_jax.plant.friction) ---
+    coulomb: Any = _f(20.0, "N", "chosen: Coulomb friction of the screw and the rail at the slider (smoothed by tanh)",
+                      kind="nonnegative", section="plant",
+        bounds=(0.0, 100000.0, "Coulomb friction of a rail and screw"))
+    viscous: Any = _f(50.0, "N*s/m", "chosen: viscous friction of the screw and the rail at the slider",
+                      kind="nonnegative", section="plant",
+        bounds=(0.0, 1000000.0, "viscous friction of a rail and screw"))
+    v_coulomb: Any = _f(0.001, "m/s", "chosen: slider speed over which the Coulomb friction builds up (the tanh's "
+                        "scale)", section="plant",
+        bounds=(1e-06, 10.0, "the speed over which Coulomb friction builds up"))
     # --- baseline PID position loop (chosen: same crossover as the nominal IMC loop, see docs/parameters.md) ---
     Kp_pid: Any = _f(6.5, "1/s", "PID proportional gain, motor rad/s per rad of position error", section="pid",
         bounds=(0.0001, 1000.0, "a position gain beyond 1000 1/s puts the crossover past the velocity loop's"))
@@ -204,7 +218,8 @@ class ServoParams(_PerAxis):
 @_pytree
 @dataclass(frozen=True, repr=False)
 class AxisLoad(_PerAxis):
-    """Load of the single-axis plant: the slider and its share of the mechanism, as a lumped mass.
+    """Load of the single-axis plant: the slider and its share of the mechanism, as a lumped mass (the drive train's
+    friction is the machine's: :class:`ServoParams`).
 
     Every field has shape ``(..., 6)``.  All values chosen (no load is published).
     """
@@ -216,12 +231,6 @@ class AxisLoad(_PerAxis):
         bounds=(-3.1416, 3.1416, "an angle from the horizontal, within half a turn either way"))
     g: Any = _f(9.81, "m/s^2", "gravitational acceleration", kind="nonnegative",
         bounds=(0.0, 100.0, "gravitational acceleration: 0 (no gravity) to ten times the earth's"))
-    viscous: Any = _f(50.0, "N*s/m", "viscous friction of the slider", kind="nonnegative",
-        bounds=(0.0, 1000000.0, "viscous friction of a rail and screw"))
-    coulomb: Any = _f(20.0, "N", "Coulomb friction of the slider (smoothed by tanh)", kind="nonnegative",
-        bounds=(0.0, 100000.0, "Coulomb friction of a rail and screw"))
-    v_coulomb: Any = _f(0.001, "m/s", "velocity scale of the tanh smoothing of Coulomb friction",
-        bounds=(1e-06, 10.0, "the speed over which Coulomb friction builds up"))
 
 
 @dataclass(frozen=True)

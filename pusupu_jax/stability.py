@@ -4,7 +4,7 @@ What is analysed is what runs: one outer period of :func:`pusupu_jax.sim.pieces`
 ticks that the simulator scans and the bridge calls, against the single-axis plant of
 :mod:`pusupu_jax.plant.axis` with the default :class:`~pusupu_jax.params.AxisLoad`), at the gain
 file's rates and discretisation.  Around rest, with the clamps inactive and without Coulomb
-friction (the single-axis model's viscous friction stays), that period is a linear map of the
+friction (the drive train's viscous friction stays), that period is a linear map of the
 carry (every controller, electrical and mechanical state); its Jacobian at rest, taken with
 ``jax.jacfwd`` of the period function itself, is the monodromy matrix of the multirate loop.  The
 loop is asymptotically stable exactly when every eigenvalue of that matrix lies inside the unit
@@ -103,10 +103,10 @@ def monodromy(servo: ServoParams, rates: LoopRates, loop: str, mode="imc", load:
     """Per axis, the monodromy matrix of ``loop`` over one of its periods (float64, numpy), pure integrators left out.
 
     ``servo``: one parameter set ``(6,)`` per field; ``load``: the single-axis load (default
-    :meth:`AxisLoad.default`), whose Coulomb friction is set to zero (the model is linearised at rest).
+    :meth:`AxisLoad.default`); the drive train's Coulomb friction is set to zero (the model is linearised at rest).
     """
     load = AxisLoad.default() if load is None else load
-    load = load.replace(coulomb=np.zeros_like(np.asarray(load.coulomb, dtype=float)))
+    servo = servo.replace(coulomb=np.zeros_like(np.asarray(servo.coulomb, dtype=float)))
     with jax.enable_x64(True):
         servo64, load64 = (jax.tree.map(lambda x: np.asarray(x, dtype=np.float64), p) for p in (servo, load))
         m, axis_of = _monodromy_program(rates, loop_mode(loop, mode))(servo64, load64)

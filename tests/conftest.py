@@ -20,9 +20,18 @@ def table1():
 
 @pytest.fixture(scope="session")
 def linear_load():
-    """The default load without Coulomb friction: the plant is then linear, so python-control models it exactly."""
-    import numpy as np
-
+    """The default single-axis load (mass, no gravity along a level rail): linear."""
     from pusupu_jax import AxisLoad
 
-    return AxisLoad.default().replace(coulomb=np.zeros(6))
+    return AxisLoad.default()
+
+
+@pytest.fixture(scope="session")
+def table1_linear():
+    """Table 1 without the drive train's Coulomb friction: the plant is then linear, so python-control models it
+    exactly."""
+    import numpy as np
+
+    from pusupu_jax import ServoParams
+
+    return ServoParams.table1().replace(coulomb=np.zeros(6))

@@ -26,7 +26,7 @@ from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.margins import loop_margins
 from pusupu_jax.params import bounds
 
-LOAD = AxisLoad.default().replace(coulomb=np.zeros(6))  # the check linearises at rest without Coulomb friction
+LOAD = AxisLoad.default()
 # one rate set and method per position law: each pair is a compile of the check's programs
 CASES = (("imc", LoopRates()), ("pid", LoopRates(method="zoh")), ("pid_ff", LoopRates()))
 GAINS = ("lambda1", "lambda2", "T0", "Kv", "Tv", "Kw", "Tw", "Ki", "Ti", "Kcf", "Tcf", "emf_ff", "Kp_pid", "Ki_pid",

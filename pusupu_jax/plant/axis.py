@@ -6,6 +6,9 @@ Motor side, per axis (``r = lead / 2 pi`` [m/rad], efficiency ``eta``)::
     J_eff = J + m r^2 / eta,   b_eff = c_v r^2 / eta
     tau_ext = (r / eta) (m g sin(inclination) + F_c tanh(v / v_c)),   v = r w
 
+with the drive train's friction ``F_c tanh(v / v_c) + c_v v`` of :mod:`pusupu_jax.plant.friction` (the
+machine's ``ServoParams`` fields ``coulomb``, ``viscous``, ``v_coulomb``).
+
 The linear part is integrated exactly (zero-order hold of ``Te`` and ``tau_ext`` over the
 step, matrix exponential); the nonlinear load ``tau_ext`` is evaluated at the start of
 each step (exponential Euler), so with no Coulomb friction the plant is exactly the ZOH
@@ -22,6 +25,7 @@ import jax.numpy as jnp
 
 from .. import lti
 from ..params import N_AXES, AxisLoad, ServoParams
+from .friction import coulomb_friction
 
 
 @jax.tree_util.register_dataclass
@@ -30,8 +34,7 @@ class AxisAux:
     step: lti.LTI  # discrete mechanics, states (theta, w), inputs (Te, tau_ext)
     r: Any  # m/rad
     load_force: Any  # N, gravity component along the rail
-    coulomb: Any  # N
-    v_coulomb: Any  # m/s
+    servo: ServoParams  # the friction law's parameters
     eta: Any
 
 
@@ -43,7 +46,7 @@ class AxisPlant:
 
     def prepare(self, servo: ServoParams, load: AxisLoad, dt: float) -> AxisAux:
         return AxisAux(lti.c2d(mechanics(servo, load), dt, "zoh"), screw_ratio(servo),
-                       load.mass * load.g * jnp.sin(load.inclination), load.coulomb, load.v_coulomb, servo.eta)
+                       load.mass * load.g * jnp.sin(load.inclination), servo, servo.eta)
 
     def init(self, aux: AxisAux):
         return jnp.zeros(aux.r.shape + (2,))
@@ -63,7 +66,7 @@ class AxisPlant:
 
     def step(self, aux: AxisAux, state, torque):
         v = aux.r * state[..., 1]
-        tau_ext = aux.r / aux.eta * (aux.load_force + aux.coulomb * jnp.tanh(v / aux.v_coulomb))
+        tau_ext = aux.r / aux.eta * (aux.load_force + coulomb_friction(aux.servo, v))
         return lti.update(aux.step, state, jnp.stack([torque, tau_ext], axis=-1))
 
     def slider(self, aux: AxisAux, state):
@@ -83,7 +86,7 @@ def mechanics(servo: ServoParams, load: AxisLoad) -> lti.LTI:
     """Continuous linear mechanics: states (theta [rad], w [rad/s]), inputs (Te, tau_ext) [N m]."""
     r = screw_ratio(servo)
     j_eff = servo.J + load.mass * r**2 / servo.eta
-    b_eff = load.viscous * r**2 / servo.eta
+    b_eff = servo.viscous * r**2 / servo.eta
     z, one = jnp.zeros_like(j_eff), jnp.ones_like(j_eff)
     A = jnp.stack([jnp.stack([z, one], -1), jnp.stack([z, -b_eff / j_eff], -1)], -2)
     B = jnp.stack([jnp.stack([z, z], -1), jnp.stack([1.0 / j_eff, -1.0 / j_eff], -1)], -2)
