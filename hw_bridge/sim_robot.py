@@ -49,7 +49,7 @@ import numpy as np
 from pusupu_jax import cascade, loops, sim
 from pusupu_jax.gains import GainFile
 from pusupu_jax.machine import machine_plant, machine_rates
-from pusupu_jax.plant.geometry import Geometry
+from pusupu_jax.machine_file import Machine
 from pusupu_jax.plant.model import ModelOptions, build_model, slide_dofs, slide_qpos
 
 from . import cia402, protocol
@@ -107,21 +107,22 @@ class RobotModel:
     """
 
     def __init__(self, gains: GainFile, rate: float | None = None, kin_error_seed: int | None = None,
-                 cst: bool = False):
+                 cst: bool = False, machine: Machine | None = None):
         from .loop import bridge_rates
 
         jax.config.update("jax_enable_x64", True)
         self.servo = servo = gains.servo
         self.rates = bridge_rates(gains.rates, cst, rate)  # the bridge's, for its drive-mode pattern
-        options = ModelOptions(timestep=self.rates.dt_velocity, kin_error_seed=kin_error_seed)
-        nominal = dataclasses.replace(options, kin_error_seed=None)
+        machine = Machine.default() if machine is None else machine
+        options = machine.options(ModelOptions(timestep=self.rates.dt_velocity, kin_error_seed=kin_error_seed))
+        nominal = ModelOptions(timestep=self.rates.dt_velocity)
         plant = machine_plant(nominal)
         rates = machine_rates(nominal, self.rates)
         vmode = cascade.control_mode("velocity")
         carry0 = jax.jit(lambda model: sim.pieces(servo, model, plant=plant, rates=rates, mode=vmode,
-                                                  hybrid=None).init("rest", None))(jax.device_put(plant.variant(options),
+                                                  hybrid=None).init("rest", None))(jax.device_put(plant.variant(options, machine.geometry),
                                                                                                   cpu()))
-        self.m = build_model(Geometry.default(), options)
+        self.m = build_model(machine.geometry, options)
         self.dofs, self.qpos = slide_dofs(self.m), slide_qpos(self.m)
         r = np.asarray(servo.lead / (2 * np.pi), dtype=float)
         self.m.dof_armature[self.dofs] = np.asarray(servo.eta * servo.J, dtype=float) / r**2

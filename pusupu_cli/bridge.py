@@ -21,6 +21,8 @@ def add_parsers(sub) -> None:
     b.add_argument("--duration", type=float, metavar="S", help="seconds of the path (default all of it; at most what "
                                                                  "half of the memory holds of the run's record)")
     b.add_argument("--trajectory", choices=("arc", "p2p"), default="arc", help="default arc")
+    b.add_argument("--allow-other-machine", action="store_true",
+                   help="run a gain file tuned on another machine than --machine's (refused by default)")
     b.add_argument("--drive-modes", metavar="M[,M...]", default="csv",
                    help="csv or cst, one for all axes or six comma-separated; hybrid mode always runs branch 6 in "
                         "cst (default csv)")
@@ -40,6 +42,9 @@ def add_parsers(sub) -> None:
     r.add_argument("--drive-modes", metavar="M[,M...]", default="csv",
                    help="the bridge's --drive-modes: with --rate, they say which loop the rate is of (default csv)")
     r.add_argument("--kin-error", type=int, metavar="SEED", help="seeded kinematic errors of the machine (0.5 mm std)")
+    for sp in (b, r):
+        sp.add_argument("--machine", metavar="FILE", help="the machine file (pusupu machine init; default: the "
+                                                          "built-in machine)")
     r.add_argument("--fault", action="append", default=[], metavar="KIND@S[:ARG]",
                    help="a fault for the next session (repeat for later sessions): stop, delay, drop, reorder, "
                         "corrupt, nan, range, garbage or none, S seconds after enable (hw_bridge/sim_robot.py)")
@@ -90,9 +95,9 @@ def _drive_modes(text: str, n: int = 6):
     return names
 
 
-def limits_for(servo):
-    """The bridge's limits on the default geometry: strokes from home, V_max/Ke, Kt I_max, the following-error window
-    and time-out (host-side)."""
+def limits_for(servo, geom=None):
+    """The bridge's limits on the geometry ``geom`` (default: the built-in one): strokes from home, V_max/Ke, Kt I_max,
+    the following-error window and time-out (host-side)."""
     import jax.numpy as jnp
     import numpy as np
 
@@ -100,7 +105,7 @@ def limits_for(servo):
     from pusupu_jax.plant import kinematics
     from pusupu_jax.plant.geometry import Geometry
 
-    geom = Geometry.default()
+    geom = Geometry.default() if geom is None else geom
     r = np.asarray(servo.lead, dtype=float) / (2 * np.pi)
     s_home = np.asarray(kinematics.inverse_kinematics(geom, jnp.asarray(geom.home)))
     return Limits((np.asarray(geom.stroke_min) - s_home) / r, (np.asarray(geom.stroke_max) - s_home) / r,
@@ -108,23 +113,31 @@ def limits_for(servo):
                   np.asarray(servo.following_error_time, dtype=float), r)
 
 
-def bridge_reference(g, trajectory: str, rates=None):
-    """The path's stream for the bridge at ``rates`` (default the gain file's), computed offline here (inverse
-    kinematics, F_q of hybrid mode)."""
+def bridge_reference(g, trajectory: str, rates=None, machine=None):
+    """The path's stream for the bridge at ``rates`` (default the gain file's) on ``machine`` (default: the built-in
+    one), computed offline here (inverse kinematics, F_q of hybrid mode)."""
     import numpy as np
 
     from hw_bridge.loop import BridgeReference
     from pusupu_jax.cascade import control_mode
     from pusupu_jax.machine import machine_reference
-    from pusupu_jax.plant.geometry import Geometry
+    from pusupu_jax.machine_file import Machine
     from pusupu_jax.trajectories import platform_path
 
     rates = g.rates if rates is None else rates
-    path = platform_path(trajectory, Geometry.default().home, rates)
-    ref = machine_reference(g.servo, path, g.mode, rates=rates)
+    machine = Machine.default() if machine is None else machine
+    path = platform_path(trajectory, machine.geometry.home, rates)
+    ref = machine_reference(g.servo, path, g.mode, rates=rates, options=machine.options(), geom=machine.geometry)
     if control_mode(g.mode).hybrid:
         return BridgeReference(np.asarray(ref.theta), np.asarray(ref.force_ff), np.asarray(ref.coupling), path[:, :3])
     return BridgeReference(np.asarray(ref), platform=path[:, :3])
+
+
+def _machine(args):
+    """The machine of ``--machine FILE`` (checked: one line naming the problem), or the built-in one."""
+    from pusupu_jax import machine_file
+
+    return machine_file.load(args.machine) if args.machine else machine_file.Machine.default()
 
 
 def run_bridge(args) -> int:
@@ -149,7 +162,16 @@ def run_bridge(args) -> int:
         from pusupu_cli.cli import _check_plot_path
 
         _check_plot_path(args.plot)
-    g = gains.load(args.gains)  # refused here (one line, exit 2) before any socket opens
+    from pusupu_jax import machine_file
+
+    machine = _machine(args)
+    g = gains.load(args.gains, machine=machine)  # refused here (one line, exit 2) before any socket opens
+    if not g.tuned_on(machine):
+        message = (f"--gains {args.gains}: tuned on machine {g.machine['name']!r} (digest {g.machine['digest'][:12]}),"
+                   f" not on {machine.name!r} (digest {machine_file.digest(machine)[:12]})")
+        if not args.allow_other_machine:
+            raise ParameterError(f"{message}; give that machine's file with --machine, or --allow-other-machine")
+        print(f"pusupu: warning: {message}; running it as --allow-other-machine asks", file=sys.stderr)
     setup_jax()
     from hw_bridge.loop import BridgeLoop, cycle_rate, plan
     from hw_bridge.protocol import CST, FEEDBACK
@@ -168,7 +190,7 @@ def run_bridge(args) -> int:
                              f"takes up to {RECORD_BYTES} bytes a cycle, in half of this machine's memory, "
                              f"{record_memory() / 2**30:.3g} GiB), got {args.duration:g}")
     try:
-        loop = BridgeLoop(g, bridge_reference(g, args.trajectory, rates), modes, args.rate)
+        loop = BridgeLoop(g, bridge_reference(g, args.trajectory, rates, machine), modes, args.rate)
     except ValueError as e:
         raise ParameterError(str(e)) from None
     if address is None:
@@ -183,7 +205,7 @@ def run_bridge(args) -> int:
     print(f"bridge: {g.mode} loops at {loop.rate:g} Hz (position every {loop.n_position} cycle(s)), drives "
           f"{','.join('cst' if m == 10 else 'csv' for m in loop.drive_modes)}, robot {args.robot}", file=sys.stderr)
     try:
-        run = Bridge(loop, endpoint, Safety(limits_for(g.servo), args.watchdog)).run(args.duration,
+        run = Bridge(loop, endpoint, Safety(limits_for(g.servo, machine.geometry), args.watchdog)).run(args.duration,
                                                                                       not args.no_realtime)
     finally:
         endpoint.close()
@@ -276,7 +298,8 @@ def run_sim_robot(args) -> int:
         faults = [FaultSpec.parse(f) for f in args.fault]
     except ValueError as e:
         raise ParameterError(str(e)) from None
-    g = gains.load(args.gains)
+    machine = _machine(args)
+    g = gains.load(args.gains, machine=machine)
     setup_jax()
     from hw_bridge.loop import plan
 
@@ -284,5 +307,5 @@ def run_sim_robot(args) -> int:
         codes, _ = plan(g, None if args.drive_modes == "csv" else _drive_modes(args.drive_modes), args.rate)
     except ValueError as e:
         raise ParameterError(str(e)) from None
-    model = RobotModel(g, args.rate, args.kin_error, cst=bool((codes == 10).any()))
+    model = RobotModel(g, args.rate, args.kin_error, cst=bool((codes == 10).any()), machine=machine)
     return main_loop(model, args.listen, faults, args.seconds, args.drive_watchdog, not args.no_realtime)

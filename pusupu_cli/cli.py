@@ -149,6 +149,18 @@ def _parser() -> argparse.ArgumentParser:
     g_ros.add_argument("--json", action="store_true", help="print JSON instead of a table")
     for sp in (g_show, g_diff, g_check, g_sign, g_migrate, g_export, g_ros):
         _floors_arguments(sp)
+    m = sub.add_parser("machine", help="write, check and describe a machine file: what the robot is (geometry, "
+                                       "drives, friction, payload)")
+    m_actions = m.add_subparsers(dest="action", required=True, parser_class=_Parser)
+    m_init = m_actions.add_parser("init", help="write the built-in machine as a commented template to edit")
+    m_init.add_argument("--out", metavar="FILE", default="machine.yaml", help="default machine.yaml (an existing file "
+                                                                               "is not replaced)")
+    m_check = m_actions.add_parser("check", help="validate a machine file and its workspace (exit 0 when it passes)")
+    m_check.add_argument("file", metavar="FILE")
+    m_check.add_argument("--trajectory", action="append", default=[], metavar="PATH",
+                         help="also check this path against the machine (repeatable; default arc and p2p)")
+    m_check.add_argument("--json", action="store_true", help="print the findings as JSON")
+    m_actions.add_parser("schema", help="print the machine file's JSON Schema (for editors)")
     e = sub.add_parser("experiment", help="reproduce one of the paper's claims: runs, figures, JSON and a table")
     e.add_argument("name", metavar="NAME", help="arc (Fig. 7), p2p (section 4, Table 2), hybrid_grid (hybrid "
                                                  "stability across lambda2), timing (every step halved), servo "
@@ -164,6 +176,13 @@ def _parser() -> argparse.ArgumentParser:
         sp.add_argument("--gains", metavar="FILE", help="a gain file written by pusupu tune (replaces the servo "
                                                          "gains, hybrid gains and rates of --params)")
         _floors_arguments(sp)
+    t.add_argument("--start-gains", metavar="FILE|table1|derived",
+                   help="where tuning starts: a gain file tuned on the same machine, Table 1, or gains derived for the "
+                        "machine by the paper's method (docs/machine.md); default table1 on the built-in machine, "
+                        "derived on any other")
+    for sp in (a, s, t, g_show, g_check, g_sign, g_export, g_ros):
+        sp.add_argument("--machine", metavar="FILE", help="the machine file (pusupu machine init; default: the "
+                                                          "built-in machine)")
     for sp in (a, s, t):
         sp.add_argument("--imc-form", choices=IMC_FORMS,
                         help="form of the IMC prefilter C1: full (reference response (3 l1 s+1)/(l1 s+1)^3, what "
@@ -211,7 +230,7 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     _file_backend()
     commands = {"analyze": _analyze, "sim": _sim, "tune": _tune, "batch": _batch, "experiment": _experiment,
-                "gains": _gains,
+                "gains": _gains, "machine": _machine_command,
                 "bridge": bridge_cli.run_bridge, "sim-robot": bridge_cli.run_sim_robot}
     try:
         args.floors = _floors(args) if hasattr(args, "min_pm") else None
@@ -291,7 +310,14 @@ def _tune(args) -> int:
     if args.imc_form:
         cfg = cfg.replace(imc_form=args.imc_form)
     out = Path(args.out)
-    report, status = run_job(cfg, out, fresh=args.fresh)
+    machine = _machine(args)
+    start = args.start_gains
+    if start not in (None, "table1", "derived"):
+        from pusupu_jax import gains
+
+        with _checking(f"--start-gains {start}"):
+            start = gains.load(start, machine=machine)
+    report, status = run_job(cfg, out, fresh=args.fresh, machine=machine, start=start)
     if args.json:
         print(json.dumps({k: v for k, v in report.items() if k != "history"}, indent=2))
     else:
@@ -354,21 +380,46 @@ def _experiment(args) -> int:
     return 0
 
 
+def _machine(args):
+    """The machine of ``--machine FILE`` (checked; read once per command), or the built-in one."""
+    from pusupu_jax import machine_file
+
+    if getattr(args, "machine_loaded", None) is None:
+        if getattr(args, "machine", None):
+            with _checking(f"--machine {args.machine}"):
+                args.machine_loaded = machine_file.load(args.machine)
+        else:
+            args.machine_loaded = machine_file.Machine.default()
+    return args.machine_loaded
+
+
 def _load(args, check: bool = True):
-    """The params file (or defaults) with a gain file's gains and rates in place, checked by
-    :func:`pusupu_jax.stability.check` for ``args.mode`` (``check=False``: bounds only, for a diagnosis)."""
+    """The params file (or defaults) with a gain file's gains and rates in place, on the machine of ``--machine``,
+    checked by :func:`pusupu_jax.stability.check` for ``args.mode`` (``check=False``: bounds only, for a diagnosis).
+    With ``--machine``, the params file may set controller fields only: the drives are the machine's."""
+    from pathlib import Path
+
     from pusupu_jax import stability
-    from pusupu_jax.config import load_params_file, setup_jax
+    from pusupu_jax.config import SECTIONS, load_params_file, read_yaml_mapping, setup_jax
 
     setup_jax()  # the checks' compiled programs come from the persistent cache after the first run
+    machine = _machine(args)
     with _checking(f"--params {args.params}" if args.params else "the default parameters"):
         loaded = load_params_file(args.params)
+        if args.params and args.machine:
+            servo = read_yaml_mapping(Path(args.params), "section", SECTIONS).get("servo") or {}
+            clash = [name for name in servo if name in machine.drives]
+            if clash:
+                raise ParameterError(f"--params {args.params}: servo.{clash[0]}: expected controller fields only with "
+                                     f"--machine (the drives are the machine file's), got the drive field {clash[0]}")
     if getattr(args, "gains", None):
         from pusupu_jax import gains
 
         with _checking(f"--gains {args.gains}"):
-            g = gains.load(args.gains, args.floors, check_stability=False)
+            g = gains.load(args.gains, args.floors, check_stability=False, machine=machine)
         loaded = loaded._replace(servo=g.servo, hybrid=g.hybrid, rates=g.rates)
+    with _checking(f"--machine {args.machine}" if args.machine else "the built-in machine"):
+        loaded = loaded._replace(servo=machine.servo(loaded.servo))
     if args.imc_form:
         loaded = loaded._replace(servo=loaded.servo.replace(imc_form=args.imc_form))
     if check:
@@ -381,6 +432,59 @@ def _load(args, check: bool = True):
     return loaded
 
 
+def _machine_command(args) -> int:
+    from pathlib import Path
+
+    from pusupu_jax import machine_file
+
+    if args.action == "schema":
+        print(machine_file.schema_text(), end="")
+        return 0
+    if args.action == "init":
+        from pusupu_jax.config import write_atomic
+
+        out = Path(args.out)
+        if out.exists() or out.is_symlink():
+            raise ParameterError(f"--out {args.out}: expected a new file, found one there (left as it is)")
+        write_atomic(out, machine_file.template())
+        print(f"wrote {out}: the built-in machine, every field commented; edit it, then pusupu machine check {out}")
+        return 0
+    from pusupu_jax.config import setup_jax
+
+    setup_jax()
+    args.machine = args.file
+    machine = _machine(args)
+    from pusupu_jax.params import LoopRates
+    from pusupu_jax.paths import platform_path_from, path_check
+
+    paths = []
+    for name in args.trajectory or ["arc", "p2p"]:
+        with _checking(f"--trajectory {name}"):
+            paths.append((name, platform_path_from(name, machine.geometry.home, LoopRates())))
+    from pusupu_jax.start_gains import carried_mass, derive
+
+    with _checking(args.file):
+        found = machine_file.check(machine, paths)
+        servo, report = derive(machine, identify=False)  # the drives' limits: speed_max, Kt I_peak
+        for name, poses in paths:
+            path_check(poses, machine.geometry, servo, LoopRates(), name)
+    mass = np.asarray(report["carried_mass_kg"])
+    result = {"file": args.file, "name": machine.name, "digest": machine_file.digest(machine),
+              "carried_mass_kg": mass.tolist(), "workspace": found}
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    print(f"{args.file}: valid {machine_file.FORMAT} v{machine_file.VERSION}, machine {machine.name!r} "
+          f"(digest {result['digest'][:12]})")
+    for name, extremes in found.items():
+        lo, hi = min(extremes["slider_min_m"]), max(extremes["slider_max_m"])
+        print(f"  {name:<12} sliders {lo * 1e3:.1f} to {hi * 1e3:.1f} mm, Jacobian condition number at most "
+              f"{extremes['cond_max']:.3g} (limit {machine_file.COND_MAX:g}), UPU leg {extremes['upu_leg_m'][0] * 1e3:.0f}"
+              f" to {extremes['upu_leg_m'][1] * 1e3:.0f} mm")
+    print(f"  mass each slider carries at home: {', '.join(f'{m:.1f}' for m in mass)} kg")
+    return 0
+
+
 def _gains(args) -> int:
     from pathlib import Path
 
@@ -389,18 +493,19 @@ def _gains(args) -> int:
 
     setup_jax()  # the checks' compiled programs come from the persistent cache after the first run
     floors = args.floors
+    machine = _machine(args) if hasattr(args, "machine") else None
     if args.action == "sign":  # the checks of load() less the checksum, then the derived blocks written anew
         with _checking(args.file):
-            gains.sign(args.file, floors)
-        print(f"{args.file}: its gains pass every check; re-signed")
+            gains.sign(args.file, floors, machine)
+        print(f"{args.file}: its gains pass every check on machine {machine.name!r}; re-signed")
         return 0
     if args.action == "migrate":
         with _checking(args.file):
             path = gains.migrate(args.file, args.out, floors)
-        print(f"{path}: {gains.SCHEMA} v{gains.VERSION}, migrated from version 2 (the built-in plant)")
+        print(f"{path}: {gains.SCHEMA} v{gains.VERSION}, migrated (tuned on the built-in machine)")
         return 0
     with _checking(args.file):
-        g = gains.load(args.file, floors)
+        g = gains.load(args.file, floors, machine=machine)
     if args.action == "show":
         print(json.dumps(g.document, indent=2) if args.json else gains.show(g.document))
     elif args.action == "diff":
@@ -409,8 +514,15 @@ def _gains(args) -> int:
         lines = gains.diff(g.document, other.document)
         print("\n".join(lines) if lines else "no difference in gains, rates or mode")
     elif args.action == "check":
-        print(f"{args.file}: valid {gains.SCHEMA} v{g.document['version']}, mode {g.mode}; every loop stable at the "
-              f"file's rates and has at least {floors[0]:g} deg and {floors[1]:g} dB")
+        from pusupu_jax import machine_file
+
+        print(f"{args.file}: valid {gains.SCHEMA} v{g.document['version']}, mode {g.mode}, tuned on machine "
+              f"{g.machine['name']!r} (digest {g.machine['digest'][:12]}); on machine {machine.name!r} (digest "
+              f"{machine_file.digest(machine)[:12]}) every loop is stable at the file's rates and has at least "
+              f"{floors[0]:g} deg and {floors[1]:g} dB")
+        if not g.tuned_on(machine):
+            _say(f"pusupu: warning: {args.file} was tuned on another machine ({g.machine['name']!r}) than "
+                 f"{machine.name!r}")
     elif args.action == "export-ros":
         from pusupu_jax import ros2
 
@@ -432,7 +544,6 @@ def _check_ros(args, g) -> int:
     from pusupu_jax import gains, inputs, ros2, workload
     from pusupu_jax.cascade import control_mode
     from pusupu_jax.machine import Scenario, machine_rates, simulate_scenarios
-    from pusupu_jax.plant.geometry import Geometry
     from pusupu_jax.trajectories import path_seconds, platform_path
 
     kinds = ("arc", "p2p") if args.trajectory == "both" else (args.trajectory,)
@@ -441,10 +552,11 @@ def _check_ros(args, g) -> int:
     seconds = sum(path_seconds(k) if args.seconds is None else min(args.seconds, path_seconds(k)) for k in kinds)
     workload.check_run(f"gains check-ros ({' and '.join(kinds)}, two controllers)", 2 * seconds,
                        machine_rates(rates=g.rates), machine=True)
-    paths = {k: platform_path(k, Geometry.default().home, g.rates) for k in kinds}
+    machine = _machine(args)
+    paths = {k: platform_path(k, machine.geometry.home, g.rates) for k in kinds}
     if args.seconds is not None:
         paths = {k: p[:max(3, int(args.seconds / g.rates.dt_position))] for k, p in paths.items()}
-    scenarios = [Scenario(p, name=k) for k, p in paths.items()]
+    scenarios = [Scenario(p, machine.options(), name=k, geometry=machine.geometry) for k, p in paths.items()]
     print(f"simulating {', '.join(kinds)} with the full pusupu controller ({g.mode}) and with what ROS's PID runs "
           "(two compiles of about 20 s)", file=sys.stderr)
     ros_servo = ros2.as_ros_servo(g.servo, g.mode)
@@ -556,7 +668,9 @@ def _identify(args, servo, load, rates) -> int:
 
     print("identifying T0 on the MJX machine (velocity steps along x and y from home); the first run compiles "
           "for about 20 s", file=sys.stderr)
-    result = identify_T0_machine(servo, ModelOptions(kin_error_seed=args.kin_error), rates=rates)
+    machine = _machine(args)
+    result = identify_T0_machine(servo, machine.options(ModelOptions(kin_error_seed=args.kin_error)), rates=rates,
+                                 geom=machine.geometry)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         axis_model = identify_T0(servo, load)
@@ -647,18 +761,18 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
     from pusupu_jax.machine import machine_rates, simulate_machine
     from pusupu_jax.plant.model import ModelOptions
     from pusupu_jax.trajectories import path_seconds, platform_path
-    from pusupu_jax.plant.geometry import Geometry
 
     if args.duration is not None:
         raise ParameterError("--duration: the mjx paths have their own timing (velocity and acceleration limits)")
-    options = ModelOptions(kin_error_seed=args.kin_error)
+    machine = _machine(args)
+    options = machine.options(ModelOptions(kin_error_seed=args.kin_error))
     workload.check_run(f"--trajectory {args.trajectory}", path_seconds(args.trajectory), machine_rates(options, rates),
                        machine=True)
-    path = platform_path(args.trajectory, Geometry.default().home, rates)
+    path = platform_path(args.trajectory, machine.geometry.home, rates)
     print(f"simulating {len(path) * rates.dt_position:.1f} s of the {args.trajectory} path on the MJX machine "
           f"({args.mode} mode); the first run compiles for about 15 s", file=sys.stderr)
     result, trace = simulate_machine(servo, path, mode=args.mode, options=options, rates=rates, hybrid=hybrid,
-                                     start=args.start)
+                                     start=args.start, geom=machine.geometry)
     result = {"plant": "mjx", "trajectory": args.trajectory} | result
     if args.plot:
         from pusupu_jax.plots import plot_platform_path
@@ -668,7 +782,7 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
-    print(f"{args.trajectory} on the MJX machine, {args.mode} mode (IMC form {servo.imc_form}, start {args.start}), "
+    print(f"{args.trajectory} on the MJX machine {_machine(args).name!r}, {args.mode} mode (IMC form {servo.imc_form}, start {args.start}), "
           f"{result['duration_s']:.3g} s simulated "
           f"in {result['wall_s']:.2f} s (compile included)")
     for key in ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho", "loop_closure_residual_max_mm"):

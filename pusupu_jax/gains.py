@@ -1,11 +1,12 @@
 """Gain files: the tuned servo gains for people as well as programs, validated on load (host-side).
 
-Schema ``pusupu-gains`` version 3, every key required, in this order (``docs/gains.md`` shows a
+Schema ``pusupu-gains`` version 4, every key required, in this order (``docs/gains.md`` shows a
 whole file; ``pusupu_jax/schemas/pusupu-gains.schema.json`` is its JSON Schema)::
 
     schema: pusupu-gains
-    version: 3
+    version: 4
     mode: hybrid                       # the control mode the gains are for: imc | pid | pid_ff | hybrid
+    machine: {name: my-robot, digest: <sha256>}   # the machine file the gains were tuned on
     controller:                        # what the controller is told: gains, limits it enforces
       position: {imc_form: full, lambda1: {value: 0.0105, unit: s, tuned: true}, ...}
       velocity: {Kv: {value: .., unit: A/(rad/s), tuned: true}, ...}
@@ -20,10 +21,13 @@ whole file; ``pusupu_jax/schemas/pusupu-gains.schema.json`` is its JSON Schema):
     checksum: <sha256 of everything above>
 
 A value shared by the six axes is written once; otherwise as a list of six.  A field the
-tuner moved carries ``tuned: true``.  The plant (motor, inverter, screw: the ``plant`` fields of
-:class:`~pusupu_jax.params.ServoParams`) is not in the file: it is the built-in one
-(:func:`builtin_plant`).  Version 2 files carried it in a ``plant`` section; they are read only
-when that section equals the built-in plant, and :func:`migrate` rewrites them as version 3.
+tuner moved carries ``tuned: true``.  The plant (motor, inverter, screw, friction: the ``plant`` fields
+of :class:`~pusupu_jax.params.ServoParams`) is not in the file: it is the machine file's
+(:mod:`pusupu_jax.machine_file`), and ``machine`` names the one the gains were tuned on by its digest.
+Every check runs on the machine the caller gives (default: the built-in one).  Version 3 files
+have no ``machine`` key: they were tuned on the built-in machine.  Version 2 files carried the plant
+in a ``plant`` section; they are read only when that section equals the built-in plant (:func:`builtin_plant`).
+:func:`migrate` rewrites either as version 4.
 
 :func:`load` checks everything and raises :class:`~pusupu_jax.params.ParameterError` with one
 line naming the problem: the schema and version, unknown and missing keys, units, kinds and
@@ -51,13 +55,16 @@ import yaml
 
 from . import __version__, inputs, loops, stability
 from .config import rates_from_mapping, write_atomic
+from . import machine_file
 from .hybrid import HybridGains, gain_fields
+from .machine_file import Machine
 from .params import LoopRates, ParameterError, ServoParams, array_fields, bounds, static_fields
 from .stability import FLOORS
 
-SCHEMA, VERSION = "pusupu-gains", 3
-KEYS = ("schema", "version", "mode", "controller", "rates", "discrete", "margins", "stability", "provenance",
-        "checksum")
+SCHEMA, VERSION = "pusupu-gains", 4
+KEYS = ("schema", "version", "mode", "machine", "controller", "rates", "discrete", "margins", "stability",
+        "provenance", "checksum")
+KEYS_V3 = tuple(k for k in KEYS if k != "machine")
 KEYS_V2 = ("schema", "version", "mode", "controller", "plant", "rates", "discrete", "margins", "provenance",
            "checksum")
 MODES = ("imc", "pid", "pid_ff", "hybrid")
@@ -99,6 +106,11 @@ class GainFile:
     rates: LoopRates
     mode: str
     document: dict
+    machine: dict  # {name, digest} of the machine the gains were tuned on
+
+    def tuned_on(self, machine: Machine) -> bool:
+        """Whether the gains were tuned on ``machine`` (same digest)."""
+        return self.machine["digest"] == machine_file.digest(machine)
 
     def __repr__(self) -> str:
         """The table of ``pusupu gains show`` (:func:`show`), not the document's nested dicts."""
@@ -174,12 +186,14 @@ def _field(value, unit: str, tuned: bool) -> dict:
 
 
 def document(servo: ServoParams, hybrid: HybridGains, rates: LoopRates, *, mode: str, tuned=(),
-             provenance: dict | None = None, floors=FLOORS) -> str:
-    """The YAML text of a gain file (checked first: raises ParameterError rather than describe gains that
-    :func:`pusupu_jax.stability.check` refuses, or a plant other than the built-in one)."""
+             provenance: dict | None = None, floors=FLOORS, machine: Machine | None = None) -> str:
+    """The YAML text of a gain file for gains tuned on ``machine`` (default: the built-in one); checked first:
+    raises ParameterError rather than describe gains that :func:`pusupu_jax.stability.check` refuses, or ``servo``
+    whose plant fields are not the machine's drives."""
     if mode not in MODES:
         raise ParameterError(f"gains mode: expected one of {MODES}, got {mode!r}")
-    _check_plant({name: getattr(servo, name) for name in builtin_plant()}, "servo")
+    machine = Machine.default() if machine is None else machine
+    _check_plant({name: getattr(servo, name) for name in machine.drives}, "servo", machine)
     found = stability.check(servo, hybrid, rates, mode, floors)
     controller = {name: {} for name in CONTROLLER_SECTIONS}
     for f in static_fields(ServoParams):
@@ -191,7 +205,8 @@ def document(servo: ServoParams, hybrid: HybridGains, rates: LoopRates, *, mode:
     controller["hybrid"] = {"form": hybrid.form, **{f.name: _field(float(getattr(hybrid, f.name)), f.metadata["unit"],
                                                                     f.name in tuned) for f in gain_fields()}}
     doc = {
-        "schema": SCHEMA, "version": VERSION, "mode": mode, "controller": controller,
+        "schema": SCHEMA, "version": VERSION, "mode": mode, "machine": machine_file.reference(machine),
+        "controller": controller,
         "rates": dataclasses.asdict(rates), "discrete": _discrete(servo, rates),
         "margins": {loop: {k: _compact(v) for k, v in m.items()} for loop, m in found.margins().items()},
         "stability": {loop: {"spectral_radius": _compact(r)} for loop, r in found.radii().items()},
@@ -208,35 +223,41 @@ def write(path, servo: ServoParams, hybrid: HybridGains, rates: LoopRates, **kw)
     return write_atomic(path, document(servo, hybrid, rates, **kw))
 
 
-def load(path, floors=FLOORS, check_stability: bool = True) -> GainFile:
-    """Read and check a gain file (see the module docstring); stability is checked against ``floors``.
+def load(path, floors=FLOORS, check_stability: bool = True, machine: Machine | None = None) -> GainFile:
+    """Read and check a gain file (see the module docstring) on ``machine`` (default: the built-in one); stability
+    is checked against ``floors``.
 
     ``check_stability=False`` leaves out :func:`pusupu_jax.stability.check`'s poles and margins (every value's bounds
     are still checked): for a diagnosis of a refused file, never to run or export its gains."""
     path = Path(path)
     text = inputs.read_text(path, "gain file", ParameterError)
     try:
-        return parse(text, floors=floors, check_stability=check_stability)
+        return parse(text, floors=floors, check_stability=check_stability, machine=machine)
     except ParameterError as e:
         raise ParameterError(f"{path}: {e}") from None
 
 
-def parse(text: str, floors=FLOORS, checksum: bool = True, check_stability: bool = True) -> GainFile:
+def parse(text: str, floors=FLOORS, checksum: bool = True, check_stability: bool = True,
+          machine: Machine | None = None) -> GainFile:
     """:func:`load` on text; ``checksum=False`` skips the checksum and the derived blocks (for :func:`sign`)."""
+    machine = Machine.default() if machine is None else machine
     doc = inputs.parse_yaml(text, "gain file", ParameterError)
     if not isinstance(doc, dict):
         raise ParameterError(f"expected a {SCHEMA} mapping, got {type(doc).__name__}")
     if doc.get("schema") != SCHEMA:
         raise ParameterError(f"schema: expected {SCHEMA!r}, got {inputs.shown(doc.get('schema'))}")
     version = doc.get("version")
-    if version not in (2, VERSION) or isinstance(version, bool):
+    if version not in (2, 3, VERSION) or isinstance(version, bool):
         extra = (": version 1 files predate the choice of IMC prefilter (they meant eq. 9 as printed); re-run "
-                 "pusupu tune" if version == 1 else " (this pusupu_jax reads 3, and 2 whose plant is the built-in one)")
+                 "pusupu tune" if version == 1 else
+                 " (this pusupu_jax reads 4, and 3 and 2, tuned on the built-in machine)")
         raise ParameterError(f"version: expected {VERSION}, got {inputs.shown(version)}{extra}")
-    keys = KEYS if version == VERSION else KEYS_V2
+    keys = {VERSION: KEYS, 3: KEYS_V3, 2: KEYS_V2}[version]
     inputs.check_keys(doc, "gain file", keys, ParameterError, required=keys)
     mode = inputs.choice(doc["mode"], "mode", MODES, ParameterError)
+    tuned_on = _machine_reference(doc["machine"]) if version == VERSION else machine_file.reference(Machine.default())
     servo, hybrid = _parameters(doc, version)
+    servo = machine.servo(servo)
     names = [f.name for f in dataclasses.fields(LoopRates)]
     rates = rates_from_mapping(inputs.check_keys(doc["rates"], "rates", names, ParameterError, required=names))
     if not isinstance(doc["provenance"], dict):
@@ -255,7 +276,18 @@ def parse(text: str, floors=FLOORS, checksum: bool = True, check_stability: bool
         if doc["checksum"] != _checksum(text[:text.rfind("checksum:")]):
             raise ParameterError("checksum: does not match the content (edited or truncated file; after a deliberate "
                                  "edit, pusupu gains sign re-signs it once it validates)")
-    return GainFile(servo, hybrid, rates, mode, doc)
+    return GainFile(servo, hybrid, rates, mode, doc, tuned_on)
+
+
+def _machine_reference(value) -> dict:
+    """A gain file's ``machine``: ``{name, digest}`` (a sha256 in hex)."""
+    inputs.check_keys(value, "machine", ("name", "digest"), ParameterError, required=("name", "digest"))
+    if not isinstance(value["name"], str) or not value["name"]:
+        raise ParameterError(f"machine.name: expected the machine's name, got {inputs.shown(value['name'])}")
+    digest = value["digest"]
+    if not (isinstance(digest, str) and len(digest) == 64 and all(c in "0123456789abcdef" for c in digest)):
+        raise ParameterError(f"machine.digest: expected a sha256 in hex (64 characters), got {inputs.shown(digest)}")
+    return {"name": value["name"], "digest": digest}
 
 
 def _same_block(stored, fresh) -> bool:
@@ -285,12 +317,15 @@ def _controller_fields(version: int) -> dict:
     return expected
 
 
-def _check_plant(values: dict, where: str) -> None:
-    """Refuse plant values other than the built-in plant's (:func:`builtin_plant`), to 1e-12 relative."""
+def _check_plant(values: dict, where: str, machine: Machine | None = None) -> None:
+    """Refuse plant values other than ``machine``'s drives (default: the built-in plant, :func:`builtin_plant`), to
+    1e-12 relative."""
+    plant = builtin_plant() if machine is None else machine.drives
     for name, v in values.items():
-        ours = builtin_plant()[name]
+        ours = np.asarray(plant[name], dtype=float)
         if not np.allclose(np.broadcast_to(np.asarray(v, dtype=float), ours.shape), ours, rtol=1e-12, atol=0):
-            raise ParameterError(f"{where}.{name}: expected the built-in plant's {_compact(ours)!r}, got "
+            whose = "the built-in plant's" if machine is None else f"machine {machine.name!r}'s"
+            raise ParameterError(f"{where}.{name}: expected {whose} {_compact(ours)!r}, got "
                                  f"{inputs.shown(_compact(v))} (gains tuned on another plant are not these gains)")
 
 
@@ -327,35 +362,47 @@ def _parameters(doc, version: int) -> tuple[ServoParams, HybridGains]:
     return ServoParams.from_mapping(values), hybrid
 
 
-def sign(path, floors=FLOORS) -> Path:
-    """Re-sign a deliberately edited gain file: its gains must pass every check; the derived blocks (discrete
-    coefficients, margins, stability) are recomputed and the checksum written anew (atomically, same mode and tuned
-    marks).  A version 2 file is refused: :func:`migrate` converts it."""
+def sign(path, floors=FLOORS, machine: Machine | None = None) -> Path:
+    """Re-sign a deliberately edited gain file: its gains must pass every check on ``machine`` (default: the built-in
+    one), which must be the machine the file names; the derived blocks (discrete coefficients, margins, stability)
+    are recomputed and the checksum written anew (atomically, same mode and tuned marks).  A version 2 or 3 file is
+    refused: :func:`migrate` converts it."""
     path = Path(path)
+    machine = Machine.default() if machine is None else machine
     text = inputs.read_text(path, "gain file", ParameterError)
     try:
-        g = parse(text, floors=floors, checksum=False)
+        g = parse(text, floors=floors, checksum=False, machine=machine)
     except ParameterError as e:
         raise ParameterError(f"{path}: {e}") from None
     if g.document["version"] != VERSION:
         raise ParameterError(f"{path}: version: expected {VERSION}, got {g.document['version']} (pusupu gains migrate "
-                             "converts a version 2 file)")
-    return _rewrite(path, g, floors, "signed")
+                             f"converts a version {g.document['version']} file)")
+    _check_machine(path, g, machine)
+    return _rewrite(path, g, floors, "signed", machine)
+
+
+def _check_machine(path, g: GainFile, machine: Machine) -> None:
+    """Refuse ``g`` unless it was tuned on ``machine``."""
+    if not g.tuned_on(machine):
+        raise ParameterError(f"{path}: machine: tuned on {g.machine['name']!r} (digest {g.machine['digest'][:12]}), "
+                             f"not on {machine.name!r} (digest {machine_file.digest(machine)[:12]}); give its machine "
+                             "file with --machine")
 
 
 def migrate(path, out=None, floors=FLOORS) -> Path:
-    """Rewrite a version 2 gain file as version 3 at ``out`` (default: in its place, atomically).
+    """Rewrite a version 2 or 3 gain file as version 4 at ``out`` (default: in its place, atomically), naming the
+    built-in machine it was tuned on.
 
-    The file must pass every check of a version 2 file (checksum included), and its plant section must be the
+    The file must pass every check of its version (checksum included); a version 2 file's plant section must be the
     built-in plant: the plant leaves the file, and gains tuned on another plant would silently change meaning."""
     path = Path(path)
     g = load(path, floors)
-    if g.document["version"] != 2:
-        raise ParameterError(f"{path}: version: expected 2 to migrate, got {g.document['version']}")
-    return _rewrite(Path(out) if out is not None else path, g, floors, "migrated")
+    if g.document["version"] not in (2, 3):
+        raise ParameterError(f"{path}: version: expected 2 or 3 to migrate, got {g.document['version']}")
+    return _rewrite(Path(out) if out is not None else path, g, floors, "migrated", Machine.default())
 
 
-def _rewrite(path: Path, g: GainFile, floors, action: str) -> Path:
+def _rewrite(path: Path, g: GainFile, floors, action: str, machine: Machine) -> Path:
     """``g`` written anew at ``path``: its gains, mode and tuned marks, and its provenance less what :func:`document`
     writes itself; ``action`` ('signed' or 'migrated') stamps when (``<action>_utc``), beside the creation time the
     file had (``created_utc_before``) and, for 'migrated', the version it came from."""
@@ -366,7 +413,8 @@ def _rewrite(path: Path, g: GainFile, floors, action: str) -> Path:
     provenance["created_utc_before"] = g.document["provenance"].get("created_utc")
     if action == "migrated":
         provenance["migrated_from_version"] = g.document["version"]
-    return write(path, g.servo, g.hybrid, g.rates, mode=g.mode, tuned=tuned, provenance=provenance, floors=floors)
+    return write(path, g.servo, g.hybrid, g.rates, mode=g.mode, tuned=tuned, provenance=provenance, floors=floors,
+                 machine=machine)
 
 
 def rows(doc: dict) -> list[tuple[str, str, object, str, bool]]:
@@ -383,8 +431,11 @@ def rows(doc: dict) -> list[tuple[str, str, object, str, bool]]:
 
 def show(doc: dict) -> str:
     """A gain file as a table for people: sections, values (six when they differ), units, what was tuned."""
+    machine = doc.get("machine", {"name": "built-in (version 3 or older)", "digest": ""})
     lines = [f"{SCHEMA} v{doc['version']}, mode {doc['mode']}, rates {doc['rates']['f_current']:g} Hz current / "
              f"{doc['rates']['n_velocity']} / {doc['rates']['n_position']} ({doc['rates']['method']})",
+             f"tuned on machine {machine['name']!r}" + (f" (digest {machine['digest'][:12]})" if machine["digest"]
+                                                        else ""),
              f"{'section':<9} {'field':<10} {'value':<44} {'unit':<12} tuned"]
     for section, name, value, unit, tuned in rows(doc):
         text = (" ".join(f"{x:.6g}" for x in value) if isinstance(value, list)
@@ -463,7 +514,7 @@ def json_schema() -> dict:
     radius = {"type": "object", "required": ["spectral_radius"],
               "properties": {"spectral_radius": per_axis(0, 1)},
               "description": "the largest eigenvalue modulus of the loop's closed-loop map over one period, at the "
-                             "file's rates with the built-in plant (pusupu_jax.stability): stable below 1"}
+                             "file's rates on the machine named (pusupu_jax.stability): stable below 1"}
     rates = {name: (low, high, why) for name, (low, high, why) in (
         ("current", stability.F_CURRENT), ("velocity", stability.F_VELOCITY), ("position", stability.F_POSITION))}
     return {
@@ -473,6 +524,10 @@ def json_schema() -> dict:
         "type": "object", "required": list(KEYS), "additionalProperties": False,
         "properties": {
             "schema": {"const": SCHEMA}, "version": {"const": VERSION}, "mode": {"enum": list(MODES)},
+            "machine": {"type": "object", "additionalProperties": False, "required": ["name", "digest"],
+                        "description": "the machine file the gains were tuned on (pusupu_jax.machine_file.digest)",
+                        "properties": {"name": {"type": "string", "minLength": 1},
+                                       "digest": {"type": "string", "pattern": "^[0-9a-f]{64}$"}}},
             "controller": {"type": "object", "additionalProperties": False, "required": list(CONTROLLER_SECTIONS),
                            "properties": {name: sections[name] for name in CONTROLLER_SECTIONS}},
             "rates": {"type": "object", "additionalProperties": False,

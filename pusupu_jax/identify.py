@@ -44,8 +44,9 @@ def _step_tests(plant, rates):
 
 def identify_T0_machine(servo: ServoParams, options: ModelOptions = ModelOptions(),
                         directions=("x", "y"), speed: float = 0.01, window: float = 0.2,
-                        rates: LoopRates = LoopRates()) -> dict:
-    """Per-branch ``T0`` [s] from velocity steps of the machine at its home pose.
+                        rates: LoopRates = LoopRates(), geom: Geometry | None = None) -> dict:
+    """Per-branch ``T0`` [s] from velocity steps of the machine (nominal geometry ``geom``, default
+    :meth:`Geometry.default`) at its home pose.
 
     ``speed`` [m/s]: the platform speed of each step; ``window`` [s]: the length of each test.
     Returns ``{"T0": [6 values], "directions": [...], "t": (N,), "omega": (D, N, 6) rad/s,
@@ -56,13 +57,14 @@ def identify_T0_machine(servo: ServoParams, options: ModelOptions = ModelOptions
     if unknown or not directions:
         raise ValueError(f"directions: expected some of {sorted(DIRECTIONS)}, got {list(directions)}")
     rates = machine_rates(options, rates)
-    geom = Geometry.default()
+    geom = Geometry.default() if geom is None else geom
     J = np.asarray(kinematics.jacobian(geom, jnp.asarray(geom.home)))  # (6, 5) m per pose unit
     r = np.asarray(screw_ratio(servo))
     w_ref = np.stack([J @ np.asarray(DIRECTIONS[d]) * speed / r for d in directions])  # (D, 6) rad/s
     n = int(round(window / rates.dt_velocity))
     reference = jnp.asarray(np.repeat(w_ref[:, None, :], n, axis=1))
-    trace = _step_tests(machine_plant(options), rates)(servo, None, reference)
+    plant = machine_plant(ModelOptions())
+    trace = _step_tests(plant, rates)(servo, plant.variant(options, geom), reference)
     t, omega = np.asarray(trace.t[0]), np.asarray(trace.omega)
     T0, fit_rms = [], []
     for b in range(6):

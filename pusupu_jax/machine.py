@@ -73,18 +73,20 @@ def machine_reference(servo: ServoParams, path, mode: str, *, options: ModelOpti
 @dataclasses.dataclass(frozen=True, eq=False)
 class Scenario:
     """One run of the machine: platform poses ``path`` ``(N, 5)`` (one per position period) on the machine
-    built with ``options`` (seeded kinematic errors, payload); ``name`` labels it in reports."""
+    built with ``options`` (seeded kinematic errors, payload) and the nominal ``geometry`` (None: the default, see
+    :meth:`Geometry.default`); ``name`` labels it in reports."""
 
     path: np.ndarray
     options: ModelOptions = ModelOptions()
     name: str = ""
+    geometry: Geometry | None = None
 
 
 def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rates: LoopRates = LoopRates(),
                        hybrid: hybrid_law.HybridGains | None = None, start: str = "rest",
                        compliance: compliance_law.AdmittanceGains | None = None,
                        force_setpoint=None) -> list[tuple[dict, dict]]:
-    """Run several :class:`Scenario` on the default-geometry machine as one vmapped batch.
+    """Run several :class:`Scenario` on the machine as one vmapped batch.
 
     The batch runs in calls of :func:`~pusupu_jax.sim.run_chunked`'s compiled program of
     ``CHUNK`` periods: one compile per mode and batch size, whatever the paths' length.
@@ -94,8 +96,8 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
     holding still) to the longest, and every metric is taken over each path's own length.
     ``servo`` (and, in hybrid mode, ``hybrid``) is shared, or has a leading axis of one
     parameter set per scenario (a gain sweep).  ``options`` may differ only in
-    ``kin_error_seed``, ``payload`` and the contact scene's arrays (``surface_tilt``,
-    ``hole_offset``).  ``compliance``: the admittance of :mod:`pusupu_jax.compliance` around the
+    ``kin_error_seed``, the payload and the contact scene's arrays (``surface_tilt``,
+    ``hole_offset``); geometries may differ (each a variant of the default structure).  ``compliance``: the admittance of :mod:`pusupu_jax.compliance` around the
     position loops (the scenarios' models need contacts), holding the contact force
     ``force_setpoint`` [N] on the tool (world axes; ``(3,)``, or ``(N, 3)`` along the longest
     path; default zero).  Returns ``[(result, arrays)]`` as
@@ -130,7 +132,7 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
     models, references = [], []
     for sc, sv in zip(scenarios, servos):
         padded = np.concatenate([sc.path, np.repeat(sc.path[-1:], length - len(sc.path), axis=0)])
-        reference = machine_reference(sv, padded, mode, options=sc.options, rates=rates)
+        reference = machine_reference(sv, padded, mode, options=sc.options, rates=rates, geom=sc.geometry)
         if compliance is not None:
             setpoint = np.zeros(3) if force_setpoint is None else np.asarray(force_setpoint, dtype=float)
             if setpoint.shape not in ((3,), (length, 3)) or not np.isfinite(setpoint).all():
@@ -139,11 +141,12 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
             setpoint = np.broadcast_to(setpoint, (length, 3))
             reference = compliance_law.ComplianceReference(jnp.asarray(padded), jnp.asarray(setpoint), reference)
         references.append(reference)
-        models.append(plant.variant(sc.options))
+        models.append(plant.variant(sc.options, sc.geometry))
     t0 = time.perf_counter()
     traces, _ = run_chunked(servo, stack(models), stack(references), plant=plant, rates=rates, outer=mode,
                             hybrid=hybrid if control_mode(mode).hybrid else None, start=start,
-                            compliance=None if compliance is None else (compliance, Geometry.default()),
+                            compliance=None if compliance is None else (
+                                compliance, scenarios[0].geometry or Geometry.default()),
                             params_axis=0 if batched else None, hybrid_axis=hybrid_axis)
     wall = time.perf_counter() - t0
     out = []
@@ -162,8 +165,9 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
 
 def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: ModelOptions = ModelOptions(),
                      rates: LoopRates = LoopRates(), hybrid: hybrid_law.HybridGains | None = None,
-                     start: str = "rest") -> tuple[dict, dict]:
-    """Run platform poses ``path`` (``(N, 5)``, one per position period) on the default-geometry machine.
+                     start: str = "rest", geom: Geometry | None = None) -> tuple[dict, dict]:
+    """Run platform poses ``path`` (``(N, 5)``, one per position period) on the machine of nominal geometry ``geom``
+    (None: the default).
 
     ``hybrid``: the gains of eq. 14 for ``mode='hybrid'`` (default :class:`~pusupu_jax.hybrid.HybridGains`).
     ``start``: 'rest' (the machine held still by its drives at t = 0) or 'zero' (every controller state zero).
@@ -171,8 +175,8 @@ def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: Mo
     plots (``t``, ``reference``, ``platform`` positions [m], ``branch_force`` [N]).  A batch of one
     :func:`simulate_scenarios`: seeded errors and payloads share the nominal machine's compile.
     """
-    result, arrays = simulate_scenarios(servo, [Scenario(np.asarray(path), options)], mode=mode, rates=rates,
-                                        hybrid=hybrid, start=start)[0]
+    result, arrays = simulate_scenarios(servo, [Scenario(np.asarray(path), options, geometry=geom)], mode=mode,
+                                        rates=rates, hybrid=hybrid, start=start)[0]
     result.pop("name")
     return result, arrays
 

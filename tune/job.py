@@ -1,14 +1,15 @@
 """``pusupu tune``: the main job, from configuration to gain file, report and plots (host-side).
 
-1. Build the problem (:class:`tune.run.Problem`) from the configuration; the start is
-   Table 1 with the default hybrid gains.
+1. Build the problem (:class:`tune.run.Problem`) from the configuration on the machine (a machine
+   file, or the built-in machine); the start (:func:`start_gains`) is Table 1 with the default hybrid
+   gains on the built-in machine, gains derived for the machine otherwise, or a gain file.
 2. Optimise (:meth:`tune.run.Problem.tune`: :func:`tune.run.optimise` with the config's settings) on
    training windows spread over the whole paths, checkpointing to ``DIR/checkpoint.npz`` (arrays and
    JSON, never a pickle); a run that finds a checkpoint of the same configuration continues from it.
    ``DIR`` is locked while a run uses it.
 3. Evaluate the start and the result on the whole paths with the problem's own forward pass
    (no second compile), and the baselines (``cfg.baselines``: PID and PID with velocity
-   feedforward, Table 1 gains) with :func:`pusupu_jax.machine.simulate_scenarios`.
+   feedforward, the start gains) with :func:`pusupu_jax.machine.simulate_scenarios`.
 4. Write ``DIR/gains.yaml`` (only if the tuned gains pass every check: :mod:`pusupu_jax.gains`),
    the ROS 2 parameter files ``DIR/ros2_pid_controller.yaml`` and
    ``DIR/ros2_joint_trajectory_controller.yaml`` (:mod:`pusupu_jax.ros2`), the plots
@@ -31,12 +32,14 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from pusupu_jax import gains, inputs, ros2, stability
+from pusupu_jax import gains, inputs, machine_file, ros2, stability
 from pusupu_jax.config import check_output, write_atomic, write_files
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, simulate_scenarios
+from pusupu_jax.machine_file import Machine
 from pusupu_jax.params import ParameterError, ServoParams
 from pusupu_jax.plots import save_atomic
+from pusupu_jax.start_gains import derive
 
 from .config import TuneConfig
 from .run import CHECKPOINT, Problem, check_work, progress_reporter, scenario_list
@@ -44,12 +47,31 @@ from .run import CHECKPOINT, Problem, check_work, progress_reporter, scenario_li
 METRICS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho")
 
 
-def evaluate_baselines(cfg: TuneConfig, rates) -> dict:
-    """``{mode: {scenario: (metrics, arrays)}}`` of every baseline mode on the whole paths, Table 1 gains."""
-    scenarios = [Scenario(spec.path(rates), spec.options, spec.name) for spec in scenario_list(cfg)]
-    return {mode: {sc.name: out for sc, out in zip(scenarios, simulate_scenarios(ServoParams.table1(), scenarios,
-                                                                                   mode=mode, rates=rates))}
+def evaluate_baselines(cfg: TuneConfig, rates, specs=None, servo: ServoParams | None = None) -> dict:
+    """``{mode: {scenario: (metrics, arrays)}}`` of every baseline mode on the whole paths of ``specs`` (default: the
+    configuration's on the built-in machine), with the start gains ``servo`` (default Table 1)."""
+    specs = scenario_list(cfg) if specs is None else specs
+    servo = ServoParams.table1() if servo is None else servo
+    scenarios = [Scenario(spec.path(rates), spec.options, spec.name, spec.geometry) for spec in specs]
+    return {mode: {sc.name: out for sc, out in zip(scenarios, simulate_scenarios(servo, scenarios, mode=mode,
+                                                                                   rates=rates))}
             for mode in cfg.baselines}
+
+
+def start_gains(machine: Machine, start=None) -> tuple[ServoParams, HybridGains, dict]:
+    """Where tuning ``machine`` starts: ``start`` 'table1', 'derived' (:func:`pusupu_jax.start_gains.derive`) or a
+    :class:`~pusupu_jax.gains.GainFile`; None: Table 1 on the built-in machine, derived on any other.  Returns the
+    servo gains on the machine, the hybrid gains and what the report says of them."""
+    if start is None:
+        start = "table1" if machine_file.digest(machine) == machine_file.digest(Machine.default()) else "derived"
+    if isinstance(start, gains.GainFile):
+        return machine.servo(start.servo), start.hybrid, {"source": "gain file", "checksum": start.document["checksum"]}
+    if start == "table1":
+        return machine.servo(ServoParams.table1()), HybridGains(), {"source": "table1"}
+    if start == "derived":
+        servo, derivation = derive(machine)
+        return servo, HybridGains(), {"source": "derived"} | derivation
+    raise ParameterError(f"--start-gains: expected a gain file, table1 or derived, got {start!r}")
 
 
 def _plots(out: Path, history, before, after, baselines) -> list[str]:
@@ -179,29 +201,39 @@ class OutputLock:
         self.file.close()
 
 
-def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr) -> tuple[dict, int]:
-    """Run the whole job; returns ``(report, exit status)`` (1 when the tuned gains fail a check).  The work it implies
+def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr, machine: Machine | None = None,
+            start=None) -> tuple[dict, int]:
+    """Run the whole job on ``machine`` (default: the built-in one) from ``start`` (:func:`start_gains`); returns
+    ``(report, exit status)`` (1 when the tuned gains fail a check).  The work it implies
     (:func:`tune.run.check_work`) and the output folder are checked before anything is built.
 
     The outputs of one run are written gains first, report last; the report names the gain
     file it describes by its checksum (or says that none was written and why).
     """
-    check_work(cfg)
-    prepare_output(out, (*run_files(s.name for s in scenario_list(cfg)), CHECKPOINT))
+    machine = Machine.default() if machine is None else machine
+    specs = scenario_list(cfg, machine)
+    check_work(cfg, specs)
+    prepare_output(out, (*run_files(s.name for s in specs), CHECKPOINT))
     lock = OutputLock(out)
     try:
-        return _run(cfg, out, fresh, stream)
+        return _run(cfg, out, fresh, stream, machine, specs, start)
     finally:
         lock.release()
 
 
-def _run(cfg: TuneConfig, out: Path, fresh: bool, stream) -> tuple[dict, int]:
+def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, specs, start) -> tuple[dict, int]:
     checkpoint = out / CHECKPOINT
     if fresh and checkpoint.exists():
         checkpoint.unlink()
     t0 = time.perf_counter()
-    servo0, hybrid0 = ServoParams.table1(), HybridGains()
-    problem = Problem(cfg, servo0, hybrid0)
+    if start is None and machine_file.digest(machine) != machine_file.digest(Machine.default()) or start == "derived":
+        print(f"tune: deriving start gains for machine {machine.name!r} (docs/machine.md; T0 identified on the MJX "
+              "machine)", file=stream, flush=True)
+    servo0, hybrid0, start_report = start_gains(machine, start)
+    digest = hashlib.sha256(json.dumps([cfg.digest(), machine_file.digest(machine),
+                                        {f: np.asarray(v).tolist() for f, v in vars(servo0).items()
+                                         if not isinstance(v, str)}]).encode()).hexdigest()
+    problem = Problem(cfg, servo0, hybrid0, specs, digest=digest)
     extent = "whole path" if cfg.path_s is None else f"path cut to {cfg.path_s:g} s"
     print(f"tune: {len(problem.scenarios.names)} scenario(s) ({', '.join(problem.scenarios.names)}), "
           f"{cfg.windows} windows of {cfg.window_s:g} s spread over each {extent}, "
@@ -212,14 +244,15 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream) -> tuple[dict, int]:
     servo1, hybrid1 = problem.space.host_values(result["z"])
     t_opt = time.perf_counter() - t0
     print("tune: evaluating the start and the result on the whole paths"
-          + (f", and the baselines ({', '.join(cfg.baselines)}, Table 1 gains)" if cfg.baselines else ""),
+          + (f", and the baselines ({', '.join(cfg.baselines)}, start gains)" if cfg.baselines else ""),
           file=stream, flush=True)
     before, after = problem.path_metrics(problem.space.z0()), problem.path_metrics(result["z"])
-    baselines = evaluate_baselines(cfg, problem.rates)
+    baselines = evaluate_baselines(cfg, problem.rates, specs, servo0)
     objective_before = float(result["history"][0]["objective"])
     report = {
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
-        "config_hash": cfg.digest(), "tuned_fields": list(problem.space.fields),
+        "config_hash": cfg.digest(), "machine": machine_file.reference(machine), "start_gains": start_report,
+        "tuned_fields": list(problem.space.fields),
         "start": {f: np.asarray(v).tolist() for f, v in problem.space.values(problem.space.z0()).items()},
         "result": {f: np.asarray(v).tolist() for f, v in problem.space.values(result["z"]).items()},
         "objective_before": objective_before, "objective_after": float(result["objective"]),
@@ -234,7 +267,7 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream) -> tuple[dict, int]:
     provenance = {"config_hash": cfg.digest(), "objective_before": objective_before,
                   "objective_after": float(result["objective"]), "floors": [cfg.pm_min, cfg.gm_min],
                   "metrics_after": report["after"]}
-    report |= export(out, cfg, servo1, hybrid1, problem.rates, problem.space.fields, provenance)
+    report |= export(out, cfg, servo1, hybrid1, problem.rates, problem.space.fields, provenance, machine)
     status = 1 if "export_error" in report else 0
     report["plots"] = _plots(out, result["history"], before, after, baselines)
     report["wall_s"] = time.perf_counter() - t0
@@ -256,7 +289,8 @@ class TuneReport(dict):
         return f"```\n{self!r}\n```"
 
 
-def export(out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: dict) -> dict:
+def export(out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: dict,
+           machine: Machine | None = None) -> dict:
     """Write ``gains.yaml`` and the ROS 2 files if the gains pass every check; the report's entries about them.
 
     All or nothing: every file's text is made (the gains checked, the joint names too) and every path checked before
@@ -269,7 +303,7 @@ def export(out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: 
     try:
         margins = stability.check(servo, hybrid, rates, cfg.mode, (cfg.pm_min, cfg.gm_min)).margins()
         texts = {gains_path: gains.document(servo, hybrid, rates, mode=cfg.mode, tuned=tuned, provenance=provenance,
-                                            floors=(cfg.pm_min, cfg.gm_min))}
+                                            floors=(cfg.pm_min, cfg.gm_min), machine=machine)}
         texts |= {out / name: text for name, text in ros2.files(servo, cfg.mode, rates, source=str(gains_path),
                                                                  joints=cfg.ros_joints).items()}
         written = write_files(texts)

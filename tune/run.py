@@ -42,6 +42,7 @@ from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.inputs import shown
 from pusupu_jax.machine import machine_metrics, machine_plant, machine_rates, machine_reference
 from pusupu_jax.margins import loop_margins
+from pusupu_jax.machine_file import Machine
 from pusupu_jax.params import AxisLoad, ParameterError, ServoParams, stack
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
@@ -77,10 +78,15 @@ class ScenarioSpec:
         return path if self.path_s is None else path[:max(3, int(round(self.path_s / rates.dt_position)))]
 
 
-def scenario_list(cfg: TuneConfig) -> list[ScenarioSpec]:
-    """Every scenario of the configuration, named ``arc``, ``arc/seed3``, ``p2p/seed3/10kg``..."""
+def scenario_list(cfg: TuneConfig, machine: Machine | None = None) -> list[ScenarioSpec]:
+    """Every scenario of the configuration on ``machine`` (default: the built-in one), named ``arc``, ``arc/seed3``,
+    ``p2p/seed3/10kg``... (a payload scenario adds its mass to the machine's payload, at the same centre of mass)."""
+    machine = Machine.default() if machine is None else machine
+    base = machine.options()
     return [ScenarioSpec(kind + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else ""),
-                         kind, ModelOptions(kin_error_seed=seed, payload=float(payload)), path_s=cfg.path_s)
+                         kind, dataclasses.replace(base, kin_error_seed=seed, payload=base.payload + float(payload)),
+                         geometry=machine.geometry,
+                         path_s=cfg.path_s)
             for kind in cfg.trajectories for seed in cfg.kin_error_seeds for payload in cfg.payloads]
 
 
@@ -251,8 +257,9 @@ class Problem(WindowStarts):
     """
 
     def __init__(self, cfg: TuneConfig, servo0: ServoParams, hybrid0: HybridGains,
-                 specs: list[ScenarioSpec] | None = None):
+                 specs: list[ScenarioSpec] | None = None, digest: str | None = None):
         self.cfg = cfg
+        self.digest = cfg.digest() if digest is None else digest  # what a checkpoint must match to be resumed
         self.rates = machine_rates()
         self.space = Space.create(cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared,
                                   bounds=cfg.bounds)
@@ -324,7 +331,7 @@ class Problem(WindowStarts):
                         learning_rate=cfg.learning_rate, clip_norm=cfg.clip_norm,
                         final_lr_fraction=cfg.final_lr_fraction, starts=cfg.starts, start_spread=cfg.start_spread,
                         seed=cfg.seed, checkpoint=checkpoint, checkpoint_every=cfg.checkpoint_every,
-                        digest=cfg.digest(), prepare=self.prepare, progress=progress)
+                        digest=self.digest, prepare=self.prepare, progress=progress)
 
     def path_metrics(self, z) -> dict:
         """``{scenario: (metrics, plot arrays)}`` on the whole paths at ``z``, from the same compiled forward pass."""

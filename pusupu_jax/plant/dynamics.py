@@ -80,3 +80,30 @@ def coupling_row(J) -> np.ndarray:
     """``w = J_6 J_15^-1``, shape ``(..., 5)``: when branches 1-5 move by ``ds_15``, branch 6 moves by ``w . ds_15``."""
     J = np.asarray(J)
     return np.linalg.solve(np.swapaxes(J[..., :5, :], -1, -2), J[..., 5, :][..., None])[..., 0]
+
+
+def reflected_mass(geom: Geometry, poses, options: ModelOptions = ModelOptions()) -> np.ndarray:
+    """The mechanism's mass [kg] each slider carries at each of ``poses`` ``(N, 5)``: the diagonal of the
+    actuator-space inertia ``J+^T M_q J+``, ``(N, 6)``.
+
+    ``M_q = T^T M T`` is the mechanism's inertia in the platform's five coordinates (``T = dPhi/dq``, the
+    consistent motions; rotors left out), ``J = ds/dq`` and ``J+`` its pseudo-inverse: the slider forces of
+    the minimum-norm distribution (as :func:`inverse_dynamics_forces`) that accelerate the platform as
+    slider accelerations ``s''`` ask are ``J+^T M_q J+ s''``, so its diagonal is the mass one axis's loop sees
+    when the others hold their share.  The payload of ``options`` is included; seeded errors are not.
+    """
+    poses = np.atleast_2d(np.asarray(poses, dtype=float))
+    m = build_model(geom, dataclasses.replace(options, kin_error_seed=None))
+    phi = pose_to_qpos(m, geom)
+    with_jacobian = jax.jit(lambda q: (phi(q), jnp.vectorize(jax.jacfwd(phi), signature="(5)->(n,5)")(q)))
+    qpos, T = (np.asarray(a) for a in with_jacobian(jnp.asarray(poses)))
+    d = mujoco.MjData(m)
+    M = np.zeros((m.nv, m.nv))
+    out = np.zeros((len(poses), 6))
+    for k in range(len(poses)):
+        d.qpos[:] = qpos[k]
+        mujoco.mj_forward(m, d)
+        mujoco.mj_fullM(m, d, M)
+        pinv = np.linalg.pinv(T[k][slide_qpos(m)])
+        out[k] = np.diag(pinv.T @ (T[k].T @ M @ T[k]) @ pinv)
+    return out

@@ -91,9 +91,23 @@ class Geometry:
         return dataclasses.replace(self, **changes)
 
 
-_SHAPES = {"rail_points": (6, 3), "rail_dirs": (6, 3), "platform_points": (6, 3), "rod_lengths": (6,),
-           "stroke_min": (6,), "stroke_max": (6,), "home": (5,), "upu_min": (), "upu_max": (),
-           "slider_mass": (6,), "rod_mass": (6,), "platform_mass": (), "platform_inertia": (3,), "upu_mass": (2,)}
+FIELDS = {  # name: (shape, unit, meaning)
+    "rail_points": ((6, 3), "m", "a point of each rail (slider position 0), base frame"),
+    "rail_dirs": ((6, 3), "1", "unit direction of each rail, base frame"),
+    "platform_points": ((6, 3), "m", "each spherical joint, platform frame"),
+    "rod_lengths": ((6,), "m", "each rod, universal to spherical joint"),
+    "stroke_min": ((6,), "m", "each slider's lowest travel along its rail"),
+    "stroke_max": ((6,), "m", "each slider's highest travel along its rail"),
+    "home": ((5,), "m, m, m, rad, rad", "the home pose (x, y, z, a, b), where the machine starts"),
+    "upu_min": ((), "m", "the passive UPU leg's shortest length"),
+    "upu_max": ((), "m", "the passive UPU leg's longest length"),
+    "slider_mass": ((6,), "kg", "each carriage with its ball nut"),
+    "rod_mass": ((6,), "kg", "each rod"),
+    "platform_mass": ((), "kg", "the platform with its fixed tooling"),
+    "platform_inertia": ((3,), "kg*m^2", "the platform's principal moments about its centre"),
+    "upu_mass": ((2,), "kg", "the lower and the upper part of the UPU leg"),
+}
+_SHAPES = {name: shape for name, (shape, _, _) in FIELDS.items()}
 _POSITIVE = ("rod_lengths", "upu_min", "upu_max", "slider_mass", "rod_mass", "platform_mass", "platform_inertia",
              "upu_mass")
 

@@ -1,0 +1,298 @@
+"""The machine file: what the robot is (host-side).
+
+A machine file describes one 6PUS-UPU robot, never its controller: the mechanism's geometry and
+masses, each axis's drive (motor, inverter, ball screw, ratings) and drive-train friction, and the
+payload.  The gain file says what the controller is told; no field lives in both.  Schema
+``pusupu-machine`` version 1, every key required (``pusupu machine init`` writes the built-in
+machine as a commented template; ``docs/machine.md`` documents each field)::
+
+    format: pusupu-machine
+    version: 1
+    name: my-robot                 # a label for reports and gain files
+    geometry: {rail_points: [[x, y, z] x 6], ...}   # every Geometry field, SI units
+    drives: {R: 1.3, L: 0.0027, ...}                # every plant field of ServoParams: a number, or six
+    payload: {mass: 0.0, com: [0, 0, 0], inertia: [0, 0, 0]}
+
+:func:`load` reads and checks one: size, keys, shapes, signs, each drive value's range
+(:func:`pusupu_jax.params.bounds`), the geometry's consistency, and that the home pose is
+reachable, inside every stroke and well conditioned; one line names the first problem.
+:func:`Machine.servo` puts the machine's drive values under a controller's gains, and
+:func:`Machine.options` its payload into the MJX machine's options.  :func:`digest` identifies
+the machine's content (not its comments or layout): a gain file records the digest of the
+machine it was tuned on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from . import inputs
+from .params import N_AXES, ParameterError, ServoParams, array_fields, bounds, validate
+from .plant import kinematics
+from .plant.geometry import FIELDS as GEOMETRY_FIELDS
+from .plant.geometry import Geometry, GeometryError, validate_geometry
+from .plant.model import ModelOptions
+
+FORMAT, VERSION = "pusupu-machine", 1
+KEYS = ("format", "version", "name", "geometry", "drives", "payload")
+PAYLOAD_FIELDS = {"mass": ((), "kg", "the payload's mass (tool and workpiece)"),
+                  "com": ((3,), "m", "its centre of mass in the platform frame (origin at the platform centre)"),
+                  "inertia": ((3,), "kg*m^2", "its principal moments of inertia about its centre of mass, axes along "
+                                              "the platform frame's")}
+COND_MAX = 30.0  # the Jacobian condition number a pose may reach (kinematics.check_poses)
+
+
+def drive_fields() -> list:
+    """The fields of :class:`~pusupu_jax.params.ServoParams` a machine file holds: its ``plant`` section."""
+    return [f for f in array_fields(ServoParams) if f.metadata["section"] == "plant"]
+
+
+@dataclass(frozen=True)
+class Payload:
+    """The payload on the platform: mass [kg], centre of mass [m] (platform frame), principal inertia [kg m^2]."""
+
+    mass: float = 0.0
+    com: tuple = (0.0, 0.0, 0.0)
+    inertia: tuple = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Machine:
+    """One robot: ``geometry``, ``drives`` (``{field: (6,) array}`` of the plant fields of
+    :class:`~pusupu_jax.params.ServoParams`) and ``payload``; ``name`` labels it."""
+
+    name: str
+    geometry: Geometry
+    drives: dict
+    payload: Payload = field(default_factory=Payload)
+
+    @classmethod
+    def default(cls) -> "Machine":
+        """The built-in machine: the default geometry (``docs/geometry.md``), Table 1's drives with the documented
+        choices (``docs/parameters.md``), no payload."""
+        base = ServoParams.table1()
+        return cls("built-in", Geometry.default(), {f.name: np.asarray(getattr(base, f.name), dtype=float)
+                                                    for f in drive_fields()})
+
+    def servo(self, gains: ServoParams) -> ServoParams:
+        """``gains`` (what the controller is told) on this machine's drives; checked, so a controller limit beyond
+        the machine's rating (``I_max > I_peak``, ``V_max > V_dc``) is refused."""
+        out = gains.replace(**{name: np.broadcast_to(v, np.shape(gains.lambda1)).copy()
+                               for name, v in self.drives.items()})
+        try:
+            validate(out)
+        except ParameterError as e:
+            raise ParameterError(f"on machine {self.name!r}: {e}") from None
+        return out
+
+    def options(self, base: ModelOptions = ModelOptions()) -> ModelOptions:
+        """``base`` with this machine's payload."""
+        return dataclasses.replace(base, payload=float(self.payload.mass), payload_com=tuple(self.payload.com),
+                                   payload_inertia=tuple(self.payload.inertia))
+
+    def content(self) -> dict:
+        """The machine as plain data (lists and floats), every field: what :func:`digest` hashes."""
+        return {"format": FORMAT, "version": VERSION, "name": self.name,
+                "geometry": {k: np.asarray(getattr(self.geometry, k), dtype=float).tolist() for k in GEOMETRY_FIELDS},
+                "drives": {k: _compact(v) for k, v in self.drives.items()},
+                "payload": {"mass": float(self.payload.mass), "com": [float(x) for x in self.payload.com],
+                            "inertia": [float(x) for x in self.payload.inertia]}}
+
+
+def digest(machine: Machine) -> str:
+    """sha256 of the machine's content (canonical JSON of :meth:`Machine.content`, float64 values): equal for the
+    same robot whatever the file's comments, order or number formatting."""
+    return hashlib.sha256(json.dumps(machine.content(), sort_keys=True).encode()).hexdigest()
+
+
+def reference(machine: Machine) -> dict:
+    """What a gain file records of the machine it was tuned on: ``{name, digest}``."""
+    return {"name": machine.name, "digest": digest(machine)}
+
+
+def _compact(values):
+    arr = np.asarray(values, dtype=float)
+    return float(arr.flat[0]) if np.all(arr == arr.flat[0]) else arr.tolist()
+
+
+def load(path) -> Machine:
+    """Read and check a machine file (see the module docstring); raises ParameterError in one line."""
+    path = Path(path)
+    doc = inputs.read_yaml(path, "machine file", ParameterError)
+    try:
+        return parse(doc)
+    except ParameterError as e:
+        raise ParameterError(f"{path}: {e}") from None
+
+
+def parse(doc) -> Machine:
+    """:func:`load` on a parsed document."""
+    inputs.check_keys(doc, "machine file", KEYS, ParameterError, required=KEYS)
+    if doc["format"] != FORMAT:
+        raise ParameterError(f"format: expected {FORMAT!r}, got {inputs.shown(doc['format'])}")
+    if doc["version"] != VERSION or isinstance(doc["version"], bool):
+        raise ParameterError(f"version: expected {VERSION}, got {inputs.shown(doc['version'])}")
+    name = doc["name"]
+    if not isinstance(name, str) or not name.strip() or len(name) > 100 or not name.isprintable():
+        raise ParameterError(f"name: expected a printable label of 1 to 100 characters, got {inputs.shown(name)}")
+    geometry = _geometry(doc["geometry"])
+    drives = _drives(doc["drives"])
+    payload = _payload(doc["payload"])
+    machine = Machine(name, geometry, drives, payload)
+    check(machine)
+    return machine
+
+
+def _array(value, where: str, shape) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{where}: expected numbers of shape {shape}, got {inputs.shown(value)}") from None
+    if arr.shape != shape:
+        raise ParameterError(f"{where}: expected shape {shape}, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise ParameterError(f"{where}: expected finite numbers, got {arr[~np.isfinite(arr)].flat[0]}")
+    return arr
+
+
+def _geometry(values) -> Geometry:
+    names = list(GEOMETRY_FIELDS)
+    inputs.check_keys(values, "geometry", names, ParameterError, required=names, what="field")
+    g = Geometry(**{k: _array(values[k], f"geometry.{k}", GEOMETRY_FIELDS[k][0]) for k in names})
+    try:
+        validate_geometry(g)
+    except GeometryError as e:
+        raise ParameterError(str(e)) from None
+    return g
+
+
+def _drives(values) -> dict:
+    names = [f.name for f in drive_fields()]
+    inputs.check_keys(values, "drives", names, ParameterError, required=names, what="field")
+    out = {}
+    for f in drive_fields():
+        v, where = values[f.name], f"drives.{f.name}"
+        if isinstance(v, list):
+            if len(v) != N_AXES:
+                raise ParameterError(f"{where}: expected a number or a list of {N_AXES} (one per axis), got a list "
+                                     f"of {len(v)}")
+            arr = np.array([inputs.number(x, f"{where}[{k}]", ParameterError) for k, x in enumerate(v)])
+        else:
+            arr = np.full(N_AXES, inputs.number(v, where, ParameterError))
+        low, high, why = bounds(f)
+        top = np.asarray(values[high], dtype=float) if isinstance(high, str) else high
+        bad = (arr < low) | (arr > top)
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise ParameterError(f"{where}: expected {low:g} to {high if isinstance(high, str) else f'{high:g}'} "
+                                 f"[{f.metadata['unit']}] ({why}), got {arr[k]:.6g} on axis {k}")
+        out[f.name] = arr
+    return out
+
+
+def _payload(values) -> Payload:
+    names = list(PAYLOAD_FIELDS)
+    inputs.check_keys(values, "payload", names, ParameterError, required=names, what="field")
+    mass = inputs.number(values["mass"], "payload.mass", ParameterError, low=0.0, high=10000.0)
+    com = _array(values["com"], "payload.com", (3,))
+    inertia = _array(values["inertia"], "payload.inertia", (3,))
+    if (np.abs(com) > 10.0).any():
+        raise ParameterError(f"payload.com: expected within 10 m of the platform centre, got {com.tolist()}")
+    if (inertia < 0).any():
+        raise ParameterError(f"payload.inertia: expected non-negative principal moments, got {inertia.tolist()}")
+    a, b, c = inertia
+    if a + b < c or b + c < a or a + c < b:
+        raise ParameterError(f"payload.inertia: expected principal moments obeying the triangle inequality (a body's "
+                             f"can), got {inertia.tolist()}")
+    return Payload(mass, tuple(com.tolist()), tuple(inertia.tolist()))
+
+
+def check(machine: Machine, paths=()) -> dict:
+    """Check that the machine is whole and its home pose (and each of ``paths``, ``(N, 5)`` poses) lies in its
+    workspace: every branch reachable, every slider inside its stroke, the UPU leg within its limits, the Jacobian's
+    condition number at most :data:`COND_MAX`.  Returns the extremes found (``kinematics.check_poses``) per path,
+    ``home`` first."""
+    geometry = machine.geometry
+    home = np.asarray(geometry.home, dtype=float)[None]
+    out = {}
+    for name, poses in (("home", home), *paths):
+        try:
+            out[name] = kinematics.check_poses(geometry, poses, cond_max=COND_MAX)
+        except GeometryError as e:
+            raise ParameterError(f"{'geometry.home' if name == 'home' else f'path {name}'}: {e}") from None
+    return out
+
+
+def template(machine: Machine | None = None) -> str:
+    """The machine file of ``machine`` (default: the built-in one) as YAML, each field commented with its unit and
+    meaning: what ``pusupu machine init`` writes."""
+    machine = Machine.default() if machine is None else machine
+    content = machine.content()
+    units = {f.name: (f.metadata["unit"], f.metadata["doc"]) for f in drive_fields()}
+    lines = [f"# {FORMAT} version {VERSION}: what the robot is (docs/machine.md). SI units throughout.",
+             "# A per-axis drive value is one number for all six axes, or a list of six.",
+             f"format: {FORMAT}", f"version: {VERSION}", f"name: {json.dumps(machine.name)}", "geometry:"]
+    for k, (_, unit, doc) in GEOMETRY_FIELDS.items():
+        lines.append(f"  # {doc} [{unit}]")
+        lines.append(f"  {k}: {_flow(content['geometry'][k])}")
+    lines.append("drives:  # each axis: motor, inverter, ball screw, ratings and drive-train friction")
+    for k, v in content["drives"].items():
+        unit, doc = units[k]
+        lines.append(f"  # {doc} [{unit}]")
+        lines.append(f"  {k}: {_flow(v)}")
+    lines.append("payload:")
+    for k, (_, unit, doc) in PAYLOAD_FIELDS.items():
+        lines.append(f"  # {doc} [{unit}]")
+        lines.append(f"  {k}: {_flow(content['payload'][k])}")
+    return "\n".join(lines) + "\n"
+
+
+def _flow(value) -> str:
+    return yaml.safe_dump(value, default_flow_style=True, width=1000).strip().removesuffix("\n...")
+
+
+def json_schema() -> dict:
+    """The JSON Schema of a machine file (for editors), generated from the field metadata."""
+    def number():
+        return {"type": "number"}
+
+    def shaped(shape):
+        schema = number()
+        for n in reversed(shape):
+            schema = {"type": "array", "items": schema, "minItems": n, "maxItems": n}
+        return schema
+
+    drives = {}
+    for f in drive_fields():
+        low, high, why = bounds(f)
+        one = {"type": "number", "minimum": low} | ({} if isinstance(high, str) else {"maximum": high})
+        drives[f.name] = {"description": f"{f.metadata['doc']} [{f.metadata['unit']}]; range: {why}",
+                          "oneOf": [one, {"type": "array", "items": one, "minItems": N_AXES, "maxItems": N_AXES}]}
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema", "title": f"{FORMAT} version {VERSION}",
+        "type": "object", "additionalProperties": False, "required": list(KEYS),
+        "properties": {
+            "format": {"const": FORMAT}, "version": {"const": VERSION},
+            "name": {"type": "string", "minLength": 1, "maxLength": 100},
+            "geometry": {"type": "object", "additionalProperties": False, "required": list(GEOMETRY_FIELDS),
+                         "properties": {k: shaped(s) | {"description": f"{doc} [{unit}]"}
+                                        for k, (s, unit, doc) in GEOMETRY_FIELDS.items()}},
+            "drives": {"type": "object", "additionalProperties": False, "required": list(drives),
+                       "properties": drives},
+            "payload": {"type": "object", "additionalProperties": False, "required": list(PAYLOAD_FIELDS),
+                        "properties": {k: shaped(s) | {"description": f"{doc} [{unit}]"}
+                                       for k, (s, unit, doc) in PAYLOAD_FIELDS.items()}},
+        },
+    }
+
+
+def schema_text() -> str:
+    """:func:`json_schema` as the text of ``pusupu_jax/schemas/pusupu-machine.schema.json``."""
+    return json.dumps(json_schema(), indent=2) + "\n"

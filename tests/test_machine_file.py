@@ -1,0 +1,110 @@
+"""The machine file: the built-in template reads back as the built-in machine, bad files are refused in one line with
+exit 2 and nothing written, and a gain file names the machine it was tuned on (the bridge refuses another machine's)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from pusupu_jax import ParameterError, gains, machine_file
+from pusupu_jax.hybrid import HybridGains
+from pusupu_jax.machine_file import Machine
+from pusupu_jax.params import LoopRates, ServoParams
+
+EXAMPLE = Path(__file__).parent.parent / "docs" / "examples" / "machine_user.yaml"
+
+
+def pusupu(*args, timeout=600):
+    return subprocess.run([sys.executable, "-m", "pusupu_cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_the_template_is_the_built_in_machine_and_the_digest_ignores_layout():
+    text = machine_file.template()
+    machine = machine_file.parse(yaml.safe_load(text))
+    assert machine_file.digest(machine) == machine_file.digest(Machine.default())
+    doc = yaml.safe_load(text)
+    doc["drives"]["R"] = [1.3] * 6  # six equal values instead of one: the same machine
+    assert machine_file.digest(machine_file.parse(doc)) == machine_file.digest(Machine.default())
+    doc["drives"]["R"] = 1.3 * (1 + 1e-9)
+    assert machine_file.digest(machine_file.parse(doc)) != machine_file.digest(Machine.default())
+
+
+def test_the_schema_file_is_generated_from_the_fields():
+    shipped = Path(machine_file.__file__).parent / "schemas" / "pusupu-machine.schema.json"
+    assert shipped.read_text() == machine_file.schema_text()
+    schema = json.loads(shipped.read_text())
+    assert set(schema["properties"]["drives"]["required"]) == {f.name for f in machine_file.drive_fields()}
+
+
+def _edited(tmp_path, edit) -> Path:
+    doc = yaml.safe_load(machine_file.template())
+    edit(doc)
+    path = tmp_path / "machine.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+BAD = {
+    "an unreachable home": (lambda d: d["geometry"].update(home=[0.0, 0.0, 1.6, 0.0, 0.0]), "geometry.home"),
+    "a rod too short for the rails": (lambda d: d["geometry"].update(rod_lengths=[0.05] * 6), "unreachable"),
+    "a negative mass": (lambda d: d["geometry"].update(platform_mass=-1.0), "geometry.platform_mass"),
+    "a zero lead": (lambda d: d["drives"].update(lead=0.0), "drives.lead"),
+    "NaN": (lambda d: d["drives"].update(R=float("nan")), "drives.R"),
+    "an unknown key": (lambda d: d["drives"].update(Rs=1.0), "unknown field 'Rs'"),
+    "a missing section": (lambda d: d.pop("payload"), "missing key 'payload'"),
+    "a payload no body can have": (lambda d: d["payload"].update(mass=1.0, inertia=[1.0, 0.1, 0.1]),
+                                   "payload.inertia"),
+    "a drive list of five": (lambda d: d["drives"].update(Kt=[1.0] * 5), "drives.Kt"),
+}
+
+
+@pytest.mark.parametrize("case", BAD)
+def test_a_bad_machine_file_is_refused_in_one_line(tmp_path, case):
+    edit, expected = BAD[case]
+    with pytest.raises(ParameterError, match=expected.replace("(", r"\(").replace(")", r"\)")) as e:
+        machine_file.load(_edited(tmp_path, edit))
+    assert "\n" not in str(e.value)
+
+
+def test_a_file_over_1_mib_is_refused(tmp_path):
+    path = tmp_path / "big.yaml"
+    path.write_text(machine_file.template() + "#" * (1 << 20))
+    with pytest.raises(ParameterError, match="at most 1024 KiB"):
+        machine_file.load(path)
+
+
+def test_machine_commands_init_check_and_refusal(tmp_path):
+    out = tmp_path / "m.yaml"
+    r = pusupu("machine", "init", "--out", out)
+    assert r.returncode == 0, r.stderr
+    assert machine_file.digest(machine_file.load(out)) == machine_file.digest(Machine.default())
+    r = pusupu("machine", "init", "--out", out)  # never replaced
+    assert r.returncode == 2 and "expected a new file" in r.stderr
+    r = pusupu("machine", "check", EXAMPLE, "--json")
+    assert r.returncode == 0, r.stderr
+    found = json.loads(r.stdout)
+    assert found["name"] == "user-1FT7044-lead5" and set(found["workspace"]) == {"home", "arc", "p2p"}
+    # twice the carriage mass and 5 kg more on the platform than the built-in machine carries
+    builtin = json.loads(pusupu("machine", "check", out, "--json").stdout)["carried_mass_kg"]
+    assert min(np.subtract(found["carried_mass_kg"], builtin)) > 3.0
+    bad = _edited(tmp_path, lambda d: d["drives"].update(lead=0.0))
+    r = pusupu("machine", "check", bad)
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "drives.lead" in r.stderr
+
+
+def test_a_gain_file_names_its_machine_and_is_checked_on_the_one_given(tmp_path):
+    user = machine_file.load(EXAMPLE)
+    servo = user.servo(ServoParams.table1().replace(I_max=np.full(6, 10.0)))
+    text = gains.document(servo, HybridGains(), LoopRates(n_mech=5), mode="imc", machine=user)
+    g = gains.parse(text, machine=user)
+    assert g.machine == machine_file.reference(user) and g.tuned_on(user) and not g.tuned_on(Machine.default())
+    assert np.allclose(g.servo.lead, 0.005) and np.allclose(g.servo.coulomb, 95.0)
+    # the same gains on the built-in machine: Table 1's drive, so the same file reads, naming the user's machine
+    assert not gains.parse(text).tuned_on(Machine.default())
+    with pytest.raises(ParameterError, match="machine 'user-1FT7044-lead5'"):
+        gains.document(ServoParams.table1(), HybridGains(), LoopRates(n_mech=5), mode="imc", machine=user)
