@@ -160,7 +160,7 @@ def test_tune_writes_gains_ros_files_report_and_plots(tuned):
     assert len(a["axes"]) == 6
     shown = pusupu("gains", "show", str(out / "gains.yaml")).stdout
     assert "lambda2" in shown and "yes" in shown
-    assert "valid pusupu-gains v3" in pusupu("gains", "check", str(out / "gains.yaml")).stdout
+    assert "valid pusupu-gains v4" in pusupu("gains", "check", str(out / "gains.yaml")).stdout
 
 
 def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
@@ -234,7 +234,7 @@ sys.exit(status)
 def test_a_bad_gain_file_exits_2_with_one_line(tuned, tmp_path):
     folder, _ = tuned
     bad = tmp_path / "gains.yaml"
-    bad.write_text((folder / "out" / "gains.yaml").read_text().replace("version: 3", "version: 7"))
+    bad.write_text((folder / "out" / "gains.yaml").read_text().replace("version: 4", "version: 7"))
     for command in (["analyze"], ["sim"], ["gains", "show"], ["gains", "check"]):
         args = [*command, str(bad)] if command[0] == "gains" else [*command, "--gains", str(bad)]
         r = pusupu(*args, check=False)

@@ -96,7 +96,8 @@ def test_a_version_2_file_on_the_built_in_plant_is_read_and_migrated(tmp_path):
     r = pusupu("gains", "migrate", path)
     assert r.returncode == 0, r.stderr
     g3 = gains.load(path)
-    assert g3.document["version"] == 3 and "plant" not in g3.document
+    assert g3.document["version"] == 4 and "plant" not in g3.document
+    assert g3.machine["name"] == "built-in"
     assert g3.document["provenance"]["migrated_from_version"] == 2
     for name in ("lambda1", "lambda2", "Kv", "Ki", "Kp_pid", "Kt", "lead"):
         assert np.array_equal(np.asarray(getattr(g3.servo, name)), np.asarray(getattr(g2.servo, name))), name
@@ -107,7 +108,7 @@ def test_a_version_2_file_on_the_built_in_plant_is_read_and_migrated(tmp_path):
 def test_a_version_2_file_on_another_plant_is_refused(tmp_path):
     path = Path(shutil.copy(V2_OTHER_PLANT, tmp_path / "gains.yaml"))
     before = path.read_bytes()
-    r = pusupu("gains", "migrate", path, "--out", tmp_path / "v3.yaml")
+    r = pusupu("gains", "migrate", path, "--out", tmp_path / "v4.yaml")
     assert r.returncode == 2 and "plant.Kt: expected the built-in plant's 1.322" in r.stderr, r.stderr
     assert "read only on the built-in plant" in r.stderr and "\n" not in r.stderr.strip()
-    assert path.read_bytes() == before and not (tmp_path / "v3.yaml").exists()
+    assert path.read_bytes() == before and not (tmp_path / "v4.yaml").exists()
