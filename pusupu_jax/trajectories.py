@@ -38,6 +38,7 @@ def axis_reference(kind: str, rates: LoopRates = LoopRates(), duration: float | 
 
 
 PLATFORM_TRAJECTORIES = ("arc", "p2p", "circle", "tilt")
+SPEED, ACCELERATION = 0.05, 0.2  # m/s, m/s^2: the paths' peak speed and acceleration along the path, by default
 CIRCLE_RADIUS = 0.1  # m, the ISO 230-4 circle's
 TILT_AMPLITUDE = 0.1  # rad, the tilt sweep's
 # rad/s and rad/s^2: tilting at these rates moves the spherical joints (320 mm from the platform centre on the
@@ -113,7 +114,7 @@ def _poses(home, offsets, dt, hold):
     return q
 
 
-def platform_path(kind: str, home, rates: LoopRates = LoopRates(), v_max: float = 0.05, a_max: float = 0.2,
+def platform_path(kind: str, home, rates: LoopRates = LoopRates(), v_max: float = SPEED, a_max: float = ACCELERATION,
                   hold: float = 0.5) -> np.ndarray:
     """Platform poses ``(N, 5)`` at the position-loop rate for the named paths, starting and ending at rest.
 
@@ -146,8 +147,8 @@ def platform_path(kind: str, home, rates: LoopRates = LoopRates(), v_max: float 
     return platform_waypoints(home, [[0.0, 0.0, 0.0], [-0.1, -0.1, 0.0], [0.1, 0.1, 0.0]], rates, v_max, a_max, hold)
 
 
-def iso_circle(home, rates: LoopRates = LoopRates(), radius: float = CIRCLE_RADIUS, feed: float = 0.05,
-               a_max: float = 0.2, hold: float = 0.5) -> np.ndarray:
+def iso_circle(home, rates: LoopRates = LoopRates(), radius: float = CIRCLE_RADIUS, feed: float = SPEED,
+               a_max: float = ACCELERATION, hold: float = 0.5) -> np.ndarray:
     """The circular test of ISO 230-4 as platform poses ``(N, 5)``: a circle of ``radius`` [m] about home in the
     horizontal plane, contoured at ``feed`` [m/s] in both directions, the platform level.
 
@@ -189,7 +190,7 @@ def path_seconds(kind: str) -> float:
     return len(platform_path(kind, np.zeros(5))) * LoopRates().dt_position
 
 
-def platform_waypoints(home, waypoints, rates: LoopRates = LoopRates(), v_max=0.05, a_max=0.2, hold: float = 0.5,
+def platform_waypoints(home, waypoints, rates: LoopRates = LoopRates(), v_max=SPEED, a_max=ACCELERATION, hold=0.5,
                        *, w_max=TILT_SPEED, alpha_max=TILT_ACCELERATION, dwell=0.0) -> np.ndarray:
     """Platform poses ``(N, 5)`` through ``waypoints``, offsets from ``home``: ``(K, 3)`` (x, y, z [m], the platform
     level) or ``(K, 5)`` (x, y, z [m], a, b [rad]).  Straight segments in pose space with quintic timing, at rest
