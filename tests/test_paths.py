@@ -2,6 +2,8 @@
 and every path checked against the machine (workspace, motor speeds, motor torques) before anything runs."""
 
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -236,3 +238,13 @@ def test_a_pose_outside_the_workspace_names_the_first_one_out(tmp_path):
     poses = np.array([HOME, HOME, HOME + [0, 0, 0.45, 0, 0], HOME + [1.0, 0, 0, 0, 0]])  # out of stroke, unreachable
     with pytest.raises(GeometryError, match=r"^pose 2 \(t = 0\.002 s\) .*slider [1-6] out of stroke"):
         kinematics.check_poses(G, poses, dt=DT)
+
+
+def test_the_sim_command_refuses_a_path_the_drives_cannot_follow_in_one_line(tmp_path):
+    spec = _file(tmp_path, "fast.yaml", FAST)
+    r = subprocess.run([sys.executable, "-m", "pusupu_cli", "sim", "--plant", "mjx", "--trajectory", spec],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 2 and r.stdout == "", r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert re.match(r"pusupu: error: --trajectory \S+fast\.yaml exceeds the drives: pose \d+ \(t = \S+ s\): "
+                    r"branch [1-6] motor speed", line), line
