@@ -1,6 +1,7 @@
 """The user's paths: waypoint files and pose tables read and sampled, every fault in one line naming its row or field,
 and every path checked against the machine (workspace, motor speeds, motor torques) before anything runs."""
 
+import json
 import re
 import subprocess
 import sys
@@ -238,6 +239,50 @@ def test_a_pose_outside_the_workspace_names_the_first_one_out(tmp_path):
     poses = np.array([HOME, HOME, HOME + [0, 0, 0.45, 0, 0], HOME + [1.0, 0, 0, 0, 0]])  # out of stroke, unreachable
     with pytest.raises(GeometryError, match=r"^pose 2 \(t = 0\.002 s\) .*slider [1-6] out of stroke"):
         kinematics.check_poses(G, poses, dt=DT)
+
+
+def test_a_tuning_configuration_takes_path_files_named_from_its_folder(tmp_path):
+    from tune.config import TuneConfig
+    from tune.run import check_work, scenario_list
+
+    folder = tmp_path / "conf"
+    folder.mkdir()
+    (folder / "paths").mkdir()
+    table = _table(folder / "paths", [(0, 0, 0, 0, 0, 0), (0.5, 0, 0, 0, 0, 0), (2.0, 0.02, 0, 0, 0.02, 0)],
+                   name="wiggle.csv")
+    config = _file(folder, "tune.yaml", "trajectories: [paths/wiggle.csv, p2p]\npath_s: 1.0\n")
+    cfg = TuneConfig.load(config)
+    assert cfg.trajectories == (table, "p2p")
+    specs = scenario_list(cfg)
+    assert [s.name for s in specs] == ["wiggle", "p2p"]
+    np.testing.assert_array_equal(specs[0].path(RATES), paths.platform_path_from(table, HOME, RATES)[:1000])
+    check_work(cfg)
+    before = cfg.digest()
+    Path(table).write_text(Path(table).read_text().replace("0.02,0,0,0.02", "0.03,0,0,0.02"))
+    assert cfg.digest() != before  # a checkpoint does not resume over an edited path
+    for value, message in ((["arc", "x/arc.yaml"], "distinct paths, distinctly named"),
+                           (["arc", "square"], "trajectories[1]: expected one of")):
+        with pytest.raises(ParameterError, match=re.escape(message)):
+            cfg.replace(trajectories=value)
+
+
+def test_a_batch_scenario_takes_a_path_file_and_fails_alone_when_the_drives_cannot_follow_it(tmp_path):
+    from tune import jobfile
+
+    _table(tmp_path, [(0, 0, 0, 0, 0, 0), (0.2, 0, 0, 0, 0, 0), (1.0, 0.01, 0, 0, 0, 0.01), (1.5, 0.01, 0, 0, 0, 0.01)],
+           name="gentle.csv")
+    _file(tmp_path, "fast.yaml", FAST)
+    job = _file(tmp_path, "job.yaml", json.dumps({"tune": {"iterations": 1, "windows": 2, "window_s": 0.1},
+                                                  "scenarios": [{"trajectory": "gentle.csv"},
+                                                                {"trajectory": "fast.yaml"}]}))
+    gentle, fast = jobfile.read(job).jobs
+    assert gentle.name == "gentle" and gentle.error is None  # named by its stem, read from the job file's folder
+    assert gentle.specs[0].trajectory == str(tmp_path / "gentle.csv")
+    assert re.match(r"scenarios\[1\] \(fast\): the fast path exceeds the drives: pose \d+ \(t = \S+ s\): branch [1-6] "
+                    r"motor speed", fast.error), fast.error
+    before = gentle.digest()
+    (tmp_path / "gentle.csv").write_text((tmp_path / "gentle.csv").read_text() + "2.0,0,0,0,0,0.01\n")
+    assert jobfile.read(job).jobs[0].digest() != before  # a done report of the old path is not taken for this one
 
 
 def test_the_sim_command_refuses_a_path_the_drives_cannot_follow_in_one_line(tmp_path):
