@@ -293,3 +293,17 @@ def test_the_sim_command_refuses_a_path_the_drives_cannot_follow_in_one_line(tmp
     (line,) = r.stderr.strip().splitlines()
     assert re.match(r"pusupu: error: --trajectory \S+fast\.yaml exceeds the drives: pose \d+ \(t = \S+ s\): "
                     r"branch [1-6] motor speed", line), line
+
+
+def test_the_sim_command_runs_a_pose_table_on_the_machine(tmp_path):
+    """A second of a table with tilts, end to end in PID mode (the compiled program of every PID run on the machine,
+    from the persistent cache when test_cli ran before)."""
+    spec = _table(tmp_path, [(0, 0, 0, 0, 0, 0), (0.2, 0, 0, 0, 0, 0), (0.7, 0.005, 0, -0.002, 0.01, 0),
+                             (1.0, 0.005, 0, -0.002, 0.01, 0)], name="nudge.csv")
+    r = subprocess.run([sys.executable, "-m", "pusupu_cli", "sim", "--plant", "mjx", "--trajectory", spec, "--mode",
+                        "pid", "--json"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["trajectory"] == spec and out["duration_s"] == pytest.approx(1.0 + DT)
+    assert 0 < out["rms_tracking_error_mm"] <= out["max_tracking_error_mm"] < 5
+    assert all(0 < v < 13.22 for v in out["motor_torque_peak_nm"])
