@@ -20,7 +20,9 @@ def add_parsers(sub) -> None:
                                                              "4000 with CST axes)")
     b.add_argument("--duration", type=float, metavar="S", help="seconds of the path (default all of it; at most what "
                                                                  "half of the memory holds of the run's record)")
-    b.add_argument("--trajectory", choices=("arc", "p2p"), default="arc", help="default arc")
+    b.add_argument("--trajectory", metavar="NAME|FILE", default="arc",
+                   help="arc, p2p, circle, tilt or a path file: waypoints (.yaml, .yml) or a pose table (.csv) "
+                        "(docs/paths.md); checked against the machine before anything is sent (default arc)")
     b.add_argument("--allow-other-machine", action="store_true",
                    help="run a gain file tuned on another machine than --machine's (refused by default)")
     b.add_argument("--drive-modes", metavar="M[,M...]", default="csv",
@@ -114,19 +116,21 @@ def limits_for(servo, geom=None):
 
 
 def bridge_reference(g, trajectory: str, rates=None, machine=None):
-    """The path's stream for the bridge at ``rates`` (default the gain file's) on ``machine`` (default: the built-in
-    one), computed offline here (inverse kinematics, F_q of hybrid mode)."""
+    """The stream of the path ``trajectory`` (a name or a path file: :func:`pusupu_jax.paths.platform_path_from`) for
+    the bridge at ``rates`` (default the gain file's) on ``machine`` (default: the built-in one), computed offline
+    here (inverse kinematics, F_q of hybrid mode) once the path passed the machine's checks
+    (:func:`pusupu_jax.paths.check_path`)."""
     import numpy as np
 
     from hw_bridge.loop import BridgeReference
     from pusupu_jax.cascade import control_mode
     from pusupu_jax.machine import machine_reference
     from pusupu_jax.machine_file import Machine
-    from pusupu_jax.trajectories import platform_path
+    from pusupu_jax.paths import platform_path_from
 
     rates = g.rates if rates is None else rates
     machine = Machine.default() if machine is None else machine
-    path = platform_path(trajectory, machine.geometry.home, rates)
+    path = platform_path_from(trajectory, machine.geometry.home, rates)
     ref = machine_reference(g.servo, path, g.mode, rates=rates, options=machine.options(), geom=machine.geometry)
     if control_mode(g.mode).hybrid:
         return BridgeReference(np.asarray(ref.theta), np.asarray(ref.force_ff), np.asarray(ref.coupling), path[:, :3])

@@ -4,7 +4,7 @@
     pusupu analyze --identify-T0 [--params FILE] [--kin-error SEED] [--json] [--plot PNG]
     pusupu sim --plant axis --trajectory step|ramp|sine [--mode imc|pid|pid_ff] [--params FILE]
                [--duration S] [--json] [--plot PNG]
-    pusupu sim --plant mjx --trajectory arc|p2p [--mode imc|pid|pid_ff|hybrid] [--params FILE]
+    pusupu sim --plant mjx --trajectory arc|p2p|circle|tilt|FILE [--mode imc|pid|pid_ff|hybrid] [--params FILE]
                [--kin-error SEED] [--json] [--plot PNG]
 
     pusupu tune [--config FILE] [--out DIR] [--quick] [--fresh] [--json]
@@ -86,8 +86,9 @@ def _parser() -> argparse.ArgumentParser:
     s = sub.add_parser("sim", help="simulate the cascade against a plant and print tracking metrics")
     s.add_argument("--plant", choices=("axis", "mjx"), default="axis",
                    help="axis: six single-axis plants; mjx: the 6PUS-UPU mechanism in MJX (default axis)")
-    s.add_argument("--trajectory", choices=("step", "ramp", "sine", "arc", "p2p"),
-                   help="step|ramp|sine for the axis plant (default step), arc|p2p for mjx (default arc)")
+    s.add_argument("--trajectory", metavar="NAME|FILE",
+                   help="step|ramp|sine for the axis plant (default step); for mjx (default arc) arc|p2p|circle|tilt "
+                        "or a path file: waypoints (.yaml, .yml) or a pose table (.csv) (docs/paths.md)")
     s.add_argument("--kin-error", type=_seed, metavar="SEED",
                    help="mjx: the simulated machine gets seeded kinematic errors (0.5 mm std)")
     s.add_argument("--mode", choices=("imc", "pid", "pid_ff", "hybrid"), default="imc",
@@ -144,7 +145,8 @@ def _parser() -> argparse.ArgumentParser:
     g_ros = actions.add_parser("check-ros", help="simulate what ROS's PID would run with the exported gains on the "
                                                  "machine, beside the full pusupu controller")
     g_ros.add_argument("file", metavar="FILE")
-    g_ros.add_argument("--trajectory", choices=("arc", "p2p", "both"), default="both", help="default both")
+    g_ros.add_argument("--trajectory", metavar="NAME|FILE", default="both",
+                       help="both (arc and p2p), a named path or a path file (docs/paths.md) (default both)")
     g_ros.add_argument("--seconds", type=float, metavar="S", help="only the first S seconds of each path")
     g_ros.add_argument("--json", action="store_true", help="print JSON instead of a table")
     for sp in (g_show, g_diff, g_check, g_sign, g_migrate, g_export, g_ros):
@@ -455,7 +457,7 @@ def _machine_command(args) -> int:
     args.machine = args.file
     machine = _machine(args)
     from pusupu_jax.params import LoopRates
-    from pusupu_jax.paths import platform_path_from, path_check
+    from pusupu_jax.paths import check_path, platform_path_from
 
     paths = []
     for name in args.trajectory or ["arc", "p2p"]:
@@ -467,7 +469,8 @@ def _machine_command(args) -> int:
         found = machine_file.check(machine, paths)
         servo, report = derive(machine, identify=False)  # the drives' limits: speed_max, Kt I_peak
         for name, poses in paths:
-            path_check(poses, machine.geometry, servo, LoopRates(), name)
+            check_path(poses, servo, LoopRates().dt_position, geom=machine.geometry, options=machine.options(),
+                       where=f"--trajectory {name}")
     mass = np.asarray(report["carried_mass_kg"])
     result = {"file": args.file, "name": machine.name, "digest": machine_file.digest(machine),
               "carried_mass_kg": mass.tolist(), "workspace": found}
@@ -541,22 +544,26 @@ def _check_ros(args, g) -> int:
     from pusupu_jax.config import setup_jax
 
     setup_jax()
-    from pusupu_jax import gains, inputs, ros2, workload
+    from pusupu_jax import gains, inputs, paths, ros2, workload
     from pusupu_jax.cascade import control_mode
     from pusupu_jax.machine import Scenario, machine_rates, simulate_scenarios
-    from pusupu_jax.trajectories import path_seconds, platform_path
 
-    kinds = ("arc", "p2p") if args.trajectory == "both" else (args.trajectory,)
+    kinds = ("arc", "p2p") if args.trajectory == "both" else (paths.check_spec(args.trajectory, "--trajectory"),)
     if args.seconds is not None:
         inputs.number(args.seconds, "--seconds", ParameterError, low=0.0, low_open=True)
-    seconds = sum(path_seconds(k) if args.seconds is None else min(args.seconds, path_seconds(k)) for k in kinds)
+    seconds = sum(paths.path_seconds(k) if args.seconds is None else min(args.seconds, paths.path_seconds(k))
+                  for k in kinds)
     workload.check_run(f"gains check-ros ({' and '.join(kinds)}, two controllers)", 2 * seconds,
                        machine_rates(rates=g.rates), machine=True)
     machine = _machine(args)
-    paths = {k: platform_path(k, machine.geometry.home, g.rates) for k in kinds}
+    poses = {k: paths.platform_path_from(k, machine.geometry.home, g.rates) for k in kinds}
     if args.seconds is not None:
-        paths = {k: p[:max(3, int(args.seconds / g.rates.dt_position))] for k, p in paths.items()}
-    scenarios = [Scenario(p, machine.options(), name=k, geometry=machine.geometry) for k, p in paths.items()]
+        poses = {k: p[:max(3, int(args.seconds / g.rates.dt_position))] for k, p in poses.items()}
+    for k, p in poses.items():
+        paths.check_path(p, g.servo, g.rates.dt_position, geom=machine.geometry, options=machine.options(),
+                         where=f"--trajectory {k}")
+    scenarios = [Scenario(p, machine.options(), name=paths.path_label(k), geometry=machine.geometry)
+                 for k, p in poses.items()]
     print(f"simulating {', '.join(kinds)} with the full pusupu controller ({g.mode}) and with what ROS's PID runs "
           "(two compiles of about 20 s)", file=sys.stderr)
     ros_servo = ros2.as_ros_servo(g.servo, g.mode)
@@ -704,11 +711,10 @@ def _num(x, none="inf"):
 def _sim(args) -> int:
     from pusupu_jax.config import setup_jax
 
-    axis_kinds, machine_kinds = ("step", "ramp", "sine"), ("arc", "p2p")
-    kinds = axis_kinds if args.plant == "axis" else machine_kinds
-    args.trajectory = args.trajectory or kinds[0]
-    if args.trajectory not in kinds:
-        raise ParameterError(f"--trajectory: expected one of {kinds} with --plant {args.plant}, got {args.trajectory!r}")
+    axis_kinds = ("step", "ramp", "sine")
+    args.trajectory = args.trajectory or ("step" if args.plant == "axis" else "arc")
+    if args.plant == "axis" and args.trajectory not in axis_kinds:
+        raise ParameterError(f"--trajectory: expected one of {axis_kinds} with --plant axis, got {args.trajectory!r}")
     if args.plant == "axis" and args.kin_error is not None:
         raise ParameterError("--kin-error: only the mjx plant has kinematic errors")
     servo, load, rates, hybrid = _load(args)
@@ -759,16 +765,19 @@ def _sim(args) -> int:
 def _sim_machine(args, servo, rates, hybrid) -> int:
     from pusupu_jax import workload
     from pusupu_jax.machine import machine_rates, simulate_machine
+    from pusupu_jax.paths import check_path, check_spec, path_seconds, platform_path_from
     from pusupu_jax.plant.model import ModelOptions
-    from pusupu_jax.trajectories import path_seconds, platform_path
 
+    check_spec(args.trajectory, "--trajectory with --plant mjx")
     if args.duration is not None:
         raise ParameterError("--duration: the mjx paths have their own timing (velocity and acceleration limits)")
     machine = _machine(args)
     options = machine.options(ModelOptions(kin_error_seed=args.kin_error))
     workload.check_run(f"--trajectory {args.trajectory}", path_seconds(args.trajectory), machine_rates(options, rates),
                        machine=True)
-    path = platform_path(args.trajectory, machine.geometry.home, rates)
+    path = platform_path_from(args.trajectory, machine.geometry.home, rates)
+    check_path(path, servo, rates.dt_position, geom=machine.geometry, options=options,
+               where=f"--trajectory {args.trajectory}")
     print(f"simulating {len(path) * rates.dt_position:.1f} s of the {args.trajectory} path on the MJX machine "
           f"({args.mode} mode); the first run compiles for about 15 s", file=sys.stderr)
     result, trace = simulate_machine(servo, path, mode=args.mode, options=options, rates=rates, hybrid=hybrid,

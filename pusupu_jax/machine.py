@@ -1,7 +1,8 @@
 """Simulating the whole machine: platform paths through inverse kinematics into the cascade and the MJX plant.
 
-Host-side entry point :func:`simulate_machine`: checks the path against the geometry
-before anything runs (reachability, stroke, conditioning), turns it into branch
+Host-side entry point :func:`simulate_machine`: checks the path against the machine
+before anything runs (:func:`pusupu_jax.paths.check_path`: reachability, stroke,
+conditioning, motor speeds and torques), turns it into branch
 references with the nominal inverse kinematics, runs the jitted co-simulation and
 reports the metrics of ``pusupu sim --plant mjx``.
 """
@@ -18,6 +19,7 @@ import numpy as np
 
 from . import compliance as compliance_law
 from . import hybrid as hybrid_law
+from . import paths
 from .cascade import POSITION_MODES, control_mode
 from .objectives import branch_force
 from .params import LoopRates, ParameterError, ServoParams, stack, validate
@@ -50,7 +52,8 @@ def machine_plant(options: ModelOptions = ModelOptions()) -> MJXPlant:
 
 def machine_reference(servo: ServoParams, path, mode: str, *, options: ModelOptions = ModelOptions(),
                       rates: LoopRates = LoopRates(), geom: Geometry | None = None):
-    """The rollout reference for platform poses ``path`` (``(N, 5)``, one per position period, checked first).
+    """The rollout reference for platform poses ``path`` (``(N, 5)``, one per position period), checked first against
+    the machine (:func:`pusupu_jax.paths.check_path`: workspace, motor speeds and torques).
 
     Branch references are the nominal inverse kinematics as motor angles from home [rad],
     ``(N, 6)``; for 'hybrid' a :class:`~pusupu_jax.hybrid.HybridReference` that adds
@@ -59,7 +62,7 @@ def machine_reference(servo: ServoParams, path, mode: str, *, options: ModelOpti
     if mode not in MACHINE_MODES:
         raise ValueError(f"mode: expected one of {MACHINE_MODES}, got {mode!r}")
     geom = Geometry.default() if geom is None else geom
-    kinematics.check_poses(geom, path)
+    paths.check_path(path, servo, rates.dt_position, geom, options)
     s_home = kinematics.inverse_kinematics(geom, jnp.asarray(geom.home))
     s_ref = np.asarray(kinematics.inverse_kinematics(geom, jnp.asarray(path)) - s_home)
     theta = jnp.asarray(s_ref / np.asarray(screw_ratio(servo)))

@@ -37,60 +37,151 @@ def axis_reference(kind: str, rates: LoopRates = LoopRates(), duration: float | 
     return np.repeat(x[:, None], N_AXES, axis=1)
 
 
-PLATFORM_TRAJECTORIES = ("arc", "p2p")
+PLATFORM_TRAJECTORIES = ("arc", "p2p", "circle", "tilt")
+SPEED, ACCELERATION = 0.05, 0.2  # m/s, m/s^2: the paths' peak speed and acceleration along the path, by default
+CIRCLE_RADIUS = 0.1  # m, the ISO 230-4 circle's
+TILT_AMPLITUDE = 0.1  # rad, the tilt sweep's
+# rad/s and rad/s^2: tilting at these rates moves the spherical joints (320 mm from the platform centre on the
+# default machine) about as fast as the translations' defaults, 0.05 m/s and 0.2 m/s^2
+TILT_SPEED, TILT_ACCELERATION = 0.15, 0.6
 
 
-def _quintic(dt, length, v_max, a_max):
-    """Quintic time scaling 0 -> 1 whose peak speed (1.875 L/T) and acceleration (5.77 L/T^2) stay within limits."""
-    T = max(1.875 * length / v_max, (5.7735 * length / a_max) ** 0.5, dt)
+def _quintic_time(length, v_max, a_max) -> float:
+    """The shortest duration [s] of a quintic move over ``length`` whose peak speed (1.875 L/T) and acceleration
+    (5.77 L/T^2) stay within ``v_max`` and ``a_max`` (lengths in m with m/s and m/s^2, or in rad with rad/s and
+    rad/s^2)."""
+    return max(1.875 * length / v_max, (5.7735 * length / a_max) ** 0.5)
+
+
+def _quintic(dt, T):
+    """Quintic time scaling ``10 u^3 - 15 u^4 + 6 u^5``, ``u = t / T``: 0 -> 1 over ``T`` [s] (at least one period
+    ``dt``), sampled every ``dt``, at rest at both ends."""
+    T = max(T, dt)
     n = max(2, int(np.ceil(T / dt)) + 1)
     tau = np.clip(np.arange(n) * dt / T, 0.0, 1.0)
     return 10 * tau**3 - 15 * tau**4 + 6 * tau**5
 
 
-def _line(a, b, dt, v_max, a_max):
-    """Points from ``a`` to ``b`` with quintic timing (peak speed ``v_max`` [m/s], acceleration ``a_max`` [m/s^2])."""
+def _line(a, b, dt, T):
+    """Points from ``a`` to ``b`` (offsets) in ``T`` [s] with :func:`_quintic` timing."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    return a + _quintic(dt, float(np.linalg.norm(b - a)), v_max, a_max)[:, None] * (b - a)
+    return a + _quintic(dt, T)[:, None] * (b - a)
 
 
-def _check_limits(v_max, a_max, hold):
-    for name, v in (("v_max", v_max), ("a_max", a_max)):
+def _cruise(dt, length, v, a_max):
+    """Distance [m] ``(n,)`` along a move sampled every ``dt``: the speed rises from rest to ``v`` [m/s] along
+    :func:`_quintic`'s polynomial (peak acceleration ``a_max`` [m/s^2], over ``Ta = 1.875 v / a_max``), covers
+    ``length`` [m] at ``v``, and falls back to rest the same way; each ramp adds ``v Ta / 2`` to ``length``."""
+    ramp_time = 1.875 * v / a_max
+    T = 2 * ramp_time + length / v
+
+    def ramped(time):  # the distance from rest after ``time``: v Ta (2.5 u^4 - 3 u^5 + u^6) on the ramp, then at v
+        u = np.clip(time / ramp_time, 0.0, 1.0)
+        return v * ramp_time * (2.5 * u**4 - 3 * u**5 + u**6) + v * np.maximum(time - ramp_time, 0.0)
+
+    t = np.minimum(np.arange(int(np.ceil(T / dt)) + 1) * dt, T)
+    return np.where(t < T / 2, ramped(t), 2 * ramped(T / 2) - ramped(T - t))  # the second half mirrors the first
+
+
+def segment_seconds(waypoints, v_max, a_max, w_max=TILT_SPEED, alpha_max=TILT_ACCELERATION) -> np.ndarray:
+    """The durations [s] ``(K - 1,)`` of the straight segments through ``waypoints`` ``(K, 3)`` or ``(K, 5)`` (x, y,
+    z [m], then a, b [rad]) with quintic timing: each the longest of what its translation needs under ``v_max``
+    [m/s] and ``a_max`` [m/s^2] and what its tilts need under ``w_max`` [rad/s] and ``alpha_max`` [rad/s^2] (each
+    one value or one per segment)."""
+    steps = np.diff(np.asarray(waypoints, dtype=float), axis=0)
+    limits = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (v_max, a_max, w_max, alpha_max)),
+                                 np.zeros(len(steps)))[:4]
+    return np.array([max(_quintic_time(float(np.linalg.norm(d[:3])), v, a),
+                         _quintic_time(float(np.linalg.norm(d[3:])), w, alpha))
+                     for d, v, a, w, alpha in zip(steps, *limits)])
+
+
+def _check_limits(positive: dict, nonnegative: dict):
+    for name, v in positive.items():
         if not (np.isfinite(v) and v > 0):
             raise ParameterError(f"trajectory {name}: expected a positive number, got {v!r}")
-    if not (np.isfinite(hold) and hold >= 0):
-        raise ParameterError(f"trajectory hold: expected a non-negative number of seconds, got {hold!r}")
+    for name, v in nonnegative.items():
+        if not (np.isfinite(v) and v >= 0):
+            raise ParameterError(f"trajectory {name}: expected a non-negative number of seconds, got {v!r}")
 
 
 def _poses(home, offsets, dt, hold):
-    """Level platform poses ``(N, 5)``: ``home`` plus position ``offsets`` ``(N, k <= 3)``, then ``hold`` [s] at rest."""
+    """Platform poses ``(N, 5)``: ``home`` plus ``offsets`` ``(N, k)`` (the first ``k`` of x, y, z [m], a, b
+    [rad]; the others stay at home), then ``hold`` [s] at rest."""
     offsets = np.concatenate([offsets, np.repeat(offsets[-1:], int(round(hold / dt)), axis=0)])
     q = np.repeat(np.asarray(home, dtype=float)[None], len(offsets), axis=0)
     q[:, :offsets.shape[1]] += offsets
     return q
 
 
-def platform_path(kind: str, home, rates: LoopRates = LoopRates(), v_max: float = 0.05, a_max: float = 0.2,
+def platform_path(kind: str, home, rates: LoopRates = LoopRates(), v_max: float = SPEED, a_max: float = ACCELERATION,
                   hold: float = 0.5) -> np.ndarray:
-    """Platform poses ``(N, 5)`` at the position-loop rate for the paper's paths, starting and ending at rest.
+    """Platform poses ``(N, 5)`` at the position-loop rate for the named paths, starting and ending at rest.
 
     * ``arc``: from home straight out to (200, 0, 0) mm, then a 270 deg major arc of 200 mm
       radius about home in the horizontal plane (Fig. 7);
-    * ``p2p``: (0,0,0) -> (-100,-100,0) -> (100,100,0) mm (section 4).
+    * ``p2p``: (0,0,0) -> (-100,-100,0) -> (100,100,0) mm (section 4);
+    * ``circle``: the circular test of ISO 230-4 (:func:`iso_circle`): a circle of
+      :data:`CIRCLE_RADIUS` about home in the horizontal plane at the feed ``v_max``, counterclockwise
+      then clockwise, approached from the centre;
+    * ``tilt``: a tilt sweep (:func:`tilt_sweep`) of :data:`TILT_AMPLITUDE` about a, then b, then both,
+      at :data:`TILT_SPEED` and :data:`TILT_ACCELERATION`.
 
-    Offsets are from ``home`` (x, y, z [m], a, b [rad]); the platform stays level.  Each
-    segment has quintic timing with peak speed ``v_max`` [m/s] and acceleration ``a_max``
-    [m/s^2] along the path; ``hold`` [s] at rest is appended.
+    Offsets are from ``home`` (x, y, z [m], a, b [rad]); the platform stays level but in ``tilt``.
+    Straight segments have quintic timing with peak speed ``v_max`` [m/s] and acceleration
+    ``a_max`` [m/s^2] along the path; ``hold`` [s] at rest is appended.
     """
     if kind not in PLATFORM_TRAJECTORIES:
         raise ParameterError(f"trajectory: expected one of {PLATFORM_TRAJECTORIES} for the mechanism, got {kind!r}")
-    _check_limits(v_max, a_max, hold)
+    _check_limits({"v_max": v_max, "a_max": a_max}, {"hold": hold})
     dt = rates.dt_position
     if kind == "arc":
-        phi = 1.5 * np.pi * _quintic(dt, 0.2 * 1.5 * np.pi, v_max, a_max)
-        xy = [_line([0.0, 0.0], [0.2, 0.0], dt, v_max, a_max), np.stack([0.2 * np.cos(phi), 0.2 * np.sin(phi)], axis=1)]
+        phi = 1.5 * np.pi * _quintic(dt, _quintic_time(0.2 * 1.5 * np.pi, v_max, a_max))
+        xy = [_line([0.0, 0.0], [0.2, 0.0], dt, segment_seconds([[0.0, 0.0], [0.2, 0.0]], v_max, a_max)[0]),
+              np.stack([0.2 * np.cos(phi), 0.2 * np.sin(phi)], axis=1)]
         return _poses(home, np.concatenate(xy), dt, hold)
+    if kind == "circle":
+        return iso_circle(home, rates, CIRCLE_RADIUS, v_max, a_max, hold)
+    if kind == "tilt":
+        return tilt_sweep(home, rates, TILT_AMPLITUDE, hold=hold)
     return platform_waypoints(home, [[0.0, 0.0, 0.0], [-0.1, -0.1, 0.0], [0.1, 0.1, 0.0]], rates, v_max, a_max, hold)
+
+
+def iso_circle(home, rates: LoopRates = LoopRates(), radius: float = CIRCLE_RADIUS, feed: float = SPEED,
+               a_max: float = ACCELERATION, hold: float = 0.5) -> np.ndarray:
+    """The circular test of ISO 230-4 as platform poses ``(N, 5)``: a circle of ``radius`` [m] about home in the
+    horizontal plane, contoured at ``feed`` [m/s] in both directions, the platform level.
+
+    ISO 230-4 contours the circle counterclockwise and clockwise (its bidirectional circular
+    deviation compares the two), each direction over the full 360 deg at the programmed feed,
+    with arcs of overshoot where the feed builds up and dies down outside the 360 deg.  Here: from
+    home straight out to (``radius``, 0, 0) (quintic, ``feed`` and ``a_max`` [m/s^2]); a
+    counterclockwise pass whose feed rises from rest along the quintic smoothstep (peak
+    acceleration ``a_max`` along the path), holds ``feed`` over a full 360 deg, and falls back to
+    rest (the ramps' arcs, ``1.875 feed^2 / (2 a_max)`` long each, 6.7 deg at the defaults, lie
+    before and after it); the same pass clockwise back to (``radius``, 0, 0); straight back to home;
+    ``hold`` [s] at rest.  The standard's evaluation of the measured circle (its circular and
+    radial deviations) is not computed: the machine's metrics are the tracking errors.
+    """
+    _check_limits({"radius": radius, "v_max": feed, "a_max": a_max}, {"hold": hold})
+    dt = rates.dt_position
+    phi = _cruise(dt, 2 * np.pi * radius, feed, a_max) / radius
+    ccw = np.stack([radius * np.cos(phi), radius * np.sin(phi)], axis=1)
+    out = _line([0.0, 0.0], [radius, 0.0], dt, segment_seconds([[0.0, 0.0], [radius, 0.0]], feed, a_max)[0])
+    offsets = [out, ccw, ccw[::-1], out[::-1]]  # clockwise and back to home: the same moves, time reversed
+    return _poses(home, np.concatenate(offsets), dt, hold)
+
+
+def tilt_sweep(home, rates: LoopRates = LoopRates(), amplitude: float = TILT_AMPLITUDE, w_max: float = TILT_SPEED,
+               alpha_max: float = TILT_ACCELERATION, hold: float = 0.5) -> np.ndarray:
+    """A tilt sweep as platform poses ``(N, 5)``, the platform centre at home: tilt ``a`` to ``+amplitude``, to
+    ``-amplitude`` and back to level [rad], then ``b`` the same way, then both together (``a = b``); each move
+    straight with quintic timing under ``w_max`` [rad/s] and ``alpha_max`` [rad/s^2], at rest between moves, then
+    ``hold`` [s] at rest."""
+    _check_limits({"amplitude": amplitude}, {})
+    tilts = amplitude * np.array([[0, 0], [1, 0], [-1, 0], [0, 0], [0, 1], [0, -1], [0, 0], [1, 1], [-1, -1], [0, 0]])
+    points = np.concatenate([np.zeros((len(tilts), 3)), tilts], axis=1)
+    return platform_waypoints(home, points, rates, hold=hold, w_max=w_max, alpha_max=alpha_max)
 
 
 def path_seconds(kind: str) -> float:
@@ -99,20 +190,26 @@ def path_seconds(kind: str) -> float:
     return len(platform_path(kind, np.zeros(5))) * LoopRates().dt_position
 
 
-def platform_waypoints(home, waypoints, rates: LoopRates = LoopRates(), v_max=0.05, a_max: float = 0.2,
-                       hold: float = 0.5) -> np.ndarray:
-    """Level platform poses ``(N, 5)`` through position ``waypoints`` ``(K, 3)`` [m] from ``home``, straight
-    segments with :func:`platform_path`'s quintic timing (at rest at every waypoint), then ``hold`` [s] at rest.
+def platform_waypoints(home, waypoints, rates: LoopRates = LoopRates(), v_max=SPEED, a_max=ACCELERATION, hold=0.5,
+                       *, w_max=TILT_SPEED, alpha_max=TILT_ACCELERATION, dwell=0.0) -> np.ndarray:
+    """Platform poses ``(N, 5)`` through ``waypoints``, offsets from ``home``: ``(K, 3)`` (x, y, z [m], the platform
+    level) or ``(K, 5)`` (x, y, z [m], a, b [rad]).  Straight segments in pose space with quintic timing, at rest
+    at every waypoint (:func:`segment_seconds`), each followed by ``dwell`` [s] at rest, then ``hold`` [s] at rest.
 
-    ``v_max`` [m/s]: one peak speed, or one per segment (``K - 1``).  The machine starts at home,
-    so the first waypoint should be ``(0, 0, 0)``.
+    ``v_max`` [m/s], ``a_max`` [m/s^2], ``w_max`` [rad/s], ``alpha_max`` [rad/s^2] and ``dwell`` [s]:
+    one value, or one per segment (``K - 1``).  The machine starts at home, so the first waypoint
+    should be zero.
     """
     points = np.asarray(waypoints, dtype=float)
-    if points.ndim != 2 or points.shape[1] != 3 or len(points) < 2 or not np.isfinite(points).all():
-        raise ParameterError(f"waypoints: expected at least two finite (x, y, z) offsets [m], got shape {points.shape}")
-    speeds = np.broadcast_to(np.asarray(v_max, dtype=float), (len(points) - 1,))
-    for v in speeds:
-        _check_limits(v, a_max, hold)
+    if points.ndim != 2 or points.shape[1] not in (3, 5) or len(points) < 2 or not np.isfinite(points).all():
+        raise ParameterError("waypoints: expected at least two finite (x, y, z) offsets [m] or (x, y, z, a, b) "
+                             f"offsets [m, rad], got shape {points.shape}")
+    limits = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (v_max, a_max, w_max, alpha_max, dwell)),
+                                 np.zeros(len(points) - 1))[:5]
+    for v, a, w, alpha, d in zip(*limits):
+        _check_limits({"v_max": v, "a_max": a, "w_max": w, "alpha_max": alpha}, {"dwell": d, "hold": hold})
     dt = rates.dt_position
-    return _poses(home, np.concatenate([_line(a, b, dt, v, a_max) for a, b, v in zip(points[:-1], points[1:], speeds)]),
-                  dt, hold)
+    moves = []
+    for a, b, T, d in zip(points[:-1], points[1:], segment_seconds(points, *limits[:4]), limits[4]):
+        moves += [_line(a, b, dt, T), np.repeat(b[None], int(round(d / dt)), axis=0)]
+    return _poses(home, np.concatenate(moves), dt, hold)

@@ -1,17 +1,17 @@
-"""Platform paths of the paper: geometry, timing limits, and clear errors."""
+"""Named platform paths (the paper's, the ISO 230-4 circle, the tilt sweep): geometry, timing limits, clear errors."""
 
 import numpy as np
 import pytest
 
 from pusupu_jax import LoopRates, ParameterError
 from pusupu_jax.plant.geometry import Geometry
-from pusupu_jax.trajectories import platform_path
+from pusupu_jax.trajectories import TILT_SPEED, platform_path
 
 HOME = Geometry.default().home
 DT = LoopRates().dt_position
 
 
-@pytest.mark.parametrize("kind", ["arc", "p2p"])
+@pytest.mark.parametrize("kind", ["arc", "p2p", "circle"])
 def test_paths_start_and_end_at_rest_within_the_limits(kind):
     v_max, a_max = 0.05, 0.2
     q = platform_path(kind, HOME, v_max=v_max, a_max=a_max)
@@ -39,10 +39,43 @@ def test_p2p_visits_the_papers_points():
         assert np.min(np.linalg.norm(xy - point, axis=1)) < 1e-12
 
 
-@pytest.mark.parametrize("kwargs,message", [(dict(kind="circle"), "expected one of"),
+@pytest.mark.parametrize("kwargs,message", [(dict(kind="square"), "expected one of"),
                                             (dict(kind="arc", v_max=0), "v_max: expected a positive"),
                                             (dict(kind="arc", a_max=np.nan), "a_max: expected a positive"),
                                             (dict(kind="p2p", hold=-1), "hold: expected a non-negative")])
 def test_bad_path_settings(kwargs, message):
     with pytest.raises(ParameterError, match=message):
         platform_path(home=HOME, **kwargs)
+
+
+def test_circle_is_the_iso_230_4_test_both_ways_at_the_feed():
+    """From home out to 100 mm, a full 360 deg counterclockwise at 50 mm/s, the same clockwise, back to home."""
+    q = platform_path("circle", HOME)
+    xy = q[:, :2]
+    assert np.linalg.norm(xy[0]) == 0 and np.linalg.norm(xy[-1]) == 0
+    radius = np.linalg.norm(xy, axis=1)
+    on = np.flatnonzero(np.abs(radius - 0.1) < 1e-12)
+    assert np.all(np.diff(on) == 1)  # one stretch on the circle: out along a radius, around twice, back
+    turn = np.unwrap(np.arctan2(xy[on, 1], xy[on, 0]))
+    top = int(np.argmax(turn))
+    assert np.all(np.diff(turn[:top + 1]) >= 0) and np.all(np.diff(turn[top:]) <= 0)  # counterclockwise, then back
+    speed = np.linalg.norm(np.diff(xy[on], axis=0), axis=1) / DT
+    for half in (slice(0, top), slice(top, None)):
+        cruising = np.abs(speed[half] - 0.05) < 1e-9
+        assert np.sum(cruising) * DT * 0.05 == pytest.approx(2 * np.pi * 0.1, abs=0.05 * DT)  # 360 deg at the feed
+        assert np.all(np.diff(np.flatnonzero(cruising)) == 1)  # in one go, the ramps outside it
+    assert turn[top] - turn[0] > 2 * np.pi
+
+
+def test_tilt_sweep_tilts_a_then_b_then_both_at_the_angular_limit():
+    q = platform_path("tilt", HOME)
+    np.testing.assert_array_equal(q[:, :3], np.broadcast_to(HOME[:3], q[:, :3].shape))  # the centre stays at home
+    a, b = q[:, 3], q[:, 4]
+    first_b, first_both = int(np.argmax(b != 0)), int(np.argmax((a != 0) & (b != 0)))
+    assert 0 < first_b < first_both
+    assert np.all(b[:first_b] == 0) and np.all(a[first_b:first_both] == 0) and np.all(a[first_both:] == b[first_both:])
+    for part in (a[:first_b], b[first_b:first_both], a[first_both:]):
+        assert part.max() == pytest.approx(0.1) and part.min() == pytest.approx(-0.1)
+    rate = np.linalg.norm(np.diff(q[:, 3:], axis=0), axis=1) / DT
+    assert TILT_SPEED * 0.99 < rate.max() <= TILT_SPEED * 1.001
+    assert np.all(q[-1] == HOME)

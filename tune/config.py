@@ -7,7 +7,8 @@ Every key of :class:`TuneConfig` may appear in the file (unknown keys are errors
     groups: [imc, velocity, hybrid]   # what to tune: imc (lambda1, lambda2, T0), velocity (Kv, Tv),
                                # current (Ki, Ti), pid (Kp, Ki, Kd, Tf of the PID), feedforward (Kff_pid), hybrid
     shared: true               # one value for all six axes (false: one per axis)
-    trajectories: [arc, p2p]   # the paper's paths
+    trajectories: [arc, p2p]   # paths: arc, p2p, circle, tilt, or path files (.yaml, .yml, .csv; docs/paths.md),
+                               # a relative file name taken from the configuration file's folder
     path_s: null               # s: use the first path_s seconds of each path (null: the whole paths)
     windows: 6                 # training windows per path, spread over it: window k starts at k/windows of it
     window_s: 0.5              # s, the length of each training window
@@ -50,10 +51,9 @@ from pusupu_jax.config import read_yaml_mapping
 from pusupu_jax.gradients import GRADIENT_MODES
 from pusupu_jax.machine import MACHINE_MODES
 from pusupu_jax.objectives import TERMS
-from pusupu_jax import inputs
+from pusupu_jax import inputs, paths
 from pusupu_jax.params import IMC_FORMS, ParameterError
 from pusupu_jax.ros2 import JOINTS, check_joints
-from pusupu_jax.trajectories import PLATFORM_TRAJECTORIES
 
 from .space import GROUPS
 
@@ -101,6 +101,9 @@ class TuneConfig:
     def load(cls, path, base: "TuneConfig | None" = None) -> "TuneConfig":
         names = [f.name for f in dataclasses.fields(cls)]
         data = read_yaml_mapping(Path(path), "key", names)
+        if isinstance(data.get("trajectories"), list):  # path files named relative to the configuration
+            data["trajectories"] = [paths.resolve(t, Path(path).parent) if isinstance(t, str) else t
+                                    for t in data["trajectories"]]
         try:
             return (base or cls()).replace(**data)
         except ParameterError as e:
@@ -136,7 +139,13 @@ class TuneConfig:
         need(self.mode in MACHINE_MODES and self.mode != "ros_pid", "mode",
              f"one of {tuple(m for m in MACHINE_MODES if m != 'ros_pid')}", self.mode)
         names("groups", GROUPS)
-        names("trajectories", PLATFORM_TRAJECTORIES)
+        need(isinstance(self.trajectories, tuple) and self.trajectories, "trajectories",
+             "a list of named paths or path files", self.trajectories)
+        for k, spec in enumerate(self.trajectories):
+            paths.check_spec(spec, f"tune config trajectories[{k}]")
+        labels = [paths.path_label(spec) for spec in self.trajectories]
+        need(len(set(labels)) == len(labels), "trajectories", "distinct paths, distinctly named (a file is named by "
+             "its stem)", self.trajectories)
         need(isinstance(self.kin_error_seeds, tuple) and self.kin_error_seeds
              and all(s is None or (isinstance(s, int) and not isinstance(s, bool) and s >= 0)
                      for s in self.kin_error_seeds), "kin_error_seeds", "a list of null or non-negative integers",
@@ -182,6 +191,9 @@ class TuneConfig:
         check_joints(self.ros_joints, "tune config ros_joints")  # the exporter's own rule, before any work
 
     def digest(self) -> str:
-        """A hash of every setting (the checkpoint and the gain file's provenance carry it)."""
-        text = json.dumps(dataclasses.asdict(self), sort_keys=True, default=str)
+        """A hash of every setting and of the path files' contents (the checkpoint and the gain file's provenance
+        carry it)."""
+        files = {spec: paths.source_digest(spec) for spec in self.trajectories if paths.is_path_file(spec)}
+        text = json.dumps(dataclasses.asdict(self) | ({"path_files": files} if files else {}), sort_keys=True,
+                          default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]

@@ -11,8 +11,9 @@ A job file (JSON Schema: ``tune/schemas/pusupu-batch.schema.json``; ``docs/batch
       iterations: 10           #   payloads, path_s, baselines): groups, weights, the optimiser, starts, ...
       starts: 2                #   mode, windows and window_s are the scenarios' defaults
     scenarios:
-      - name: arc-seed1        # default: trajectory/seedN/Pkg
-        trajectory: arc        # arc | p2p
+      - name: arc-seed1        # default: trajectory/seedN/Pkg (a path file: its stem)
+        trajectory: arc        # arc | p2p | circle | tilt | a path file (.yaml, .yml, .csv; docs/paths.md),
+                               # a relative file name taken from the job file's folder
         mode: hybrid           # hybrid | imc | pid | pid_ff (default: tune.mode)
         payload: 0.0           # kg on the platform
         kin_error_seed: 1      # seeded 0.5 mm errors of the simulated machine (null: none)
@@ -21,7 +22,8 @@ A job file (JSON Schema: ``tune/schemas/pusupu-batch.schema.json``; ``docs/batch
         windows: 2             # training windows spread over the path (default: tune.windows)
         window_s: 0.3          # s, each window's length (default: tune.window_s)
 
-A scenario that is malformed, names an unknown key or leaves the workspace, or a job of more work than
+A scenario that is malformed, names an unknown key or whose path the machine cannot follow (its
+workspace, its motors' speed and torque: :func:`pusupu_jax.paths.check_path`), or a job of more work than
 :func:`tune.run.check_work` allows, fails its own job (:class:`Job` with ``error``); the other jobs run.
 A file that is not such a mapping fails as a whole.
 Jobs whose settings compile to the same shapes (mode, windows, window_s) form one group: one
@@ -38,13 +40,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pusupu_jax import inputs
+from pusupu_jax import inputs, paths
 from pusupu_jax.machine import machine_rates
-from pusupu_jax.params import ParameterError
-from pusupu_jax.plant import kinematics
+from pusupu_jax.params import ParameterError, ServoParams
 from pusupu_jax.plant.geometry import Geometry, validate_geometry
 from pusupu_jax.plant.model import ModelOptions
-from pusupu_jax.trajectories import PLATFORM_TRAJECTORIES
 
 from .config import TuneConfig
 from .run import ScenarioSpec, check_work
@@ -78,8 +78,11 @@ class Job:
         return (c.mode, c.windows, c.window_s, len(self.specs))
 
     def digest(self) -> str:
-        """A hash of the job's settings and scenarios (its report and its group's checkpoint carry it)."""
-        text = json.dumps([self.config.digest(), [spec_dict(s) for s in self.specs]], sort_keys=True, default=str)
+        """A hash of the job's settings and scenarios, and of their path files' contents (its report and its group's
+        checkpoint carry it)."""
+        files = [paths.source_digest(s.trajectory) for s in self.specs if paths.is_path_file(s.trajectory)]
+        text = json.dumps([self.config.digest(), [spec_dict(s) for s in self.specs]] + ([files] if files else []),
+                          sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -129,11 +132,12 @@ def _geometry(value, where: str) -> Geometry | None:
     return geom
 
 
-def _scenario(entry, k: int, base: TuneConfig) -> tuple[ScenarioSpec, TuneConfig]:
-    """Scenario ``k``'s spec and its job's configuration; raises :class:`JobFileError` naming it."""
+def _scenario(entry, k: int, base: TuneConfig, folder: Path) -> tuple[ScenarioSpec, TuneConfig]:
+    """Scenario ``k``'s spec and its job's configuration (a path file named relative to ``folder``, the job file's);
+    raises :class:`JobFileError` naming it."""
     where = f"scenarios[{k}]"
     inputs.check_keys(entry, where, SCENARIO_KEYS, JobFileError, required=("trajectory",))
-    trajectory = inputs.choice(entry["trajectory"], f"{where}.trajectory", PLATFORM_TRAJECTORIES, JobFileError)
+    trajectory = paths.resolve(paths.check_spec(entry["trajectory"], f"{where}.trajectory", JobFileError), folder)
     seed = entry.get("kin_error_seed")
     if seed is not None:
         seed = inputs.integer(seed, f"{where}.kin_error_seed", JobFileError, low=0)
@@ -141,7 +145,8 @@ def _scenario(entry, k: int, base: TuneConfig) -> tuple[ScenarioSpec, TuneConfig
     path_s = entry.get("path_s")
     if path_s is not None:
         path_s = inputs.number(path_s, f"{where}.path_s", JobFileError, low=0.0, low_open=True, high=3600.0)
-    default_name = trajectory + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else "")
+    default_name = (paths.path_label(trajectory) + (f"/seed{seed}" if seed is not None else "")
+                    + (f"/{payload:g}kg" if payload else ""))
     name = entry.get("name", default_name)
     if not isinstance(name, str) or not name or name.startswith(".") or not all(c.isalnum() or c in "-_./"
                                                                                  for c in name):
@@ -157,13 +162,15 @@ def _scenario(entry, k: int, base: TuneConfig) -> tuple[ScenarioSpec, TuneConfig
 
 
 def check_scenario(spec: ScenarioSpec, cfg: TuneConfig, where: str) -> None:
-    """Before any compile: the path stays in the workspace and holds ``cfg.windows`` windows of ``cfg.window_s``."""
+    """Before any compile: the machine can follow the path (:func:`pusupu_jax.paths.check_path` with the drives of
+    Table 1, the batch's start) and it holds ``cfg.windows`` windows of ``cfg.window_s``."""
     rates = machine_rates()
-    path = spec.path(rates)
     try:
-        kinematics.check_poses(spec.geom(), path)
+        path = spec.path(rates)
+        paths.check_path(path, ServoParams.table1(), rates.dt_position, spec.geom(), spec.options,
+                         where=f"the {paths.path_label(spec.trajectory)} path")
     except ParameterError as e:
-        raise JobFileError(f"{where} ({spec.name}): the {spec.trajectory} path leaves the workspace: {e}") from None
+        raise JobFileError(f"{where} ({spec.name}): {e}") from None
     every = -(-len(path) // cfg.windows)
     if round(cfg.window_s / rates.dt_position) > every:
         raise JobFileError(f"{where} ({spec.name}): window_s expected at most a {cfg.windows}th of the path "
@@ -212,7 +219,7 @@ def read(path) -> JobFile:
     parsed = []
     for k, entry in enumerate(scenarios):
         try:
-            parsed.append(_scenario(entry, k, base))
+            parsed.append(_scenario(entry, k, base, path.parent))
         except ParameterError as e:
             name = entry.get("name") if isinstance(entry, dict) and isinstance(entry.get("name"), str) else None
             parsed.append((name or f"scenario{k}", str(e)))

@@ -48,7 +48,7 @@ from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
 from pusupu_jax.programs import Program, describe
 from pusupu_jax.sim import rollout, run_chunked
-from pusupu_jax.trajectories import platform_path
+from pusupu_jax.paths import path_label, platform_path_from
 
 from .config import TuneConfig
 from .space import Space
@@ -60,8 +60,9 @@ GRADIENTS_KEPT = 4  # compiled gradients kept for Problems built again with the 
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class ScenarioSpec:
-    """One scenario: a paper path (the first ``path_s`` seconds of it, or all) on a machine with ``options`` (seeded
-    kinematic errors, payload) and the nominal geometry ``geometry`` (None: :meth:`Geometry.default`)."""
+    """One scenario: a path (a name or a path file, :func:`pusupu_jax.paths.platform_path_from`; the first ``path_s``
+    seconds of it, or all) on a machine with ``options`` (seeded kinematic errors, payload) and the nominal geometry
+    ``geometry`` (None: :meth:`Geometry.default`)."""
 
     name: str
     trajectory: str
@@ -74,19 +75,20 @@ class ScenarioSpec:
 
     def path(self, rates):
         """The platform poses ``(N, 5)`` about the geometry's home, one per position period (checked later)."""
-        path = platform_path(self.trajectory, self.geom().home, rates)
+        path = platform_path_from(self.trajectory, self.geom().home, rates)
         return path if self.path_s is None else path[:max(3, int(round(self.path_s / rates.dt_position)))]
 
 
 def scenario_list(cfg: TuneConfig, machine: Machine | None = None) -> list[ScenarioSpec]:
     """Every scenario of the configuration on ``machine`` (default: the built-in one), named ``arc``, ``arc/seed3``,
-    ``p2p/seed3/10kg``... (a payload scenario adds its mass to the machine's payload, at the same centre of mass)."""
+    ``p2p/seed3/10kg``... (a path file by its stem; a payload scenario adds its mass to the machine's payload, at the
+    same centre of mass)."""
     machine = Machine.default() if machine is None else machine
     base = machine.options()
-    return [ScenarioSpec(kind + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else ""),
+    return [ScenarioSpec(path_label(kind) + (f"/seed{seed}" if seed is not None else "")
+                         + (f"/{payload:g}kg" if payload else ""),
                          kind, dataclasses.replace(base, kin_error_seed=seed, payload=base.payload + float(payload)),
-                         geometry=machine.geometry,
-                         path_s=cfg.path_s)
+                         geometry=machine.geometry, path_s=cfg.path_s)
             for kind in cfg.trajectories for seed in cfg.kin_error_seeds for payload in cfg.payloads]
 
 

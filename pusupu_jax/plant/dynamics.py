@@ -16,7 +16,8 @@ the mechanism).  Its sixth component is the paper's ``F_q``, "the optimized inve
 redundant torque" of eq. 13, here a slider force [N].
 
 ``M qacc + c`` is MuJoCo's recursive Newton-Euler (``mj_rne``, gravity and Coriolis
-included) plus the rotor armature ``eta J / r^2`` on the slides; ``qvel`` and ``qacc`` are
+included; it needs the bodies' positions, inertias and velocities, ``mj_kinematics``,
+``mj_comPos`` and ``mj_comVel``, not the constraint solve of a whole ``mj_forward``) plus the rotor armature ``eta J / r^2`` on the slides; ``qvel`` and ``qacc`` are
 central differences of ``qpos`` along the sampled path (second-order accurate, the path
 being smooth).  The nominal geometry is used: the controller does not know the seeded
 kinematic errors of the real machine.
@@ -66,7 +67,9 @@ def inverse_dynamics_forces(servo, path, dt: float, geom: Geometry | None = None
     tau = np.zeros((len(path), m.nv))
     for k in range(len(path)):
         d.qpos[:], d.qvel[:] = qpos[k], qvel[k]
-        mujoco.mj_forward(m, d)
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_comPos(m, d)
+        mujoco.mj_comVel(m, d)
         d.qacc[:] = qacc[k]
         mujoco.mj_rne(m, d, 1, tau[k])
     tau += m.dof_armature * qacc

@@ -132,42 +132,50 @@ def condition_number(geom: Geometry, q):
     return sv[..., 0] / sv[..., -1]
 
 
-def check_poses(geom: Geometry, q, cond_max: float = 30.0, margin: float = 0.0) -> dict:
+def check_poses(geom: Geometry, q, cond_max: float = 30.0, margin: float = 0.0, dt: float | None = None) -> dict:
     """Check poses ``q`` (``(N, 5)``) host-side before any simulation; raise :class:`GeometryError` if bad.
 
     Every branch must be reachable, every slider within its stroke (shrunk by ``margin``
     [m] at both ends), the UPU leg within its limits, the leg above the base, and
     :func:`condition_number` at most ``cond_max`` (the default geometry stays below 15.2
-    on the paper's paths).  Returns the extremes found.
+    on the paper's paths).  The error names the first pose that fails (its index, and its time
+    when ``dt``, the poses' period [s], is given), the branch (1 to 6, as the paper numbers them),
+    the value and the limit.  Returns the extremes found.
     """
     q = np.atleast_2d(np.asarray(q, dtype=float))
     if q.ndim != 2 or q.shape[1] != 5 or not np.isfinite(q).all():
         raise GeometryError(f"poses: expected finite (N, 5) poses (x, y, z, a, b), got shape {q.shape}")
-    if (q[:, 2] <= 0).any():
-        k = int(np.argmax(q[:, 2] <= 0))
-        raise GeometryError(f"pose {k}: expected the platform above the base (z > 0), got z = {q[k, 2]:.4g} m")
     ud, disc = (np.asarray(a) for a in _branch_terms(geom, jnp.asarray(q)))
-    if (disc < 0).any():
-        k, i = np.argwhere(disc < 0)[0]
-        raise GeometryError(f"pose {k} {_fmt(q[k])}: branch {i} unreachable (its rod is too short for the joint)")
-    s = ud - np.sqrt(disc)  # inverse_kinematics, from the terms already at hand
+    s = ud - np.sqrt(np.maximum(disc, 0.0))  # inverse_kinematics, from the terms already at hand (where reachable)
     lo, hi = np.asarray(geom.stroke_min) + margin, np.asarray(geom.stroke_max) - margin
-    out = (s < lo) | (s > hi)
-    if out.any():
-        k, i = np.argwhere(out)[0]
-        raise GeometryError(f"pose {k} {_fmt(q[k])}: slider {i} out of stroke, s = {s[k, i] * 1e3:.1f} mm, "
-                            f"expected {lo[i] * 1e3:.1f} to {hi[i] * 1e3:.1f} mm")
     leg = np.linalg.norm(q[:, :3], axis=1)
-    bad = (leg < float(geom.upu_min)) | (leg > float(geom.upu_max))
-    if bad.any():
-        k = int(np.argmax(bad))
-        raise GeometryError(f"pose {k} {_fmt(q[k])}: UPU leg {leg[k] * 1e3:.1f} mm outside "
-                            f"{float(geom.upu_min) * 1e3:.0f} to {float(geom.upu_max) * 1e3:.0f} mm")
     cond = np.nan_to_num(np.asarray(condition_number(geom, jnp.asarray(q))), nan=np.inf)
-    if (cond > cond_max).any():
-        k = int(np.argmax(cond))
-        raise GeometryError(f"pose {k} {_fmt(q[k])}: near-singular, Jacobian condition number {cond[k]:.3g} "
-                            f"> {cond_max:g}")
+    out = (s < lo) | (s > hi)
+
+    def at(k):
+        return f"pose {k}" + ("" if dt is None else f" (t = {k * dt:.6g} s)") + f" {_fmt(q[k])}"
+
+    def unreachable(k):
+        return f"{at(k)}: branch {int(np.argmax(disc[k] < 0)) + 1} unreachable (its rod is too short for the joint)"
+
+    def out_of_stroke(k):
+        i = int(np.argmax(out[k]))
+        return (f"{at(k)}: slider {i + 1} out of stroke, s = {s[k, i] * 1e3:.1f} mm, expected {lo[i] * 1e3:.1f} to "
+                f"{hi[i] * 1e3:.1f} mm")
+
+    checks = [  # (which poses fail, the message for pose k); of two failing at one pose, the first listed is said
+        (q[:, 2] <= 0, lambda k: f"{at(k)}: expected the platform above the base (z > 0), got z = {q[k, 2]:.4g} m"),
+        ((disc < 0).any(axis=1), unreachable),
+        (out.any(axis=1), out_of_stroke),
+        ((leg < float(geom.upu_min)) | (leg > float(geom.upu_max)),
+         lambda k: f"{at(k)}: UPU leg {leg[k] * 1e3:.1f} mm outside {float(geom.upu_min) * 1e3:.0f} to "
+                   f"{float(geom.upu_max) * 1e3:.0f} mm"),
+        (cond > cond_max, lambda k: f"{at(k)}: near-singular, Jacobian condition number {cond[k]:.3g} > {cond_max:g}"),
+    ]
+    failing = [(int(np.argmax(bad)), n) for n, (bad, _) in enumerate(checks) if bad.any()]
+    if failing:
+        k, n = min(failing)
+        raise GeometryError(checks[n][1](k))
     return {"slider_min_m": s.min(axis=0).tolist(), "slider_max_m": s.max(axis=0).tolist(),
             "cond_max": float(cond.max()), "upu_leg_m": [float(leg.min()), float(leg.max())]}
 
