@@ -55,3 +55,19 @@ def test_injection_measures_the_single_axis_loop_gain_of_python_control(table1_l
         model = discrete_loop_gain(table1_linear, linear_load, loop, f)
         assert abs(measured / model - 1.0) < 1e-5, (loop, f, measured, model)
 
+
+def test_loop_match_quick_the_velocity_crossover_is_that_of_the_carried_mass(tmp_path):
+    """On the MJX machine at home, the measured velocity loop crosses over where the carried mass puts it (within the
+    experiment's tolerance), far from the 20 kg load's, and the measurement is linear and settled."""
+    from experiments import run_experiment
+    from experiments.loop_match import TOLERANCE
+
+    result, files = run_experiment("loop_match", tmp_path, quick=True)
+    assert all(f.exists() for f in files) and any(f.suffix == ".png" for f in files)
+    rows = {r["loop"]: r for r in result.metrics["rows"]}
+    velocity = rows["velocity"]
+    measured = velocity["mjx"]["crossover_hz"]
+    assert abs(velocity["model_carried"]["crossover_hz"] / measured - 1) * 100 < TOLERANCE["crossover_pct"]
+    assert velocity["model_20kg"]["crossover_hz"] / measured > 1.3
+    for r in rows.values():
+        assert r["linearity"] < 1e-4 and r["settling"] < 1e-3, r
