@@ -46,7 +46,7 @@ import warnings
 import jax
 import matplotlib.pyplot as plt
 import numpy as np
-from matplotlib.ticker import FuncFormatter, NullFormatter
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from pusupu_jax import AxisLoad, LoopRates, ServoParams, analysis, injection
 from pusupu_jax.machine import machine_plant, machine_rates
@@ -228,6 +228,7 @@ def plot(result: Result, out) -> list:
             ax[0, c].legend(fontsize=8)
             for a in ax[:, c]:
                 a.grid(True, which="both", alpha=0.3)
+                a.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
                 a.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
                 a.xaxis.set_minor_formatter(NullFormatter())
         fig.suptitle(f"Loop gains, {probe}: MJX machine against the single-axis model", fontsize=10)
