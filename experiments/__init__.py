@@ -34,6 +34,7 @@ REGISTRY = {
     "tuned": "experiments.tuned",  # Table 1 vs pusupu tune's gains on arc and p2p in every mode
     "peg_in_hole": "experiments.peg_in_hole",  # Fig. 9a: a peg into a chamfered hole off its axis, MJX contact
     "surface_tracking": "experiments.surface_tracking",  # Fig. 9b: a tool holding a force on a tilted surface
+    "loop_match": "experiments.loop_match",  # loop gains of the MJX machine by injection vs the single-axis model
 }
 
 

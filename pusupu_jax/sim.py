@@ -102,6 +102,30 @@ def _trace_table(tr: Trace, shapes: dict, markdown: bool) -> str:
     return axis_table(f"**{title}**" if markdown else title, rows, axes, markdown)
 
 
+@jax.tree_util.register_dataclass
+@dataclass(frozen=True)
+class Injected:
+    """A reference sample with signals added at the controller outputs: how a loop gain is measured by injection.
+
+    ``reference``: the mode's own sample.  ``velocity`` [rad/s] ``(n_axes,)``: added to the position controller's
+    output, the velocity reference the velocity loops receive (in 'velocity' mode, to the reference itself).
+    ``current`` [A] ``(m, n_axes)``: added to the velocity controller's output (after its ``+-I_max`` clamp), the
+    current reference the current loops receive, in each of the period's ``m`` velocity periods
+    (``rates.n_position`` in the position modes, 1 in 'velocity').  The trace's ``command`` and
+    ``current_reference`` record the sums, so that a controller's own output is the recorded signal less the
+    injection (:mod:`pusupu_jax.injection`).
+    """
+
+    reference: Any
+    velocity: Any
+    current: Any
+
+
+def _injected(ref):
+    """``(the mode's sample, the Injected or None)`` of a reference sample."""
+    return (ref.reference, ref) if isinstance(ref, Injected) else (ref, None)
+
+
 class Carry(NamedTuple):
     """The scan carry: the plant, the electrical model (inverter, armature) and the controllers."""
 
@@ -176,6 +200,7 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
     n_mech_steps = rates.n_velocity // rates.n_mech
 
     def record(c: Carry, ref, out, observation=None):
+        ref, _ = _injected(ref)
         command, i_refs = out
         theta, omega = plant.measure(aux, c.plant)
         x, v = plant.slider(aux, c.plant)
@@ -196,9 +221,11 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
     # 4.9 s.  prevent_cse=False: the scans that call it already keep XLA from merging the recomputation back into
     # the forward pass, so the barriers that would prevent it are not needed (jax.checkpoint's documentation).
     @functools.partial(jax.checkpoint, prevent_cse=False)
-    def velocity_period(c: Carry, w_ref, i_force=None):
+    def velocity_period(c: Carry, w_ref, i_force=None, injected_current=None):
         _, omega = plant.measure(aux, c.plant)
         sc, i_ref = cascade_.velocity_tick(drive, mode, c.cascade, w_ref, omega, i_force)
+        if injected_current is not None:
+            i_ref = i_ref + injected_current
         c = c._replace(cascade=sc)
         if n_mech_steps == 1:  # the machine's case: a scan of one step is one more level for the gradient to nest
             return mech_step(c, i_ref)[0], i_ref
@@ -206,18 +233,26 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
         return c, i_ref
 
     def position_period(c: Carry, ref):
+        ref, injected = _injected(ref)
         theta, omega = plant.measure(aux, c.plant)
         sc, w_ref, i_force = cascade_.position_tick(drive, mode, c.cascade, ref, theta, omega, hybrid)
-        c, i_refs = jax.lax.scan(lambda cc, _: velocity_period(cc, w_ref, i_force), c._replace(cascade=sc), None,
-                                 length=rates.n_position)
+        if injected is not None:
+            w_ref = w_ref + injected.velocity
+        c, i_refs = jax.lax.scan(lambda cc, d: velocity_period(cc, w_ref, i_force, d), c._replace(cascade=sc),
+                                 None if injected is None else injected.current, length=rates.n_position)
         return c, (w_ref, i_refs)
 
     def current_period(c: Carry, i_ref):
+        if isinstance(i_ref, Injected):
+            raise ValueError("rollout: injection needs the velocity loop closed, got mode 'current'")
         c, u = mech_step(c, i_ref)
         return c, (u, i_ref[None])
 
     def inner_velocity_period(c: Carry, w_ref):
-        c, i_ref = velocity_period(c, w_ref)
+        w_ref, injected = _injected(w_ref)
+        if injected is not None:
+            w_ref = w_ref + injected.velocity
+        c, i_ref = velocity_period(c, w_ref, None, None if injected is None else injected.current[0])
         return c, (i_ref, i_ref[None])
 
     period = {"current": current_period, "velocity": inner_velocity_period, "position": position_period}[mode.closed]
@@ -294,6 +329,9 @@ def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), 
     :mod:`pusupu_jax.compliance` outside the position loops (:func:`compliant_pieces`; the
     plant must observe a ``contact_force``); ``reference`` is then a
     :class:`~pusupu_jax.compliance.ComplianceReference`.
+
+    A reference whose samples are :class:`Injected` adds its signals at the controller outputs (the velocity and
+    current references), for measuring loop gains (:mod:`pusupu_jax.injection`).
     """
     mode = cascade_.control_mode(outer)
     cascade = _cascade(params, plant_params, plant, rates, mode, hybrid, compliance)
@@ -310,6 +348,7 @@ def _cascade(params, plant_params, plant, rates, mode, hybrid, compliance) -> Pi
 
 def _start(cascade: Pieces, mode, first, start: str, compliance):
     """The carry at ``start`` for a reference whose first sample is ``first``."""
+    first, _ = _injected(first)
     first = first.inner if compliance is not None else first
     return cascade.init(start, first.force_ff if mode.hybrid else None)
 
