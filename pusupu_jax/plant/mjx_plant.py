@@ -10,10 +10,10 @@ the travel from home [m] and the slider velocity [m/s].
 The plant is hashed by identity (it is a static argument of the jitted rollout): build it
 once with :meth:`MJXPlant.create` and reuse it, or every call compiles anew.
 
-Scenarios (seeded kinematic errors, payloads) of the same mechanism differ only in array
-fields of the model, so they can share one compiled rollout and be vmapped: pass
-:meth:`MJXPlant.variant` models (stacked for a batch) as the rollout's ``plant_params``;
-``None`` runs the plant's own model.
+Scenarios (seeded kinematic errors, payloads: mass, centre of mass, inertia) of the same
+mechanism differ only in array fields of the model, so they can share one compiled rollout and
+be vmapped: pass :meth:`MJXPlant.variant` models (stacked for a batch) as the rollout's
+``plant_params``; ``None`` runs the plant's own model.
 """
 
 from __future__ import annotations
@@ -64,14 +64,16 @@ class MJXPlant:
 
         Only array fields are taken from the variant (body poses, masses, inertias, geoms,
         connect anchors, ``qpos0``); the rest (sizes, indices, solver options) must be and
-        are the same.  Two things are left at this plant's values: the model statistics
-        (``stat``: they scale the solver's termination test, which one Newton iteration
-        never reaches) and the height-field bounding radii (no height fields here).
+        are the same (a payload is the ``payload`` body welded to the platform, there and
+        massless without one).  Two things are left at this plant's values: the model
+        statistics (``stat``: they scale the solver's termination test, which one Newton
+        iteration never reaches) and the height-field bounding radii (no height fields here).
         """
         other = mjx.put_model(build_model(geom, options))
-        if (other.nq, other.nv, other.neq, other.ngeom) != (self.mjx_model.nq, self.mjx_model.nv, self.mjx_model.neq,
-                                                            self.mjx_model.ngeom):
-            raise ValueError("MJXPlant.variant: the options change the model's structure, not only its values")
+        sizes = ("nq", "nv", "nbody", "neq", "ngeom")
+        if [getattr(other, n) for n in sizes] != [getattr(self.mjx_model, n) for n in sizes]:
+            raise ValueError(f"MJXPlant.variant: expected the sizes {sizes} of this plant's model "
+                             f"{[getattr(self.mjx_model, n) for n in sizes]}, got {[getattr(other, n) for n in sizes]}")
         arrays = {f.name: getattr(other, f.name) for f in dataclasses.fields(other)
                   if isinstance(getattr(other, f.name), jax.Array)}
         return self.mjx_model.replace(**arrays)
