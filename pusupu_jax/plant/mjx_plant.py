@@ -7,6 +7,12 @@ slider through the screw, ``theta = (s - s_home) / r``, ``omega = s' / r``
 (``r = lead / 2 pi``), zeroed at the home pose as a homed drive is.  ``slider`` returns
 the travel from home [m] and the slider velocity [m/s].
 
+Each slide joint carries the motor's force ``eta tau / r`` [N] and the drive train's friction
+``-slider_friction(v)`` of :mod:`pusupu_jax.plant.friction` (``ServoParams`` fields ``coulomb``,
+``viscous``, ``v_coulomb``), both held over the mechanical step, the friction taken at the slider
+speeds at its start.  The friction's parameters are arrays of the rollout (changing them does not
+recompile; a batch of servo parameters vmaps over them).
+
 The plant is hashed by identity (it is a static argument of the jitted rollout): build it
 once with :meth:`MJXPlant.create` and reuse it, or every call compiles anew.
 
@@ -33,6 +39,7 @@ with contextlib.redirect_stdout(io.StringIO()):  # MJX prints its optional GPU b
     from mujoco import mjx
 
 from .axis import screw_ratio
+from .friction import Friction, slider_friction
 from .geometry import Geometry
 from .model import ModelOptions, build_model, loop_closure_residual, slide_dofs, slide_qpos
 
@@ -43,6 +50,7 @@ class MJXAux:
     model: Any  # mjx.Model with the servo-dependent armature
     force_gain: Any  # (6,) N per N m: eta / r
     r: Any  # (6,) m/rad
+    friction: Friction  # the drive train's, at the slider: (6,) each
 
 
 @dataclass(frozen=True, eq=False)
@@ -130,7 +138,7 @@ class MJXPlant:
         model = self.mjx_model if plant_params is None else plant_params
         r = screw_ratio(servo)
         armature = model.dof_armature.at[self._dofs].set(servo.eta * servo.J / r**2)
-        return MJXAux(model.replace(dof_armature=armature), servo.eta / r, r)
+        return MJXAux(model.replace(dof_armature=armature), servo.eta / r, r, Friction.of(servo))
 
     def init(self, aux: MJXAux):
         return mjx.forward(aux.model, mjx.make_data(aux.model))
@@ -169,7 +177,9 @@ class MJXPlant:
         return s / aux.r, v / aux.r
 
     def step(self, aux: MJXAux, data, torque):
-        qfrc = jnp.zeros_like(data.qfrc_applied).at[self._dofs].set(aux.force_gain * torque)
+        """One mechanical step under motor torques ``torque`` [N m] ``(6,)``, held, with the drive train's friction."""
+        force = aux.force_gain * torque - slider_friction(aux.friction, data.qvel[self._dofs])
+        qfrc = jnp.zeros_like(data.qfrc_applied).at[self._dofs].set(force)
         return mjx.step(aux.model, data.replace(qfrc_applied=qfrc))
 
     def slider(self, aux: MJXAux, data):

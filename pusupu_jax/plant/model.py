@@ -15,7 +15,9 @@ Each slider is driven through its ball screw: motor torque ``tau`` [N m] becomes
 force ``eta tau / r`` (``r = lead / 2 pi`` [m/rad]) and the rotor appears on the slide joint
 as armature ``eta J / r^2`` [kg] (efficiency applied to the torque left after accelerating
 the rotor; the same convention as the single-axis plant).  Those two depend on the servo
-parameters and are set per rollout by the MJX plant, not here.
+parameters and are set per rollout by the MJX plant, not here; so is the drive train's
+friction (:mod:`pusupu_jax.plant.friction`), a force on each slide joint, not MuJoCo's
+``frictionloss``.
 
 The payload is a rigid body, ``payload``, welded to the platform (no joint): ``payload`` [kg]
 at ``payload_com`` [m] (platform frame) with principal moments ``payload_inertia`` [kg m^2]
