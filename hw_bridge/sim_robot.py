@@ -50,6 +50,7 @@ from pusupu_jax import cascade, loops, sim
 from pusupu_jax.gains import GainFile
 from pusupu_jax.machine import machine_plant, machine_rates
 from pusupu_jax.machine_file import Machine
+from pusupu_jax.plant.friction import Friction, slider_friction
 from pusupu_jax.plant.model import ModelOptions, build_model, slide_dofs, slide_qpos
 
 from . import cia402, protocol
@@ -100,9 +101,10 @@ class RobotModel:
     """The mechanism (C MuJoCo) and its drives (the simulator's functions, compiled on the CPU), one bridge period per call.
 
     The mechanism is the machine's own MuJoCo model (:func:`pusupu_jax.plant.model.build_model`, seeded
-    kinematic errors included) stepped by C MuJoCo with the MJX plant's armature and torque mapping,
-    one step per velocity period (the timestep is ``rates.dt_velocity``); the drives at rest start from
-    the MJX plant's static equilibrium, as the simulator's runs do.  Why C MuJoCo: on this 2-core CPU
+    kinematic errors included) stepped by C MuJoCo with the MJX plant's armature, torque mapping and
+    drive-train friction (:func:`pusupu_jax.plant.friction.slider_friction`, in numpy, at the slider
+    speeds at each step's start), one step per velocity period (the timestep is ``rates.dt_velocity``);
+    the drives at rest start from the MJX plant's static equilibrium, as the simulator's runs do.  Why C MuJoCo: on this 2-core CPU
     an MJX step through JAX's dispatch took about 300 us, more than a 250 us cycle; C MuJoCo takes tens.
     """
 
@@ -127,6 +129,7 @@ class RobotModel:
         r = np.asarray(servo.lead / (2 * np.pi), dtype=float)
         self.m.dof_armature[self.dofs] = np.asarray(servo.eta * servo.J, dtype=float) / r**2
         self.r, self.force_gain = r, np.asarray(servo.eta, dtype=float) / r
+        self.friction = jax.tree.map(lambda x: np.asarray(x, dtype=float), Friction.of(servo))  # numpy: no dispatch
         self.Kt = np.asarray(servo.Kt, dtype=float)
         self.velocity_limit, self.torque_limit = command_limits(servo)  # rad/s, N m: a drive faults on more
         self.platform = self.m.body("platform").id
@@ -164,7 +167,7 @@ class RobotModel:
         torque = np.zeros(len(self.Kt))
         for _ in range(1 if np.any(cst_mask) else self.rates.n_position):  # velocity periods in a bridge period
             state, torque = self._drive(state, target, cst_mask, d.qvel[self.dofs] / self.r)
-            d.qfrc_applied[self.dofs] = self.force_gain * torque
+            d.qfrc_applied[self.dofs] = self.force_gain * torque - slider_friction(self.friction, d.qvel[self.dofs])
             mujoco.mj_step(self.m, d)
         return state, torque
 

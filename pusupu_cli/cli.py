@@ -401,7 +401,7 @@ def _load(args, check: bool = True):
     With ``--machine``, the params file may set controller fields only: the drives are the machine's."""
     from pathlib import Path
 
-    from pusupu_jax import stability
+    from pusupu_jax import machine_file, stability
     from pusupu_jax.config import SECTIONS, load_params_file, read_yaml_mapping, setup_jax
 
     setup_jax()  # the checks' compiled programs come from the persistent cache after the first run
@@ -420,6 +420,13 @@ def _load(args, check: bool = True):
         with _checking(f"--gains {args.gains}"):
             g = gains.load(args.gains, args.floors, check_stability=False, machine=machine)
         loaded = loaded._replace(servo=g.servo, hybrid=g.hybrid, rates=g.rates)
+    elif args.machine and not args.params and not machine_file.is_builtin(machine):
+        from pusupu_jax.start_gains import derive
+
+        print(f"pusupu: no --gains: the start gains derived for machine {machine.name!r} (docs/machine.md; T0 "
+              "identified on the MJX machine, about 30 s)", file=sys.stderr, flush=True)
+        with _checking(f"--machine {args.machine}"):
+            loaded = loaded._replace(servo=derive(machine, loaded.rates)[0])
     with _checking(f"--machine {args.machine}" if args.machine else "the built-in machine"):
         loaded = loaded._replace(servo=machine.servo(loaded.servo))
     if args.imc_form:

@@ -99,11 +99,12 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
     holding still) to the longest, and every metric is taken over each path's own length.
     ``servo`` (and, in hybrid mode, ``hybrid``) is shared, or has a leading axis of one
     parameter set per scenario (a gain sweep).  ``options`` may differ only in
-    ``kin_error_seed``, the payload and the contact scene's arrays (``surface_tilt``,
-    ``hole_offset``); geometries may differ (each a variant of the default structure).  ``compliance``: the admittance of :mod:`pusupu_jax.compliance` around the
-    position loops (the scenarios' models need contacts), holding the contact force
-    ``force_setpoint`` [N] on the tool (world axes; ``(3,)``, or ``(N, 3)`` along the longest
-    path; default zero).  Returns ``[(result, arrays)]`` as
+    ``kin_error_seed``, the payload (``payload``, ``payload_com``, ``payload_inertia``) and the
+    contact scene's arrays (``surface_tilt``, ``hole_offset``); geometries may differ (each a variant
+    of the default structure).  ``compliance``: the admittance
+    of :mod:`pusupu_jax.compliance` around the position loops (the scenarios' models need
+    contacts), holding the contact force ``force_setpoint`` [N] on the tool (world axes;
+    ``(3,)``, or ``(N, 3)`` along the longest path; default zero).  Returns ``[(result, arrays)]`` as
     :func:`simulate_machine`.
     """
     if mode not in MACHINE_MODES:
@@ -117,7 +118,8 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
     if control_mode(mode).hybrid:
         hybrid = hybrid_law.HybridGains() if hybrid is None else hybrid
         hybrid_law.validate_gains(hybrid, bounded=False)  # a gain file's bounds are checked where one is read
-    nominal = dataclasses.replace(scenarios[0].options, kin_error_seed=None, payload=0.0)
+    nominal = dataclasses.replace(scenarios[0].options, kin_error_seed=None, payload=0.0, payload_com=(0.0, 0.0, 0.0),
+                                  payload_inertia=(0.0, 0.0, 0.0))
     rates = machine_rates(nominal, rates)
     if compliance is not None:
         if not nominal.contacts:

@@ -112,6 +112,11 @@ def digest(machine: Machine) -> str:
     return hashlib.sha256(json.dumps(machine.content(), sort_keys=True).encode()).hexdigest()
 
 
+def is_builtin(machine: Machine) -> bool:
+    """Whether ``machine`` is the built-in one (the same digest): the machine Table 1's gains are for."""
+    return digest(machine) == digest(Machine.default())
+
+
 def reference(machine: Machine) -> dict:
     """What a gain file records of the machine it was tuned on: ``{name, digest}``."""
     return {"name": machine.name, "digest": digest(machine)}

@@ -1,6 +1,7 @@
 """The MuJoCo model of the mechanism, the MJX plant against C MuJoCo, and the cascade co-simulated with it."""
 
 import contextlib
+import functools
 import io
 import json
 import subprocess
@@ -17,6 +18,7 @@ from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import stack
 from pusupu_jax.plant import kinematics as K
 from pusupu_jax.plant import model as M
+from pusupu_jax.plant.friction import slider_friction
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.mjx_plant import MJXPlant
 from pusupu_jax.sim import rollout, run_chunked
@@ -52,10 +54,13 @@ def test_model_matches_the_kinematics(seed):
 
 N_STEPS = 400
 TORQUE = np.cumsum(np.random.default_rng(0).normal(0, 0.002, (N_STEPS, 6)), axis=0) + 0.06  # N m, near holding
+# a 5 kg payload off the platform's centre, with its own inertia
+OFF_CENTRE = M.ModelOptions(payload=5.0, payload_com=(0.12, -0.05, 0.04), payload_inertia=(0.02, 0.03, 0.04))
 
 
 def c_mujoco_run(plant, aux, torque=TORQUE, qpos=None, model=None):
-    """Open-loop torques (default :data:`TORQUE`) through C MuJoCo, with the armature the MJX plant set.
+    """Open-loop torques (default :data:`TORQUE`) through C MuJoCo, with the armature the MJX plant set and the drive
+    train's friction of ``aux`` (:func:`~pusupu_jax.plant.friction.slider_friction` in numpy, at each step's start).
 
     ``model`` defaults to the plant's own; the run starts at rest at ``qpos`` (default
     ``qpos0``).  Returns qpos and qvel after every step, the loop-closure residual [m] and
@@ -64,6 +69,7 @@ def c_mujoco_run(plant, aux, torque=TORQUE, qpos=None, model=None):
     m = plant.mj_model if model is None else model
     dofs = M.slide_dofs(m)
     m.dof_armature[dofs] = np.asarray(aux.model.dof_armature)[dofs]
+    friction = jax.tree.map(np.asarray, aux.friction)
     d = mujoco.MjData(m)
     if qpos is not None:
         d.qpos[:] = qpos
@@ -71,7 +77,7 @@ def c_mujoco_run(plant, aux, torque=TORQUE, qpos=None, model=None):
     qpos_out, qvel_out, res = [], [], []
     for tau in torque:
         d.qfrc_applied[:] = 0
-        d.qfrc_applied[dofs] = np.asarray(aux.force_gain) * tau
+        d.qfrc_applied[dofs] = np.asarray(aux.force_gain) * tau - slider_friction(friction, d.qvel[dofs])
         mujoco.mj_step(m, d)
         qpos_out.append(d.qpos.copy())
         qvel_out.append(d.qvel.copy())
@@ -80,21 +86,25 @@ def c_mujoco_run(plant, aux, torque=TORQUE, qpos=None, model=None):
 
 
 def mjx_run(plant, aux, torque=TORQUE, qpos=None):
-    """The same through ``plant`` in MJX (one jitted scan); qpos and qvel after every step."""
-    def run(a, t, q):
-        d = plant.init(a) if q is None else mjx.forward(a.model, plant.init(a).replace(qpos=q))
+    """The same through ``plant`` in MJX (one jitted scan per plant, start and length); qpos and qvel after every
+    step."""
+    return _mjx_scan(plant, aux, jnp.asarray(torque), None if qpos is None else jnp.asarray(qpos))
 
-        def body(d, tau):
-            d = plant.step(a, d, tau)
-            return d, (d.qpos, d.qvel)
 
-        return jax.lax.scan(body, d, t)[1]
+@functools.partial(jax.jit, static_argnums=0)
+def _mjx_scan(plant, aux, torque, qpos):
+    d = plant.init(aux) if qpos is None else mjx.forward(aux.model, plant.init(aux).replace(qpos=qpos))
 
-    return jax.jit(run)(aux, jnp.asarray(torque), None if qpos is None else jnp.asarray(qpos))
+    def body(d, tau):
+        d = plant.step(aux, d, tau)
+        return d, (d.qpos, d.qvel)
+
+    return jax.lax.scan(body, d, torque)[1]
 
 
 def test_mjx_matches_c_mujoco_step_by_step_float64():
-    """Same model, same inputs, 400 steps (0.1 s, sliders move up to ~15 mm): observed 2.3e-8 m and 7.5e-7 m/s."""
+    """Same model, same inputs, Table 1's drive-train friction, 400 steps (0.1 s, sliders move up to 2.2 mm): observed
+    1.0e-8 m and 3.6e-7 m/s (without friction, where the sliders move up to 15 mm: 2.3e-8 m and 7.5e-7 m/s)."""
     aux = PLANT.prepare(SERVO, None, RATES.dt_mech)
     qpos, qvel = (np.asarray(a) for a in mjx_run(PLANT, aux))
     c_qpos, c_qvel, residual, _ = c_mujoco_run(PLANT, aux)
@@ -102,6 +112,32 @@ def test_mjx_matches_c_mujoco_step_by_step_float64():
     assert np.max(np.abs(qpos - c_qpos)) < 1e-6
     assert np.max(np.abs(qvel - c_qvel)) < 1e-5
     assert residual.max() < 1e-5  # stiff connects: the chain stays closed to micrometres
+
+
+def test_mjx_matches_c_mujoco_with_friction_through_reversals_and_an_off_centre_payload():
+    """The friction law on every slide, MJX against C MuJoCo (float64), with a 5 kg payload off the platform's centre
+    (120, -50, 40 mm, its own inertia) on the MJX plant as a variant model, and torques that reverse sliders 1-3
+    (:data:`TORQUE` plus 0.1 N m at 25 Hz): 400 steps (0.1 s).
+
+    Bounds as the frictionless comparison's, 1e-6 m and 1e-5 m/s: the friction adds no stiffness that amplifies
+    rounding (its steepest slope, coulomb / v_coulomb = 2e4 N s/m on a slide's 67 kg of rotor armature and more,
+    relaxes in 3 ms, 13 steps).  Observed 3.0e-8 m and 1.2e-6 m/s.  What friction changes is 1.5 mm here, 1500x
+    the bound on the difference.
+    """
+    variant = PLANT.variant(OFF_CENTRE)
+    aux = PLANT.prepare(SERVO, variant, RATES.dt_mech)
+    t = np.arange(len(TORQUE)) * RATES.dt_mech
+    torque = TORQUE + 0.1 * np.sin(2 * np.pi * 25 * t[:, None] + np.arange(6))
+    qpos, qvel = (np.asarray(a) for a in mjx_run(PLANT, aux, torque))
+    c_model = M.build_model(G, OFF_CENTRE)
+    c_qpos, c_qvel, residual, _ = c_mujoco_run(PLANT, aux, torque, model=c_model)
+    slider_v = c_qvel[:, M.slide_dofs(c_model)]
+    assert (np.diff(np.sign(slider_v), axis=0) != 0).sum() >= 5  # through the tanh's steep part, several times
+    assert np.max(np.abs(qpos - c_qpos)) < 1e-6
+    assert np.max(np.abs(qvel - c_qvel)) < 1e-5
+    assert residual.max() < 1e-5
+    frictionless = PLANT.prepare(SERVO.replace(coulomb=np.zeros(6), viscous=np.zeros(6)), variant, RATES.dt_mech)
+    assert np.max(np.abs(c_mujoco_run(PLANT, frictionless, torque, model=c_model)[0] - c_qpos)) > 1e-3
 
 
 FLOAT32 = """
@@ -118,7 +154,8 @@ print(json.dumps({"dtype": str(qpos.dtype), "qpos": float(np.abs(np.asarray(qpos
 def test_mjx_matches_c_mujoco_in_float32():
     """Float32 (a fresh process without x64) against C MuJoCo (float64): state within 1e-4 (m, rad, m/s, rad/s).
 
-    Observed over the 400 steps: qpos 3.1e-7, qvel 4.1e-5.  Velocity is the tight one: the
+    Observed over the 400 steps with Table 1's friction: qpos 6.3e-7, qvel 6.4e-5 (without: 3.1e-7 and 4.1e-5;
+    slider 2 reverses here, through the law's steep Coulomb part).  Velocity is the tight one: the
     connect constraints turn float32 rounding of the anchor positions (~5e-8 m at 0.8 m)
     into acceleration through their stiffness ~ 1/timeconst^2, so the error scales with
     ``1/solref_timeconst^2`` (one-step qvel error 3.6e-4 at 0.5 ms, 8.9e-5 at 1 ms, 2.7e-5 at 2 ms).
@@ -145,15 +182,16 @@ def test_cascade_drives_the_mjx_mechanism(mode):
     the nominal machine and on one with seeded kinematic errors (seed 3), as one chunked batch of two: the program
     of the start-at-rest test below, compiled once for both.
 
-    Observed after 1.5 s, worst branch: IMC 0.012 mm (nominal) and 0.014 mm (seeded), PID 0.26 mm on both, from
-    the reference (branch travel up to 4.1 mm); closure residual 1.1 um (IMC) and 0.9 um (PID) against RMS branch
-    errors of 0.13 and 0.48 mm (the bound, 1 %, is 1.2x the IMC run's ratio; the run is deterministic).  The
-    single-machine rollout this test used before gives the nominal row's figures to 1e-13 mm.
+    Observed after 3 s, worst branch: IMC 0.085 mm (nominal) and 0.086 mm (seeded), PID 0.033 and 0.032 mm, from
+    the reference (branch travel up to 4.1 mm).  The drive train's friction slows the settling: after 1.5 s PID is
+    still 0.64 mm off (0.26 mm without friction), IMC 0.18 mm (0.012 mm).  Closure residual 1.1 um (IMC) and 0.9 um
+    (PID) against RMS branch errors of 0.17 and 0.46 mm (the bound, 1 %, is 1.6x the IMC run's ratio; the run is
+    deterministic).
     """
     from pusupu_jax.machine import machine_plant, machine_reference
 
     plant = machine_plant()
-    ref = np.asarray(machine_reference(SERVO, platform_move(1500), mode, rates=RATES))
+    ref = np.asarray(machine_reference(SERVO, platform_move(3000), mode, rates=RATES))
     models = stack([plant.variant(M.ModelOptions()), plant.variant(M.ModelOptions(kin_error_seed=3))])
     trace, _ = run_chunked(SERVO, models, np.stack([ref, ref]), plant=plant, rates=RATES, outer=mode)
     s_ref = ref * float(SERVO.lead[0]) / (2 * np.pi)
@@ -284,13 +322,15 @@ def _short_move(outer):
 # T0, m6, c6, g, every term, both gradient modes, the default signed form); the rms form differs from it only in rho',
 # whose gradient tests/test_hybrid.py checks in the force law itself.  A hybrid case here cost a compile (100 s).
 def test_gradient_through_the_cosimulation_matches_central_differences():
-    """Reverse mode through cascade + MJX in IMC mode (50 ms: 200 MJX steps, 1000 current ticks), servo gains
-    perturbed on axis 0: relative error <= 1e-3.  Observed: 1.4e-6 (lambda1), 3.8e-7 (lambda2), 6.8e-10 (Kv),
-    1.8e-6 (Tv)."""
+    """Reverse mode through cascade + MJX in IMC mode (50 ms: 200 MJX steps, 1000 current ticks, float64), servo
+    gains and the drive train's friction perturbed on axis 0 (by 1e-4 of their value): relative error <= 1e-3.
+    Observed with Table 1's friction: 5.6e-9 (lambda1), 1.6e-7 (lambda2), 1.8e-8 (Kv), 6.4e-6 (Tv), 1.9e-7
+    (coulomb), 3.1e-5 (viscous), 1.1e-7 (v_coulomb).  The friction's values are arrays of the one compiled program,
+    as the gains are."""
     ref = _short_move("imc")
     value_and_grad = jax.jit(jax.value_and_grad(_tracking_and_torque_peak))  # one compile for both (as the tuner)
     grad = value_and_grad(SERVO, ref)[1]
-    for name in ("lambda1", "lambda2", "Kv", "Tv"):
+    for name in ("lambda1", "lambda2", "Kv", "Tv", "coulomb", "viscous", "v_coulomb"):
         v = np.asarray(getattr(SERVO, name))
         e = np.zeros(6)
         e[0] = 1e-4 * abs(v[0])
@@ -371,6 +411,78 @@ def test_model_variants_vmapped_equal_their_own_plants():
     assert np.max(np.abs(np.asarray(batch.torque[0] - batch.torque[1]))) > 1e-3  # the variants do differ
 
 
+def test_a_payload_is_a_variant_of_the_same_structure_and_adds_its_mass():
+    """Payloads of any mass, centre of mass and inertia build models of the same sizes and array shapes (so they vmap
+    through one compiled rollout); the machine's total mass rises by the payload's (observed to 7e-15 kg)."""
+    base = M.build_model(G, M.ModelOptions())
+    sizes = ("nq", "nv", "nbody", "neq", "ngeom")
+    for options in (M.ModelOptions(payload=5.0), OFF_CENTRE, M.ModelOptions(payload=80.0, payload_com=(0, 0, -0.3))):
+        m = M.build_model(G, options)
+        assert [getattr(m, n) for n in sizes] == [getattr(base, n) for n in sizes]
+        assert mujoco.mj_getTotalmass(m) - mujoco.mj_getTotalmass(base) == pytest.approx(options.payload, abs=1e-12)
+        variant = PLANT.variant(options)
+        assert jax.tree.map(jnp.shape, variant) == jax.tree.map(jnp.shape, PLANT.mjx_model)
+        platform = PLANT.mj_model.body("platform").id
+        assert float(variant.body_subtreemass[platform] - PLANT.mjx_model.body_subtreemass[platform]) == \
+            pytest.approx(options.payload, abs=1e-12)
+
+
+def test_a_payloads_weight_and_centre_of_mass_show_in_the_holding_forces():
+    """The slider forces [N] that hold the machine at home (level platform; vertical rails), with a 5 kg payload:
+
+    * their sum rises by the payload's weight m g wherever its centre of mass is (a vertical translation moves every
+      slider by as much as the platform, so the virtual work of the holding forces is the payload's);
+    * centred, each branch carries a sixth of it, as a platform heavier by 5 kg does;
+    * 100 mm straight above the centre, or with inertia, the forces are the centred payload's (gravity along the
+      platform's axis; no moment at rest);
+    * 100 mm off along +x, the branches on the +x side carry more than those on the -x side, and along -x the forces
+      are the +x ones mirrored through the y-z plane (the geometry's mirror symmetry maps branches 0-5 onto 1, 0, 5,
+      4, 3, 2).
+
+    Bounds 1e-9 of the forces without payload (63 N; exact but for rounding): observed 1e-15 at most.
+    """
+    @jax.jit
+    def hold(model):
+        aux = PLANT.prepare(SERVO, model, RATES.dt_mech)
+        return PLANT.holding_torque(aux, PLANT.init(aux)) * aux.force_gain
+
+    def force(options=M.ModelOptions(), geom=None):
+        return np.asarray(hold(PLANT.variant(options, geom)))
+
+    m, g = 5.0, 9.81
+    empty, centred = force(), force(M.ModelOptions(payload=m))
+    tol = 1e-9 * np.abs(empty).max()
+    np.testing.assert_allclose(centred - empty, m * g / 6, atol=tol)
+    np.testing.assert_allclose(force(geom=G.replace(platform_mass=np.asarray(G.platform_mass) + m)), centred, atol=tol)
+    for same in ((0, 0, 0.1), (0, 0, 0)), ((0, 0, 0), (0.1, 0.2, 0.25)):
+        np.testing.assert_allclose(force(M.ModelOptions(payload=m, payload_com=same[0], payload_inertia=same[1])),
+                                   centred, atol=tol)
+    plus, minus = (force(M.ModelOptions(payload=m, payload_com=(x, 0, 0))) for x in (0.1, -0.1))
+    for off in (plus, minus, force(OFF_CENTRE)):
+        assert np.sum(off - empty) == pytest.approx(m * g, abs=6 * tol)
+    x = np.asarray(G.platform_points)[:, 0]
+    assert (plus - centred)[x > 0.15].min() > 0.5 * m * g / 6 and (plus - centred)[x < -0.15].max() < -0.5 * m * g / 6
+    np.testing.assert_allclose(minus, plus[[1, 0, 5, 4, 3, 2]], atol=tol)
+
+
+@pytest.mark.parametrize("options, message", [
+    (M.ModelOptions(payload=-1.0), r"ModelOptions.payload: expected a finite mass >= 0 \[kg\], got -1.0"),
+    (M.ModelOptions(payload=float("nan")), r"ModelOptions.payload: expected a finite mass >= 0 \[kg\], got nan"),
+    (M.ModelOptions(payload=1.0, payload_com=(0.0, float("inf"), 0.0)), r"ModelOptions.payload_com: expected a finite"),
+    (M.ModelOptions(payload=1.0, payload_com=(0.0, 0.0)), r"ModelOptions.payload_com: expected a finite \(x, y, z\)"),
+    (M.ModelOptions(payload=1.0, payload_inertia=(0.1, -0.1, 0.1)), r"payload_inertia: expected three finite principal "
+                                                                      r"moments >= 0 \[kg m\^2\], got \(0.1, -0.1, 0.1\)"),
+    (M.ModelOptions(payload=1.0, payload_inertia=(0.1, 0.1, 0.3)), r"payload_inertia: expected principal moments of a "
+                                                                     r"rigid body \(each at most the sum of the other two\)"),
+    (M.ModelOptions(payload=0.0, payload_inertia=(0.1, 0.1, 0.1)), r"payload_inertia: expected \(0, 0, 0\) without a "
+                                                                     r"payload mass"),
+])
+def test_a_payload_that_is_no_rigid_body_is_refused_in_one_line(options, message):
+    with pytest.raises(ValueError, match=message) as e:
+        M.build_model(G, options)
+    assert "\n" not in str(e.value)
+
+
 def _hold(periods=HOLD_PERIODS):
     """Two scenarios, the batch size of experiments.p2p's quick run (two seeds): p2p's first second (padded) and
     holding still.  run_chunked's programs depend on the batch size, not on the horizon."""
@@ -406,7 +518,8 @@ def test_the_spherical_joints_jacobian_is_the_derivative_of_their_gap():
 def test_printed_form_started_as_before_reproduces_the_old_figures():
     """eq. 9 as printed (imc_form printed) with every controller state zero at t = 0 (start zero): the first second
     of the p2p path gives the figures of the code before the full form and the start at rest existed, to rounding;
-    and a machine told to hold still sags, as it did.
+    and a machine told to hold still sags, as it did.  Without the drive train's friction, which the machine did not
+    have then.
 
     Old figures (commit 6db0911, simulate_machine, Table 1, IMC): RMS 2.065628150536743 mm, max
     4.578009063579978 mm, branch force peaks 79.305 N (the sag under gravity in the first 0.2 s).  Tolerance
@@ -414,7 +527,8 @@ def test_printed_form_started_as_before_reproduces_the_old_figures():
     """
     from pusupu_jax.machine import simulate_scenarios
 
-    (r, _), (_, hold) = simulate_scenarios(SERVO.replace(imc_form="printed"), _hold(), mode="imc", start="zero")
+    before = SERVO.replace(imc_form="printed", coulomb=np.zeros(6), viscous=np.zeros(6))
+    (r, _), (_, hold) = simulate_scenarios(before, _hold(), mode="imc", start="zero")
     assert r["rms_tracking_error_mm"] == pytest.approx(2.065628150536743, rel=1e-9)
     assert r["max_tracking_error_mm"] == pytest.approx(4.578009063579978, rel=1e-9)
     np.testing.assert_allclose(r["branch_force_peak_n"], [79.30522842232436, 79.30532047297841, 79.30509074855742,

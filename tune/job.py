@@ -63,7 +63,7 @@ def start_gains(machine: Machine, start=None) -> tuple[ServoParams, HybridGains,
     :class:`~pusupu_jax.gains.GainFile`; None: Table 1 on the built-in machine, derived on any other.  Returns the
     servo gains on the machine, the hybrid gains and what the report says of them."""
     if start is None:
-        start = "table1" if machine_file.digest(machine) == machine_file.digest(Machine.default()) else "derived"
+        start = "table1" if machine_file.is_builtin(machine) else "derived"
     if isinstance(start, gains.GainFile):
         return machine.servo(start.servo), start.hybrid, {"source": "gain file", "checksum": start.document["checksum"]}
     if start == "table1":
@@ -226,7 +226,7 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
     if fresh and checkpoint.exists():
         checkpoint.unlink()
     t0 = time.perf_counter()
-    if start is None and machine_file.digest(machine) != machine_file.digest(Machine.default()) or start == "derived":
+    if start == "derived" or start is None and not machine_file.is_builtin(machine):
         print(f"tune: deriving start gains for machine {machine.name!r} (docs/machine.md; T0 identified on the MJX "
               "machine)", file=stream, flush=True)
     servo0, hybrid0, start_report = start_gains(machine, start)

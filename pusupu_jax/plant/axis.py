@@ -25,7 +25,7 @@ import jax.numpy as jnp
 
 from .. import lti
 from ..params import N_AXES, AxisLoad, ServoParams
-from .friction import coulomb_friction
+from .friction import Friction, coulomb_friction
 
 
 @jax.tree_util.register_dataclass
@@ -34,7 +34,7 @@ class AxisAux:
     step: lti.LTI  # discrete mechanics, states (theta, w), inputs (Te, tau_ext)
     r: Any  # m/rad
     load_force: Any  # N, gravity component along the rail
-    servo: ServoParams  # the friction law's parameters
+    friction: Friction  # the drive train's friction law's parameters
     eta: Any
 
 
@@ -46,7 +46,7 @@ class AxisPlant:
 
     def prepare(self, servo: ServoParams, load: AxisLoad, dt: float) -> AxisAux:
         return AxisAux(lti.c2d(mechanics(servo, load), dt, "zoh"), screw_ratio(servo),
-                       load.mass * load.g * jnp.sin(load.inclination), servo, servo.eta)
+                       load.mass * load.g * jnp.sin(load.inclination), Friction.of(servo), servo.eta)
 
     def init(self, aux: AxisAux):
         return jnp.zeros(aux.r.shape + (2,))
@@ -66,7 +66,7 @@ class AxisPlant:
 
     def step(self, aux: AxisAux, state, torque):
         v = aux.r * state[..., 1]
-        tau_ext = aux.r / aux.eta * (aux.load_force + coulomb_friction(aux.servo, v))
+        tau_ext = aux.r / aux.eta * (aux.load_force + coulomb_friction(aux.friction, v))
         return lti.update(aux.step, state, jnp.stack([torque, tau_ext], axis=-1))
 
     def slider(self, aux: AxisAux, state):

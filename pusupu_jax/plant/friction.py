@@ -6,21 +6,55 @@
 reversal; MuJoCo's ``frictionloss`` is not used, since it lives in the constraint solver and is
 not smooth.
 
-The MJX machine and the simulated robot (C MuJoCo) apply :func:`slider_friction` as a force on
-each slide joint.  The single-axis plant integrates the viscous part exactly with its linear
+The MJX machine (:meth:`~pusupu_jax.plant.mjx_plant.MJXPlant.step`) and the simulated robot
+(C MuJoCo, :class:`hw_bridge.sim_robot.RobotModel`) apply ``-slider_friction`` as a force on each
+slide joint, beside the motor's force, evaluated at the slider speeds at the start of each
+mechanical step.  The single-axis plant integrates the viscous part exactly with its linear
 mechanics (``b_eff``) and adds :func:`coulomb_friction`, the same law split where it is linear.
+
+The functions take traced or JAX arrays (the plants' steps) and numpy arrays alike: with numpy
+parameters and speeds they compute in numpy, so the simulated robot's host-side step, up to
+20 kHz, pays no JAX dispatch.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
+import jax
 import jax.numpy as jnp
+import numpy as np
 
 
-def coulomb_friction(servo, v):
-    """The Coulomb part ``coulomb tanh(v / v_coulomb)`` [N] at slider speeds ``v`` [m/s] ``(..., 6)``."""
-    return servo.coulomb * jnp.tanh(v / servo.v_coulomb)
+@jax.tree_util.register_dataclass
+@dataclass(frozen=True)
+class Friction:
+    """The law's parameters per axis ``(..., 6)``: ``coulomb`` [N], ``viscous`` [N s/m], ``v_coulomb`` [m/s]."""
+
+    coulomb: Any
+    viscous: Any
+    v_coulomb: Any
+
+    @classmethod
+    def of(cls, servo) -> "Friction":
+        """The friction fields of ``servo`` (a :class:`~pusupu_jax.params.ServoParams`), as they are (traced or not)."""
+        return cls(servo.coulomb, servo.viscous, servo.v_coulomb)
 
 
-def slider_friction(servo, v):
+def _array_module(*arrays):
+    """numpy when every input is a numpy array or a number, jax.numpy otherwise (JAX or traced arrays)."""
+    return np if all(isinstance(a, (np.ndarray, np.generic, float, int)) for a in arrays) else jnp
+
+
+def coulomb_friction(friction, v):
+    """The Coulomb part ``coulomb tanh(v / v_coulomb)`` [N] at slider speeds ``v`` [m/s] ``(..., 6)``.
+
+    ``friction``: a :class:`Friction` or anything with its fields (a ``ServoParams``)."""
+    xp = _array_module(friction.coulomb, friction.v_coulomb, v)
+    return friction.coulomb * xp.tanh(v / friction.v_coulomb)
+
+
+def slider_friction(friction, v):
     """The whole friction force [N] opposing slider speeds ``v`` [m/s] ``(..., 6)``: Coulomb plus viscous."""
-    return coulomb_friction(servo, v) + servo.viscous * v
+    return coulomb_friction(friction, v) + friction.viscous * v

@@ -7,13 +7,19 @@ slider through the screw, ``theta = (s - s_home) / r``, ``omega = s' / r``
 (``r = lead / 2 pi``), zeroed at the home pose as a homed drive is.  ``slider`` returns
 the travel from home [m] and the slider velocity [m/s].
 
+Each slide joint carries the motor's force ``eta tau / r`` [N] and the drive train's friction
+``-slider_friction(v)`` of :mod:`pusupu_jax.plant.friction` (``ServoParams`` fields ``coulomb``,
+``viscous``, ``v_coulomb``), both held over the mechanical step, the friction taken at the slider
+speeds at its start.  The friction's parameters are arrays of the rollout (changing them does not
+recompile; a batch of servo parameters vmaps over them).
+
 The plant is hashed by identity (it is a static argument of the jitted rollout): build it
 once with :meth:`MJXPlant.create` and reuse it, or every call compiles anew.
 
-Scenarios (seeded kinematic errors, payloads) of the same mechanism differ only in array
-fields of the model, so they can share one compiled rollout and be vmapped: pass
-:meth:`MJXPlant.variant` models (stacked for a batch) as the rollout's ``plant_params``;
-``None`` runs the plant's own model.
+Scenarios (seeded kinematic errors, payloads: mass, centre of mass, inertia) of the same
+mechanism differ only in array fields of the model, so they can share one compiled rollout and
+be vmapped: pass :meth:`MJXPlant.variant` models (stacked for a batch) as the rollout's
+``plant_params``; ``None`` runs the plant's own model.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ with contextlib.redirect_stdout(io.StringIO()):  # MJX prints its optional GPU b
     from mujoco import mjx
 
 from .axis import screw_ratio
+from .friction import Friction, slider_friction
 from .geometry import Geometry
 from .model import ModelOptions, build_model, loop_closure_residual, slide_dofs, slide_qpos
 
@@ -43,6 +50,7 @@ class MJXAux:
     model: Any  # mjx.Model with the servo-dependent armature
     force_gain: Any  # (6,) N per N m: eta / r
     r: Any  # (6,) m/rad
+    friction: Friction  # the drive train's, at the slider: (6,) each
 
 
 @dataclass(frozen=True, eq=False)
@@ -64,14 +72,16 @@ class MJXPlant:
 
         Only array fields are taken from the variant (body poses, masses, inertias, geoms,
         connect anchors, ``qpos0``); the rest (sizes, indices, solver options) must be and
-        are the same.  Two things are left at this plant's values: the model statistics
-        (``stat``: they scale the solver's termination test, which one Newton iteration
-        never reaches) and the height-field bounding radii (no height fields here).
+        are the same (a payload is the ``payload`` body welded to the platform, there and
+        massless without one).  Two things are left at this plant's values: the model
+        statistics (``stat``: they scale the solver's termination test, which one Newton
+        iteration never reaches) and the height-field bounding radii (no height fields here).
         """
         other = mjx.put_model(build_model(geom, options))
-        if (other.nq, other.nv, other.neq, other.ngeom) != (self.mjx_model.nq, self.mjx_model.nv, self.mjx_model.neq,
-                                                            self.mjx_model.ngeom):
-            raise ValueError("MJXPlant.variant: the options change the model's structure, not only its values")
+        sizes = ("nq", "nv", "nbody", "neq", "ngeom")
+        if [getattr(other, n) for n in sizes] != [getattr(self.mjx_model, n) for n in sizes]:
+            raise ValueError(f"MJXPlant.variant: expected the sizes {sizes} of this plant's model "
+                             f"{[getattr(self.mjx_model, n) for n in sizes]}, got {[getattr(other, n) for n in sizes]}")
         arrays = {f.name: getattr(other, f.name) for f in dataclasses.fields(other)
                   if isinstance(getattr(other, f.name), jax.Array)}
         return self.mjx_model.replace(**arrays)
@@ -128,7 +138,7 @@ class MJXPlant:
         model = self.mjx_model if plant_params is None else plant_params
         r = screw_ratio(servo)
         armature = model.dof_armature.at[self._dofs].set(servo.eta * servo.J / r**2)
-        return MJXAux(model.replace(dof_armature=armature), servo.eta / r, r)
+        return MJXAux(model.replace(dof_armature=armature), servo.eta / r, r, Friction.of(servo))
 
     def init(self, aux: MJXAux):
         return mjx.forward(aux.model, mjx.make_data(aux.model))
@@ -167,7 +177,9 @@ class MJXPlant:
         return s / aux.r, v / aux.r
 
     def step(self, aux: MJXAux, data, torque):
-        qfrc = jnp.zeros_like(data.qfrc_applied).at[self._dofs].set(aux.force_gain * torque)
+        """One mechanical step under motor torques ``torque`` [N m] ``(6,)``, held, with the drive train's friction."""
+        force = aux.force_gain * torque - slider_friction(aux.friction, data.qvel[self._dofs])
+        qfrc = jnp.zeros_like(data.qfrc_applied).at[self._dofs].set(force)
         return mjx.step(aux.model, data.replace(qfrc_applied=qfrc))
 
     def slider(self, aux: MJXAux, data):

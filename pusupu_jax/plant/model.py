@@ -15,7 +15,15 @@ Each slider is driven through its ball screw: motor torque ``tau`` [N m] becomes
 force ``eta tau / r`` (``r = lead / 2 pi`` [m/rad]) and the rotor appears on the slide joint
 as armature ``eta J / r^2`` [kg] (efficiency applied to the torque left after accelerating
 the rotor; the same convention as the single-axis plant).  Those two depend on the servo
-parameters and are set per rollout by the MJX plant, not here.
+parameters and are set per rollout by the MJX plant, not here; so is the drive train's
+friction (:mod:`pusupu_jax.plant.friction`), a force on each slide joint, not MuJoCo's
+``frictionloss``.
+
+The payload is a rigid body, ``payload``, welded to the platform (no joint): ``payload`` [kg]
+at ``payload_com`` [m] (platform frame) with principal moments ``payload_inertia`` [kg m^2]
+about its centre of mass, axes along the platform's.  It is always there (massless without a
+payload), so machines with any payload have the same structure and differ only in array fields
+(body position, mass, inertia): :meth:`~pusupu_jax.plant.mjx_plant.MJXPlant.variant`.
 
 ``kin_error_seed`` builds the *real* machine with seeded errors on the rail points, the
 platform joint positions and the rod lengths (normal, ``kin_error_std`` [m]); the nominal
@@ -57,7 +65,9 @@ class ModelOptions:
     """Static options of the MuJoCo model."""
 
     timestep: float = 0.00025  # s, mechanical step (rates.dt_mech: n_mech = 5 at 20 kHz)
-    payload: float = 0.0  # kg, added to the platform at its centre
+    payload: float = 0.0  # kg, the payload body welded to the platform
+    payload_com: tuple = (0.0, 0.0, 0.0)  # m, the payload's centre of mass in the platform frame
+    payload_inertia: tuple = (0.0, 0.0, 0.0)  # kg m^2, its principal moments about its centre of mass (platform axes)
     kin_error_seed: int | None = None
     kin_error_std: float = 0.0005  # m
     contacts: bool = False
@@ -141,8 +151,9 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     upper = body(lower, "upu_upper", [0, 0, leg], [1, 0, 0, 0], m_up, _rod_inertia(m_up, 0.4))
     upper.add_joint(name="upu_leg", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 0, 1], ref=leg)
     visual(upper, [0, 0, -0.4, 0, 0, 0], 0.025)
-    platform_mass = float(nominal.platform_mass) + options.payload
-    platform = body(upper, "platform", [0, 0, 0], [1, 0, 0, 0], platform_mass, np.asarray(nominal.platform_inertia))
+    platform = body(upper, "platform", [0, 0, 0], [1, 0, 0, 0], nominal.platform_mass,
+                    np.asarray(nominal.platform_inertia))
+    body(platform, "payload", options.payload_com, [1, 0, 0, 0], options.payload, options.payload_inertia)
     hinge(platform, "upu_alpha", [0, 1, 0], alpha)
     hinge(platform, "upu_beta", [1, 0, 0], beta)
     for c in np.asarray(real.platform_points):
@@ -218,7 +229,8 @@ def _add_hole(world, centre, top: float):
 
 
 def _check_options(options: ModelOptions) -> None:
-    """One-line ValueError for a contact option out of its domain."""
+    """One-line ValueError for a payload or contact option out of its domain."""
+    _check_payload(options)
     if options.scene not in SCENES:
         raise ValueError(f"ModelOptions.scene: expected one of {SCENES}, got {options.scene!r}")
     if options.cone not in CONES:
@@ -231,6 +243,29 @@ def _check_options(options: ModelOptions) -> None:
     offset = np.asarray(options.hole_offset, dtype=float)
     if offset.shape != (2,) or not np.isfinite(offset).all() or np.abs(offset).max() > 0.02:
         raise ValueError(f"ModelOptions.hole_offset: expected (x, y) within 20 mm [m], got {options.hole_offset!r}")
+
+
+def _check_payload(options: ModelOptions) -> None:
+    """One-line ValueError for a payload that is no rigid body: mass finite and >= 0, centre of mass finite, principal
+    moments finite, >= 0 and satisfying the triangle inequality (each at most the sum of the other two); no moments
+    without mass."""
+    mass = options.payload
+    if not (np.isfinite(mass) and mass >= 0):
+        raise ValueError(f"ModelOptions.payload: expected a finite mass >= 0 [kg], got {mass!r}")
+    com = np.asarray(options.payload_com, dtype=float)
+    if com.shape != (3,) or not np.isfinite(com).all():
+        raise ValueError(f"ModelOptions.payload_com: expected a finite (x, y, z) [m] in the platform frame, got "
+                         f"{options.payload_com!r}")
+    inertia = np.asarray(options.payload_inertia, dtype=float)
+    if inertia.shape != (3,) or not np.isfinite(inertia).all() or (inertia < 0).any():
+        raise ValueError(f"ModelOptions.payload_inertia: expected three finite principal moments >= 0 [kg m^2], got "
+                         f"{options.payload_inertia!r}")
+    if mass == 0 and inertia.any():
+        raise ValueError(f"ModelOptions.payload_inertia: expected (0, 0, 0) without a payload mass (payload 0 kg), got "
+                         f"{options.payload_inertia!r}")
+    if (2 * inertia > inertia.sum()).any():
+        raise ValueError(f"ModelOptions.payload_inertia: expected principal moments of a rigid body (each at most the "
+                         f"sum of the other two), got {options.payload_inertia!r}")
 
 
 def _rod_inertia(mass, length):
