@@ -256,8 +256,7 @@ def parse(text: str, floors=FLOORS, checksum: bool = True, check_stability: bool
     inputs.check_keys(doc, "gain file", keys, ParameterError, required=keys)
     mode = inputs.choice(doc["mode"], "mode", MODES, ParameterError)
     tuned_on = _machine_reference(doc["machine"]) if version == VERSION else machine_file.reference(Machine.default())
-    servo, hybrid = _parameters(doc, version)
-    servo = machine.servo(servo)
+    servo, hybrid = _parameters(doc, version, machine)
     names = [f.name for f in dataclasses.fields(LoopRates)]
     rates = rates_from_mapping(inputs.check_keys(doc["rates"], "rates", names, ParameterError, required=names))
     if not isinstance(doc["provenance"], dict):
@@ -329,7 +328,8 @@ def _check_plant(values: dict, where: str, machine: Machine | None = None) -> No
                                  f"{inputs.shown(_compact(v))} (gains tuned on another plant are not these gains)")
 
 
-def _parameters(doc, version: int) -> tuple[ServoParams, HybridGains]:
+def _parameters(doc, version: int, machine: Machine) -> tuple[ServoParams, HybridGains]:
+    """The file's gains on ``machine``'s drives (the controller's values checked against the machine's ratings)."""
     expected = _controller_fields(version)
     controller = inputs.check_keys(doc["controller"], "controller", CONTROLLER_SECTIONS, ParameterError,
                                    required=CONTROLLER_SECTIONS, what="section")
@@ -359,7 +359,7 @@ def _parameters(doc, version: int) -> tuple[ServoParams, HybridGains]:
             _check_plant({k: getattr(plant, k) for k in PLANT_V2}, "plant")
         except ParameterError as e:
             raise ParameterError(f"{e}; a version 2 file is read only on the built-in plant") from None
-    return ServoParams.from_mapping(values), hybrid
+    return ServoParams.from_mapping(values, base=ServoParams.table1().replace(**machine.drives)), hybrid
 
 
 def sign(path, floors=FLOORS, machine: Machine | None = None) -> Path:

@@ -14,6 +14,7 @@ from pusupu_jax import ParameterError, gains, machine_file
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine_file import Machine
 from pusupu_jax.params import LoopRates, ServoParams
+from pusupu_jax.start_gains import derive
 
 EXAMPLE = Path(__file__).parent.parent / "docs" / "examples" / "machine_user.yaml"
 
@@ -99,12 +100,13 @@ def test_machine_commands_init_check_and_refusal(tmp_path):
 
 def test_a_gain_file_names_its_machine_and_is_checked_on_the_one_given(tmp_path):
     user = machine_file.load(EXAMPLE)
-    servo = user.servo(ServoParams.table1().replace(I_max=np.full(6, 10.0)))
+    servo, _ = derive(user, identify=False)
     text = gains.document(servo, HybridGains(), LoopRates(n_mech=5), mode="imc", machine=user)
     g = gains.parse(text, machine=user)
     assert g.machine == machine_file.reference(user) and g.tuned_on(user) and not g.tuned_on(Machine.default())
     assert np.allclose(g.servo.lead, 0.005) and np.allclose(g.servo.coulomb, 95.0)
-    # the same gains on the built-in machine: Table 1's drive, so the same file reads, naming the user's machine
-    assert not gains.parse(text).tuned_on(Machine.default())
+    # on the built-in machine the same file is checked on its drive: a 31 A clamp on a 10 A drive is refused
+    with pytest.raises(ParameterError, match="I_max: expected 0 to I_peak = 10"):
+        gains.parse(text)
     with pytest.raises(ParameterError, match="machine 'user-1FT7044-lead5'"):
         gains.document(ServoParams.table1(), HybridGains(), LoopRates(n_mech=5), mode="imc", machine=user)
