@@ -323,7 +323,7 @@ def _check_plant(values: dict, where: str, machine: Machine | None = None) -> No
     for name, v in values.items():
         ours = np.asarray(plant[name], dtype=float)
         if not np.allclose(np.broadcast_to(np.asarray(v, dtype=float), ours.shape), ours, rtol=1e-12, atol=0):
-            whose = "the built-in plant's" if machine is None else f"machine {machine.name!r}'s"
+            whose = "the built-in plant's" if machine is None else f"the drive of machine {machine.name!r},"
             raise ParameterError(f"{where}.{name}: expected {whose} {_compact(ours)!r}, got "
                                  f"{inputs.shown(_compact(v))} (gains tuned on another plant are not these gains)")
 

@@ -90,8 +90,11 @@ BAD = {
                                                           r"HybridGains.g: expected a number from 0 to 300000"),
     "loop rates too slow": (lambda d: d["rates"].update(n_velocity=100, n_mech=100),
                             r"rates: f_current / n_velocity is 200 Hz|position\) is 50 Hz; expected 100"),
-    "a plant section (version 2's) in a version 3 file": (lambda d: d.update(plant={}), "unknown key 'plant'"),
-    "schema version": (lambda d: d.update(version=4), "version: expected 3"),
+    "a plant section (version 2's) in a version 4 file": (lambda d: d.update(plant={}), "unknown key 'plant'"),
+    "schema version": (lambda d: d.update(version=5), "version: expected 4"),
+    "a version 3 file with a machine key": (lambda d: d.update(version=3), "unknown key 'machine'"),
+    "no machine": (lambda d: d.pop("machine"), "missing key 'machine'"),
+    "a machine digest that is no sha256": (lambda d: d["machine"].update(digest="abc"), "machine.digest"),
     "version 1 (printed-form era)": (lambda d: d.update(version=1), "version 1 files predate the choice of IMC"),
     "unknown IMC form": (lambda d: d["controller"]["position"].update(imc_form="exact"),
                          "ServoParams.imc_form: expected one of"),
@@ -162,7 +165,7 @@ def test_unstable_gains_are_never_written_and_the_old_file_survives(tmp_path):
     before = path.read_bytes()
     with pytest.raises(ParameterError, match="velocity loop of axis 1 is unstable"):
         _write(path, servo=GOOD.replace(Kv=np.full(6, 2.0)))
-    with pytest.raises(ParameterError, match="servo.Kt: expected the built-in plant's"):
+    with pytest.raises(ParameterError, match="servo.Kt: expected the drive of machine 'built-in', 1.322"):
         _write(path, servo=GOOD.replace(Kt=GOOD.Kt / 100))  # gains tuned on another plant
     with pytest.raises(ParameterError, match="ServoParams.lambda2: expected finite"):
         _write(path, servo=GOOD.replace(lambda2=np.full(6, np.nan)))

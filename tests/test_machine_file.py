@@ -108,5 +108,16 @@ def test_a_gain_file_names_its_machine_and_is_checked_on_the_one_given(tmp_path)
     # on the built-in machine the same file is checked on its drive: a 31 A clamp on a 10 A drive is refused
     with pytest.raises(ParameterError, match="I_max: expected 0 to I_peak = 10"):
         gains.parse(text)
-    with pytest.raises(ParameterError, match="machine 'user-1FT7044-lead5'"):
+    with pytest.raises(ParameterError, match="the drive of machine 'user-1FT7044-lead5'"):
         gains.document(ServoParams.table1(), HybridGains(), LoopRates(n_mech=5), mode="imc", machine=user)
+
+
+def test_the_bridge_refuses_gains_tuned_on_another_machine(tmp_path):
+    """The built-in machine renamed: the same drives, so only the digest tells the machines apart."""
+    other = Machine("twin", Machine.default().geometry, Machine.default().drives)
+    path = tmp_path / "gains.yaml"
+    path.write_text(gains.document(other.servo(ServoParams.table1()), HybridGains(), LoopRates(n_mech=5), mode="imc",
+                                   machine=other))
+    r = pusupu("bridge", "--gains", path, "--robot", "udp://127.0.0.1:5612", "--duration", "1", "--no-realtime")
+    assert r.returncode == 2 and "tuned on machine 'twin'" in r.stderr and "--allow-other-machine" in r.stderr
+    assert r.stderr.count("\n") == 1

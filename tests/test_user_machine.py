@@ -1,0 +1,54 @@
+"""A user's machine end to end, from the README's commands (the quick tuning configuration): the machine file and a
+pose table with tilts are checked, tuned on, exported with the machine's name, checked on that machine and run by the
+bridge against the simulated robot built from the same file; the built-in machine refuses the gains."""
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+EXAMPLES = Path(__file__).parent.parent / "docs" / "examples"
+MACHINE, PATH = EXAMPLES / "machine_user.yaml", EXAMPLES / "pose_table.csv"
+
+
+def pusupu(*args, timeout=900):
+    return subprocess.run([sys.executable, "-m", "pusupu_cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_a_users_machine_end_to_end(tmp_path):
+    r = pusupu("machine", "check", MACHINE, "--trajectory", PATH)
+    assert r.returncode == 0, r.stderr
+    config = tmp_path / "quick.yaml"
+    config.write_text(f"mode: imc\ngroups: [imc, velocity]\ntrajectories: [{PATH}]\n")
+    out = tmp_path / "out"
+    r = pusupu("tune", "--machine", MACHINE, "--quick", "--config", config, "--out", out, "--json")
+    assert r.returncode == 0, r.stderr
+    report = json.loads(r.stdout)
+    assert report["machine"]["name"] == "user-1FT7044-lead5"
+    start = report["start_gains"]
+    assert start["source"] == "derived" and len(start["T0_identified_s"]) == 6
+    assert report["start"]["T0"] != [0.01475] * 6  # T0 identified on this machine, not Table 1's
+    assert report["objective_after"] < report["objective_before"]
+    gain_file = out / "gains.yaml"
+    r = pusupu("gains", "check", gain_file, "--machine", MACHINE)
+    assert r.returncode == 0 and "tuned on machine 'user-1FT7044-lead5'" in r.stdout, r.stderr
+    r = pusupu("gains", "check", gain_file)  # on the built-in machine: its 10 A drive, the user's 31 A clamp
+    assert r.returncode == 2 and "I_max: expected 0 to I_peak = 10" in r.stderr and r.stderr.count("\n") == 1
+    robot = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", gain_file, "--machine",
+                              MACHINE, "--listen", "udp://127.0.0.1:5611", "--seconds", "120", "--no-realtime"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(1.0)
+        r = pusupu("bridge", "--gains", gain_file, "--robot", "udp://127.0.0.1:5611", "--trajectory", PATH,
+                   "--duration", "1", "--no-realtime")  # without the machine file: the built-in machine refuses
+        assert r.returncode == 2 and "I_max" in r.stderr, r.stderr
+        r = pusupu("bridge", "--gains", gain_file, "--machine", MACHINE, "--robot", "udp://127.0.0.1:5611",
+                   "--trajectory", PATH, "--duration", "2", "--no-realtime", "--json")
+        assert r.returncode == 0, r.stderr
+        run = json.loads(r.stdout)
+        assert run["faults"] == [] and run["cycles"] > 0
+    finally:
+        robot.terminate()
+        robot.wait(timeout=60)
