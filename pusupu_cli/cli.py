@@ -408,8 +408,11 @@ def _load(args, check: bool = True):
     machine = _machine(args)
     with _checking(f"--params {args.params}" if args.params else "the default parameters"):
         loaded = load_params_file(args.params)
-        if args.params and args.machine:
-            servo = read_yaml_mapping(Path(args.params), "section", SECTIONS).get("servo") or {}
+        sections = read_yaml_mapping(Path(args.params), "section", SECTIONS) if args.params else {}
+        # the linear model's load: a params file's load section, else the machine's (machine_file.axis_load)
+        args.linear_load = loaded.load if sections.get("load") else machine_file.axis_load(machine)
+        if args.machine:
+            servo = sections.get("servo") or {}
             clash = [name for name in servo if name in machine.drives]
             if clash:
                 raise ParameterError(f"--params {args.params}: servo.{clash[0]}: expected controller fields only with "
@@ -433,7 +436,7 @@ def _load(args, check: bool = True):
         loaded = loaded._replace(servo=loaded.servo.replace(imc_form=args.imc_form))
     if check:
         try:
-            stability.check(loaded.servo, loaded.hybrid, loaded.rates, args.mode, args.floors, load=loaded.load)
+            stability.check(loaded.servo, loaded.hybrid, loaded.rates, args.mode, args.floors, load=args.linear_load)
         except ParameterError as e:
             raise ParameterError(f"{args.gains or args.params or 'the defaults'}: {e}") from None
     else:
@@ -470,7 +473,7 @@ def _machine_command(args) -> int:
     for name in args.trajectory or ["arc", "p2p"]:
         with _checking(f"--trajectory {name}"):
             paths.append((name, platform_path_from(name, machine.geometry.home, LoopRates())))
-    from pusupu_jax.start_gains import carried_mass, derive
+    from pusupu_jax.start_gains import derive
 
     with _checking(args.file):
         found = machine_file.check(machine, paths)
@@ -577,7 +580,8 @@ def _check_ros(args, g) -> int:
     runs = {"pusupu": simulate_scenarios(g.servo, scenarios, mode=g.mode, rates=g.rates,
                                          hybrid=g.hybrid if control_mode(g.mode).hybrid else None),
             "ros": simulate_scenarios(ros_servo, scenarios, mode="ros_pid", rates=g.rates)}
-    margins = {"pusupu": gains.margins_report(g.servo, g.mode), "ros": gains.margins_report(ros_servo, "ros_pid")}
+    margins = {"pusupu": gains.margins_report(g.servo, g.mode, machine),
+               "ros": gains.margins_report(ros_servo, "ros_pid", machine)}
     result = {"mode": g.mode, "ros_gains": {k: v.tolist() for k, v in ros2.ros_gains(g.servo, g.mode).items()},
               "paths": {}, "position_margins": {}}
     for who in runs:
@@ -622,7 +626,8 @@ def _check_plot_path(path):
 def _analyze(args) -> int:
     from pusupu_jax import analysis
 
-    servo, load, rates, hybrid = _load(args, check=False)  # analysed as a diagnosis, then checked
+    servo, _, rates, hybrid = _load(args, check=False)  # analysed as a diagnosis, then checked
+    load = args.linear_load  # the machine's (or the params file's load section)
     if args.plot:
         _check_plot_path(args.plot)
     if args.identify_T0:

@@ -117,10 +117,11 @@ class GainFile:
         return "GainFile: " + show(self.document)
 
 
-def margins_report(servo: ServoParams, mode: str = "imc") -> dict:
+def margins_report(servo: ServoParams, mode: str = "imc", machine: Machine | None = None) -> dict:
     """Phase [deg] and gain [dB] margins of every loop of every axis as lists (:func:`pusupu_jax.stability.margins`,
-    single-axis model with the default load)."""
-    m, _ = stability.margins(servo, mode)
+    single-axis model with ``machine``'s load, :func:`pusupu_jax.machine_file.axis_load`; default the built-in
+    machine)."""
+    m, _ = stability.margins(servo, mode, machine_file.axis_load(Machine.default() if machine is None else machine))
     return {loop: {k: v[k].tolist() for k in ("phase_margin_deg", "gain_margin_db")} for loop, v in m.items()}
 
 
@@ -194,7 +195,7 @@ def document(servo: ServoParams, hybrid: HybridGains, rates: LoopRates, *, mode:
         raise ParameterError(f"gains mode: expected one of {MODES}, got {mode!r}")
     machine = Machine.default() if machine is None else machine
     _check_plant({name: getattr(servo, name) for name in machine.drives}, "servo", machine)
-    found = stability.check(servo, hybrid, rates, mode, floors)
+    found = stability.check(servo, hybrid, rates, mode, floors, load=machine_file.axis_load(machine))
     controller = {name: {} for name in CONTROLLER_SECTIONS}
     for f in static_fields(ServoParams):
         controller[f.metadata["section"]][f.name] = getattr(servo, f.name)
@@ -262,7 +263,7 @@ def parse(text: str, floors=FLOORS, checksum: bool = True, check_stability: bool
     if not isinstance(doc["provenance"], dict):
         raise ParameterError(f"provenance: expected a mapping, got {type(doc['provenance']).__name__}")
     if check_stability:
-        stability.check(servo, hybrid, rates, mode, floors)
+        stability.check(servo, hybrid, rates, mode, floors, load=machine_file.axis_load(machine))
     else:
         stability.check_values(servo, hybrid, rates)
     if checksum:

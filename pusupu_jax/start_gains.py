@@ -11,7 +11,7 @@ machine (:class:`~pusupu_jax.machine_file.Machine`), per axis:
    ``w_v Tw``, so the PI zero and the filter's lag sit where Table 1 puts them relative to the
    crossover and the loop keeps Table 1's phase margin (in this loop model: closed current loop as
    1, rigid load).  ``J_eff = J + m r^2 / eta`` with ``m`` the mass the slider carries
-   (:func:`pusupu_jax.plant.dynamics.reflected_mass` at home, payload included).
+   (:func:`pusupu_jax.machine_file.carried_mass` at home, payload included).
 3. **T0** (eq. 9): identified on that machine, velocity steps of the MJX machine at home
    (:func:`pusupu_jax.identify.identify_T0_machine`), with the velocity loop of step 2.
 4. **IMC** (eq. 9): ``lambda1`` and ``lambda2`` in Table 1's ratio to ``T0``
@@ -21,9 +21,10 @@ machine (:class:`~pusupu_jax.machine_file.Machine`), per axis:
 
 Each ratio is taken on the built-in machine, so the built-in machine gets back Table 1 in
 steps 1, 2 and 5 to rounding.  Step 3 does not give back Table 1's ``T0``: the paper's
-``T0`` is the closed velocity loop of its own machine, modelled here by the lumped 20 kg load
-(:class:`~pusupu_jax.params.AxisLoad`), while the MJX machine's branches carry their own share of
-the mechanism (:func:`derive` reports the identified value and Table 1's).
+``T0`` is the closed velocity loop of its own machine, reproduced by the single-axis model with the
+lumped 20 kg design load (:class:`~pusupu_jax.params.AxisLoad`), while the MJX machine's branches carry
+their own share of the mechanism and push through it against the other five loops (:func:`derive`
+reports the identified value and Table 1's).
 Limits (``I_max``, ``V_max``) become the machine's ratings (``I_peak``, ``V_dc`` less Table 1's
 margin); the following-error window and time stay Table 1's.
 """
@@ -33,10 +34,9 @@ from __future__ import annotations
 import numpy as np
 
 from .identify import identify_T0_machine
-from .machine_file import Machine
+from .machine_file import Machine, carried_mass
 from .params import LoopRates, ServoParams
 from .plant.axis import screw_ratio
-from .plant.dynamics import reflected_mass
 
 T0_TABLE1 = 0.01475  # s
 
@@ -48,11 +48,6 @@ def _crossovers(servo: ServoParams, mass) -> tuple[np.ndarray, np.ndarray]:
     w_i = np.asarray(servo.Ki) * np.asarray(servo.Kn) * np.asarray(servo.Kcf) / np.asarray(servo.L)
     w_v = np.asarray(servo.Kv) * np.asarray(servo.Kt) * np.asarray(servo.Kw) / j_eff
     return w_i, w_v
-
-
-def carried_mass(machine: Machine) -> np.ndarray:
-    """The mass [kg] each slider carries at the machine's home pose, ``(6,)`` (payload included)."""
-    return reflected_mass(machine.geometry, machine.geometry.home, machine.options())[0]
 
 
 def derive(machine: Machine, rates: LoopRates = LoopRates(), identify: bool = True) -> tuple[ServoParams, dict]:

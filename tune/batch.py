@@ -28,13 +28,14 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from pusupu_jax import objectives
+from pusupu_jax import machine_file, objectives
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.gradients import value_and_grad
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import machine_rates
 from pusupu_jax.margins import loop_margins
-from pusupu_jax.params import AxisLoad, ServoParams
+from pusupu_jax.machine_file import Machine
+from pusupu_jax.params import ServoParams
 from pusupu_jax.programs import Program
 from pusupu_jax.sim import rollout
 
@@ -64,7 +65,7 @@ class BatchProblem(WindowStarts):
         self.space = Space.create(cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared,
                                   bounds=cfg.bounds)
         self.scenarios = sc = Scenarios.build(cfg, self.space.servo0, self.rates, specs)
-        self.load = AxisLoad.default()
+        self.load = machine_file.axis_load(Machine.default())  # the margin constraints' load, as the export's
         self.problems = problems
         self.devices = list(devices if devices is not None else jax.devices())
         members = [(j, k) for j in range(len(problems)) for k in range(cfg.starts)]

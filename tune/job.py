@@ -233,7 +233,7 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
     digest = hashlib.sha256(json.dumps([cfg.digest(), machine_file.digest(machine),
                                         {f: np.asarray(v).tolist() for f, v in vars(servo0).items()
                                          if not isinstance(v, str)}]).encode()).hexdigest()
-    problem = Problem(cfg, servo0, hybrid0, specs, digest=digest)
+    problem = Problem(cfg, servo0, hybrid0, specs, digest=digest, load=machine_file.axis_load(machine))
     extent = "whole path" if cfg.path_s is None else f"path cut to {cfg.path_s:g} s"
     print(f"tune: {len(problem.scenarios.names)} scenario(s) ({', '.join(problem.scenarios.names)}), "
           f"{cfg.windows} windows of {cfg.window_s:g} s spread over each {extent}, "
@@ -261,7 +261,7 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
         "before": {n: _summary(r) for n, (r, _) in before.items()},
         "after": {n: _summary(r) for n, (r, _) in after.items()},
         "baselines": {mode: {n: _summary(r) for n, (r, _) in runs.items()} for mode, runs in baselines.items()},
-        "margins_before": gains.margins_report(servo0, mode=cfg.mode),
+        "margins_before": gains.margins_report(servo0, mode=cfg.mode, machine=machine),
         "optimise_wall_s": t_opt,
     }
     provenance = {"config_hash": cfg.digest(), "objective_before": objective_before,
@@ -301,7 +301,8 @@ def export(out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: 
     """
     gains_path = out / "gains.yaml"
     try:
-        margins = stability.check(servo, hybrid, rates, cfg.mode, (cfg.pm_min, cfg.gm_min)).margins()
+        margins = stability.check(servo, hybrid, rates, cfg.mode, (cfg.pm_min, cfg.gm_min),
+                                  load=machine_file.axis_load(machine or Machine.default())).margins()
         texts = {gains_path: gains.document(servo, hybrid, rates, mode=cfg.mode, tuned=tuned, provenance=provenance,
                                             floors=(cfg.pm_min, cfg.gm_min), machine=machine)}
         texts |= {out / name: text for name, text in ros2.files(servo, cfg.mode, rates, source=str(gains_path),
@@ -311,7 +312,8 @@ def export(out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: 
                 "gains_file": {"path": str(gains_path), "sha256": _sha256(gains_path)}}
     except ParameterError as e:
         left = {"path": str(gains_path), "sha256": _sha256(gains_path)} if gains_path.is_file() else None
-        return {"margins_after": gains.margins_report(servo, cfg.mode), "exported": [], "export_error": str(e),
+        return {"margins_after": gains.margins_report(servo, cfg.mode, machine), "exported": [],
+                "export_error": str(e),
                 "gains_file": {"path": None, "not_written": str(e), "left_as_it_was": left}}
 
 

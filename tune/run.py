@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from pusupu_jax import inputs, objectives, workload
+from pusupu_jax import inputs, machine_file, objectives, workload
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.config import write_atomic
 from pusupu_jax.gradients import value_and_grad
@@ -259,7 +259,7 @@ class Problem(WindowStarts):
     """
 
     def __init__(self, cfg: TuneConfig, servo0: ServoParams, hybrid0: HybridGains,
-                 specs: list[ScenarioSpec] | None = None, digest: str | None = None):
+                 specs: list[ScenarioSpec] | None = None, digest: str | None = None, load: AxisLoad | None = None):
         self.cfg = cfg
         self.digest = cfg.digest() if digest is None else digest  # what a checkpoint must match to be resumed
         self.rates = machine_rates()
@@ -269,7 +269,8 @@ class Problem(WindowStarts):
         # the windows' models, references and paths enter the gradient as arguments, not as constants folded into
         # the compiled program (constants cost compile time, and change its cache key with their last bits)
         self.windows = (sc.window_models, sc.window_reference, jnp.asarray(sc.window_path))
-        self.load = AxisLoad.default()
+        # the margin constraints' single-axis load: the machine's (machine_file.axis_load; default the built-in one's)
+        self.load = machine_file.axis_load(Machine.default()) if load is None else load
         self.rows = len(sc.names)
         self._value_and_grad = _shared_gradient(self)
 
