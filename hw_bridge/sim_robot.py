@@ -104,8 +104,9 @@ class RobotModel:
     kinematic errors included) stepped by C MuJoCo with the MJX plant's armature, torque mapping and
     drive-train friction (:func:`pusupu_jax.plant.friction.slider_friction`, in numpy, at the slider
     speeds at each step's start), one step per velocity period (the timestep is ``rates.dt_velocity``);
-    the drives at rest start from the MJX plant's static equilibrium, as the simulator's runs do.  Why C MuJoCo: on this 2-core CPU
-    an MJX step through JAX's dispatch took about 300 us, more than a 250 us cycle; C MuJoCo takes tens.
+    the drives at rest start from the MJX plant's static equilibrium, as the simulator's runs do.  Why C
+    MuJoCo: on this 2-core CPU an MJX step through JAX's dispatch took about 300 us, more than a 250 us
+    cycle; C MuJoCo takes tens (and the friction law in numpy 2 us).
     """
 
     def __init__(self, gains: GainFile, rate: float | None = None, kin_error_seed: int | None = None,

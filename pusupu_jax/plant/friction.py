@@ -13,8 +13,8 @@ mechanical step.  The single-axis plant integrates the viscous part exactly with
 mechanics (``b_eff``) and adds :func:`coulomb_friction`, the same law split where it is linear.
 
 The functions take traced or JAX arrays (the plants' steps) and numpy arrays alike: with numpy
-parameters and speeds they compute in numpy, so the simulated robot's host-side step, up to
-20 kHz, pays no JAX dispatch.
+parameters and speeds they compute in numpy, so the simulated robot's host-side step (every
+velocity period, 4 kHz by default) pays no JAX dispatch: 2 us a call on the 2-core CPU.
 """
 
 from __future__ import annotations
