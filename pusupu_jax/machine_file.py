@@ -25,7 +25,6 @@ machine it was tuned on.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 import json
 from dataclasses import dataclass, field
@@ -37,10 +36,8 @@ import yaml
 from . import inputs
 from .params import N_AXES, AxisLoad, ParameterError, ServoParams, array_fields, bounds, validate
 from .plant import kinematics
-from .plant.dynamics import reflected_mass
 from .plant.geometry import FIELDS as GEOMETRY_FIELDS
 from .plant.geometry import Geometry, GeometryError, validate_geometry
-from .plant.model import ModelOptions
 
 FORMAT, VERSION = "pusupu-machine", 1
 KEYS = ("format", "version", "name", "geometry", "drives", "payload")
@@ -94,9 +91,12 @@ class Machine:
             raise ParameterError(f"on machine {self.name!r}: {e}") from None
         return out
 
-    def options(self, base: ModelOptions = ModelOptions()) -> ModelOptions:
-        """``base`` with this machine's payload."""
-        return dataclasses.replace(base, payload=float(self.payload.mass), payload_com=tuple(self.payload.com),
+    def options(self, base=None):
+        """``base`` (a :class:`~pusupu_jax.plant.model.ModelOptions`; default its defaults) with this machine's
+        payload.  (MuJoCo is imported here, not with the module: a gain file is read on the robot side without it.)"""
+        from .plant.model import ModelOptions
+
+        return dataclasses.replace(ModelOptions() if base is None else base, payload=float(self.payload.mass), payload_com=tuple(self.payload.com),
                                    payload_inertia=tuple(self.payload.inertia))
 
     def content(self) -> dict:
@@ -122,12 +122,15 @@ def is_builtin(machine: Machine) -> bool:
 def carried_mass(machine: Machine) -> np.ndarray:
     """The mass [kg] each slider carries at the machine's home pose, ``(6,)``: the diagonal of the mechanism's
     actuator-space inertia (:func:`pusupu_jax.plant.dynamics.reflected_mass`, payload included, rotors not)."""
-    return _carried_mass(digest(machine), machine).copy()
+    from .plant.dynamics import reflected_mass
+
+    key = digest(machine)
+    if key not in _CARRIED:
+        _CARRIED[key] = reflected_mass(machine.geometry, machine.geometry.home, machine.options())[0]
+    return _CARRIED[key].copy()
 
 
-@functools.lru_cache(maxsize=8)
-def _carried_mass(key: str, machine: Machine) -> np.ndarray:
-    return reflected_mass(machine.geometry, machine.geometry.home, machine.options())[0]
+_CARRIED: dict = {}  # digest -> carried_mass: a machine's model is built once per process
 
 
 def axis_load(machine: Machine) -> AxisLoad:

@@ -35,7 +35,7 @@ import numpy as np
 
 from .identify import identify_T0_machine
 from .machine_file import Machine, carried_mass
-from .params import LoopRates, ServoParams
+from .params import LoopRates, ServoParams, array_fields
 from .plant.axis import screw_ratio
 
 T0_TABLE1 = 0.01475  # s
@@ -50,10 +50,14 @@ def _crossovers(servo: ServoParams, mass) -> tuple[np.ndarray, np.ndarray]:
     return w_i, w_v
 
 
-def derive(machine: Machine, rates: LoopRates = LoopRates(), identify: bool = True) -> tuple[ServoParams, dict]:
-    """Start gains for ``machine`` (the module docstring's steps) and a report of what was derived.
+def derive(machine: Machine, rates: LoopRates = LoopRates(), identify: bool = True,
+           shared: bool = True) -> tuple[ServoParams, dict]:
+    """Start gains for ``machine`` (the module docstring's steps) and a report of what was derived (per axis).
 
     ``identify=False`` leaves ``T0`` (and so the IMC and PID time scales) at Table 1's, skipping the MJX identification.
+    ``shared``: every gain the mean of its six derived values (a payload off centre loads the axes unequally, by
+    under 1 % on the example user machine), as a tuning of one value for all six axes starts from; False keeps one per
+    axis.
     """
     table1, builtin = ServoParams.table1(), Machine.default()
     ref = builtin.servo(table1)
@@ -79,4 +83,7 @@ def derive(machine: Machine, rates: LoopRates = LoopRates(), identify: bool = Tr
     k = T0 / T0_TABLE1
     servo = servo.replace(T0=T0, lambda1=table1.lambda1 * k, lambda2=table1.lambda2 * k,
                           Kp_pid=table1.Kp_pid / k, Ki_pid=table1.Ki_pid / k**2, Tf_pid=table1.Tf_pid * k)
+    if shared:
+        servo = servo.replace(**{f.name: np.full(6, np.mean(getattr(servo, f.name))) for f in array_fields(ServoParams)
+                                 if f.metadata["section"] != "plant"})
     return machine.servo(servo), report

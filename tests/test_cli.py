@@ -239,7 +239,7 @@ def test_a_bad_gain_file_exits_2_with_one_line(tuned, tmp_path):
         args = [*command, str(bad)] if command[0] == "gains" else [*command, "--gains", str(bad)]
         r = pusupu(*args, check=False)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
-        assert "version: expected 3" in r.stderr
+        assert "version: expected 4" in r.stderr
 
 
 def test_gains_check_ros_prints_both_controllers(tuned):

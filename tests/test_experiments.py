@@ -114,8 +114,9 @@ def test_servo_quick_margins_agree_with_the_jax_margins_and_the_gain_file(tmp_pa
 def test_tuned_quick_with_a_gain_file_compares_every_mode_on_both_paths(tmp_path, tweaked_gains):
     """The first 3 s of arc and p2p, four modes, Table 1 and the gain file (the batch shape of p2p --quick, so
     the rollouts compiled by the p2p test above are reused: about 20 s here).  The changed fields are named; the
-    faster IMC filters track closer in IMC and hybrid mode on both paths (observed -62 to -64 %), and every mode
-    sees the new gains (no tuned run equals its Table 1 run)."""
+    faster IMC filters track closer in IMC and hybrid mode on both paths (observed -62 to -64 % on the machine
+    without drive-train friction; with it, the hybrid run on p2p by 24 %: friction's error at low speed does not
+    shrink with the filters), and every mode sees the new gains (no tuned run equals its Table 1 run)."""
     result, files = experiments.run_experiment("tuned", tmp_path, quick=True, gains=tweaked_gains)
     assert {f.name for f in files} == {"tuned.png", "tuned.json", "tuned.md"}
     m = json.loads((tmp_path / "tuned.json").read_text())
@@ -129,7 +130,7 @@ def test_tuned_quick_with_a_gain_file_compares_every_mode_on_both_paths(tmp_path
             assert r["change_pct"]["rms_tracking_error_mm"] == pytest.approx(
                 experiments.pct(r["tuned"]["rms_tracking_error_mm"], r["Table 1"]["rms_tracking_error_mm"]))
         for mode in ("IMC, six branches", "hybrid"):
-            assert m["runs"][path][mode]["change_pct"]["rms_tracking_error_mm"] < -40, (path, mode)
+            assert m["runs"][path][mode]["change_pct"]["rms_tracking_error_mm"] < -15, (path, mode)
     assert m["tuned_mode"] == "hybrid"
     assert "| p2p | hybrid |" in (tmp_path / "tuned.md").read_text()
 
