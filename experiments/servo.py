@@ -1,8 +1,8 @@
 """Each servo loop on its own: Bode plot of its loop gain, reference and load-torque steps, margins; Table 1 vs gains.
 
 For the current, velocity and position loops of every axis, from the linear models of
-:mod:`pusupu_jax.analysis` (python-control, continuous, the single-axis load ``AxisLoad.default()``
-whose linear part, mass and viscous friction, is modelled; as ``pusupu analyze``): the loop gain
+:mod:`pusupu_jax.analysis` (python-control, continuous, the single-axis load of the built-in machine,
+:func:`pusupu_jax.machine_file.axis_load`, with the drive train's viscous friction; as ``pusupu analyze``): the loop gain
 ``L`` broken at the controller's output (:func:`~pusupu_jax.analysis.open_loops`) with its gain
 crossover [Hz], phase crossover [Hz], phase margin [deg] and gain margin [dB]; the closed loop's
 step from its reference (10-90 % rise [s], 2 % settling [s], overshoot [%], -3 dB bandwidth [Hz]);
@@ -27,7 +27,8 @@ import control as ct
 import matplotlib.pyplot as plt
 import numpy as np
 
-from pusupu_jax import AxisLoad, ServoParams, analysis
+from pusupu_jax import AxisLoad, ServoParams, analysis, machine_file
+from pusupu_jax.machine_file import Machine
 from pusupu_jax.params import N_AXES
 from pusupu_jax.plant.axis import screw_ratio
 from pusupu_jax.plots import save_atomic
@@ -108,9 +109,10 @@ def _axes(numbers) -> str:
 
 def run(quick: bool = False, gains=None) -> Result:
     mode = "imc" if gains is None else gains.mode
-    load = AxisLoad.default()
+    load = machine_file.axis_load(Machine.default())  # the gain check's load: the mass a slider carries at home
     sets = {"Table 1": ServoParams.table1()} | ({} if gains is None else {"tuned": gains.servo})
-    metrics = {"mode": mode, "model": "continuous, single-axis load AxisLoad.default() (mass and viscous friction)",
+    metrics = {"mode": mode, "model": "continuous, single-axis load: the mass each slider of the built-in machine "
+               "carries at home (machine_file.axis_load), with the drive train's viscous friction",
                "load_force_n": LOAD_FORCE_N, "sets": {}}
     series = {}
     for label, servo in sets.items():

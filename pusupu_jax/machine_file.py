@@ -126,7 +126,8 @@ def carried_mass(machine: Machine) -> np.ndarray:
 
     key = digest(machine)
     if key not in _CARRIED:
-        _CARRIED[key] = reflected_mass(machine.geometry, machine.geometry.home, machine.options())[0]
+        # to the gram: the axes of a symmetric machine read the same, not values apart by rounding
+        _CARRIED[key] = np.round(reflected_mass(machine.geometry, machine.geometry.home, machine.options())[0], 3)
     return _CARRIED[key].copy()
 
 

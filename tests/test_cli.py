@@ -27,7 +27,7 @@ def test_analyze_json_has_every_loop_of_every_axis(tmp_path):
         for loop in ("current", "velocity", "position"):
             assert set(axis[loop]) == {"crossover_hz", "phase_margin_deg", "gain_margin_db", "bandwidth_hz",
                                        "rise_time_s", "settling_time_s", "overshoot_pct"}
-    assert out["axes"][0]["current"]["crossover_hz"] == pytest.approx(241.5, rel=0.01)
+    assert out["axes"][0]["current"]["crossover_hz"] == pytest.approx(245.6, rel=0.005)  # the machine's 71.2 kg
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

@@ -77,7 +77,8 @@ def test_servo_quick_margins_agree_with_the_jax_margins_and_the_gain_file(tmp_pa
     deviation; observed 4 %), and the three figures, JSON and table are written."""
     import numpy as np
 
-    from pusupu_jax import AxisLoad, ServoParams, analysis, gains
+    from pusupu_jax import ServoParams, analysis, gains, machine_file
+    from pusupu_jax.machine_file import Machine
 
     result, files = experiments.run_experiment("servo", tmp_path, quick=True, gains=tweaked_gains)
     assert {f.name for f in files} == {"servo_current.png", "servo_velocity.png", "servo_position.png",
@@ -101,7 +102,7 @@ def test_servo_quick_margins_agree_with_the_jax_margins_and_the_gain_file(tmp_pa
                 assert row["gain_margin_db"] == pytest.approx(stored["gain_margin_db"], abs=0.1)
     before, after = (m["sets"][k]["axes"][0]["position"] for k in ("Table 1", "tuned"))
     assert after["crossover_hz"] > 1.5 * before["crossover_hz"]  # lambda2 0.15 -> 0.08 s: a faster position loop
-    reference = analysis.axis_metrics(ServoParams.table1(), AxisLoad.default(), 0, "hybrid")
+    reference = analysis.axis_metrics(ServoParams.table1(), machine_file.axis_load(Machine.default()), 0, "hybrid")
     for loop in analysis.LOOPS:
         for key, value in reference[loop].items():
             assert m["sets"]["Table 1"]["axes"][0][loop][key] == pytest.approx(value, rel=1e-12), (loop, key)
