@@ -165,6 +165,21 @@ def integer(value, where: str, error, *, low=None, high=None) -> int:
     return value
 
 
+def array(value, where: str, shape, error):
+    """``value`` as a float64 numpy array of ``shape``, every element finite."""
+    import numpy as np
+
+    try:
+        arr = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise error(f"{where}: expected numbers of shape {shape}, got {shown(value)}") from None
+    if arr.shape != tuple(shape):
+        raise error(f"{where}: expected shape {tuple(shape)}, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise error(f"{where}: expected finite numbers, got {arr[~np.isfinite(arr)].flat[0]}")
+    return arr
+
+
 def choice(value, where: str, choices, error) -> str:
     """One of ``choices`` (strings)."""
     if not isinstance(value, str) or value not in choices:

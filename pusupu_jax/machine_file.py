@@ -183,15 +183,7 @@ def parse(doc) -> Machine:
 
 
 def _array(value, where: str, shape) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ParameterError(f"{where}: expected numbers of shape {shape}, got {inputs.shown(value)}") from None
-    if arr.shape != shape:
-        raise ParameterError(f"{where}: expected shape {shape}, got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise ParameterError(f"{where}: expected finite numbers, got {arr[~np.isfinite(arr)].flat[0]}")
-    return arr
+    return inputs.array(value, where, shape, ParameterError)
 
 
 def _geometry(values) -> Geometry:

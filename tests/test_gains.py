@@ -133,7 +133,7 @@ def test_stability_is_checked_against_fixed_floors_never_the_files_own(tmp_path)
     with pytest.raises(ParameterError, match="position loop of axis 1 has .* expected at least 45 deg and 6 dB"):
         gains.load(path)
     with pytest.raises(ParameterError, match="discrete.imc_c1: not the discretisation"):
-        gains.load(path, floors=(20.0, 3.0))  # the caller's lower floors pass; the edit's stale blocks are caught next
+        gains.load(path, floors=(15.0, 3.0))  # the caller's lower floors pass; the edit's stale blocks are caught next
     _rewrite(path, _set("velocity", "Kv", 3.0))
     with pytest.raises(ParameterError, match="velocity loop of axis 1 is unstable"):
         gains.load(path, floors=(-1000.0, -1000.0))

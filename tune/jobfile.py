@@ -116,14 +116,7 @@ def _geometry(value, where: str) -> Geometry | None:
     base = Geometry.default()
     changes = {}
     for k, v in value.items():
-        shape = np.shape(getattr(base, k))
-        try:
-            arr = np.asarray(v, dtype=float)
-        except (TypeError, ValueError):
-            raise JobFileError(f"{where}.{k}: expected numbers of shape {shape}, got {v!r}") from None
-        if arr.shape != shape:
-            raise JobFileError(f"{where}.{k}: expected shape {shape}, got {arr.shape}")
-        changes[k] = arr
+        changes[k] = inputs.array(v, f"{where}.{k}", np.shape(getattr(base, k)), JobFileError)
     geom = base.replace(**changes)
     try:
         validate_geometry(geom)
