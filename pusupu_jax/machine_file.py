@@ -96,8 +96,8 @@ class Machine:
         payload.  (MuJoCo is imported here, not with the module: a gain file is read on the robot side without it.)"""
         from .plant.model import ModelOptions
 
-        return dataclasses.replace(ModelOptions() if base is None else base, payload=float(self.payload.mass), payload_com=tuple(self.payload.com),
-                                   payload_inertia=tuple(self.payload.inertia))
+        return dataclasses.replace(ModelOptions() if base is None else base, payload=float(self.payload.mass),
+                                   payload_com=tuple(self.payload.com), payload_inertia=tuple(self.payload.inertia))
 
     def content(self) -> dict:
         """The machine as plain data (lists and floats), every field: what :func:`digest` hashes."""
