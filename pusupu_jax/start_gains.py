@@ -66,9 +66,8 @@ def derive(machine: Machine, rates: LoopRates = LoopRates(), identify: bool = Tr
                                       V_max=np.asarray(machine.drives["V_dc"]) * (table1.V_max / ref.V_dc)))
     mass = carried_mass(machine)
     d = {k: np.asarray(machine.drives[k], dtype=float) for k in machine.drives}
-    Ki = (wi_ref * ref.Tn) * d["L"] / (d["Kn"] * table1.Kcf * d["Tn"])
-    w_i = Ki * d["Kn"] * table1.Kcf / d["L"]
-    servo = on.replace(Ti=d["L"] / d["R"], Ki=Ki, Tcf=table1.Tcf * wi_ref / w_i)
+    w_i = wi_ref * ref.Tn / d["Tn"]  # Table 1's w_i Tn
+    servo = on.replace(Ti=d["L"] / d["R"], Ki=w_i * d["L"] / (d["Kn"] * table1.Kcf), Tcf=table1.Tcf * wi_ref / w_i)
     _, wv_unit = _crossovers(servo.replace(Kv=np.ones(6)), mass)
     w_v = wv_ref / wi_ref * w_i
     servo = servo.replace(Kv=w_v / wv_unit, Tv=table1.Tv * wv_ref / w_v, Tw=table1.Tw * wv_ref / w_v)

@@ -58,10 +58,10 @@ def evaluate_baselines(cfg: TuneConfig, rates, specs=None, servo: ServoParams | 
             for mode in cfg.baselines}
 
 
-def start_gains(machine: Machine, start=None) -> tuple[ServoParams, HybridGains, dict]:
-    """Where tuning ``machine`` starts: ``start`` 'table1', 'derived' (:func:`pusupu_jax.start_gains.derive`) or a
-    :class:`~pusupu_jax.gains.GainFile`; None: Table 1 on the built-in machine, derived on any other.  Returns the
-    servo gains on the machine, the hybrid gains and what the report says of them."""
+def start_gains(machine: Machine, start=None, stream=None) -> tuple[ServoParams, HybridGains, dict]:
+    """Where tuning ``machine`` starts: ``start`` 'table1', 'derived' (:func:`pusupu_jax.start_gains.derive`, said on
+    ``stream`` when given) or a :class:`~pusupu_jax.gains.GainFile`; None: Table 1 on the built-in machine, derived on
+    any other.  Returns the servo gains on the machine, the hybrid gains and what the report says of them."""
     if start is None:
         start = "table1" if machine_file.is_builtin(machine) else "derived"
     if isinstance(start, gains.GainFile):
@@ -69,6 +69,9 @@ def start_gains(machine: Machine, start=None) -> tuple[ServoParams, HybridGains,
     if start == "table1":
         return machine.servo(ServoParams.table1()), HybridGains(), {"source": "table1"}
     if start == "derived":
+        if stream is not None:
+            print(f"tune: deriving start gains for machine {machine.name!r} (docs/machine.md; T0 identified on the "
+                  "MJX machine)", file=stream, flush=True)
         servo, derivation = derive(machine)
         return servo, HybridGains(), {"source": "derived"} | derivation
     raise ParameterError(f"--start-gains: expected a gain file, table1 or derived, got {start!r}")
@@ -226,10 +229,7 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
     if fresh and checkpoint.exists():
         checkpoint.unlink()
     t0 = time.perf_counter()
-    if start == "derived" or start is None and not machine_file.is_builtin(machine):
-        print(f"tune: deriving start gains for machine {machine.name!r} (docs/machine.md; T0 identified on the MJX "
-              "machine)", file=stream, flush=True)
-    servo0, hybrid0, start_report = start_gains(machine, start)
+    servo0, hybrid0, start_report = start_gains(machine, start, stream)
     digest = hashlib.sha256(json.dumps([cfg.digest(), machine_file.digest(machine),
                                         {f: np.asarray(v).tolist() for f, v in vars(servo0).items()
                                          if not isinstance(v, str)}]).encode()).hexdigest()
