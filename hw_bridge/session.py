@@ -145,7 +145,7 @@ class Bridge:
         n_axes = len(loop.drive_modes)
         rec = BridgeRun(loop.rate)
         st = {"phase": "connect", "since": 0, "feedback": None, "age": 0, "sequence": 0, "run_start": None,
-              "run_cycles": None, "misses": 0, "fresh": False}
+              "run_cycles": None, "misses": 0, "fresh": False, "word": None, "word_since": 0}
         zeros = np.zeros(n_axes)
         sent = {}  # command sequence -> run cycle
         noted = []  # the signals received
@@ -162,6 +162,21 @@ class Bridge:
         def states():
             fb = st["feedback"]
             return {cia402.state_of(int(w)) for w in fb.statusword} if fb is not None else set()
+
+        def answered() -> bool:
+            """The feedback shows the drives after the controlword being sent (or does not say which command it
+            answers).  Bring-up decides its next controlword on such feedback only and sends the same one until then:
+            a statusword from before the last controlword, read as the present state, sent 'switch on' to drives
+            already in 'operation enabled' (CiA 402 transition 5, disable operation) and 'fault reset' (bit 1
+            clear: disable voltage) to drives already reset and ready."""
+            fb = st["feedback"]
+            return fb is not None and (not fb.ack or fb.ack >= st["word_since"])
+
+        def bring_up(k, word, t_wake):
+            """Send controlword ``word`` of the connect or enable phase in cycle ``k``."""
+            if word != st["word"]:
+                st["word"], st["word_since"] = word, st["sequence"]
+            send(k, word, zeros, t_wake)
 
         def stop(k, why: End):
             """The stop phase from cycle ``k``, for ``why``."""
@@ -188,19 +203,25 @@ class Bridge:
                 st["fresh"] = False
             phase = st["phase"]
             fb = st["feedback"]
+            settled = answered()
             if phase == "connect":
-                if states() == {cia402.READY} or states() == {cia402.SWITCHED_ON}:
+                if settled and states() in ({cia402.READY}, {cia402.SWITCHED_ON}):
                     st["phase"], st["since"] = "enable", k
                 elif k - st["since"] > self.connect_cycles:
                     safety.fault(k, "feedback stale", f"the drives did not come up in {self.connect_cycles} cycles "
                                                       f"(states: {sorted(states()) or 'no feedback'})")
                     stop(k, End.FAULT)
-                word = cia402.FAULT_RESET if cia402.FAULT in states() and k % 2 else cia402.SHUTDOWN
-                send(k, word, zeros, t_wake)
+                if not settled:
+                    word = st["word"] or cia402.SHUTDOWN
+                elif cia402.FAULT in states() and st["word"] != cia402.FAULT_RESET:  # a rising edge of bit 7
+                    word = cia402.FAULT_RESET
+                else:
+                    word = cia402.SHUTDOWN
+                bring_up(k, word, t_wake)
                 return True
             if phase == "enable":
                 s = states()
-                if s == {cia402.OPERATION_ENABLED} and st["fresh"]:
+                if s == {cia402.OPERATION_ENABLED} and st["fresh"] and settled:
                     k6 = loop.mode.force_axis
                     loop.start(fb.position, fb.torque, float(fb.torque[k6] * loop.force_per_torque[k6])
                                if loop.mode.hybrid else None)
@@ -212,8 +233,9 @@ class Bridge:
                     stop(k, End.FAULT)
                     return False
                 else:
-                    word = cia402.SWITCH_ON if s == {cia402.READY} else cia402.ENABLE_OPERATION
-                    send(k, word, zeros, t_wake)
+                    word = st["word"] if not settled else cia402.SWITCH_ON if s == {cia402.READY} else \
+                        cia402.ENABLE_OPERATION
+                    bring_up(k, word, t_wake)
                     return True
             j = k - st["run_start"]
             st["misses"] = st["misses"] + 1 if skipped else 0

@@ -364,6 +364,42 @@ def test_an_exception_inside_a_cycle_ends_in_the_stop_and_the_report(setup, monk
     _ended_safe(robot, setup.limits)
 
 
+def _lagging(lag: int, states: list):
+    """An ``act`` whose replies come ``lag`` commands late until the drives first run enabled (as on a loaded host
+    whose feedback queues up), then at once; ``states`` gets the drives' states after each command."""
+    held = []
+
+    def act(robot, fb):
+        states.append({d.state for d in robot.drives})
+        held.append(protocol.encode_feedback(fb))
+        if robot.enabled:
+            held.clear()
+            return [(protocol.encode_feedback(fb), robot.sock)]
+        return [(held.pop(0), robot.sock)] if len(held) > lag else []
+    return act
+
+
+@pytest.mark.parametrize("lag", [1, 4])
+def test_bring_up_on_late_feedback_walks_the_state_machine_once(setup, lag):
+    """Drives in fault, whose feedback comes ``lag`` commands late during bring-up: the bridge decides each
+    controlword on feedback that answers the one before, so the drives walk fault, switch on disabled, ready,
+    switched on, operation enabled once each and in that order (a statusword from before the last controlword taken
+    for the present state sends 'fault reset' to ready drives and 'switch on' to enabled ones), and the run
+    completes, ending in quick stop and disable voltage."""
+    states = []
+    robot = WireRobot(_lagging(lag, states))
+    for d in robot.drives:
+        d.fault()
+    run = _bridge_run(setup, robot, duration=0.2)
+    assert run.completed and not run.faults, run.report()["faults"]
+    assert all(len(s) == 1 for s in states)
+    walk = [s.pop() for s in states]
+    walk = [w for k, w in enumerate(walk) if not k or w != walk[k - 1]]
+    assert walk == [cia402.FAULT, cia402.SWITCH_ON_DISABLED, cia402.READY, cia402.SWITCHED_ON,
+                    cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE, cia402.SWITCH_ON_DISABLED], walk
+    _ended_safe(robot, setup.limits)
+
+
 def _signal_at(enabled: int, sig):
     """An ``act`` that answers as the drives do and sends this process ``sig`` at the ``enabled``-th enabled command, if
     a handler other than the one of before the run is set (so a run that ended early fails its test, and SIGTERM never
