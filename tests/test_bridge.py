@@ -388,11 +388,11 @@ def test_loopback_tracks_the_arc_as_the_simulation_does(robot):
     assert rep["rms_tracking_error_mm"] == pytest.approx(pure["rms_tracking_error_mm"], rel=0.01)
 
 
-def _stopped_at_onset(run, fault: str, late: int = 0):
+def _stopped_at_onset(run, fault: str, late: int = 0, log: str = ""):
     """The run's first fault, asserted to come within the watchdog window of the fault's onset (0.3 s of machine time
     after enable; the window: 5 cycles of watchdog and 2 of transport after it, ``late`` cycles of the fault's own
     time-out, and 20 cycles of slack either side) and to be followed by a quick stop, then disable voltage."""
-    assert run.faults and not run.completed, fault
+    assert run.faults and not run.completed, (fault, log)
     f = run.faults[0]
     enabled_at = next(k for k, word, _ in run.commands if word == cia402.ENABLE_OPERATION)
     onset = enabled_at + int(0.3 * RATE)
@@ -477,7 +477,7 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
                 link.close()
     finally:
         proc.terminate()
-        proc.wait(30)
+        log = proc.communicate(timeout=30)[1]  # the robot's sessions and faults, for the messages below
     pure = np.mean(_pure_arc()["branch_rms_error_mm"])
     for run in runs[:2]:  # none, garbage
         rep = run.report(screw=loop.drive.screw)
@@ -485,7 +485,7 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
         assert np.mean(rep["branch_rms_error_mm"]) == pytest.approx(pure, rel=0.15)
     assert not runs[0].rejected and runs[1].rejected["PDO length"] >= 12 * int(0.3 * RATE), runs[1].rejected
     for fault, stopped in zip(CAN_FAULTS[2:], runs[2:]):
-        assert _stopped_at_onset(stopped, fault).kind == "feedback stale", fault
+        assert _stopped_at_onset(stopped, fault, log=log).kind == "feedback stale", fault
     assert runs[-1].rejected["PDO length"] > 0
     targets = np.array([c[2] for run in runs for c in run.commands])
     assert np.all(np.abs(targets) <= limits_for(g.servo).velocity)
