@@ -101,6 +101,33 @@ def test_scenario_errors_fail_their_own_job_only(tmp_path):
     assert len(jobfile.groups(jf.jobs)) == 1  # the three runnable jobs share one compiled gradient
 
 
+def test_a_job_file_names_the_machine_every_job_runs_on(tmp_path):
+    """``machine:`` (relative to the job file's folder): every scenario takes that machine's geometry (with its own
+    overrides) and payload (a scenario's payload adds to it, at the machine's centre of mass), the path checks take
+    its drives, and the jobs' digests change with it; a missing or bad machine file fails the file in one line."""
+    from pusupu_jax import machine_file
+
+    example = Path(__file__).parent.parent / "docs" / "examples" / "machine_user.yaml"
+    (tmp_path / "robots").mkdir()
+    (tmp_path / "robots" / "mine.yaml").write_text(example.read_text())
+    machine = machine_file.load(example)
+    doc = JOB | {"machine": "robots/mine.yaml", "scenarios": SCENARIOS[:3]}
+    jsonschema.validate(doc, SCHEMA)
+    jf = jobfile.read(_write(tmp_path / "job.yaml", doc))
+    builtin = jobfile.read(_write(tmp_path / "builtin.yaml", JOB | {"scenarios": SCENARIOS[:3]}))
+    assert all(j.error is None and j.machine is not None for j in jf.jobs), [j.error for j in jf.jobs]
+    arc, p2p, rods = (j.specs[0] for j in jf.jobs)
+    np.testing.assert_array_equal(arc.geometry.rail_points, machine.geometry.rail_points)
+    np.testing.assert_array_equal(rods.geometry.rod_lengths, [0.905] * 6)
+    np.testing.assert_array_equal(rods.geometry.rail_points, machine.geometry.rail_points)
+    assert arc.options.payload == machine.payload.mass and p2p.options.payload == machine.payload.mass + 5.0
+    assert p2p.options.payload_com == tuple(machine.payload.com)
+    assert {j.digest() for j in jf.jobs}.isdisjoint(j.digest() for j in builtin.jobs)
+    for bad, message in (("robots/none.yaml", "machine: .*none.yaml"), (3, "machine: expected the name of a machine")):
+        with pytest.raises(jobfile.JobFileError, match=message):
+            jobfile.read(_write(tmp_path / "bad.yaml", doc | {"machine": bad}))
+
+
 def test_batch_writes_every_jobs_outputs_and_marks_the_failed_ones(batch):
     job, out, summary, status, log = batch
     assert status == 1 and summary["jobs"] == 5 and summary["ok"] == 3

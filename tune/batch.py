@@ -53,11 +53,12 @@ def _take(tree, index):
 class BatchProblem(WindowStarts):
     """``problems`` (scenario index lists into ``specs``, all of one length) x ``starts`` members, one objective.
 
-    ``devices``: the devices to shard the batch over (default every visible one).
+    ``devices``: the devices to shard the batch over (default every visible one).  ``machine``: the machine that
+    ``servo0`` and ``specs`` are on (default the built-in one), whose load the margin constraints take.
     """
 
     def __init__(self, cfg: TuneConfig, specs: list[ScenarioSpec], problems: list[list[int]], servo0: ServoParams,
-                 hybrid0: HybridGains, devices=None):
+                 hybrid0: HybridGains, devices=None, machine: Machine | None = None):
         if len({len(p) for p in problems}) != 1:
             raise ValueError("BatchProblem: every problem needs the same number of scenarios")
         self.cfg = cfg
@@ -65,7 +66,8 @@ class BatchProblem(WindowStarts):
         self.space = Space.create(cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared,
                                   bounds=cfg.bounds)
         self.scenarios = sc = Scenarios.build(cfg, self.space.servo0, self.rates, specs)
-        self.load = machine_file.axis_load(Machine.default())  # the margin constraints' load, as the export's
+        # the margin constraints' load (the machine's, as the export's): ``servo0`` and ``specs`` are on ``machine``
+        self.load = machine_file.axis_load(Machine.default() if machine is None else machine)
         self.problems = problems
         self.devices = list(devices if devices is not None else jax.devices())
         members = [(j, k) for j in range(len(problems)) for k in range(cfg.starts)]

@@ -26,8 +26,9 @@ from typing import Callable
 
 import numpy as np
 
-from pusupu_jax import inputs
+from pusupu_jax import inputs, machine_file
 from pusupu_jax.config import setup_jax, write_atomic
+from pusupu_jax.machine_file import Machine
 from pusupu_jax.params import ParameterError
 
 from . import jobfile
@@ -65,7 +66,8 @@ def shards(jobs: list, shard_size: int | None) -> list[dict]:
                    for j in part]
         pad = size - len(part)
         ident = hashlib.sha256(json.dumps([[e["digest"] for e in entries], pad]).encode()).hexdigest()[:12]
-        tasks.append({"id": ident, "config": config, "jobs": entries, "pad": pad})
+        machine = None if part[0].machine is None else part[0].machine.content()
+        tasks.append({"id": ident, "config": config, "jobs": entries, "pad": pad, "machine": machine})
     return tasks
 
 
@@ -76,10 +78,8 @@ def run_shard(task: dict, out: str, plots: bool = True, stream=None) -> list[dic
     plain data).  Its pid is in ``DIR/shards/<id>/worker.pid`` while it runs.
     """
     setup_jax()
-    from pusupu_jax.hybrid import HybridGains
-    from pusupu_jax.params import ServoParams
-
     from .batch import BatchProblem, optimise_batch
+    from .job import start_gains
 
     stream = stream or sys.stderr
     out = Path(out)
@@ -98,7 +98,9 @@ def run_shard(task: dict, out: str, plots: bool = True, stream=None) -> list[dic
     print(f"batch: shard {task['id']}: {n_jobs} job(s) x {cfg.starts} start(s) "
           f"({len(specs)} scenario runs{padding}); compiling",
           file=stream, flush=True)
-    problem = BatchProblem(cfg, specs, problems, ServoParams.table1(), HybridGains())
+    machine = Machine.default() if task["machine"] is None else machine_file.parse(task["machine"])
+    servo0, hybrid0, start = start_gains(machine, None, stream)
+    problem = BatchProblem(cfg, specs, problems, servo0, hybrid0, machine=machine)
     result = optimise_batch(problem, checkpoint=folder / "checkpoint.npz", digest=task["id"],
                             progress=progress_printer(task["id"], stream))
     R = cfg.starts
@@ -119,14 +121,15 @@ def run_shard(task: dict, out: str, plots: bool = True, stream=None) -> list[dic
         history = [h for mm in range(j * R, (j + 1) * R) for h in result["history"][mm]]
         failed = {mm - j * R: result["failed"][mm] for mm in range(j * R, (j + 1) * R) if mm in result["failed"]}
         rows.append(write_job(out, e, cfg, problem, None if m is None else problem.member_z(zb, j * R), history,
-                              failed, before[j * R], after[j * R], plots))
+                              failed, before[j * R], after[j * R], plots, machine, start))
     print(f"batch: shard {task['id']} done in {time.perf_counter() - t0:.0f} s", file=stream, flush=True)
     return rows
 
 
 def write_job(out: Path, entry: dict, cfg: TuneConfig, problem, z, history, failed, before, after,
-              plots: bool) -> dict:
-    """One job's outputs (gains and ROS 2 files if they pass every check, plots, report.json last); its summary row."""
+              plots: bool, machine: Machine, start: dict) -> dict:
+    """One job's outputs on ``machine`` from the start gains ``start`` (what the report says of them): gains and ROS 2
+    files if they pass every check, plots, report.json last; its summary row."""
     from .job import _plots, _summary, export
 
     folder = job_dir(out, entry["name"])
@@ -134,6 +137,7 @@ def write_job(out: Path, entry: dict, cfg: TuneConfig, problem, z, history, fail
     first = [h for h in history if h["iteration"] == 0 and h["start"] == 0]
     objective_before = first[0]["objective"] if first else float("nan")
     report = {"job": entry["name"], "job_digest": entry["digest"], "scenarios": entry["specs"],
+              "machine": machine_file.reference(machine), "start_gains": start,
               "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
               "tuned_fields": list(problem.space.fields), "failed_starts": {str(k): v for k, v in failed.items()},
               "history": [{k: h[k] for k in ("start", "iteration", "objective")} for h in history],
@@ -150,7 +154,7 @@ def write_job(out: Path, entry: dict, cfg: TuneConfig, problem, z, history, fail
         provenance = {"config_hash": cfg.digest(), "job": entry["name"], "job_digest": entry["digest"],
                       "objective_before": objective_before, "objective_after": best,
                       "floors": [cfg.pm_min, cfg.gm_min], "metrics_after": report["after"]}
-        report |= export(folder, cfg, servo, hybrid, problem.rates, problem.space.fields, provenance)
+        report |= export(folder, cfg, servo, hybrid, problem.rates, problem.space.fields, provenance, machine)
         report |= ({"status": "not exported", "error": report["export_error"]} if "export_error" in report
                    else {"status": "ok", "error": ""})
         if plots:

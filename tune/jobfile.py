@@ -7,6 +7,8 @@ A job file (JSON Schema: ``tune/schemas/pusupu-batch.schema.json``; ``docs/batch
     name: robust               # the robust job's name (robust only)
     shard_size: 64             # at most this many jobs (independent) or starts (robust) per task; null: one task
     plots: true                # per-job plots (objective, paths, forces)
+    machine: my_robot.yaml     # the machine file every job runs on (docs/machine.md; relative: from the job file's
+                               #   folder); default the built-in machine.  Its start gains as pusupu tune's.
     tune:                      # every pusupu tune key but the scenario ones (trajectories, kin_error_seeds,
       iterations: 10           #   payloads, path_s, baselines): groups, weights, the optimiser, starts, ...
       starts: 2                #   mode, windows and window_s are the scenarios' defaults
@@ -15,9 +17,9 @@ A job file (JSON Schema: ``tune/schemas/pusupu-batch.schema.json``; ``docs/batch
         trajectory: arc        # arc | p2p | circle | tilt | a path file (.yaml, .yml, .csv; docs/paths.md),
                                # a relative file name taken from the job file's folder
         mode: hybrid           # hybrid | imc | pid | pid_ff (default: tune.mode)
-        payload: 0.0           # kg on the platform
+        payload: 0.0           # kg added to the machine's payload, at its centre of mass
         kin_error_seed: 1      # seeded 0.5 mm errors of the simulated machine (null: none)
-        geometry: {rod_lengths: [0.9, 0.9, 0.9, 0.9, 0.9, 0.9]}   # overrides of the nominal geometry's fields
+        geometry: {rod_lengths: [0.9, 0.9, 0.9, 0.9, 0.9, 0.9]}   # overrides of the machine's geometry fields
         path_s: 2.0            # s: the first path_s seconds of the path (null: all of it)
         windows: 2             # training windows spread over the path (default: tune.windows)
         window_s: 0.3          # s, each window's length (default: tune.window_s)
@@ -40,8 +42,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pusupu_jax import inputs, paths
+from pusupu_jax import inputs, machine_file, paths
 from pusupu_jax.machine import machine_rates
+from pusupu_jax.machine_file import Machine
 from pusupu_jax.params import ParameterError, ServoParams
 from pusupu_jax.plant.geometry import Geometry, validate_geometry
 from pusupu_jax.plant.model import ModelOptions
@@ -51,7 +54,7 @@ from .run import ScenarioSpec, check_work
 
 FORMAT = "pusupu-batch-1"
 SCHEMA_FILE = Path(__file__).resolve().parent / "schemas" / "pusupu-batch.schema.json"
-FILE_KEYS = ("format", "problems", "name", "shard_size", "plots", "tune", "scenarios")
+FILE_KEYS = ("format", "problems", "name", "shard_size", "plots", "machine", "tune", "scenarios")
 SCENARIO_KEYS = ("name", "trajectory", "mode", "payload", "kin_error_seed", "geometry", "path_s", "windows",
                  "window_s")
 SCENARIO_TUNE_KEYS = ("mode", "windows", "window_s")  # per scenario, default from tune:
@@ -71,6 +74,7 @@ class Job:
     config: TuneConfig | None
     specs: tuple  # ScenarioSpec
     error: str | None = None
+    machine: Machine | None = None  # None: the built-in machine
 
     def group_key(self) -> tuple:
         """Jobs with equal keys compile to the same shapes (one group, one compiled gradient)."""
@@ -81,8 +85,9 @@ class Job:
         """A hash of the job's settings and scenarios, and of their path files' contents (its report and its group's
         checkpoint carry it)."""
         files = [paths.source_digest(s.trajectory) for s in self.specs if paths.is_path_file(s.trajectory)]
-        text = json.dumps([self.config.digest(), [spec_dict(s) for s in self.specs]] + ([files] if files else []),
-                          sort_keys=True, default=str)
+        machine = [] if self.machine is None else [machine_file.digest(self.machine)]
+        text = json.dumps([self.config.digest(), [spec_dict(s) for s in self.specs]] + ([files] if files else [])
+                          + machine, sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -93,27 +98,32 @@ class JobFile:
     shard_size: int | None
     plots: bool
     jobs: tuple  # Job
+    machine: Machine
 
 
 def spec_dict(spec: ScenarioSpec) -> dict:
     """A scenario as plain data (JSON), the inverse of :func:`spec_from_dict`."""
     geometry = None if spec.geometry is None else {f: np.asarray(getattr(spec.geometry, f)).tolist()
                                                    for f in GEOMETRY_FIELDS}
-    return {"name": spec.name, "trajectory": spec.trajectory, "payload": spec.options.payload,
-            "kin_error_seed": spec.options.kin_error_seed, "geometry": geometry, "path_s": spec.path_s}
+    o = spec.options
+    return {"name": spec.name, "trajectory": spec.trajectory, "payload": o.payload,
+            "payload_com": list(o.payload_com), "payload_inertia": list(o.payload_inertia),
+            "kin_error_seed": o.kin_error_seed, "geometry": geometry, "path_s": spec.path_s}
 
 
 def spec_from_dict(d: dict) -> ScenarioSpec:
     geometry = None if d["geometry"] is None else Geometry(**{k: np.asarray(v) for k, v in d["geometry"].items()})
-    return ScenarioSpec(d["name"], d["trajectory"], ModelOptions(kin_error_seed=d["kin_error_seed"],
-                                                                 payload=float(d["payload"])), geometry, d["path_s"])
+    options = ModelOptions(kin_error_seed=d["kin_error_seed"], payload=float(d["payload"]),
+                           payload_com=tuple(d["payload_com"]), payload_inertia=tuple(d["payload_inertia"]))
+    return ScenarioSpec(d["name"], d["trajectory"], options, geometry, d["path_s"])
 
 
-def _geometry(value, where: str) -> Geometry | None:
+def _geometry(value, where: str, machine: Machine) -> Geometry:
+    """The machine's geometry with the scenario's overrides ``value`` (None: none), checked."""
     if value is None:
-        return None
+        return machine.geometry
     inputs.check_keys(value, where, GEOMETRY_FIELDS, JobFileError, what="geometry field")
-    base = Geometry.default()
+    base = machine.geometry
     changes = {}
     for k, v in value.items():
         changes[k] = inputs.array(v, f"{where}.{k}", np.shape(getattr(base, k)), JobFileError)
@@ -125,9 +135,10 @@ def _geometry(value, where: str) -> Geometry | None:
     return geom
 
 
-def _scenario(entry, k: int, base: TuneConfig, folder: Path) -> tuple[ScenarioSpec, TuneConfig]:
-    """Scenario ``k``'s spec and its job's configuration (a path file named relative to ``folder``, the job file's);
-    raises :class:`JobFileError` naming it."""
+def _scenario(entry, k: int, base: TuneConfig, folder: Path, machine: Machine,
+              limits: ServoParams) -> tuple[ScenarioSpec, TuneConfig]:
+    """Scenario ``k``'s spec on ``machine`` and its job's configuration (a path file named relative to ``folder``, the
+    job file's; the path checked against the drives' ``limits``); raises :class:`JobFileError` naming it."""
     where = f"scenarios[{k}]"
     inputs.check_keys(entry, where, SCENARIO_KEYS, JobFileError, required=("trajectory",))
     trajectory = paths.resolve(paths.check_spec(entry["trajectory"], f"{where}.trajectory", JobFileError), folder)
@@ -148,19 +159,21 @@ def _scenario(entry, k: int, base: TuneConfig, folder: Path) -> tuple[ScenarioSp
         cfg = base.replace(**{key: entry[key] for key in SCENARIO_TUNE_KEYS if key in entry})
     except ParameterError as e:
         raise JobFileError(f"{where}: {str(e).replace('tune config ', '')}") from None
-    spec = ScenarioSpec(name, trajectory, ModelOptions(kin_error_seed=seed, payload=payload),
-                        _geometry(entry.get("geometry"), f"{where}.geometry"), path_s)
-    check_scenario(spec, cfg, where)
+    options = machine.options(ModelOptions(kin_error_seed=seed))
+    options = dataclasses.replace(options, payload=options.payload + payload)
+    spec = ScenarioSpec(name, trajectory, options, _geometry(entry.get("geometry"), f"{where}.geometry", machine),
+                        path_s)
+    check_scenario(spec, cfg, where, limits)
     return spec, cfg
 
 
-def check_scenario(spec: ScenarioSpec, cfg: TuneConfig, where: str) -> None:
-    """Before any compile: the machine can follow the path (:func:`pusupu_jax.paths.check_path` with the drives of
-    Table 1, the batch's start) and it holds ``cfg.windows`` windows of ``cfg.window_s``."""
+def check_scenario(spec: ScenarioSpec, cfg: TuneConfig, where: str, limits: ServoParams) -> None:
+    """Before any compile: the machine can follow the path (:func:`pusupu_jax.paths.check_path` with the drives and
+    current limits of ``limits``, the batch's start) and it holds ``cfg.windows`` windows of ``cfg.window_s``."""
     rates = machine_rates()
     try:
         path = spec.path(rates)
-        paths.check_path(path, ServoParams.table1(), rates.dt_position, spec.geom(), spec.options,
+        paths.check_path(path, limits, rates.dt_position, spec.geom(), spec.options,
                          where=f"the {paths.path_label(spec.trajectory)} path")
     except ParameterError as e:
         raise JobFileError(f"{where} ({spec.name}): {e}") from None
@@ -206,19 +219,30 @@ def read(path) -> JobFile:
         base = TuneConfig().replace(baselines=(), **tune)
     except ParameterError as e:
         raise JobFileError(f"{where}: {e}") from None
+    machine = Machine.default()
+    if data.get("machine") is not None:
+        source = data["machine"]
+        if not isinstance(source, str) or not source:
+            raise JobFileError(f"{where}: machine: expected the name of a machine file, got {inputs.shown(source)}")
+        try:
+            machine = machine_file.load(path.parent / source)  # an absolute name stays as it is
+        except ParameterError as e:
+            raise JobFileError(f"{where}: machine: {e}") from None
+    limits = start_limits(machine)
     scenarios = data["scenarios"]
     if not isinstance(scenarios, list) or not scenarios:
         raise JobFileError(f"{where}: scenarios: expected a non-empty list of scenarios, got {scenarios!r}")
     parsed = []
     for k, entry in enumerate(scenarios):
         try:
-            parsed.append(_scenario(entry, k, base, path.parent))
+            parsed.append(_scenario(entry, k, base, path.parent, machine, limits))
         except ParameterError as e:
             name = entry.get("name") if isinstance(entry, dict) and isinstance(entry.get("name"), str) else None
             parsed.append((name or f"scenario{k}", str(e)))
+    on = None if machine_file.is_builtin(machine) else machine
     if problems == "independent":
-        jobs = [Job(p[0].name, p[1], (p[0],)) if isinstance(p[0], ScenarioSpec) else Job(p[0], None, (), p[1])
-                for p in parsed]
+        jobs = [Job(p[0].name, p[1], (p[0],), machine=on) if isinstance(p[0], ScenarioSpec)
+                else Job(p[0], None, (), p[1]) for p in parsed]
     else:
         name = data.get("name", "robust")
         errors = [p[1] for p in parsed if not isinstance(p[0], ScenarioSpec)]
@@ -226,13 +250,24 @@ def read(path) -> JobFile:
         if not errors and len(configs) > 1:
             errors = ["robust problems need one mode, windows and window_s for every scenario; got "
                       f"{sorted(configs)}"]
-        jobs = [Job(name, None, (), errors[0]) if errors else Job(name, parsed[0][1], tuple(s for s, _ in parsed))]
+        jobs = [Job(name, None, (), errors[0]) if errors
+                else Job(name, parsed[0][1], tuple(s for s, _ in parsed), machine=on)]
     jobs = [bounded(job) for job in jobs]
     names = [j.name for j in jobs]
     dup = next((n for n in names if names.count(n) > 1), None)
     if dup is not None:
         raise JobFileError(f"{where}: scenarios: expected distinct names, got {dup!r} twice")
-    return JobFile(str(path), problems, shard, plots, tuple(jobs))
+    return JobFile(str(path), problems, shard, plots, tuple(jobs), machine)
+
+
+def start_limits(machine: Machine) -> ServoParams:
+    """The drives and current limits a batch on ``machine`` starts from, for the path checks: Table 1's on the built-in
+    machine, else the limits the start gains derive (the machine's ratings; no identification needed for them)."""
+    if machine_file.is_builtin(machine):
+        return machine.servo(ServoParams.table1())
+    from pusupu_jax.start_gains import derive
+
+    return derive(machine, identify=False)[0]
 
 
 def groups(jobs) -> dict:
