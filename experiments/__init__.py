@@ -5,6 +5,7 @@ Every module named in :data:`REGISTRY` has
 * ``run(quick: bool = False) -> Result``: the runs, with JSON-able ``metrics`` and arrays for plots (``series``);
   an experiment that compares gains also takes ``gains`` (a gain file of ``pusupu tune``: a path or a loaded
   :class:`~pusupu_jax.gains.GainFile`), ``run(quick=False, gains=None)``: :func:`takes_gains` lists them;
+  one that runs on any machine takes ``machine`` (:func:`takes_machine`);
 * ``plot(result, out: Path) -> list[Path]``: PNG figures;
 * ``table(result) -> str``: a markdown table of the metrics,
 
@@ -93,6 +94,21 @@ def takes_gains(name: str | None = None):
     return "gains" in inspect.signature(get(name).run).parameters
 
 
+def takes_machine(name: str | None = None):
+    """Whether experiment ``name`` runs on a given machine (its ``run`` has a ``machine`` parameter); without a name,
+    the sorted names of those that do."""
+    if name is None:
+        return sorted(n for n in REGISTRY if takes_machine(n))
+    return "machine" in inspect.signature(get(name).run).parameters
+
+
+def check_machine(name: str, machine) -> None:
+    """ParameterError in one line when a ``machine`` is given to an experiment that does not take one."""
+    if machine is not None and not takes_machine(name):
+        raise ParameterError(f"--machine: only the experiments {', '.join(takes_machine())} run on a machine file, "
+                             f"not {name}")
+
+
 def gain_file(name: str, gains):
     """``gains`` for experiment ``name`` as a :class:`~pusupu_jax.gains.GainFile`: None, a loaded one as it is, or a
     path loaded and checked (:func:`pusupu_jax.gains.load`, 45 deg and 6 dB).  ParameterError in one line for a bad
@@ -106,17 +122,20 @@ def gain_file(name: str, gains):
     return gains if isinstance(gains, gain_files.GainFile) else gain_files.load(gains)
 
 
-def run_experiment(name: str, out, quick: bool = False, gains=None) -> tuple[Result, list[Path]]:
+def run_experiment(name: str, out, quick: bool = False, gains=None, machine=None) -> tuple[Result, list[Path]]:
     """Run experiment ``name``, write ``out/NAME.json``, ``out/NAME.md`` and its figures; returns (result, files).
 
     ``gains``: a gain file (path or :class:`~pusupu_jax.gains.GainFile`), only for the experiments of
-    :func:`takes_gains` (ParameterError otherwise, before any work).
+    :func:`takes_gains`; ``machine`` (a :class:`~pusupu_jax.machine_file.Machine`), only for those of
+    :func:`takes_machine` (ParameterError otherwise, before any work).
     """
     module = get(name)
     gains = gain_file(name, gains)
+    check_machine(name, machine)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    result = module.run(quick=quick) if gains is None else module.run(quick=quick, gains=gains)
+    kwargs = ({} if gains is None else {"gains": gains}) | ({} if machine is None else {"machine": machine})
+    result = module.run(quick=quick, **kwargs)
     files = [Path(f) for f in module.plot(result, out)]
     files.append(write_atomic(out / f"{name}.json", json.dumps(result.metrics, indent=2)))
     files.append(write_atomic(out / f"{name}.md", module.table(result) + "\n"))

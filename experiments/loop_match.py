@@ -2,11 +2,13 @@
 
 The linear model (:mod:`pusupu_jax.analysis`, ``pusupu analyze``) sees each axis as a motor
 driving one lumped mass; the MJX machine's six sliders drive one 5-DOF platform together.
-Here the velocity and position loops of the default machine (Table 1 gains, mode 'imc',
-drive-train friction off: ``coulomb = viscous = 0``, which the MJX plant does not model
-anyway) are measured at two poses, and compared with the model of two loads: the lumped
-:class:`~pusupu_jax.params.AxisLoad` of 20 kg, and the mass the slider carries at the pose
-(:func:`pusupu_jax.plant.dynamics.reflected_mass`: 71.2 kg at home).
+Here the velocity and position loops of a machine (the built-in one by default, with Table 1's
+gains; a machine file, ``pusupu experiment loop_match --machine FILE``, with the start gains derived
+for it; mode 'imc', drive-train friction off: ``coulomb = viscous = 0``) are measured at two poses,
+and compared with the model of two loads: the lumped :class:`~pusupu_jax.params.AxisLoad` of 20 kg,
+and the mass the slider carries at the pose (:func:`pusupu_jax.plant.dynamics.reflected_mass`:
+71.2 kg at home on the built-in machine).  On another machine the frequency grids move with the
+model's crossover (:func:`_band_scale`).
 
 Measurement (:mod:`pusupu_jax.injection`): from rest at the pose, held by the drives, one axis's
 loop gets a small sine at its controller's output, at :data:`GRID` frequencies around its
@@ -48,8 +50,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-from pusupu_jax import AxisLoad, LoopRates, ServoParams, analysis, injection
+from pusupu_jax import AxisLoad, LoopRates, ServoParams, analysis, injection, machine_file
 from pusupu_jax.machine import machine_plant, machine_rates
+from pusupu_jax.machine_file import Machine
 from pusupu_jax.params import stack
 from pusupu_jax.plant import AxisPlant
 from pusupu_jax.plant.dynamics import reflected_mass
@@ -57,6 +60,7 @@ from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
 from pusupu_jax.plots import save_atomic
 from pusupu_jax.sim import rollout, run_chunked
+from pusupu_jax.start_gains import derive
 
 from . import Result
 
@@ -72,14 +76,20 @@ QUICK = dict(probes=(("home", 0),), count=3, duration_s={"velocity": 1.5, "posit
              settle_s={"velocity": 0.75, "position": 4.0}, band={"velocity": (6.0, 12.0), "position": (0.8, 1.6)})
 
 
-def servo() -> ServoParams:
-    """Table 1 gains with the drive train's friction off."""
-    return ServoParams.table1().replace(coulomb=np.zeros(6), viscous=np.zeros(6))
+def servo(machine: Machine | None = None) -> ServoParams:
+    """The gains on ``machine`` (default the built-in one: Table 1; another: the start gains derived for it,
+    :func:`pusupu_jax.start_gains.derive`) with the drive train's friction off."""
+    if machine is None or machine_file.is_builtin(machine):
+        gains = ServoParams.table1()
+    else:
+        gains = derive(machine)[0]
+    return gains.replace(coulomb=np.zeros(6), viscous=np.zeros(6))
 
 
-def geometry_at(pose: str) -> Geometry:
-    """The default geometry assembled at the pose ``POSES[pose]`` (its ``home``), where the runs start."""
-    geom = Geometry.default()
+def geometry_at(pose: str, machine: Machine | None = None) -> Geometry:
+    """The machine's geometry (default the built-in one's) assembled at the pose ``POSES[pose]`` (its ``home``),
+    where the runs start."""
+    geom = Geometry.default() if machine is None else machine.geometry
     return geom.replace(home=np.asarray(geom.home) + np.asarray(POSES[pose]))
 
 
@@ -139,22 +149,39 @@ def _gains(traces, runs, loop, rates, settle_s):
     return out
 
 
-def run(quick: bool = False) -> Result:
-    params = servo()
-    rates = machine_rates(ModelOptions(), LoopRates())
+def _band_scale(params: ServoParams, machine: Machine, loop: str) -> float:
+    """How far the loop's crossover on ``machine`` (the model, carried mass at home, axis 1) lies from the built-in
+    machine's with Table 1: the frequency grid moves by this factor (1 on the built-in machine)."""
+    def crossover(p, m):
+        return _margins(model_loops(p, float(reflected_mass(m.geometry, m.geometry.home, m.options())[0][0]), 0)[
+            loop])["crossover_hz"]
+
+    return crossover(params, machine) / crossover(servo(), Machine.default())
+
+
+def run(quick: bool = False, machine: Machine | None = None) -> Result:
+    """The measurement on ``machine`` (default the built-in one; its gains: :func:`servo`)."""
+    machine = Machine.default() if machine is None else machine
+    params = servo(machine)
+    options = machine.options()
+    rates = machine_rates(options, LoopRates())
     probes = QUICK["probes"] if quick else PROBES
     duration = QUICK["duration_s"] if quick else DURATION_S
     settle = QUICK["settle_s"] if quick else SETTLE_S
-    plant = machine_plant(ModelOptions())
+    plant = machine_plant(options)
     poses = sorted({pose for pose, _ in probes}, key=list(POSES).index)
-    models = {pose: plant.variant(ModelOptions(), geometry_at(pose)) for pose in poses}
-    carried = {pose: reflected_mass(Geometry.default(), geometry_at(pose).home, ModelOptions())[0] for pose in poses}
-    metrics = {"gains": "Table 1, mode imc, coulomb = viscous = 0", "tolerance": TOLERANCE,
+    models = {pose: plant.variant(options, geometry_at(pose, machine)) for pose in poses}
+    carried = {pose: reflected_mass(machine.geometry, geometry_at(pose, machine).home, options)[0] for pose in poses}
+    gains = "Table 1" if machine_file.is_builtin(machine) else "the start gains derived for it"
+    metrics = {"machine": machine_file.reference(machine), "gains": f"{gains}, mode imc, coulomb = viscous = 0",
+               "tolerance": TOLERANCE,
                "amplitude": {"velocity_a": AMPLITUDE["velocity"], "position_rad_s": AMPLITUDE["position"]},
                "settle_s": settle, "duration_s": duration, "rows": []}
     series = {}
     for loop in LOOPS:
-        band = QUICK["band"][loop] if quick else GRID[loop][:2]
+        band = np.asarray(QUICK["band"][loop] if quick else GRID[loop][:2])
+        if not machine_file.is_builtin(machine):
+            band = band * _band_scale(params, machine, loop)
         freqs = injection.grid(*band, QUICK["count"] if quick else GRID[loop][2], rates)
         runs = _runs(probes, loop, freqs, duration[loop], rates)
         inj = stack([r[2] for r in runs])
@@ -231,7 +258,8 @@ def plot(result: Result, out) -> list:
                 a.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
                 a.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
                 a.xaxis.set_minor_formatter(NullFormatter())
-        fig.suptitle(f"Loop gains, {probe}: MJX machine against the single-axis model", fontsize=10)
+        fig.suptitle(f"Loop gains, {probe}: MJX machine {result.metrics['machine']['name']!r} against the "
+                     "single-axis model", fontsize=10)
         fig.tight_layout()
         files.append(save_atomic(fig, out / f"loop_match_{re.sub('[^a-z0-9]+', '_', probe.lower()).strip('_')}.png"))
     return files
@@ -248,7 +276,8 @@ def _cell(m: dict) -> str:
 def table(result: Result) -> str:
     m = result.metrics
     tol = m["tolerance"]
-    lines = [f"Loop gains of the MJX machine measured by injection ({m['gains']}) against the single-axis model; "
+    lines = [f"Loop gains of the MJX machine {m['machine']['name']!r} measured by injection ({m['gains']}) against the "
+             "single-axis model; "
              f"a load matches (yes) when crossover is within {tol['crossover_pct']:g} % and phase margin within "
              f"{tol['phase_margin_deg']:g} deg of the measured.", "",
              "| pose | loop | axis | model 20 kg | match | model carried mass | match | MJX measured | "

@@ -168,7 +168,8 @@ def _parser() -> argparse.ArgumentParser:
                                                  "stability across lambda2), timing (every step halved), servo "
                                                  "(each loop: Bode, step, load-torque step, margins), tuned "
                                                  "(Table 1 vs pusupu tune's gains on arc and p2p, every mode), "
-                                                 "peg_in_hole (Fig. 9a) or surface_tracking (Fig. 9b)")
+                                                 "peg_in_hole (Fig. 9a), surface_tracking (Fig. 9b) or loop_match (the "
+                                                 "MJX machine's loop gains against the linear model)")
     e.add_argument("--out", metavar="DIR", default="experiments_out", help="output folder (default experiments_out)")
     e.add_argument("--quick", action="store_true", help="a short version (a few seconds of the paths, fewer seeds)")
     e.add_argument("--json", action="store_true", help="print the metrics as JSON instead of the table")
@@ -182,9 +183,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="where tuning starts: a gain file tuned on the same machine, Table 1, or gains derived for the "
                         "machine by the paper's method (docs/machine.md); default table1 on the built-in machine, "
                         "derived on any other")
-    for sp in (a, s, t, g_show, g_check, g_sign, g_export, g_ros):
+    for sp in (a, s, t, g_show, g_check, g_sign, g_export, g_ros, e):
         sp.add_argument("--machine", metavar="FILE", help="the machine file (pusupu machine init; default: the "
-                                                          "built-in machine)")
+                                                          "built-in machine)" + ("; loop_match only" if sp is e else ""))
     for sp in (a, s, t):
         sp.add_argument("--imc-form", choices=IMC_FORMS,
                         help="form of the IMC prefilter C1: full (reference response (3 l1 s+1)/(l1 s+1)^3, what "
@@ -370,10 +371,12 @@ def _experiment(args) -> int:
     experiments.get(args.name)  # an unknown name fails before any work
     with _checking(f"--gains {args.gains}"):  # refused for another experiment, or a bad file: before any work
         g = experiments.gain_file(args.name, args.gains)
+    machine = _machine(args) if args.machine else None
+    experiments.check_machine(args.name, machine)
     print(f"experiment {args.name}{' (quick)' if args.quick else ''}: running (the first runs compile for about "
           "20 s per control mode)", file=sys.stderr, flush=True)
     t0 = time.perf_counter()
-    result, files = experiments.run_experiment(args.name, out, quick=args.quick, gains=g)
+    result, files = experiments.run_experiment(args.name, out, quick=args.quick, gains=g, machine=machine)
     if args.json:
         print(json.dumps(result.metrics, indent=2))
     else:

@@ -1,6 +1,7 @@
 """The experiments that reproduce the paper's claims, in their quick versions (``pusupu experiment NAME --quick``)."""
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -136,18 +137,23 @@ def test_tuned_quick_with_a_gain_file_compares_every_mode_on_both_paths(tmp_path
     assert "| p2p | hybrid |" in (tmp_path / "tuned.md").read_text()
 
 
-@pytest.mark.parametrize("name, gains, message", [
-    ("arc", "GAINS", "--gains: only the experiments servo, tuned take a gain file, not arc"),
-    ("servo", "missing.yaml", "missing.yaml: cannot read gain file"),
+@pytest.mark.parametrize("name, option, value, message", [
+    ("arc", "--gains", "GAINS", "--gains: only the experiments servo, tuned take a gain file, not arc"),
+    ("servo", "--gains", "missing.yaml", "missing.yaml: cannot read gain file"),
+    ("arc", "--machine", "MACHINE", "--machine: only the experiments loop_match run on a machine file, not arc"),
+    ("loop_match", "--machine", "missing.yaml", "missing.yaml: cannot read machine file"),
 ])
-def test_experiment_gains_misuse_exits_2_with_one_line(tmp_path, tweaked_gains, capsys, name, gains, message):
-    """``pusupu experiment NAME --gains FILE``: an experiment that takes no gains, or a gain file that cannot be
-    read, is one line on stderr and exit status 2, before anything is written."""
+def test_experiment_gains_or_machine_misuse_exits_2_with_one_line(tmp_path, tweaked_gains, capsys, name, option,
+                                                                  value, message):
+    """``pusupu experiment NAME --gains FILE`` or ``--machine FILE``: an experiment that takes no gains or runs on no
+    machine file, or a file that cannot be read, is one line on stderr and exit status 2, before anything is
+    written."""
     from pusupu_cli.cli import main
 
-    gains = str(tweaked_gains) if gains == "GAINS" else str(tmp_path / gains)
+    example = Path(__file__).parent.parent / "docs" / "examples" / "machine_user.yaml"
+    value = {"GAINS": str(tweaked_gains), "MACHINE": str(example)}.get(value, str(tmp_path / value))
     with pytest.raises(SystemExit) as e:
-        main(["experiment", name, "--quick", "--gains", gains, "--out", str(tmp_path / "out")])
+        main(["experiment", name, "--quick", option, value, "--out", str(tmp_path / "out")])
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("pusupu: error: ") and message in err[0], err
