@@ -4,8 +4,10 @@ Both gain sets run the default machine without kinematic errors (the tuner's def
 started at rest, on the paper's arc and p2p paths, in the modes PID, PID with velocity
 feedforward, IMC on all six branches and hybrid (branches 1-5 IMC, branch 6 force-controlled;
 with its gain file's hybrid gains ``m6, c6, g``, Table 1 with the defaults).  Reported per path,
-mode and gain set: the platform's RMS and max position error [mm] and the highest of the six
-branch force peaks [N], and the tuned gains' change against Table 1 [%].
+mode and gain set: the platform's RMS and max position error [mm], the reversal glitch (the largest
+slider error within 0.1 s after a reversal of a slider's reference speed, where the drive train's
+Coulomb friction changes sign: :func:`pusupu_jax.machine.reversal_error`, highest branch) [mm] and
+the highest of the six branch force peaks [N], and the tuned gains' change against Table 1 [%].
 
 The tuned gains come from ``gains`` (a gain file of ``pusupu tune``, ``--gains FILE``), or,
 without it, from running the tuner here on its default configuration (``tune.config.TuneConfig``,
@@ -42,7 +44,13 @@ from .p2p import MODES
 PATHS = ("arc", "p2p")
 SETS = ("Table 1", "tuned")
 KEYS = {"rms_tracking_error_mm": "RMS error [mm]", "max_tracking_error_mm": "max error [mm]",
-        "highest_branch_force_peak_n": "highest branch force peak [N]"}
+        "highest_reversal_error_mm": "reversal glitch [mm]", "highest_branch_force_peak_n": "highest branch force peak [N]"}
+
+
+def highest(values) -> float:
+    """The largest of the branches' values that exist (NaN when none does: no branch's reference reverses)."""
+    present = [v for v in values if v is not None]
+    return max(present) if present else float("nan")
 
 
 def tune(quick: bool = False):
@@ -103,7 +111,8 @@ def run(quick: bool = False, gains=None) -> Result:
                 runs.setdefault(sc.name, {}).setdefault(label, {})[set_label] = {
                     k: r[k] for k in ("rms_tracking_error_mm", "max_tracking_error_mm", "branch_force_peak_n",
                                       "loop_closure_residual_max_mm")} | {
-                    "highest_branch_force_peak_n": max(r["branch_force_peak_n"])}
+                    "highest_branch_force_peak_n": max(r["branch_force_peak_n"]),
+                    "highest_reversal_error_mm": highest(r["branch_reversal_error_mm"])}
                 series.setdefault(sc.name, {}).setdefault(label, {})[set_label] = {
                     "t": np.asarray(a["t"]),
                     "error_mm": np.linalg.norm(np.asarray(a["platform"]) - np.asarray(a["reference"]), axis=1) * 1e3}
@@ -126,8 +135,8 @@ def run(quick: bool = False, gains=None) -> Result:
 
 def plot(result: Result, out) -> list:
     m = result.metrics
-    fig = plt.figure(figsize=(15, 9))
-    grid = fig.add_gridspec(2, 6)
+    fig = plt.figure(figsize=(19, 9))
+    grid = fig.add_gridspec(2, 2 * len(KEYS))
     groups = [(kind, label) for kind in PATHS for label in MODES]
     x = np.arange(len(groups))
     for col, (key, title) in enumerate(KEYS.items()):
@@ -145,7 +154,7 @@ def plot(result: Result, out) -> list:
         ax.legend(fontsize=8)
     mode = m["tuned_mode"]
     for col, kind in enumerate(PATHS):
-        ax = fig.add_subplot(grid[1, 3 * col:3 * col + 3])
+        ax = fig.add_subplot(grid[1, len(KEYS) * col:len(KEYS) * (col + 1)])
         for set_label in SETS:
             a = result.series[kind][mode][set_label]
             ax.plot(a["t"], a["error_mm"], lw=1, label=f"{set_label}: RMS "
@@ -169,8 +178,8 @@ def table(result: Result) -> str:
     lines = [f"Table 1 vs tuned gains ({g['source']}; tuned in mode {g['mode']}: {changed or 'nothing changed'}). "
              f"Arc {m['duration_s']['arc']:.1f} s, p2p {m['duration_s']['p2p']:.1f} s, no kinematic errors, "
              "start at rest.", "",
-             "| path | mode | RMS [mm] Table 1 | tuned | change | max [mm] Table 1 | tuned | change | "
-             "highest force peak [N] Table 1 | tuned | change |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| path | mode | " + " | ".join(f"{title} Table 1 | tuned | change" for title in KEYS.values()) + " |",
+             "|---|---|" + "---|---|---|" * len(KEYS)]
     for kind in PATHS:
         for label, r in m["runs"][kind].items():
             cells = [f"{r['Table 1'][k]:.3f} | {r['tuned'][k]:.3f} | {r['change_pct'][k]:+.1f} %" for k in KEYS]

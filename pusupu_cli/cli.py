@@ -813,10 +813,10 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
         print(f"  {key:<30} {_num(result[key])}")
     for key, value in result.get("hybrid", {}).items():
         print(f"  hybrid {key:<23} {value if isinstance(value, str) else _num(value)}")
-    keys = ("branch_rms_error_mm", "motor_torque_peak_nm", "branch_force_peak_n")
-    print(f"{'branch':>6} " + " ".join(f"{k:>22}" for k in keys))
-    for b in range(6):
-        print(f"{b + 1:>6} " + " ".join(f"{_num(result[k][b]):>22}" for k in keys))
+    keys = ("branch_rms_error_mm", "branch_reversal_error_mm", "motor_torque_peak_nm", "branch_force_peak_n")
+    print(f"{'branch':>6} " + " ".join(f"{k:>24}" for k in keys))
+    for b in range(6):  # a branch whose reference never reverses: no reversal error
+        print(f"{b + 1:>6} " + " ".join(f"{_num(result[k][b], none='-'):>24}" for k in keys))
     if args.plot:
         print(f"plot: {args.plot}")
     return 0

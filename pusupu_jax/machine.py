@@ -186,6 +186,26 @@ def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: Mo
     return result, arrays
 
 
+REVERSAL_WINDOW_S = 0.1  # s after a reversal of a slider's reference speed in which its error counts as the glitch
+
+
+def reversal_error(e_branch, s_ref, dt: float, window_s: float = REVERSAL_WINDOW_S) -> list:
+    """Per branch, the largest slider error |e| [m] within ``window_s`` after any reversal of its reference speed
+    (the sign of ``diff(s_ref)`` changes, stretches at rest skipped), where the drive train's Coulomb friction
+    changes sign and the classic glitch of a reversal shows; None for a branch whose reference never reverses.
+    ``e_branch``, ``s_ref``: ``(N, 6)`` [m], one row per position period of ``dt`` [s]."""
+    v = np.diff(np.asarray(s_ref), axis=0)
+    e = np.abs(np.asarray(e_branch))
+    n = max(int(round(window_s / dt)), 1)
+    out = []
+    for b in range(v.shape[1]):
+        moving = np.flatnonzero(np.abs(v[:, b]) > 1e-12)
+        sign = np.sign(v[moving, b])
+        at = moving[1:][sign[1:] != sign[:-1]] + 1  # the first sample moving the other way
+        out.append(max(float(e[k:k + n, b].max()) for k in at) if len(at) else None)
+    return out
+
+
 def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: float,
                     hybrid: hybrid_law.HybridGains | None = None) -> tuple[dict, dict]:
     """The metrics of ``pusupu sim --plant mjx`` from a machine trace (host-side), and arrays for plots.
@@ -208,6 +228,7 @@ def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: f
         "rms_tracking_error_mm": float(np.sqrt(np.mean(e_platform**2)) * 1e3),
         "max_tracking_error_mm": float(e_platform.max() * 1e3),
         "branch_rms_error_mm": (np.sqrt(np.mean(e_branch**2, axis=0)) * 1e3).tolist(),
+        "branch_reversal_error_mm": [None if x is None else x * 1e3 for x in reversal_error(e_branch, s_ref, dt)],
         "motor_torque_peak_nm": np.abs(torque).max(axis=0).tolist(),
         "branch_force_peak_n": np.abs(force).max(axis=0).tolist(),
         "sync_error_rho": float(rho[-1]) * 1e3,  # mm s

@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from pusupu_jax.machine import machine_reference
 from pusupu_jax.params import stack
@@ -58,3 +59,23 @@ def test_at_constant_speed_the_drives_pay_the_friction_law_in_torque():
         law = np.einsum("nij,ni->j", J, np.asarray(slider_friction(Friction.of(servos[k]), v[k]))) / len(v[k])
         extra = np.einsum("nij,ni->j", J, force[k] - force[0]) / len(v[k])
         np.testing.assert_allclose(extra, law, atol=1e-2 * np.abs(law).max())
+
+
+def test_the_reversal_error_is_the_largest_error_just_after_each_reversal_of_the_reference():
+    """Branch 1's reference reverses once at sample 250 (a cosine through its turning point), branch 2's stops and goes
+    back after a dwell, branch 3's never reverses: an error spike 20 ms after a reversal is the glitch, a larger one
+    before the reversal or beyond the window is not, and branch 3 has none."""
+    from pusupu_jax.machine import REVERSAL_WINDOW_S, reversal_error
+
+    dt, n = 1e-3, 1000
+    t = np.arange(n) * dt
+    s_ref = np.zeros((n, 6))
+    s_ref[:, 0] = np.cos(2 * np.pi * (t - 0.25) / 1.0)  # maximum at 0.25 s: the speed turns there
+    s_ref[:, 1] = np.concatenate([np.linspace(0, 1, 400), np.ones(200), np.linspace(1, 0.5, 400)])
+    s_ref[:, 2:] = t[:, None]
+    e = np.full((n, 6), 1e-6)
+    e[100, 0], e[270, 0], e[250 + int(REVERSAL_WINDOW_S / dt) + 5, 0] = 5e-3, 2e-3, 9e-3
+    e[610, 1] = 3e-3  # 10 ms after branch 2 starts back
+    out = reversal_error(e, s_ref, dt)
+    assert out[0] == pytest.approx(2e-3) and out[1] == pytest.approx(3e-3)
+    assert out[2:] == [None] * 4
