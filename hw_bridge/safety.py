@@ -9,6 +9,7 @@ then disable voltage.
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -57,11 +58,23 @@ class Limits:
                              "and screw values and a following-error time of at least 0")
 
 
+class FaultKind(enum.StrEnum):
+    """What stopped a run: the machine, the drives, the transport or the bridge's own code."""
+
+    FEEDBACK_STALE = "feedback stale"  # no new feedback within the watchdog, or the drives did not come up
+    FEEDBACK_INVALID = "feedback invalid"  # NaN or inf, or speed or torque beyond their margin
+    POSITION_LIMIT = "position limit"  # an axis outside its stroke
+    FOLLOWING_ERROR = "following error"  # an axis beyond its window for longer than its time-out
+    COMMAND_INVALID = "command invalid"  # the loops computed a NaN or inf target
+    DEADLINE = "deadline"  # consecutive cycles missed their deadline
+    DRIVE_FAULT = "drive fault"  # a drive left 'operation enabled', or did not enable
+    INTERNAL_ERROR = "internal error"  # an exception of the bridge's own code in a cycle
+
+
 @dataclass
 class Fault:
     cycle: int
-    kind: str  # 'feedback stale', 'feedback invalid', 'position limit', 'following error', 'command invalid',
-    # 'deadline', 'drive fault', 'internal error'
+    kind: FaultKind
     detail: str
 
     def line(self) -> str:
@@ -89,14 +102,14 @@ class Safety:
     def tripped(self) -> bool:
         return bool(self.faults)
 
-    def fault(self, cycle: int, kind: str, detail: str) -> None:
+    def fault(self, cycle: int, kind: FaultKind, detail: str) -> None:
         self.faults.append(Fault(cycle, kind, detail))
 
     def check_feedback(self, cycle: int, age: int, position, velocity, torque) -> bool:
         """True when the sample may drive the loops: fresh (``age`` cycles old at most the watchdog), finite, in range."""
         lim = self.limits
         if age > self.watchdog_cycles:
-            self.fault(cycle, "feedback stale", f"no new feedback for {age} cycles (watchdog {self.watchdog_cycles})")
+            self.fault(cycle, FaultKind.FEEDBACK_STALE, f"no new feedback for {age} cycles (watchdog {self.watchdog_cycles})")
             return False
         values = np.concatenate((position, velocity, torque))
         inside = (values >= self._low) & (values <= self._high)
@@ -105,13 +118,13 @@ class Safety:
         # a fault: name it (NaN is outside every bound, so it is looked for first)
         n = len(position)
         if not np.isfinite(values).all():
-            self.fault(cycle, "feedback invalid", "NaN or inf in the measured position, velocity or torque")
+            self.fault(cycle, FaultKind.FEEDBACK_INVALID, "NaN or inf in the measured position, velocity or torque")
         elif not inside[n:].all():
-            self.fault(cycle, "feedback invalid", f"measured speed or torque beyond {lim.feedback_margin} times its "
+            self.fault(cycle, FaultKind.FEEDBACK_INVALID, f"measured speed or torque beyond {lim.feedback_margin} times its "
                                                   "limit")
         else:
             k = int(np.argmin(inside[:n]))  # the first axis outside its stroke
-            self.fault(cycle, "position limit", f"axis {k + 1} at {position[k]:.4g} rad, outside "
+            self.fault(cycle, FaultKind.POSITION_LIMIT, f"axis {k + 1} at {position[k]:.4g} rad, outside "
                                                 f"[{lim.position_min[k]:.4g}, {lim.position_max[k]:.4g}]")
         return False
 
@@ -127,7 +140,7 @@ class Safety:
         if not late.any():
             return True
         k = int(np.argmax(late))
-        self.fault(cycle, "following error", f"axis {k + 1} {error[k] * lim.screw[k] * 1e3:.3g} mm of slider travel "
+        self.fault(cycle, FaultKind.FOLLOWING_ERROR, f"axis {k + 1} {error[k] * lim.screw[k] * 1e3:.3g} mm of slider travel "
                                              f"from its reference, beyond its {lim.following_error[k] * 1e3:.3g} mm "
                                              f"window for {(t - self._beyond_since[k]) * 1e3:.0f} ms (time-out "
                                              f"{lim.following_error_time[k] * 1e3:.0f} ms)")
@@ -136,7 +149,7 @@ class Safety:
     def limit_command(self, cycle: int, modes, target) -> np.ndarray:
         """``target`` clamped to the velocity (CSV) or torque (CST) limit of each axis; all zero if any is not finite."""
         if not np.isfinite(target).all():
-            self.fault(cycle, "command invalid", "the loops computed a NaN or inf target")
+            self.fault(cycle, FaultKind.COMMAND_INVALID, "the loops computed a NaN or inf target")
             return np.zeros_like(target)
         modes = np.asarray(modes)
         bound = self._bound.get(modes.tobytes())

@@ -35,7 +35,7 @@ import numpy as np
 from . import cia402, protocol
 from .loop import BridgeLoop
 from .runner import CycleRunner, percentiles, realtime_setup
-from .safety import Safety
+from .safety import FaultKind, Safety
 
 
 class End(enum.StrEnum):
@@ -185,7 +185,7 @@ class Bridge:
 
         def failed(k, e: Exception):
             """An exception of the bridge's own code in cycle ``k``: a fault, and the stop."""
-            safety.fault(k, "internal error", f"{type(e).__name__}: {e}")
+            safety.fault(k, FaultKind.INTERNAL_ERROR, f"{type(e).__name__}: {e}")
             stop(k, End.FAULT)
 
         def operate(k, skipped, t_wake):
@@ -208,7 +208,7 @@ class Bridge:
                 if settled and states() in ({cia402.READY}, {cia402.SWITCHED_ON}):
                     st["phase"], st["since"] = "enable", k
                 elif k - st["since"] > self.connect_cycles:
-                    safety.fault(k, "feedback stale", f"the drives did not come up in {self.connect_cycles} cycles "
+                    safety.fault(k, FaultKind.FEEDBACK_STALE, f"the drives did not come up in {self.connect_cycles} cycles "
                                                       f"(states: {sorted(states()) or 'no feedback'})")
                     stop(k, End.FAULT)
                 if not settled:
@@ -229,7 +229,7 @@ class Bridge:
                     total = loop.cycles + self.hold_cycles
                     st["run_cycles"] = total if duration is None else min(total, int(round(duration * loop.rate)))
                 elif k - st["since"] > self.connect_cycles:
-                    safety.fault(k, "drive fault", f"the drives did not enable (states: {sorted(s)})")
+                    safety.fault(k, FaultKind.DRIVE_FAULT, f"the drives did not enable (states: {sorted(s)})")
                     stop(k, End.FAULT)
                     return False
                 else:
@@ -241,10 +241,10 @@ class Bridge:
             st["misses"] = st["misses"] + 1 if skipped else 0
             ok = not safety.tripped
             if ok and st["misses"] > self.max_misses:
-                safety.fault(k, "deadline", f"{st['misses']} consecutive cycles missed their deadline")
+                safety.fault(k, FaultKind.DEADLINE, f"{st['misses']} consecutive cycles missed their deadline")
                 ok = False
             if ok and states() - {cia402.OPERATION_ENABLED}:
-                safety.fault(k, "drive fault", f"a drive left 'operation enabled' (states: {sorted(states())})")
+                safety.fault(k, FaultKind.DRIVE_FAULT, f"a drive left 'operation enabled' (states: {sorted(states())})")
                 ok = False
             # the feedback shows the machine after the command it acknowledges (over CANopen, which has no
             # acknowledgement: the last one): compare it with the reference of the cycle after that

@@ -34,6 +34,7 @@ are in :data:`ARGS` (at most 60 s of silence or delay, blocks of 1 to 1000 repli
 from __future__ import annotations
 
 import dataclasses
+import enum
 import gc
 import heapq
 import os
@@ -59,18 +60,33 @@ from .runner import realtime_setup, steal_seconds
 from .safety import command_limits
 from .udp import Endpoint
 
-FAULTS = ("none", "stop", "delay", "drop", "reorder", "corrupt", "nan", "range", "garbage")
+class Injected(enum.StrEnum):
+    """A fault the simulated robot injects on demand (the module docstring says what each does)."""
+
+    NONE = "none"
+    STOP = "stop"
+    DELAY = "delay"
+    DROP = "drop"
+    REORDER = "reorder"
+    CORRUPT = "corrupt"
+    NAN = "nan"
+    RANGE = "range"
+    GARBAGE = "garbage"
+
+
+FAULTS = tuple(Injected)
 # the argument of each fault that takes one: its bounds and what it is (a reorder block, in replies, is a whole number)
-ARGS = {"stop": (0.0, 60.0, "seconds of silence"), "delay": (0.0, 60.0, "seconds of delay"),
-        "drop": (0.0, 1.0, "a probability"), "reorder": (1, 1000, "a whole number of replies"),
-        "corrupt": (0.0, 1.0, "a probability"), "range": (-1e6, 1e6, "rad of motor angle")}
+ARGS = {Injected.STOP: (0.0, 60.0, "seconds of silence"), Injected.DELAY: (0.0, 60.0, "seconds of delay"),
+        Injected.DROP: (0.0, 1.0, "a probability"), Injected.REORDER: (1, 1000, "a whole number of replies"),
+        Injected.CORRUPT: (0.0, 1.0, "a probability"), Injected.RANGE: (-1e6, 1e6, "rad of motor angle")}
 TARGET_TOLERANCE = 1e-3  # of a limit: a target beyond it by less is taken (CANopen rounds a torque to 1/1000 of rated)
-DEFAULT_ARG = {"stop": 1.0, "delay": 0.02, "drop": 1.0, "reorder": 8, "corrupt": 1.0, "range": 1.0e4}
+DEFAULT_ARG = {Injected.STOP: 1.0, Injected.DELAY: 0.02, Injected.DROP: 1.0, Injected.REORDER: 8,
+               Injected.CORRUPT: 1.0, Injected.RANGE: 1.0e4}
 
 
 @dataclass(frozen=True)
 class FaultSpec:
-    kind: str = "none"
+    kind: Injected = Injected.NONE
     at: float = 0.0  # s after enable
     arg: float | None = None
 
@@ -78,15 +94,16 @@ class FaultSpec:
     def parse(cls, text: str) -> "FaultSpec":
         """``KIND@T[:ARG]`` or ``none``, ``T`` finite and not negative and ``ARG`` within :data:`ARGS` (no ``ARG`` for
         the kinds that take none); ValueError naming what was expected."""
-        kind, _, rest = text.partition("@")
+        name, _, rest = text.partition("@")
         at, _, arg = rest.partition(":")
+        kind = Injected(name) if name in FAULTS else None
         try:
             spec = cls(kind, float(at) if at else 0.0, float(arg) if arg else DEFAULT_ARG.get(kind))
         except ValueError:
             raise ValueError(f"--fault: expected KIND@SECONDS[:ARG] with numbers, got {text!r}") from None
-        if kind not in FAULTS or not 0 <= spec.at < np.inf:
-            raise ValueError(f"--fault: expected KIND@SECONDS[:ARG], KIND one of {FAULTS} and SECONDS finite and not "
-                             f"negative, got {text!r}")
+        if kind is None or not 0 <= spec.at < np.inf:
+            raise ValueError(f"--fault: expected KIND@SECONDS[:ARG], KIND one of {tuple(map(str, FAULTS))} and "
+                             f"SECONDS finite and not negative, got {text!r}")
         if kind not in ARGS and arg:
             raise ValueError(f"--fault {text}: expected no ARG for {kind}, got {arg!r}")
         if kind in ARGS:
@@ -204,7 +221,7 @@ class SimRobot:
         self.silent_until = 0.0
         self.applied = 0
 
-    def active(self, kind: str, now: float) -> bool:
+    def active(self, kind: Injected, now: float) -> bool:
         """The session's fault is ``kind`` and due: ``at`` seconds of machine time (periods run) after enable."""
         return self.fault.kind == kind and self.enabled_at is not None and self.sim_time >= self.fault.at
 
@@ -222,7 +239,7 @@ class SimRobot:
         """Apply one command; the feedback to send (None: the robot is silent)."""
         if now < self.silent_until:
             return None
-        if self.active("stop", now):
+        if self.active(Injected.STOP, now):
             self.silent_until = now + self.fault.arg
             self.fault = FaultSpec()
             self.log(f"sim-robot: session {self.session}: stopped (silent for {self.silent_until - now:.2f} s)")
@@ -235,7 +252,7 @@ class SimRobot:
         after = {d.state for d in self.drives}
         if after == {cia402.READY} and before != {cia402.READY} and self.enabled_at is not None:
             self._new_session()  # brought up again after a session that ran
-        elif self.enabled_at is not None and cia402.OPERATION_ENABLED not in after and self.fault.kind != "none":
+        elif self.enabled_at is not None and cia402.OPERATION_ENABLED not in after and self.fault.kind != Injected.NONE:
             self.log(f"sim-robot: session {self.session}: stopped by the bridge; fault {self.fault.kind} ends")
             self.fault = FaultSpec()
         if after == {cia402.OPERATION_ENABLED}:
@@ -251,9 +268,9 @@ class SimRobot:
                                                          np.zeros(len(self.drives), bool))
         self.applied = cmd.sequence
         theta, omega, platform = self.model.actual(self.data)
-        if self.active("nan", now):
+        if self.active(Injected.NAN, now):
             theta = theta * np.nan
-        if self.active("range", now):
+        if self.active(Injected.RANGE, now):
             theta = theta + self.fault.arg
         faulted = np.array([d.state == cia402.FAULT for d in self.drives])
         fb = protocol.Feedback(self.sequence, time.monotonic_ns(), self.applied,
@@ -326,13 +343,13 @@ class HeldReplies:
 
     def reply(self, reply, order: int, now: float) -> None:
         r = self.robot
-        if r.active("reorder", now):
+        if r.active(Injected.REORDER, now):
             self.block.append(reply)
             if len(self.block) >= int(r.fault.arg):
                 for held in reversed(self.block):
                     self.send(held)
                 self.block = []
-        elif r.active("delay", now):
+        elif r.active(Injected.DELAY, now):
             heapq.heappush(self.queue, (now + r.fault.arg, order, reply))
         else:
             self.send(reply)
@@ -355,13 +372,13 @@ class UdpServer:
 
     def _send(self, fb: protocol.Feedback, now: float) -> None:
         r, data = self.robot, protocol.encode_feedback(fb)
-        if r.active("drop", now) and self.rng.random() < r.fault.arg:
+        if r.active(Injected.DROP, now) and self.rng.random() < r.fault.arg:
             return
-        if r.active("corrupt", now) and self.rng.random() < r.fault.arg:
+        if r.active(Injected.CORRUPT, now) and self.rng.random() < r.fault.arg:
             b = bytearray(data)
             b[int(self.rng.integers(len(b)))] ^= 0xFF
             data = bytes(b)
-        if r.active("garbage", now):
+        if r.active(Injected.GARBAGE, now):
             for bad in (data[:17], data + bytes(protocol.MAX_PACKET), data[:4] + b"\x02" + data[5:],
                         b"\x00" * len(data), self._last or data):
                 self.ep.send(bad)
@@ -439,7 +456,7 @@ class CanServer:
                                target)
         fb = r.handle(cmd, now)
         self.held.follow()
-        if fb is None or (r.active("drop", now) and r.fault.arg >= 1.0):
+        if fb is None or (r.active(Injected.DROP, now) and r.fault.arg >= 1.0):
             return
         frames = []  # the answer: each drive's two TPDOs, as (COB-ID, bytes) to send now or later
         for k, node in enumerate(self.nodes):
@@ -451,9 +468,9 @@ class CanServer:
             t2["Modes of operation display"].raw = int(modes[k])
             t2["SYNC counter echo"].raw = data[0] if data else 0
             frames += [(t1.cob_id, bytes(t1.data)), (t2.cob_id, bytes(t2.data))]
-        if r.active("corrupt", now):
+        if r.active(Injected.CORRUPT, now):
             frames = [self._cut(f) if self.rng.random() < r.fault.arg else f for f in frames]
-        if r.active("garbage", now):
+        if r.active(Injected.GARBAGE, now):
             frames, self._last = [self._cut(f) for f in frames] + frames + self._last, frames
         self.held.reply(frames, fb.sequence, now)
 
