@@ -207,7 +207,7 @@ def run_bridge(args) -> int:
     else:
         endpoint = Endpoint(FEEDBACK, n_axes=len(loop.drive_modes), bind=(args.bind, 0), peer=address)
     print(f"bridge: {g.mode} loops at {loop.rate:g} Hz (position every {loop.n_position} cycle(s)), drives "
-          f"{','.join('cst' if m == 10 else 'csv' for m in loop.drive_modes)}, robot {args.robot}", file=sys.stderr)
+          f"{','.join('cst' if m == CST else 'csv' for m in loop.drive_modes)}, robot {args.robot}", file=sys.stderr)
     try:
         run = Bridge(loop, endpoint, Safety(limits_for(g.servo, machine.geometry), args.watchdog)).run(args.duration,
                                                                                       not args.no_realtime)
@@ -306,10 +306,11 @@ def run_sim_robot(args) -> int:
     g = gains.load(args.gains, machine=machine)
     setup_jax()
     from hw_bridge.loop import plan
+    from hw_bridge.protocol import CST
 
     try:
         codes, _ = plan(g, None if args.drive_modes == "csv" else _drive_modes(args.drive_modes), args.rate)
     except ValueError as e:
         raise ParameterError(str(e)) from None
-    model = RobotModel(g, args.rate, args.kin_error, cst=bool((codes == 10).any()), machine=machine)
+    model = RobotModel(g, args.rate, args.kin_error, cst=bool((codes == CST).any()), machine=machine)
     return main_loop(model, args.listen, faults, args.seconds, args.drive_watchdog, not args.no_realtime)
