@@ -55,7 +55,7 @@ def main() -> int:
     ap.add_argument("--tolerance", type=float, default=1e-7)
     ap.add_argument("--out", help="the batch's output folder (default: a temporary one)")
     args = ap.parse_args()
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.runtime import setup_jax
 
     setup_jax()
     import jax

@@ -57,7 +57,7 @@ def main() -> None:
                     help="after the iterations, time the compiled gradient alone and the window refresh alone, "
                          "N calls each (medians; 0: not)")
     args = ap.parse_args()
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.runtime import setup_jax
 
     setup_jax()
     import jax

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pusupu_jax.config import apply_xla_workaround, setup_jax
+from pusupu_jax.runtime import apply_xla_workaround, setup_jax
 from timing import PauseProbe, emit, percentile_spreads, spread, steal_ms_since  # beside this script
 
 
@@ -59,13 +59,12 @@ def main() -> None:
     apply_xla_workaround(one_thread=True)  # as pusupu bridge does, before any computation
     setup_jax()
     from hw_bridge.canopen_link import CanLink, open_bus
-    from hw_bridge.loop import BridgeLoop, plan
+    from hw_bridge.loop import BridgeLoop, bridge_reference, plan
     from hw_bridge.protocol import FEEDBACK
     from hw_bridge.runner import steal_seconds
-    from hw_bridge.safety import Safety
+    from hw_bridge.safety import Safety, limits_for
     from hw_bridge.session import Bridge
     from hw_bridge.udp import Endpoint
-    from pusupu_cli.bridge import bridge_reference, limits_for
     from pusupu_jax import gains
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.params import LoopRates, ServoParams

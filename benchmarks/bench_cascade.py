@@ -55,7 +55,7 @@ def compile_probe() -> dict:
     import jax.numpy as jnp
 
     from pusupu_jax import AxisLoad, ServoParams, sim
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.runtime import setup_jax
 
     setup_jax(os.environ["PUSUPU_JAX_CACHE"])
     params, load, ref = ServoParams.table1(), AxisLoad.default(), jnp.zeros((100, 6))
@@ -90,7 +90,7 @@ def main():
     if args.compile_probe:
         print(json.dumps(compile_probe()))
         return
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.runtime import setup_jax
 
     setup_jax()
     import jax

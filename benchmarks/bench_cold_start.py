@@ -28,7 +28,7 @@ import json, sys, time
 t0 = time.perf_counter()
 import jax, jax.numpy as jnp
 import numpy as np
-from pusupu_jax.config import setup_jax
+from pusupu_jax.runtime import setup_jax
 setup_jax(sys.argv[2])
 from pusupu_jax import objectives, sim
 from pusupu_jax.cascade import control_mode

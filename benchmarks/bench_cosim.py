@@ -46,7 +46,7 @@ def main():
     ap.add_argument("--dtype", choices=("float64", "float32"), default="float64")
     ap.add_argument("--remat", action="store_true", help="rematerialise each position period in the gradient")
     args = ap.parse_args()
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.runtime import setup_jax
 
     setup_jax(x64=args.dtype == "float64")
     import jax

@@ -25,7 +25,7 @@ import numpy as np
 # one precision's terms and gradient, as JSON; argv: dtype, window [s], path [s]
 _EVALUATE = """
 import json, sys
-from pusupu_jax.config import setup_jax
+from pusupu_jax.runtime import setup_jax
 setup_jax(x64=sys.argv[1] == "float64")
 import jax, numpy as np
 from pusupu_jax import ServoParams

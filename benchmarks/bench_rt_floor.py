@@ -77,7 +77,7 @@ def main() -> None:
         ap.error(f"expected a positive rate and seconds, at least one round and pause seconds >= 0, got {args.rate}, "
                  f"{args.seconds}, {args.rounds}, {args.pause_seconds}")
 
-    from pusupu_jax.config import apply_xla_workaround, setup_jax
+    from pusupu_jax.runtime import apply_xla_workaround, setup_jax
 
     apply_xla_workaround(one_thread=True)  # as pusupu bridge has it
     setup_jax()
@@ -85,11 +85,10 @@ def main() -> None:
 
     from hw_bridge import protocol
     from hw_bridge.compiled import FlatStep
-    from hw_bridge.loop import BridgeLoop
+    from hw_bridge.loop import BridgeLoop, bridge_reference
     from hw_bridge.runner import CycleRunner, percentiles, realtime_setup
-    from hw_bridge.safety import Safety
+    from hw_bridge.safety import Safety, limits_for
     from hw_bridge.udp import Endpoint
-    from pusupu_cli.bridge import bridge_reference, limits_for
     from pusupu_jax import gains
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.params import LoopRates, ServoParams

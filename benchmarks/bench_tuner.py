@@ -27,7 +27,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 from scipy.optimize import minimize
 
-from pusupu_jax.config import setup_jax
+from pusupu_jax.runtime import setup_jax
 from timing import median_time  # beside this script
 
 

@@ -41,7 +41,7 @@ def emit(result: dict, out: str | None, indent: int = 1) -> None:
     """Print ``result`` as JSON, and write it to ``out`` too when given (atomically, with the umask's mode)."""
     import json
 
-    from pusupu_jax.config import write_atomic
+    from pusupu_jax.files import write_atomic
 
     text = json.dumps(result, indent=indent)
     print(text)

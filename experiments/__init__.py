@@ -23,7 +23,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from pusupu_jax.config import write_atomic
+from pusupu_jax.files import write_atomic
 from pusupu_jax.params import ParameterError
 
 REGISTRY = {

@@ -248,3 +248,22 @@ class BridgeLoop:
     def cycles(self) -> int:
         """Cycles to the end of the path, the takeover ramp included."""
         return (self.takeover_periods + len(self.path_rows)) * self.n_position
+
+
+def bridge_reference(g, trajectory: str, rates=None, machine=None):
+    """The stream of the path ``trajectory`` (a name or a path file: :func:`pusupu_jax.paths.platform_path_from`) for
+    the bridge at ``rates`` (default the gain file's) on ``machine`` (default: the built-in one), computed offline
+    here (inverse kinematics, F_q of hybrid mode) once the path passed the machine's checks
+    (:func:`pusupu_jax.paths.check_path`)."""
+    from pusupu_jax.cascade import control_mode
+    from pusupu_jax.machine import machine_reference
+    from pusupu_jax.machine_file import Machine
+    from pusupu_jax.paths import platform_path_from
+
+    rates = g.rates if rates is None else rates
+    machine = Machine.default() if machine is None else machine
+    path = platform_path_from(trajectory, machine.geometry.home, rates)
+    ref = machine_reference(g.servo, path, g.mode, rates=rates, options=machine.options(), geom=machine.geometry)
+    if control_mode(g.mode).hybrid:
+        return BridgeReference(np.asarray(ref.theta), np.asarray(ref.force_ff), np.asarray(ref.coupling), path[:, :3])
+    return BridgeReference(np.asarray(ref), platform=path[:, :3])

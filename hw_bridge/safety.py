@@ -156,3 +156,19 @@ class Safety:
         if bound is None:
             bound = self._bound[modes.tobytes()] = np.where(modes == CSV, self.limits.velocity, self.limits.torque)
         return np.minimum(np.maximum(target, -bound), bound)
+
+
+def limits_for(servo, geom=None):
+    """The bridge's limits on the geometry ``geom`` (default: the built-in one): strokes from home, V_max/Ke, Kt I_max,
+    the following-error window and time-out (host-side)."""
+    import jax.numpy as jnp
+
+    from pusupu_jax.plant import kinematics
+    from pusupu_jax.plant.geometry import Geometry
+
+    geom = Geometry.default() if geom is None else geom
+    r = np.asarray(servo.lead, dtype=float) / (2 * np.pi)
+    s_home = np.asarray(kinematics.inverse_kinematics(geom, jnp.asarray(geom.home)))
+    return Limits((np.asarray(geom.stroke_min) - s_home) / r, (np.asarray(geom.stroke_max) - s_home) / r,
+                  *command_limits(servo), np.asarray(servo.following_error, dtype=float),
+                  np.asarray(servo.following_error_time, dtype=float), r)

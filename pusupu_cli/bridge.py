@@ -7,6 +7,8 @@ import sys
 
 from pusupu_jax.params import ParameterError
 
+from .common import check_plot_path, machine_of
+
 
 def add_parsers(sub) -> None:
     b = sub.add_parser("bridge", help="run a gain file's loops at real-time rate against the drives of a robot")
@@ -97,60 +99,13 @@ def _drive_modes(text: str, n: int = 6):
     return names
 
 
-def limits_for(servo, geom=None):
-    """The bridge's limits on the geometry ``geom`` (default: the built-in one): strokes from home, V_max/Ke, Kt I_max,
-    the following-error window and time-out (host-side)."""
-    import jax.numpy as jnp
-    import numpy as np
-
-    from hw_bridge.safety import Limits, command_limits
-    from pusupu_jax.plant import kinematics
-    from pusupu_jax.plant.geometry import Geometry
-
-    geom = Geometry.default() if geom is None else geom
-    r = np.asarray(servo.lead, dtype=float) / (2 * np.pi)
-    s_home = np.asarray(kinematics.inverse_kinematics(geom, jnp.asarray(geom.home)))
-    return Limits((np.asarray(geom.stroke_min) - s_home) / r, (np.asarray(geom.stroke_max) - s_home) / r,
-                  *command_limits(servo), np.asarray(servo.following_error, dtype=float),
-                  np.asarray(servo.following_error_time, dtype=float), r)
-
-
-def bridge_reference(g, trajectory: str, rates=None, machine=None):
-    """The stream of the path ``trajectory`` (a name or a path file: :func:`pusupu_jax.paths.platform_path_from`) for
-    the bridge at ``rates`` (default the gain file's) on ``machine`` (default: the built-in one), computed offline
-    here (inverse kinematics, F_q of hybrid mode) once the path passed the machine's checks
-    (:func:`pusupu_jax.paths.check_path`)."""
-    import numpy as np
-
-    from hw_bridge.loop import BridgeReference
-    from pusupu_jax.cascade import control_mode
-    from pusupu_jax.machine import machine_reference
-    from pusupu_jax.machine_file import Machine
-    from pusupu_jax.paths import platform_path_from
-
-    rates = g.rates if rates is None else rates
-    machine = Machine.default() if machine is None else machine
-    path = platform_path_from(trajectory, machine.geometry.home, rates)
-    ref = machine_reference(g.servo, path, g.mode, rates=rates, options=machine.options(), geom=machine.geometry)
-    if control_mode(g.mode).hybrid:
-        return BridgeReference(np.asarray(ref.theta), np.asarray(ref.force_ff), np.asarray(ref.coupling), path[:, :3])
-    return BridgeReference(np.asarray(ref), platform=path[:, :3])
-
-
-def _machine(args):
-    """The machine of ``--machine FILE`` (checked: one line naming the problem), or the built-in one."""
-    from pusupu_jax import machine_file
-
-    return machine_file.load(args.machine) if args.machine else machine_file.Machine.default()
-
-
 def run_bridge(args) -> int:
     import math
 
     import numpy as np
 
     from pusupu_jax import gains
-    from pusupu_jax.config import apply_xla_workaround, setup_jax
+    from pusupu_jax.runtime import apply_xla_workaround, setup_jax
 
     apply_xla_workaround(one_thread=True)  # before any computation: the gain file's checks run on JAX
 
@@ -163,12 +118,10 @@ def run_bridge(args) -> int:
     if not args.watchdog >= 1:
         raise ParameterError(f"--watchdog: expected at least 1 cycle, got {args.watchdog}")
     if args.plot:
-        from pusupu_cli.cli import _check_plot_path
-
-        _check_plot_path(args.plot)
+        check_plot_path(args.plot)
     from pusupu_jax import machine_file
 
-    machine = _machine(args)
+    machine = machine_of(args)
     g = gains.load(args.gains, machine=machine)  # refused here (one line, exit 2) before any socket opens
     if not g.tuned_on(machine):
         message = (f"--gains {args.gains}: tuned on machine {g.machine['name']!r} (digest {g.machine['digest'][:12]}),"
@@ -177,9 +130,9 @@ def run_bridge(args) -> int:
             raise ParameterError(f"{message}; give that machine's file with --machine, or --allow-other-machine")
         print(f"pusupu: warning: {message}; running it as --allow-other-machine asks", file=sys.stderr)
     setup_jax()
-    from hw_bridge.loop import BridgeLoop, cycle_rate, plan
+    from hw_bridge.loop import BridgeLoop, bridge_reference, cycle_rate, plan
     from hw_bridge.protocol import CST, FEEDBACK
-    from hw_bridge.safety import Safety
+    from hw_bridge.safety import Safety, limits_for
     from hw_bridge.session import RECORD_BYTES, Bridge, End, longest_run, record_memory
     from hw_bridge.udp import Endpoint
 
@@ -278,7 +231,7 @@ def run_sim_robot(args) -> int:
     import math
 
     from pusupu_jax import gains
-    from pusupu_jax.config import apply_xla_workaround, setup_jax
+    from pusupu_jax.runtime import apply_xla_workaround, setup_jax
 
     apply_xla_workaround(one_thread=True)  # before any computation: the gain file's checks run on JAX
 
@@ -302,7 +255,7 @@ def run_sim_robot(args) -> int:
         faults = [FaultSpec.parse(f) for f in args.fault]
     except ValueError as e:
         raise ParameterError(str(e)) from None
-    machine = _machine(args)
+    machine = machine_of(args)
     g = gains.load(args.gains, machine=machine)
     setup_jax()
     from hw_bridge.loop import plan

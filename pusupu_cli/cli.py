@@ -35,6 +35,7 @@ from pusupu_jax.inputs import one_line
 from pusupu_jax.params import IMC_FORMS, N_AXES, ParameterError
 
 from . import bridge as bridge_cli
+from .common import check_plot_path, checking, machine_of
 
 
 class _Parser(argparse.ArgumentParser):
@@ -51,20 +52,6 @@ def _say(message: str) -> None:
 def _fail(message: str):
     _say(f"pusupu: error: {message}")
     sys.exit(2)
-
-
-@contextlib.contextmanager
-def _checking(source: str):
-    """The inputs named ``source`` are read and checked inside: a ValueError, OverflowError or FloatingPointError
-    raised there (by numpy, python-control or float arithmetic on an absurd value) is the input's fault and becomes a
-    ParameterError naming ``source`` (one line, exit 2).  Raised later, in the work, such an error is a bug and keeps
-    its traceback, as every other exception does."""
-    try:
-        yield
-    except ParameterError:
-        raise
-    except (ValueError, OverflowError, FloatingPointError) as e:
-        raise ParameterError(f"{source}: cannot use these values ({type(e).__name__}: {e})") from None
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -298,7 +285,7 @@ def _file_backend() -> None:
 def _tune(args) -> int:
     from pathlib import Path
 
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.runtime import setup_jax
 
     setup_jax()
     from tune.config import TuneConfig
@@ -308,17 +295,17 @@ def _tune(args) -> int:
         raise ParameterError("--out: expected a folder, got an empty name")
     cfg = TuneConfig.quick() if args.quick else TuneConfig()
     if args.config:
-        with _checking(f"--config {args.config}"):
+        with checking(f"--config {args.config}"):
             cfg = TuneConfig.load(args.config, base=cfg)
     if args.imc_form:
         cfg = cfg.replace(imc_form=args.imc_form)
     out = Path(args.out)
-    machine = _machine(args)
+    machine = machine_of(args)
     start = args.start_gains
     if start not in (None, "table1", "derived"):
         from pusupu_jax import gains
 
-        with _checking(f"--start-gains {start}"):
+        with checking(f"--start-gains {start}"):
             start = gains.load(start, machine=machine)
     report, status = run_job(cfg, out, fresh=args.fresh, machine=machine, start=start)
     if args.json:
@@ -334,7 +321,7 @@ def _tune(args) -> int:
 def _batch(args) -> int:
     from pathlib import Path
 
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.runtime import setup_jax
 
     setup_jax()
     from tune.batchjob import run_batch
@@ -360,7 +347,7 @@ def _batch(args) -> int:
 def _experiment(args) -> int:
     from pathlib import Path
 
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.runtime import setup_jax
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():
@@ -369,9 +356,9 @@ def _experiment(args) -> int:
     import experiments
 
     experiments.get(args.name)  # an unknown name fails before any work
-    with _checking(f"--gains {args.gains}"):  # refused for another experiment, or a bad file: before any work
+    with checking(f"--gains {args.gains}"):  # refused for another experiment, or a bad file: before any work
         g = experiments.gain_file(args.name, args.gains)
-    machine = _machine(args) if args.machine else None
+    machine = machine_of(args) if args.machine else None
     experiments.check_machine(args.name, machine)
     print(f"experiment {args.name}{' (quick)' if args.quick else ''}: running (the first runs compile for about "
           "20 s per control mode)", file=sys.stderr, flush=True)
@@ -385,19 +372,6 @@ def _experiment(args) -> int:
     return 0
 
 
-def _machine(args):
-    """The machine of ``--machine FILE`` (checked; read once per command), or the built-in one."""
-    from pusupu_jax import machine_file
-
-    if getattr(args, "machine_loaded", None) is None:
-        if getattr(args, "machine", None):
-            with _checking(f"--machine {args.machine}"):
-                args.machine_loaded = machine_file.load(args.machine)
-        else:
-            args.machine_loaded = machine_file.Machine.default()
-    return args.machine_loaded
-
-
 def _load(args, check: bool = True):
     """The params file (or defaults) with a gain file's gains and rates in place, on the machine of ``--machine``,
     checked by :func:`pusupu_jax.stability.check` for ``args.mode`` (``check=False``: bounds only, for a diagnosis).
@@ -405,11 +379,13 @@ def _load(args, check: bool = True):
     from pathlib import Path
 
     from pusupu_jax import machine_file, stability
-    from pusupu_jax.config import SECTIONS, load_params_file, read_yaml_mapping, setup_jax
+    from pusupu_jax.files import read_yaml_mapping
+    from pusupu_jax.params_file import SECTIONS, load_params_file
+    from pusupu_jax.runtime import setup_jax
 
     setup_jax()  # the checks' compiled programs come from the persistent cache after the first run
-    machine = _machine(args)
-    with _checking(f"--params {args.params}" if args.params else "the default parameters"):
+    machine = machine_of(args)
+    with checking(f"--params {args.params}" if args.params else "the default parameters"):
         loaded = load_params_file(args.params)
         sections = read_yaml_mapping(Path(args.params), "section", SECTIONS) if args.params else {}
         # the linear model's load: a params file's load section, else the machine's (machine_file.axis_load)
@@ -423,7 +399,7 @@ def _load(args, check: bool = True):
     if getattr(args, "gains", None):
         from pusupu_jax import gains
 
-        with _checking(f"--gains {args.gains}"):
+        with checking(f"--gains {args.gains}"):
             g = gains.load(args.gains, args.floors, check_stability=False, machine=machine)
         loaded = loaded._replace(servo=g.servo, hybrid=g.hybrid, rates=g.rates)
     elif args.machine and not args.params and not machine_file.is_builtin(machine):
@@ -431,9 +407,9 @@ def _load(args, check: bool = True):
 
         print(f"pusupu: no --gains: the start gains derived for machine {machine.name!r} (docs/machine.md; T0 "
               "identified on the MJX machine, about 30 s)", file=sys.stderr, flush=True)
-        with _checking(f"--machine {args.machine}"):
+        with checking(f"--machine {args.machine}"):
             loaded = loaded._replace(servo=derive(machine, loaded.rates)[0])
-    with _checking(f"--machine {args.machine}" if args.machine else "the built-in machine"):
+    with checking(f"--machine {args.machine}" if args.machine else "the built-in machine"):
         loaded = loaded._replace(servo=machine.servo(loaded.servo))
     if args.imc_form:
         loaded = loaded._replace(servo=loaded.servo.replace(imc_form=args.imc_form))
@@ -456,7 +432,7 @@ def _machine_command(args) -> int:
         print(machine_file.schema_text(), end="")
         return 0
     if args.action == "init":
-        from pusupu_jax.config import write_atomic
+        from pusupu_jax.files import write_atomic
 
         out = Path(args.out)
         if out.exists() or out.is_symlink():
@@ -464,21 +440,21 @@ def _machine_command(args) -> int:
         write_atomic(out, machine_file.template())
         print(f"wrote {out}: the built-in machine, every field commented; edit it, then pusupu machine check {out}")
         return 0
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.runtime import setup_jax
 
     setup_jax()
     args.machine = args.file
-    machine = _machine(args)
+    machine = machine_of(args)
     from pusupu_jax.params import LoopRates
     from pusupu_jax.paths import check_path, platform_path_from
 
     paths = []
     for name in args.trajectory or ["arc", "p2p"]:
-        with _checking(f"--trajectory {name}"):
+        with checking(f"--trajectory {name}"):
             paths.append((name, platform_path_from(name, machine.geometry.home, LoopRates())))
     from pusupu_jax.start_gains import derive
 
-    with _checking(args.file):
+    with checking(args.file):
         found = machine_file.check(machine, paths)
         servo, report = derive(machine, identify=False)  # the drives' limits: speed_max, Kt I_peak
         for name, poses in paths:
@@ -505,27 +481,27 @@ def _gains(args) -> int:
     from pathlib import Path
 
     from pusupu_jax import gains
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.runtime import setup_jax
 
     setup_jax()  # the checks' compiled programs come from the persistent cache after the first run
     floors = args.floors
-    machine = _machine(args) if hasattr(args, "machine") else None
+    machine = machine_of(args) if hasattr(args, "machine") else None
     if args.action == "sign":  # the checks of load() less the checksum, then the derived blocks written anew
-        with _checking(args.file):
+        with checking(args.file):
             gains.sign(args.file, floors, machine)
         print(f"{args.file}: its gains pass every check on machine {machine.name!r}; re-signed")
         return 0
     if args.action == "migrate":
-        with _checking(args.file):
+        with checking(args.file):
             path = gains.migrate(args.file, args.out, floors)
         print(f"{path}: {gains.SCHEMA} v{gains.VERSION}, migrated (tuned on the built-in machine)")
         return 0
-    with _checking(args.file):
+    with checking(args.file):
         g = gains.load(args.file, floors, machine=machine)
     if args.action == "show":
         print(json.dumps(g.document, indent=2) if args.json else gains.show(g.document))
     elif args.action == "diff":
-        with _checking(args.other):
+        with checking(args.other):
             other = gains.load(args.other, floors)
         lines = gains.diff(g.document, other.document)
         print("\n".join(lines) if lines else "no difference in gains, rates or mode")
@@ -554,7 +530,7 @@ def _gains(args) -> int:
 
 
 def _check_ros(args, g) -> int:
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.runtime import setup_jax
 
     setup_jax()
     from pusupu_jax import gains, inputs, paths, ros2, workload
@@ -568,7 +544,7 @@ def _check_ros(args, g) -> int:
                   for k in kinds)
     workload.check_run(f"gains check-ros ({' and '.join(kinds)}, two controllers)", 2 * seconds,
                        machine_rates(rates=g.rates), machine=True)
-    machine = _machine(args)
+    machine = machine_of(args)
     poses = {k: paths.platform_path_from(k, machine.geometry.home, g.rates) for k in kinds}
     if args.seconds is not None:
         poses = {k: p[:max(3, int(args.seconds / g.rates.dt_position))] for k, p in poses.items()}
@@ -608,31 +584,13 @@ def _check_ros(args, g) -> int:
     return 0
 
 
-def _check_plot_path(path):
-    import os
-
-    from pusupu_jax.config import check_output
-
-    folder = os.path.dirname(os.path.abspath(path))
-    if not path or os.path.isdir(path):
-        raise ParameterError(f"--plot: expected the path of a PNG file, got the folder {path!r}")
-    if not os.path.isdir(folder):
-        raise ParameterError(f"--plot: expected a PNG path in an existing folder, got {path!r}")
-    if not os.access(folder, os.W_OK):
-        raise ParameterError(f"--plot: cannot write in the folder {folder!r}")
-    try:
-        check_output(path)
-    except ParameterError as e:
-        raise ParameterError(f"--plot: {e}") from None
-
-
 def _analyze(args) -> int:
     from pusupu_jax import analysis
 
     servo, _, rates, hybrid = _load(args, check=False)  # analysed as a diagnosis, then checked
     load = args.linear_load  # the machine's (or the params file's load section)
     if args.plot:
-        _check_plot_path(args.plot)
+        check_plot_path(args.plot)
     if args.identify_T0:
         return _identify(args, servo, load, rates)
     if args.kin_error is not None:
@@ -641,7 +599,7 @@ def _analyze(args) -> int:
         warnings.simplefilter("ignore")
         # the check of the values: every axis's closed loops can be built (0.1 s), with numpy's overflow, invalid and
         # divide-by-zero raising; what python-control or numpy cannot use ends in one line here, not in the analysis
-        with _checking(" and ".join(f"--{k} {getattr(args, k)}" for k in ("params", "gains") if getattr(args, k))
+        with checking(" and ".join(f"--{k} {getattr(args, k)}" for k in ("params", "gains") if getattr(args, k))
                        or "Table 1"), np.errstate(over="raise", invalid="raise", divide="raise"):
             for axis in range(N_AXES):
                 analysis.closed_loops(servo, load, axis, mode=args.mode)
@@ -681,7 +639,7 @@ def _refuse_unstable(args, servo, hybrid, rates, load) -> int:
 def _identify(args, servo, load, rates) -> int:
     import numpy as np
 
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.runtime import setup_jax
 
     setup_jax()
     from pusupu_jax.analysis import identify_T0
@@ -690,7 +648,7 @@ def _identify(args, servo, load, rates) -> int:
 
     print("identifying T0 on the MJX machine (velocity steps along x and y from home); the first run compiles "
           "for about 20 s", file=sys.stderr)
-    machine = _machine(args)
+    machine = machine_of(args)
     result = identify_T0_machine(servo, machine.options(ModelOptions(kin_error_seed=args.kin_error)), rates=rates,
                                  geom=machine.geometry)
     with warnings.catch_warnings():
@@ -724,7 +682,7 @@ def _num(x, none="inf"):
 
 
 def _sim(args) -> int:
-    from pusupu_jax.config import setup_jax
+    from pusupu_jax.runtime import setup_jax
 
     axis_kinds = ("step", "ramp", "sine")
     args.trajectory = args.trajectory or ("step" if args.plant == "axis" else "arc")
@@ -734,7 +692,7 @@ def _sim(args) -> int:
         raise ParameterError("--kin-error: only the mjx plant has kinematic errors")
     servo, load, rates, hybrid = _load(args)
     if args.plot:
-        _check_plot_path(args.plot)
+        check_plot_path(args.plot)
     setup_jax()
     if args.plant == "mjx":
         return _sim_machine(args, servo, rates, hybrid)
@@ -786,7 +744,7 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
     check_spec(args.trajectory, "--trajectory with --plant mjx")
     if args.duration is not None:
         raise ParameterError("--duration: the mjx paths have their own timing (velocity and acceleration limits)")
-    machine = _machine(args)
+    machine = machine_of(args)
     options = machine.options(ModelOptions(kin_error_seed=args.kin_error))
     workload.check_run(f"--trajectory {args.trajectory}", path_seconds(args.trajectory), machine_rates(options, rates),
                        machine=True)
@@ -806,7 +764,7 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
-    print(f"{args.trajectory} on the MJX machine {_machine(args).name!r}, {args.mode} mode (IMC form {servo.imc_form}, start {args.start}), "
+    print(f"{args.trajectory} on the MJX machine {machine_of(args).name!r}, {args.mode} mode (IMC form {servo.imc_form}, start {args.start}), "
           f"{result['duration_s']:.3g} s simulated "
           f"in {result['wall_s']:.2f} s (compile included)")
     for key in ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho", "loop_closure_residual_max_mm"):

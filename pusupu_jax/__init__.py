@@ -6,9 +6,9 @@ Public API::
     trace = simulate(ServoParams.table1(), reference_m, mode="imc")
 """
 
-from .config import apply_xla_workaround
+from .runtime import apply_xla_workaround
 
-apply_xla_workaround()  # before JAX's CPU backend starts: see config.XLA_CPU_WORKAROUND
+apply_xla_workaround()  # before JAX's CPU backend starts: see runtime.XLA_CPU_WORKAROUND
 
 from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate  # noqa: E402
 from .sim import Trace, rollout, simulate  # noqa: E402

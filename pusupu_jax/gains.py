@@ -54,7 +54,8 @@ import numpy as np
 import yaml
 
 from . import __version__, inputs, loops, stability
-from .config import rates_from_mapping, write_atomic
+from .files import write_atomic
+from .params_file import rates_from_mapping
 from . import machine_file
 from .hybrid import HybridGains, gain_fields
 from .machine_file import Machine

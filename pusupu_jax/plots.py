@@ -16,13 +16,13 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from . import analysis
-from .config import write_atomic
+from .files import write_atomic
 from .metrics import tracking_error
 from .plant.axis import screw_ratio
 
 
 def save_atomic(fig, path) -> Path:
-    """Save ``fig`` as PNG to ``path`` atomically (:func:`~pusupu_jax.config.write_atomic`), then close it."""
+    """Save ``fig`` as PNG to ``path`` atomically (:func:`~pusupu_jax.files.write_atomic`), then close it."""
     png = io.BytesIO()
     try:
         fig.savefig(png, format="png", dpi=110)

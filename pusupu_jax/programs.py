@@ -1,6 +1,6 @@
 """Traced programs kept on disk beside JAX's compilation cache, so that a new process need not trace them again.
 
-JAX's persistent compilation cache (:func:`pusupu_jax.config.setup_jax`) keeps what XLA compiled, but every
+JAX's persistent compilation cache (:func:`pusupu_jax.runtime.setup_jax`) keeps what XLA compiled, but every
 process first traces and lowers its functions in Python to find it there.  For the tuner's gradient through the
 MJX rollout that is about 25 s on a 2-core CPU, paid again by every ``pusupu tune``, resumed run and notebook
 kernel.  A :class:`Program` exports its function's lowered program (:mod:`jax.export`: StableHLO in a flatbuffer,
@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import export
 
-from .config import write_atomic
+from .files import write_atomic
 
 SUFFIX = ".jaxexport"
 HERE = Path(__file__).parent
@@ -107,7 +107,7 @@ def _versions() -> str:
 
 
 def cache_folder() -> Path | None:
-    """``programs/`` in JAX's compilation cache folder (set by :func:`pusupu_jax.config.setup_jax`), or None."""
+    """``programs/`` in JAX's compilation cache folder (set by :func:`pusupu_jax.runtime.setup_jax`), or None."""
     folder = jax.config.jax_compilation_cache_dir
     return None if not folder else Path(folder) / "programs"
 

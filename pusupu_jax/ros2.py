@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from . import config
+from . import files
 from .cascade import MODES, control_mode
 from .inputs import shown
 from .params import LoopRates, ParameterError, ServoParams
@@ -140,5 +140,5 @@ def files(servo: ServoParams, mode: str, rates: LoopRates, source: str, joints=J
 
 def write_files(folder, servo: ServoParams, mode: str, rates: LoopRates, source: str, joints=JOINTS) -> list:
     """Write the two parameter files (:func:`files`) into ``folder`` (atomically, both or neither)."""
-    return config.write_files({Path(folder) / name: text for name, text in
+    return files.write_files({Path(folder) / name: text for name, text in
                                files(servo, mode, rates, source, joints).items()})

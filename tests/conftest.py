@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from pusupu_jax.config import setup_jax
+from pusupu_jax.runtime import setup_jax
 
 CACHE = setup_jax(os.environ.get("PUSUPU_JAX_CACHE") or Path(__file__).resolve().parent.parent / ".jax_cache")
 os.environ["PUSUPU_JAX_CACHE"] = str(CACHE)  # the CLI subprocesses share it

@@ -347,8 +347,8 @@ def robot(tmp_path_factory):
     line = proc.stdout.readline()
     assert "listening" in line, proc.stderr.read()
     g = gains.load(path)
-    from hw_bridge.loop import plan
-    from pusupu_cli.bridge import bridge_reference, limits_for
+    from hw_bridge.loop import bridge_reference, plan
+    from hw_bridge.safety import limits_for
 
     loop = BridgeLoop(g, bridge_reference(g, "arc", plan(g, None, RATE)[1]), rate=RATE)
     yield g, loop, limits_for(g.servo), port
@@ -455,9 +455,9 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
     dropped and counted); then sessions whose drives go silent, answer 3 s late, hold 12 answers and send them
     newest first, or cut every TPDO short each end in a safe stop on stale feedback."""
     from hw_bridge.canopen_link import CanLink, open_bus
-    from hw_bridge.loop import plan
+    from hw_bridge.loop import bridge_reference, plan
+    from hw_bridge.safety import limits_for
     from hw_bridge.session import Bridge
-    from pusupu_cli.bridge import bridge_reference, limits_for
     path = gains.write(tmp_path / "imc.yaml", SERVO, HybridGains(), RATES, mode="imc")
     url = f"can://udp_multicast/239.74.{np.random.default_rng().integers(1, 255)}.{os.getpid() % 250 + 1}"
     proc = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen", url,

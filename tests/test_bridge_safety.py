@@ -26,7 +26,8 @@ from hw_bridge.loop import BridgeLoop, plan
 from hw_bridge.safety import Limits, Safety
 from hw_bridge.session import Bridge
 from hw_bridge.udp import Endpoint
-from pusupu_cli.bridge import bridge_reference, limits_for
+from hw_bridge.loop import bridge_reference
+from hw_bridge.safety import limits_for
 from pusupu_jax import gains
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import LoopRates, ServoParams

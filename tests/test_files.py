@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from pusupu_jax import inputs
-from pusupu_jax.config import write_atomic
+from pusupu_jax.files import write_atomic
 from pusupu_jax.params import ParameterError
 
 ROOT = os.geteuid() == 0
@@ -105,7 +105,7 @@ def same_node(path, kind: str) -> bool:
 
 @pytest.mark.parametrize("kind", ["fifo", "socket", "device", "folder", "symlink"])
 def test_only_a_regular_file_is_ever_replaced(tmp_path, kind):
-    """Every output (gain, ROS, report, plot, checkpoint, summary files) goes through config.write_atomic: it renamed
+    """Every output (gain, ROS, report, plot, checkpoint, summary files) goes through files.write_atomic: it renamed
     its temporary over whatever stood at the path, a device node or FIFO included, and over a symlink instead of
     refusing it.  Now anything but a regular file is refused, left as it is, and no temporary is left behind."""
     path = special(tmp_path, kind)
@@ -172,7 +172,7 @@ def test_every_loader_refuses_a_fifo_without_blocking(tmp_path):
     os.mkfifo(fifo)
     r = limited(f"""
 from pusupu_jax import gains
-from pusupu_jax.config import load_params_file
+from pusupu_jax.params_file import load_params_file
 from pusupu_jax.params import ParameterError
 from tune.config import TuneConfig
 from tune import jobfile
@@ -265,7 +265,7 @@ def test_the_lock_is_still_exclusive_and_names_its_holder(tmp_path):
 
 # A tiny optimisation whose checkpoints are crafted below: the imc gains' log-parameters, a quadratic objective.
 OPTIMISATION = """
-from pusupu_jax.config import setup_jax
+from pusupu_jax.runtime import setup_jax
 setup_jax()
 import jax.numpy as jnp
 from pusupu_jax import ServoParams

@@ -5,6 +5,7 @@ name), issue numbers in prose, and remarks on which machines were lent for the w
 tree says what was measured, on what machine, with which command.
 """
 
+import ast
 import re
 import subprocess
 from pathlib import Path
@@ -41,3 +42,77 @@ def test_no_tracked_file_speaks_of_the_development_process():
             if PROCESS_WORDS.search(line):
                 found.append(f"{name}:{k}: {line.strip()[:120]}")
     assert not found, "\n".join(found[:20])
+
+
+# the layers, lowest first: each may import those below it, none above it
+LAYERS = (("pusupu_jax",), ("tune", "experiments", "hw_bridge"), ("pusupu_cli",), ("benchmarks",))
+
+
+def _import_graph() -> dict:
+    """``{module: modules of the project it imports}``, from every import statement in its source (those inside
+    functions too), each named down to the project module it reaches."""
+    modules = {}
+    for layer in LAYERS:
+        for package in layer:
+            for path in (ROOT / package).rglob("*.py"):
+                parts = list(path.relative_to(ROOT).with_suffix("").parts)
+                is_package = parts[-1] == "__init__"
+                modules[".".join(parts[:-1] if is_package else parts)] = (path, is_package)
+
+    def project_module(name: str) -> str | None:
+        while name and name not in modules:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph = {}
+    for module, (path, is_package) in modules.items():
+        here = module if is_package else module.rpartition(".")[0]
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                found |= {project_module(a.name) for a in node.names}
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    package = here
+                    for _ in range(node.level - 1):
+                        package = package.rpartition(".")[0]
+                    base = package + ("." + base if base else "")
+                found |= {project_module(f"{base}.{a.name}") for a in node.names}
+        graph[module] = found - {None, module}
+    return graph
+
+
+def test_no_import_circle_and_no_layer_imports_one_above_it():
+    """Core (``pusupu_jax``) -> applications (``tune``, ``experiments``, ``hw_bridge``) -> the CLI -> benchmarks: no
+    module imports a higher layer's, and no modules import each other in a circle (imports inside functions count:
+    a circle there is one module's concept split across two)."""
+    graph = _import_graph()
+    layer = {m: k for m in graph for k, names in enumerate(LAYERS) if m.split(".")[0] in names}
+    upward = [f"{m} imports {d}" for m, deps in graph.items() for d in deps if layer[d] > layer[m]]
+    assert not upward, upward
+    # Tarjan's strongly connected components: a component of more than one module is a circle
+    index, low, stack, on_stack, circles = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while not component or component[-1] != v:
+                component.append(stack.pop())
+                on_stack.discard(component[-1])
+            if len(component) > 1:
+                circles.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    assert not circles, circles

@@ -59,7 +59,7 @@ def test_margin_gradients_match_central_differences(name, x, loop, key):
 # the gradient of every loop's margins in some of the gains, as JSON on stdout; run with float64 on or off
 _MARGIN_GRADIENTS = """
 import json, sys
-from pusupu_jax.config import setup_jax
+from pusupu_jax.runtime import setup_jax
 setup_jax(x64=sys.argv[1] == "float64")
 import jax, jax.numpy as jnp, numpy as np
 from pusupu_jax import AxisLoad, ServoParams

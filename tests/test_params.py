@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pusupu_jax import AxisLoad, LoopRates, ParameterError, ServoParams, simulate, validate
-from pusupu_jax.config import load_params_file
+from pusupu_jax.params_file import load_params_file
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import stack
 
@@ -88,7 +88,7 @@ def test_vmapped_batch_equals_single_runs(table1):
 
 
 def test_large_vmapped_batch_completes():
-    """1024 parameter sets vmapped: without config.XLA_CPU_WORKAROUND this wedged XLA's CPU thread pool."""
+    """1024 parameter sets vmapped: without runtime.XLA_CPU_WORKAROUND this wedged XLA's CPU thread pool."""
     import subprocess
     import sys
 
@@ -110,7 +110,7 @@ def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
     import subprocess
     import sys
 
-    from pusupu_jax import config
+    from pusupu_jax import runtime
 
     def flags(extra_env, path=None, then=""):
         env = {k: v for k, v in os.environ.items() if k != "PUSUPU_XLA_WORKAROUND"}
@@ -124,22 +124,22 @@ def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
 
     plain = flags({})
     assert plain.count("--xla_cpu_use_fusion_emitters=true") == 1 and "--xla_cpu_use_fusion_emitters=false" not in plain
-    assert config.XLA_CPU_WORKAROUND in plain
-    assert not set(config.XLA_CPU_ONE_THREAD) & set(plain)  # for the real-time processes only
-    if config._jaxlib_version().startswith(config.XLA_COMPILE_MEASURED_ON):  # the jaxlib installed here (CI's: 0.10)
-        assert set(config.XLA_LLVM_CPU_ONLY) <= set(plain)
-        real_time = flags({}, then="pusupu_jax.config.apply_xla_workaround(one_thread=True)")
-        assert set(config.XLA_CPU_ONE_THREAD) <= set(real_time) and len(real_time) == len(set(real_time))
+    assert runtime.XLA_CPU_WORKAROUND in plain
+    assert not set(runtime.XLA_CPU_ONE_THREAD) & set(plain)  # for the real-time processes only
+    if runtime._jaxlib_version().startswith(runtime.XLA_COMPILE_MEASURED_ON):  # the jaxlib installed here (CI's: 0.10)
+        assert set(runtime.XLA_LLVM_CPU_ONLY) <= set(plain)
+        real_time = flags({}, then="pusupu_jax.runtime.apply_xla_workaround(one_thread=True)")
+        assert set(runtime.XLA_CPU_ONE_THREAD) <= set(real_time) and len(real_time) == len(set(real_time))
         (tmp_path / "jax_plugins" / "xla_gpu_stand_in").mkdir(parents=True)
         (tmp_path / "jax_plugins" / "xla_gpu_stand_in" / "__init__.py").write_text("")
-        assert not set(config.XLA_LLVM_CPU_ONLY) & set(flags({}, tmp_path))
+        assert not set(runtime.XLA_LLVM_CPU_ONLY) & set(flags({}, tmp_path))
     assert flags({"PUSUPU_XLA_WORKAROUND": "0"}) == ["--xla_cpu_use_fusion_emitters=true"]
     # a jaxlib of another series (its metadata found first on the path): the compile flags, which such a jaxlib may
     # not know (0.11.2 aborts on the fusion-emitter flag), are left out
     other = tmp_path / "other" / "jaxlib-0.11.2.dist-info"
     other.mkdir(parents=True)
     (other / "METADATA").write_text("Metadata-Version: 2.1\nName: jaxlib\nVersion: 0.11.2\n")
-    assert flags({}, other.parent) == ["--xla_cpu_use_fusion_emitters=true", config.XLA_CPU_WORKAROUND]
+    assert flags({}, other.parent) == ["--xla_cpu_use_fusion_emitters=true", runtime.XLA_CPU_WORKAROUND]
 
 
 def test_importing_the_packages_makes_no_jax_array():

@@ -27,7 +27,8 @@ from typing import Callable
 import numpy as np
 
 from pusupu_jax import inputs, machine_file
-from pusupu_jax.config import setup_jax, write_atomic
+from pusupu_jax.files import write_atomic
+from pusupu_jax.runtime import setup_jax
 from pusupu_jax.machine_file import Machine
 from pusupu_jax.params import ParameterError
 
@@ -225,7 +226,7 @@ def run_batch(path, out, *, ray: bool = False, address: str | None = None, worke
         if ray:
             from .cluster import run_tasks
 
-            results = run_tasks(tasks, out, plots=jf.plots, address=address, workers=workers, stream=stream)
+            results = run_tasks(run_shard, tasks, out, plots=jf.plots, address=address, workers=workers, stream=stream)
         else:
             results = []
             for k, task in enumerate(tasks):

@@ -1,6 +1,7 @@
 """Shards of a batch as Ray tasks (``pusupu batch --ray [--address ADDR]``; the ``cluster`` extra installs Ray).
 
-Each shard is one task running :func:`tune.batchjob.run_shard`: it asks for one GPU where the
+Each shard is one task running the shard function it is given (``pusupu batch`` gives
+:func:`tune.batchjob.run_shard`, so this module imports no batch code): it asks for one GPU where the
 cluster has GPUs, else ``cpus_per_task`` CPUs.  Ray schedules the tasks and retries one whose
 worker dies (``max_retries``); the retry continues from the shard's checkpoint, so its result is
 the uninterrupted one.  Without ``--address`` a local Ray instance starts with ``workers`` CPUs
@@ -20,15 +21,14 @@ from pusupu_jax.params import ParameterError
 MAX_RETRIES = 3
 
 
-def run_tasks(tasks: list[dict], out, *, plots: bool = True, address: str | None = None, workers: int | None = None,
-              cpus_per_task: int = 1, stream=sys.stderr) -> list[list[dict]]:
-    """Every task's summary rows, in task order; progress over shards on ``stream``."""
+def run_tasks(run_shard, tasks: list[dict], out, *, plots: bool = True, address: str | None = None,
+              workers: int | None = None, cpus_per_task: int = 1, stream=sys.stderr) -> list[list[dict]]:
+    """Every task's result (``run_shard(task, out, plots)``: its summary rows), in task order; progress over shards on
+    ``stream``."""
     try:
         import ray
     except ImportError:
         raise ParameterError("--ray: Ray is not installed; pip install -e \".[cluster]\"") from None
-    from .batchjob import run_shard
-
     with contextlib.redirect_stdout(stream):  # Ray's own messages (a worker died...) stay off the summary's stdout
         return _run(ray, run_shard, tasks, out, plots, address, workers, cpus_per_task, stream)
 

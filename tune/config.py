@@ -47,7 +47,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pusupu_jax.cascade import control_mode
-from pusupu_jax.config import read_yaml_mapping
+from pusupu_jax.files import read_yaml_mapping
 from pusupu_jax.gradients import GRADIENT_MODES
 from pusupu_jax.machine import MACHINE_MODES
 from pusupu_jax.objectives import TERMS

@@ -33,7 +33,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from pusupu_jax import gains, inputs, machine_file, ros2, stability
-from pusupu_jax.config import check_output, write_atomic, write_files
+from pusupu_jax.files import check_output, write_atomic, write_files
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.machine_file import Machine
@@ -147,7 +147,7 @@ def run_files(scenarios) -> tuple:
 
 def prepare_output(out: Path, files=()) -> Path:
     """Check ``out`` before any work: a folder that exists or can be made, writable, holding no pickled checkpoint,
-    in which each of ``files`` (names) is a regular file or absent (:func:`pusupu_jax.config.check_output`)."""
+    in which each of ``files`` (names) is a regular file or absent (:func:`pusupu_jax.files.check_output`)."""
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out: expected a folder, got the file {str(out)!r}")
     try:
@@ -294,7 +294,7 @@ def export(out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: 
     """Write ``gains.yaml`` and the ROS 2 files if the gains pass every check; the report's entries about them.
 
     All or nothing: every file's text is made (the gains checked, the joint names too) and every path checked before
-    the first is written (:func:`pusupu_jax.config.write_files`), so that a refusal leaves the earlier files as they
+    the first is written (:func:`pusupu_jax.files.write_files`), so that a refusal leaves the earlier files as they
     were.  ``gains_file`` names the gain file the report describes (path and sha256), or says that none was written
     and why, and which earlier ``gains.yaml`` (if any) was left as it was: a report never silently describes gains
     that are not in ``gains.yaml``.

@@ -36,7 +36,7 @@ import optax
 
 from pusupu_jax import inputs, machine_file, objectives, workload
 from pusupu_jax.cascade import control_mode
-from pusupu_jax.config import write_atomic
+from pusupu_jax.files import write_atomic
 from pusupu_jax.gradients import value_and_grad
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.inputs import shown

@@ -26,7 +26,7 @@ import jax
 import numpy as np
 import yaml
 
-from ..config import read_yaml_mapping
+from ..files import read_yaml_mapping
 from ..params import ParameterError
 
 N_BRANCHES = 6

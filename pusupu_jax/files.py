@@ -1,0 +1,90 @@
+"""Files in and out (host-side): YAML mappings read with their keys checked, and outputs written atomically with
+the user's umask, every file or none."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import stat
+import tempfile
+from pathlib import Path
+
+from . import inputs
+from .params import ParameterError
+
+
+def read_yaml_mapping(path: Path, what: str, keys, error=ParameterError) -> dict:
+    """A YAML file holding a mapping whose keys are among ``keys`` (empty file: ``{}``).
+
+    Read with :func:`pusupu_jax.inputs.read_yaml` (size limit, UTF-8, no aliases, no duplicate
+    keys); raises ``error`` with the path and one line saying what is wrong (an unknown key is
+    called a ``what`` in the message).
+    """
+    data = inputs.read_yaml(path, "YAML file", error)
+    return inputs.check_keys({} if data is None else data, str(path), keys, error, what=what)
+
+
+def umask() -> int:
+    """The process's file-creation mask (read without changing it where the OS allows)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def check_output(path) -> os.stat_result | None:
+    """What stands at ``path``, an output about to be written: nothing (None) or a regular file (its ``lstat``).
+
+    Anything else (a symlink, folder, FIFO, socket or device node) raises :class:`ParameterError` in one line and is
+    left as it is: a rename over it would replace the node itself (as root, ``--plot /dev/null`` replaced the device
+    with a PNG), and a symlink is not followed to whatever it names.
+    """
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return None
+    if not stat.S_ISREG(st.st_mode):
+        raise ParameterError(f"{path}: expected a regular file to write (or nothing), found "
+                             f"{inputs.file_kind(st.st_mode)}; left as it is")
+    return st
+
+
+def write_files(files: dict) -> list[Path]:
+    """Write ``{path: data}`` (str or bytes) atomically, every file or none as far as the file system allows.
+
+    Every path is checked first (:func:`check_output`); then each file's data goes to a temporary file in its
+    folder, synced; then, every path checked again, each temporary is renamed over its path.  A reader sees an old
+    file or a new one, never a part; a failure before the renames (a full disk included) leaves every old file and no
+    temporary behind.  A new file gets the mode a plain ``open`` would give it (``0666`` less the umask: ``0644``
+    under the usual ``022``); a file written again keeps its permission bits (not a set-user or set-group ID) and,
+    where the process may give it away (root), its owner and group.
+    """
+    items = [(Path(path), data.encode() if isinstance(data, str) else data) for path, data in files.items()]
+    temps = []
+    try:
+        for path, data in items:
+            old = check_output(path)
+            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+            temps.append(tmp)
+            with os.fdopen(fd, "wb") as f:
+                if old is not None and (old.st_uid, old.st_gid) != (os.geteuid(), os.getegid()):
+                    with contextlib.suppress(PermissionError):  # only root may give a file away
+                        os.fchown(fd, old.st_uid, old.st_gid)
+                os.fchmod(fd, 0o666 & ~umask() if old is None else stat.S_IMODE(old.st_mode) & 0o777)
+                f.write(data)
+                f.flush()
+                os.fsync(fd)
+        for path, _ in items:
+            check_output(path)
+        for (path, _), tmp in zip(items, temps):
+            os.replace(tmp, path)
+    finally:
+        for tmp in temps:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+    return [path for path, _ in items]
+
+
+def write_atomic(path, data: str | bytes) -> Path:
+    """Write ``data`` to ``path`` atomically (:func:`write_files`: a regular file or nothing at ``path``, its mode
+    kept)."""
+    return write_files({path: data})[0]
