@@ -1,9 +1,9 @@
 """A batch of many scenarios against tuning each alone: ``pusupu batch`` versus ``pusupu tune``'s optimiser (JSON).
 
 Writes a job file of ``--scenarios`` independent problems, every one distinct (both paths, a
-kinematic-error seed each, payloads of 0 to 7.5 kg), runs it with :func:`tune.batchjob.run_batch`
+kinematic-error seed each, payloads of 0 to 7.5 kg), runs it with :func:`pusupu_jax.tune.batchjob.run_batch`
 (one vmapped gradient for all of them, the way ``pusupu batch JOB.yaml --out DIR`` does), then
-tunes each scenario alone with the same settings, seed and starts (:meth:`tune.run.Problem.tune`, what
+tunes each scenario alone with the same settings, seed and starts (:meth:`pusupu_jax.tune.run.Problem.tune`, what
 ``pusupu tune`` runs), and compares, per scenario, the objective history of every start and
 iteration and every tuned gain.
 
@@ -11,7 +11,7 @@ iteration and every tuned gain.
 
 ``--out DIR`` keeps the batch's folder: run again, the batch skips its finished jobs (as ``pusupu batch`` does)
 and only the lone runs are repeated.  The lone runs share one trace and one compile of the gradient (Problems that
-differ only in their scenarios do: :func:`tune.run._shared_gradient`).
+differ only in their scenarios do: :func:`pusupu_jax.tune.run._shared_gradient`).
 
 Tolerance, relative: the computation is the same, but vmapping 2 x scenarios members changes XLA's
 fusion and summation order (last-bit differences), and the Adam steps carry them on (the suite's
@@ -64,9 +64,9 @@ def main() -> int:
 
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.params import ServoParams
-    from tune import jobfile
-    from tune.batchjob import done_report, run_batch
-    from tune.run import Problem
+    from pusupu_jax.tune import jobfile
+    from pusupu_jax.tune.batchjob import done_report, run_batch
+    from pusupu_jax.tune.run import Problem
 
     folder = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="pusupu_equivalence_"))
     folder.mkdir(parents=True, exist_ok=True)

@@ -1,6 +1,6 @@
 """Batch tuning throughput: one tuning iteration of B independent scenarios in one vmapped gradient (JSON on stdout).
 
-Runs :func:`tune.batch.optimise_batch` (what ``pusupu batch`` runs per shard: the vmapped
+Runs :func:`pusupu_jax.tune.batch.optimise_batch` (what ``pusupu batch`` runs per shard: the vmapped
 gradient, the vmapped optax update, the window refresh every ``--refresh-every`` iterations and
 the host-side bookkeeping) on B independent problems, for each B of ``--batches``.  The
 scenarios cycle over ``--distinct`` kinematic-error seeds on both paths (building thousands of
@@ -65,9 +65,9 @@ def main() -> None:
     from pusupu_jax import ServoParams
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.plant.model import ModelOptions
-    from tune.batch import BatchProblem, optimise_batch
-    from tune.config import TuneConfig
-    from tune.run import ScenarioSpec
+    from pusupu_jax.tune.batch import BatchProblem, optimise_batch
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.run import ScenarioSpec
 
     devices = jax.devices()[:args.devices] if args.devices else jax.devices()
     cfg = TuneConfig(windows=1, window_s=args.window, iterations=args.iterations, refresh_every=args.refresh_every,

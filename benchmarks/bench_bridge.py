@@ -58,13 +58,13 @@ def main() -> None:
     args = ap.parse_args()
     apply_xla_workaround(one_thread=True)  # as pusupu bridge does, before any computation
     setup_jax()
-    from hw_bridge.canopen_link import CanLink, open_bus
-    from hw_bridge.loop import BridgeLoop, bridge_reference, plan
-    from hw_bridge.protocol import FEEDBACK
-    from hw_bridge.runner import steal_seconds
-    from hw_bridge.safety import Safety, limits_for
-    from hw_bridge.session import Bridge
-    from hw_bridge.udp import Endpoint
+    from pusupu_jax.hw_bridge.canopen_link import CanLink, open_bus
+    from pusupu_jax.hw_bridge.loop import BridgeLoop, bridge_reference, plan
+    from pusupu_jax.hw_bridge.protocol import FEEDBACK
+    from pusupu_jax.hw_bridge.runner import steal_seconds
+    from pusupu_jax.hw_bridge.safety import Safety, limits_for
+    from pusupu_jax.hw_bridge.session import Bridge
+    from pusupu_jax.hw_bridge.udp import Endpoint
     from pusupu_jax import gains
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.params import LoopRates, ServoParams
@@ -82,7 +82,7 @@ def main() -> None:
         url = f"udp://127.0.0.1:{port}" if args.transport == "udp" else "can://udp_multicast/239.74.163.9"
         robot_log = folder / f"robot_{rate:g}.log"
         with open(robot_log, "w") as err:
-            robot = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen",
+            robot = subprocess.Popen([sys.executable, "-m", "pusupu_jax.cli", "sim-robot", "--gains", str(path), "--listen",
                                       url, "--rate", str(rate)], stdout=subprocess.PIPE, stderr=err, text=True)
         assert "listening" in robot.stdout.readline()
         loop = BridgeLoop(g, bridge_reference(g, "arc", plan(g, None, rate)[1]), rate=rate)

@@ -34,8 +34,8 @@ from pusupu_jax import objectives, sim
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import ServoParams
-from tune.config import TuneConfig
-from tune.run import Problem
+from pusupu_jax.tune.config import TuneConfig
+from pusupu_jax.tune.run import Problem
 
 cfg = TuneConfig.quick() if sys.argv[1] == "quick" else TuneConfig()
 out = {"import_s": time.perf_counter() - t0}

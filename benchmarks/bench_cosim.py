@@ -13,7 +13,7 @@ the controllers cost.
 
 ``gradient``: the machine in hybrid mode on the first ``--horizon-s`` of the arc, objective
 = platform RMS tracking error [mm] + smooth branch-force peak [hN] (``pusupu_jax.objectives``),
-a function of the tuner's log-parameters (``tune.space``), vmapped over each of
+a function of the tuner's log-parameters (``pusupu_jax.tune.space``), vmapped over each of
 ``--grad-batches`` parameter sets.  ``forward_s`` times the objective alone; ``reverse``
 is ``jax.value_and_grad`` with respect to every field of the ``--grad-groups`` sets
 (its cost does not depend on how many; ``--remat`` rematerialises each position period);
@@ -63,7 +63,7 @@ def main():
     from pusupu_jax.sim import rollout
     from pusupu_jax.trajectories import platform_path
     from timing import median_time
-    from tune.space import Space
+    from pusupu_jax.tune.space import Space
 
     options = ModelOptions()
     plant, rates = machine_plant(options), machine_rates(options)

@@ -1,7 +1,7 @@
 """Is float32 enough for tuning? The batch tuner's gradient at its start in float64 and in float32 (JSON on stdout).
 
 A GPU moves half the bytes in float32, so a batch job would run faster with JAX's float64 off.
-This evaluates what :mod:`benchmarks.bench_batch` times (``tune.batch.BatchProblem``: one 0.05 s
+This evaluates what :mod:`benchmarks.bench_batch` times (``pusupu_jax.tune.batch.BatchProblem``: one 0.05 s
 training window on the first 0.2 s of the arc and p2p paths, kinematic-error seed 0, the
 default groups) at the start gains, once per precision, each in a fresh interpreter (JAX's
 float64 switch is process-wide), and compares the objective's terms and its gradient:
@@ -31,9 +31,9 @@ import jax, numpy as np
 from pusupu_jax import ServoParams
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.plant.model import ModelOptions
-from tune.batch import BatchProblem
-from tune.config import TuneConfig
-from tune.run import ScenarioSpec
+from pusupu_jax.tune.batch import BatchProblem
+from pusupu_jax.tune.config import TuneConfig
+from pusupu_jax.tune.run import ScenarioSpec
 cfg = TuneConfig(windows=1, window_s=float(sys.argv[2]), baselines=())
 specs = [ScenarioSpec(f"{kind}/seed0", kind, ModelOptions(kin_error_seed=0), path_s=float(sys.argv[3]))
          for kind in ("arc", "p2p")]

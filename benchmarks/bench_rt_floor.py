@@ -1,22 +1,22 @@
 """The floor under the bridge's latency on this machine: a cycle that does less and less of the bridge's work (JSON).
 
 The bridge's latency (``benchmarks/bench_bridge.py``) is the time from a cycle's wake-up to its command sent.
-This benchmark runs the bridge's own :class:`hw_bridge.runner.CycleRunner`, with the same real-time settings, on
+This benchmark runs the bridge's own :class:`pusupu_jax.hw_bridge.runner.CycleRunner`, with the same real-time settings, on
 cycles that do only part of that work, so that the part which is not ours (the interpreter, the clock, the kernel's
 sockets, JAX's dispatch) can be read apart from the rest:
 
 * ``empty``: the cycle returns at once (the runner's own bookkeeping and the clock);
 * ``udp-raw``: one non-blocking ``recv`` until empty and one ``sendto`` of a prebuilt 130-byte datagram (the size
   of a six-axis command) to the echo process: the kernel's loopback and the interpreter, none of our code;
-* ``udp``: the cycle polls a UDP :class:`hw_bridge.udp.Endpoint` (decoding what came, as the bridge does) and sends
+* ``udp``: the cycle polls a UDP :class:`pusupu_jax.hw_bridge.udp.Endpoint` (decoding what came, as the bridge does) and sends
   one command packet of the protocol for six axes to an echo process on the other CPU, which answers each with a
   feedback packet;
 * ``udp+jit``: the same, plus one call of a jitted function that adds its input to its state (the dispatch of a
-  compiled step that computes nothing, through :class:`hw_bridge.compiled.FlatStep` as the bridge calls its loops),
+  compiled step that computes nothing, through :class:`pusupu_jax.hw_bridge.compiled.FlatStep` as the bridge calls its loops),
   with the bridge's warming: the runner's ``prepare`` calls it once before the deadline and drops the result;
 * ``udp+loops``: the bridge's own calls of a run's cycle, in its order, on the echo's feedback: ``Endpoint.poll``,
-  :meth:`hw_bridge.safety.Safety.check_feedback`, :meth:`hw_bridge.loop.BridgeLoop.step` (Table 1 gains, IMC, the
-  arc, every drive in CSV, warmed as the bridge warms it), :meth:`~hw_bridge.safety.Safety.limit_command` and the
+  :meth:`pusupu_jax.hw_bridge.safety.Safety.check_feedback`, :meth:`pusupu_jax.hw_bridge.loop.BridgeLoop.step` (Table 1 gains, IMC, the
+  arc, every drive in CSV, warmed as the bridge warms it), :meth:`~pusupu_jax.hw_bridge.safety.Safety.limit_command` and the
   command sent; each part is timed too (``parts_us``).  What is left between this stage and the bridge's own
   latency is the session's bookkeeping and the simulated robot in place of the echo.
 
@@ -48,8 +48,8 @@ from timing import PauseProbe, emit, percentile_spreads, spread  # beside this s
 ECHO = r"""
 import os, sys, time
 import numpy as np
-from hw_bridge import protocol
-from hw_bridge.udp import Endpoint
+from pusupu_jax.hw_bridge import protocol
+from pusupu_jax.hw_bridge.udp import Endpoint
 cpus = sorted(os.sched_getaffinity(0))
 os.sched_setaffinity(0, {cpus[0]})
 ep = Endpoint(protocol.COMMAND, n_axes=6)
@@ -83,12 +83,12 @@ def main() -> None:
     setup_jax()
     import jax.numpy as jnp
 
-    from hw_bridge import protocol
-    from hw_bridge.compiled import FlatStep
-    from hw_bridge.loop import BridgeLoop, bridge_reference
-    from hw_bridge.runner import CycleRunner, percentiles, realtime_setup
-    from hw_bridge.safety import Safety, limits_for
-    from hw_bridge.udp import Endpoint
+    from pusupu_jax.hw_bridge import protocol
+    from pusupu_jax.hw_bridge.compiled import FlatStep
+    from pusupu_jax.hw_bridge.loop import BridgeLoop, bridge_reference
+    from pusupu_jax.hw_bridge.runner import CycleRunner, percentiles, realtime_setup
+    from pusupu_jax.hw_bridge.safety import Safety, limits_for
+    from pusupu_jax.hw_bridge.udp import Endpoint
     from pusupu_jax import gains
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.params import LoopRates, ServoParams

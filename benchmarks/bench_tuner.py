@@ -4,7 +4,7 @@ The problem is ``pusupu tune``'s (hybrid mode, the default groups in log space, 
 penalties) on a short stretch of one path (``--path`` seconds, ``--windows`` training windows
 of ``--window`` s, start states from one forward pass at the start gains) so that the
 derivative-free side finishes.  The
-gradient tuner (clipped Adam, :func:`tune.run.optimise`) runs ``--iterations``; scipy's
+gradient tuner (clipped Adam, :func:`pusupu_jax.tune.run.optimise`) runs ``--iterations``; scipy's
 Nelder-Mead then minimises the same objective (forward rollouts only, the same box bounds)
 until it reaches the gradient tuner's best value or ``--max-evals``.  Counted: rollouts
 (a gradient evaluation counts as one rollout, its cost is reported separately as the
@@ -45,8 +45,8 @@ def main() -> None:
     setup_jax()
     from pusupu_jax import ServoParams
     from pusupu_jax.hybrid import HybridGains
-    from tune.config import TuneConfig
-    from tune.run import Problem, optimise
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.run import Problem, optimise
 
     cfg = TuneConfig(trajectories=(args.trajectory,), path_s=args.path, windows=args.windows, window_s=args.window,
                      iterations=args.iterations, groups=tuple(args.groups.split(",")), shared=not args.per_axis)

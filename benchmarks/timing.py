@@ -32,7 +32,7 @@ def spread(values) -> dict | None:
 
 def percentile_spreads(runs, field: str, points) -> dict:
     """``{'<stem>_<point>_us': spread}`` of each percentile ``point`` of ``run[field]`` (a
-    :func:`hw_bridge.runner.percentiles` dict, ``<stem>_us``) over ``runs``, leaving out runs where it is None."""
+    :func:`pusupu_jax.hw_bridge.runner.percentiles` dict, ``<stem>_us``) over ``runs``, leaving out runs where it is None."""
     stem = field.removesuffix("_us")
     return {f"{stem}_{p}_us": spread([r[field][p] for r in runs if r[field] is not None]) for p in points}
 
@@ -50,9 +50,9 @@ def emit(result: dict, out: str | None, indent: int = 1) -> None:
 
 
 def steal_ms_since(before) -> list | None:
-    """Per CPU, the hypervisor's steal time [ms] since ``before`` (a :func:`hw_bridge.runner.steal_seconds` reading),
+    """Per CPU, the hypervisor's steal time [ms] since ``before`` (a :func:`pusupu_jax.hw_bridge.runner.steal_seconds` reading),
     or None where either reading is missing."""
-    from hw_bridge.runner import steal_seconds
+    from pusupu_jax.hw_bridge.runner import steal_seconds
 
     now = steal_seconds()
     return None if before is None or now is None else (1e3 * (now - before)).tolist()
@@ -60,7 +60,7 @@ def steal_ms_since(before) -> list | None:
 
 PROBE = r"""
 import json, signal, sys, time
-from hw_bridge.runner import realtime_setup
+from pusupu_jax.hw_bridge.runner import realtime_setup
 signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
 rt = realtime_setup(priority=int(sys.argv[2]), cpu=int(sys.argv[1]))
 print("ready", flush=True)
@@ -89,7 +89,7 @@ class PauseProbe:
     whatever runs on that CPU, so runs with the probe are for diagnosis, not for latency figures."""
 
     def __init__(self, priority: int = 90, gap: float = 2e-3):
-        from hw_bridge.runner import steal_seconds
+        from pusupu_jax.hw_bridge.runner import steal_seconds
 
         self.gap = gap
         self.cpus = sorted(os.sched_getaffinity(0))

@@ -26,16 +26,16 @@ from pathlib import Path
 from pusupu_jax.files import write_atomic
 from pusupu_jax.params import ParameterError
 
-REGISTRY = {
-    "arc": "experiments.arc",  # Fig. 7: PID, PID + velocity feedforward and 2-DOF IMC on the 200 mm arc
-    "p2p": "experiments.p2p",  # section 4 and Table 2: PID vs hybrid with seeded kinematic errors
-    "hybrid_grid": "experiments.hybrid_grid",  # hybrid mode across lambda2, seeded errors: stability
-    "timing": "experiments.timing",  # timing convergence: every step halved
-    "servo": "experiments.servo",  # each loop's Bode plot, step and load-torque step, margins; Table 1 vs --gains
-    "tuned": "experiments.tuned",  # Table 1 vs pusupu tune's gains on arc and p2p in every mode
-    "peg_in_hole": "experiments.peg_in_hole",  # Fig. 9a: a peg into a chamfered hole off its axis, MJX contact
-    "surface_tracking": "experiments.surface_tracking",  # Fig. 9b: a tool holding a force on a tilted surface
-    "loop_match": "experiments.loop_match",  # loop gains of the MJX machine by injection vs the single-axis model
+REGISTRY = {  # name: its module in this package
+    "arc": "arc",  # Fig. 7: PID, PID + velocity feedforward and 2-DOF IMC on the 200 mm arc
+    "p2p": "p2p",  # section 4 and Table 2: PID vs hybrid with seeded kinematic errors
+    "hybrid_grid": "hybrid_grid",  # hybrid mode across lambda2, seeded errors: stability
+    "timing": "timing",  # timing convergence: every step halved
+    "servo": "servo",  # each loop's Bode plot, step and load-torque step, margins; Table 1 vs --gains
+    "tuned": "tuned",  # Table 1 vs pusupu tune's gains on arc and p2p in every mode
+    "peg_in_hole": "peg_in_hole",  # Fig. 9a: a peg into a chamfered hole off its axis, MJX contact
+    "surface_tracking": "surface_tracking",  # Fig. 9b: a tool holding a force on a tilted surface
+    "loop_match": "loop_match",  # loop gains of the MJX machine by injection vs the single-axis model
 }
 
 
@@ -83,7 +83,7 @@ def get(name: str):
     """The experiment module ``name``."""
     if name not in REGISTRY:
         raise ParameterError(f"experiment: expected one of {sorted(REGISTRY)}, got {name!r}")
-    return importlib.import_module(REGISTRY[name])
+    return importlib.import_module(f"{__name__}.{REGISTRY[name]}")
 
 
 def takes_gains(name: str | None = None):

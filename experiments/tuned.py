@@ -10,7 +10,7 @@ Coulomb friction changes sign: :func:`pusupu_jax.machine.reversal_error`, highes
 the highest of the six branch force peaks [N], and the tuned gains' change against Table 1 [%].
 
 The tuned gains come from ``gains`` (a gain file of ``pusupu tune``, ``--gains FILE``), or,
-without it, from running the tuner here on its default configuration (``tune.config.TuneConfig``,
+without it, from running the tuner here on its default configuration (``pusupu_jax.tune.config.TuneConfig``,
 what ``pusupu tune`` runs; README gives its time), or on its quick one with ``quick``
 (``pusupu tune --quick``).  The tuner tunes in one mode (hybrid by default) the
 fields of its groups; in the other modes only the fields they use differ from Table 1 (PID and
@@ -55,8 +55,8 @@ def highest(values) -> float:
 
 def tune(quick: bool = False):
     """Run ``pusupu tune`` (default or quick configuration) in a temporary folder; ``(GainFile, its source)``."""
-    from tune.config import TuneConfig
-    from tune.job import run_job
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.job import run_job
 
     cfg = TuneConfig.quick() if quick else TuneConfig()
     with tempfile.TemporaryDirectory(prefix="pusupu-tuned-") as folder:

@@ -18,7 +18,7 @@ the echo answers 0, read as "unknown" (the answer is then taken for the last SYN
 
 Units on the bus, as drives use them: positions in increments of a 20-bit encoder
 (:data:`COUNTS_PER_RAD`), speeds in increments per second, torques in thousandths of the rated
-torque.  :class:`CanLink` gives the bridge the interface of :class:`hw_bridge.udp.Endpoint`
+torque.  :class:`CanLink` gives the bridge the interface of :class:`pusupu_jax.hw_bridge.udp.Endpoint`
 (commands out, the newest complete feedback in), so the session runs over either transport.
 
 On a real bus, bit timing limits the rate: 19 frames per cycle at 1 Mbit/s take about 2.3 ms
@@ -199,7 +199,7 @@ class CanLink:
 
     def poll(self, timeout: float = 0.0):
         """The newest answer that all six drives gave, to one SYNC, since the last one returned (waiting up to
-        ``timeout`` [s] for it), as a :class:`~hw_bridge.protocol.Feedback` whose ``ack`` is the command that SYNC
+        ``timeout`` [s] for it), as a :class:`~pusupu_jax.hw_bridge.protocol.Feedback` whose ``ack`` is the command that SYNC
         followed (0: unknown); None if there is none.  While the drives' TPDOs of one SYNC are still arriving, the
         answer before it is the newest complete one.  Drives that do not echo the counter (0) give each drive's last
         answer, once every drive has a new one."""

@@ -222,7 +222,7 @@ class BridgeLoop:
     def warm(self, cycle: int) -> None:
         """Run the compiled step that cycle ``cycle`` will run, on the present state, and drop its result.
 
-        Called just before the cycle's deadline (:class:`~hw_bridge.runner.CycleRunner`'s ``prepare``): the
+        Called just before the cycle's deadline (:class:`~pusupu_jax.hw_bridge.runner.CycleRunner`'s ``prepare``): the
         step's code and data are then in the CPU's caches when the cycle needs them.  Measured on this 2-core VM
         at 1 kHz, a step right after an idle sleep takes 3 to 5 times as long as one right after another.
         """

@@ -119,7 +119,7 @@ def _helpers_fifo(priority: int) -> dict:
     """The process's threads other than the calling one at SCHED_FIFO ``priority``; ``{tid: (policy, priority)}``
     before, of those changed.  The calling thread may hand them work and wait: XLA's CPU runtime can run parts of a
     compiled step on its pool (the simulated robot's drive step woke two 'tf_XLAEigen' threads and waited for them,
-    2.4 times per call, until :class:`~hw_bridge.compiled.FlatStep` closed over its constants), and python-can's
+    2.4 times per call, until :class:`~pusupu_jax.hw_bridge.compiled.FlatStep` closed over its constants), and python-can's
     notifier thread runs the CANopen robot's whole period.  Left at SCHED_OTHER, that work waits behind any ordinary
     task on the CPU while the real-time thread waits for it; one step below the calling thread, it runs before
     ordinary tasks and never preempts the thread that waits for it."""

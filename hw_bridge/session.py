@@ -1,8 +1,8 @@
 """One bridge run (host-side): bring the drives up through CiA 402, take over, run the loops, stop, report.
 
-Per cycle: read the newest feedback, check it (:class:`~hw_bridge.safety.Safety`: fresh, finite, in range, and
+Per cycle: read the newest feedback, check it (:class:`~pusupu_jax.hw_bridge.safety.Safety`: fresh, finite, in range, and
 within the following-error window of the reference the machine was following), step the loops
-(:class:`~hw_bridge.loop.BridgeLoop`), clamp the targets, send the command.  Phases:
+(:class:`~pusupu_jax.hw_bridge.loop.BridgeLoop`), clamp the targets, send the command.  Phases:
 
 1. *connect*: send shutdown until every drive reports 'ready to switch on' (``connect_s``);
 2. *enable*: switch on, then enable operation, until every drive reports 'operation enabled';
@@ -120,8 +120,8 @@ class BridgeRun:
 
 
 class Bridge:
-    """Runs ``loop`` against the drives behind ``endpoint``: a :class:`~hw_bridge.udp.Endpoint` of FEEDBACK or a
-    :class:`~hw_bridge.canopen_link.CanLink` (``send_command``, which counts a failed send in ``rejected`` and does not
+    """Runs ``loop`` against the drives behind ``endpoint``: a :class:`~pusupu_jax.hw_bridge.udp.Endpoint` of FEEDBACK or a
+    :class:`~pusupu_jax.hw_bridge.canopen_link.CanLink` (``send_command``, which counts a failed send in ``rejected`` and does not
     raise, ``poll``, ``rejected``; and ``received_at`` [s, monotonic] where its feedback carries a send time)."""
 
     def __init__(self, loop: BridgeLoop, endpoint, safety: Safety, *, connect_s: float = 5.0, stop_cycles: int = 50,

@@ -5,7 +5,7 @@ imports it.  ``pusupu sim-robot --listen udp://127.0.0.1:PORT`` runs it.
 
 Each valid command from the bridge goes to the six drives' CiA 402 state machines, and a drive
 faults, as a CiA 402 drive does, on a mode of operation it does not have (it has CSV and CST) or a
-target that is not finite or beyond its limit (:func:`~hw_bridge.safety.command_limits`); a
+target that is not finite or beyond its limit (:func:`~pusupu_jax.hw_bridge.safety.command_limits`); a
 faulted drive applies no torque.  While all six are 'operation enabled' the machine advances one
 bridge period under the command (CSV: each drive's velocity loop follows the speed target; CST:
 its current loop follows the torque target), with the same drive-side functions the simulator
@@ -299,7 +299,7 @@ class SimRobot:
 class Stalls:
     """The serving loop's turns that came more than ``threshold`` [s] after the one before (the robot did not run:
     its CPU was taken, or a command took that long), each logged with the hypervisor's steal time per CPU since the
-    previous report (:func:`~hw_bridge.runner.steal_seconds`), the first ``shown`` of them; ``count`` counts all."""
+    previous report (:func:`~pusupu_jax.hw_bridge.runner.steal_seconds`), the first ``shown`` of them; ``count`` counts all."""
 
     def __init__(self, log, threshold: float = 5e-3, shown: int = 20):
         self.log, self.threshold, self.shown = log, threshold, shown
@@ -497,7 +497,7 @@ def main_loop(model: RobotModel, listen: str, faults, max_s=None, watchdog_s: fl
     """Serve on ``listen`` (udp://HOST:PORT or can://INTERFACE/CHANNEL) until interrupted; one line when ready.
     ``watchdog_s``: the drives' sync watchdog (:meth:`SimRobot.watch`) [s].
 
-    ``realtime``: ask for what a robot controller has (:func:`hw_bridge.runner.realtime_setup`: SCHED_FIFO at
+    ``realtime``: ask for what a robot controller has (:func:`pusupu_jax.hw_bridge.runner.realtime_setup`: SCHED_FIFO at
     priority 70 on the first CPU, since the bridge takes the last); what the OS refused is said on stderr.  A 1 kHz
     command costs the robot about 140 us at p50 (four compiled drive steps and C MuJoCo steps), so a stall of a
     few ms on its CPU leaves the bridge without feedback past its watchdog (:class:`Stalls` reports them; README,

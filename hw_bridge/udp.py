@@ -1,4 +1,4 @@
-"""UDP endpoints of the protocol (:mod:`hw_bridge.protocol`): non-blocking sockets, every datagram checked and counted.
+"""UDP endpoints of the protocol (:mod:`pusupu_jax.hw_bridge.protocol`): non-blocking sockets, every datagram checked and counted.
 
 :class:`Endpoint` receives packets of one kind and of the session's axis count and keeps the
 newest valid one; malformed, truncated, oversized, wrong-version, other-axis-count and replayed
@@ -21,7 +21,7 @@ from . import protocol
 
 
 class Refusal(enum.StrEnum):
-    """What an endpoint counts beside the decoder's reasons (:data:`hw_bridge.protocol.REASONS`)."""
+    """What an endpoint counts beside the decoder's reasons (:data:`pusupu_jax.hw_bridge.protocol.REASONS`)."""
 
     REPLAYED = "replayed"  # not newer than the last packet accepted from the same peer
     SENDER = "sender"  # feedback from an address or port other than the robot's

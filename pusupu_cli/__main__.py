@@ -1,4 +1,4 @@
-"""``python -m pusupu_cli``: the ``pusupu`` command."""
+"""``python -m pusupu_jax.cli``: the ``pusupu`` command."""
 
 import sys
 

@@ -63,7 +63,7 @@ def add_parsers(sub) -> None:
 
 def _robot_url(url: str):
     """(host, port) of udp://HOST:PORT, or None for can://INTERFACE/CHANNEL."""
-    from hw_bridge.udp import parse_url
+    from pusupu_jax.hw_bridge.udp import parse_url
 
     if url.startswith("can://"):
         interface, _, channel = url[len("can://"):].partition("/")
@@ -79,7 +79,7 @@ def _robot_url(url: str):
 def _warn_beyond_loopback(option: str, value: str, host: str, what: str) -> None:
     """One line on stderr when ``host`` (of ``option``'s ``value``) is not a loopback address: ``what`` then takes
     packets from the network."""
-    from hw_bridge.udp import beyond_loopback
+    from pusupu_jax.hw_bridge.udp import beyond_loopback
 
     try:
         where = beyond_loopback(host)
@@ -130,11 +130,11 @@ def run_bridge(args) -> int:
             raise ParameterError(f"{message}; give that machine's file with --machine, or --allow-other-machine")
         print(f"pusupu: warning: {message}; running it as --allow-other-machine asks", file=sys.stderr)
     setup_jax()
-    from hw_bridge.loop import BridgeLoop, bridge_reference, cycle_rate, plan
-    from hw_bridge.protocol import CST, FEEDBACK
-    from hw_bridge.safety import Safety, limits_for
-    from hw_bridge.session import RECORD_BYTES, Bridge, End, longest_run, record_memory
-    from hw_bridge.udp import Endpoint
+    from pusupu_jax.hw_bridge.loop import BridgeLoop, bridge_reference, cycle_rate, plan
+    from pusupu_jax.hw_bridge.protocol import CST, FEEDBACK
+    from pusupu_jax.hw_bridge.safety import Safety, limits_for
+    from pusupu_jax.hw_bridge.session import RECORD_BYTES, Bridge, End, longest_run, record_memory
+    from pusupu_jax.hw_bridge.udp import Endpoint
 
     modes = modes if args.drive_modes != "csv" else None
     try:
@@ -151,7 +151,7 @@ def run_bridge(args) -> int:
     except ValueError as e:
         raise ParameterError(str(e)) from None
     if address is None:
-        from hw_bridge.canopen_link import CanLink, open_bus
+        from pusupu_jax.hw_bridge.canopen_link import CanLink, open_bus
 
         try:
             endpoint = CanLink(open_bus(args.robot), loop.drive_modes, np.asarray(g.servo.Kt * g.servo.I_max))
@@ -235,7 +235,7 @@ def run_sim_robot(args) -> int:
 
     apply_xla_workaround(one_thread=True)  # before any computation: the gain file's checks run on JAX
 
-    from hw_bridge.udp import parse_url
+    from pusupu_jax.hw_bridge.udp import parse_url
 
     if not args.listen.startswith("can://"):
         try:
@@ -249,7 +249,7 @@ def run_sim_robot(args) -> int:
         raise ParameterError(f"--kin-error: expected a non-negative integer seed, got {args.kin_error}")
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise ParameterError(f"--seconds: expected a positive number of seconds, got {args.seconds}")
-    from hw_bridge.sim_robot import FaultSpec, RobotModel, main_loop
+    from pusupu_jax.hw_bridge.sim_robot import FaultSpec, RobotModel, main_loop
 
     try:
         faults = [FaultSpec.parse(f) for f in args.fault]
@@ -258,8 +258,8 @@ def run_sim_robot(args) -> int:
     machine = machine_of(args)
     g = gains.load(args.gains, machine=machine)
     setup_jax()
-    from hw_bridge.loop import plan
-    from hw_bridge.protocol import CST
+    from pusupu_jax.hw_bridge.loop import plan
+    from pusupu_jax.hw_bridge.protocol import CST
 
     try:
         codes, _ = plan(g, None if args.drive_modes == "csv" else _drive_modes(args.drive_modes), args.rate)

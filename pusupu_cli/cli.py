@@ -288,8 +288,8 @@ def _tune(args) -> int:
     from pusupu_jax.runtime import setup_jax
 
     setup_jax()
-    from tune.config import TuneConfig
-    from tune.job import run_job, table
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.job import run_job, table
 
     if not args.out:
         raise ParameterError("--out: expected a folder, got an empty name")
@@ -324,7 +324,7 @@ def _batch(args) -> int:
     from pusupu_jax.runtime import setup_jax
 
     setup_jax()
-    from tune.batchjob import run_batch
+    from pusupu_jax.tune.batchjob import run_batch
 
     if (args.address or args.workers) and not args.ray:
         raise ParameterError("--address and --workers need --ray")
@@ -353,7 +353,7 @@ def _experiment(args) -> int:
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out: expected a folder, got the file {args.out!r}")
     setup_jax()
-    import experiments
+    from pusupu_jax import experiments
 
     experiments.get(args.name)  # an unknown name fails before any work
     with checking(f"--gains {args.gains}"):  # refused for another experiment, or a bad file: before any work

@@ -13,7 +13,7 @@ A run's cost is its steps times the state each step advances, counted where it i
   memory where ticks alone would not.
 
 A tuning run costs its gradients (their steps are also what reverse mode keeps in memory) and its forward passes
-over the whole paths (:func:`tune.run.check_work` counts them).  The limits are far above every default and
+over the whole paths (:func:`pusupu_jax.tune.run.check_work` counts them).  The limits are far above every default and
 documented run, and below what ends in an exhausted memory or a run of days.
 """
 

@@ -25,9 +25,9 @@ import yaml
 from pusupu_jax import gains
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import ServoParams
-from tune import jobfile, run
-from tune.batchjob import run_batch
-from tune.run import Problem
+from pusupu_jax.tune import jobfile, run
+from pusupu_jax.tune.batchjob import run_batch
+from pusupu_jax.tune.run import Problem
 
 TUNE = {"iterations": 3, "refresh_every": 1, "checkpoint_every": 1, "windows": 2, "window_s": 0.1, "starts": 2}
 SCENARIOS = [
@@ -151,7 +151,7 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
     Tolerance 1e-7 relative: the same operations, but vmapping over 6 members changes XLA's fusion and
     summation order (last-bit differences) and 3 Adam steps carry them on; measured 3e-10 on the gains.
     The two lone problems differ only in their scenarios, so they share one traced and compiled gradient
-    (tune.run._shared_gradient): each still equals its own batch member.  A problem started elsewhere does not
+    (pusupu_jax.tune.run._shared_gradient): each still equals its own batch member.  A problem started elsewhere does not
     share it (here the current loop's gain, which is not tuned and enters the program as a constant).  Built again
     with nothing in memory, a problem reads the traced program from disk (pusupu_jax.programs) instead of tracing.
     benchmarks/batch_equivalence.py checks every scenario of a 64-scenario batch the same way.
@@ -211,7 +211,7 @@ def test_ray_retries_a_killed_worker_and_gives_the_in_process_summary(batch, tmp
 
     killer = threading.Thread(target=kill_after_first_checkpoint, daemon=True)
     killer.start()
-    r = subprocess.run([sys.executable, "-m", "pusupu_cli", "batch", str(job), "--out", str(out), "--ray",
+    r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", "batch", str(job), "--out", str(out), "--ray",
                         "--workers", "2"], capture_output=True, text=True, timeout=1500)
     killer.join(timeout=1)
     assert killed, "the shard never checkpointed"

@@ -15,9 +15,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from hw_bridge import cia402, protocol
-from hw_bridge.loop import BridgeLoop, BridgeReference
-from hw_bridge.safety import Limits, Safety
+from pusupu_jax.hw_bridge import cia402, protocol
+from pusupu_jax.hw_bridge.loop import BridgeLoop, BridgeReference
+from pusupu_jax.hw_bridge.safety import Limits, Safety
 from pusupu_jax import cascade, gains, sim
 from pusupu_jax.hybrid import HybridGains, HybridReference
 from pusupu_jax.params import LoopRates, ServoParams
@@ -130,10 +130,11 @@ def test_the_bridge_commands_what_the_simulator_scans(mode, drive, monkeypatch, 
 
 
 @pytest.mark.parametrize("modules,absent", [
-    ("hw_bridge.loop, hw_bridge.session, hw_bridge.udp, hw_bridge.safety, hw_bridge.runner, hw_bridge.canopen_link",
-     ("mujoco", "optax", "matplotlib", "tune")),
+    ("pusupu_jax.hw_bridge.loop, pusupu_jax.hw_bridge.session, pusupu_jax.hw_bridge.udp, pusupu_jax.hw_bridge.safety, "
+     "pusupu_jax.hw_bridge.runner, pusupu_jax.hw_bridge.canopen_link",
+     ("mujoco", "optax", "matplotlib", "pusupu_jax.tune")),
     ("pusupu_jax.sim, pusupu_jax.machine, pusupu_jax.gains, pusupu_jax.ros2, pusupu_jax.identify, pusupu_jax.analysis",
-     ("tune", "experiments", "hw_bridge", "pusupu_cli")),
+     ("pusupu_jax.tune", "pusupu_jax.experiments", "pusupu_jax.hw_bridge", "pusupu_jax.cli")),
 ])
 def test_what_each_layer_does_not_import(modules, absent):
     """The robot-side package runs without MuJoCo, optax, matplotlib or the tuner, and the core imports none of its
@@ -209,7 +210,7 @@ def test_any_flipped_byte_of_a_valid_packet_is_refused(position, xor):
 
 
 def test_the_endpoint_drops_and_counts_bad_and_replayed_packets():
-    from hw_bridge.udp import Endpoint
+    from pusupu_jax.hw_bridge.udp import Endpoint
 
     ep = Endpoint(protocol.FEEDBACK, n_axes=6)
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -225,7 +226,7 @@ def test_the_endpoint_drops_and_counts_bad_and_replayed_packets():
 
 REALTIME_PROBE = r"""
 import json, os, threading
-from hw_bridge.runner import realtime_setup
+from pusupu_jax.hw_bridge.runner import realtime_setup
 go, ready = threading.Event(), threading.Event()
 tid = []
 def helper():
@@ -307,7 +308,7 @@ SECONDS = 1.0  # of the arc, on both transports
 @functools.lru_cache(maxsize=1)
 def _pure_arc():
     """The pure MJX simulation of the loopback setup: Table 1 IMC, the arc's first SECONDS at RATE (one compile)."""
-    from hw_bridge.loop import plan
+    from pusupu_jax.hw_bridge.loop import plan
     from pusupu_jax.machine import simulate_machine
     from pusupu_jax.plant.geometry import Geometry
     from pusupu_jax.plant.model import ModelOptions
@@ -340,15 +341,15 @@ def robot(tmp_path_factory):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    cmd = [sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen",
+    cmd = [sys.executable, "-m", "pusupu_jax.cli", "sim-robot", "--gains", str(path), "--listen",
            f"udp://127.0.0.1:{port}", "--seconds", str(TIMEOUT), "--rate", str(RATE),
            "--drive-watchdog", str(DRIVE_WATCHDOG_S), "--no-realtime"] + [a for f in FAULTS for a in ("--fault", f)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ.copy())
     line = proc.stdout.readline()
     assert "listening" in line, proc.stderr.read()
     g = gains.load(path)
-    from hw_bridge.loop import bridge_reference, plan
-    from hw_bridge.safety import limits_for
+    from pusupu_jax.hw_bridge.loop import bridge_reference, plan
+    from pusupu_jax.hw_bridge.safety import limits_for
 
     loop = BridgeLoop(g, bridge_reference(g, "arc", plan(g, None, RATE)[1]), rate=RATE)
     yield g, loop, limits_for(g.servo), port
@@ -360,8 +361,8 @@ def _session(robot, duration, watchdog=5):
     """A lock-step run (each cycle waits up to 0.2 s for the robot's answer): on a loaded machine a real-time run
     reuses late samples and trips the watchdog on scheduling alone (CI's clean clone: 44 % late cycles), which
     these tests are not about; the real-time figures are benchmarks/bench_bridge.py's."""
-    from hw_bridge.session import Bridge
-    from hw_bridge.udp import Endpoint
+    from pusupu_jax.hw_bridge.session import Bridge
+    from pusupu_jax.hw_bridge.udp import Endpoint
 
     g, loop, limits, port = robot
     ep = Endpoint(protocol.FEEDBACK, n_axes=len(loop.drive_modes), peer=("127.0.0.1", port))
@@ -434,7 +435,7 @@ def test_a_bad_gain_file_is_refused_before_anything_is_sent(tmp_path):
         s.bind(("127.0.0.1", 0))
         s.settimeout(0.5)
         port = s.getsockname()[1]
-        r = subprocess.run([sys.executable, "-m", "pusupu_cli", "bridge", "--gains", str(bad), "--robot",
+        r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", "bridge", "--gains", str(bad), "--robot",
                             f"udp://127.0.0.1:{port}"], capture_output=True, text=True, timeout=TIMEOUT)
         with pytest.raises(socket.timeout):
             s.recvfrom(2048)
@@ -454,13 +455,13 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
     each answer comes after cut-short copies of its TPDOs and before the previous answer again (the short frames
     dropped and counted); then sessions whose drives go silent, answer 3 s late, hold 12 answers and send them
     newest first, or cut every TPDO short each end in a safe stop on stale feedback."""
-    from hw_bridge.canopen_link import CanLink, open_bus
-    from hw_bridge.loop import bridge_reference, plan
-    from hw_bridge.safety import limits_for
-    from hw_bridge.session import Bridge
+    from pusupu_jax.hw_bridge.canopen_link import CanLink, open_bus
+    from pusupu_jax.hw_bridge.loop import bridge_reference, plan
+    from pusupu_jax.hw_bridge.safety import limits_for
+    from pusupu_jax.hw_bridge.session import Bridge
     path = gains.write(tmp_path / "imc.yaml", SERVO, HybridGains(), RATES, mode="imc")
     url = f"can://udp_multicast/239.74.{np.random.default_rng().integers(1, 255)}.{os.getpid() % 250 + 1}"
-    proc = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", str(path), "--listen", url,
+    proc = subprocess.Popen([sys.executable, "-m", "pusupu_jax.cli", "sim-robot", "--gains", str(path), "--listen", url,
                              "--rate", str(RATE), "--seconds", str(TIMEOUT), "--drive-watchdog", str(DRIVE_WATCHDOG_S),
                              "--no-realtime"] + [a for f in CAN_FAULTS for a in ("--fault", f)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -502,7 +503,7 @@ def test_canopen_feedback_names_the_sync_it_answers():
     import can
     import canopen
 
-    from hw_bridge.canopen_link import COUNTS_PER_RAD, SYNC_OVERFLOW, CanLink, node_dictionary
+    from pusupu_jax.hw_bridge.canopen_link import COUNTS_PER_RAD, SYNC_OVERFLOW, CanLink, node_dictionary
     channel = f"sync-echo-{os.getpid()}"
     drives = canopen.Network(can.Bus(interface="virtual", channel=channel))
     drives.notifier = can.Notifier(drives.bus, drives.listeners, 0.1)

@@ -3,7 +3,7 @@
 The bridge runs against :class:`WireRobot`, a robot on a real loopback socket that keeps every command reaching it: in
 this process and in lock step (``Bridge(lockstep_s=...)``: the results do not depend on how loaded the machine is), or
 as ``pusupu bridge`` processes for their signals and exit status.  The simulated robot's controller
-(:class:`~hw_bridge.sim_robot.SimRobot`) is tested alone, and behind its own UDP server; the command lines' checks run
+(:class:`~pusupu_jax.hw_bridge.sim_robot.SimRobot`) is tested alone, and behind its own UDP server; the command lines' checks run
 their ``main`` in this process.  Every packet goes through the real protocol.
 """
 
@@ -21,13 +21,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from hw_bridge import cia402, protocol
-from hw_bridge.loop import BridgeLoop, plan
-from hw_bridge.safety import Limits, Safety
-from hw_bridge.session import Bridge
-from hw_bridge.udp import Endpoint
-from hw_bridge.loop import bridge_reference
-from hw_bridge.safety import limits_for
+from pusupu_jax.hw_bridge import cia402, protocol
+from pusupu_jax.hw_bridge.loop import BridgeLoop, plan
+from pusupu_jax.hw_bridge.safety import Limits, Safety
+from pusupu_jax.hw_bridge.session import Bridge
+from pusupu_jax.hw_bridge.udp import Endpoint
+from pusupu_jax.hw_bridge.loop import bridge_reference
+from pusupu_jax.hw_bridge.safety import limits_for
 from pusupu_jax import gains
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import LoopRates, ServoParams
@@ -220,7 +220,7 @@ def test_feedback_of_another_axis_count_is_refused_and_the_run_stops_safely(setu
 @pytest.fixture(scope="module")
 def robot_model(setup):
     """The simulated robot's machine and drives (C MuJoCo and the compiled drive step) for the gain file, at RATE."""
-    from hw_bridge.sim_robot import RobotModel
+    from pusupu_jax.hw_bridge.sim_robot import RobotModel
 
     return RobotModel(gains.load(setup.path), RATE)
 
@@ -233,7 +233,7 @@ def _command(sequence, word, target=np.zeros(N), mode=protocol.CSV):
 def test_the_simulated_robot_refuses_a_command_of_another_axis_count_and_serves_on(robot_model):
     """The simulated robot behind its UDP server, enabled: a valid one-axis command (CRC and all) is refused and counted
     ("axes"), and the next six-axis command is answered as any other."""
-    from hw_bridge.sim_robot import SimRobot, UdpServer
+    from pusupu_jax.hw_bridge.sim_robot import SimRobot, UdpServer
 
     ep = Endpoint(protocol.COMMAND, n_axes=N)
     server = UdpServer(SimRobot(robot_model, watchdog_s=WAIT, log=lambda line: None), ep)
@@ -302,7 +302,7 @@ def test_a_simulated_drive_faults_on_a_target_beyond_its_limits_or_a_mode_it_doe
     """As a CiA 402 drive does: enabled, a drive given a NaN, inf, 1e308 or beyond-the-limit target (CSV: V_max/Ke, CST:
     Kt I_max) or a mode of operation other than CSV and CST faults (statusword), reports no torque, and the brakes hold
     the machine; the other drives stay enabled, and a target at the limit (what the bridge clamps to) is taken."""
-    from hw_bridge.sim_robot import SimRobot
+    from pusupu_jax.hw_bridge.sim_robot import SimRobot
 
     vmax, tmax = setup.limits.velocity[1], setup.limits.torque[1]
     cases = {"nan": (np.nan, protocol.CSV), "inf": (-np.inf, protocol.CSV), "1e308": (1e308, protocol.CSV),
@@ -438,7 +438,7 @@ def test_pusupu_bridge_on_sigint_or_sigterm_prints_its_report_and_exits_130_or_1
     for sig in (signal.SIGINT, signal.SIGTERM):
         robot = WireRobot()
         bind = ["--bind", "0.0.0.0"] if sig == signal.SIGINT else []
-        proc = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "bridge", "--gains", str(setup.path), "--robot",
+        proc = subprocess.Popen([sys.executable, "-m", "pusupu_jax.cli", "bridge", "--gains", str(setup.path), "--robot",
                                  f"udp://127.0.0.1:{robot.port}", "--rate", "100", "--duration", "30", "--watchdog",
                                  "50", "--no-realtime", "--json", *bind], stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, text=True)
@@ -528,7 +528,7 @@ def test_an_axis_that_stops_following_its_path_trips_the_following_error_and_a_c
 def test_the_simulated_robot_says_so_when_it_listens_beyond_loopback(setup, monkeypatch, capsys):
     """``pusupu sim-robot --listen udp://0.0.0.0:PORT`` (its ``main``, in this process): one line on stderr as soon as
     the address is read, naming it, before anything else (here a bad option ends the command there, nothing bound)."""
-    from pusupu_cli.cli import main
+    from pusupu_jax.cli.cli import main
 
     monkeypatch.setenv("PUSUPU_XLA_WORKAROUND", "0")  # this process's XLA flags are set already
     with pytest.raises(SystemExit) as e:
@@ -562,7 +562,7 @@ def test_numbers_beyond_their_bounds_are_refused_in_one_line(setup, monkeypatch,
     1 Hz or above 4 kHz, a run whose record would not fit in half of the memory (``--duration 1e9`` asked for
     terabytes), a negative seed, a non-finite time, an unbounded or impossible fault argument: one line on stderr
     naming what was expected and what was found, exit 2, nothing sent or bound."""
-    from pusupu_cli.cli import main
+    from pusupu_jax.cli.cli import main
 
     monkeypatch.setenv("PUSUPU_XLA_WORKAROUND", "0")  # this process's XLA flags are set already
     command, *options = argv
@@ -572,6 +572,6 @@ def test_numbers_beyond_their_bounds_are_refused_in_one_line(setup, monkeypatch,
     err = capsys.readouterr().err
     assert e.value.code == 2 and err.count("\n") == 1 and err.startswith("pusupu: error: ") and expected in err, err
     if command == "bridge" and "--duration" in options:  # the limit, for the rate of the gain file: 1 kHz
-        from hw_bridge.session import longest_run
+        from pusupu_jax.hw_bridge.session import longest_run
 
         assert f"expected at most {longest_run(1000.0):.6g} s at 1000 Hz" in err and "got 1e+09" in err, err

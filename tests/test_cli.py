@@ -12,7 +12,7 @@ import pytest
 
 
 def pusupu(*args, check=True):
-    r = subprocess.run([sys.executable, "-m", "pusupu_cli", *args], capture_output=True, text=True,
+    r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", *args], capture_output=True, text=True,
                        env=dict(os.environ), timeout=600)
     if check:
         assert r.returncode == 0, r.stderr
@@ -166,7 +166,7 @@ def test_tune_writes_gains_ros_files_report_and_plots(tuned):
 def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
     """SIGKILL after the first checkpoint, run the same command again: the result equals the uninterrupted run's."""
     folder, report = tuned
-    cmd = [sys.executable, "-m", "pusupu_cli", "tune", "--config", str(folder / "tiny.yaml"),
+    cmd = [sys.executable, "-m", "pusupu_jax.cli", "tune", "--config", str(folder / "tiny.yaml"),
            "--out", str(tmp_path / "out"), "--json"]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
     deadline = time.time() + 600
@@ -184,7 +184,7 @@ def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
 def test_ctrl_c_during_a_tune_ends_with_one_line(tuned, tmp_path):
     """Ctrl-C used to end in a KeyboardInterrupt traceback; now one line saying how to resume, and exit status 130."""
     folder, _ = tuned
-    cmd = [sys.executable, "-m", "pusupu_cli", "tune", "--config", str(folder / "tiny.yaml"),
+    cmd = [sys.executable, "-m", "pusupu_jax.cli", "tune", "--config", str(folder / "tiny.yaml"),
            "--out", str(tmp_path / "out")]
     # Ctrl-C as at a terminal: SIGINT's default action in the child, even where this suite runs as a background job
     # of a non-interactive shell, which starts with SIGINT ignored (and Python then installs no KeyboardInterrupt)
@@ -210,7 +210,7 @@ def test_a_ctrl_c_that_python_drops_in_a_gc_callback_still_ends_with_130():
     a Ctrl-C during ``analyze`` also ended in an AttributeError: the message read ``args.out``, which it has not.)"""
     code = """
 import gc, os, signal, sys
-from pusupu_cli import cli
+from pusupu_jax.cli import cli
 fired = []
 def callback(phase, info):
     if phase == "start" and not fired and "control" in sys.modules:  # in the command (python-control loaded)
@@ -270,7 +270,7 @@ def test_a_foreign_checkpoint_is_refused_without_running(tmp_path):
 
 def test_a_second_run_into_a_busy_folder_is_refused(tmp_path):
     """Two runs into one --out used to both say they wrote gains.yaml; now the second names the holder."""
-    from tune.job import OutputLock
+    from pusupu_jax.tune.job import OutputLock
 
     out = tmp_path / "out"
     out.mkdir()
@@ -325,7 +325,7 @@ def test_version_and_python_m():
     from pusupu_jax import __version__
 
     assert pusupu("--version").stdout.strip() == f"pusupu {__version__}"
-    r = subprocess.run([sys.executable, "-m", "pusupu_cli", "--version"], capture_output=True, text=True, timeout=120)
+    r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", "--version"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.strip() == f"pusupu {__version__}"
 
 
@@ -340,7 +340,7 @@ def test_a_write_that_fails_midway_keeps_the_old_file_and_ends_in_one_line(tmp_p
     before = path.read_bytes()
     limited = ("import resource, runpy, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
                "resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096)); "
-               f"sys.argv = ['pusupu', 'gains', 'sign', {str(path)!r}]; runpy.run_module('pusupu_cli', run_name='__main__')")
+               f"sys.argv = ['pusupu', 'gains', 'sign', {str(path)!r}]; runpy.run_module('pusupu_jax.cli', run_name='__main__')")
     r = subprocess.run([sys.executable, "-c", limited], capture_output=True, text=True, env=dict(os.environ),
                        timeout=300)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr

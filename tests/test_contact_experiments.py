@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from experiments import peg_in_hole
+from pusupu_jax.experiments import peg_in_hole
 from pusupu_jax import LoopRates, ServoParams
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.plant.geometry import Geometry
@@ -34,7 +34,7 @@ def test_a_compliant_run_with_nothing_touching_is_the_plain_run():
 
 
 def _experiment(name, out):
-    proc = subprocess.run([sys.executable, "-m", "pusupu_cli", "experiment", name, "--quick", "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", "experiment", name, "--quick", "--out", str(out),
                            "--json"], capture_output=True, text=True, timeout=TIMEOUT_S)
     assert proc.returncode == 0, proc.stderr[-2000:]
     for suffix in (".json", ".md", ".png"):

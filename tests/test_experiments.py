@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-import experiments
+from pusupu_jax import experiments
 from pusupu_jax.params import ParameterError
 
 
@@ -32,7 +32,7 @@ def test_hybrid_grid_quick_is_stable_at_the_smallest_admissible_lambda2(tmp_path
     assert m["default_m6_diverged"] == 0
     for rule in ("lambda1 = lambda2", "lambda1 = 0.018"):
         new, old = (next(r for r in m["rows"] if r["m6"] == m6 and r["rule"] == rule and r["lambda2"] == m["lambda2_min"])
-                    for m6 in (m["m6_default"], experiments.hybrid_grid.OLD_M6))
+                    for m6 in (m["m6_default"], pusupu_jax.experiments.hybrid_grid.OLD_M6))
         assert old["max_tracking_error_mm"] > 2.5 * new["max_tracking_error_mm"], (rule, old, new)
         assert old["highest_force_peak_n"] > 1.4 * new["highest_force_peak_n"], (rule, old, new)
 
@@ -148,7 +148,7 @@ def test_experiment_gains_or_machine_misuse_exits_2_with_one_line(tmp_path, twea
     """``pusupu experiment NAME --gains FILE`` or ``--machine FILE``: an experiment that takes no gains or runs on no
     machine file, or a file that cannot be read, is one line on stderr and exit status 2, before anything is
     written."""
-    from pusupu_cli.cli import main
+    from pusupu_jax.cli.cli import main
 
     example = Path(__file__).parent.parent / "docs" / "examples" / "machine_user.yaml"
     value = {"GAINS": str(tweaked_gains), "MACHINE": str(example)}.get(value, str(tmp_path / value))

@@ -41,7 +41,7 @@ def commands(*argvs, timeout: float = 300) -> list:
     traceback, as Python would end the command."""
     r = limited(f"""
 import contextlib, io, json, traceback
-from pusupu_cli import cli
+from pusupu_jax.cli import cli
 out = []
 for argv in {[[str(a) for a in argv] for argv in argvs]!r}:
     err = io.StringIO()
@@ -174,8 +174,8 @@ def test_every_loader_refuses_a_fifo_without_blocking(tmp_path):
 from pusupu_jax import gains
 from pusupu_jax.params_file import load_params_file
 from pusupu_jax.params import ParameterError
-from tune.config import TuneConfig
-from tune import jobfile
+from pusupu_jax.tune.config import TuneConfig
+from pusupu_jax.tune import jobfile
 for load in (load_params_file, gains.load, gains.sign, TuneConfig.load, jobfile.read):
     try:
         load({str(fifo)!r})
@@ -230,7 +230,7 @@ def test_a_job_named_with_a_newline_is_reported_on_one_line(tmp_path):
 def test_a_planted_lock_file_is_refused_and_its_target_untouched(tmp_path, kind):
     """A symlink planted as ``DIR/.pusupu.lock`` made ``tune`` truncate its target (open 'a+', then truncate).  The
     lock is opened without following a symlink or truncating, and must be a regular file of one link."""
-    from tune.job import OutputLock
+    from pusupu_jax.tune.job import OutputLock
 
     out = tmp_path / "out"
     out.mkdir()
@@ -251,7 +251,7 @@ def test_a_planted_lock_file_is_refused_and_its_target_untouched(tmp_path, kind)
 
 
 def test_the_lock_is_still_exclusive_and_names_its_holder(tmp_path):
-    from tune.job import OutputLock
+    from pusupu_jax.tune.job import OutputLock
 
     first = OutputLock(tmp_path)
     try:
@@ -271,8 +271,8 @@ import jax.numpy as jnp
 from pusupu_jax import ServoParams
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import ParameterError
-from tune.run import optimise
-from tune.space import Space
+from pusupu_jax.tune.run import optimise
+from pusupu_jax.tune.space import Space
 
 space = Space.create(("imc",), ServoParams.table1(), HybridGains())
 
@@ -420,7 +420,7 @@ def test_a_finished_checkpoint_missing_a_field_is_refused_before_anything_is_exp
 def test_ros_joint_names_are_checked_with_the_tune_config(tmp_path):
     """A joint name the ROS exporter refuses passed the tune configuration, and the run failed only at its export.
     The configuration now applies the exporter's own rule, before any work."""
-    from tune.config import TuneConfig
+    from pusupu_jax.tune.config import TuneConfig
 
     config = tmp_path / "tune.yaml"
     config.write_text("ros_joints: [slide 1, slide_2, slide_3, slide_4, slide_5, slide_6]\n")
@@ -438,8 +438,8 @@ def test_the_export_writes_every_file_or_none(tmp_path, refused):
     from pusupu_jax import ServoParams
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.machine import machine_rates
-    from tune.config import TuneConfig
-    from tune.job import export
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.job import export
 
     cfg = TuneConfig()
     old = {name: f"the earlier {name}\n" for name in ("gains.yaml", "ros2_pid_controller.yaml",
@@ -520,8 +520,8 @@ def test_every_duration_rate_and_horizon_is_bounded_by_its_work(tmp_path, fast_r
 
 def test_the_work_limits_leave_the_defaults_far_inside():
     from pusupu_jax import LoopRates, workload
-    from tune.config import TuneConfig
-    from tune.run import check_work
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.run import check_work
 
     workload.check_run("sim", 2000.0, LoopRates())  # the longest axis run the default rates always allowed
     workload.check_run("both paths, two controllers", 2 * 60.0, LoopRates(n_mech=5), machine=True)
@@ -549,7 +549,7 @@ def test_absurd_parameters_end_in_one_line(tmp_path, values, field):
 
 def test_an_internal_error_keeps_its_traceback(monkeypatch):
     """Only the inputs' checks turn a ValueError into one line: raised in the work, it is a bug, and shows."""
-    from pusupu_cli import cli
+    from pusupu_jax.cli import cli
     from pusupu_jax import analysis
 
     def broken(*args, **kwargs):

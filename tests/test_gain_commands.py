@@ -24,7 +24,7 @@ V2_OTHER_PLANT = DATA / "gains_v2_other_plant.yaml"  # the same with Kt and Ke 1
 
 
 def pusupu(*args, timeout=600):
-    return subprocess.run([sys.executable, "-m", "pusupu_cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "pusupu_jax.cli", *map(str, args)], capture_output=True, text=True,
                           timeout=timeout)
 
 

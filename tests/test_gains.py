@@ -221,8 +221,8 @@ def test_a_refused_export_says_so_and_names_the_file_left_in_place(tmp_path):
     nothing, and the report's entry names the earlier gains.yaml left as it was (by its sha256)."""
     import hashlib
 
-    from tune.config import TuneConfig
-    from tune.job import export
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.job import export
 
     cfg = TuneConfig()
     good = export(tmp_path, cfg, GOOD, HYBRID, RATES, TUNED, {})

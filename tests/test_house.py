@@ -6,8 +6,11 @@ tree says what was measured, on what machine, with which command.
 """
 
 import ast
+import json
+import os
 import re
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -44,20 +47,25 @@ def test_no_tracked_file_speaks_of_the_development_process():
     assert not found, "\n".join(found[:20])
 
 
-# the layers, lowest first: each may import those below it, none above it
+# the layers, lowest first, by folder: each may import those below it, none above it
 LAYERS = (("pusupu_jax",), ("tune", "experiments", "hw_bridge"), ("pusupu_cli",), ("benchmarks",))
+# the name each folder is installed under (pyproject.toml): one namespace, no generic top-level names
+INSTALLED = {"tune": "pusupu_jax.tune", "experiments": "pusupu_jax.experiments", "hw_bridge": "pusupu_jax.hw_bridge",
+             "pusupu_cli": "pusupu_jax.cli"}
 
 
 def _import_graph() -> dict:
-    """``{module: modules of the project it imports}``, from every import statement in its source (those inside
-    functions too), each named down to the project module it reaches."""
-    modules = {}
+    """``({module: modules of the project it imports}, {module: its folder})``, from every import statement in its
+    source (those inside functions too), each named down to the project module it reaches."""
+    modules, folder_of = {}, {}
     for layer in LAYERS:
-        for package in layer:
-            for path in (ROOT / package).rglob("*.py"):
+        for folder in layer:
+            for path in (ROOT / folder).rglob("*.py"):
                 parts = list(path.relative_to(ROOT).with_suffix("").parts)
+                parts[0] = INSTALLED.get(folder, folder)
                 is_package = parts[-1] == "__init__"
-                modules[".".join(parts[:-1] if is_package else parts)] = (path, is_package)
+                name = ".".join(parts[:-1] if is_package else parts)
+                modules[name], folder_of[name] = (path, is_package), folder
 
     def project_module(name: str) -> str | None:
         while name and name not in modules:
@@ -80,15 +88,15 @@ def _import_graph() -> dict:
                     base = package + ("." + base if base else "")
                 found |= {project_module(f"{base}.{a.name}") for a in node.names}
         graph[module] = found - {None, module}
-    return graph
+    return graph, folder_of
 
 
 def test_no_import_circle_and_no_layer_imports_one_above_it():
     """Core (``pusupu_jax``) -> applications (``tune``, ``experiments``, ``hw_bridge``) -> the CLI -> benchmarks: no
     module imports a higher layer's, and no modules import each other in a circle (imports inside functions count:
     a circle there is one module's concept split across two)."""
-    graph = _import_graph()
-    layer = {m: k for m in graph for k, names in enumerate(LAYERS) if m.split(".")[0] in names}
+    graph, folder_of = _import_graph()
+    layer = {m: k for m in graph for k, names in enumerate(LAYERS) if folder_of[m] in names}
     upward = [f"{m} imports {d}" for m, deps in graph.items() for d in deps if layer[d] > layer[m]]
     assert not upward, upward
     # Tarjan's strongly connected components: a component of more than one module is a circle
@@ -116,3 +124,16 @@ def test_no_import_circle_and_no_layer_imports_one_above_it():
         if v not in index:
             visit(v)
     assert not circles, circles
+
+
+def test_the_install_puts_no_generic_top_level_name(tmp_path):
+    """Outside the checkout (a fresh interpreter in another folder, no PYTHONPATH), the applications import under
+    ``pusupu_jax`` only: ``import tune`` finds nothing (a user's own ``tune`` stays theirs)."""
+    names = [*INSTALLED, *INSTALLED.values()]
+    code = ("import importlib.util, json; "
+            f"print(json.dumps({{n: importlib.util.find_spec(n) is not None for n in {names!r}}}))")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
+                         timeout=120, check=True)
+    found = json.loads(out.stdout)
+    assert found == {n: n.startswith("pusupu_jax.") for n in names}, found

@@ -59,8 +59,8 @@ def test_injection_measures_the_single_axis_loop_gain_of_python_control(table1_l
 def test_loop_match_quick_the_velocity_crossover_is_that_of_the_carried_mass(tmp_path):
     """On the MJX machine at home, the measured velocity loop crosses over where the carried mass puts it (within the
     experiment's tolerance), far from the 20 kg load's, and the measurement is linear and settled."""
-    from experiments import run_experiment
-    from experiments.loop_match import TOLERANCE
+    from pusupu_jax.experiments import run_experiment
+    from pusupu_jax.experiments.loop_match import TOLERANCE
 
     result, files = run_experiment("loop_match", tmp_path, quick=True)
     assert all(f.exists() for f in files) and any(f.suffix == ".png" for f in files)

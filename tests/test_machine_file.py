@@ -20,7 +20,7 @@ EXAMPLE = Path(__file__).parent.parent / "docs" / "examples" / "machine_user.yam
 
 
 def pusupu(*args, timeout=600):
-    return subprocess.run([sys.executable, "-m", "pusupu_cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "pusupu_jax.cli", *map(str, args)], capture_output=True, text=True,
                           timeout=timeout)
 
 

@@ -350,7 +350,7 @@ def test_every_objective_term_has_the_gradient_of_central_differences():
     by rounding only.
     """
     from pusupu_jax import objectives
-    from tune.space import Space
+    from pusupu_jax.tune.space import Space
 
     ref = _short_move("hybrid")
     path = _short_path()
@@ -484,7 +484,7 @@ def test_a_payload_that_is_no_rigid_body_is_refused_in_one_line(options, message
 
 
 def _hold(periods=HOLD_PERIODS):
-    """Two scenarios, the batch size of experiments.p2p's quick run (two seeds): p2p's first second (padded) and
+    """Two scenarios, the batch size of pusupu_jax.experiments.p2p's quick run (two seeds): p2p's first second (padded) and
     holding still.  run_chunked's programs depend on the batch size, not on the horizon."""
     from pusupu_jax.machine import Scenario
     from pusupu_jax.trajectories import platform_path

@@ -31,11 +31,11 @@ def _backend_for_the_test() -> str:
 
 
 def test_importing_the_packages_leaves_the_matplotlib_backend_alone():
-    """Probe: pusupu_jax.plots and tune.job called matplotlib.use("Agg") on import, so a notebook lost its inline
+    """Probe: pusupu_jax.plots and pusupu_jax.tune.job called matplotlib.use("Agg") on import, so a notebook lost its inline
     backend.  A fresh interpreter with MPLBACKEND set keeps it after importing every layer that plots."""
     backend = _backend_for_the_test()
-    code = ("import matplotlib, pusupu_jax, pusupu_jax.plots, tune, tune.run, tune.job, tune.batchjob, experiments, "
-            "experiments.arc, pusupu_cli.cli; print(matplotlib.get_backend())")
+    code = ("import matplotlib, pusupu_jax, pusupu_jax.plots, tune, pusupu_jax.tune.run, pusupu_jax.tune.job, pusupu_jax.tune.batchjob, experiments, "
+            "pusupu_jax.experiments.arc, pusupu_jax.cli.cli; print(matplotlib.get_backend())")
     out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, MPLBACKEND=backend), capture_output=True,
                          text=True, timeout=300, check=True)
     assert out.stdout.strip() == backend, out.stderr[-2000:]
@@ -43,7 +43,7 @@ def test_importing_the_packages_leaves_the_matplotlib_backend_alone():
 
 def test_the_command_selects_agg_itself(tmp_path):
     """The ``pusupu`` command writes its figures with Agg whatever MPLBACKEND says (here a backend it must not keep)."""
-    code = ("import sys, matplotlib; from pusupu_cli.cli import main; "
+    code = ("import sys, matplotlib; from pusupu_jax.cli.cli import main; "
             f"status = main(['analyze', '--json', '--plot', {str(tmp_path / 'loops.png')!r}]); "
             "print(matplotlib.get_backend().lower(), status, file=sys.stderr)")
     out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, MPLBACKEND=_backend_for_the_test()),
@@ -99,7 +99,7 @@ def test_a_trace_shows_its_duration_shapes_and_per_axis_peaks():
 
 
 def test_an_experiment_result_shows_its_name_and_top_level_metrics():
-    from experiments import Result
+    from pusupu_jax.experiments import Result
 
     metrics = {"rms_tracking_error_mm": {"pid": 0.9181234, "imc": 0.4081234}, "branch_rms_error_mm": [0.1] * 6,
                "seeds": list(range(500)), "note": "x" * 5000}
@@ -113,8 +113,8 @@ def test_the_tuners_results_show_as_summaries():
     import jax
     import jax.numpy as jnp
 
-    from tune.job import TuneReport
-    from tune.run import optimise
+    from pusupu_jax.tune.job import TuneReport
+    from pusupu_jax.tune.run import optimise
 
     def vg(z):
         return jax.value_and_grad(lambda z: (jnp.sum((z["lambda1"] - 1.0) ** 2), None), has_aux=True)(z)

@@ -155,7 +155,7 @@ def test_importing_the_packages_makes_no_jax_array():
 import importlib, json, pkgutil
 import jax
 names = []
-for package in ("pusupu_jax", "tune", "hw_bridge", "experiments", "pusupu_cli"):
+for package in ("pusupu_jax", "pusupu_jax.tune", "pusupu_jax.hw_bridge", "pusupu_jax.experiments", "pusupu_jax.cli"):
     root = importlib.import_module(package)
     names += [package] + [m.name for m in pkgutil.walk_packages(root.__path__, package + ".")
                           if not m.name.endswith("__main__")]
@@ -169,5 +169,5 @@ print(json.dumps({"modules": names, "named": named, "live": len(jax.live_arrays(
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, env=env)
     assert r.returncode == 0, r.stderr[-2000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
-    assert {"pusupu_jax.margins", "pusupu_jax.plant.mjx_plant", "tune.batch", "hw_bridge.loop"} <= set(out["modules"])
+    assert {"pusupu_jax.margins", "pusupu_jax.plant.mjx_plant", "pusupu_jax.tune.batch", "pusupu_jax.hw_bridge.loop"} <= set(out["modules"])
     assert out["named"] == [] and out["live"] == 0 and out["x64"] is False, out

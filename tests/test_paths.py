@@ -242,8 +242,8 @@ def test_a_pose_outside_the_workspace_names_the_first_one_out(tmp_path):
 
 
 def test_a_tuning_configuration_takes_path_files_named_from_its_folder(tmp_path):
-    from tune.config import TuneConfig
-    from tune.run import check_work, scenario_list
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.run import check_work, scenario_list
 
     folder = tmp_path / "conf"
     folder.mkdir()
@@ -267,7 +267,7 @@ def test_a_tuning_configuration_takes_path_files_named_from_its_folder(tmp_path)
 
 
 def test_a_batch_scenario_takes_a_path_file_and_fails_alone_when_the_drives_cannot_follow_it(tmp_path):
-    from tune import jobfile
+    from pusupu_jax.tune import jobfile
 
     _table(tmp_path, [(0, 0, 0, 0, 0, 0), (0.2, 0, 0, 0, 0, 0), (1.0, 0.01, 0, 0, 0, 0.01), (1.5, 0.01, 0, 0, 0, 0.01)],
            name="gentle.csv")
@@ -287,7 +287,7 @@ def test_a_batch_scenario_takes_a_path_file_and_fails_alone_when_the_drives_cann
 
 def test_the_sim_command_refuses_a_path_the_drives_cannot_follow_in_one_line(tmp_path):
     spec = _file(tmp_path, "fast.yaml", FAST)
-    r = subprocess.run([sys.executable, "-m", "pusupu_cli", "sim", "--plant", "mjx", "--trajectory", spec],
+    r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", "sim", "--plant", "mjx", "--trajectory", spec],
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 2 and r.stdout == "", r.stderr
     (line,) = r.stderr.strip().splitlines()
@@ -300,7 +300,7 @@ def test_the_sim_command_runs_a_pose_table_on_the_machine(tmp_path):
     from the persistent cache when test_cli ran before)."""
     spec = _table(tmp_path, [(0, 0, 0, 0, 0, 0), (0.2, 0, 0, 0, 0, 0), (0.7, 0.005, 0, -0.002, 0.01, 0),
                              (1.0, 0.005, 0, -0.002, 0.01, 0)], name="nudge.csv")
-    r = subprocess.run([sys.executable, "-m", "pusupu_cli", "sim", "--plant", "mjx", "--trajectory", spec, "--mode",
+    r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", "sim", "--plant", "mjx", "--trajectory", spec, "--mode",
                         "pid", "--json"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)

@@ -7,8 +7,8 @@ import pytest
 
 from pusupu_jax import AxisLoad, LoopRates, ParameterError, ServoParams, rollout
 from pusupu_jax.hybrid import HybridGains
-from tune.run import optimise
-from tune.space import Space
+from pusupu_jax.tune.run import optimise
+from pusupu_jax.tune.space import Space
 
 SERVO = ServoParams.table1()
 RATES = LoopRates()
@@ -105,7 +105,7 @@ def test_per_axis_space_tunes_each_axis_and_checks_bounds():
     ("a: &x 1\nb: *x", "anchors are not accepted"),
 ])
 def test_bad_tune_configurations_are_rejected(tmp_path, text, message):
-    from tune.config import TuneConfig
+    from pusupu_jax.tune.config import TuneConfig
 
     path = tmp_path / "tune.yaml"
     path.write_text(text + "\n")
@@ -114,7 +114,7 @@ def test_bad_tune_configurations_are_rejected(tmp_path, text, message):
 
 
 def test_a_tune_configuration_overrides_the_defaults(tmp_path):
-    from tune.config import TuneConfig
+    from pusupu_jax.tune.config import TuneConfig
 
     path = tmp_path / "tune.yaml"
     path.write_text("kin_error_seeds: [null, 3]\npayloads: [0.0, 10.0]\nbounds: {lambda1: [0.005, 0.3]}\n")
@@ -158,7 +158,7 @@ def _slow_first():
 def test_progress_keeps_the_first_iteration_apart_from_the_rate(tty):
     """At a terminal (or in a notebook) a tqdm bar, in logs a line per iteration; both give the first iteration's
     time, which includes the compile, apart, and a rate and an ETA from the iterations after it."""
-    from tune.run import progress_reporter
+    from pusupu_jax.tune.run import progress_reporter
 
     stream = _Stream(tty)
     optimise(_slow_first(), {"a": jnp.zeros(2)}, lambda z: z, iterations=4, learning_rate=0.1,

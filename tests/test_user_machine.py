@@ -14,7 +14,7 @@ MACHINE, PATH = EXAMPLES / "machine_user.yaml", EXAMPLES / "pose_table.csv"
 
 
 def pusupu(*args, timeout=900):
-    return subprocess.run([sys.executable, "-m", "pusupu_cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "pusupu_jax.cli", *map(str, args)], capture_output=True, text=True,
                           timeout=timeout)
 
 
@@ -37,7 +37,7 @@ def test_a_users_machine_end_to_end(tmp_path):
     assert r.returncode == 0 and "tuned on machine 'user-1FT7044-lead5'" in r.stdout, r.stderr
     r = pusupu("gains", "check", gain_file)  # on the built-in machine: its 10 A drive, the user's 31 A clamp
     assert r.returncode == 2 and "I_max: expected 0 to I_peak = 10" in r.stderr and r.stderr.count("\n") == 1
-    robot = subprocess.Popen([sys.executable, "-m", "pusupu_cli", "sim-robot", "--gains", gain_file, "--machine",
+    robot = subprocess.Popen([sys.executable, "-m", "pusupu_jax.cli", "sim-robot", "--gains", gain_file, "--machine",
                               MACHINE, "--listen", "udp://127.0.0.1:5611", "--seconds", "120", "--no-realtime"],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

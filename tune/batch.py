@@ -5,12 +5,12 @@ its scenarios.  Members of independent problems share nothing; the members of a 
 share its scenarios.  Every member has the same number of scenarios, so that a *pair* (member,
 scenario) list of ``Q = P x S_p`` entries, member-major, lays out every training window of the
 batch as ``(Q K, W, ...)``: one ``rollout`` vmapped over all of them, as
-:class:`tune.run.Problem` vmaps one problem's windows.  Each member's objective is exactly a
-:class:`~tune.run.Problem`'s at its ``z`` (:func:`tune.run.scenario_objective`,
-:func:`tune.run.aggregate`); the batch minimises their sum, whose gradient with respect to
+:class:`pusupu_jax.tune.run.Problem` vmaps one problem's windows.  Each member's objective is exactly a
+:class:`~pusupu_jax.tune.run.Problem`'s at its ``z`` (:func:`pusupu_jax.tune.run.scenario_objective`,
+:func:`pusupu_jax.tune.run.aggregate`); the batch minimises their sum, whose gradient with respect to
 member ``m``'s row is member ``m``'s own gradient, since no term couples two members.
 
-:func:`optimise_batch` runs :func:`tune.run.optimise`'s iteration on every member at once
+:func:`optimise_batch` runs :func:`pusupu_jax.tune.run.optimise`'s iteration on every member at once
 (the optax update vmapped, so clipping stays per member); a member whose objective or gradient
 turns non-finite is frozen and reported, and the others go on.  With more than one device the
 batch axis is sharded over all of them (``jax.sharding``), padded to a multiple of their number
@@ -81,7 +81,7 @@ class BatchProblem(WindowStarts):
         self.pair_member = np.array([m for m, _ in self.pairs])
         mesh = Mesh(np.array(self.devices), ("batch",))
         self.sharding = NamedSharding(mesh, PartitionSpec("batch"))
-        # arguments of the gradient, not constants in it (as tune.run.Problem.windows)
+        # arguments of the gradient, not constants in it (as pusupu_jax.tune.run.Problem.windows)
         self.windows = self.shard((_take(sc.window_models, windows), _take(sc.window_reference, windows),
                                    jnp.asarray(sc.window_path)[windows]))
         self._apply = jax.jit(jax.vmap(self.space.apply))
@@ -176,10 +176,10 @@ class BatchProblem(WindowStarts):
 
 def optimise_batch(problem: BatchProblem, *, checkpoint: Path | None = None, digest: str = "",
                    progress: Callable | None = None) -> dict:
-    """:func:`tune.run.optimise` for every member of ``problem`` at once, with its configuration's settings.
+    """:func:`pusupu_jax.tune.run.optimise` for every member of ``problem`` at once, with its configuration's settings.
 
     Returns per real member ``best_value`` ``(P,)``, ``best_z``, ``history`` (per member, entries as
-    :func:`~tune.run.optimise`'s) and ``failed`` (``{member: message}``).  With ``checkpoint`` the state is
+    :func:`~pusupu_jax.tune.run.optimise`'s) and ``failed`` (``{member: message}``).  With ``checkpoint`` the state is
     saved every ``checkpoint_every`` iterations and at the end, and a run that finds one continues from it.
     """
     cfg = problem.cfg

@@ -1,8 +1,8 @@
 """``pusupu batch JOB.yaml --out DIR``: every job of a job file, in shards, in this process or as Ray tasks.
 
-Jobs that compile to the same shapes (:func:`tune.jobfile.groups`) are cut into shards of at
+Jobs that compile to the same shapes (:func:`pusupu_jax.tune.jobfile.groups`) are cut into shards of at
 most ``shard_size`` jobs, padded to equal size (so that one compile serves every shard of a
-group).  A shard is one call of :func:`run_shard`: one :class:`tune.batch.BatchProblem`, its
+group).  A shard is one call of :func:`run_shard`: one :class:`pusupu_jax.tune.batch.BatchProblem`, its
 checkpoint in ``DIR/shards/<id>/checkpoint.npz`` (a shard that is run again, or retried by Ray,
 continues from it), and each job's outputs in ``DIR/jobs/<job>/``: ``gains.yaml`` and the ROS 2
 files (only if the gains pass every check), plots, and last ``report.json``, which names the
@@ -182,7 +182,7 @@ def summary_row(report: dict) -> dict:
 
 
 def progress_printer(shard: str, stream=sys.stderr) -> Callable:
-    """The progress callback of a shard (:class:`tune.run.Progress`): the median and best objective over its
+    """The progress callback of a shard (:class:`pusupu_jax.tune.run.Progress`): the median and best objective over its
     members."""
     from .run import Progress
 

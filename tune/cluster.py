@@ -1,7 +1,7 @@
 """Shards of a batch as Ray tasks (``pusupu batch --ray [--address ADDR]``; the ``cluster`` extra installs Ray).
 
 Each shard is one task running the shard function it is given (``pusupu batch`` gives
-:func:`tune.batchjob.run_shard`, so this module imports no batch code): it asks for one GPU where the
+:func:`pusupu_jax.tune.batchjob.run_shard`, so this module imports no batch code): it asks for one GPU where the
 cluster has GPUs, else ``cpus_per_task`` CPUs.  Ray schedules the tasks and retries one whose
 worker dies (``max_retries``); the retry continues from the shard's checkpoint, so its result is
 the uninterrupted one.  Without ``--address`` a local Ray instance starts with ``workers`` CPUs

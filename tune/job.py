@@ -1,9 +1,9 @@
 """``pusupu tune``: the main job, from configuration to gain file, report and plots (host-side).
 
-1. Build the problem (:class:`tune.run.Problem`) from the configuration on the machine (a machine
+1. Build the problem (:class:`pusupu_jax.tune.run.Problem`) from the configuration on the machine (a machine
    file, or the built-in machine); the start (:func:`start_gains`) is Table 1 with the default hybrid
    gains on the built-in machine, gains derived for the machine otherwise, or a gain file.
-2. Optimise (:meth:`tune.run.Problem.tune`: :func:`tune.run.optimise` with the config's settings) on
+2. Optimise (:meth:`pusupu_jax.tune.run.Problem.tune`: :func:`pusupu_jax.tune.run.optimise` with the config's settings) on
    training windows spread over the whole paths, checkpointing to ``DIR/checkpoint.npz`` (arrays and
    JSON, never a pickle); a run that finds a checkpoint of the same configuration continues from it.
    ``DIR`` is locked while a run uses it.
@@ -208,7 +208,7 @@ def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr, 
             start=None) -> tuple[dict, int]:
     """Run the whole job on ``machine`` (default: the built-in one) from ``start`` (:func:`start_gains`); returns
     ``(report, exit status)`` (1 when the tuned gains fail a check).  The work it implies
-    (:func:`tune.run.check_work`) and the output folder are checked before anything is built.
+    (:func:`pusupu_jax.tune.run.check_work`) and the output folder are checked before anything is built.
 
     The outputs of one run are written gains first, report last; the report names the gain
     file it describes by its checksum (or says that none was written and why).

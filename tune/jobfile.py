@@ -26,7 +26,7 @@ A job file (JSON Schema: ``tune/schemas/pusupu-batch.schema.json``; ``docs/batch
 
 A scenario that is malformed, names an unknown key or whose path the machine cannot follow (its
 workspace, its motors' speed and torque: :func:`pusupu_jax.paths.check_path`), or a job of more work than
-:func:`tune.run.check_work` allows, fails its own job (:class:`Job` with ``error``); the other jobs run.
+:func:`pusupu_jax.tune.run.check_work` allows, fails its own job (:class:`Job` with ``error``); the other jobs run.
 A file that is not such a mapping fails as a whole.
 Jobs whose settings compile to the same shapes (mode, windows, window_s) form one group: one
 compiled gradient serves all of them.
@@ -184,7 +184,7 @@ def check_scenario(spec: ScenarioSpec, cfg: TuneConfig, where: str, limits: Serv
 
 
 def bounded(job: Job) -> Job:
-    """``job``, or ``job`` failed when the tuning work it implies is beyond the limits (:func:`tune.run.check_work`)."""
+    """``job``, or ``job`` failed when the tuning work it implies is beyond the limits (:func:`pusupu_jax.tune.run.check_work`)."""
     if job.error is None:
         try:
             check_work(job.config, list(job.specs), where="its tuning work")

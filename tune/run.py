@@ -218,7 +218,7 @@ def join_windows(x, S: int, K: int):
 
 
 class WindowStarts:
-    """What :class:`Problem` and :class:`tune.batch.BatchProblem` share: the training windows' start states, renewed
+    """What :class:`Problem` and :class:`pusupu_jax.tune.batch.BatchProblem` share: the training windows' start states, renewed
     by ``refresh(z)`` (a forward pass over the whole paths), and the normalisers at the start ``z0()``.
 
     A subclass sets ``cfg``, ``windows``, ``_value_and_grad(z, baseline, starts, windows)`` and ``rows`` (the
