@@ -33,12 +33,25 @@ from pathlib import Path
 
 def job_document(n: int, iterations: int) -> dict:
     """``n`` distinct scenarios: arc and p2p in turn, seed k + 1, payload (k mod 4) x 2.5 kg."""
-    tune = {"iterations": iterations, "refresh_every": 1, "checkpoint_every": iterations, "windows": 1,
-            "window_s": 0.05, "starts": 2}
-    scenarios = [{"name": f"s{k:03d}", "trajectory": ("arc", "p2p")[k % 2], "kin_error_seed": k + 1,
-                  "payload": 2.5 * (k % 4), "path_s": 0.2} for k in range(n)]
-    return {"format": "pusupu-batch-1", "problems": "independent", "plots": False, "tune": tune,
-            "scenarios": scenarios}
+    tune = {
+        "iterations": iterations,
+        "refresh_every": 1,
+        "checkpoint_every": iterations,
+        "windows": 1,
+        "window_s": 0.05,
+        "starts": 2,
+    }
+    scenarios = [
+        {
+            "name": f"s{k:03d}",
+            "trajectory": ("arc", "p2p")[k % 2],
+            "kin_error_seed": k + 1,
+            "payload": 2.5 * (k % 4),
+            "path_s": 0.2,
+        }
+        for k in range(n)
+    ]
+    return {"format": "pusupu-batch-1", "problems": "independent", "plots": False, "tune": tune, "scenarios": scenarios}
 
 
 def relative(a, b) -> float:
@@ -78,8 +91,11 @@ def main() -> int:
     summary, _ = run_batch(job, folder / "out")  # an --out that holds this batch's finished jobs skips them
     t_batch = time.perf_counter() - t0
     if summary["ok"] != args.scenarios:
-        print(f"batch_equivalence: expected {args.scenarios} jobs done, got {summary['ok']} "
-              f"(failed: {summary['failed']})", file=sys.stderr)
+        print(
+            f"batch_equivalence: expected {args.scenarios} jobs done, got {summary['ok']} "
+            f"(failed: {summary['failed']})",
+            file=sys.stderr,
+        )
         return 1
     rows, t_alone = [], 0.0
     for k, j in enumerate(jobs):
@@ -91,16 +107,42 @@ def main() -> int:
         history = relative([h["objective"] for h in report["history"]], [h["objective"] for h in alone["history"]])
         values = problem.space.values(alone["z"])
         gains = max(relative(np.ravel(report["result"][f]), np.ravel(v)) for f, v in values.items())
-        rows.append({"job": j.name, "trajectory": j.specs[0].trajectory, "evaluations": len(alone["history"]),
-                     "history_rel": history, "gains_rel": gains, "alone_s": time.perf_counter() - t1})
-        print(f"batch_equivalence: {k + 1}/{args.scenarios} {j.name}: history {history:.1e}, gains {gains:.1e}",
-              file=sys.stderr, flush=True)
+        rows.append(
+            {
+                "job": j.name,
+                "trajectory": j.specs[0].trajectory,
+                "evaluations": len(alone["history"]),
+                "history_rel": history,
+                "gains_rel": gains,
+                "alone_s": time.perf_counter() - t1,
+            }
+        )
+        print(
+            f"batch_equivalence: {k + 1}/{args.scenarios} {j.name}: history {history:.1e}, gains {gains:.1e}",
+            file=sys.stderr,
+            flush=True,
+        )
     worst = max(max(r["history_rel"], r["gains_rel"]) for r in rows)
-    print(json.dumps({"benchmark": "batch_equivalence", "scenarios": args.scenarios, "backend": jax.default_backend(),
-                      "jax": jax.__version__, "host": platform.node(), "tune": job_document(1, args.iterations)["tune"],
-                      "batch_wall_s": t_batch, "batch_jobs_done_before": done_before,
-                      "alone_wall_s": t_alone, "tolerance_rel": args.tolerance,
-                      "worst_rel": worst, "within_tolerance": worst <= args.tolerance, "rows": rows}, indent=2))
+    print(
+        json.dumps(
+            {
+                "benchmark": "batch_equivalence",
+                "scenarios": args.scenarios,
+                "backend": jax.default_backend(),
+                "jax": jax.__version__,
+                "host": platform.node(),
+                "tune": job_document(1, args.iterations)["tune"],
+                "batch_wall_s": t_batch,
+                "batch_jobs_done_before": done_before,
+                "alone_wall_s": t_alone,
+                "tolerance_rel": args.tolerance,
+                "worst_rel": worst,
+                "within_tolerance": worst <= args.tolerance,
+                "rows": rows,
+            },
+            indent=2,
+        )
+    )
     return 0 if worst <= args.tolerance else 1
 
 

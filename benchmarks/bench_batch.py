@@ -53,9 +53,14 @@ def main() -> None:
     ap.add_argument("--devices", type=int, help="shard over the first N devices (default: all)")
     ap.add_argument("--remat", action="store_true", help="the tune configuration's remat: true")
     ap.add_argument("--label", default="", help="a name for the run in the JSON")
-    ap.add_argument("--parts", type=int, default=0, metavar="N",
-                    help="after the iterations, time the compiled gradient alone and the window refresh alone, "
-                         "N calls each (medians; 0: not)")
+    ap.add_argument(
+        "--parts",
+        type=int,
+        default=0,
+        metavar="N",
+        help="after the iterations, time the compiled gradient alone and the window refresh alone, "
+        "N calls each (medians; 0: not)",
+    )
     args = ap.parse_args()
     from pusupu_jax.runtime import setup_jax
 
@@ -69,35 +74,68 @@ def main() -> None:
     from pusupu_jax.tune.config import TuneConfig
     from pusupu_jax.tune.run import ScenarioSpec
 
-    devices = jax.devices()[:args.devices] if args.devices else jax.devices()
-    cfg = TuneConfig(windows=1, window_s=args.window, iterations=args.iterations, refresh_every=args.refresh_every,
-                     checkpoint_every=args.refresh_every, baselines=(), remat=args.remat)
-    specs = [ScenarioSpec(f"{kind}/seed{s}", kind, ModelOptions(kin_error_seed=s), path_s=args.path)
-             for s in range(args.distinct // 2) for kind in ("arc", "p2p")]
+    devices = jax.devices()[: args.devices] if args.devices else jax.devices()
+    cfg = TuneConfig(
+        windows=1,
+        window_s=args.window,
+        iterations=args.iterations,
+        refresh_every=args.refresh_every,
+        checkpoint_every=args.refresh_every,
+        baselines=(),
+        remat=args.remat,
+    )
+    specs = [
+        ScenarioSpec(f"{kind}/seed{s}", kind, ModelOptions(kin_error_seed=s), path_s=args.path)
+        for s in range(args.distinct // 2)
+        for kind in ("arc", "p2p")
+    ]
     results = []
     for B in [int(b) for b in args.batches.split(",")]:
         t0 = time.perf_counter()
-        problem = BatchProblem(cfg, specs, [[b % len(specs)] for b in range(B)], ServoParams.table1(), HybridGains(),
-                               devices=devices)
+        problem = BatchProblem(
+            cfg, specs, [[b % len(specs)] for b in range(B)], ServoParams.table1(), HybridGains(), devices=devices
+        )
         t_build = time.perf_counter() - t0
         stamps = []
         t1 = time.perf_counter()
         optimise_batch(problem, progress=lambda it, n, values, elapsed: stamps.append(time.perf_counter()))
         steps = [b - a for a, b in zip(stamps, stamps[1:])]
         med, mean = statistics.median(steps), statistics.mean(steps)
-        row = {"batch": B, "members": len(problem.members), "build_s": t_build,
-               "first_iteration_s": stamps[0] - t1, "iteration_s_median": med, "iteration_s_mean": mean,
-               "iteration_s_all": steps, "scenario_iterations_per_s": B / med}
+        row = {
+            "batch": B,
+            "members": len(problem.members),
+            "build_s": t_build,
+            "first_iteration_s": stamps[0] - t1,
+            "iteration_s_median": med,
+            "iteration_s_mean": mean,
+            "iteration_s_all": steps,
+            "scenario_iterations_per_s": B / med,
+        }
         if args.parts:
             row.update(parts(problem, args.parts))
         results.append(row)
         print(json.dumps(row), file=sys.stderr, flush=True)
-    print(json.dumps({"benchmark": "bench_batch", "label": args.label, "backend": jax.default_backend(),
-                      "devices": [str(d) for d in devices], "device_kind": devices[0].device_kind,
-                      "jax": jax.__version__, "x64": bool(jax.config.jax_enable_x64), "remat": args.remat,
-                      "host": platform.node(),
-                      "window_s": args.window, "path_s": args.path, "iterations": args.iterations,
-                      "refresh_every": args.refresh_every, "results": results}, indent=2))
+    print(
+        json.dumps(
+            {
+                "benchmark": "bench_batch",
+                "label": args.label,
+                "backend": jax.default_backend(),
+                "devices": [str(d) for d in devices],
+                "device_kind": devices[0].device_kind,
+                "jax": jax.__version__,
+                "x64": bool(jax.config.jax_enable_x64),
+                "remat": args.remat,
+                "host": platform.node(),
+                "window_s": args.window,
+                "path_s": args.path,
+                "iterations": args.iterations,
+                "refresh_every": args.refresh_every,
+                "results": results,
+            },
+            indent=2,
+        )
+    )
 
 
 if __name__ == "__main__":

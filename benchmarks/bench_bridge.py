@@ -51,8 +51,13 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--rates", default="1000,4000")
     ap.add_argument("--transport", choices=("udp", "can"), default="udp")
-    ap.add_argument("--watchdog", type=int, default=5, metavar="N",
-                    help="the bridge's watchdog: cycles without fresh feedback before a safe stop (pusupu bridge's default)")
+    ap.add_argument(
+        "--watchdog",
+        type=int,
+        default=5,
+        metavar="N",
+        help="the bridge's watchdog: cycles without fresh feedback before a safe stop (pusupu bridge's default)",
+    )
     ap.add_argument("--pause-probe", action="store_true", help="record whole-machine pauses during each run")
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
@@ -69,8 +74,15 @@ def main() -> None:
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.params import LoopRates, ServoParams
 
-    results = {"transport": args.transport, "seconds": args.seconds, "runs": args.runs, "watchdog_cycles": args.watchdog,
-               "cpus": os.cpu_count(), "uname": " ".join(os.uname()), "rates": {}}
+    results = {
+        "transport": args.transport,
+        "seconds": args.seconds,
+        "runs": args.runs,
+        "watchdog_cycles": args.watchdog,
+        "cpus": os.cpu_count(),
+        "uname": " ".join(os.uname()),
+        "rates": {},
+    }
     folder = Path(tempfile.mkdtemp())
     for rate in (float(r) for r in args.rates.split(",")):
         mode = "imc" if rate <= 1000 else "hybrid"
@@ -82,8 +94,23 @@ def main() -> None:
         url = f"udp://127.0.0.1:{port}" if args.transport == "udp" else "can://udp_multicast/239.74.163.9"
         robot_log = folder / f"robot_{rate:g}.log"
         with open(robot_log, "w") as err:
-            robot = subprocess.Popen([sys.executable, "-m", "pusupu_jax.cli", "sim-robot", "--gains", str(path), "--listen",
-                                      url, "--rate", str(rate)], stdout=subprocess.PIPE, stderr=err, text=True)
+            robot = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "pusupu_jax.cli",
+                    "sim-robot",
+                    "--gains",
+                    str(path),
+                    "--listen",
+                    url,
+                    "--rate",
+                    str(rate),
+                ],
+                stdout=subprocess.PIPE,
+                stderr=err,
+                text=True,
+            )
         assert "listening" in robot.stdout.readline()
         loop = BridgeLoop(g, bridge_reference(g, "arc", plan(g, None, rate)[1]), rate=rate)
         runs = []
@@ -95,19 +122,40 @@ def main() -> None:
                     ep = CanLink(open_bus(url), loop.drive_modes, np.asarray(g.servo.Kt * g.servo.I_max))
                 probe = PauseProbe() if args.pause_probe else None
                 steal = steal_seconds()
-                run = Bridge(loop, ep, Safety(limits_for(g.servo), args.watchdog), hold_s=args.seconds).run(args.seconds)
+                run = Bridge(loop, ep, Safety(limits_for(g.servo), args.watchdog), hold_s=args.seconds).run(
+                    args.seconds
+                )
                 stolen = steal_ms_since(steal)
                 end = time.monotonic()
                 ep.close()
                 rep = run.report()
-                runs.append({**{k: rep[k] for k in ("cycles", "missed_deadlines", "missed_fraction", "skipped_cycles",
-                                                    "latency_us", "feedback_age_us", "completed", "faults",
-                                                    "realtime")}, "steal_ms_per_cpu": stolen})
+                runs.append(
+                    {
+                        **{
+                            k: rep[k]
+                            for k in (
+                                "cycles",
+                                "missed_deadlines",
+                                "missed_fraction",
+                                "skipped_cycles",
+                                "latency_us",
+                                "feedback_age_us",
+                                "completed",
+                                "faults",
+                                "realtime",
+                            )
+                        },
+                        "steal_ms_per_cpu": stolen,
+                    }
+                )
                 if probe is not None:
                     pauses = probe.stop()
                     runs[-1]["pauses"] = pauses
-                    runs[-1]["pauses_in_last_s"] = [(round(end - t, 4), ms) for t, ms in
-                                                    pauses["all_cpus_stopped"]["spans"] if end - 1.0 <= t <= end]
+                    runs[-1]["pauses_in_last_s"] = [
+                        (round(end - t, 4), ms)
+                        for t, ms in pauses["all_cpus_stopped"]["spans"]
+                        if end - 1.0 <= t <= end
+                    ]
                 print(json.dumps({"rate_hz": rate, **runs[-1]}), file=sys.stderr)
         finally:
             robot.terminate()
@@ -117,9 +165,15 @@ def main() -> None:
         for line in stalls:
             print(line, file=sys.stderr)
         results["rates"][f"{rate:g}"] = {
-            "mode": mode, "drive_modes": [int(m) for m in loop.drive_modes], "runs": runs, "robot_stalls": stalls,
-            "spread": {**percentile_spreads(runs, "latency_us", ("p50", "p99", "p99.9", "max")),
-                       "missed_fraction": spread([r["missed_fraction"] for r in runs])}}
+            "mode": mode,
+            "drive_modes": [int(m) for m in loop.drive_modes],
+            "runs": runs,
+            "robot_stalls": stalls,
+            "spread": {
+                **percentile_spreads(runs, "latency_us", ("p50", "p99", "p99.9", "max")),
+                "missed_fraction": spread([r["missed_fraction"] for r in runs]),
+            },
+        }
     emit(results, args.out, indent=2)
 
 

@@ -33,19 +33,28 @@ def throughput(args) -> dict:
     params, load = ServoParams.table1(), AxisLoad.default()
     ticks_per_sample = rates.n_velocity * rates.n_position
     out = {}
-    for label, p, horizon in [("single", params, args.horizon_s),
-                              (f"vmap_{args.batch}", None, args.batch_horizon_s)]:
+    for label, p, horizon in [("single", params, args.horizon_s), (f"vmap_{args.batch}", None, args.batch_horizon_s)]:
         if p is None:
             rng = np.random.default_rng(0)
-            p = stack([params.replace(Kv=params.Kv * f, lambda1=params.lambda1 * f)
-                       for f in rng.uniform(0.7, 1.3, args.batch)])
+            p = stack(
+                [
+                    params.replace(Kv=params.Kv * f, lambda1=params.lambda1 * f)
+                    for f in rng.uniform(0.7, 1.3, args.batch)
+                ]
+            )
         n = int(round(horizon / rates.dt_position))
         ref = 0.01 * np.sin(2 * np.pi * np.arange(n) * rates.dt_position)
         wall = median_time(lambda: simulate(p, ref, load=load), args.repeats)
         batch = 1 if np.ndim(p.Kv) == 1 else np.shape(p.Kv)[0]
         axis_steps = batch * n * ticks_per_sample * 6
-        out[label] = {"batch": batch, "horizon_s": horizon, "axis_steps": axis_steps, "wall_s": wall,
-                      "axis_steps_per_s": axis_steps / wall, "realtime_factor": batch * horizon / wall}
+        out[label] = {
+            "batch": batch,
+            "horizon_s": horizon,
+            "axis_steps": axis_steps,
+            "wall_s": wall,
+            "axis_steps_per_s": axis_steps / wall,
+            "realtime_factor": batch * horizon / wall,
+        }
     return out
 
 
@@ -73,8 +82,9 @@ def compile_times() -> dict:
         env = dict(os.environ, PUSUPU_JAX_CACHE=cache)
         runs = []
         for _ in range(2):
-            r = subprocess.run([sys.executable, __file__, "--compile-probe"], env=env, capture_output=True,
-                               text=True, check=True)
+            r = subprocess.run(
+                [sys.executable, __file__, "--compile-probe"], env=env, capture_output=True, text=True, check=True
+            )
             runs.append(json.loads(r.stdout))
     return {"cold": runs[0], "warm": runs[1]}
 
@@ -95,10 +105,17 @@ def main():
     setup_jax()
     import jax
 
-    result = {"benchmark": "cascade+axis plant", "device": str(jax.devices()[0]), "platform": platform.platform(),
-              "cpu_count": os.cpu_count(), "dtype": "float64", "jax": jax.__version__,
-              "rates_hz": {"current": 20000, "velocity": 4000, "position": 1000},
-              "throughput": throughput(args), "compile": compile_times()}
+    result = {
+        "benchmark": "cascade+axis plant",
+        "device": str(jax.devices()[0]),
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "dtype": "float64",
+        "jax": jax.__version__,
+        "rates_hz": {"current": 20000, "velocity": 4000, "position": 1000},
+        "throughput": throughput(args),
+        "compile": compile_times(),
+    }
     print(json.dumps(result, indent=2))
 
 

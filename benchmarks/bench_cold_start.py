@@ -102,8 +102,14 @@ def measure(tree: Path, config: str, xla_flags: str = "") -> dict:
     with tempfile.TemporaryDirectory(prefix="pusupu-cold-") as cache:
         env = dict(os.environ, PYTHONPATH=str(tree), XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {xla_flags}".strip())
         env.pop("PUSUPU_JAX_CACHE", None)
-        done = subprocess.run([sys.executable, "-c", CHILD, config, cache], env=env, cwd=tree, capture_output=True,
-                              text=True, timeout=3600)
+        done = subprocess.run(
+            [sys.executable, "-c", CHILD, config, cache],
+            env=env,
+            cwd=tree,
+            capture_output=True,
+            text=True,
+            timeout=3600,
+        )
     if done.returncode:
         last = (done.stderr.strip().splitlines() or ["no output"])[-1]
         raise SystemExit(f"bench_cold_start: the run in {tree} failed: {last}")
@@ -112,11 +118,20 @@ def measure(tree: Path, config: str, xla_flags: str = "") -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--config", default="default", choices=("default", "quick"),
-                    help="TuneConfig() (what plain `pusupu tune` runs) or TuneConfig.quick()")
+    ap.add_argument(
+        "--config",
+        default="default",
+        choices=("default", "quick"),
+        help="TuneConfig() (what plain `pusupu tune` runs) or TuneConfig.quick()",
+    )
     ap.add_argument("--against", type=Path, help="another source tree to measure the same way")
-    ap.add_argument("--xla-flags", action="append", default=[], metavar="FLAGS",
-                    help="also measure this tree with FLAGS added to XLA_FLAGS (repeatable)")
+    ap.add_argument(
+        "--xla-flags",
+        action="append",
+        default=[],
+        metavar="FLAGS",
+        help="also measure this tree with FLAGS added to XLA_FLAGS (repeatable)",
+    )
     ap.add_argument("--repeat", type=int, default=1, help="cold runs of each tree, alternating")
     args = ap.parse_args()
     if args.repeat < 1:
@@ -130,12 +145,23 @@ def main() -> None:
     for r in range(args.repeat):
         for name, (tree, flags) in trees.items():
             runs[name].append(measure(tree, args.config, flags))
-            print(f"bench_cold_start: {name} run {r + 1}/{args.repeat}: trace and compile "
-                  f"{runs[name][-1]['trace_and_compile_s']:.1f} s", file=sys.stderr, flush=True)
-    result = {"benchmark": "cold_start", "config": args.config, "machine": platform.machine(),
-              "cpus": os.cpu_count(), "trees": {k: str(v[0]) for k, v in trees.items()}, "runs": runs,
-              "median_trace_and_compile_s": {k: sorted(r["trace_and_compile_s"] for r in v)[len(v) // 2]
-                                             for k, v in runs.items()}}
+            print(
+                f"bench_cold_start: {name} run {r + 1}/{args.repeat}: trace and compile "
+                f"{runs[name][-1]['trace_and_compile_s']:.1f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+    result = {
+        "benchmark": "cold_start",
+        "config": args.config,
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "trees": {k: str(v[0]) for k, v in trees.items()},
+        "runs": runs,
+        "median_trace_and_compile_s": {
+            k: sorted(r["trace_and_compile_s"] for r in v)[len(v) // 2] for k, v in runs.items()
+        },
+    }
     if args.against:
         m = result["median_trace_and_compile_s"]
         result["ratio_this_over_against"] = m["this"] / m["against"]

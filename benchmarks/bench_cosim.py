@@ -41,8 +41,11 @@ def main():
     ap.add_argument("--horizon-s", type=float, default=0.05)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--grad-batches", default="16")
-    ap.add_argument("--grad-groups", default="imc;imc,hybrid;imc,velocity,hybrid",
-                    help="';'-separated tune-group sets differentiated in forward mode; the largest also in reverse")
+    ap.add_argument(
+        "--grad-groups",
+        default="imc;imc,hybrid;imc,velocity,hybrid",
+        help="';'-separated tune-group sets differentiated in forward mode; the largest also in reverse",
+    )
     ap.add_argument("--dtype", choices=("float64", "float32"), default="float64")
     ap.add_argument("--remat", action="store_true", help="rematerialise each position period in the gradient")
     args = ap.parse_args()
@@ -93,8 +96,9 @@ def main():
     def objective(space, remat=False):
         def fun(z):
             servo, hybrid = space.apply(z)
-            tr = rollout(servo, None, hybrid_reference, plant=plant, rates=rates, outer="hybrid", hybrid=hybrid,
-                         remat=remat)
+            tr = rollout(
+                servo, None, hybrid_reference, plant=plant, rates=rates, outer="hybrid", hybrid=hybrid, remat=remat
+            )
             t = objectives.terms(tr, servo, path, rates.dt_position)
             return t["track_rms"] * 1e3 + t["force_peak"] * 1e-2, None
 
@@ -104,9 +108,17 @@ def main():
         return median_time(lambda: fn(x), args.repeats)
 
     rng = np.random.default_rng(0)
-    result = {"benchmark": "cascade + MJX mechanism", "device": str(jax.devices()[0]), "platform": platform.platform(),
-              "cpu_count": os.cpu_count(), "dtype": args.dtype, "jax": jax.__version__,
-              "horizon_s": args.horizon_s, "env_steps_per_run": env_steps_per_run, "batches": {}}
+    result = {
+        "benchmark": "cascade + MJX mechanism",
+        "device": str(jax.devices()[0]),
+        "platform": platform.platform(),
+        "cpu_count": os.cpu_count(),
+        "dtype": args.dtype,
+        "jax": jax.__version__,
+        "horizon_s": args.horizon_s,
+        "env_steps_per_run": env_steps_per_run,
+        "batches": {},
+    }
     for batch in [int(b) for b in args.batches.split(",") if b]:
         params = stack([base.replace(Kv=base.Kv * f) for f in rng.uniform(0.8, 1.2, batch)])
         row = {}
@@ -118,17 +130,26 @@ def main():
     group_sets = [tuple(g.split(",")) for g in args.grad_groups.split(";")]
     spaces = {gs: Space.create(gs, base, HybridGains()) for gs in group_sets}
     largest = max(group_sets, key=lambda gs: len(spaces[gs].fields))
-    result["gradient"] = {"objective": "hybrid mode, arc: RMS tracking error [mm] + smooth force peak [hN]",
-                          "remat": args.remat, "batches": {}}
+    result["gradient"] = {
+        "objective": "hybrid mode, arc: RMS tracking error [mm] + smooth force peak [hN]",
+        "remat": args.remat,
+        "batches": {},
+    }
     for batch in [int(b) for b in args.grad_batches.split(",") if b]:
         z = {f: v + jnp.asarray(rng.normal(0.0, 0.1, (batch,) + v.shape)) for f, v in spaces[largest].z0().items()}
         fwd = timed(jax.jit(jax.vmap(lambda x: objective(spaces[largest])(x)[0])), z)
         reverse_fn = jax.jit(jax.vmap(value_and_grad(objective(spaces[largest], args.remat), "reverse")))
-        row = {"forward_s": fwd, "reverse": {"fields": list(spaces[largest].fields),
-                                             "grad_s": timed(reverse_fn, z)}, "forward_mode": {}}
+        row = {
+            "forward_s": fwd,
+            "reverse": {"fields": list(spaces[largest].fields), "grad_s": timed(reverse_fn, z)},
+            "forward_mode": {},
+        }
         row["reverse"]["grad_over_forward"] = row["reverse"]["grad_s"] / fwd
         offsets = jnp.asarray(rng.uniform(0.05, 0.07, (batch, 6)))
-        plant_objective = lambda offset: jnp.sum(plant_alone(base, offset, args.remat) ** 2)
+
+        def plant_objective(offset):
+            return jnp.sum(plant_alone(base, offset, args.remat) ** 2)
+
         plant_fwd = timed(jax.jit(jax.vmap(plant_objective)), offsets)
         plant_grad = timed(jax.jit(jax.vmap(jax.value_and_grad(plant_objective))), offsets)
         row["plant_alone"] = {"forward_s": plant_fwd, "grad_s": plant_grad, "grad_over_forward": plant_grad / plant_fwd}
@@ -137,12 +158,16 @@ def main():
             zg = {f: z[f] for f in spaces[gs].fields}
             fn = jax.jit(jax.vmap(value_and_grad(objective(spaces[gs]), "forward")))
             grad_s = timed(fn, zg)
-            row["forward_mode"][",".join(gs)] = {"fields": list(spaces[gs].fields), "grad_s": grad_s,
-                                                 "grad_over_forward": grad_s / fwd}
+            row["forward_mode"][",".join(gs)] = {
+                "fields": list(spaces[gs].fields),
+                "grad_s": grad_s,
+                "grad_over_forward": grad_s / fwd,
+            }
             if gs == largest:
                 g_fwd, g_rev = fn(zg)[1], reverse_fn(z)[1]
                 row["forward_vs_reverse_diff"] = {  # per field, over the batch, relative to its largest gradient
-                    f: float(jnp.max(jnp.abs(g_fwd[f] - g_rev[f])) / jnp.max(jnp.abs(g_rev[f]))) for f in g_rev}
+                    f: float(jnp.max(jnp.abs(g_fwd[f] - g_rev[f])) / jnp.max(jnp.abs(g_rev[f]))) for f in g_rev
+                }
         result["gradient"]["batches"][str(batch)] = row
     print(json.dumps(result, indent=2))
 

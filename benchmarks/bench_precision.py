@@ -54,8 +54,9 @@ def main() -> None:
     args = ap.parse_args()
     runs = {}
     for dtype in ("float64", "float32"):
-        r = subprocess.run([sys.executable, "-c", _EVALUATE, dtype, str(args.window), str(args.path)],
-                           capture_output=True, text=True)
+        r = subprocess.run(
+            [sys.executable, "-c", _EVALUATE, dtype, str(args.window), str(args.path)], capture_output=True, text=True
+        )
         if r.returncode:
             sys.exit(f"bench_precision: the {dtype} evaluation failed: {r.stderr.strip().splitlines()[-1]}")
         runs[dtype] = json.loads(r.stdout)
@@ -63,15 +64,30 @@ def main() -> None:
     fields = {}
     for name, g64 in wide["gradient"].items():
         g64, g32 = np.asarray(g64), np.asarray(narrow["gradient"][name])
-        fields[name] = {"float64": g64.tolist(), "float32": g32.tolist(),
-                        "relative_error": (np.abs(g32 - g64) / np.abs(g64)).tolist(),
-                        "sign_agrees": (np.sign(g32) == np.sign(g64)).tolist()}
+        fields[name] = {
+            "float64": g64.tolist(),
+            "float32": g32.tolist(),
+            "relative_error": (np.abs(g32 - g64) / np.abs(g64)).tolist(),
+            "sign_agrees": (np.sign(g32) == np.sign(g64)).tolist(),
+        }
     terms = {name: {"float64": t, "float32": narrow["terms"][name]} for name, t in wide["terms"].items()}
     signs = [s for f in fields.values() for row in f["sign_agrees"] for s in row]
-    print(json.dumps({"benchmark": "bench_precision", "host": platform.node(), "window_s": args.window,
-                      "path_s": args.path, "members": ["arc/seed0", "p2p/seed0"],
-                      "value": {"float64": wide["value"], "float32": narrow["value"]}, "terms": terms,
-                      "gradient": fields, "signs_agreeing": f"{sum(signs)} of {len(signs)}"}, indent=2))
+    print(
+        json.dumps(
+            {
+                "benchmark": "bench_precision",
+                "host": platform.node(),
+                "window_s": args.window,
+                "path_s": args.path,
+                "members": ["arc/seed0", "p2p/seed0"],
+                "value": {"float64": wide["value"], "float32": narrow["value"]},
+                "terms": terms,
+                "gradient": fields,
+                "signs_agreeing": f"{sum(signs)} of {len(signs)}",
+            },
+            indent=2,
+        )
+    )
 
 
 if __name__ == "__main__":

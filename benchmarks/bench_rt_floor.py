@@ -1,22 +1,27 @@
 """The floor under the bridge's latency on this machine: a cycle that does less and less of the bridge's work (JSON).
 
 The bridge's latency (``benchmarks/bench_bridge.py``) is the time from a cycle's wake-up to its command sent.
-This benchmark runs the bridge's own :class:`pusupu_jax.hw_bridge.runner.CycleRunner`, with the same real-time settings, on
+This benchmark runs the bridge's own :class:`pusupu_jax.hw_bridge.runner.CycleRunner`, with the same real-time settings,
+on
 cycles that do only part of that work, so that the part which is not ours (the interpreter, the clock, the kernel's
 sockets, JAX's dispatch) can be read apart from the rest:
 
 * ``empty``: the cycle returns at once (the runner's own bookkeeping and the clock);
 * ``udp-raw``: one non-blocking ``recv`` until empty and one ``sendto`` of a prebuilt 130-byte datagram (the size
   of a six-axis command) to the echo process: the kernel's loopback and the interpreter, none of our code;
-* ``udp``: the cycle polls a UDP :class:`pusupu_jax.hw_bridge.udp.Endpoint` (decoding what came, as the bridge does) and sends
+* ``udp``: the cycle polls a UDP :class:`pusupu_jax.hw_bridge.udp.Endpoint` (decoding what came, as the bridge does) and
+  sends
   one command packet of the protocol for six axes to an echo process on the other CPU, which answers each with a
   feedback packet;
 * ``udp+jit``: the same, plus one call of a jitted function that adds its input to its state (the dispatch of a
-  compiled step that computes nothing, through :class:`pusupu_jax.hw_bridge.compiled.FlatStep` as the bridge calls its loops),
+  compiled step that computes nothing, through :class:`pusupu_jax.hw_bridge.compiled.FlatStep` as the bridge calls its
+  loops),
   with the bridge's warming: the runner's ``prepare`` calls it once before the deadline and drops the result;
 * ``udp+loops``: the bridge's own calls of a run's cycle, in its order, on the echo's feedback: ``Endpoint.poll``,
-  :meth:`pusupu_jax.hw_bridge.safety.Safety.check_feedback`, :meth:`pusupu_jax.hw_bridge.loop.BridgeLoop.step` (Table 1 gains, IMC, the
-  arc, every drive in CSV, warmed as the bridge warms it), :meth:`~pusupu_jax.hw_bridge.safety.Safety.limit_command` and the
+  :meth:`pusupu_jax.hw_bridge.safety.Safety.check_feedback`, :meth:`pusupu_jax.hw_bridge.loop.BridgeLoop.step` (Table 1
+  gains, IMC, the
+  arc, every drive in CSV, warmed as the bridge warms it), :meth:`~pusupu_jax.hw_bridge.safety.Safety.limit_command` and
+  the
   command sent; each part is timed too (``parts_us``).  What is left between this stage and the bridge's own
   latency is the session's bookkeeping and the simulated robot in place of the echo.
 
@@ -74,8 +79,10 @@ def main() -> None:
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
     if not (args.rate > 0 and args.seconds > 0 and args.rounds >= 1 and args.pause_seconds >= 0):
-        ap.error(f"expected a positive rate and seconds, at least one round and pause seconds >= 0, got {args.rate}, "
-                 f"{args.seconds}, {args.rounds}, {args.pause_seconds}")
+        ap.error(
+            f"expected a positive rate and seconds, at least one round and pause seconds >= 0, got {args.rate}, "
+            f"{args.seconds}, {args.rounds}, {args.pause_seconds}"
+        )
 
     from pusupu_jax.runtime import apply_xla_workaround, setup_jax
 
@@ -95,8 +102,9 @@ def main() -> None:
 
     n = 6
     with tempfile.TemporaryDirectory() as folder:
-        g = gains.load(gains.write(Path(folder) / "imc.yaml", ServoParams.table1(), HybridGains(), LoopRates(),
-                                   mode="imc"))
+        g = gains.load(
+            gains.write(Path(folder) / "imc.yaml", ServoParams.table1(), HybridGains(), LoopRates(), mode="imc")
+        )
     loop = BridgeLoop(g, bridge_reference(g, "arc"))
     safety = Safety(limits_for(g.servo), 1)
     loop.start(np.zeros(n), np.zeros(n))
@@ -153,8 +161,13 @@ def main() -> None:
         parts[k] = (t1 - t0, t2 - t1, t3 - t2, t4 - t3, time.perf_counter() - t4)
         return True
 
-    stages = {"empty": (lambda k, skipped: True, None), "udp-raw": (io_raw, None), "udp": (io, None),
-              "udp+jit": (io_jit, warm), "udp+loops": (io_loops, lambda k: loop.warm(k % loop.cycles))}
+    stages = {
+        "empty": (lambda k, skipped: True, None),
+        "udp-raw": (io_raw, None),
+        "udp": (io, None),
+        "udp+jit": (io_jit, warm),
+        "udp+loops": (io_loops, lambda k: loop.warm(k % loop.cycles)),
+    }
     part_names = ("poll", "check_feedback", "step", "limit_command", "send")
     total = len(stages) * args.rounds * args.seconds + 30  # s: the echo's own limit, past every stage
     echo = subprocess.Popen([sys.executable, "-c", ECHO, str(total)], stdout=subprocess.PIPE, text=True)
@@ -166,14 +179,22 @@ def main() -> None:
         for r in range(args.rounds):
             for name, (fn, prepare) in stages.items():
                 if name == "udp-raw":
-                    raw[:] = [protocol.encode_command(protocol.Command(seq[0] + 1 + k, 0, 0, *zeros, np.zeros(n)))
-                              for k in range(cycles)]
+                    raw[:] = [
+                        protocol.encode_command(protocol.Command(seq[0] + 1 + k, 0, 0, *zeros, np.zeros(n)))
+                        for k in range(cycles)
+                    ]
                     seq[0] += cycles
                 parts[:] = np.nan  # cycles skipped on overrun time nothing
                 st = runner.run(fn, cycles, prepare)
-                runs[name].append({"cycles": st.cycles, "missed_deadlines": st.missed,
-                                   "missed_fraction": st.missed / max(cycles, 1),
-                                   "busy_us": percentiles(1e6 * st.busy), "wake_late_us": percentiles(1e6 * st.wake_late)})
+                runs[name].append(
+                    {
+                        "cycles": st.cycles,
+                        "missed_deadlines": st.missed,
+                        "missed_fraction": st.missed / max(cycles, 1),
+                        "busy_us": percentiles(1e6 * st.busy),
+                        "wake_late_us": percentiles(1e6 * st.wake_late),
+                    }
+                )
                 if name == "udp+loops":
                     timed = parts[~np.isnan(parts[:, 0])]
                     runs[name][-1]["parts_us"] = {p: percentiles(1e6 * timed[:, j]) for j, p in enumerate(part_names)}
@@ -184,14 +205,27 @@ def main() -> None:
         echo.wait(30)
         ep.close()
 
-    result = {"benchmark": "rt_floor", "rate_hz": args.rate, "seconds": args.seconds, "rounds": args.rounds,
-              "cpus": os.cpu_count(), "uname": " ".join(os.uname()), "realtime": rt.settings, "runs": runs,
-              "spread": {name: {**percentile_spreads(v, "busy_us", ("p50", "p99", "p99.9")),
-                                **percentile_spreads(v, "wake_late_us", ("p99",)),
-                                "missed_fraction": spread([x["missed_fraction"] for x in v])}
-                         for name, v in runs.items()}}
-    result["spread"]["udp+loops"]["parts_us"] = {p: {q: spread([r["parts_us"][p][q] for r in runs["udp+loops"]])
-                                                     for q in ("p50", "p99")} for p in part_names}
+    result = {
+        "benchmark": "rt_floor",
+        "rate_hz": args.rate,
+        "seconds": args.seconds,
+        "rounds": args.rounds,
+        "cpus": os.cpu_count(),
+        "uname": " ".join(os.uname()),
+        "realtime": rt.settings,
+        "runs": runs,
+        "spread": {
+            name: {
+                **percentile_spreads(v, "busy_us", ("p50", "p99", "p99.9")),
+                **percentile_spreads(v, "wake_late_us", ("p99",)),
+                "missed_fraction": spread([x["missed_fraction"] for x in v]),
+            }
+            for name, v in runs.items()
+        },
+    }
+    result["spread"]["udp+loops"]["parts_us"] = {
+        p: {q: spread([r["parts_us"][p][q] for r in runs["udp+loops"]]) for q in ("p50", "p99")} for p in part_names
+    }
     if args.pause_seconds:
         probe = PauseProbe()
         time.sleep(args.pause_seconds)

@@ -48,8 +48,15 @@ def main() -> None:
     from pusupu_jax.tune.config import TuneConfig
     from pusupu_jax.tune.run import Problem, optimise
 
-    cfg = TuneConfig(trajectories=(args.trajectory,), path_s=args.path, windows=args.windows, window_s=args.window,
-                     iterations=args.iterations, groups=tuple(args.groups.split(",")), shared=not args.per_axis)
+    cfg = TuneConfig(
+        trajectories=(args.trajectory,),
+        path_s=args.path,
+        windows=args.windows,
+        window_s=args.window,
+        iterations=args.iterations,
+        groups=tuple(args.groups.split(",")),
+        shared=not args.per_axis,
+    )
     problem = Problem(cfg, ServoParams.table1(), HybridGains())
     space, z0 = problem.space, problem.space.z0()
     baseline = problem.start_baseline()  # and the window start states at z0, kept for both optimisers
@@ -65,8 +72,9 @@ def main() -> None:
         trace.append((float(out[0][0]), time.perf_counter() - t0))
         return out
 
-    result = optimise(counted, z0, space.project, iterations=cfg.iterations, learning_rate=cfg.learning_rate,
-                      clip_norm=cfg.clip_norm)
+    result = optimise(
+        counted, z0, space.project, iterations=cfg.iterations, learning_rate=cfg.learning_rate, clip_norm=cfg.clip_norm
+    )
     target = result["objective"]
     grad_evals = next(i + 1 for i, (v, _) in enumerate(trace) if v <= target)
     grad_wall = trace[grad_evals - 1][1]
@@ -87,22 +95,43 @@ def main() -> None:
         return v
 
     try:
-        minimize(f, x0, method="Nelder-Mead", options={"maxfev": args.max_evals, "xatol": 1e-6, "fatol": 1e-9,
-                                                        "initial_simplex": x0 + 0.3 * np.vstack([np.zeros(len(x0)),
-                                                                                                 np.eye(len(x0))])})
+        minimize(
+            f,
+            x0,
+            method="Nelder-Mead",
+            options={
+                "maxfev": args.max_evals,
+                "xatol": 1e-6,
+                "fatol": 1e-9,
+                "initial_simplex": x0 + 0.3 * np.vstack([np.zeros(len(x0)), np.eye(len(x0))]),
+            },
+        )
     except StopIteration:
         pass
     reached = evals[-1][0] <= target
     best_nm = min(v for v, _ in evals)
     out = {
-        "problem": {"trajectory": args.trajectory, "path_s": args.path, "windows": args.windows,
-                    "window_s": args.window, "mode": cfg.mode,
-                    "fields": sorted(z0), "parameters": int(x0.size), "start_objective": trace[0][0]},
-        "forward_s": t_forward, "gradient_s": t_grad, "gradient_over_forward": t_grad / t_forward,
-        "gradient_tuner": {"target_objective": target, "rollouts_to_target": grad_evals,
-                           "wall_s_to_target": grad_wall},
-        "nelder_mead": {"reached_target": reached, "rollouts": len(evals), "wall_s": evals[-1][1],
-                        "best_objective": best_nm, "max_evals": args.max_evals},
+        "problem": {
+            "trajectory": args.trajectory,
+            "path_s": args.path,
+            "windows": args.windows,
+            "window_s": args.window,
+            "mode": cfg.mode,
+            "fields": sorted(z0),
+            "parameters": int(x0.size),
+            "start_objective": trace[0][0],
+        },
+        "forward_s": t_forward,
+        "gradient_s": t_grad,
+        "gradient_over_forward": t_grad / t_forward,
+        "gradient_tuner": {"target_objective": target, "rollouts_to_target": grad_evals, "wall_s_to_target": grad_wall},
+        "nelder_mead": {
+            "reached_target": reached,
+            "rollouts": len(evals),
+            "wall_s": evals[-1][1],
+            "best_objective": best_nm,
+            "max_evals": args.max_evals,
+        },
         "rollout_ratio": len(evals) / grad_evals,
         "wall_ratio": evals[-1][1] / grad_wall,
     }

@@ -32,7 +32,8 @@ def spread(values) -> dict | None:
 
 def percentile_spreads(runs, field: str, points) -> dict:
     """``{'<stem>_<point>_us': spread}`` of each percentile ``point`` of ``run[field]`` (a
-    :func:`pusupu_jax.hw_bridge.runner.percentiles` dict, ``<stem>_us``) over ``runs``, leaving out runs where it is None."""
+    :func:`pusupu_jax.hw_bridge.runner.percentiles` dict, ``<stem>_us``) over ``runs``, leaving out runs where it is
+    None."""
     stem = field.removesuffix("_us")
     return {f"{stem}_{p}_us": spread([r[field][p] for r in runs if r[field] is not None]) for p in points}
 
@@ -50,7 +51,8 @@ def emit(result: dict, out: str | None, indent: int = 1) -> None:
 
 
 def steal_ms_since(before) -> list | None:
-    """Per CPU, the hypervisor's steal time [ms] since ``before`` (a :func:`pusupu_jax.hw_bridge.runner.steal_seconds` reading),
+    """Per CPU, the hypervisor's steal time [ms] since ``before`` (a :func:`pusupu_jax.hw_bridge.runner.steal_seconds`
+    reading),
     or None where either reading is missing."""
     from pusupu_jax.hw_bridge.runner import steal_seconds
 
@@ -94,8 +96,12 @@ class PauseProbe:
         self.gap = gap
         self.cpus = sorted(os.sched_getaffinity(0))
         self.steal = steal_seconds()
-        self.procs = [subprocess.Popen([sys.executable, "-c", PROBE, str(c), str(priority), str(gap)],
-                                       stdout=subprocess.PIPE, text=True) for c in self.cpus]
+        self.procs = [
+            subprocess.Popen(
+                [sys.executable, "-c", PROBE, str(c), str(priority), str(gap)], stdout=subprocess.PIPE, text=True
+            )
+            for c in self.cpus
+        ]
         for p in self.procs:
             assert p.stdout.readline().strip() == "ready"
         self.started = time.monotonic()
@@ -112,11 +118,19 @@ class PauseProbe:
         for other in spans[1:]:  # the intersection of every CPU's gaps
             together = [(max(a, c), min(b, d)) for a, b in together for c, d in other if max(a, c) < min(b, d)]
         lengths = [1e3 * (b - a) for a, b in together]
-        return {"seconds": time.monotonic() - self.started, "threshold_ms": 1e3 * self.gap,
-                "realtime": [f["realtime"] for f in found], "steal_ms_per_cpu": stolen,
-                "per_cpu": [{"cpu": c, "gaps": len(f["gaps"]),
-                             "max_ms": 1e3 * max((d for _, d in f["gaps"]), default=0.0)}
-                            for c, f in zip(self.cpus, found)],
-                "all_cpus_stopped": {"count": len(together), "max_ms": max(lengths, default=0.0),
-                                     "total_ms": sum(lengths),
-                                     "spans": [(a, 1e3 * (b - a)) for a, b in sorted(together)][:50]}}
+        return {
+            "seconds": time.monotonic() - self.started,
+            "threshold_ms": 1e3 * self.gap,
+            "realtime": [f["realtime"] for f in found],
+            "steal_ms_per_cpu": stolen,
+            "per_cpu": [
+                {"cpu": c, "gaps": len(f["gaps"]), "max_ms": 1e3 * max((d for _, d in f["gaps"]), default=0.0)}
+                for c, f in zip(self.cpus, found)
+            ],
+            "all_cpus_stopped": {
+                "count": len(together),
+                "max_ms": max(lengths, default=0.0),
+                "total_ms": sum(lengths),
+                "spans": [(a, 1e3 * (b - a)) for a, b in sorted(together)][:50],
+            },
+        }

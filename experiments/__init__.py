@@ -1,4 +1,5 @@
-"""Experiments that reproduce the paper's claims, one command each: ``pusupu experiment NAME [--out DIR] [--json] [--quick]``.
+"""Experiments that reproduce the paper's claims, one command each: ``pusupu experiment NAME [--out DIR] [--json]
+[--quick]``.
 
 Every module named in :data:`REGISTRY` has
 
@@ -76,7 +77,7 @@ def _short(v, width: int = 90) -> str:
         text = "[" + ", ".join(_short(x, 20) for x in v) + "]"
     else:
         text = repr(v)
-    return text if len(text) <= width else text[:width - 4] + " ..."
+    return text if len(text) <= width else text[: width - 4] + " ..."
 
 
 def get(name: str):
@@ -105,8 +106,9 @@ def takes_machine(name: str | None = None):
 def check_machine(name: str, machine) -> None:
     """ParameterError in one line when a ``machine`` is given to an experiment that does not take one."""
     if machine is not None and not takes_machine(name):
-        raise ParameterError(f"--machine: only the experiments {', '.join(takes_machine())} run on a machine file, "
-                             f"not {name}")
+        raise ParameterError(
+            f"--machine: only the experiments {', '.join(takes_machine())} run on a machine file, not {name}"
+        )
 
 
 def gain_file(name: str, gains):

@@ -19,22 +19,37 @@ from pusupu_jax.trajectories import platform_path
 
 from . import Result
 
-RUNS = {"PID": ("pid", "full"), "PID + velocity FF": ("pid_ff", "full"), "2-DOF IMC (full C1)": ("imc", "full"),
-        "2-DOF IMC (printed eq. 9)": ("imc", "printed")}
+RUNS = {
+    "PID": ("pid", "full"),
+    "PID + velocity FF": ("pid_ff", "full"),
+    "2-DOF IMC (full C1)": ("imc", "full"),
+    "2-DOF IMC (printed eq. 9)": ("imc", "printed"),
+}
 QUICK_S = 3.0  # s of the arc in quick mode
 
 
 def run(quick: bool = False) -> Result:
     path = platform_path("arc", Geometry.default().home, LoopRates())
     if quick:
-        path = path[:int(QUICK_S / LoopRates().dt_position)]
+        path = path[: int(QUICK_S / LoopRates().dt_position)]
     metrics, series = {"duration_s": len(path) * LoopRates().dt_position, "runs": {}}, {}
     for label, (mode, form) in RUNS.items():
-        (result, arrays), = simulate_scenarios(ServoParams.table1().replace(imc_form=form), [Scenario(path)], mode=mode)
-        metrics["runs"][label] = {k: result[k] for k in ("mode", "imc_form", "rms_tracking_error_mm",
-                                                         "max_tracking_error_mm", "branch_reversal_error_mm",
-                                                         "branch_force_peak_n", "motor_torque_peak_nm",
-                                                         "loop_closure_residual_max_mm")}
+        ((result, arrays),) = simulate_scenarios(
+            ServoParams.table1().replace(imc_form=form), [Scenario(path)], mode=mode
+        )
+        metrics["runs"][label] = {
+            k: result[k]
+            for k in (
+                "mode",
+                "imc_form",
+                "rms_tracking_error_mm",
+                "max_tracking_error_mm",
+                "branch_reversal_error_mm",
+                "branch_force_peak_n",
+                "motor_torque_peak_nm",
+                "loop_closure_residual_max_mm",
+            )
+        }
         series[label] = arrays
     runs = metrics["runs"]
     imc = runs["2-DOF IMC (full C1)"]["rms_tracking_error_mm"]
@@ -66,23 +81,37 @@ def plot(result: Result, out) -> list:
     ax2.set_ylabel("platform position error [mm]")
     ax2.grid(True, which="both", alpha=0.3)
     ax2.legend(fontsize=7)
-    fig.suptitle("Fig. 7: 200 mm major arc, Table 1 gains (equal axes: at this scale the paths overlap; the error is "
-                 "on the right)")
+    fig.suptitle(
+        "Fig. 7: 200 mm major arc, Table 1 gains (equal axes: at this scale the paths overlap; the error is "
+        "on the right)"
+    )
     fig.tight_layout()
     return [save_atomic(fig, out / "arc.png")]
 
 
 def table(result: Result) -> str:
     m = result.metrics
-    lines = [f"Arc, {m['duration_s']:.1f} s, Table 1 gains, start at rest.", "",
-             "| controller | RMS error [mm] | max error [mm] | reversal glitch, highest branch [mm] | "
-             "highest branch force peak [N] |", "|---|---|---|---|---|"]
+    lines = [
+        f"Arc, {m['duration_s']:.1f} s, Table 1 gains, start at rest.",
+        "",
+        "| controller | RMS error [mm] | max error [mm] | reversal glitch, highest branch [mm] | "
+        "highest branch force peak [N] |",
+        "|---|---|---|---|---|",
+    ]
     for label, r in m["runs"].items():
         glitch = [g for g in r["branch_reversal_error_mm"] if g is not None]
-        lines.append(f"| {label} | {r['rms_tracking_error_mm']:.3f} | {r['max_tracking_error_mm']:.3f} | "
-                     f"{max(glitch) if glitch else float('nan'):.3f} | {max(r['branch_force_peak_n']):.1f} |")
-    lines += ["", "Reversal glitch: the largest slider error within 0.1 s after a reversal of a slider's reference "
-              "speed (the drive train's Coulomb friction changes sign there)."]
-    lines += ["", f"2-DOF IMC (full) against the better baseline: {m['imc_vs_best_baseline_pct']:+.1f} % "
-              f"({'below both' if m['claim_imc_below_both_baselines'] else 'NOT below both'})."]
+        lines.append(
+            f"| {label} | {r['rms_tracking_error_mm']:.3f} | {r['max_tracking_error_mm']:.3f} | "
+            f"{max(glitch) if glitch else float('nan'):.3f} | {max(r['branch_force_peak_n']):.1f} |"
+        )
+    lines += [
+        "",
+        "Reversal glitch: the largest slider error within 0.1 s after a reversal of a slider's reference "
+        "speed (the drive train's Coulomb friction changes sign there).",
+    ]
+    lines += [
+        "",
+        f"2-DOF IMC (full) against the better baseline: {m['imc_vs_best_baseline_pct']:+.1f} % "
+        f"({'below both' if m['claim_imc_below_both_baselines'] else 'NOT below both'}).",
+    ]
     return "\n".join(lines)

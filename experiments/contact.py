@@ -34,8 +34,14 @@ def run_modes(path, options, runs: dict, *, rates: LoopRates = LoopRates(), forc
     admittance gains or None)``; returns ``(results, arrays)`` keyed by label."""
     results, arrays = {}, {}
     for label, (mode, gains) in runs.items():
-        (result, a), = simulate_scenarios(ServoParams.table1(), [Scenario(path, options)], mode=mode, rates=rates,
-                                          compliance=gains, force_setpoint=force_setpoint if gains else None)
+        ((result, a),) = simulate_scenarios(
+            ServoParams.table1(),
+            [Scenario(path, options)],
+            mode=mode,
+            rates=rates,
+            compliance=gains,
+            force_setpoint=force_setpoint if gains else None,
+        )
         results[label], arrays[label] = result, a
     return results, arrays
 
@@ -53,8 +59,7 @@ def halved(options, rates: LoopRates = LoopRates()):
 def force_figure(result_series: dict, title: str, below: str, ylabel: str):
     """Per run, the contact force components against time, and under them ``arrays[below]`` [m] in mm
     (``ylabel``) with its zero marked."""
-    fig, axes = plt.subplots(2, len(result_series), figsize=(5.5 * len(result_series), 7.2), squeeze=False,
-                             sharex=True)
+    fig, axes = plt.subplots(2, len(result_series), figsize=(5.5 * len(result_series), 7.2), squeeze=False, sharex=True)
     for col, (label, a) in enumerate(result_series.items()):
         ax = axes[0, col]
         for k, name in enumerate("xyz"):

@@ -68,29 +68,54 @@ def run(quick: bool = False) -> Result:
     for m6 in (HybridGains().m6, OLD_M6):
         for l1_rule in ("lambda1 = lambda2", "lambda1 = 0.018"):
             grid = [(l2, s) for l2 in lambdas for s in seeds]
-            servo = stack([frictionless().replace(lambda2=np.full(6, l2),
-                                                        lambda1=np.full(6, l2 if l1_rule[-1] == "2" else 0.018))
-                           for l2, _ in grid])
+            servo = stack(
+                [
+                    frictionless().replace(
+                        lambda2=np.full(6, l2), lambda1=np.full(6, l2 if l1_rule[-1] == "2" else 0.018)
+                    )
+                    for l2, _ in grid
+                ]
+            )
             scenarios = [Scenario(path, ModelOptions(kin_error_seed=s), f"seed{s}") for _, s in grid]
             out = simulate_scenarios(servo, scenarios, mode="hybrid", hybrid=HybridGains(m6=m6))
             for (l2, s), (r, _) in zip(grid, out):
                 rms, mx, peak = r["rms_tracking_error_mm"], r["max_tracking_error_mm"], max(r["branch_force_peak_n"])
-                rows.append({"m6": m6, "rule": l1_rule, "lambda2": l2, "seed": s, "rms_tracking_error_mm": rms,
-                             "max_tracking_error_mm": mx, "highest_force_peak_n": peak,
-                             "diverged": bool(not np.isfinite(rms) or mx > DIVERGED_MM or peak > DIVERGED_N)})
+                rows.append(
+                    {
+                        "m6": m6,
+                        "rule": l1_rule,
+                        "lambda2": l2,
+                        "seed": s,
+                        "rms_tracking_error_mm": rms,
+                        "max_tracking_error_mm": mx,
+                        "highest_force_peak_n": peak,
+                        "diverged": bool(not np.isfinite(rms) or mx > DIVERGED_MM or peak > DIVERGED_N),
+                    }
+                )
     sweep = [] if quick else gain_sweep(path[:SWEEP_SAMPLES], l2_min)
     default = [r for r in rows if r["m6"] == HybridGains().m6]
     worst = max(default, key=lambda r: r["max_tracking_error_mm"])
-    metrics = {"duration_s": len(path) * LoopRates().dt_position, "lambda2_min": l2_min, "lambda2": lambdas,
-               "seeds": list(seeds), "m6_default": HybridGains().m6, "rows": rows,
-               "default_m6_diverged": int(sum(r["diverged"] for r in default)),
-               "old_m6_diverged": int(sum(r["diverged"] for r in rows if r["m6"] == OLD_M6)),
-               "runs_per_m6": len(default), "worst_default": worst, "gain_sweep": sweep}
+    metrics = {
+        "duration_s": len(path) * LoopRates().dt_position,
+        "lambda2_min": l2_min,
+        "lambda2": lambdas,
+        "seeds": list(seeds),
+        "m6_default": HybridGains().m6,
+        "rows": rows,
+        "default_m6_diverged": int(sum(r["diverged"] for r in default)),
+        "old_m6_diverged": int(sum(r["diverged"] for r in rows if r["m6"] == OLD_M6)),
+        "runs_per_m6": len(default),
+        "worst_default": worst,
+        "gain_sweep": sweep,
+    }
     return Result("hybrid_grid", metrics)
 
 
-SWEEP = {"m6": (1.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0), "c6": (1.0, 100.0, 1e3, 2e3, 3e3, 5e3, 1e4),
-         "g": (1.0, 1e2, 1e3, 1e4, 1e5)}  # multiples of each default
+SWEEP = {
+    "m6": (1.0, 10.0, 15.0, 20.0, 30.0, 50.0, 100.0),
+    "c6": (1.0, 100.0, 1e3, 2e3, 3e3, 5e3, 1e4),
+    "g": (1.0, 1e2, 1e3, 1e4, 1e5),
+}  # multiples of each default
 SWEEP_SEED = 3
 SWEEP_SAMPLES = 3000  # the first 3 s of p2p, as the quick grid
 
@@ -101,24 +126,35 @@ def gain_sweep(path, l2_min: float) -> list:
     the gains a gain file may hold (:data:`pusupu_jax.hybrid.HYBRID_BOUNDS_WHY`)."""
     base = HybridGains()
     grid = [(name, k, l2) for l2 in (0.15, l2_min) for name, ks in SWEEP.items() for k in ks]
-    hybrid = HybridGains(**{name: np.array([getattr(base, name) * (k if n == name else 1.0) for n, k, _ in grid])
-                            for name in SWEEP})
+    hybrid = HybridGains(
+        **{name: np.array([getattr(base, name) * (k if n == name else 1.0) for n, k, _ in grid]) for name in SWEEP}
+    )
     servo = stack([frictionless().replace(lambda2=np.full(6, l2)) for *_, l2 in grid])
     scenarios = [Scenario(path, ModelOptions(kin_error_seed=SWEEP_SEED), f"seed{SWEEP_SEED}") for _ in grid]
     rows = []
     for (name, k, l2), (r, _) in zip(grid, simulate_scenarios(servo, scenarios, mode="hybrid", hybrid=hybrid)):
         rms, mx, peak = r["rms_tracking_error_mm"], r["max_tracking_error_mm"], max(r["branch_force_peak_n"])
-        rows.append({"gain": name, "value": float(getattr(base, name) * k), "lambda2": l2, "rms_tracking_error_mm": rms,
-                     "max_tracking_error_mm": mx, "highest_force_peak_n": peak,
-                     "diverged": bool(not np.isfinite(rms) or mx > SWEEP_DIVERGED_MM or peak > DIVERGED_N)})
+        rows.append(
+            {
+                "gain": name,
+                "value": float(getattr(base, name) * k),
+                "lambda2": l2,
+                "rms_tracking_error_mm": rms,
+                "max_tracking_error_mm": mx,
+                "highest_force_peak_n": peak,
+                "diverged": bool(not np.isfinite(rms) or mx > SWEEP_DIVERGED_MM or peak > DIVERGED_N),
+            }
+        )
     return rows
 
 
 def plot(result: Result, out) -> list:
     m = result.metrics
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
-    for ax, key, unit in ((axes[0], "max_tracking_error_mm", "max platform error [mm]"),
-                          (axes[1], "highest_force_peak_n", "highest branch force peak [N]")):
+    for ax, key, unit in (
+        (axes[0], "max_tracking_error_mm", "max platform error [mm]"),
+        (axes[1], "highest_force_peak_n", "highest branch force peak [N]"),
+    ):
         for m6, style in ((m["m6_default"], "-"), (OLD_M6, ":")):
             for rule, marker in (("lambda1 = lambda2", "o"), ("lambda1 = 0.018", "s")):
                 rows = [r for r in m["rows"] if r["m6"] == m6 and r["rule"] == rule]
@@ -133,29 +169,42 @@ def plot(result: Result, out) -> list:
     axes[0].axhline(DIVERGED_MM, color="k", lw=0.8)
     axes[1].axhline(DIVERGED_N, color="k", lw=0.8)
     axes[0].legend(fontsize=7)
-    fig.suptitle(f"Hybrid mode on p2p with seeded errors, lambda2 from {m['lambda2_min']:.4f} s (45 deg, 6 dB) to 0.3 s")
+    fig.suptitle(
+        f"Hybrid mode on p2p with seeded errors, lambda2 from {m['lambda2_min']:.4f} s (45 deg, 6 dB) to 0.3 s"
+    )
     fig.tight_layout()
     return [save_atomic(fig, out / "hybrid_grid.png")]
 
 
 def table(result: Result) -> str:
     m = result.metrics
-    lines = [f"Hybrid mode, p2p ({m['duration_s']:.1f} s), seeds {m['seeds']}; smallest admissible lambda2 "
-             f"{m['lambda2_min']:.4f} s.", "",
-             "| m6 [N s/m] | lambda1 | lambda2 [s] | worst RMS [mm] | worst max [mm] | worst force peak [N] | diverged |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        f"Hybrid mode, p2p ({m['duration_s']:.1f} s), seeds {m['seeds']}; smallest admissible lambda2 "
+        f"{m['lambda2_min']:.4f} s.",
+        "",
+        "| m6 [N s/m] | lambda1 | lambda2 [s] | worst RMS [mm] | worst max [mm] | worst force peak [N] | diverged |",
+        "|---|---|---|---|---|---|---|",
+    ]
     keys = sorted({(r["m6"], r["rule"], r["lambda2"]) for r in m["rows"]}, key=lambda k: (-k[0], k[1], k[2]))
     for m6, rule, l2 in keys:
         rows = [r for r in m["rows"] if (r["m6"], r["rule"], r["lambda2"]) == (m6, rule, l2)]
-        lines.append(f"| {m6:g} | {rule.split(' = ')[1]} | {l2:.4f} | {max(r['rms_tracking_error_mm'] for r in rows):.3f}"
-                     f" | {max(r['max_tracking_error_mm'] for r in rows):.3f} | "
-                     f"{max(r['highest_force_peak_n'] for r in rows):.1f} | {sum(r['diverged'] for r in rows)}"
-                     f"/{len(rows)} |")
+        lines.append(
+            f"| {m6:g} | {rule.split(' = ')[1]} | {l2:.4f} | {max(r['rms_tracking_error_mm'] for r in rows):.3f}"
+            f" | {max(r['max_tracking_error_mm'] for r in rows):.3f} | "
+            f"{max(r['highest_force_peak_n'] for r in rows):.1f} | {sum(r['diverged'] for r in rows)}"
+            f"/{len(rows)} |"
+        )
     w = m["worst_default"]
     if m.get("gain_sweep"):
-        lines += ["", f"Each hybrid gain alone, the others at their defaults (seed {SWEEP_SEED}, both lambda2): the "
-                  "largest value at which no run diverged, the smallest at which one did, and the bound a gain file "
-                  "may hold.", "", "| gain | largest stable | smallest diverged | bound |", "|---|---|---|---|"]
+        lines += [
+            "",
+            f"Each hybrid gain alone, the others at their defaults (seed {SWEEP_SEED}, both lambda2): the "
+            "largest value at which no run diverged, the smallest at which one did, and the bound a gain file "
+            "may hold.",
+            "",
+            "| gain | largest stable | smallest diverged | bound |",
+            "|---|---|---|---|",
+        ]
         for name in SWEEP:
             rows = [r for r in m["gain_sweep"] if r["gain"] == name]
             values = sorted({r["value"] for r in rows})
@@ -163,8 +212,11 @@ def table(result: Result) -> str:
             good = [v for v in values if not bad or v < bad[0]]
             bound = [f.metadata["bounds"][1] for f in gain_fields() if f.name == name][0]
             lines.append(f"| {name} | {good[-1]:g} | {f'{bad[0]:g}' if bad else 'none'} | {bound:g} |")
-    lines += ["", f"Default m6: {m['default_m6_diverged']} of {m['runs_per_m6']} runs diverged; worst error "
-              f"{w['max_tracking_error_mm']:.3f} mm max ({w['rms_tracking_error_mm']:.3f} mm RMS) at lambda2 = "
-              f"{w['lambda2']:.4f} s, {w['rule']}, seed {w['seed']}.  Old m6 = {OLD_M6}: {m['old_m6_diverged']} of "
-              f"{m['runs_per_m6']} diverged."]
+    lines += [
+        "",
+        f"Default m6: {m['default_m6_diverged']} of {m['runs_per_m6']} runs diverged; worst error "
+        f"{w['max_tracking_error_mm']:.3f} mm max ({w['rms_tracking_error_mm']:.3f} mm RMS) at lambda2 = "
+        f"{w['lambda2']:.4f} s, {w['rule']}, seed {w['seed']}.  Old m6 = {OLD_M6}: {m['old_m6_diverged']} of "
+        f"{m['runs_per_m6']} diverged.",
+    ]
     return "\n".join(lines)

@@ -57,7 +57,6 @@ from pusupu_jax.params import stack
 from pusupu_jax.plant import AxisPlant
 from pusupu_jax.plant.dynamics import reflected_mass
 from pusupu_jax.plant.geometry import Geometry
-from pusupu_jax.plant.model import ModelOptions
 from pusupu_jax.plots import save_atomic
 from pusupu_jax.sim import rollout, run_chunked
 from pusupu_jax.start_gains import derive
@@ -72,8 +71,13 @@ AMPLITUDE = {"velocity": 0.05, "position": 0.5}  # A at the current reference, r
 SETTLE_S = {"velocity": 1.0, "position": 6.0}  # s before the window
 DURATION_S = {"velocity": 2.0, "position": 16.0}  # s of each run
 TOLERANCE = {"crossover_pct": 10.0, "phase_margin_deg": 5.0}
-QUICK = dict(probes=(("home", 0),), count=3, duration_s={"velocity": 1.5, "position": 8.0},
-             settle_s={"velocity": 0.75, "position": 4.0}, band={"velocity": (6.0, 12.0), "position": (0.8, 1.6)})
+QUICK = dict(
+    probes=(("home", 0),),
+    count=3,
+    duration_s={"velocity": 1.5, "position": 8.0},
+    settle_s={"velocity": 0.75, "position": 4.0},
+    band={"velocity": (6.0, 12.0), "position": (0.8, 1.6)},
+)
 
 
 def servo(machine: Machine | None = None) -> ServoParams:
@@ -106,8 +110,11 @@ def model_loops(params: ServoParams, mass: float, axis: int) -> dict:
     closed = analysis.closed_loops(params, load, axis)
     p = closed["current"]
     opened = analysis.open_loops(params, load, axis, closed=closed)
-    return {"velocity": b["Gv"] * (b["Gw"] * p[1, 0] + b["Gxv"] * b["C2"] * p[2, 0]),
-            "velocity_open": opened["velocity"], "position": opened["position"]}
+    return {
+        "velocity": b["Gv"] * (b["Gw"] * p[1, 0] + b["Gxv"] * b["C2"] * p[2, 0]),
+        "velocity_open": opened["velocity"],
+        "position": opened["position"],
+    }
 
 
 def _margins(sys) -> dict:
@@ -120,8 +127,9 @@ def _margins(sys) -> dict:
 @functools.lru_cache(maxsize=None)
 def _axis_program(rates: LoopRates):
     """The single-axis plant's injection runs, vmapped over references (load shared), jitted."""
-    return jax.jit(jax.vmap(functools.partial(rollout, plant=AxisPlant(), rates=rates, outer="imc"),
-                            in_axes=(None, None, 0)))
+    return jax.jit(
+        jax.vmap(functools.partial(rollout, plant=AxisPlant(), rates=rates, outer="imc"), in_axes=(None, None, 0))
+    )
 
 
 def _runs(probes, loop, freqs, duration_s, rates):
@@ -133,8 +141,9 @@ def _runs(probes, loop, freqs, duration_s, rates):
         for f in list(freqs) + [None]:
             scale = 2.0 if f is None else 1.0
             f = freqs[len(freqs) // 2] if f is None else f
-            runs.append(((pose, axis), f, injection.injected(np.zeros((n, 6)), loop, axis, f,
-                                                               scale * AMPLITUDE[loop], rates)))
+            runs.append(
+                ((pose, axis), f, injection.injected(np.zeros((n, 6)), loop, axis, f, scale * AMPLITUDE[loop], rates))
+            )
     return runs
 
 
@@ -144,17 +153,23 @@ def _gains(traces, runs, loop, rates, settle_s):
     for b, ((_, axis), f, inj) in enumerate(runs):
         trace = jax.tree.map(lambda x: np.asarray(x)[b], traces)
         half_s = (len(trace.t) * rates.dt_position - settle_s) / 2
-        out.append((injection.loop_gain(trace, inj, loop, axis, f, rates, settle_s),
-                    injection.loop_gain(trace, inj, loop, axis, f, rates, settle_s + half_s)))
+        out.append(
+            (
+                injection.loop_gain(trace, inj, loop, axis, f, rates, settle_s),
+                injection.loop_gain(trace, inj, loop, axis, f, rates, settle_s + half_s),
+            )
+        )
     return out
 
 
 def _band_scale(params: ServoParams, machine: Machine, loop: str) -> float:
     """How far the loop's crossover on ``machine`` (the model, carried mass at home, axis 1) lies from the built-in
     machine's with Table 1: the frequency grid moves by this factor (1 on the built-in machine)."""
+
     def crossover(p, m):
-        return _margins(model_loops(p, float(reflected_mass(m.geometry, m.geometry.home, m.options())[0][0]), 0)[
-            loop])["crossover_hz"]
+        return _margins(model_loops(p, float(reflected_mass(m.geometry, m.geometry.home, m.options())[0][0]), 0)[loop])[
+            "crossover_hz"
+        ]
 
     return crossover(params, machine) / crossover(servo(), Machine.default())
 
@@ -173,10 +188,15 @@ def run(quick: bool = False, machine: Machine | None = None) -> Result:
     models = {pose: plant.variant(options, geometry_at(pose, machine)) for pose in poses}
     carried = {pose: reflected_mass(machine.geometry, geometry_at(pose, machine).home, options)[0] for pose in poses}
     gains = "Table 1" if machine_file.is_builtin(machine) else "the start gains derived for it"
-    metrics = {"machine": machine_file.reference(machine), "gains": f"{gains}, mode imc, coulomb = viscous = 0",
-               "tolerance": TOLERANCE,
-               "amplitude": {"velocity_a": AMPLITUDE["velocity"], "position_rad_s": AMPLITUDE["position"]},
-               "settle_s": settle, "duration_s": duration, "rows": []}
+    metrics = {
+        "machine": machine_file.reference(machine),
+        "gains": f"{gains}, mode imc, coulomb = viscous = 0",
+        "tolerance": TOLERANCE,
+        "amplitude": {"velocity_a": AMPLITUDE["velocity"], "position_rad_s": AMPLITUDE["position"]},
+        "settle_s": settle,
+        "duration_s": duration,
+        "rows": [],
+    }
     series = {}
     for loop in LOOPS:
         band = np.asarray(QUICK["band"][loop] if quick else GRID[loop][:2])
@@ -185,39 +205,57 @@ def run(quick: bool = False, machine: Machine | None = None) -> Result:
         freqs = injection.grid(*band, QUICK["count"] if quick else GRID[loop][2], rates)
         runs = _runs(probes, loop, freqs, duration[loop], rates)
         inj = stack([r[2] for r in runs])
-        traces, _ = run_chunked(params, stack([models[pose] for (pose, _), _, _ in runs]), inj, plant=plant,
-                                rates=rates, outer="imc")
+        traces, _ = run_chunked(
+            params, stack([models[pose] for (pose, _), _, _ in runs]), inj, plant=plant, rates=rates, outer="imc"
+        )
         measured = _gains(traces, runs, loop, rates, settle[loop])
         per = len(freqs) + 1
         for p, (pose, axis) in enumerate(probes):
-            mine = measured[p * per:(p + 1) * per]
-            trace = jax.tree.map(lambda x: np.asarray(x)[p * per:(p + 1) * per], traces)
+            mine = measured[p * per : (p + 1) * per]
+            trace = jax.tree.map(lambda x: np.asarray(x)[p * per : (p + 1) * per], traces)
             mass = float(carried[pose][axis])
-            axis_runs = runs[p * per:(p + 1) * per - 1]  # the same injections on the single-axis plant
-            axis_traces = _axis_program(rates)(params, AxisLoad.default().replace(mass=np.full(6, mass)),
-                                               stack([r[2] for r in axis_runs]))
+            axis_runs = runs[p * per : (p + 1) * per - 1]  # the same injections on the single-axis plant
+            axis_traces = _axis_program(rates)(
+                params, AxisLoad.default().replace(mass=np.full(6, mass)), stack([r[2] for r in axis_runs])
+            )
             sampled = [g for g, _ in _gains(axis_traces, axis_runs, loop, rates, settle[loop])]
             L = np.array([g for g, _ in mine[:-1]])
             m20, mc = model_loops(params, 20.0, axis), model_loops(params, mass, axis)
             key = f"{pose}, axis {axis + 1}, {loop}"
-            row = {"pose": pose, "pose_offset": list(POSES[pose]), "loop": loop, "axis": axis + 1,
-                   "carried_mass_kg": mass, "frequencies_hz": freqs.tolist(),
-                   "model_20kg": _margins(m20[loop]), "model_carried": _margins(mc[loop]),
-                   "mjx": injection.crossover(freqs, L), "sampled_single_axis": injection.crossover(freqs, sampled),
-                   "linearity": abs(mine[-1][0] / mine[len(freqs) // 2][0] - 1.0),
-                   "settling": max(abs(b / a - 1.0) for a, b in mine[:-1]),
-                   "peak_current_reference_a": float(np.abs(trace.current_reference[..., axis]).max()),
-                   "peak_slider_deviation_mm": float(np.abs(trace.position[..., axis]).max() * 1e3)}
+            row = {
+                "pose": pose,
+                "pose_offset": list(POSES[pose]),
+                "loop": loop,
+                "axis": axis + 1,
+                "carried_mass_kg": mass,
+                "frequencies_hz": freqs.tolist(),
+                "model_20kg": _margins(m20[loop]),
+                "model_carried": _margins(mc[loop]),
+                "mjx": injection.crossover(freqs, L),
+                "sampled_single_axis": injection.crossover(freqs, sampled),
+                "linearity": abs(mine[-1][0] / mine[len(freqs) // 2][0] - 1.0),
+                "settling": max(abs(b / a - 1.0) for a, b in mine[:-1]),
+                "peak_current_reference_a": float(np.abs(trace.current_reference[..., axis]).max()),
+                "peak_slider_deviation_mm": float(np.abs(trace.position[..., axis]).max() * 1e3),
+            }
             if loop == "velocity":
-                row |= {"model_20kg_position_open": _margins(m20["velocity_open"]),
-                        "model_carried_position_open": _margins(mc["velocity_open"])}
+                row |= {
+                    "model_20kg_position_open": _margins(m20["velocity_open"]),
+                    "model_carried_position_open": _margins(mc["velocity_open"]),
+                }
             for label in ("model_20kg", "model_carried"):
                 row[f"{label}_matches"] = _matches(row[label], row["mjx"])
             metrics["rows"].append(row)
             fine = np.geomspace(freqs[0] / 1.5, freqs[-1] * 1.5, 300)
-            series[key] = {"f_hz": freqs, "mjx": L, "sampled": np.array(sampled), "f_model_hz": fine,
-                           "model_20kg": m20[loop](2j * np.pi * fine), "model_carried": mc[loop](2j * np.pi * fine),
-                           "carried_mass_kg": mass}
+            series[key] = {
+                "f_hz": freqs,
+                "mjx": L,
+                "sampled": np.array(sampled),
+                "f_model_hz": fine,
+                "model_20kg": m20[loop](2j * np.pi * fine),
+                "model_carried": mc[loop](2j * np.pi * fine),
+                "carried_mass_kg": mass,
+            }
     return Result("loop_match", metrics, series)
 
 
@@ -225,8 +263,10 @@ def _matches(model: dict, measured: dict) -> bool | None:
     """Whether ``model``'s crossover and phase margin agree with ``measured``'s within :data:`TOLERANCE`."""
     if None in (model["crossover_hz"], measured["crossover_hz"]):
         return None
-    return bool(abs(model["crossover_hz"] / measured["crossover_hz"] - 1.0) * 100.0 <= TOLERANCE["crossover_pct"]
-                and abs(model["phase_margin_deg"] - measured["phase_margin_deg"]) <= TOLERANCE["phase_margin_deg"])
+    return bool(
+        abs(model["crossover_hz"] / measured["crossover_hz"] - 1.0) * 100.0 <= TOLERANCE["crossover_pct"]
+        and abs(model["phase_margin_deg"] - measured["phase_margin_deg"]) <= TOLERANCE["phase_margin_deg"]
+    )
 
 
 def plot(result: Result, out) -> list:
@@ -238,12 +278,16 @@ def plot(result: Result, out) -> list:
     for probe, loops in keys.items():
         fig, ax = plt.subplots(2, len(loops), figsize=(6.5 * len(loops), 7.5), squeeze=False)
         for c, (loop, s) in enumerate(loops.items()):
-            for label, L, style in (("model, 20 kg", s["model_20kg"], "--"),
-                                    (f"model, carried {s['carried_mass_kg']:.1f} kg", s["model_carried"], "-")):
+            for label, L, style in (
+                ("model, 20 kg", s["model_20kg"], "--"),
+                (f"model, carried {s['carried_mass_kg']:.1f} kg", s["model_carried"], "-"),
+            ):
                 ax[0, c].semilogx(s["f_model_hz"], 20 * np.log10(np.abs(L)), style, label=label)
                 ax[1, c].semilogx(s["f_model_hz"], injection.unwrapped_deg(L), style)
-            for label, L, marker in (("MJX machine, measured", s["mjx"], "o"),
-                                     ("single-axis plant (carried), measured", s["sampled"], "x")):
+            for label, L, marker in (
+                ("MJX machine, measured", s["mjx"], "o"),
+                ("single-axis plant (carried), measured", s["sampled"], "x"),
+            ):
                 ax[0, c].semilogx(s["f_hz"], 20 * np.log10(np.abs(L)), marker, label=label)
                 ax[1, c].semilogx(s["f_hz"], injection.unwrapped_deg(L), marker)
             ax[0, c].axhline(0, color="k", lw=0.6)
@@ -258,8 +302,10 @@ def plot(result: Result, out) -> list:
                 a.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
                 a.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x:g}"))
                 a.xaxis.set_minor_formatter(NullFormatter())
-        fig.suptitle(f"Loop gains, {probe}: MJX machine {result.metrics['machine']['name']!r} against the "
-                     "single-axis model", fontsize=10)
+        fig.suptitle(
+            f"Loop gains, {probe}: MJX machine {result.metrics['machine']['name']!r} against the single-axis model",
+            fontsize=10,
+        )
         fig.tight_layout()
         files.append(save_atomic(fig, out / f"loop_match_{re.sub('[^a-z0-9]+', '_', probe.lower()).strip('_')}.png"))
     return files
@@ -276,23 +322,33 @@ def _cell(m: dict) -> str:
 def table(result: Result) -> str:
     m = result.metrics
     tol = m["tolerance"]
-    lines = [f"Loop gains of the MJX machine {m['machine']['name']!r} measured by injection ({m['gains']}) against the "
-             "single-axis model; "
-             f"a load matches (yes) when crossover is within {tol['crossover_pct']:g} % and phase margin within "
-             f"{tol['phase_margin_deg']:g} deg of the measured.", "",
-             "| pose | loop | axis | model 20 kg | match | model carried mass | match | MJX measured | "
-             "single-axis sampled (carried) | linearity | settling |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"Loop gains of the MJX machine {m['machine']['name']!r} measured by injection ({m['gains']}) against the "
+        "single-axis model; "
+        f"a load matches (yes) when crossover is within {tol['crossover_pct']:g} % and phase margin within "
+        f"{tol['phase_margin_deg']:g} deg of the measured.",
+        "",
+        "| pose | loop | axis | model 20 kg | match | model carried mass | match | MJX measured | "
+        "single-axis sampled (carried) | linearity | settling |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     yes = {True: "yes", False: "no", None: "n/a"}
     for r in m["rows"]:
-        lines.append(f"| {r['pose']} | {r['loop']} | {r['axis']} | {_cell(r['model_20kg'])} | "
-                     f"{yes[r['model_20kg_matches']]} | {r['carried_mass_kg']:.1f} kg: {_cell(r['model_carried'])} | "
-                     f"{yes[r['model_carried_matches']]} | {_cell(r['mjx'])} | {_cell(r['sampled_single_axis'])} | "
-                     f"{r['linearity']:.1e} | {r['settling']:.1e} |")
-    lines += ["", "The velocity loop's model is broken where the machine is, the axis's position loop closed; with it "
-              "open (`pusupu analyze`):"]
+        lines.append(
+            f"| {r['pose']} | {r['loop']} | {r['axis']} | {_cell(r['model_20kg'])} | "
+            f"{yes[r['model_20kg_matches']]} | {r['carried_mass_kg']:.1f} kg: {_cell(r['model_carried'])} | "
+            f"{yes[r['model_carried_matches']]} | {_cell(r['mjx'])} | {_cell(r['sampled_single_axis'])} | "
+            f"{r['linearity']:.1e} | {r['settling']:.1e} |"
+        )
+    lines += [
+        "",
+        "The velocity loop's model is broken where the machine is, the axis's position loop closed; with it "
+        "open (`pusupu analyze`):",
+    ]
     for r in m["rows"]:
         if r["loop"] == "velocity":
-            lines.append(f"- {r['pose']}, axis {r['axis']}: 20 kg {_cell(r['model_20kg_position_open'])}; "
-                         f"{r['carried_mass_kg']:.1f} kg {_cell(r['model_carried_position_open'])}")
+            lines.append(
+                f"- {r['pose']}, axis {r['axis']}: 20 kg {_cell(r['model_20kg_position_open'])}; "
+                f"{r['carried_mass_kg']:.1f} kg {_cell(r['model_carried_position_open'])}"
+            )
     return "\n".join(lines)

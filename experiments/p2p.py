@@ -32,7 +32,7 @@ def run(quick: bool = False, seeds=None) -> Result:
     seeds = tuple(seeds or (QUICK["seeds"] if quick else SEEDS))
     path = platform_path("p2p", Geometry.default().home, LoopRates())
     if quick:
-        path = path[:int(QUICK["seconds"] / LoopRates().dt_position)]
+        path = path[: int(QUICK["seconds"] / LoopRates().dt_position)]
     scenarios = [Scenario(path, ModelOptions(kin_error_seed=s), f"seed{s}") for s in seeds]
     runs, series = {}, {}
     for label, mode in MODES.items():
@@ -45,17 +45,21 @@ def run(quick: bool = False, seeds=None) -> Result:
         per_seed[name] = {
             "rms_change_pct": pct(hyb[name]["rms_tracking_error_mm"], pid[name]["rms_tracking_error_mm"]),
             "highest_peak_1_5_change_pct": pct(hyb[name]["highest_peak_1_5_n"], pid[name]["highest_peak_1_5_n"]),
-            "branch_peak_change_pct": [pct(h, p) for h, p in zip(hyb[name]["branch_force_peak_n"][:5],
-                                                                  pid[name]["branch_force_peak_n"][:5])],
+            "branch_peak_change_pct": [
+                pct(h, p) for h, p in zip(hyb[name]["branch_force_peak_n"][:5], pid[name]["branch_force_peak_n"][:5])
+            ],
         }
     rms = [v["rms_change_pct"] for v in per_seed.values()]
     peak = [v["highest_peak_1_5_change_pct"] for v in per_seed.values()]
     branch = np.array([v["branch_peak_change_pct"] for v in per_seed.values()])
     metrics = {
-        "duration_s": len(path) * LoopRates().dt_position, "seeds": list(seeds), "runs": runs,
+        "duration_s": len(path) * LoopRates().dt_position,
+        "seeds": list(seeds),
+        "runs": runs,
         "hybrid_vs_pid": per_seed,
         "summary": {
-            "rms_change_pct_mean": float(np.mean(rms)), "rms_change_pct_range": [min(rms), max(rms)],
+            "rms_change_pct_mean": float(np.mean(rms)),
+            "rms_change_pct_range": [min(rms), max(rms)],
             "seeds_rms_at_least_15pct_lower": int(sum(r <= -15 for r in rms)),
             "highest_peak_1_5_change_pct_mean": float(np.mean(peak)),
             "highest_peak_1_5_change_pct_range": [min(peak), max(peak)],
@@ -69,10 +73,15 @@ def run(quick: bool = False, seeds=None) -> Result:
 
 def _keep(r: dict) -> dict:
     peaks = r["branch_force_peak_n"]
-    return {"rms_tracking_error_mm": r["rms_tracking_error_mm"], "max_tracking_error_mm": r["max_tracking_error_mm"],
-            "branch_force_peak_n": peaks, "motor_torque_peak_nm": r["motor_torque_peak_nm"],
-            "highest_peak_1_5_n": max(peaks[:5]), "balance_max_over_min_1_5": max(peaks[:5]) / min(peaks[:5]),
-            "loop_closure_residual_max_mm": r["loop_closure_residual_max_mm"]}
+    return {
+        "rms_tracking_error_mm": r["rms_tracking_error_mm"],
+        "max_tracking_error_mm": r["max_tracking_error_mm"],
+        "branch_force_peak_n": peaks,
+        "motor_torque_peak_nm": r["motor_torque_peak_nm"],
+        "highest_peak_1_5_n": max(peaks[:5]),
+        "balance_max_over_min_1_5": max(peaks[:5]) / min(peaks[:5]),
+        "loop_closure_residual_max_mm": r["loop_closure_residual_max_mm"],
+    }
 
 
 def plot(result: Result, out) -> list:
@@ -81,8 +90,14 @@ def plot(result: Result, out) -> list:
     width = 0.8 / len(MODES)
     for k, label in enumerate(MODES):
         peaks = np.array([r["branch_force_peak_n"] for r in m["runs"][label].values()])
-        axes[0].bar(np.arange(6) + 1 + (k - len(MODES) / 2 + 0.5) * width, peaks.mean(axis=0), width,
-                    yerr=[peaks.mean(0) - peaks.min(0), peaks.max(0) - peaks.mean(0)], capsize=2, label=label)
+        axes[0].bar(
+            np.arange(6) + 1 + (k - len(MODES) / 2 + 0.5) * width,
+            peaks.mean(axis=0),
+            width,
+            yerr=[peaks.mean(0) - peaks.min(0), peaks.max(0) - peaks.mean(0)],
+            capsize=2,
+            label=label,
+        )
     axes[0].set_xlabel("branch (6: the redundant one, force-controlled in hybrid mode)")
     axes[0].set_ylabel("branch force peak [N] (mean, min-max over seeds)")
     axes[0].legend(fontsize=8)
@@ -104,23 +119,36 @@ def plot(result: Result, out) -> list:
 def table(result: Result) -> str:
     m = result.metrics
     s = m["summary"]
-    lines = [f"p2p, {m['duration_s']:.1f} s, seeded kinematic errors (seeds {m['seeds']}), Table 1 gains.", "",
-             "| mode | seed | RMS [mm] | max [mm] | force peaks, branches 1-6 [N] | highest 1-5 | max/min 1-5 |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        f"p2p, {m['duration_s']:.1f} s, seeded kinematic errors (seeds {m['seeds']}), Table 1 gains.",
+        "",
+        "| mode | seed | RMS [mm] | max [mm] | force peaks, branches 1-6 [N] | highest 1-5 | max/min 1-5 |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for label, per in m["runs"].items():
         for seed, r in per.items():
-            lines.append(f"| {label} | {seed} | {r['rms_tracking_error_mm']:.3f} | {r['max_tracking_error_mm']:.3f} | "
-                         + " ".join(f"{x:.1f}" for x in r["branch_force_peak_n"])
-                         + f" | {r['highest_peak_1_5_n']:.1f} | {r['balance_max_over_min_1_5']:.2f} |")
-    lines += ["", "Table 2 shape: force peak of branches 1-5 [N], mean over seeds (motor torque = force x r / eta).", "",
-              "| mode | branch 1 | branch 2 | branch 3 | branch 4 | branch 5 |", "|---|---|---|---|---|---|"]
+            lines.append(
+                f"| {label} | {seed} | {r['rms_tracking_error_mm']:.3f} | {r['max_tracking_error_mm']:.3f} | "
+                + " ".join(f"{x:.1f}" for x in r["branch_force_peak_n"])
+                + f" | {r['highest_peak_1_5_n']:.1f} | {r['balance_max_over_min_1_5']:.2f} |"
+            )
+    lines += [
+        "",
+        "Table 2 shape: force peak of branches 1-5 [N], mean over seeds (motor torque = force x r / eta).",
+        "",
+        "| mode | branch 1 | branch 2 | branch 3 | branch 4 | branch 5 |",
+        "|---|---|---|---|---|---|",
+    ]
     for label in ("PID", "hybrid"):
         peaks = np.mean([r["branch_force_peak_n"][:5] for r in m["runs"][label].values()], axis=0)
         lines.append(f"| {label} | " + " | ".join(f"{x:.1f}" for x in peaks) + " |")
     lines.append("| change | " + " | ".join(f"{x:+.1f} %" for x in s["branch_peak_change_pct_mean"]) + " |")
-    lines += ["", f"Hybrid against PID: RMS error {s['rms_change_pct_mean']:+.1f} % on average "
-              f"(range {s['rms_change_pct_range'][0]:+.1f} to {s['rms_change_pct_range'][1]:+.1f} %), at least 15 % "
-              f"lower on {s['seeds_rms_at_least_15pct_lower']} of {len(m['seeds'])} seeds; highest branch 1-5 force "
-              f"peak {s['highest_peak_1_5_change_pct_mean']:+.1f} % on average, at least 10 % lower on "
-              f"{s['seeds_highest_peak_at_least_10pct_lower']} of {len(m['seeds'])} seeds."]
+    lines += [
+        "",
+        f"Hybrid against PID: RMS error {s['rms_change_pct_mean']:+.1f} % on average "
+        f"(range {s['rms_change_pct_range'][0]:+.1f} to {s['rms_change_pct_range'][1]:+.1f} %), at least 15 % "
+        f"lower on {s['seeds_rms_at_least_15pct_lower']} of {len(m['seeds'])} seeds; highest branch 1-5 force "
+        f"peak {s['highest_peak_1_5_change_pct_mean']:+.1f} % on average, at least 10 % lower on "
+        f"{s['seeds_highest_peak_at_least_10pct_lower']} of {len(m['seeds'])} seeds.",
+    ]
     return "\n".join(lines)

@@ -42,10 +42,14 @@ DESCENT = 0.035  # m
 # the chamfer, slowly over it (the chamfer takes the 3 mm misalignment within about 4 mm of descent), then into the hole
 MOVES = ((0.012, 0.05), (0.018, 0.005), (DESCENT, 0.02))
 QUICK_MOVES = ((0.012, 0.05), (0.018, 0.01), (DESCENT, 0.03))
-ADMITTANCE = AdmittanceGains(mass=np.array([6.0, 6.0, 20.0]), damping=np.array([1500.0, 1500.0, 8000.0]),
-                             stiffness=np.array([0.0, 0.0, 2e4]))
-RUNS = {"IMC, stiff": ("imc", None), "hybrid + admittance": ("hybrid", ADMITTANCE),
-        "IMC + admittance": ("imc", ADMITTANCE)}
+ADMITTANCE = AdmittanceGains(
+    mass=np.array([6.0, 6.0, 20.0]), damping=np.array([1500.0, 1500.0, 8000.0]), stiffness=np.array([0.0, 0.0, 2e4])
+)
+RUNS = {
+    "IMC, stiff": ("imc", None),
+    "hybrid + admittance": ("hybrid", ADMITTANCE),
+    "IMC + admittance": ("imc", ADMITTANCE),
+}
 QUICK_RUNS = ("IMC, stiff", "hybrid + admittance")
 JAM_FRACTION = 0.9
 
@@ -57,8 +61,14 @@ def options() -> ModelOptions:
 def path(rates: LoopRates = LoopRates(), quick: bool = False):
     """Down from home in three straight moves, at rest between them (:data:`MOVES`)."""
     moves = QUICK_MOVES if quick else MOVES
-    return platform_waypoints(Geometry.default().home, [[0, 0, 0]] + [[0, 0, -z] for z, _ in moves], rates,
-                              v_max=[v for _, v in moves], a_max=0.1, hold=0.1 if quick else 0.3)
+    return platform_waypoints(
+        Geometry.default().home,
+        [[0, 0, 0]] + [[0, 0, -z] for z, _ in moves],
+        rates,
+        v_max=[v for _, v in moves],
+        a_max=0.1,
+        hold=0.1 if quick else 0.3,
+    )
 
 
 def _metrics(result: dict, arrays: dict) -> dict:
@@ -70,25 +80,31 @@ def _metrics(result: dict, arrays: dict) -> dict:
     lateral = np.linalg.norm(force[:, :2], axis=1)
     commanded = DESCENT - (HOLE["top"] - PEG["bottom"] - PEG["radius"])
     arrays["insertion_depth"] = depth
-    return {"final_depth_mm": float(depth[-1] * 1e3), "commanded_depth_mm": commanded * 1e3,
-            "jammed": bool(depth[-1] < JAM_FRACTION * commanded),
-            "peak_lateral_force_n": float(lateral.max()), "final_lateral_force_n": float(lateral[-1]),
-            "peak_axial_force_n": float(np.abs(force[:, 2]).max()),
-            # the share of position periods with more than 1 N of contact force on the tool
-            "periods_in_contact_fraction": float(np.mean(np.linalg.norm(force, axis=1) > 1.0)),
-            # where the peg's tip ends, x and y, from the hole's axis
-            "tip_from_hole_axis_final_mm": ((tip[-1, :2] - hole_axis) * 1e3).tolist(),
-            "highest_branch_force_peak_n": max(result["branch_force_peak_n"]),
-            "wall_s": result["wall_s"]}
+    return {
+        "final_depth_mm": float(depth[-1] * 1e3),
+        "commanded_depth_mm": commanded * 1e3,
+        "jammed": bool(depth[-1] < JAM_FRACTION * commanded),
+        "peak_lateral_force_n": float(lateral.max()),
+        "final_lateral_force_n": float(lateral[-1]),
+        "peak_axial_force_n": float(np.abs(force[:, 2]).max()),
+        # the share of position periods with more than 1 N of contact force on the tool
+        "periods_in_contact_fraction": float(np.mean(np.linalg.norm(force, axis=1) > 1.0)),
+        # where the peg's tip ends, x and y, from the hole's axis
+        "tip_from_hole_axis_final_mm": ((tip[-1, :2] - hole_axis) * 1e3).tolist(),
+        "highest_branch_force_peak_n": max(result["branch_force_peak_n"]),
+        "wall_s": result["wall_s"],
+    }
 
 
 def run(quick: bool = False) -> Result:
     runs = {k: v for k, v in RUNS.items() if not quick or k in QUICK_RUNS}
     results, series = run_modes(path(quick=quick), options(), runs)
-    metrics = {"hole_offset_mm": [v * 1e3 for v in OFFSET], "descent_mm": DESCENT * 1e3,
-               "admittance": {k: np.asarray(getattr(ADMITTANCE, k)).tolist() for k in
-                              ("mass", "damping", "stiffness")},
-               "runs": {label: _metrics(results[label], series[label]) for label in runs}}
+    metrics = {
+        "hole_offset_mm": [v * 1e3 for v in OFFSET],
+        "descent_mm": DESCENT * 1e3,
+        "admittance": {k: np.asarray(getattr(ADMITTANCE, k)).tolist() for k in ("mass", "damping", "stiffness")},
+        "runs": {label: _metrics(results[label], series[label]) for label in runs},
+    }
     stiff, soft = metrics["runs"]["IMC, stiff"], metrics["runs"]["hybrid + admittance"]
     metrics["peak_lateral_change_pct"] = pct(soft["peak_lateral_force_n"], stiff["peak_lateral_force_n"])
     if not quick:
@@ -96,33 +112,45 @@ def run(quick: bool = False) -> Result:
         label = "hybrid + admittance"
         res, arr = run_modes(path(rates), opts, {label: RUNS[label]}, rates=rates)
         fine = _metrics(res[label], arr[label])
-        metrics["halved_steps"] = {"run": label, **{k: fine[k] for k in ("final_depth_mm", "peak_lateral_force_n",
-                                                                         "final_lateral_force_n", "jammed")},
-                                   "final_depth_change_pct": pct(fine["final_depth_mm"],
-                                                                 metrics["runs"][label]["final_depth_mm"])}
+        metrics["halved_steps"] = {
+            "run": label,
+            **{k: fine[k] for k in ("final_depth_mm", "peak_lateral_force_n", "final_lateral_force_n", "jammed")},
+            "final_depth_change_pct": pct(fine["final_depth_mm"], metrics["runs"][label]["final_depth_mm"]),
+        }
     return Result("peg_in_hole", metrics, series)
 
 
 def plot(result: Result, out) -> list:
-    fig = force_figure(result.series, f"Fig. 9a: peg in hole, {result.metrics['hole_offset_mm'][0]:.0f} mm off axis "
-                                      "(real MJX contact)", "insertion_depth", "peg tip below the hole's top [mm]")
+    fig = force_figure(
+        result.series,
+        f"Fig. 9a: peg in hole, {result.metrics['hole_offset_mm'][0]:.0f} mm off axis (real MJX contact)",
+        "insertion_depth",
+        "peg tip below the hole's top [mm]",
+    )
     return [save_atomic(fig, out / "peg_in_hole.png")]
 
 
 def table(result: Result) -> str:
     m = result.metrics
-    lines = [f"Peg in hole, hole {m['hole_offset_mm'][0]:.1f} mm off the peg's axis, {m['descent_mm']:.0f} mm "
-             "descent, Table 1 gains.", "",
-             "| run | final depth [mm] | jammed | peak lateral [N] | final lateral [N] | peak axial [N] |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        f"Peg in hole, hole {m['hole_offset_mm'][0]:.1f} mm off the peg's axis, {m['descent_mm']:.0f} mm "
+        "descent, Table 1 gains.",
+        "",
+        "| run | final depth [mm] | jammed | peak lateral [N] | final lateral [N] | peak axial [N] |",
+        "|---|---|---|---|---|---|",
+    ]
     for label, r in m["runs"].items():
-        lines.append(f"| {label} | {r['final_depth_mm']:.2f} of {r['commanded_depth_mm']:.0f} | "
-                     f"{'yes' if r['jammed'] else 'no'} | {r['peak_lateral_force_n']:.1f} | "
-                     f"{r['final_lateral_force_n']:.1f} | {r['peak_axial_force_n']:.1f} |")
+        lines.append(
+            f"| {label} | {r['final_depth_mm']:.2f} of {r['commanded_depth_mm']:.0f} | "
+            f"{'yes' if r['jammed'] else 'no'} | {r['peak_lateral_force_n']:.1f} | "
+            f"{r['final_lateral_force_n']:.1f} | {r['peak_axial_force_n']:.1f} |"
+        )
     lines += ["", f"Peak lateral force, hybrid + admittance against IMC stiff: {m['peak_lateral_change_pct']:+.1f} %."]
     if "halved_steps" in m:
         h = m["halved_steps"]
-        lines.append(f"Every step halved ({h['run']}): final depth {h['final_depth_mm']:.2f} mm "
-                     f"({h['final_depth_change_pct']:+.2f} %), peak lateral {h['peak_lateral_force_n']:.1f} N, "
-                     f"final lateral {h['final_lateral_force_n']:.1f} N.")
+        lines.append(
+            f"Every step halved ({h['run']}): final depth {h['final_depth_mm']:.2f} mm "
+            f"({h['final_depth_change_pct']:+.2f} %), peak lateral {h['peak_lateral_force_n']:.1f} N, "
+            f"final lateral {h['final_lateral_force_n']:.1f} N."
+        )
     return "\n".join(lines)

@@ -2,7 +2,8 @@
 
 For the current, velocity and position loops of every axis, from the linear models of
 :mod:`pusupu_jax.analysis` (python-control, continuous, the single-axis load of the built-in machine,
-:func:`pusupu_jax.machine_file.axis_load`, with the drive train's viscous friction; as ``pusupu analyze``): the loop gain
+:func:`pusupu_jax.machine_file.axis_load`, with the drive train's viscous friction; as ``pusupu analyze``): the loop
+gain
 ``L`` broken at the controller's output (:func:`~pusupu_jax.analysis.open_loops`) with its gain
 crossover [Hz], phase crossover [Hz], phase margin [deg] and gain margin [dB]; the closed loop's
 step from its reference (10-90 % rise [s], 2 % settling [s], overshoot [%], -3 dB bandwidth [Hz]);
@@ -38,16 +39,24 @@ from . import Result
 LOAD_FORCE_N = 100.0  # N on the slider: about the branch force peaks on the paths (116-137 N, docs/tuning.md)
 BODE_HZ = {"current": (1.0, 2e4), "velocity": (0.1, 2e3), "position": (0.01, 200.0)}  # Hz, plotted band
 STEP_PLOT_S = {"current": 0.01, "velocity": 0.25, "position": 0.5}  # s of the reference step drawn
-OUTPUT = {"current": (0, "i", "A", "disturbance_peak_a"), "velocity": (1, "w", "rad/s", "disturbance_peak_rad_s"),
-          "position": (2, "theta", "rad", "disturbance_peak_rad")}  # output index, name, unit, metric key
+OUTPUT = {
+    "current": (0, "i", "A", "disturbance_peak_a"),
+    "velocity": (1, "w", "rad/s", "disturbance_peak_rad_s"),
+    "position": (2, "theta", "rad", "disturbance_peak_rad"),
+}  # output index, name, unit, metric key
 
 
 def axis_groups(servo: ServoParams, load: AxisLoad) -> list[list[int]]:
     """Axes (0-based) with identical servo and load parameters, in order of their first axis."""
     groups = {}
     for k in range(N_AXES):
-        key = tuple(sorted((analysis.axis_values(servo, k) | {f"load.{n}": v for n, v in
-                                                                analysis.axis_values(load, k).items()}).items()))
+        key = tuple(
+            sorted(
+                (
+                    analysis.axis_values(servo, k) | {f"load.{n}": v for n, v in analysis.axis_values(load, k).items()}
+                ).items()
+            )
+        )
         groups.setdefault(key, []).append(k)
     return list(groups.values())
 
@@ -78,10 +87,15 @@ def analyse_axis(servo: ServoParams, load: AxisLoad, axis: int, mode: str) -> tu
         f = np.geomspace(*BODE_HZ[name], 500)
         resp = ol[name](2j * np.pi * f)
         t_step = np.linspace(0.0, STEP_PLOT_S[name], 1001)
-        arrays[name] = {"f_hz": f, "mag_db": 20 * np.log10(np.abs(resp)),
-                        "phase_deg": np.degrees(np.unwrap(np.angle(resp))), "t_step": t_step,
-                        "step": ct.step_response(cl[name][out, 0], t_step).outputs, "t_dist": t[::30],
-                        "dist": dist[::30]}
+        arrays[name] = {
+            "f_hz": f,
+            "mag_db": 20 * np.log10(np.abs(resp)),
+            "phase_deg": np.degrees(np.unwrap(np.angle(resp))),
+            "t_step": t_step,
+            "step": ct.step_response(cl[name][out, 0], t_step).outputs,
+            "t_dist": t[::30],
+            "dist": dist[::30],
+        }
     return metrics, arrays
 
 
@@ -96,8 +110,11 @@ def analyse(servo: ServoParams, load: AxisLoad, mode: str) -> tuple[dict, dict]:
             for k in group:
                 per_axis[k] = metrics
             series[("axes " if len(group) > 1 else "axis ") + _axes([k + 1 for k in group])] = arrays
-    return {"axis_groups": [[k + 1 for k in g] for g in groups],
-            "load_torque_nm": [load_torque_nm(servo, k) for k in range(N_AXES)], "axes": per_axis}, series
+    return {
+        "axis_groups": [[k + 1 for k in g] for g in groups],
+        "load_torque_nm": [load_torque_nm(servo, k) for k in range(N_AXES)],
+        "axes": per_axis,
+    }, series
 
 
 def _axes(numbers) -> str:
@@ -111,9 +128,13 @@ def run(quick: bool = False, gains=None) -> Result:
     mode = "imc" if gains is None else gains.mode
     load = machine_file.axis_load(Machine.default())  # the gain check's load: the mass a slider carries at home
     sets = {"Table 1": ServoParams.table1()} | ({} if gains is None else {"tuned": gains.servo})
-    metrics = {"mode": mode, "model": "continuous, single-axis load: the mass each slider of the built-in machine "
-               "carries at home (machine_file.axis_load), with the drive train's viscous friction",
-               "load_force_n": LOAD_FORCE_N, "sets": {}}
+    metrics = {
+        "mode": mode,
+        "model": "continuous, single-axis load: the mass each slider of the built-in machine "
+        "carries at home (machine_file.axis_load), with the drive train's viscous friction",
+        "load_force_n": LOAD_FORCE_N,
+        "sets": {},
+    }
     series = {}
     for label, servo in sets.items():
         metrics["sets"][label], series[label] = analyse(servo, load, mode)
@@ -134,16 +155,31 @@ def plot(result: Result, out) -> list:
             for g, (axes, (group, arrays)) in enumerate(zip(m["sets"][label]["axis_groups"], groups.items())):
                 row, a = m["sets"][label]["axes"][axes[0] - 1][name], arrays[name]
                 color = f"C{s * len(groups) + g}"
-                ax[0, 0].semilogx(a["f_hz"], a["mag_db"], style, color=color,
-                                  label=f"{label}, {group}: crossover {_num(row['crossover_hz'])} Hz, "
-                                        f"PM {_num(row['phase_margin_deg'], '.1f')} deg, "
-                                        f"GM {_num(row['gain_margin_db'], '.1f')} dB")
+                ax[0, 0].semilogx(
+                    a["f_hz"],
+                    a["mag_db"],
+                    style,
+                    color=color,
+                    label=f"{label}, {group}: crossover {_num(row['crossover_hz'])} Hz, "
+                    f"PM {_num(row['phase_margin_deg'], '.1f')} deg, "
+                    f"GM {_num(row['gain_margin_db'], '.1f')} dB",
+                )
                 ax[1, 0].semilogx(a["f_hz"], a["phase_deg"], style, color=color)
-                ax[0, 1].plot(a["t_step"], a["step"], style, color=color,
-                              label=f"{label}, {group}: rise {row['rise_time_s'] * 1e3:.3g} ms, overshoot "
-                                    f"{row['overshoot_pct']:.3g} %")
-                ax[1, 1].plot(a["t_dist"], a["dist"], style, color=color,
-                              label=f"{label}, {group}: peak {row[OUTPUT[name][3]]:.3g} {unit}")
+                ax[0, 1].plot(
+                    a["t_step"],
+                    a["step"],
+                    style,
+                    color=color,
+                    label=f"{label}, {group}: rise {row['rise_time_s'] * 1e3:.3g} ms, overshoot "
+                    f"{row['overshoot_pct']:.3g} %",
+                )
+                ax[1, 1].plot(
+                    a["t_dist"],
+                    a["dist"],
+                    style,
+                    color=color,
+                    label=f"{label}, {group}: peak {row[OUTPUT[name][3]]:.3g} {unit}",
+                )
         ax[0, 0].axhline(0, color="k", lw=0.6)
         ax[1, 0].axhline(-180, color="k", lw=0.6)
         ax[0, 0].set_ylabel("|L| [dB]")
@@ -161,8 +197,9 @@ def plot(result: Result, out) -> list:
         for a in (ax[0, 0], ax[0, 1], ax[1, 1]):
             a.legend(fontsize=7)
         position = f" of mode {m['mode']}" if name == "position" else ""
-        fig.suptitle(f"{name} loop{position}: Table 1 (solid)" + (" vs tuned (dashed)" if "tuned" in result.series
-                                                                  else ""))
+        fig.suptitle(
+            f"{name} loop{position}: Table 1 (solid)" + (" vs tuned (dashed)" if "tuned" in result.series else "")
+        )
         fig.tight_layout()
         files.append(save_atomic(fig, out / f"servo_{name}.png"))
     return files
@@ -170,21 +207,26 @@ def plot(result: Result, out) -> list:
 
 def table(result: Result) -> str:
     m = result.metrics
-    lines = [f"Servo loops, continuous model, single-axis load; position loop of mode {m['mode']}; load-torque step "
-             f"of {LOAD_FORCE_N:g} N on the slider ({m['sets']['Table 1']['load_torque_nm'][0]:.3f} N m on axis 1's "
-             "motor with Table 1's screw).", "",
-             "| loop | gains | axes | crossover [Hz] | phase crossover [Hz] | PM [deg] | GM [dB] | bandwidth [Hz] | "
-             "rise [ms] | settling [ms] | overshoot [%] | load-torque peak | at [ms] |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"Servo loops, continuous model, single-axis load; position loop of mode {m['mode']}; load-torque step "
+        f"of {LOAD_FORCE_N:g} N on the slider ({m['sets']['Table 1']['load_torque_nm'][0]:.3f} N m on axis 1's "
+        "motor with Table 1's screw).",
+        "",
+        "| loop | gains | axes | crossover [Hz] | phase crossover [Hz] | PM [deg] | GM [dB] | bandwidth [Hz] | "
+        "rise [ms] | settling [ms] | overshoot [%] | load-torque peak | at [ms] |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for name, (_, _, unit, key) in OUTPUT.items():
         for label, s in m["sets"].items():
             for group in s["axis_groups"]:
                 r = s["axes"][group[0] - 1][name]
                 peak = f"{r[key]:.3g} {unit}" + (f" ({r['disturbance_peak_mm']:.3g} mm)" if name == "position" else "")
-                lines.append(f"| {name} | {label} | {_axes(group)} | "
-                             f"{_num(r['crossover_hz'])} | {_num(r['phase_crossover_hz'])} | "
-                             f"{_num(r['phase_margin_deg'], '.1f')} | {_num(r['gain_margin_db'], '.1f')} | "
-                             f"{_num(r['bandwidth_hz'])} | {r['rise_time_s'] * 1e3:.3g} | "
-                             f"{r['settling_time_s'] * 1e3:.3g} | {r['overshoot_pct']:.3g} | {peak} | "
-                             f"{r['disturbance_peak_time_s'] * 1e3:.3g} |")
+                lines.append(
+                    f"| {name} | {label} | {_axes(group)} | "
+                    f"{_num(r['crossover_hz'])} | {_num(r['phase_crossover_hz'])} | "
+                    f"{_num(r['phase_margin_deg'], '.1f')} | {_num(r['gain_margin_db'], '.1f')} | "
+                    f"{_num(r['bandwidth_hz'])} | {r['rise_time_s'] * 1e3:.3g} | "
+                    f"{r['settling_time_s'] * 1e3:.3g} | {r['overshoot_pct']:.3g} | {peak} | "
+                    f"{r['disturbance_peak_time_s'] * 1e3:.3g} |"
+                )
     return "\n".join(lines)

@@ -21,8 +21,14 @@ from pusupu_jax.trajectories import platform_path
 from . import Result
 
 QUICK_S = 2.0
-KEYS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho", "loop_closure_residual_max_mm",
-        "duration_s", "wall_s")
+KEYS = (
+    "rms_tracking_error_mm",
+    "max_tracking_error_mm",
+    "sync_error_rho",
+    "loop_closure_residual_max_mm",
+    "duration_s",
+    "wall_s",
+)
 
 
 def run(quick: bool = False, trajectory: str = "arc", mode: str = "imc") -> Result:
@@ -32,12 +38,13 @@ def run(quick: bool = False, trajectory: str = "arc", mode: str = "imc") -> Resu
         options = dataclasses.replace(ModelOptions(), timestep=ModelOptions().timestep / factor)
         path = platform_path(trajectory, Geometry.default().home, rates)
         if quick:
-            path = path[:int(QUICK_S / rates.dt_position)]
+            path = path[: int(QUICK_S / rates.dt_position)]
         result, _ = simulate_machine(ServoParams.table1(), path, mode=mode, options=options, rates=rates)
         runs[label] = {k: result[k] for k in KEYS}
     a, b = runs["default"]["rms_tracking_error_mm"], runs["halved"]["rms_tracking_error_mm"]
-    return Result("timing", {"trajectory": trajectory, "mode": mode, "runs": runs,
-                             "rms_relative_change": abs(b - a) / a})
+    return Result(
+        "timing", {"trajectory": trajectory, "mode": mode, "runs": runs, "rms_relative_change": abs(b - a) / a}
+    )
 
 
 def plot(result: Result, out) -> list:
@@ -46,10 +53,19 @@ def plot(result: Result, out) -> list:
 
 def table(result: Result) -> str:
     m = result.metrics
-    lines = [f"Timing convergence, {m['trajectory']}, {m['mode']}: every step halved.", "",
-             "| steps | RMS [mm] | max [mm] | loop-closure residual [mm] |", "|---|---|---|---|"]
+    lines = [
+        f"Timing convergence, {m['trajectory']}, {m['mode']}: every step halved.",
+        "",
+        "| steps | RMS [mm] | max [mm] | loop-closure residual [mm] |",
+        "|---|---|---|---|",
+    ]
     for label, r in m["runs"].items():
-        lines.append(f"| {label} | {r['rms_tracking_error_mm']:.5f} | {r['max_tracking_error_mm']:.5f} | "
-                     f"{r['loop_closure_residual_max_mm']:.2e} |")
-    lines += ["", f"RMS relative change: {m['rms_relative_change'] * 100:.3f} % ({np.round(m['rms_relative_change'], 6)})."]
+        lines.append(
+            f"| {label} | {r['rms_tracking_error_mm']:.5f} | {r['max_tracking_error_mm']:.5f} | "
+            f"{r['loop_closure_residual_max_mm']:.2e} |"
+        )
+    lines += [
+        "",
+        f"RMS relative change: {m['rms_relative_change'] * 100:.3f} % ({np.round(m['rms_relative_change'], 6)}).",
+    ]
     return "\n".join(lines)

@@ -43,8 +43,12 @@ from .p2p import MODES
 
 PATHS = ("arc", "p2p")
 SETS = ("Table 1", "tuned")
-KEYS = {"rms_tracking_error_mm": "RMS error [mm]", "max_tracking_error_mm": "max error [mm]",
-        "highest_reversal_error_mm": "reversal glitch [mm]", "highest_branch_force_peak_n": "highest branch force peak [N]"}
+KEYS = {
+    "rms_tracking_error_mm": "RMS error [mm]",
+    "max_tracking_error_mm": "max error [mm]",
+    "highest_reversal_error_mm": "reversal glitch [mm]",
+    "highest_branch_force_peak_n": "highest branch force peak [N]",
+}
 
 
 def highest(values) -> float:
@@ -64,9 +68,13 @@ def tune(quick: bool = False):
         if status:
             raise ParameterError(f"tune: no gains exported: {report['export_error']}")
         g = gain_files.load(Path(folder) / "gains.yaml", floors=(cfg.pm_min, cfg.gm_min))
-    return g, {"source": f"pusupu tune{' --quick' if quick else ''}, run by this experiment",
-               "config_hash": cfg.digest(), "objective_before": report["objective_before"],
-               "objective_after": report["objective_after"], "tune_wall_s": report["wall_s"]}
+    return g, {
+        "source": f"pusupu tune{' --quick' if quick else ''}, run by this experiment",
+        "config_hash": cfg.digest(),
+        "objective_before": report["objective_before"],
+        "objective_after": report["objective_after"],
+        "tune_wall_s": report["wall_s"],
+    }
 
 
 def changed_fields(g) -> dict:
@@ -75,11 +83,17 @@ def changed_fields(g) -> dict:
     out = {}
     for section, name, value, unit, _ in gain_files.rows(g.document):
         ref = getattr(base.get(section, ServoParams.table1()), name)
-        same = value == ref if isinstance(value, str) else np.allclose(np.asarray(value, float), np.asarray(ref, float),
-                                                                       rtol=1e-12, atol=0.0)
+        same = (
+            value == ref
+            if isinstance(value, str)
+            else np.allclose(np.asarray(value, float), np.asarray(ref, float), rtol=1e-12, atol=0.0)
+        )
         if not same:
-            out[name] = {"table1": ref if isinstance(ref, str) else float(np.asarray(ref).flat[0]), "tuned": value,
-                         "unit": unit}
+            out[name] = {
+                "table1": ref if isinstance(ref, str) else float(np.asarray(ref).flat[0]),
+                "tuned": value,
+                "unit": unit,
+            }
     return out
 
 
@@ -88,47 +102,77 @@ def run(quick: bool = False, gains=None) -> Result:
         gains, source = tune(quick)
     else:
         p = gains.document["provenance"]
-        source = {"source": "gain file", "checksum": gains.document["checksum"], "created_utc": p.get("created_utc"),
-                  "config_hash": p.get("config_hash")}
+        source = {
+            "source": "gain file",
+            "checksum": gains.document["checksum"],
+            "created_utc": p.get("created_utc"),
+            "config_hash": p.get("config_hash"),
+        }
     sets = {"Table 1": (ServoParams.table1(), None, LoopRates()), "tuned": (gains.servo, gains.hybrid, gains.rates)}
     runs, series, duration = {}, {}, {}
     for set_label, (_, _, rates) in sets.items():  # every mode on both paths: bounded before any of it runs
         seconds = sum(min(QUICK_S, path_seconds(kind)) if quick else path_seconds(kind) for kind in PATHS)
-        workload.check_run(f"experiment tuned, the {set_label} gains' rates", len(MODES) * seconds,
-                           machine_rates(rates=rates), machine=True)
+        workload.check_run(
+            f"experiment tuned, the {set_label} gains' rates",
+            len(MODES) * seconds,
+            machine_rates(rates=rates),
+            machine=True,
+        )
     for set_label, (servo, hybrid, rates) in sets.items():
         scenarios = []
         for kind in PATHS:
             path = platform_path(kind, Geometry.default().home, rates)
-            path = path[:int(QUICK_S / rates.dt_position)] if quick else path
+            path = path[: int(QUICK_S / rates.dt_position)] if quick else path
             duration[kind] = len(path) * rates.dt_position
             scenarios.append(Scenario(path, name=kind))
         for label, mode in MODES.items():
             # hybrid gains only in hybrid mode: a None elsewhere keeps the compiled rollout of the other experiments
-            out = simulate_scenarios(servo, scenarios, mode=mode, rates=rates,
-                                     hybrid=hybrid if control_mode(mode).hybrid else None)
+            out = simulate_scenarios(
+                servo, scenarios, mode=mode, rates=rates, hybrid=hybrid if control_mode(mode).hybrid else None
+            )
             for sc, (r, a) in zip(scenarios, out):
                 runs.setdefault(sc.name, {}).setdefault(label, {})[set_label] = {
-                    k: r[k] for k in ("rms_tracking_error_mm", "max_tracking_error_mm", "branch_force_peak_n",
-                                      "loop_closure_residual_max_mm")} | {
+                    k: r[k]
+                    for k in (
+                        "rms_tracking_error_mm",
+                        "max_tracking_error_mm",
+                        "branch_force_peak_n",
+                        "loop_closure_residual_max_mm",
+                    )
+                } | {
                     "highest_branch_force_peak_n": max(r["branch_force_peak_n"]),
-                    "highest_reversal_error_mm": highest(r["branch_reversal_error_mm"])}
+                    "highest_reversal_error_mm": highest(r["branch_reversal_error_mm"]),
+                }
                 series.setdefault(sc.name, {}).setdefault(label, {})[set_label] = {
                     "t": np.asarray(a["t"]),
-                    "error_mm": np.linalg.norm(np.asarray(a["platform"]) - np.asarray(a["reference"]), axis=1) * 1e3}
+                    "error_mm": np.linalg.norm(np.asarray(a["platform"]) - np.asarray(a["reference"]), axis=1) * 1e3,
+                }
     for per_mode in runs.values():
         for r in per_mode.values():
             r["change_pct"] = {k: pct(r["tuned"][k], r["Table 1"][k]) for k in KEYS}
     tuned_mode = next(label for label, mode in MODES.items() if mode == gains.mode)
     changes = [r["change_pct"]["rms_tracking_error_mm"] for per_mode in runs.values() for r in per_mode.values()]
     metrics = {
-        "duration_s": duration, "quick": quick, "start": "rest", "kin_errors": None,
-        "gains": source | {"mode": gains.mode, "imc_form": gains.servo.imc_form, "changed": changed_fields(gains),
-                           "rates_as_table1": dataclasses.replace(gains.rates, n_mech=1) == LoopRates()},
-        "tuned_mode": tuned_mode, "runs": runs,
-        "summary": {"rms_change_pct_in_tuned_mode": {k: runs[k][tuned_mode]["change_pct"]["rms_tracking_error_mm"]
-                                                     for k in PATHS},
-                    "runs_with_lower_rms": int(sum(c < 0 for c in changes)), "runs": len(changes)},
+        "duration_s": duration,
+        "quick": quick,
+        "start": "rest",
+        "kin_errors": None,
+        "gains": source
+        | {
+            "mode": gains.mode,
+            "imc_form": gains.servo.imc_form,
+            "changed": changed_fields(gains),
+            "rates_as_table1": dataclasses.replace(gains.rates, n_mech=1) == LoopRates(),
+        },
+        "tuned_mode": tuned_mode,
+        "runs": runs,
+        "summary": {
+            "rms_change_pct_in_tuned_mode": {
+                k: runs[k][tuned_mode]["change_pct"]["rms_tracking_error_mm"] for k in PATHS
+            },
+            "runs_with_lower_rms": int(sum(c < 0 for c in changes)),
+            "runs": len(changes),
+        },
     }
     return Result("tuned", metrics, series)
 
@@ -140,32 +184,39 @@ def plot(result: Result, out) -> list:
     groups = [(kind, label) for kind in PATHS for label in MODES]
     x = np.arange(len(groups))
     for col, (key, title) in enumerate(KEYS.items()):
-        ax = fig.add_subplot(grid[0, 2 * col:2 * col + 2])
+        ax = fig.add_subplot(grid[0, 2 * col : 2 * col + 2])
         for s, set_label in enumerate(SETS):
             values = [m["runs"][kind][label][set_label][key] for kind, label in groups]
             ax.bar(x + (s - 0.5) * 0.4, values, 0.4, label=set_label)
         for k, (kind, label) in enumerate(groups):
             r = m["runs"][kind][label]
-            ax.annotate(f"{r['change_pct'][key]:+.0f}%", (k + 0.2, r["tuned"][key]), ha="center", va="bottom",
-                        fontsize=7)
+            ax.annotate(
+                f"{r['change_pct'][key]:+.0f}%", (k + 0.2, r["tuned"][key]), ha="center", va="bottom", fontsize=7
+            )
         ax.set_xticks(x, [f"{kind}\n{label}" for kind, label in groups], fontsize=6, rotation=90)
         ax.set_ylabel(title)
         ax.grid(True, axis="y", alpha=0.3)
         ax.legend(fontsize=8)
     mode = m["tuned_mode"]
     for col, kind in enumerate(PATHS):
-        ax = fig.add_subplot(grid[1, len(KEYS) * col:len(KEYS) * (col + 1)])
+        ax = fig.add_subplot(grid[1, len(KEYS) * col : len(KEYS) * (col + 1)])
         for set_label in SETS:
             a = result.series[kind][mode][set_label]
-            ax.plot(a["t"], a["error_mm"], lw=1, label=f"{set_label}: RMS "
-                    f"{m['runs'][kind][mode][set_label]['rms_tracking_error_mm']:.3g} mm")
+            ax.plot(
+                a["t"],
+                a["error_mm"],
+                lw=1,
+                label=f"{set_label}: RMS {m['runs'][kind][mode][set_label]['rms_tracking_error_mm']:.3g} mm",
+            )
         ax.set_yscale("log")
         ax.set_xlabel("time [s]")
         ax.set_ylabel(f"platform position error [mm], {kind}, {mode}")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
-    fig.suptitle(f"Table 1 vs tuned gains ({m['gains']['source']}, tuned in mode {m['gains']['mode']}), "
-                 f"arc {m['duration_s']['arc']:.1f} s and p2p {m['duration_s']['p2p']:.1f} s, no kinematic errors")
+    fig.suptitle(
+        f"Table 1 vs tuned gains ({m['gains']['source']}, tuned in mode {m['gains']['mode']}), "
+        f"arc {m['duration_s']['arc']:.1f} s and p2p {m['duration_s']['p2p']:.1f} s, no kinematic errors"
+    )
     fig.tight_layout()
     return [save_atomic(fig, out / "tuned.png")]
 
@@ -173,21 +224,31 @@ def plot(result: Result, out) -> list:
 def table(result: Result) -> str:
     m = result.metrics
     g = m["gains"]
-    changed = ", ".join(f"{k} {v['table1']:g} -> {_value(v['tuned'])} {v['unit']}" if not isinstance(v["table1"], str)
-                        else f"{k} {v['table1']} -> {v['tuned']}" for k, v in g["changed"].items())
-    lines = [f"Table 1 vs tuned gains ({g['source']}; tuned in mode {g['mode']}: {changed or 'nothing changed'}). "
-             f"Arc {m['duration_s']['arc']:.1f} s, p2p {m['duration_s']['p2p']:.1f} s, no kinematic errors, "
-             "start at rest.", "",
-             "| path | mode | " + " | ".join(f"{title} Table 1 | tuned | change" for title in KEYS.values()) + " |",
-             "|---|---|" + "---|---|---|" * len(KEYS)]
+    changed = ", ".join(
+        f"{k} {v['table1']:g} -> {_value(v['tuned'])} {v['unit']}"
+        if not isinstance(v["table1"], str)
+        else f"{k} {v['table1']} -> {v['tuned']}"
+        for k, v in g["changed"].items()
+    )
+    lines = [
+        f"Table 1 vs tuned gains ({g['source']}; tuned in mode {g['mode']}: {changed or 'nothing changed'}). "
+        f"Arc {m['duration_s']['arc']:.1f} s, p2p {m['duration_s']['p2p']:.1f} s, no kinematic errors, "
+        "start at rest.",
+        "",
+        "| path | mode | " + " | ".join(f"{title} Table 1 | tuned | change" for title in KEYS.values()) + " |",
+        "|---|---|" + "---|---|---|" * len(KEYS),
+    ]
     for kind in PATHS:
         for label, r in m["runs"][kind].items():
             cells = [f"{r['Table 1'][k]:.3f} | {r['tuned'][k]:.3f} | {r['change_pct'][k]:+.1f} %" for k in KEYS]
             lines.append(f"| {kind} | {label} | " + " | ".join(cells) + " |")
     s = m["summary"]
-    lines += ["", f"In the tuned mode ({m['tuned_mode']}) the RMS error changes by "
-              + " and ".join(f"{v:+.1f} % on {k}" for k, v in s["rms_change_pct_in_tuned_mode"].items())
-              + f"; the tuned gains track closer in {s['runs_with_lower_rms']} of {s['runs']} path x mode runs."]
+    lines += [
+        "",
+        f"In the tuned mode ({m['tuned_mode']}) the RMS error changes by "
+        + " and ".join(f"{v:+.1f} % on {k}" for k, v in s["rms_change_pct_in_tuned_mode"].items())
+        + f"; the tuned gains track closer in {s['runs_with_lower_rms']} of {s['runs']} path x mode runs.",
+    ]
     return "\n".join(lines)
 
 

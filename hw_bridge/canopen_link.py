@@ -47,8 +47,16 @@ SYNC_ECHO = 0x2000  # manufacturer-specific: the counter of the SYNC a drive's T
 def drive_dictionary():
     """The object dictionary of one simulated drive (and of the bridge's view of it)."""
     import canopen
-    from canopen.objectdictionary import (INTEGER8, INTEGER16, INTEGER32, UNSIGNED8, UNSIGNED16, UNSIGNED32,
-                                          ODRecord, ODVariable)
+    from canopen.objectdictionary import (
+        INTEGER8,
+        INTEGER16,
+        INTEGER32,
+        UNSIGNED8,
+        UNSIGNED16,
+        UNSIGNED32,
+        ODRecord,
+        ODVariable,
+    )
 
     od = canopen.ObjectDictionary()
 
@@ -58,24 +66,26 @@ def drive_dictionary():
         return v
 
     od.add_object(var(0x1000, "Device type", UNSIGNED32, "ro", DEVICE_TYPE))
-    for index, name, kind, access in ((0x6040, "Controlword", UNSIGNED16, "rw"),
-                                      (0x6041, "Statusword", UNSIGNED16, "ro"),
-                                      (0x6060, "Modes of operation", INTEGER8, "rw"),
-                                      (0x6061, "Modes of operation display", INTEGER8, "ro"),
-                                      (0x6064, "Position actual value", INTEGER32, "ro"),
-                                      (0x606C, "Velocity actual value", INTEGER32, "ro"),
-                                      (0x6071, "Target torque", INTEGER16, "rw"),
-                                      (0x6076, "Motor rated torque", UNSIGNED32, "rw"),
-                                      (0x6077, "Torque actual value", INTEGER16, "ro"),
-                                      (0x60FF, "Target velocity", INTEGER32, "rw"),
-                                      (SYNC_ECHO, "SYNC counter echo", UNSIGNED8, "ro")):
+    for index, name, kind, access in (
+        (0x6040, "Controlword", UNSIGNED16, "rw"),
+        (0x6041, "Statusword", UNSIGNED16, "ro"),
+        (0x6060, "Modes of operation", INTEGER8, "rw"),
+        (0x6061, "Modes of operation display", INTEGER8, "ro"),
+        (0x6064, "Position actual value", INTEGER32, "ro"),
+        (0x606C, "Velocity actual value", INTEGER32, "ro"),
+        (0x6071, "Target torque", INTEGER16, "rw"),
+        (0x6076, "Motor rated torque", UNSIGNED32, "rw"),
+        (0x6077, "Torque actual value", INTEGER16, "ro"),
+        (0x60FF, "Target velocity", INTEGER32, "rw"),
+        (SYNC_ECHO, "SYNC counter echo", UNSIGNED8, "ro"),
+    ):
         od.add_object(var(index, name, kind, access))
 
     def pdo(comm_index, map_index, cob_id, entries, name):
         comm = ODRecord(f"{name} communication parameter", comm_index)
-        for sub, (n, kind, default) in enumerate((("Highest sub-index", UNSIGNED8, 2),
-                                                  ("COB-ID", UNSIGNED32, cob_id),
-                                                  ("Transmission type", UNSIGNED8, 1))):
+        for sub, (n, kind, default) in enumerate(
+            (("Highest sub-index", UNSIGNED8, 2), ("COB-ID", UNSIGNED32, cob_id), ("Transmission type", UNSIGNED8, 1))
+        ):
             comm.add_member(var(comm_index, n, kind, "rw", default, sub))
         od.add_object(comm)
         mapping = ODRecord(f"{name} mapping parameter", map_index)
@@ -99,10 +109,11 @@ def node_dictionary(node_id: int):
 
 
 def open_bus(url: str):
-    """``can://INTERFACE/CHANNEL`` (``can://udp_multicast/239.74.163.2``, ``can://socketcan/can0``) -> a python-can bus."""
+    """``can://INTERFACE/CHANNEL`` (``can://udp_multicast/239.74.163.2``, ``can://socketcan/can0``) -> a python-can
+    bus."""
     import can
 
-    rest = url[len("can://"):] if url.startswith("can://") else ""
+    rest = url[len("can://") :] if url.startswith("can://") else ""
     interface, _, channel = rest.partition("/")
     if not interface or not channel:
         raise ValueError(f"expected can://INTERFACE/CHANNEL, got {url!r}")
@@ -183,8 +194,8 @@ class CanLink:
             for k, node in enumerate(self.nodes):
                 m = node.rpdo[1]
                 m["Controlword"].raw = int(cmd.controlword[k])
-                m["Target velocity"].raw = int(np.clip(velocity[k], -2**31, 2**31 - 1))
-                m["Target torque"].raw = int(np.clip(torque[k], -2**15, 2**15 - 1))
+                m["Target velocity"].raw = int(np.clip(velocity[k], -(2**31), 2**31 - 1))
+                m["Target torque"].raw = int(np.clip(torque[k], -(2**15), 2**15 - 1))
                 m.transmit()
             self._sent = cmd.sequence
             self.network.sync.transmit(cmd.sequence % SYNC_OVERFLOW + 1)
@@ -199,7 +210,8 @@ class CanLink:
 
     def poll(self, timeout: float = 0.0):
         """The newest answer that all six drives gave, to one SYNC, since the last one returned (waiting up to
-        ``timeout`` [s] for it), as a :class:`~pusupu_jax.hw_bridge.protocol.Feedback` whose ``ack`` is the command that SYNC
+        ``timeout`` [s] for it), as a :class:`~pusupu_jax.hw_bridge.protocol.Feedback` whose ``ack`` is the command that
+        SYNC
         followed (0: unknown); None if there is none.  While the drives' TPDOs of one SYNC are still arriving, the
         answer before it is the newest complete one.  Drives that do not echo the counter (0) give each drive's last
         answer, once every drive has a new one."""
@@ -211,9 +223,16 @@ class CanLink:
         echo, rows = answer
         status, position, torque, velocity, mode = (np.array(c) for c in zip(*rows))
         fb = protocol.Feedback(  # timestamp 0: a CAN frame carries no send time (the bridge reports no feedback age)
-            self._sequence, 0, self._acknowledged(echo), status.astype(np.uint16),
-            mode.astype(np.int8), position / COUNTS_PER_RAD, velocity / COUNTS_PER_RAD,
-            torque * self.rated / 1000.0, np.full(3, np.nan))
+            self._sequence,
+            0,
+            self._acknowledged(echo),
+            status.astype(np.uint16),
+            mode.astype(np.int8),
+            position / COUNTS_PER_RAD,
+            velocity / COUNTS_PER_RAD,
+            torque * self.rated / 1000.0,
+            np.full(3, np.nan),
+        )
         self._sequence += 1
         return fb
 

@@ -64,4 +64,3 @@ class FlatStep:
         """One step: ``(state_flat (device), out (numpy))``."""
         s, out = self._exe(state, *[np.ravel(x) for x in inputs])
         return s, np.asarray(out)
-

@@ -62,8 +62,7 @@ class BridgeReference:
         if theta.ndim != 2 or len(theta) < 1 or not np.isfinite(theta).all():
             raise ValueError(f"reference.theta: expected finite motor angles (N, n_axes) [rad], got {theta.shape}")
         object.__setattr__(self, "theta", theta)
-        for name, shape in (("force_ff", (len(theta),)), ("coupling", (len(theta), 5)),
-                            ("platform", (len(theta), 3))):
+        for name, shape in (("force_ff", (len(theta),)), ("coupling", (len(theta), 5)), ("platform", (len(theta), 3))):
             v = getattr(self, name)
             if v is not None:
                 v = np.asarray(v, dtype=float)
@@ -118,8 +117,9 @@ def plan(gains: GainFile, drive_modes=None, rate: float | None = None) -> tuple[
         raise ValueError(f"drive modes: expected {n} of {tuple(DRIVE_MODES)}, got {names}")
     if mode.hybrid:
         if drive_modes is not None and names[mode.force_axis] != "cst":
-            raise ValueError(f"drive modes: branch {mode.force_axis + 1} is force-controlled in hybrid mode, "
-                             "so its drive runs CST")
+            raise ValueError(
+                f"drive modes: branch {mode.force_axis + 1} is force-controlled in hybrid mode, so its drive runs CST"
+            )
         names[mode.force_axis] = "cst"
     codes = np.array([DRIVE_MODES[m] for m in names], dtype=np.int8)
     return codes, bridge_rates(gains.rates, bool((codes == CST).any()), rate)
@@ -149,8 +149,11 @@ class BridgeLoop:
         # the path's rows as the steps take them, built once here: start() then computes only the takeover ramp (a
         # copy of the whole path at the first cycle of a run took 1-7 ms there, and the cycle missed its deadline)
         self.path_rows = np.ascontiguousarray(
-            np.column_stack([reference.theta, reference.force_ff, reference.coupling]) if self.mode.hybrid
-            else reference.theta, dtype=float)
+            np.column_stack([reference.theta, reference.force_ff, reference.coupling])
+            if self.mode.hybrid
+            else reference.theta,
+            dtype=float,
+        )
         self.drive = jax.jit(loops.discretize, static_argnums=1)(jax.device_put(gains.servo, cpu()), self.rates)
         self.hybrid = gains.hybrid if self.mode.hybrid else None
         self.Kt = np.asarray(gains.servo.Kt, dtype=float)
@@ -165,12 +168,14 @@ class BridgeLoop:
         s0 = cascade.rest(self.drive, mode, jnp.zeros(n), jnp.zeros(n), jnp.zeros(n))
         ref0 = HybridReference(z, 0.0, np.zeros(5)) if mode.hybrid else z
         consts = (self.drive, self.hybrid if mode.hybrid else ())
-        self._position = FlatStep(lambda d, h, s, r, th, w: position_cycle(d, mode, h or None, s, r, th, w, cst),
-                                  consts, s0, (ref0, z, z))
+        self._position = FlatStep(
+            lambda d, h, s, r, th, w: position_cycle(d, mode, h or None, s, r, th, w, cst), consts, s0, (ref0, z, z)
+        )
         self._velocity = None
         if cst:
-            self._velocity = FlatStep(lambda d, s, w_ref, i_f, w: velocity_cycle(d, mode, s, w_ref, i_f, w),
-                                      (self.drive,), s0, (z, 0.0, z))
+            self._velocity = FlatStep(
+                lambda d, s, w_ref, i_f, w: velocity_cycle(d, mode, s, w_ref, i_f, w), (self.drive,), s0, (z, 0.0, z)
+            )
         rest = jax.jit(lambda d, i, th: ravel_pytree(cascade.rest(d, mode, i, jnp.zeros_like(i), th))[0])
         self._rest = lambda i, th: rest(self.drive, i, th)  # the state at rest, packed as the steps take it
         self._rest(z, z)  # compiled before any run
@@ -213,8 +218,8 @@ class BridgeLoop:
         n = len(self.drive_modes)
         if cycle % self.n_position == 0:
             self.state, out = self._position(self.state, self._row(cycle), theta, omega)
-            w_ref, i_ref = out[:n], out[n:2 * n]
-            self.held = (w_ref, out[2 * n:].reshape(()))
+            w_ref, i_ref = out[:n], out[n : 2 * n]
+            self.held = (w_ref, out[2 * n :].reshape(()))
         else:
             self.state, i_ref = self._velocity(self.state, self.held[0], self.held[1], omega)
         return np.where(self.drive_modes == CSV, self.held[0], self.Kt * i_ref)
@@ -242,7 +247,7 @@ class BridgeLoop:
 
     def reference_at(self, cycle: int) -> np.ndarray:
         """The motor-angle reference [rad] in force at ``cycle`` (for the tracking error)."""
-        return self._row(cycle)[:len(self.drive_modes)]
+        return self._row(cycle)[: len(self.drive_modes)]
 
     @property
     def cycles(self) -> int:

@@ -52,8 +52,12 @@ _CRC = struct.Struct("<I")
 # per version and kind: the struct codes (one per value) of one axis's fields, then of the fields after the axes.
 # Version 1's fields keep their places in a later version (which may append to an axis or to the tail), so the decoder
 # reads them there
-LAYOUTS = {1: {COMMAND: ("HbBd", ""),  # controlword, mode, pad, target
-               FEEDBACK: ("HbBddd", "3d")}}  # statusword, mode, pad, position, velocity, torque; the platform
+LAYOUTS = {
+    1: {
+        COMMAND: ("HbBd", ""),  # controlword, mode, pad, target
+        FEEDBACK: ("HbBddd", "3d"),
+    }
+}  # statusword, mode, pad, position, velocity, torque; the platform
 REASONS = ("size", "magic", "version", "kind", "axes", "length", "crc")
 
 
@@ -93,8 +97,9 @@ class Feedback:
 
 
 def _pack(kind: int, sequence: int, timestamp_ns: int, ack: int, n_axes: int, payload: bytes) -> bytes:
-    head = _HEADER.pack(MAGIC, VERSION, kind, n_axes, 0, sequence & 0xFFFFFFFF, timestamp_ns, ack & 0xFFFFFFFF,
-                        len(payload))
+    head = _HEADER.pack(
+        MAGIC, VERSION, kind, n_axes, 0, sequence & 0xFFFFFFFF, timestamp_ns, ack & 0xFFFFFFFF, len(payload)
+    )
     body = head + payload
     return body + _CRC.pack(zlib.crc32(body))
 
@@ -120,8 +125,10 @@ def encode_command(c: Command) -> bytes:
 
 def encode_feedback(f: Feedback) -> bytes:
     n = len(f.position)
-    payload = _payload(VERSION, FEEDBACK, n).pack(*_interleave(f.statusword, f.mode, np.zeros(n, int), f.position,
-                                                               f.velocity, f.torque), *np.asarray(f.platform).tolist())
+    payload = _payload(VERSION, FEEDBACK, n).pack(
+        *_interleave(f.statusword, f.mode, np.zeros(n, int), f.position, f.velocity, f.torque),
+        *np.asarray(f.platform).tolist(),
+    )
     return _pack(FEEDBACK, f.sequence, f.timestamp_ns, f.ack, n, payload)
 
 
@@ -143,22 +150,35 @@ def decode(data: bytes, kind: int | None = None, n_axes: int | None = None) -> C
     layout = _payload(version, k, n)
     expected = layout.size
     if length != expected or len(data) != _HEADER.size + length + _CRC.size:
-        raise ProtocolError("length", f"expected a payload of {expected} bytes in a packet of "
-                                      f"{_HEADER.size + expected + _CRC.size}, got {length} in {len(data)}")
+        raise ProtocolError(
+            "length",
+            f"expected a payload of {expected} bytes in a packet of "
+            f"{_HEADER.size + expected + _CRC.size}, got {length} in {len(data)}",
+        )
     (crc,) = _CRC.unpack_from(data, len(data) - _CRC.size)
-    if crc != zlib.crc32(data[:-_CRC.size]):
+    if crc != zlib.crc32(data[: -_CRC.size]):
         raise ProtocolError("crc", "the CRC-32 does not match the packet")
     v = layout.unpack_from(data, _HEADER.size)
     step = len(LAYOUTS[version][k][0])  # values per axis
     if k == COMMAND:
-        return Command(seq, stamp, ack, np.array(v[0::step], np.uint16), np.array(v[1::step], np.int8),
-                       np.array(v[3::step], float))
+        return Command(
+            seq, stamp, ack, np.array(v[0::step], np.uint16), np.array(v[1::step], np.int8), np.array(v[3::step], float)
+        )
     end = step * n
-    return Feedback(seq, stamp, ack, np.array(v[0:end:step], np.uint16), np.array(v[1:end:step], np.int8),
-                    np.array(v[3:end:step], float), np.array(v[4:end:step], float), np.array(v[5:end:step], float),
-                    np.array(v[end:end + 3], float))
+    return Feedback(
+        seq,
+        stamp,
+        ack,
+        np.array(v[0:end:step], np.uint16),
+        np.array(v[1:end:step], np.int8),
+        np.array(v[3:end:step], float),
+        np.array(v[4:end:step], float),
+        np.array(v[5:end:step], float),
+        np.array(v[end : end + 3], float),
+    )
 
 
 def newer(sequence: int, last: int | None) -> bool:
-    """``sequence`` comes after ``last`` in u32 serial-number arithmetic (RFC 1982); a replay or a late packet does not."""
+    """``sequence`` comes after ``last`` in u32 serial-number arithmetic (RFC 1982); a replay or a late packet does
+    not."""
     return last is None or 0 < (sequence - last) % 2**32 < 2**31

@@ -93,8 +93,9 @@ def realtime_setup(priority: int = 80, cpu: int | None = None) -> RealtimeReport
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
         below = max(priority - 1, 1)
         rep.helpers = _helpers_fifo(below)
-        rep.settings["SCHED_FIFO"] = (f"granted (priority {priority}; the process's {len(rep.helpers)} other threads "
-                                      f"at {below})")
+        rep.settings["SCHED_FIFO"] = (
+            f"granted (priority {priority}; the process's {len(rep.helpers)} other threads at {below})"
+        )
     except (OSError, AttributeError) as e:
         rep.settings["SCHED_FIFO"] = f"refused ({getattr(e, 'strerror', None) or e}); running SCHED_OTHER"
     try:
@@ -119,7 +120,8 @@ def _helpers_fifo(priority: int) -> dict:
     """The process's threads other than the calling one at SCHED_FIFO ``priority``; ``{tid: (policy, priority)}``
     before, of those changed.  The calling thread may hand them work and wait: XLA's CPU runtime can run parts of a
     compiled step on its pool (the simulated robot's drive step woke two 'tf_XLAEigen' threads and waited for them,
-    2.4 times per call, until :class:`~pusupu_jax.hw_bridge.compiled.FlatStep` closed over its constants), and python-can's
+    2.4 times per call, until :class:`~pusupu_jax.hw_bridge.compiled.FlatStep` closed over its constants), and
+    python-can's
     notifier thread runs the CANopen robot's whole period.  Left at SCHED_OTHER, that work waits behind any ordinary
     task on the CPU while the real-time thread waits for it; one step below the calling thread, it runs before
     ordinary tasks and never preempts the thread that waits for it."""
@@ -258,6 +260,6 @@ class CycleRunner:
             if was_enabled:
                 gc.enable()
             gc.unfreeze()
-        stats.wake_late = stats.wake_late[:stats.cycles]
-        stats.busy = stats.busy[:stats.cycles]
+        stats.wake_late = stats.wake_late[: stats.cycles]
+        stats.busy = stats.busy[: stats.cycles]
         return stats

@@ -45,17 +45,31 @@ class Limits:
     feedback_margin: float = 2.0
 
     def __post_init__(self):
-        for name in ("position_min", "position_max", "velocity", "torque", "following_error", "following_error_time",
-                     "screw"):
+        for name in (
+            "position_min",
+            "position_max",
+            "velocity",
+            "torque",
+            "following_error",
+            "following_error_time",
+            "screw",
+        ):
             v = np.asarray(getattr(self, name), dtype=float)
             if v.ndim != 1 or np.isnan(v).any():
                 raise ValueError(f"limits.{name}: expected one number per axis, got {v}")
             object.__setattr__(self, name, v)
-        if not (np.all(self.position_min < self.position_max) and np.all(self.velocity > 0)
-                and np.all(self.torque > 0) and np.all(self.following_error > 0)
-                and np.all(self.following_error_time >= 0) and np.all(self.screw > 0)):
-            raise ValueError("limits: expected position_min < position_max, positive velocity, torque, following-error "
-                             "and screw values and a following-error time of at least 0")
+        if not (
+            np.all(self.position_min < self.position_max)
+            and np.all(self.velocity > 0)
+            and np.all(self.torque > 0)
+            and np.all(self.following_error > 0)
+            and np.all(self.following_error_time >= 0)
+            and np.all(self.screw > 0)
+        ):
+            raise ValueError(
+                "limits: expected position_min < position_max, positive velocity, torque, following-error "
+                "and screw values and a following-error time of at least 0"
+            )
 
 
 class FaultKind(enum.StrEnum):
@@ -106,10 +120,13 @@ class Safety:
         self.faults.append(Fault(cycle, kind, detail))
 
     def check_feedback(self, cycle: int, age: int, position, velocity, torque) -> bool:
-        """True when the sample may drive the loops: fresh (``age`` cycles old at most the watchdog), finite, in range."""
+        """True when the sample may drive the loops: fresh (``age`` cycles old at most the watchdog), finite, in
+        range."""
         lim = self.limits
         if age > self.watchdog_cycles:
-            self.fault(cycle, FaultKind.FEEDBACK_STALE, f"no new feedback for {age} cycles (watchdog {self.watchdog_cycles})")
+            self.fault(
+                cycle, FaultKind.FEEDBACK_STALE, f"no new feedback for {age} cycles (watchdog {self.watchdog_cycles})"
+            )
             return False
         values = np.concatenate((position, velocity, torque))
         inside = (values >= self._low) & (values <= self._high)
@@ -120,12 +137,19 @@ class Safety:
         if not np.isfinite(values).all():
             self.fault(cycle, FaultKind.FEEDBACK_INVALID, "NaN or inf in the measured position, velocity or torque")
         elif not inside[n:].all():
-            self.fault(cycle, FaultKind.FEEDBACK_INVALID, f"measured speed or torque beyond {lim.feedback_margin} times its "
-                                                  "limit")
+            self.fault(
+                cycle,
+                FaultKind.FEEDBACK_INVALID,
+                f"measured speed or torque beyond {lim.feedback_margin} times its limit",
+            )
         else:
             k = int(np.argmin(inside[:n]))  # the first axis outside its stroke
-            self.fault(cycle, FaultKind.POSITION_LIMIT, f"axis {k + 1} at {position[k]:.4g} rad, outside "
-                                                f"[{lim.position_min[k]:.4g}, {lim.position_max[k]:.4g}]")
+            self.fault(
+                cycle,
+                FaultKind.POSITION_LIMIT,
+                f"axis {k + 1} at {position[k]:.4g} rad, outside "
+                f"[{lim.position_min[k]:.4g}, {lim.position_max[k]:.4g}]",
+            )
         return False
 
     def check_following(self, cycle: int, t: float, reference, position) -> bool:
@@ -140,14 +164,19 @@ class Safety:
         if not late.any():
             return True
         k = int(np.argmax(late))
-        self.fault(cycle, FaultKind.FOLLOWING_ERROR, f"axis {k + 1} {error[k] * lim.screw[k] * 1e3:.3g} mm of slider travel "
-                                             f"from its reference, beyond its {lim.following_error[k] * 1e3:.3g} mm "
-                                             f"window for {(t - self._beyond_since[k]) * 1e3:.0f} ms (time-out "
-                                             f"{lim.following_error_time[k] * 1e3:.0f} ms)")
+        self.fault(
+            cycle,
+            FaultKind.FOLLOWING_ERROR,
+            f"axis {k + 1} {error[k] * lim.screw[k] * 1e3:.3g} mm of slider travel "
+            f"from its reference, beyond its {lim.following_error[k] * 1e3:.3g} mm "
+            f"window for {(t - self._beyond_since[k]) * 1e3:.0f} ms (time-out "
+            f"{lim.following_error_time[k] * 1e3:.0f} ms)",
+        )
         return False
 
     def limit_command(self, cycle: int, modes, target) -> np.ndarray:
-        """``target`` clamped to the velocity (CSV) or torque (CST) limit of each axis; all zero if any is not finite."""
+        """``target`` clamped to the velocity (CSV) or torque (CST) limit of each axis; all zero if any is not
+        finite."""
         if not np.isfinite(target).all():
             self.fault(cycle, FaultKind.COMMAND_INVALID, "the loops computed a NaN or inf target")
             return np.zeros_like(target)
@@ -169,6 +198,11 @@ def limits_for(servo, geom=None):
     geom = Geometry.default() if geom is None else geom
     r = np.asarray(servo.lead, dtype=float) / (2 * np.pi)
     s_home = np.asarray(kinematics.inverse_kinematics(geom, jnp.asarray(geom.home)))
-    return Limits((np.asarray(geom.stroke_min) - s_home) / r, (np.asarray(geom.stroke_max) - s_home) / r,
-                  *command_limits(servo), np.asarray(servo.following_error, dtype=float),
-                  np.asarray(servo.following_error_time, dtype=float), r)
+    return Limits(
+        (np.asarray(geom.stroke_min) - s_home) / r,
+        (np.asarray(geom.stroke_max) - s_home) / r,
+        *command_limits(servo),
+        np.asarray(servo.following_error, dtype=float),
+        np.asarray(servo.following_error_time, dtype=float),
+        r,
+    )

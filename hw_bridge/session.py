@@ -1,6 +1,7 @@
 """One bridge run (host-side): bring the drives up through CiA 402, take over, run the loops, stop, report.
 
-Per cycle: read the newest feedback, check it (:class:`~pusupu_jax.hw_bridge.safety.Safety`: fresh, finite, in range, and
+Per cycle: read the newest feedback, check it (:class:`~pusupu_jax.hw_bridge.safety.Safety`: fresh, finite, in range,
+and
 within the following-error window of the reference the machine was following), step the loops
 (:class:`~pusupu_jax.hw_bridge.loop.BridgeLoop`), clamp the targets, send the command.  Phases:
 
@@ -103,11 +104,20 @@ class BridgeRun:
 
     def report(self, screw=None) -> dict:
         """The run's figures: cycles, missed deadlines, latency percentiles [us], faults, tracking error [mm]."""
-        out = {"rate_hz": self.rate, "cycles": self.cycles, "missed_deadlines": self.missed,
-               "missed_fraction": self.missed / max(self.cycles + self.skipped, 1), "skipped_cycles": self.skipped,
-               "latency_us": percentiles(self.latency_us), "feedback_age_us": percentiles(self.feedback_age_us), "faults": [f.line() for f in self.faults],
-               "rejected_packets": dict(self.rejected), "realtime": self.realtime, "completed": self.completed,
-               "ended": self.ended}
+        out = {
+            "rate_hz": self.rate,
+            "cycles": self.cycles,
+            "missed_deadlines": self.missed,
+            "missed_fraction": self.missed / max(self.cycles + self.skipped, 1),
+            "skipped_cycles": self.skipped,
+            "latency_us": percentiles(self.latency_us),
+            "feedback_age_us": percentiles(self.feedback_age_us),
+            "faults": [f.line() for f in self.faults],
+            "rejected_packets": dict(self.rejected),
+            "realtime": self.realtime,
+            "completed": self.completed,
+            "ended": self.ended,
+        }
         if self.position and screw is not None:
             e = (np.asarray(self.position) - np.asarray(self.reference)) * np.asarray(screw) * 1e3
             out["branch_rms_error_mm"] = np.sqrt(np.mean(e**2, axis=0)).tolist()
@@ -120,12 +130,24 @@ class BridgeRun:
 
 
 class Bridge:
-    """Runs ``loop`` against the drives behind ``endpoint``: a :class:`~pusupu_jax.hw_bridge.udp.Endpoint` of FEEDBACK or a
-    :class:`~pusupu_jax.hw_bridge.canopen_link.CanLink` (``send_command``, which counts a failed send in ``rejected`` and does not
+    """Runs ``loop`` against the drives behind ``endpoint``: a :class:`~pusupu_jax.hw_bridge.udp.Endpoint` of FEEDBACK
+    or a
+    :class:`~pusupu_jax.hw_bridge.canopen_link.CanLink` (``send_command``, which counts a failed send in ``rejected``
+    and does not
     raise, ``poll``, ``rejected``; and ``received_at`` [s, monotonic] where its feedback carries a send time)."""
 
-    def __init__(self, loop: BridgeLoop, endpoint, safety: Safety, *, connect_s: float = 5.0, stop_cycles: int = 50,
-                 max_consecutive_misses: int = 3, hold_s: float = 0.0, lockstep_s: float = 0.0):
+    def __init__(
+        self,
+        loop: BridgeLoop,
+        endpoint,
+        safety: Safety,
+        *,
+        connect_s: float = 5.0,
+        stop_cycles: int = 50,
+        max_consecutive_misses: int = 3,
+        hold_s: float = 0.0,
+        lockstep_s: float = 0.0,
+    ):
         """``lockstep_s`` > 0: each cycle waits up to that long for the answer to the previous command, and late
         cycles move the deadlines after them instead of skipping (``CycleRunner`` 'rephase'): a run whose result
         does not depend on scheduling, for tests on a shared machine.  0 (default): real time."""
@@ -144,16 +166,33 @@ class Bridge:
         loop, ep, safety = self.loop, self.endpoint, self.safety
         n_axes = len(loop.drive_modes)
         rec = BridgeRun(loop.rate)
-        st = {"phase": "connect", "since": 0, "feedback": None, "age": 0, "sequence": 0, "run_start": None,
-              "run_cycles": None, "misses": 0, "fresh": False, "word": None, "word_since": 0}
+        st = {
+            "phase": "connect",
+            "since": 0,
+            "feedback": None,
+            "age": 0,
+            "sequence": 0,
+            "run_start": None,
+            "run_cycles": None,
+            "misses": 0,
+            "fresh": False,
+            "word": None,
+            "word_since": 0,
+        }
         zeros = np.zeros(n_axes)
         sent = {}  # command sequence -> run cycle
         noted = []  # the signals received
 
         def send(k, controlword, target, t_wake):
             fb = st["feedback"]
-            cmd = protocol.Command(st["sequence"], time.monotonic_ns(), fb.sequence if fb else 0,
-                                   np.full(n_axes, controlword, np.uint16), loop.drive_modes, target)
+            cmd = protocol.Command(
+                st["sequence"],
+                time.monotonic_ns(),
+                fb.sequence if fb else 0,
+                np.full(n_axes, controlword, np.uint16),
+                loop.drive_modes,
+                target,
+            )
             ep.send_command(cmd)
             st["sequence"] += 1
             rec.commands.append((k, controlword, target))
@@ -193,8 +232,12 @@ class Bridge:
             the stop (whose first command it leaves to the stop phase)."""
             packet = ep.poll()
             end = t_wake + self.lockstep_s
-            while self.lockstep_s and st["phase"] == "run" and (packet is None or packet.ack not in (0, st["sequence"] - 1)) \
-                    and time.monotonic() < end:
+            while (
+                self.lockstep_s
+                and st["phase"] == "run"
+                and (packet is None or packet.ack not in (0, st["sequence"] - 1))
+                and time.monotonic() < end
+            ):
                 packet = ep.poll(timeout=min(1e-3, max(end - time.monotonic(), 1e-6))) or packet
             if packet is not None:
                 st["feedback"], st["age"], st["fresh"] = packet, 0, True
@@ -208,8 +251,12 @@ class Bridge:
                 if settled and states() in ({cia402.READY}, {cia402.SWITCHED_ON}):
                     st["phase"], st["since"] = "enable", k
                 elif k - st["since"] > self.connect_cycles:
-                    safety.fault(k, FaultKind.FEEDBACK_STALE, f"the drives did not come up in {self.connect_cycles} cycles "
-                                                      f"(states: {sorted(states()) or 'no feedback'})")
+                    safety.fault(
+                        k,
+                        FaultKind.FEEDBACK_STALE,
+                        f"the drives did not come up in {self.connect_cycles} cycles "
+                        f"(states: {sorted(states()) or 'no feedback'})",
+                    )
                     stop(k, End.FAULT)
                 if not settled:
                     word = st["word"] or cia402.SHUTDOWN
@@ -223,8 +270,11 @@ class Bridge:
                 s = states()
                 if s == {cia402.OPERATION_ENABLED} and st["fresh"] and settled:
                     k6 = loop.mode.force_axis
-                    loop.start(fb.position, fb.torque, float(fb.torque[k6] * loop.force_per_torque[k6])
-                               if loop.mode.hybrid else None)
+                    loop.start(
+                        fb.position,
+                        fb.torque,
+                        float(fb.torque[k6] * loop.force_per_torque[k6]) if loop.mode.hybrid else None,
+                    )
                     st["phase"], st["run_start"] = "run", k
                     total = loop.cycles + self.hold_cycles
                     st["run_cycles"] = total if duration is None else min(total, int(round(duration * loop.rate)))
@@ -233,8 +283,13 @@ class Bridge:
                     stop(k, End.FAULT)
                     return False
                 else:
-                    word = st["word"] if not settled else cia402.SWITCH_ON if s == {cia402.READY} else \
-                        cia402.ENABLE_OPERATION
+                    word = (
+                        st["word"]
+                        if not settled
+                        else cia402.SWITCH_ON
+                        if s == {cia402.READY}
+                        else cia402.ENABLE_OPERATION
+                    )
                     bring_up(k, word, t_wake)
                     return True
             j = k - st["run_start"]
@@ -249,8 +304,11 @@ class Bridge:
             # the feedback shows the machine after the command it acknowledges (over CANopen, which has no
             # acknowledgement: the last one): compare it with the reference of the cycle after that
             ja = sent.get(fb.ack, -1) if fb.ack else j - 1
-            ok = ok and safety.check_feedback(k, st["age"], fb.position, fb.velocity, fb.torque) and \
-                safety.check_following(k, j / loop.rate, loop.reference_at(ja + 1), fb.position)
+            ok = (
+                ok
+                and safety.check_feedback(k, st["age"], fb.position, fb.velocity, fb.torque)
+                and safety.check_following(k, j / loop.rate, loop.reference_at(ja + 1), fb.position)
+            )
             if not ok:
                 stop(k, End.FAULT)
                 return False
@@ -264,8 +322,9 @@ class Bridge:
                 rec.position.append(fb.position)
                 rec.platform.append(fb.platform)
                 if loop.reference.platform is not None:
-                    p = min(max((ja + 1) // loop.n_position - loop.takeover_periods, 0),
-                            len(loop.reference.platform) - 1)
+                    p = min(
+                        max((ja + 1) // loop.n_position - loop.takeover_periods, 0), len(loop.reference.platform) - 1
+                    )
                     rec.platform_reference.append(loop.reference.platform[p])
             sent[st["sequence"] - 1] = j
             if j + 1 >= st["run_cycles"]:
@@ -295,15 +354,17 @@ class Bridge:
                 except Exception as e:  # as in the cycle's step
                     failed(k, e)
 
-        run_s = (duration if duration is not None else len(loop.reference.theta) * loop.rates.dt_position + 30.0)
+        run_s = duration if duration is not None else len(loop.reference.theta) * loop.rates.dt_position + 30.0
         with _signals_noted(noted):
             granted = realtime_setup() if realtime else None
             if granted:
                 rec.realtime = granted.lines()
             try:
                 stats = CycleRunner(loop.rate, "rephase" if self.lockstep_s else "skip").run(
-                    cycle, 2 * self.connect_cycles + int(run_s * loop.rate) + self.hold_cycles + 2 * self.stop_cycles,
-                    prepare=prepare)
+                    cycle,
+                    2 * self.connect_cycles + int(run_s * loop.rate) + self.hold_cycles + 2 * self.stop_cycles,
+                    prepare=prepare,
+                )
             finally:
                 if granted:
                     granted.restore()

@@ -1,4 +1,5 @@
-"""A simulated robot behind the bridge's transport: the MJX machine and its drives' inner loops, in step with the bridge.
+"""A simulated robot behind the bridge's transport: the MJX machine and its drives' inner loops, in step with the
+bridge.
 
 The one module of ``hw_bridge`` that imports the mechanism (MuJoCo MJX); the bridge never
 imports it.  ``pusupu sim-robot --listen udp://127.0.0.1:PORT`` runs it.
@@ -33,7 +34,6 @@ are in :data:`ARGS` (at most 60 s of silence or delay, blocks of 1 to 1000 repli
 
 from __future__ import annotations
 
-import dataclasses
 import enum
 import gc
 import heapq
@@ -60,6 +60,7 @@ from .runner import realtime_setup, steal_seconds
 from .safety import command_limits
 from .udp import Endpoint
 
+
 class Injected(enum.StrEnum):
     """A fault the simulated robot injects on demand (the module docstring says what each does)."""
 
@@ -76,12 +77,23 @@ class Injected(enum.StrEnum):
 
 FAULTS = tuple(Injected)
 # the argument of each fault that takes one: its bounds and what it is (a reorder block, in replies, is a whole number)
-ARGS = {Injected.STOP: (0.0, 60.0, "seconds of silence"), Injected.DELAY: (0.0, 60.0, "seconds of delay"),
-        Injected.DROP: (0.0, 1.0, "a probability"), Injected.REORDER: (1, 1000, "a whole number of replies"),
-        Injected.CORRUPT: (0.0, 1.0, "a probability"), Injected.RANGE: (-1e6, 1e6, "rad of motor angle")}
+ARGS = {
+    Injected.STOP: (0.0, 60.0, "seconds of silence"),
+    Injected.DELAY: (0.0, 60.0, "seconds of delay"),
+    Injected.DROP: (0.0, 1.0, "a probability"),
+    Injected.REORDER: (1, 1000, "a whole number of replies"),
+    Injected.CORRUPT: (0.0, 1.0, "a probability"),
+    Injected.RANGE: (-1e6, 1e6, "rad of motor angle"),
+}
 TARGET_TOLERANCE = 1e-3  # of a limit: a target beyond it by less is taken (CANopen rounds a torque to 1/1000 of rated)
-DEFAULT_ARG = {Injected.STOP: 1.0, Injected.DELAY: 0.02, Injected.DROP: 1.0, Injected.REORDER: 8,
-               Injected.CORRUPT: 1.0, Injected.RANGE: 1.0e4}
+DEFAULT_ARG = {
+    Injected.STOP: 1.0,
+    Injected.DELAY: 0.02,
+    Injected.DROP: 1.0,
+    Injected.REORDER: 8,
+    Injected.CORRUPT: 1.0,
+    Injected.RANGE: 1.0e4,
+}
 
 
 @dataclass(frozen=True)
@@ -102,8 +114,10 @@ class FaultSpec:
         except ValueError:
             raise ValueError(f"--fault: expected KIND@SECONDS[:ARG] with numbers, got {text!r}") from None
         if kind is None or not 0 <= spec.at < np.inf:
-            raise ValueError(f"--fault: expected KIND@SECONDS[:ARG], KIND one of {tuple(map(str, FAULTS))} and "
-                             f"SECONDS finite and not negative, got {text!r}")
+            raise ValueError(
+                f"--fault: expected KIND@SECONDS[:ARG], KIND one of {tuple(map(str, FAULTS))} and "
+                f"SECONDS finite and not negative, got {text!r}"
+            )
         if kind not in ARGS and arg:
             raise ValueError(f"--fault {text}: expected no ARG for {kind}, got {arg!r}")
         if kind in ARGS:
@@ -115,7 +129,8 @@ class FaultSpec:
 
 
 class RobotModel:
-    """The mechanism (C MuJoCo) and its drives (the simulator's functions, compiled on the CPU), one bridge period per call.
+    """The mechanism (C MuJoCo) and its drives (the simulator's functions, compiled on the CPU), one bridge period per
+    call.
 
     The mechanism is the machine's own MuJoCo model (:func:`pusupu_jax.plant.model.build_model`, seeded
     kinematic errors included) stepped by C MuJoCo with the MJX plant's armature, torque mapping and
@@ -126,8 +141,14 @@ class RobotModel:
     cycle; C MuJoCo takes tens (and the friction law in numpy 2 us).
     """
 
-    def __init__(self, gains: GainFile, rate: float | None = None, kin_error_seed: int | None = None,
-                 cst: bool = False, machine: Machine | None = None):
+    def __init__(
+        self,
+        gains: GainFile,
+        rate: float | None = None,
+        kin_error_seed: int | None = None,
+        cst: bool = False,
+        machine: Machine | None = None,
+    ):
         from .loop import bridge_rates
 
         jax.config.update("jax_enable_x64", True)
@@ -139,9 +160,9 @@ class RobotModel:
         plant = machine_plant(nominal)
         rates = machine_rates(nominal, self.rates)
         vmode = cascade.control_mode("velocity")
-        carry0 = jax.jit(lambda model: sim.pieces(servo, model, plant=plant, rates=rates, mode=vmode,
-                                                  hybrid=None).init("rest", None))(jax.device_put(plant.variant(options, machine.geometry),
-                                                                                                  cpu()))
+        carry0 = jax.jit(
+            lambda model: sim.pieces(servo, model, plant=plant, rates=rates, mode=vmode, hybrid=None).init("rest", None)
+        )(jax.device_put(plant.variant(options, machine.geometry), cpu()))
         self.m = build_model(machine.geometry, options)
         self.dofs, self.qpos = slide_dofs(self.m), slide_qpos(self.m)
         r = np.asarray(servo.lead / (2 * np.pi), dtype=float)
@@ -161,13 +182,18 @@ class RobotModel:
             return (electrical, sc), torque
 
         z = np.zeros(len(self.Kt))
-        self._drive = FlatStep(velocity_period, (loops.discretize(servo, rates),), (carry0.electrical, carry0.cascade),
-                               (z, np.zeros(len(z), bool), z))
+        self._drive = FlatStep(
+            velocity_period,
+            (loops.discretize(servo, rates),),
+            (carry0.electrical, carry0.cascade),
+            (z, np.zeros(len(z), bool), z),
+        )
         self.drive0 = self._drive.state
         self.torque0 = self.Kt * np.asarray(loops.electrical_current(carry0.electrical))
 
     def reset(self, d):
-        """``d``, an ``MjData`` of this model, reset in place to the machine at rest at home, held by its drives; returns
+        """``d``, an ``MjData`` of this model, reset in place to the machine at rest at home, held by its drives;
+        returns
         the drives' state.  In place, since allocating one in the serving process, whose memory is locked
         (``mlockall``: new pages are faulted in at once), took 32 ms at the start of a bridge session, and the
         bridge's watchdog stopped the session."""
@@ -232,8 +258,10 @@ class SimRobot:
         if all(d.enabled for d in self.drives) and now - self.last > self.watchdog_s:
             for d in self.drives:
                 d.fault()
-            self.log(f"sim-robot: session {self.session}: no command for {self.watchdog_s * 1e3:.0f} ms: "
-                     "drives faulted, brakes on")
+            self.log(
+                f"sim-robot: session {self.session}: no command for {self.watchdog_s * 1e3:.0f} ms: "
+                "drives faulted, brakes on"
+            )
 
     def handle(self, cmd: protocol.Command, now: float) -> protocol.Feedback | None:
         """Apply one command; the feedback to send (None: the robot is silent)."""
@@ -260,12 +288,14 @@ class SimRobot:
                 self.enabled_at = now
             self.mode = np.asarray(cmd.mode, np.int8)
             cst = self.mode == protocol.CST
-            self.state, self.torque = self.model.advance(self.data, self.state, np.asarray(cmd.target, dtype=float),
-                                                         cst)
+            self.state, self.torque = self.model.advance(
+                self.data, self.state, np.asarray(cmd.target, dtype=float), cst
+            )
             self.sim_time += self.model.rates.dt_velocity * (1 if cst.any() else self.model.rates.n_position)
         elif after == {cia402.QUICK_STOP_ACTIVE}:
-            self.state, self.torque = self.model.advance(self.data, self.state, np.zeros(len(self.drives)),
-                                                         np.zeros(len(self.drives), bool))
+            self.state, self.torque = self.model.advance(
+                self.data, self.state, np.zeros(len(self.drives)), np.zeros(len(self.drives), bool)
+            )
         self.applied = cmd.sequence
         theta, omega, platform = self.model.actual(self.data)
         if self.active(Injected.NAN, now):
@@ -273,9 +303,17 @@ class SimRobot:
         if self.active(Injected.RANGE, now):
             theta = theta + self.fault.arg
         faulted = np.array([d.state == cia402.FAULT for d in self.drives])
-        fb = protocol.Feedback(self.sequence, time.monotonic_ns(), self.applied,
-                               np.array([d.statusword for d in self.drives], np.uint16), self.mode, theta, omega,
-                               np.where(faulted, 0.0, self.torque), platform)  # a faulted drive's power stage is off
+        fb = protocol.Feedback(
+            self.sequence,
+            time.monotonic_ns(),
+            self.applied,
+            np.array([d.statusword for d in self.drives], np.uint16),
+            self.mode,
+            theta,
+            omega,
+            np.where(faulted, 0.0, self.torque),
+            platform,
+        )  # a faulted drive's power stage is off
         self.sequence += 1
         return fb
 
@@ -291,15 +329,19 @@ class SimRobot:
             if self.drives[k].state == cia402.FAULT:
                 continue
             self.drives[k].fault()
-            why = (f"target {target[k]:.6g}, expected a finite number within +-{bound[k]:.6g}" if known[k] else
-                   f"mode of operation {mode[k]}, expected {protocol.CSV} (CSV) or {protocol.CST} (CST)")
+            why = (
+                f"target {target[k]:.6g}, expected a finite number within +-{bound[k]:.6g}"
+                if known[k]
+                else f"mode of operation {mode[k]}, expected {protocol.CSV} (CSV) or {protocol.CST} (CST)"
+            )
             self.log(f"sim-robot: session {self.session}: drive {k + 1} faulted: {why}")
 
 
 class Stalls:
     """The serving loop's turns that came more than ``threshold`` [s] after the one before (the robot did not run:
     its CPU was taken, or a command took that long), each logged with the hypervisor's steal time per CPU since the
-    previous report (:func:`~pusupu_jax.hw_bridge.runner.steal_seconds`), the first ``shown`` of them; ``count`` counts all."""
+    previous report (:func:`~pusupu_jax.hw_bridge.runner.steal_seconds`), the first ``shown`` of them; ``count`` counts
+    all."""
 
     def __init__(self, log, threshold: float = 5e-3, shown: int = 20):
         self.log, self.threshold, self.shown = log, threshold, shown
@@ -317,11 +359,16 @@ class Stalls:
             return
         steal, before = steal_seconds(), self.steal
         self.steal = steal
-        stolen = "not counted" if steal is None or before is None else ", ".join(
-            f"CPU {k} {1e3 * d:.0f} ms" for k, d in enumerate(steal - before))
+        stolen = (
+            "not counted"
+            if steal is None or before is None
+            else ", ".join(f"CPU {k} {1e3 * d:.0f} ms" for k, d in enumerate(steal - before))
+        )
         more = " (the last shown; later stalls are counted only)" if self.count == self.shown else ""
-        self.log(f"sim-robot: stall {self.count}: the serving loop did not turn for {gap * 1e3:.1f} ms; "
-                 f"hypervisor steal since the previous report: {stolen}{more}")
+        self.log(
+            f"sim-robot: stall {self.count}: the serving loop did not turn for {gap * 1e3:.1f} ms; "
+            f"hypervisor steal since the previous report: {stolen}{more}"
+        )
 
 
 class HeldReplies:
@@ -362,7 +409,8 @@ class HeldReplies:
 
 
 class UdpServer:
-    """The robot behind UDP, with the faults of its packets: ``drop``, ``corrupt``, ``garbage``, ``reorder``, ``delay``."""
+    """The robot behind UDP, with the faults of its packets: ``drop``, ``corrupt``, ``garbage``, ``reorder``,
+    ``delay``."""
 
     def __init__(self, robot: SimRobot, endpoint: Endpoint, seed: int = 0):
         self.robot, self.ep = robot, endpoint
@@ -379,8 +427,13 @@ class UdpServer:
             b[int(self.rng.integers(len(b)))] ^= 0xFF
             data = bytes(b)
         if r.active(Injected.GARBAGE, now):
-            for bad in (data[:17], data + bytes(protocol.MAX_PACKET), data[:4] + b"\x02" + data[5:],
-                        b"\x00" * len(data), self._last or data):
+            for bad in (
+                data[:17],
+                data + bytes(protocol.MAX_PACKET),
+                data[:4] + b"\x02" + data[5:],
+                b"\x00" * len(data),
+                self._last or data,
+            ):
                 self.ep.send(bad)
             self._last = data
         self.held.reply(data, fb.sequence, now)
@@ -450,10 +503,14 @@ class CanServer:
         modes = np.array([n.sdo["Modes of operation display"].raw for n in self.nodes], np.int8)
         rated = self.rated
         maps = [n.rpdo[1] for n in self.nodes]
-        target = np.where(modes == protocol.CST, np.array([m["Target torque"].raw for m in maps]) * rated / 1000.0,
-                          np.array([m["Target velocity"].raw for m in maps]) / self.scale)
-        cmd = protocol.Command(r.applied + 1, 0, 0, np.array([m["Controlword"].raw for m in maps], np.uint16), modes,
-                               target)
+        target = np.where(
+            modes == protocol.CST,
+            np.array([m["Target torque"].raw for m in maps]) * rated / 1000.0,
+            np.array([m["Target velocity"].raw for m in maps]) / self.scale,
+        )
+        cmd = protocol.Command(
+            r.applied + 1, 0, 0, np.array([m["Controlword"].raw for m in maps], np.uint16), modes, target
+        )
         fb = r.handle(cmd, now)
         self.held.follow()
         if fb is None or (r.active(Injected.DROP, now) and r.fault.arg >= 1.0):
@@ -462,9 +519,9 @@ class CanServer:
         for k, node in enumerate(self.nodes):
             t1, t2 = node.tpdo[1], node.tpdo[2]
             t1["Statusword"].raw = int(fb.statusword[k])
-            t1["Position actual value"].raw = int(np.clip(round(fb.position[k] * self.scale), -2**31, 2**31 - 1))
-            t1["Torque actual value"].raw = int(np.clip(round(fb.torque[k] / rated[k] * 1000.0), -2**15, 2**15 - 1))
-            t2["Velocity actual value"].raw = int(np.clip(round(fb.velocity[k] * self.scale), -2**31, 2**31 - 1))
+            t1["Position actual value"].raw = int(np.clip(round(fb.position[k] * self.scale), -(2**31), 2**31 - 1))
+            t1["Torque actual value"].raw = int(np.clip(round(fb.torque[k] / rated[k] * 1000.0), -(2**15), 2**15 - 1))
+            t2["Velocity actual value"].raw = int(np.clip(round(fb.velocity[k] * self.scale), -(2**31), 2**31 - 1))
             t2["Modes of operation display"].raw = int(modes[k])
             t2["SYNC counter echo"].raw = data[0] if data else 0
             frames += [(t1.cob_id, bytes(t1.data)), (t2.cob_id, bytes(t2.data))]
@@ -477,7 +534,7 @@ class CanServer:
     def _cut(self, frame):
         """``frame`` with its data cut to a shorter length (0 to all but one byte)."""
         cob_id, payload = frame
-        return cob_id, payload[:int(self.rng.integers(len(payload)))]
+        return cob_id, payload[: int(self.rng.integers(len(payload)))]
 
     def _send(self, frames) -> None:
         for cob_id, payload in frames:
@@ -492,8 +549,9 @@ class CanServer:
             self.robot.watch(now)
 
 
-def main_loop(model: RobotModel, listen: str, faults, max_s=None, watchdog_s: float = 0.05,
-              realtime: bool = True) -> int:
+def main_loop(
+    model: RobotModel, listen: str, faults, max_s=None, watchdog_s: float = 0.05, realtime: bool = True
+) -> int:
     """Serve on ``listen`` (udp://HOST:PORT or can://INTERFACE/CHANNEL) until interrupted; one line when ready.
     ``watchdog_s``: the drives' sync watchdog (:meth:`SimRobot.watch`) [s].
 

@@ -1,4 +1,5 @@
-"""UDP endpoints of the protocol (:mod:`pusupu_jax.hw_bridge.protocol`): non-blocking sockets, every datagram checked and counted.
+"""UDP endpoints of the protocol (:mod:`pusupu_jax.hw_bridge.protocol`): non-blocking sockets, every datagram checked
+and counted.
 
 :class:`Endpoint` receives packets of one kind and of the session's axis count and keeps the
 newest valid one; malformed, truncated, oversized, wrong-version, other-axis-count and replayed

@@ -12,53 +12,111 @@ from .common import check_plot_path, machine_of
 
 def add_parsers(sub) -> None:
     b = sub.add_parser("bridge", help="run a gain file's loops at real-time rate against the drives of a robot")
-    b.add_argument("--gains", metavar="FILE", required=True, help="a gain file (pusupu tune's gains.yaml); a bad or "
-                                                                   "unstable one is refused before anything is sent")
-    b.add_argument("--robot", metavar="URL", required=True,
-                   help="udp://HOST:PORT of a robot controller, or can://INTERFACE/CHANNEL of a CANopen bus with CiA "
-                        "402 drives at node IDs 1-6 (python-can interfaces) (pusupu sim-robot for a simulated one)")
-    b.add_argument("--rate", type=float, metavar="HZ", help="cycle rate, 1 to 4000 (default: the gain file's rate "
-                                                             "of the fastest loop the bridge closes: 1000 in CSV, "
-                                                             "4000 with CST axes)")
-    b.add_argument("--duration", type=float, metavar="S", help="seconds of the path (default all of it; at most what "
-                                                                 "half of the memory holds of the run's record)")
-    b.add_argument("--trajectory", metavar="NAME|FILE", default="arc",
-                   help="arc, p2p, circle, tilt or a path file: waypoints (.yaml, .yml) or a pose table (.csv) "
-                        "(docs/paths.md); checked against the machine before anything is sent (default arc)")
-    b.add_argument("--allow-other-machine", action="store_true",
-                   help="run a gain file tuned on another machine than --machine's (refused by default)")
-    b.add_argument("--drive-modes", metavar="M[,M...]", default="csv",
-                   help="csv or cst, one for all axes or six comma-separated; hybrid mode always runs branch 6 in "
-                        "cst (default csv)")
-    b.add_argument("--watchdog", type=int, default=5, metavar="N", help="cycles without fresh feedback before a "
-                                                                         "safe stop (default 5)")
-    b.add_argument("--bind", metavar="HOST", default="127.0.0.1",
-                   help="local address (default loopback; another is said on stderr)")
+    b.add_argument(
+        "--gains",
+        metavar="FILE",
+        required=True,
+        help="a gain file (pusupu tune's gains.yaml); a bad or unstable one is refused before anything is sent",
+    )
+    b.add_argument(
+        "--robot",
+        metavar="URL",
+        required=True,
+        help="udp://HOST:PORT of a robot controller, or can://INTERFACE/CHANNEL of a CANopen bus with CiA "
+        "402 drives at node IDs 1-6 (python-can interfaces) (pusupu sim-robot for a simulated one)",
+    )
+    b.add_argument(
+        "--rate",
+        type=float,
+        metavar="HZ",
+        help="cycle rate, 1 to 4000 (default: the gain file's rate "
+        "of the fastest loop the bridge closes: 1000 in CSV, "
+        "4000 with CST axes)",
+    )
+    b.add_argument(
+        "--duration",
+        type=float,
+        metavar="S",
+        help="seconds of the path (default all of it; at most what half of the memory holds of the run's record)",
+    )
+    b.add_argument(
+        "--trajectory",
+        metavar="NAME|FILE",
+        default="arc",
+        help="arc, p2p, circle, tilt or a path file: waypoints (.yaml, .yml) or a pose table (.csv) "
+        "(docs/paths.md); checked against the machine before anything is sent (default arc)",
+    )
+    b.add_argument(
+        "--allow-other-machine",
+        action="store_true",
+        help="run a gain file tuned on another machine than --machine's (refused by default)",
+    )
+    b.add_argument(
+        "--drive-modes",
+        metavar="M[,M...]",
+        default="csv",
+        help="csv or cst, one for all axes or six comma-separated; hybrid mode always runs branch 6 in "
+        "cst (default csv)",
+    )
+    b.add_argument(
+        "--watchdog",
+        type=int,
+        default=5,
+        metavar="N",
+        help="cycles without fresh feedback before a safe stop (default 5)",
+    )
+    b.add_argument(
+        "--bind",
+        metavar="HOST",
+        default="127.0.0.1",
+        help="local address (default loopback; another is said on stderr)",
+    )
     b.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO, mlockall or CPU affinity")
     b.add_argument("--json", action="store_true", help="print the report as JSON")
     b.add_argument("--plot", metavar="PNG", help="write the latency histogram and the tracking trace")
     r = sub.add_parser("sim-robot", help="a simulated robot behind the bridge's protocol: the machine and its drives")
     r.add_argument("--gains", metavar="FILE", required=True, help="the gain file of the drives' inner loops")
-    r.add_argument("--listen", metavar="URL", default="udp://127.0.0.1:5600",
-                   help="udp://HOST:PORT or can://INTERFACE/CHANNEL (python-can, e.g. can://udp_multicast/239.74.163.2 "
-                        "or can://socketcan/can0) (default udp://127.0.0.1:5600)")
+    r.add_argument(
+        "--listen",
+        metavar="URL",
+        default="udp://127.0.0.1:5600",
+        help="udp://HOST:PORT or can://INTERFACE/CHANNEL (python-can, e.g. can://udp_multicast/239.74.163.2 "
+        "or can://socketcan/can0) (default udp://127.0.0.1:5600)",
+    )
     r.add_argument("--rate", type=float, metavar="HZ", help="the bridge's --rate (default the gain file's)")
-    r.add_argument("--drive-modes", metavar="M[,M...]", default="csv",
-                   help="the bridge's --drive-modes: with --rate, they say which loop the rate is of (default csv)")
+    r.add_argument(
+        "--drive-modes",
+        metavar="M[,M...]",
+        default="csv",
+        help="the bridge's --drive-modes: with --rate, they say which loop the rate is of (default csv)",
+    )
     r.add_argument("--kin-error", type=int, metavar="SEED", help="seeded kinematic errors of the machine (0.5 mm std)")
     for sp in (b, r):
-        sp.add_argument("--machine", metavar="FILE", help="the machine file (pusupu machine init; default: the "
-                                                          "built-in machine)")
-    r.add_argument("--fault", action="append", default=[], metavar="KIND@S[:ARG]",
-                   help="a fault for the next session (repeat for later sessions): stop, delay, drop, reorder, "
-                        "corrupt, nan, range, garbage or none, S seconds after enable (hw_bridge/sim_robot.py)")
+        sp.add_argument(
+            "--machine", metavar="FILE", help="the machine file (pusupu machine init; default: the built-in machine)"
+        )
+    r.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        metavar="KIND@S[:ARG]",
+        help="a fault for the next session (repeat for later sessions): stop, delay, drop, reorder, "
+        "corrupt, nan, range, garbage or none, S seconds after enable (hw_bridge/sim_robot.py)",
+    )
     r.add_argument("--seconds", type=float, metavar="S", help="serve for S seconds, then exit (default: until ^C)")
-    r.add_argument("--drive-watchdog", type=float, default=0.05, metavar="S",
-                   help="the drives' sync watchdog: enabled and no command for S seconds, they fault and brake "
-                        "(default 0.05)")
-    r.add_argument("--no-realtime", action="store_true",
-                   help="do not ask for SCHED_FIFO, mlockall or CPU affinity (default: ask, on the first CPU, "
-                        "leaving the last to the bridge)")
+    r.add_argument(
+        "--drive-watchdog",
+        type=float,
+        default=0.05,
+        metavar="S",
+        help="the drives' sync watchdog: enabled and no command for S seconds, they fault and brake (default 0.05)",
+    )
+    r.add_argument(
+        "--no-realtime",
+        action="store_true",
+        help="do not ask for SCHED_FIFO, mlockall or CPU affinity (default: ask, on the first CPU, "
+        "leaving the last to the bridge)",
+    )
 
 
 def _robot_url(url: str):
@@ -66,7 +124,7 @@ def _robot_url(url: str):
     from pusupu_jax.hw_bridge.udp import parse_url
 
     if url.startswith("can://"):
-        interface, _, channel = url[len("can://"):].partition("/")
+        interface, _, channel = url[len("can://") :].partition("/")
         if not interface or not channel:
             raise ParameterError(f"--robot: expected can://INTERFACE/CHANNEL, got {url!r}")
         return None
@@ -84,8 +142,9 @@ def _warn_beyond_loopback(option: str, value: str, host: str, what: str) -> None
     try:
         where = beyond_loopback(host)
     except OSError as e:
-        raise ParameterError(f"{option}: expected a host that resolves to an IPv4 address, got {host!r} "
-                             f"({e.strerror or e})") from None
+        raise ParameterError(
+            f"{option}: expected a host that resolves to an IPv4 address, got {host!r} ({e.strerror or e})"
+        ) from None
     if where is not None:
         print(f"pusupu: warning: {option} {value}: {what} on {where}, not on loopback alone", file=sys.stderr)
 
@@ -124,8 +183,10 @@ def run_bridge(args) -> int:
     machine = machine_of(args)
     g = gains.load(args.gains, machine=machine)  # refused here (one line, exit 2) before any socket opens
     if not g.tuned_on(machine):
-        message = (f"--gains {args.gains}: tuned on machine {g.machine['name']!r} (digest {g.machine['digest'][:12]}),"
-                   f" not on {machine.name!r} (digest {machine_file.digest(machine)[:12]})")
+        message = (
+            f"--gains {args.gains}: tuned on machine {g.machine['name']!r} (digest {g.machine['digest'][:12]}),"
+            f" not on {machine.name!r} (digest {machine_file.digest(machine)[:12]})"
+        )
         if not args.allow_other_machine:
             raise ParameterError(f"{message}; give that machine's file with --machine, or --allow-other-machine")
         print(f"pusupu: warning: {message}; running it as --allow-other-machine asks", file=sys.stderr)
@@ -143,9 +204,11 @@ def run_bridge(args) -> int:
         raise ParameterError(str(e)) from None
     rate = cycle_rate(rates, bool((codes == CST).any()))
     if args.duration is not None and args.duration > longest_run(rate):
-        raise ParameterError(f"--duration: expected at most {longest_run(rate):.6g} s at {rate:g} Hz (a run's record "
-                             f"takes up to {RECORD_BYTES} bytes a cycle, in half of this machine's memory, "
-                             f"{record_memory() / 2**30:.3g} GiB), got {args.duration:g}")
+        raise ParameterError(
+            f"--duration: expected at most {longest_run(rate):.6g} s at {rate:g} Hz (a run's record "
+            f"takes up to {RECORD_BYTES} bytes a cycle, in half of this machine's memory, "
+            f"{record_memory() / 2**30:.3g} GiB), got {args.duration:g}"
+        )
     try:
         loop = BridgeLoop(g, bridge_reference(g, args.trajectory, rates, machine), modes, args.rate)
     except ValueError as e:
@@ -159,11 +222,15 @@ def run_bridge(args) -> int:
             raise ParameterError(f"--robot {args.robot}: CANopen set-up failed: {e}") from None
     else:
         endpoint = Endpoint(FEEDBACK, n_axes=len(loop.drive_modes), bind=(args.bind, 0), peer=address)
-    print(f"bridge: {g.mode} loops at {loop.rate:g} Hz (position every {loop.n_position} cycle(s)), drives "
-          f"{','.join('cst' if m == CST else 'csv' for m in loop.drive_modes)}, robot {args.robot}", file=sys.stderr)
+    print(
+        f"bridge: {g.mode} loops at {loop.rate:g} Hz (position every {loop.n_position} cycle(s)), drives "
+        f"{','.join('cst' if m == CST else 'csv' for m in loop.drive_modes)}, robot {args.robot}",
+        file=sys.stderr,
+    )
     try:
-        run = Bridge(loop, endpoint, Safety(limits_for(g.servo, machine.geometry), args.watchdog)).run(args.duration,
-                                                                                      not args.no_realtime)
+        run = Bridge(loop, endpoint, Safety(limits_for(g.servo, machine.geometry), args.watchdog)).run(
+            args.duration, not args.no_realtime
+        )
     finally:
         endpoint.close()
     report = run.report(screw=loop.drive.screw)
@@ -182,20 +249,28 @@ def run_bridge(args) -> int:
 
 
 def _table(rep: dict) -> str:
-    lines = [f"cycles {rep['cycles']} at {rep['rate_hz']:g} Hz, missed deadlines {rep['missed_deadlines']} "
-             f"({100 * rep['missed_fraction']:.3f} %), skipped {rep['skipped_cycles']}"]
+    lines = [
+        f"cycles {rep['cycles']} at {rep['rate_hz']:g} Hz, missed deadlines {rep['missed_deadlines']} "
+        f"({100 * rep['missed_fraction']:.3f} %), skipped {rep['skipped_cycles']}"
+    ]
     for key in ("latency_us", "feedback_age_us"):
         p = rep[key]
         if p:
-            lines.append(f"{key:15s} p50 {p['p50']:8.1f}  p99 {p['p99']:8.1f}  p99.9 {p['p99.9']:8.1f}  "
-                         f"max {p['max']:8.1f}")
+            lines.append(
+                f"{key:15s} p50 {p['p50']:8.1f}  p99 {p['p99']:8.1f}  p99.9 {p['p99.9']:8.1f}  max {p['max']:8.1f}"
+            )
     if "rms_tracking_error_mm" in rep:
-        lines.append(f"platform tracking error: RMS {rep['rms_tracking_error_mm']:.4f} mm, "
-                     f"max {rep['max_tracking_error_mm']:.4f} mm")
+        lines.append(
+            f"platform tracking error: RMS {rep['rms_tracking_error_mm']:.4f} mm, "
+            f"max {rep['max_tracking_error_mm']:.4f} mm"
+        )
     lines.append(f"rejected packets: {rep['rejected_packets'] or 'none'}")
     lines += [f"real-time {line}" for line in rep["realtime"]]
-    lines.append({"completed": "completed", "fault": f"stopped: {len(rep['faults'])} fault(s)"}.get(
-        rep["ended"], f"stopped: {rep['ended']}"))
+    lines.append(
+        {"completed": "completed", "fault": f"stopped: {len(rep['faults'])} fault(s)"}.get(
+            rep["ended"], f"stopped: {rep['ended']}"
+        )
+    )
     return "\n".join(lines)
 
 

@@ -60,54 +60,95 @@ def _parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     a = sub.add_parser("analyze", help="crossover, margins and bandwidth of every loop of every axis")
     a.add_argument("--params", metavar="FILE", help="parameter YAML (default: Table 1 and documented choices)")
-    a.add_argument("--mode", choices=("imc", "pid", "pid_ff"), default="imc",
-                   help="position controller: 2-DOF IMC, PID, or PID with velocity feedforward (default imc)")
+    a.add_argument(
+        "--mode",
+        choices=("imc", "pid", "pid_ff"),
+        default="imc",
+        help="position controller: 2-DOF IMC, PID, or PID with velocity feedforward (default imc)",
+    )
     a.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    a.add_argument("--plot", metavar="PNG", help="write Bode and step plots of axis 0 (with --identify-T0: the "
-                                                  "machine's step responses and their fits)")
-    a.add_argument("--identify-T0", action="store_true",
-                   help="identify each branch's velocity-loop time constant T0 from velocity steps of the MJX "
-                        "machine (x and y platform motions from home) instead of the loop analysis")
-    a.add_argument("--kin-error", type=_seed, metavar="SEED",
-                   help="with --identify-T0: the machine gets seeded kinematic errors (0.5 mm std)")
+    a.add_argument(
+        "--plot",
+        metavar="PNG",
+        help="write Bode and step plots of axis 0 (with --identify-T0: the machine's step responses and their fits)",
+    )
+    a.add_argument(
+        "--identify-T0",
+        action="store_true",
+        help="identify each branch's velocity-loop time constant T0 from velocity steps of the MJX "
+        "machine (x and y platform motions from home) instead of the loop analysis",
+    )
+    a.add_argument(
+        "--kin-error",
+        type=_seed,
+        metavar="SEED",
+        help="with --identify-T0: the machine gets seeded kinematic errors (0.5 mm std)",
+    )
     s = sub.add_parser("sim", help="simulate the cascade against a plant and print tracking metrics")
-    s.add_argument("--plant", choices=("axis", "mjx"), default="axis",
-                   help="axis: six single-axis plants; mjx: the 6PUS-UPU mechanism in MJX (default axis)")
-    s.add_argument("--trajectory", metavar="NAME|FILE",
-                   help="step|ramp|sine for the axis plant (default step); for mjx (default arc) arc|p2p|circle|tilt "
-                        "or a path file: waypoints (.yaml, .yml) or a pose table (.csv) (docs/paths.md)")
-    s.add_argument("--kin-error", type=_seed, metavar="SEED",
-                   help="mjx: the simulated machine gets seeded kinematic errors (0.5 mm std)")
-    s.add_argument("--mode", choices=("imc", "pid", "pid_ff", "hybrid"), default="imc",
-                   help="imc, pid or pid_ff (PID with velocity feedforward) on every branch, or hybrid (mjx only: "
-                        "branches 1-5 IMC, branch 6 force control, eq. 10-14; gains from the params file's hybrid "
-                        "section) (default imc)")
-    s.add_argument("--start", choices=("rest", "zero"), default="rest",
-                   help="rest: the machine held still by its drives at t = 0 (currents and integrators preloaded); "
-                        "zero: every controller state zero, so it sags until the integrators catch up (default rest)")
+    s.add_argument(
+        "--plant",
+        choices=("axis", "mjx"),
+        default="axis",
+        help="axis: six single-axis plants; mjx: the 6PUS-UPU mechanism in MJX (default axis)",
+    )
+    s.add_argument(
+        "--trajectory",
+        metavar="NAME|FILE",
+        help="step|ramp|sine for the axis plant (default step); for mjx (default arc) arc|p2p|circle|tilt "
+        "or a path file: waypoints (.yaml, .yml) or a pose table (.csv) (docs/paths.md)",
+    )
+    s.add_argument(
+        "--kin-error",
+        type=_seed,
+        metavar="SEED",
+        help="mjx: the simulated machine gets seeded kinematic errors (0.5 mm std)",
+    )
+    s.add_argument(
+        "--mode",
+        choices=("imc", "pid", "pid_ff", "hybrid"),
+        default="imc",
+        help="imc, pid or pid_ff (PID with velocity feedforward) on every branch, or hybrid (mjx only: "
+        "branches 1-5 IMC, branch 6 force control, eq. 10-14; gains from the params file's hybrid "
+        "section) (default imc)",
+    )
+    s.add_argument(
+        "--start",
+        choices=("rest", "zero"),
+        default="rest",
+        help="rest: the machine held still by its drives at t = 0 (currents and integrators preloaded); "
+        "zero: every controller state zero, so it sags until the integrators catch up (default rest)",
+    )
     s.add_argument("--params", metavar="FILE", help="parameter YAML")
     s.add_argument("--duration", type=float, metavar="S", help="seconds (default per trajectory)")
     s.add_argument("--json", action="store_true", help="print JSON instead of a table")
     s.add_argument("--plot", metavar="PNG", help="write reference, error and current plots of axis 0")
     t = sub.add_parser("tune", help="the main job: tune the gains on the machine, export gains.yaml and a report")
-    t.add_argument("--config", metavar="FILE", help="tuning configuration YAML (default: the embedded one, "
-                                                     "see tune/config.py and docs/tuning.md)")
+    t.add_argument(
+        "--config",
+        metavar="FILE",
+        help="tuning configuration YAML (default: the embedded one, see tune/config.py and docs/tuning.md)",
+    )
     t.add_argument("--out", metavar="DIR", default="tune_out", help="output folder (default tune_out)")
     t.add_argument("--quick", action="store_true", help="a short smoke run (under 2 min): one path, 5 iterations")
     t.add_argument("--fresh", action="store_true", help="ignore (delete) a checkpoint in DIR instead of resuming")
     t.add_argument("--json", action="store_true", help="print the report as JSON instead of a table")
-    b = sub.add_parser("batch", help="tune many robots and scenarios from a job file: vmapped on one device, "
-                                     "sharded over local devices, or as Ray tasks")
-    b.add_argument("job", metavar="JOB.yaml", help="the job file (docs/batch.md, tune/schemas/pusupu-batch.schema.json)")
+    b = sub.add_parser(
+        "batch",
+        help="tune many robots and scenarios from a job file: vmapped on one device, "
+        "sharded over local devices, or as Ray tasks",
+    )
+    b.add_argument(
+        "job", metavar="JOB.yaml", help="the job file (docs/batch.md, tune/schemas/pusupu-batch.schema.json)"
+    )
     b.add_argument("--out", metavar="DIR", default="batch_out", help="output folder (default batch_out)")
     b.add_argument("--ray", action="store_true", help="run the shards as Ray tasks (the cluster extra)")
     b.add_argument("--address", metavar="ADDR", help="join this Ray cluster instead of starting a local one")
     b.add_argument("--workers", type=int, metavar="N", help="CPUs of the local Ray instance (default: all)")
-    b.add_argument("--fresh", action="store_true", help="delete DIR's checkpoints and job results instead of "
-                                                        "resuming")
+    b.add_argument("--fresh", action="store_true", help="delete DIR's checkpoints and job results instead of resuming")
     b.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
-    g = sub.add_parser("gains", help="read, compare, check or re-sign a gain file; export it for ROS 2 and see "
-                                     "what ROS would run")
+    g = sub.add_parser(
+        "gains", help="read, compare, check or re-sign a gain file; export it for ROS 2 and see what ROS would run"
+    )
     actions = g.add_subparsers(dest="action", required=True, parser_class=_Parser)
     g_show = actions.add_parser("show", help="the gains as a table: sections, values, units, what was tuned")
     g_show.add_argument("file", metavar="FILE")
@@ -119,65 +160,104 @@ def _parser() -> argparse.ArgumentParser:
     g_check.add_argument("file", metavar="FILE")
     g_sign = actions.add_parser("sign", help="re-sign a deliberately edited gain file once its gains validate")
     g_sign.add_argument("file", metavar="FILE")
-    g_migrate = actions.add_parser("migrate", help="rewrite a version 2 gain file as version 3 (its plant section "
-                                                   "must be the built-in plant)")
+    g_migrate = actions.add_parser(
+        "migrate", help="rewrite a version 2 gain file as version 3 (its plant section must be the built-in plant)"
+    )
     g_migrate.add_argument("file", metavar="FILE")
     g_migrate.add_argument("--out", metavar="FILE", help="write the version 3 file here (default: FILE, in place)")
-    g_export = actions.add_parser("export-ros", help="write the ROS 2 pid_controller and joint trajectory "
-                                                      "controller parameter files")
+    g_export = actions.add_parser(
+        "export-ros", help="write the ROS 2 pid_controller and joint trajectory controller parameter files"
+    )
     g_export.add_argument("file", metavar="FILE")
     g_export.add_argument("--out", metavar="DIR", default=".", help="output folder (default .)")
-    g_export.add_argument("--joints", metavar="J1,...,J6", help="the six slider joints' names "
-                                                                 "(default slide_1,...,slide_6)")
-    g_ros = actions.add_parser("check-ros", help="simulate what ROS's PID would run with the exported gains on the "
-                                                 "machine, beside the full pusupu controller")
+    g_export.add_argument(
+        "--joints", metavar="J1,...,J6", help="the six slider joints' names (default slide_1,...,slide_6)"
+    )
+    g_ros = actions.add_parser(
+        "check-ros",
+        help="simulate what ROS's PID would run with the exported gains on the "
+        "machine, beside the full pusupu controller",
+    )
     g_ros.add_argument("file", metavar="FILE")
-    g_ros.add_argument("--trajectory", metavar="NAME|FILE", default="both",
-                       help="both (arc and p2p), a named path or a path file (docs/paths.md) (default both)")
+    g_ros.add_argument(
+        "--trajectory",
+        metavar="NAME|FILE",
+        default="both",
+        help="both (arc and p2p), a named path or a path file (docs/paths.md) (default both)",
+    )
     g_ros.add_argument("--seconds", type=float, metavar="S", help="only the first S seconds of each path")
     g_ros.add_argument("--json", action="store_true", help="print JSON instead of a table")
     for sp in (g_show, g_diff, g_check, g_sign, g_migrate, g_export, g_ros):
         _floors_arguments(sp)
-    m = sub.add_parser("machine", help="write, check and describe a machine file: what the robot is (geometry, "
-                                       "drives, friction, payload)")
+    m = sub.add_parser(
+        "machine",
+        help="write, check and describe a machine file: what the robot is (geometry, drives, friction, payload)",
+    )
     m_actions = m.add_subparsers(dest="action", required=True, parser_class=_Parser)
     m_init = m_actions.add_parser("init", help="write the built-in machine as a commented template to edit")
-    m_init.add_argument("--out", metavar="FILE", default="machine.yaml", help="default machine.yaml (an existing file "
-                                                                               "is not replaced)")
+    m_init.add_argument(
+        "--out", metavar="FILE", default="machine.yaml", help="default machine.yaml (an existing file is not replaced)"
+    )
     m_check = m_actions.add_parser("check", help="validate a machine file and its workspace (exit 0 when it passes)")
     m_check.add_argument("file", metavar="FILE")
-    m_check.add_argument("--trajectory", action="append", default=[], metavar="PATH",
-                         help="also check this path against the machine (repeatable; default arc and p2p)")
+    m_check.add_argument(
+        "--trajectory",
+        action="append",
+        default=[],
+        metavar="PATH",
+        help="also check this path against the machine (repeatable; default arc and p2p)",
+    )
     m_check.add_argument("--json", action="store_true", help="print the findings as JSON")
     m_actions.add_parser("schema", help="print the machine file's JSON Schema (for editors)")
     e = sub.add_parser("experiment", help="reproduce one of the paper's claims: runs, figures, JSON and a table")
-    e.add_argument("name", metavar="NAME", help="arc (Fig. 7), p2p (section 4, Table 2), hybrid_grid (hybrid "
-                                                 "stability across lambda2), timing (every step halved), servo "
-                                                 "(each loop: Bode, step, load-torque step, margins), tuned "
-                                                 "(Table 1 vs pusupu tune's gains on arc and p2p, every mode), "
-                                                 "peg_in_hole (Fig. 9a), surface_tracking (Fig. 9b) or loop_match (the "
-                                                 "MJX machine's loop gains against the linear model)")
+    e.add_argument(
+        "name",
+        metavar="NAME",
+        help="arc (Fig. 7), p2p (section 4, Table 2), hybrid_grid (hybrid "
+        "stability across lambda2), timing (every step halved), servo "
+        "(each loop: Bode, step, load-torque step, margins), tuned "
+        "(Table 1 vs pusupu tune's gains on arc and p2p, every mode), "
+        "peg_in_hole (Fig. 9a), surface_tracking (Fig. 9b) or loop_match (the "
+        "MJX machine's loop gains against the linear model)",
+    )
     e.add_argument("--out", metavar="DIR", default="experiments_out", help="output folder (default experiments_out)")
     e.add_argument("--quick", action="store_true", help="a short version (a few seconds of the paths, fewer seeds)")
     e.add_argument("--json", action="store_true", help="print the metrics as JSON instead of the table")
-    e.add_argument("--gains", metavar="FILE", help="servo and tuned only: a gain file written by pusupu tune, "
-                                                    "compared with Table 1 (tuned without it runs the tuner)")
+    e.add_argument(
+        "--gains",
+        metavar="FILE",
+        help="servo and tuned only: a gain file written by pusupu tune, "
+        "compared with Table 1 (tuned without it runs the tuner)",
+    )
     for sp in (a, s):
-        sp.add_argument("--gains", metavar="FILE", help="a gain file written by pusupu tune (replaces the servo "
-                                                         "gains, hybrid gains and rates of --params)")
+        sp.add_argument(
+            "--gains",
+            metavar="FILE",
+            help="a gain file written by pusupu tune (replaces the servo gains, hybrid gains and rates of --params)",
+        )
         _floors_arguments(sp)
-    t.add_argument("--start-gains", metavar="FILE|table1|derived",
-                   help="where tuning starts: a gain file tuned on the same machine, Table 1, or gains derived for the "
-                        "machine by the paper's method (docs/machine.md); default table1 on the built-in machine, "
-                        "derived on any other")
+    t.add_argument(
+        "--start-gains",
+        metavar="FILE|table1|derived",
+        help="where tuning starts: a gain file tuned on the same machine, Table 1, or gains derived for the "
+        "machine by the paper's method (docs/machine.md); default table1 on the built-in machine, "
+        "derived on any other",
+    )
     for sp in (a, s, t, g_show, g_check, g_sign, g_export, g_ros, e):
-        sp.add_argument("--machine", metavar="FILE", help="the machine file (pusupu machine init; default: the "
-                                                          "built-in machine)" + ("; loop_match only" if sp is e else ""))
+        sp.add_argument(
+            "--machine",
+            metavar="FILE",
+            help="the machine file (pusupu machine init; default: the "
+            "built-in machine)" + ("; loop_match only" if sp is e else ""),
+        )
     for sp in (a, s, t):
-        sp.add_argument("--imc-form", choices=IMC_FORMS,
-                        help="form of the IMC prefilter C1: full (reference response (3 l1 s+1)/(l1 s+1)^3, what "
-                             "section 2.2 describes) or printed (eq. 9 as printed); default: the params or gain "
-                             "file's servo.imc_form, else full (docs/imc.md)")
+        sp.add_argument(
+            "--imc-form",
+            choices=IMC_FORMS,
+            help="form of the IMC prefilter C1: full (reference response (3 l1 s+1)/(l1 s+1)^3, what "
+            "section 2.2 describes) or printed (eq. 9 as printed); default: the params or gain "
+            "file's servo.imc_form, else full (docs/imc.md)",
+        )
     bridge_cli.add_parsers(sub)
     return p
 
@@ -189,10 +269,18 @@ def _seed(text: str) -> int:
 
 
 def _floors_arguments(parser):
-    parser.add_argument("--min-pm", type=float, metavar="DEG", help="accept gain files with at least DEG of phase "
-                                                                     "margin instead of 45 (said on stderr)")
-    parser.add_argument("--min-gm", type=float, metavar="DB", help="accept gain files with at least DB of gain margin "
-                                                                    "instead of 6 (said on stderr)")
+    parser.add_argument(
+        "--min-pm",
+        type=float,
+        metavar="DEG",
+        help="accept gain files with at least DEG of phase margin instead of 45 (said on stderr)",
+    )
+    parser.add_argument(
+        "--min-gm",
+        type=float,
+        metavar="DB",
+        help="accept gain files with at least DB of gain margin instead of 6 (said on stderr)",
+    )
 
 
 def _floors(args):
@@ -205,8 +293,11 @@ def _floors(args):
 
         if not all(math.isfinite(v) and v >= 0 for v in floors):
             raise ParameterError(f"--min-pm/--min-gm: expected finite non-negative margins, got {floors}")
-        print(f"pusupu: accepting gain files down to {floors[0]:g} deg and {floors[1]:g} dB of margin (default "
-              f"{FLOORS[0]:g} deg, {FLOORS[1]:g} dB)", file=sys.stderr)
+        print(
+            f"pusupu: accepting gain files down to {floors[0]:g} deg and {floors[1]:g} dB of margin (default "
+            f"{FLOORS[0]:g} deg, {FLOORS[1]:g} dB)",
+            file=sys.stderr,
+        )
     return floors
 
 
@@ -219,9 +310,17 @@ def _version() -> str:
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     _file_backend()
-    commands = {"analyze": _analyze, "sim": _sim, "tune": _tune, "batch": _batch, "experiment": _experiment,
-                "gains": _gains, "machine": _machine_command,
-                "bridge": bridge_cli.run_bridge, "sim-robot": bridge_cli.run_sim_robot}
+    commands = {
+        "analyze": _analyze,
+        "sim": _sim,
+        "tune": _tune,
+        "batch": _batch,
+        "experiment": _experiment,
+        "gains": _gains,
+        "machine": _machine_command,
+        "bridge": bridge_cli.run_bridge,
+        "sim-robot": bridge_cli.run_sim_robot,
+    }
     try:
         args.floors = _floors(args) if hasattr(args, "min_pm") else None
         with _counted_interrupts() as interrupts:
@@ -257,8 +356,10 @@ def _counted_interrupts():
     SIGINT is ignored or handled by someone else, or off the main thread, nothing changes.
     """
     seen = []
-    if threading.current_thread() is not threading.main_thread() or \
-            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGINT) is not signal.default_int_handler
+    ):
         yield seen
         return
 
@@ -330,14 +431,17 @@ def _batch(args) -> int:
         raise ParameterError("--address and --workers need --ray")
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers: expected a positive number of CPUs, got {args.workers}")
-    summary, status = run_batch(args.job, args.out, ray=args.ray, address=args.address, workers=args.workers,
-                                fresh=args.fresh)
+    summary, status = run_batch(
+        args.job, args.out, ray=args.ray, address=args.address, workers=args.workers, fresh=args.fresh
+    )
     if args.json:
         print(json.dumps(summary, indent=2))
     else:
         print(Path(args.out, "summary.md").read_text(), end="")
-        print(f"{summary['ok']} of {summary['jobs']} job(s) exported gains; wrote {args.out}/summary.csv, "
-              f"summary.md, summary.json, summary.png and jobs/<job>/")
+        print(
+            f"{summary['ok']} of {summary['jobs']} job(s) exported gains; wrote {args.out}/summary.csv, "
+            f"summary.md, summary.json, summary.png and jobs/<job>/"
+        )
     for name in summary["failed"]:
         row = next(r for r in summary["rows"] if r["job"] == name)
         _say(f"pusupu: job {name}: {row['status']}: {row['error']}")
@@ -360,8 +464,12 @@ def _experiment(args) -> int:
         g = experiments.gain_file(args.name, args.gains)
     machine = machine_of(args) if args.machine else None
     experiments.check_machine(args.name, machine)
-    print(f"experiment {args.name}{' (quick)' if args.quick else ''}: running (the first runs compile for about "
-          "20 s per control mode)", file=sys.stderr, flush=True)
+    print(
+        f"experiment {args.name}{' (quick)' if args.quick else ''}: running (the first runs compile for about "
+        "20 s per control mode)",
+        file=sys.stderr,
+        flush=True,
+    )
     t0 = time.perf_counter()
     result, files = experiments.run_experiment(args.name, out, quick=args.quick, gains=g, machine=machine)
     if args.json:
@@ -394,8 +502,10 @@ def _load(args, check: bool = True):
             servo = sections.get("servo") or {}
             clash = [name for name in servo if name in machine.drives]
             if clash:
-                raise ParameterError(f"--params {args.params}: servo.{clash[0]}: expected controller fields only with "
-                                     f"--machine (the drives are the machine file's), got the drive field {clash[0]}")
+                raise ParameterError(
+                    f"--params {args.params}: servo.{clash[0]}: expected controller fields only with "
+                    f"--machine (the drives are the machine file's), got the drive field {clash[0]}"
+                )
     if getattr(args, "gains", None):
         from pusupu_jax import gains
 
@@ -405,8 +515,12 @@ def _load(args, check: bool = True):
     elif args.machine and not args.params and not machine_file.is_builtin(machine):
         from pusupu_jax.start_gains import derive
 
-        print(f"pusupu: no --gains: the start gains derived for machine {machine.name!r} (docs/machine.md; T0 "
-              "identified on the MJX machine, about 30 s)", file=sys.stderr, flush=True)
+        print(
+            f"pusupu: no --gains: the start gains derived for machine {machine.name!r} (docs/machine.md; T0 "
+            "identified on the MJX machine, about 30 s)",
+            file=sys.stderr,
+            flush=True,
+        )
         with checking(f"--machine {args.machine}"):
             loaded = loaded._replace(servo=derive(machine, loaded.rates)[0])
     with checking(f"--machine {args.machine}" if args.machine else "the built-in machine"):
@@ -458,21 +572,36 @@ def _machine_command(args) -> int:
         found = machine_file.check(machine, paths)
         servo, report = derive(machine, identify=False)  # the drives' limits: speed_max, Kt I_peak
         for name, poses in paths:
-            check_path(poses, servo, LoopRates().dt_position, geom=machine.geometry, options=machine.options(),
-                       where=f"--trajectory {name}")
+            check_path(
+                poses,
+                servo,
+                LoopRates().dt_position,
+                geom=machine.geometry,
+                options=machine.options(),
+                where=f"--trajectory {name}",
+            )
     mass = np.asarray(report["carried_mass_kg"])
-    result = {"file": args.file, "name": machine.name, "digest": machine_file.digest(machine),
-              "carried_mass_kg": mass.tolist(), "workspace": found}
+    result = {
+        "file": args.file,
+        "name": machine.name,
+        "digest": machine_file.digest(machine),
+        "carried_mass_kg": mass.tolist(),
+        "workspace": found,
+    }
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
-    print(f"{args.file}: valid {machine_file.FORMAT} v{machine_file.VERSION}, machine {machine.name!r} "
-          f"(digest {result['digest'][:12]})")
+    print(
+        f"{args.file}: valid {machine_file.FORMAT} v{machine_file.VERSION}, machine {machine.name!r} "
+        f"(digest {result['digest'][:12]})"
+    )
     for name, extremes in found.items():
         lo, hi = min(extremes["slider_min_m"]), max(extremes["slider_max_m"])
-        print(f"  {name:<12} sliders {lo * 1e3:.1f} to {hi * 1e3:.1f} mm, Jacobian condition number at most "
-              f"{extremes['cond_max']:.3g} (limit {machine_file.COND_MAX:g}), UPU leg {extremes['upu_leg_m'][0] * 1e3:.0f}"
-              f" to {extremes['upu_leg_m'][1] * 1e3:.0f} mm")
+        print(
+            f"  {name:<12} sliders {lo * 1e3:.1f} to {hi * 1e3:.1f} mm, Jacobian condition number at most "
+            f"{extremes['cond_max']:.3g} (limit {machine_file.COND_MAX:g}), "
+            f"UPU leg {extremes['upu_leg_m'][0] * 1e3:.0f} to {extremes['upu_leg_m'][1] * 1e3:.0f} mm"
+        )
     print(f"  mass each slider carries at home: {', '.join(f'{m:.1f}' for m in mass)} kg")
     return 0
 
@@ -508,13 +637,17 @@ def _gains(args) -> int:
     elif args.action == "check":
         from pusupu_jax import machine_file
 
-        print(f"{args.file}: valid {gains.SCHEMA} v{g.document['version']}, mode {g.mode}, tuned on machine "
-              f"{g.machine['name']!r} (digest {g.machine['digest'][:12]}); on machine {machine.name!r} (digest "
-              f"{machine_file.digest(machine)[:12]}) every loop is stable at the file's rates and has at least "
-              f"{floors[0]:g} deg and {floors[1]:g} dB")
+        print(
+            f"{args.file}: valid {gains.SCHEMA} v{g.document['version']}, mode {g.mode}, tuned on machine "
+            f"{g.machine['name']!r} (digest {g.machine['digest'][:12]}); on machine {machine.name!r} (digest "
+            f"{machine_file.digest(machine)[:12]}) every loop is stable at the file's rates and has at least "
+            f"{floors[0]:g} deg and {floors[1]:g} dB"
+        )
         if not g.tuned_on(machine):
-            _say(f"pusupu: warning: {args.file} was tuned on another machine ({g.machine['name']!r}) than "
-                 f"{machine.name!r}")
+            _say(
+                f"pusupu: warning: {args.file} was tuned on another machine ({g.machine['name']!r}) than "
+                f"{machine.name!r}"
+            )
     elif args.action == "export-ros":
         from pusupu_jax import ros2
 
@@ -540,37 +673,58 @@ def _check_ros(args, g) -> int:
     kinds = ("arc", "p2p") if args.trajectory == "both" else (paths.check_spec(args.trajectory, "--trajectory"),)
     if args.seconds is not None:
         inputs.number(args.seconds, "--seconds", ParameterError, low=0.0, low_open=True)
-    seconds = sum(paths.path_seconds(k) if args.seconds is None else min(args.seconds, paths.path_seconds(k))
-                  for k in kinds)
-    workload.check_run(f"gains check-ros ({' and '.join(kinds)}, two controllers)", 2 * seconds,
-                       machine_rates(rates=g.rates), machine=True)
+    seconds = sum(
+        paths.path_seconds(k) if args.seconds is None else min(args.seconds, paths.path_seconds(k)) for k in kinds
+    )
+    workload.check_run(
+        f"gains check-ros ({' and '.join(kinds)}, two controllers)",
+        2 * seconds,
+        machine_rates(rates=g.rates),
+        machine=True,
+    )
     machine = machine_of(args)
     poses = {k: paths.platform_path_from(k, machine.geometry.home, g.rates) for k in kinds}
     if args.seconds is not None:
-        poses = {k: p[:max(3, int(args.seconds / g.rates.dt_position))] for k, p in poses.items()}
+        poses = {k: p[: max(3, int(args.seconds / g.rates.dt_position))] for k, p in poses.items()}
     for k, p in poses.items():
-        paths.check_path(p, g.servo, g.rates.dt_position, geom=machine.geometry, options=machine.options(),
-                         where=f"--trajectory {k}")
-    scenarios = [Scenario(p, machine.options(), name=paths.path_label(k), geometry=machine.geometry)
-                 for k, p in poses.items()]
-    print(f"simulating {', '.join(kinds)} with the full pusupu controller ({g.mode}) and with what ROS's PID runs "
-          "(two compiles of about 20 s)", file=sys.stderr)
+        paths.check_path(
+            p, g.servo, g.rates.dt_position, geom=machine.geometry, options=machine.options(), where=f"--trajectory {k}"
+        )
+    scenarios = [
+        Scenario(p, machine.options(), name=paths.path_label(k), geometry=machine.geometry) for k, p in poses.items()
+    ]
+    print(
+        f"simulating {', '.join(kinds)} with the full pusupu controller ({g.mode}) and with what ROS's PID runs "
+        "(two compiles of about 20 s)",
+        file=sys.stderr,
+    )
     ros_servo = ros2.as_ros_servo(g.servo, g.mode)
-    runs = {"pusupu": simulate_scenarios(g.servo, scenarios, mode=g.mode, rates=g.rates,
-                                         hybrid=g.hybrid if control_mode(g.mode).hybrid else None),
-            "ros": simulate_scenarios(ros_servo, scenarios, mode="ros_pid", rates=g.rates)}
-    margins = {"pusupu": gains.margins_report(g.servo, g.mode, machine),
-               "ros": gains.margins_report(ros_servo, "ros_pid", machine)}
-    result = {"mode": g.mode, "ros_gains": {k: v.tolist() for k, v in ros2.ros_gains(g.servo, g.mode).items()},
-              "paths": {}, "position_margins": {}}
+    runs = {
+        "pusupu": simulate_scenarios(
+            g.servo, scenarios, mode=g.mode, rates=g.rates, hybrid=g.hybrid if control_mode(g.mode).hybrid else None
+        ),
+        "ros": simulate_scenarios(ros_servo, scenarios, mode="ros_pid", rates=g.rates),
+    }
+    margins = {
+        "pusupu": gains.margins_report(g.servo, g.mode, machine),
+        "ros": gains.margins_report(ros_servo, "ros_pid", machine),
+    }
+    result = {
+        "mode": g.mode,
+        "ros_gains": {k: v.tolist() for k, v in ros2.ros_gains(g.servo, g.mode).items()},
+        "paths": {},
+        "position_margins": {},
+    }
     for who in runs:
         for sc, (r, _) in zip(scenarios, runs[who]):
             result["paths"].setdefault(sc.name, {})[who] = {
-                k: r[k] for k in ("rms_tracking_error_mm", "max_tracking_error_mm")} | {
-                "highest_branch_force_peak_n": max(r["branch_force_peak_n"])}
+                k: r[k] for k in ("rms_tracking_error_mm", "max_tracking_error_mm")
+            } | {"highest_branch_force_peak_n": max(r["branch_force_peak_n"])}
         m = margins[who]["position"]
-        result["position_margins"][who] = {"phase_margin_deg": float(min(m["phase_margin_deg"])),
-                                           "gain_margin_db": float(min(m["gain_margin_db"]))}
+        result["position_margins"][who] = {
+            "phase_margin_deg": float(min(m["phase_margin_deg"])),
+            "gain_margin_db": float(min(m["gain_margin_db"])),
+        }
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
@@ -579,8 +733,10 @@ def _check_ros(args, g) -> int:
         for key in ("rms_tracking_error_mm", "max_tracking_error_mm", "highest_branch_force_peak_n"):
             print(f"{name:<6} {key:<28} {per['pusupu'][key]:>18.4g} {per['ros'][key]:>12.4g}")
     for key in ("phase_margin_deg", "gain_margin_db"):
-        print(f"{'':<6} {'position loop ' + key:<28} {result['position_margins']['pusupu'][key]:>18.4g} "
-              f"{result['position_margins']['ros'][key]:>12.4g}")
+        print(
+            f"{'':<6} {'position loop ' + key:<28} {result['position_margins']['pusupu'][key]:>18.4g} "
+            f"{result['position_margins']['ros'][key]:>12.4g}"
+        )
     return 0
 
 
@@ -599,8 +755,12 @@ def _analyze(args) -> int:
         warnings.simplefilter("ignore")
         # the check of the values: every axis's closed loops can be built (0.1 s), with numpy's overflow, invalid and
         # divide-by-zero raising; what python-control or numpy cannot use ends in one line here, not in the analysis
-        with checking(" and ".join(f"--{k} {getattr(args, k)}" for k in ("params", "gains") if getattr(args, k))
-                       or "Table 1"), np.errstate(over="raise", invalid="raise", divide="raise"):
+        with (
+            checking(
+                " and ".join(f"--{k} {getattr(args, k)}" for k in ("params", "gains") if getattr(args, k)) or "Table 1"
+            ),
+            np.errstate(over="raise", invalid="raise", divide="raise"),
+        ):
             for axis in range(N_AXES):
                 analysis.closed_loops(servo, load, axis, mode=args.mode)
         result = analysis.loop_metrics(servo, load, args.mode)
@@ -612,9 +772,15 @@ def _analyze(args) -> int:
         print(json.dumps(result, indent=2))
         return _refuse_unstable(args, servo, hybrid, rates, load)
     print(f"position mode: {args.mode}")
-    cols = [("crossover_hz", "crossover Hz", 13), ("phase_margin_deg", "PM deg", 8), ("gain_margin_db", "GM dB", 8),
-            ("bandwidth_hz", "bandwidth Hz", 13), ("rise_time_s", "rise s", 9), ("settling_time_s", "settle s", 9),
-            ("overshoot_pct", "overshoot %", 12)]
+    cols = [
+        ("crossover_hz", "crossover Hz", 13),
+        ("phase_margin_deg", "PM deg", 8),
+        ("gain_margin_db", "GM dB", 8),
+        ("bandwidth_hz", "bandwidth Hz", 13),
+        ("rise_time_s", "rise s", 9),
+        ("settling_time_s", "settle s", 9),
+        ("overshoot_pct", "overshoot %", 12),
+    ]
     print(f"{'axis':>4} {'loop':<9} " + " ".join(f"{title:>{w}}" for _, title, w in cols))
     for k, row in enumerate(result["axes"]):
         for name, m in row.items():
@@ -646,31 +812,48 @@ def _identify(args, servo, load, rates) -> int:
     from pusupu_jax.identify import identify_T0_machine
     from pusupu_jax.plant.model import ModelOptions
 
-    print("identifying T0 on the MJX machine (velocity steps along x and y from home); the first run compiles "
-          "for about 20 s", file=sys.stderr)
+    print(
+        "identifying T0 on the MJX machine (velocity steps along x and y from home); the first run compiles "
+        "for about 20 s",
+        file=sys.stderr,
+    )
     machine = machine_of(args)
-    result = identify_T0_machine(servo, machine.options(ModelOptions(kin_error_seed=args.kin_error)), rates=rates,
-                                 geom=machine.geometry)
+    result = identify_T0_machine(
+        servo, machine.options(ModelOptions(kin_error_seed=args.kin_error)), rates=rates, geom=machine.geometry
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         axis_model = identify_T0(servo, load)
-    out = {"T0_s": result["T0"], "fit_rms_rad_s": result["fit_rms"], "directions": result["directions"],
-           "T0_servo_s": np.asarray(servo.T0).tolist(), "T0_axis_model_s": axis_model,
-           "kin_error_seed": args.kin_error}
+    out = {
+        "T0_s": result["T0"],
+        "fit_rms_rad_s": result["fit_rms"],
+        "directions": result["directions"],
+        "T0_servo_s": np.asarray(servo.T0).tolist(),
+        "T0_axis_model_s": axis_model,
+        "kin_error_seed": args.kin_error,
+    }
     if args.plot:
         from pusupu_jax.plots import plot_identification
 
-        plot_identification(result, args.plot, title="velocity steps of the machine"
-                            + (f", kinematic errors seed {args.kin_error}" if args.kin_error is not None else ""))
+        plot_identification(
+            result,
+            args.plot,
+            title="velocity steps of the machine"
+            + (f", kinematic errors seed {args.kin_error}" if args.kin_error is not None else ""),
+        )
     if args.json:
         print(json.dumps(out, indent=2))
         return 0
-    print(f"T0 identified on the machine (velocity steps along {', '.join(result['directions'])} from home); "
-          f"single-axis model: {axis_model * 1e3:.2f} ms")
+    print(
+        f"T0 identified on the machine (velocity steps along {', '.join(result['directions'])} from home); "
+        f"single-axis model: {axis_model * 1e3:.2f} ms"
+    )
     print(f"{'branch':>6} {'T0 ms':>8} {'servo T0 ms':>12} {'fit rms rad/s':>14}")
     for b in range(6):
-        print(f"{b + 1:>6} {result['T0'][b] * 1e3:>8.2f} {out['T0_servo_s'][b] * 1e3:>12.2f} "
-              f"{result['fit_rms'][b]:>14.3g}")
+        print(
+            f"{b + 1:>6} {result['T0'][b] * 1e3:>8.2f} {out['T0_servo_s'][b] * 1e3:>12.2f} "
+            f"{result['fit_rms'][b]:>14.3g}"
+        )
     if args.plot:
         print(f"plot: {args.plot}")
     return 0
@@ -710,10 +893,16 @@ def _sim(args) -> int:
     t0 = time.perf_counter()
     trace = jax.block_until_ready(simulate(servo, ref, load=load, rates=rates, mode=args.mode, start=args.start))
     wall = time.perf_counter() - t0
-    result = {"plant": args.plant, "trajectory": args.trajectory, "mode": args.mode, "imc_form": servo.imc_form,
-              "start": args.start,
-              "duration_s": float(trace.t[-1] + rates.dt_position), "wall_s": wall,
-              **metrics.summary(trace, servo)}
+    result = {
+        "plant": args.plant,
+        "trajectory": args.trajectory,
+        "mode": args.mode,
+        "imc_form": servo.imc_form,
+        "start": args.start,
+        "duration_s": float(trace.t[-1] + rates.dt_position),
+        "wall_s": wall,
+        **metrics.summary(trace, servo),
+    }
     if args.trajectory == "step":
         result |= metrics.step_summary(trace, servo)
     if args.plot:
@@ -723,9 +912,11 @@ def _sim(args) -> int:
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
-    print(f"{args.trajectory} on the {args.plant} plant, {args.mode} mode (IMC form {servo.imc_form}, start "
-          f"{args.start}), {result['duration_s']:.3g} s "
-          f"simulated in {wall:.2f} s (compile included)")
+    print(
+        f"{args.trajectory} on the {args.plant} plant, {args.mode} mode (IMC form {servo.imc_form}, start "
+        f"{args.start}), {result['duration_s']:.3g} s "
+        f"simulated in {wall:.2f} s (compile included)"
+    )
     keys = [k for k in result if isinstance(result[k], list)]
     print(f"{'axis':>4} " + " ".join(f"{k:>16}" for k in keys))
     for a in range(len(result[keys[0]])):
@@ -746,27 +937,47 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
         raise ParameterError("--duration: the mjx paths have their own timing (velocity and acceleration limits)")
     machine = machine_of(args)
     options = machine.options(ModelOptions(kin_error_seed=args.kin_error))
-    workload.check_run(f"--trajectory {args.trajectory}", path_seconds(args.trajectory), machine_rates(options, rates),
-                       machine=True)
+    workload.check_run(
+        f"--trajectory {args.trajectory}", path_seconds(args.trajectory), machine_rates(options, rates), machine=True
+    )
     path = platform_path_from(args.trajectory, machine.geometry.home, rates)
-    check_path(path, servo, rates.dt_position, geom=machine.geometry, options=options,
-               where=f"--trajectory {args.trajectory}")
-    print(f"simulating {len(path) * rates.dt_position:.1f} s of the {args.trajectory} path on the MJX machine "
-          f"({args.mode} mode); the first run compiles for about 15 s", file=sys.stderr)
-    result, trace = simulate_machine(servo, path, mode=args.mode, options=options, rates=rates, hybrid=hybrid,
-                                     start=args.start, geom=machine.geometry)
+    check_path(
+        path, servo, rates.dt_position, geom=machine.geometry, options=options, where=f"--trajectory {args.trajectory}"
+    )
+    print(
+        f"simulating {len(path) * rates.dt_position:.1f} s of the {args.trajectory} path on the MJX machine "
+        f"({args.mode} mode); the first run compiles for about 15 s",
+        file=sys.stderr,
+    )
+    result, trace = simulate_machine(
+        servo,
+        path,
+        mode=args.mode,
+        options=options,
+        rates=rates,
+        hybrid=hybrid,
+        start=args.start,
+        geom=machine.geometry,
+    )
     result = {"plant": "mjx", "trajectory": args.trajectory} | result
     if args.plot:
         from pusupu_jax.plots import plot_platform_path
 
-        plot_platform_path(trace, args.plot, title=f"{args.trajectory}, {args.mode} mode"
-                           + (f", kinematic errors seed {args.kin_error}" if args.kin_error is not None else ""))
+        plot_platform_path(
+            trace,
+            args.plot,
+            title=f"{args.trajectory}, {args.mode} mode"
+            + (f", kinematic errors seed {args.kin_error}" if args.kin_error is not None else ""),
+        )
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
-    print(f"{args.trajectory} on the MJX machine {machine_of(args).name!r}, {args.mode} mode (IMC form {servo.imc_form}, start {args.start}), "
-          f"{result['duration_s']:.3g} s simulated "
-          f"in {result['wall_s']:.2f} s (compile included)")
+    print(
+        f"{args.trajectory} on the MJX machine {machine_of(args).name!r}, {args.mode} mode "
+        f"(IMC form {servo.imc_form}, start {args.start}), "
+        f"{result['duration_s']:.3g} s simulated "
+        f"in {result['wall_s']:.2f} s (compile included)"
+    )
     for key in ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho", "loop_closure_residual_max_mm"):
         print(f"  {key:<30} {_num(result[key])}")
     for key, value in result.get("hybrid", {}).items():

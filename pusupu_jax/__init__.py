@@ -15,5 +15,14 @@ from .sim import Trace, rollout, simulate  # noqa: E402
 
 __version__ = "0.1.0"
 
-__all__ = ["AxisLoad", "LoopRates", "ParameterError", "ServoParams", "Trace", "rollout", "simulate",
-           "validate", "__version__"]
+__all__ = [
+    "AxisLoad",
+    "LoopRates",
+    "ParameterError",
+    "ServoParams",
+    "Trace",
+    "rollout",
+    "simulate",
+    "validate",
+    "__version__",
+]

@@ -52,11 +52,24 @@ def blocks(servo: ServoParams, load: AxisLoad, axis: int = 0) -> dict:
     j_eff = p["J"] + q["mass"] * r**2 / p["eta"]
     b_eff = p["viscous"] * r**2 / p["eta"]
     l1, l2, T0 = p["lambda1"], p["lambda2"], p["T0"]
-    elec = ct.ss([[-1 / p["Tn"], 0], [1 / p["L"], -p["R"] / p["L"]]],
-                 [[p["Kn"] / p["Tn"], 0], [0, -p["Ke"] / p["L"]]], [[0, 1]], [[0, 0]],
-                 inputs=["u", "w"], outputs=["i"], name="electrical")
-    mech = ct.ss([[0, 1], [0, -b_eff / j_eff]], [[0], [1 / j_eff]], np.eye(2), np.zeros((2, 1)),
-                 inputs=["tau"], outputs=["theta", "w"], name="mechanics")
+    elec = ct.ss(
+        [[-1 / p["Tn"], 0], [1 / p["L"], -p["R"] / p["L"]]],
+        [[p["Kn"] / p["Tn"], 0], [0, -p["Ke"] / p["L"]]],
+        [[0, 1]],
+        [[0, 0]],
+        inputs=["u", "w"],
+        outputs=["i"],
+        name="electrical",
+    )
+    mech = ct.ss(
+        [[0, 1], [0, -b_eff / j_eff]],
+        [[0], [1 / j_eff]],
+        np.eye(2),
+        np.zeros((2, 1)),
+        inputs=["tau"],
+        outputs=["theta", "w"],
+        name="mechanics",
+    )
     return {
         "Gxi": _sys(ct.tf([1], [p["Tcf"], 1]), "i_ref", "i_r"),
         "Gcf": _sys(ct.tf([p["Kcf"]], [p["Tcf"], 1]), "i", "i_f"),
@@ -71,8 +84,11 @@ def blocks(servo: ServoParams, load: AxisLoad, axis: int = 0) -> dict:
         "Gv": _sys(ct.tf([p["Kv"] * p["Tv"], p["Kv"]], [p["Tv"], 0]), "e_w", "i_ref"),
         "C1": _sys(imc_c1(l1, l2, servo.imc_form), "th_ref", "r1"),
         "C2": _sys(ct.tf(np.polymul([3 * l2, 1], [T0, 1]), np.polymul([3 * l2**2, 0], [l2 / 3, 1])), "e_p", "w_ref"),
-        "PID": _sys(ct.tf([p["Kp_pid"]], [1]) + ct.tf([p["Ki_pid"]], [1, 0])
-                    + ct.tf([p["Kd_pid"], 0], [p["Tf_pid"], 1]), "e_p", "w_ref"),
+        "PID": _sys(
+            ct.tf([p["Kp_pid"]], [1]) + ct.tf([p["Ki_pid"]], [1, 0]) + ct.tf([p["Kd_pid"], 0], [p["Tf_pid"], 1]),
+            "e_p",
+            "w_ref",
+        ),
     }
 
 
@@ -81,7 +97,8 @@ FF_LAG_S = 0.5e-3  # s: half the default position period, the lag of the pid_ff 
 
 def velocity_feedforward(servo: ServoParams, axis: int, rates: LoopRates | None = None):
     """The pid_ff feedforward ``th_ref -> w_ff``: exactly ``Kff (1 - z^-1)/dt`` at the position rate when ``rates``
-    is given, else its continuous stand-in ``Kff s/(FF_LAG_S s + 1)`` (the backward difference lags by half a period)."""
+    is given, else its continuous stand-in ``Kff s/(FF_LAG_S s + 1)`` (the backward difference lags by half a
+    period)."""
     k = axis_values(servo, axis)["Kff_pid"]
     if rates is None:
         return _sys(ct.tf([k, 0], [FF_LAG_S, 1]), "th_ref", "w_ff")
@@ -90,7 +107,8 @@ def velocity_feedforward(servo: ServoParams, axis: int, rates: LoopRates | None 
 
 
 def imc_c1(l1: float, l2: float, form: str):
-    """The prefilter C1 (eq. 9) as a python-control transfer function, in the ``form`` of :func:`pusupu_jax.loops.imc_c1`."""
+    """The prefilter C1 (eq. 9) as a python-control transfer function, in the ``form`` of
+    :func:`pusupu_jax.loops.imc_c1`."""
     if form == "printed":
         return ct.tf([3 * l1, 1], [3 * l2, 1])
     f_r = ct.tf([3 * l1, 1], np.polymul(np.polymul([l1, 1], [l1, 1]), [l1, 1]))
@@ -133,8 +151,14 @@ def _sum(a, b, out):
     return ct.summing_junction(inputs=[a, "-" + b], output=out)
 
 
-def closed_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, rates: LoopRates | None = None,
-                 mode: str = "imc", load_torque: bool = False) -> dict:
+def closed_loops(
+    servo: ServoParams,
+    load: AxisLoad,
+    axis: int = 0,
+    rates: LoopRates | None = None,
+    mode: str = "imc",
+    load_torque: bool = False,
+) -> dict:
     """Closed current, velocity and position loops of one axis (continuous, or discrete at ``rates``).
 
     Each maps its reference to the outputs ``(i, w, theta)``: ``current`` from ``i_ref``
@@ -155,13 +179,30 @@ def closed_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, rates: LoopR
         return b if dt is None else sampled_blocks(b, dt, rates.method)
 
     bi = at(0)
-    cl_i = ct.interconnect([bi["Gxi"], bi["Gcf"], bi["Gi"], bi["EMF"], bi["u"], bi["Kt"], bi["electrical"],
-                            bi["mechanics"], _sum("i_r", "i_f", "e_i")], inputs=["i_ref"] + disturbance, outputs=out,
-                           name="current_loop")
+    cl_i = ct.interconnect(
+        [
+            bi["Gxi"],
+            bi["Gcf"],
+            bi["Gi"],
+            bi["EMF"],
+            bi["u"],
+            bi["Kt"],
+            bi["electrical"],
+            bi["mechanics"],
+            _sum("i_r", "i_f", "e_i"),
+        ],
+        inputs=["i_ref"] + disturbance,
+        outputs=out,
+        name="current_loop",
+    )
     inner = cl_i if rates is None else hold_resample(cl_i, rates.n_velocity)
     bv = at(1)
-    cl_v = ct.interconnect([bv["Gxv"], bv["Gw"], bv["Gv"], inner, _sum("w_r", "w_f", "e_w")],
-                           inputs=["w_ref"] + disturbance, outputs=out, name="velocity_loop")
+    cl_v = ct.interconnect(
+        [bv["Gxv"], bv["Gw"], bv["Gv"], inner, _sum("w_r", "w_f", "e_w")],
+        inputs=["w_ref"] + disturbance,
+        outputs=out,
+        name="velocity_loop",
+    )
     inner = cl_v if rates is None else hold_resample(cl_v, rates.n_position)
     bp = at(2)
     law = control_mode(mode).law
@@ -170,23 +211,33 @@ def closed_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, rates: LoopR
     elif law == "pid":
         parts = [bp["PID"], _sum("th_ref", "theta", "e_p")]
     elif law == "pid_ff":
-        parts = [ct.ss(bp["PID"], inputs="e_p", outputs="w_pid"), velocity_feedforward(servo, axis, rates),
-                 ct.summing_junction(inputs=["w_pid", "w_ff"], output="w_ref"), _sum("th_ref", "theta", "e_p")]
+        parts = [
+            ct.ss(bp["PID"], inputs="e_p", outputs="w_pid"),
+            velocity_feedforward(servo, axis, rates),
+            ct.summing_junction(inputs=["w_pid", "w_ff"], output="w_ref"),
+            _sum("th_ref", "theta", "e_p"),
+        ]
     else:
         raise ValueError(f"closed_loops: expected a mode of imc, pid, pid_ff or hybrid, got {mode!r}")
     cl_p = ct.interconnect(parts + [inner], inputs=["th_ref"] + disturbance, outputs=out, name="position_loop")
     return {"current": cl_i, "velocity": cl_v, "position": cl_p}
 
 
-def open_loops(servo: ServoParams, load: AxisLoad, axis: int = 0, mode: str = "imc", closed: dict | None = None) -> dict:
+def open_loops(
+    servo: ServoParams, load: AxisLoad, axis: int = 0, mode: str = "imc", closed: dict | None = None
+) -> dict:
     """Continuous loop gains ``L`` (closed loop = ``L/(1+L)`` at that point) of each loop, broken at the controller.
 
     ``closed``: the continuous :func:`closed_loops` of the same axis and mode, when the caller has them.
     """
     b = blocks(servo, load, axis)
     cl = closed_loops(servo, load, axis, mode=mode) if closed is None else closed
-    p_i = ct.interconnect([b["EMF"], b["u"], b["Kt"], b["electrical"], b["mechanics"], b["Gcf"]],
-                          inputs="u_pi", outputs="i_f", check_unused=False)
+    p_i = ct.interconnect(
+        [b["EMF"], b["u"], b["Kt"], b["electrical"], b["mechanics"], b["Gcf"]],
+        inputs="u_pi",
+        outputs="i_f",
+        check_unused=False,
+    )
     p_v = ct.interconnect([cl["current"], b["Gw"]], inputs="i_ref", outputs="w_f", check_unused=False)
     p_p = cl["velocity"][2, 0]
     c_p = b["C2"] if control_mode(mode).law == "imc" else b["PID"]  # pid_ff: the feedforward acts outside the loop
@@ -200,8 +251,12 @@ def _siso(sys):
 def current_open_loop_locked(servo: ServoParams, axis: int = 0):
     """The paper's current loop gain (locked rotor): ``Gi Ginv Grl Gcf`` (eq. 1-4)."""
     p = axis_values(servo, axis)
-    return (ct.tf([p["Ki"] * p["Ti"], p["Ki"]], [p["Ti"], 0]) * ct.tf([p["Kn"]], [p["Tn"], 1])
-            * ct.tf([1], [p["L"], p["R"]]) * ct.tf([p["Kcf"]], [p["Tcf"], 1]))
+    return (
+        ct.tf([p["Ki"] * p["Ti"], p["Ki"]], [p["Ti"], 0])
+        * ct.tf([p["Kn"]], [p["Tn"], 1])
+        * ct.tf([1], [p["L"], p["R"]])
+        * ct.tf([p["Kcf"]], [p["Tcf"], 1])
+    )
 
 
 def nominal_position_open_loop(servo: ServoParams, axis: int = 0):
@@ -219,9 +274,11 @@ def margins(L, phase_crossover: bool = False) -> dict:
     """
     with np.errstate(invalid="ignore"):  # python-control compares NaNs when a crossing does not exist
         gm, pm, _, _, wgc, wpc = ct.stability_margins(L)
-    out = {"crossover_hz": float(wgc) / (2 * math.pi) if np.isfinite(wgc) else None,
-           "phase_margin_deg": float(pm) if np.isfinite(pm) else None,
-           "gain_margin_db": 20 * math.log10(gm) if np.isfinite(gm) and gm > 0 else None}
+    out = {
+        "crossover_hz": float(wgc) / (2 * math.pi) if np.isfinite(wgc) else None,
+        "phase_margin_deg": float(pm) if np.isfinite(pm) else None,
+        "gain_margin_db": 20 * math.log10(gm) if np.isfinite(gm) and gm > 0 else None,
+    }
     if phase_crossover:
         out["phase_crossover_hz"] = float(wpc) / (2 * math.pi) if np.isfinite(wpc) else None
     return out
@@ -233,6 +290,7 @@ def bandwidth_hz(sys, w_low: float = 1e-3, w_high: float = 1e6) -> float | None:
     Computed from the frequency response, so that states the output does not see (the
     motor angle in the current and velocity loops) do not spoil a DC-gain computation.
     """
+
     def excess(log_w):
         return abs(sys(1j * 10**log_w)) - ref / math.sqrt(2)
 
@@ -257,8 +315,11 @@ def step_metrics(sys, span: float, w_low: float = 1e-4) -> dict:
     in about 17 ms).
     """
     info = ct.step_info(sys, T=np.linspace(0.0, span, 30001), yfinal=float(np.real(sys(1j * w_low))))
-    return {"rise_time_s": float(info["RiseTime"]), "settling_time_s": float(info["SettlingTime"]),
-            "overshoot_pct": float(info["Overshoot"])}
+    return {
+        "rise_time_s": float(info["RiseTime"]),
+        "settling_time_s": float(info["SettlingTime"]),
+        "overshoot_pct": float(info["Overshoot"]),
+    }
 
 
 def loop_metrics(servo: ServoParams, load: AxisLoad, mode: str = "imc") -> dict:
@@ -266,15 +327,26 @@ def loop_metrics(servo: ServoParams, load: AxisLoad, mode: str = "imc") -> dict:
     return {"mode": mode, "axes": [axis_metrics(servo, load, k, mode) for k in range(N_AXES)]}
 
 
-def axis_metrics(servo: ServoParams, load: AxisLoad, axis: int = 0, mode: str = "imc", closed: dict | None = None,
-                 phase_crossover: bool = False) -> dict:
+def axis_metrics(
+    servo: ServoParams,
+    load: AxisLoad,
+    axis: int = 0,
+    mode: str = "imc",
+    closed: dict | None = None,
+    phase_crossover: bool = False,
+) -> dict:
     """One axis of :func:`loop_metrics`: ``{loop: metrics}``; ``closed`` and ``phase_crossover`` as in
     :func:`open_loops` and :func:`margins`."""
     cl = closed_loops(servo, load, axis, mode=mode) if closed is None else closed
     ol = open_loops(servo, load, axis, mode, closed=cl)
-    return {name: (margins(ol[name], phase_crossover) | {"bandwidth_hz": bandwidth_hz(cl[name][out, 0])}
-                   | step_metrics(cl[name][out, 0], STEP_SPAN_S[name]))
-            for name, out in zip(LOOPS, (0, 1, 2))}
+    return {
+        name: (
+            margins(ol[name], phase_crossover)
+            | {"bandwidth_hz": bandwidth_hz(cl[name][out, 0])}
+            | step_metrics(cl[name][out, 0], STEP_SPAN_S[name])
+        )
+        for name, out in zip(LOOPS, (0, 1, 2))
+    }
 
 
 def identify_T0(servo: ServoParams, load: AxisLoad, axis: int = 0, window: float = 0.2) -> float:
@@ -296,8 +368,12 @@ def fit_first_order(t, y, step=1.0) -> float:
     ``y`` may have a leading axis of several step tests of the same loop, with ``step`` their step sizes.
     """
     t, y, step = np.asarray(t, dtype=float), np.asarray(y, dtype=float), np.asarray(step, dtype=float)[..., None]
-    fit = minimize_scalar(lambda tau: float(np.sum((y - step * (1.0 - np.exp(-t / tau))) ** 2)),
-                          bounds=(1e-5, float(t[-1])), method="bounded", options={"xatol": 1e-12})
+    fit = minimize_scalar(
+        lambda tau: float(np.sum((y - step * (1.0 - np.exp(-t / tau))) ** 2)),
+        bounds=(1e-5, float(t[-1])),
+        method="bounded",
+        options={"xatol": 1e-12},
+    )
     return float(fit.x)
 
 

@@ -59,15 +59,18 @@ class ControlMode:
         return dataclasses.replace(ref, theta=theta) if self.hybrid else theta
 
 
-MODES = {m.name: m for m in (
-    ControlMode("current", "current"),
-    ControlMode("velocity", "velocity"),
-    ControlMode("imc", "position", "imc"),
-    ControlMode("pid", "position", "pid"),
-    ControlMode("pid_ff", "position", "pid_ff"),
-    ControlMode("ros_pid", "position", "ros_pid"),
-    ControlMode("hybrid", "position", "imc", hybrid_law.FORCE_AXIS),
-)}
+MODES = {
+    m.name: m
+    for m in (
+        ControlMode("current", "current"),
+        ControlMode("velocity", "velocity"),
+        ControlMode("imc", "position", "imc"),
+        ControlMode("pid", "position", "pid"),
+        ControlMode("pid_ff", "position", "pid_ff"),
+        ControlMode("ros_pid", "position", "ros_pid"),
+        ControlMode("hybrid", "position", "imc", hybrid_law.FORCE_AXIS),
+    )
+}
 POSITION_MODES = tuple(name for name, m in MODES.items() if m.closed == "position")
 
 
@@ -105,10 +108,12 @@ def _position_init(drive: Drive, mode: ControlMode, theta0):
 def init(drive: Drive, mode: ControlMode, theta0=0.0, force0=0.0) -> CascadeState:
     """Every loop state zero but the position controller's, at rest at ``theta0`` [rad] (:func:`rest`); the force
     law's last ``F_6`` at ``force0`` [N]."""
-    return CascadeState(loops.pi_loop_init(drive.current),
-                        loops.pi_loop_init(drive.velocity) if mode.closed != "current" else None,
-                        _position_init(drive, mode, theta0),
-                        hybrid_law.init(force0) if mode.hybrid else None)
+    return CascadeState(
+        loops.pi_loop_init(drive.current),
+        loops.pi_loop_init(drive.velocity) if mode.closed != "current" else None,
+        _position_init(drive, mode, theta0),
+        hybrid_law.init(force0) if mode.hybrid else None,
+    )
 
 
 def rest(drive: Drive, mode: ControlMode, current, command, theta0=0.0, force0=0.0) -> CascadeState:
@@ -121,10 +126,12 @@ def rest(drive: Drive, mode: ControlMode, current, command, theta0=0.0, force0=0
     """
     i_ref = current * lti.dc_gain(drive.current.fb_filter) / lti.dc_gain(drive.current.ref_filter)
     zero = jnp.zeros_like(current)
-    return CascadeState(loops.pi_loop_rest(drive.current, i_ref, current, command),
-                        loops.pi_loop_rest(drive.velocity, zero, zero, i_ref) if mode.closed != "current" else None,
-                        _position_init(drive, mode, theta0),
-                        hybrid_law.init(force0) if mode.hybrid else None)
+    return CascadeState(
+        loops.pi_loop_rest(drive.current, i_ref, current, command),
+        loops.pi_loop_rest(drive.velocity, zero, zero, i_ref) if mode.closed != "current" else None,
+        _position_init(drive, mode, theta0),
+        hybrid_law.init(force0) if mode.hybrid else None,
+    )
 
 
 def position_tick(drive: Drive, mode: ControlMode, s: CascadeState, ref, theta, omega, hybrid=None):
@@ -146,8 +153,9 @@ def position_tick(drive: Drive, mode: ControlMode, s: CascadeState, ref, theta, 
         sp, w_ref = loops.ros_pid_step(drive.ros, s.position, theta_ref, theta, omega)
     if not mode.hybrid:
         return s._replace(position=sp), w_ref, None
-    sf, force = hybrid_law.step(hybrid, s.force, (theta_ref - theta) * drive.screw, ref.coupling, ref.force_ff,
-                                drive.dt_position)
+    sf, force = hybrid_law.step(
+        hybrid, s.force, (theta_ref - theta) * drive.screw, ref.coupling, ref.force_ff, drive.dt_position
+    )
     k = mode.force_axis
     return s._replace(position=sp, force=sf), w_ref, force * drive.force_current[..., k]
 

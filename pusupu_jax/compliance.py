@@ -78,15 +78,20 @@ def validate_gains(gains: AdmittanceGains, dt: float) -> None:
             raise ParameterError(f"admittance.{name}: expected one finite number or three (x, y, z), got {v.tolist()}")
     if (np.asarray(gains.max_offset) <= 0).any():
         raise ParameterError(f"admittance.max_offset: expected a positive offset [m], got {gains.max_offset!r}")
-    m, d, k = (np.broadcast_to(np.asarray(getattr(gains, n), dtype=float), (3,)) for n in
-               ("mass", "damping", "stiffness"))
+    m, d, k = (
+        np.broadcast_to(np.asarray(getattr(gains, n), dtype=float), (3,)) for n in ("mass", "damping", "stiffness")
+    )
     if (m <= 0).any() or (d <= 0).any() or (k < 0).any():
-        raise ParameterError(f"admittance: expected mass > 0, damping > 0 and stiffness >= 0 [kg, N s/m, N/m], "
-                             f"got {m.tolist()}, {d.tolist()}, {k.tolist()}")
+        raise ParameterError(
+            f"admittance: expected mass > 0, damping > 0 and stiffness >= 0 [kg, N s/m, N/m], "
+            f"got {m.tolist()}, {d.tolist()}, {k.tolist()}"
+        )
     if (dt * np.sqrt(k / m) >= 1.0).any() or (dt * d / m >= 1.0).any():
-        raise ParameterError(f"admittance: the discretisation at dt = {dt} s needs dt sqrt(K/M) < 1 and dt D/M < 1 "
-                             f"(a factor 2 inside stability); got {np.round(dt * np.sqrt(k / m), 3).tolist()} and "
-                             f"{np.round(dt * d / m, 3).tolist()}")
+        raise ParameterError(
+            f"admittance: the discretisation at dt = {dt} s needs dt sqrt(K/M) < 1 and dt D/M < 1 "
+            f"(a factor 2 inside stability); got {np.round(dt * np.sqrt(k / m), 3).tolist()} and "
+            f"{np.round(dt * d / m, 3).tolist()}"
+        )
 
 
 def init() -> AdmittanceState:
@@ -97,8 +102,11 @@ def init() -> AdmittanceState:
 def step(gains: AdmittanceGains, state: AdmittanceState, force, force_setpoint, dt: float) -> AdmittanceState:
     """One position period of the admittance (semi-implicit Euler) for the measured contact force ``force`` and
     the setpoint ``force_setpoint`` [N] (world axes): the new offset [m] and its rate [m/s]."""
-    acceleration = (jnp.asarray(gains.selection) * (force - force_setpoint) - gains.damping * state.rate
-                    - gains.stiffness * state.offset) / gains.mass
+    acceleration = (
+        jnp.asarray(gains.selection) * (force - force_setpoint)
+        - gains.damping * state.rate
+        - gains.stiffness * state.offset
+    ) / gains.mass
     rate = state.rate + dt * acceleration
     offset = jnp.clip(state.offset + dt * rate, -gains.max_offset, gains.max_offset)
     rate = jnp.where(jnp.abs(offset) >= gains.max_offset, 0.0, rate)  # no wind-up against the clamp

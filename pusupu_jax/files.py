@@ -43,8 +43,10 @@ def check_output(path) -> os.stat_result | None:
     except FileNotFoundError:
         return None
     if not stat.S_ISREG(st.st_mode):
-        raise ParameterError(f"{path}: expected a regular file to write (or nothing), found "
-                             f"{inputs.file_kind(st.st_mode)}; left as it is")
+        raise ParameterError(
+            f"{path}: expected a regular file to write (or nothing), found "
+            f"{inputs.file_kind(st.st_mode)}; left as it is"
+        )
     return st
 
 

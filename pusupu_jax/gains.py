@@ -63,11 +63,21 @@ from .params import LoopRates, ParameterError, ServoParams, array_fields, bounds
 from .stability import FLOORS
 
 SCHEMA, VERSION = "pusupu-gains", 4
-KEYS = ("schema", "version", "mode", "machine", "controller", "rates", "discrete", "margins", "stability",
-        "provenance", "checksum")
+KEYS = (
+    "schema",
+    "version",
+    "mode",
+    "machine",
+    "controller",
+    "rates",
+    "discrete",
+    "margins",
+    "stability",
+    "provenance",
+    "checksum",
+)
 KEYS_V3 = tuple(k for k in KEYS if k != "machine")
-KEYS_V2 = ("schema", "version", "mode", "controller", "plant", "rates", "discrete", "margins", "provenance",
-           "checksum")
+KEYS_V2 = ("schema", "version", "mode", "controller", "plant", "rates", "discrete", "margins", "provenance", "checksum")
 MODES = ("imc", "pid", "pid_ff", "hybrid")
 CONTROLLER_SECTIONS = ("position", "velocity", "current", "limits", "pid", "hybrid")
 PLANT_V2 = ("Kn", "Tn", "R", "L", "J", "Kt", "Ke", "lead", "eta")  # a version 2 file's plant section
@@ -76,25 +86,63 @@ LIMITS_SINCE_V3 = ("following_error", "following_error_time")  # limits a versio
 # each discrete block: where it sits in loops.Drive, its sample period (a LoopRates property), what flows
 # in and out, and what clamps it
 BLOCKS = {
-    "current_ref_filter": (lambda d: d.current.ref_filter, "dt_current", "current reference [A]",
-                           "filtered current reference [A]", "none"),
-    "current_fb_filter": (lambda d: d.current.fb_filter, "dt_current", "measured current [A]",
-                          "filtered current [A]", "none"),
-    "current_pi": (lambda d: d.current.pi, "dt_current", "current error [A] (filtered reference - filtered current)",
-                   "inverter command [V], the back-EMF feedforward emf_ff*Ke*w/Kn added",
-                   "sum clamped to +-V_max/Kn; integration held while the clamp and the error push the same way"),
-    "velocity_ref_filter": (lambda d: d.velocity.ref_filter, "dt_velocity", "speed reference [rad/s]",
-                            "filtered speed reference [rad/s]", "none"),
-    "velocity_fb_filter": (lambda d: d.velocity.fb_filter, "dt_velocity", "measured motor speed [rad/s]",
-                           "filtered speed [rad/s]", "none"),
-    "velocity_pi": (lambda d: d.velocity.pi, "dt_velocity", "speed error [rad/s] (filtered reference - filtered "
-                    "speed)", "current reference [A]", "clamped to +-I_max; integration held as for the current PI"),
-    "imc_c1": (lambda d: d.imc.c1, "dt_position", "motor-angle reference [rad]", "prefiltered reference [rad]",
-               "none"),
-    "imc_c2": (lambda d: d.imc.c2, "dt_position", "angle error [rad] (prefiltered reference - measured angle)",
-               "speed reference [rad/s]", "none"),
-    "pid": (lambda d: d.pid, "dt_position", "angle error [rad]", "speed reference [rad/s] (pid_ff: plus "
-            "Kff_pid times the reference's change over one period / period)", "none"),
+    "current_ref_filter": (
+        lambda d: d.current.ref_filter,
+        "dt_current",
+        "current reference [A]",
+        "filtered current reference [A]",
+        "none",
+    ),
+    "current_fb_filter": (
+        lambda d: d.current.fb_filter,
+        "dt_current",
+        "measured current [A]",
+        "filtered current [A]",
+        "none",
+    ),
+    "current_pi": (
+        lambda d: d.current.pi,
+        "dt_current",
+        "current error [A] (filtered reference - filtered current)",
+        "inverter command [V], the back-EMF feedforward emf_ff*Ke*w/Kn added",
+        "sum clamped to +-V_max/Kn; integration held while the clamp and the error push the same way",
+    ),
+    "velocity_ref_filter": (
+        lambda d: d.velocity.ref_filter,
+        "dt_velocity",
+        "speed reference [rad/s]",
+        "filtered speed reference [rad/s]",
+        "none",
+    ),
+    "velocity_fb_filter": (
+        lambda d: d.velocity.fb_filter,
+        "dt_velocity",
+        "measured motor speed [rad/s]",
+        "filtered speed [rad/s]",
+        "none",
+    ),
+    "velocity_pi": (
+        lambda d: d.velocity.pi,
+        "dt_velocity",
+        "speed error [rad/s] (filtered reference - filtered speed)",
+        "current reference [A]",
+        "clamped to +-I_max; integration held as for the current PI",
+    ),
+    "imc_c1": (lambda d: d.imc.c1, "dt_position", "motor-angle reference [rad]", "prefiltered reference [rad]", "none"),
+    "imc_c2": (
+        lambda d: d.imc.c2,
+        "dt_position",
+        "angle error [rad] (prefiltered reference - measured angle)",
+        "speed reference [rad/s]",
+        "none",
+    ),
+    "pid": (
+        lambda d: d.pid,
+        "dt_position",
+        "angle error [rad]",
+        "speed reference [rad/s] (pid_ff: plus Kff_pid times the reference's change over one period / period)",
+        "none",
+    ),
 }
 
 
@@ -130,8 +178,9 @@ def builtin_plant() -> dict:
     """``{field: (6,) array}`` of the plant a gain file's gains run on: the ``plant`` fields of Table 1's
     :class:`~pusupu_jax.params.ServoParams`."""
     base = ServoParams.table1()
-    return {f.name: np.asarray(getattr(base, f.name)) for f in array_fields(ServoParams)
-            if f.metadata["section"] == "plant"}
+    return {
+        f.name: np.asarray(getattr(base, f.name)) for f in array_fields(ServoParams) if f.metadata["section"] == "plant"
+    }
 
 
 def _compact(values):
@@ -148,19 +197,33 @@ def _discrete(servo: ServoParams, rates: LoopRates) -> dict:
         block = get(drive)
         mats = {k: np.asarray(getattr(block, k)) for k in ("A", "B", "C", "D")}
         same = all(np.array_equal(m, np.broadcast_to(m[:1], m.shape)) for m in mats.values())
-        coefficients = ({k: m[0].tolist() for k, m in mats.items()} if same
-                        else {"per_axis": [{k: m[a].tolist() for k, m in mats.items()} for a in range(6)]})
-        out[name] = {"sample_period_s": getattr(rates, period), "input": signal_in, "output": signal_out,
-                     "clamp": clamp, **coefficients}
+        coefficients = (
+            {k: m[0].tolist() for k, m in mats.items()}
+            if same
+            else {"per_axis": [{k: m[a].tolist() for k, m in mats.items()} for a in range(6)]}
+        )
+        out[name] = {
+            "sample_period_s": getattr(rates, period),
+            "input": signal_in,
+            "output": signal_out,
+            "clamp": clamp,
+            **coefficients,
+        }
     return out
 
 
 def _git_commit() -> str | None:
     try:
-        r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True,
-                           timeout=10)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=Path(__file__).parent,
-                               capture_output=True, text=True, timeout=10).stdout.strip()
+        r = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True, text=True, timeout=10
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=Path(__file__).parent,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return None
     return (r.stdout.strip() + ("-dirty" if dirty else "")) if r.returncode == 0 else None
@@ -175,8 +238,13 @@ def _versions() -> dict:
         except md.PackageNotFoundError:
             return None
 
-    return {"package": "pusupu_jax", "package_version": __version__, "jax_version": version("jax"),
-            "mujoco_version": version("mujoco"), "git_commit": _git_commit()}
+    return {
+        "package": "pusupu_jax",
+        "package_version": __version__,
+        "jax_version": version("jax"),
+        "mujoco_version": version("mujoco"),
+        "git_commit": _git_commit(),
+    }
 
 
 def _checksum(text: str) -> str:
@@ -187,8 +255,17 @@ def _field(value, unit: str, tuned: bool) -> dict:
     return {"value": _compact(value), "unit": unit} | ({"tuned": True} if tuned else {})
 
 
-def document(servo: ServoParams, hybrid: HybridGains, rates: LoopRates, *, mode: str, tuned=(),
-             provenance: dict | None = None, floors=FLOORS, machine: Machine | None = None) -> str:
+def document(
+    servo: ServoParams,
+    hybrid: HybridGains,
+    rates: LoopRates,
+    *,
+    mode: str,
+    tuned=(),
+    provenance: dict | None = None,
+    floors=FLOORS,
+    machine: Machine | None = None,
+) -> str:
     """The YAML text of a gain file for gains tuned on ``machine`` (default: the built-in one); checked first:
     raises ParameterError rather than describe gains that :func:`pusupu_jax.stability.check` refuses, or ``servo``
     whose plant fields are not the machine's drives."""
@@ -202,19 +279,29 @@ def document(servo: ServoParams, hybrid: HybridGains, rates: LoopRates, *, mode:
         controller[f.metadata["section"]][f.name] = getattr(servo, f.name)
     for f in array_fields(ServoParams):
         if f.metadata["section"] != "plant":
-            controller[f.metadata["section"]][f.name] = _field(getattr(servo, f.name), f.metadata["unit"],
-                                                               f.name in tuned)
-    controller["hybrid"] = {"form": hybrid.form, **{f.name: _field(float(getattr(hybrid, f.name)), f.metadata["unit"],
-                                                                    f.name in tuned) for f in gain_fields()}}
+            controller[f.metadata["section"]][f.name] = _field(
+                getattr(servo, f.name), f.metadata["unit"], f.name in tuned
+            )
+    controller["hybrid"] = {
+        "form": hybrid.form,
+        **{f.name: _field(float(getattr(hybrid, f.name)), f.metadata["unit"], f.name in tuned) for f in gain_fields()},
+    }
     doc = {
-        "schema": SCHEMA, "version": VERSION, "mode": mode, "machine": machine_file.reference(machine),
+        "schema": SCHEMA,
+        "version": VERSION,
+        "mode": mode,
+        "machine": machine_file.reference(machine),
         "controller": controller,
-        "rates": dataclasses.asdict(rates), "discrete": _discrete(servo, rates),
+        "rates": dataclasses.asdict(rates),
+        "discrete": _discrete(servo, rates),
         "margins": {loop: {k: _compact(v) for k, v in m.items()} for loop, m in found.margins().items()},
         "stability": {loop: {"spectral_radius": _compact(r)} for loop, r in found.radii().items()},
-        "provenance": {**_versions(),
-                       "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-                       "tuned_fields": sorted(tuned), **(provenance or {})},
+        "provenance": {
+            **_versions(),
+            "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+            "tuned_fields": sorted(tuned),
+            **(provenance or {}),
+        },
     }
     body = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110)  # innermost mappings on one line
     return body + yaml.safe_dump({"checksum": _checksum(body)})
@@ -239,8 +326,9 @@ def load(path, floors=FLOORS, check_stability: bool = True, machine: Machine | N
         raise ParameterError(f"{path}: {e}") from None
 
 
-def parse(text: str, floors=FLOORS, checksum: bool = True, check_stability: bool = True,
-          machine: Machine | None = None) -> GainFile:
+def parse(
+    text: str, floors=FLOORS, checksum: bool = True, check_stability: bool = True, machine: Machine | None = None
+) -> GainFile:
     """:func:`load` on text; ``checksum=False`` skips the checksum and the derived blocks (for :func:`sign`)."""
     machine = Machine.default() if machine is None else machine
     doc = inputs.parse_yaml(text, "gain file", ParameterError)
@@ -250,9 +338,11 @@ def parse(text: str, floors=FLOORS, checksum: bool = True, check_stability: bool
         raise ParameterError(f"schema: expected {SCHEMA!r}, got {inputs.shown(doc.get('schema'))}")
     version = doc.get("version")
     if version not in (2, 3, VERSION) or isinstance(version, bool):
-        extra = (": version 1 files predate the choice of IMC prefilter (they meant eq. 9 as printed); re-run "
-                 "pusupu tune" if version == 1 else
-                 " (this pusupu_jax reads 4, and 3 and 2, tuned on the built-in machine)")
+        extra = (
+            ": version 1 files predate the choice of IMC prefilter (they meant eq. 9 as printed); re-run pusupu tune"
+            if version == 1
+            else " (this pusupu_jax reads 4, and 3 and 2, tuned on the built-in machine)"
+        )
         raise ParameterError(f"version: expected {VERSION}, got {inputs.shown(version)}{extra}")
     keys = {VERSION: KEYS, 3: KEYS_V3, 2: KEYS_V2}[version]
     inputs.check_keys(doc, "gain file", keys, ParameterError, required=keys)
@@ -272,11 +362,15 @@ def parse(text: str, floors=FLOORS, checksum: bool = True, check_stability: bool
         inputs.check_keys(doc["discrete"], "discrete", fresh, ParameterError, required=fresh, what="block")
         for name, block in fresh.items():
             if not _same_block(doc["discrete"][name], block):
-                raise ParameterError(f"discrete.{name}: not the discretisation of the gains at the stated rates "
-                                     "(edited by hand? check the gains, then pusupu gains sign)")
-        if doc["checksum"] != _checksum(text[:text.rfind("checksum:")]):
-            raise ParameterError("checksum: does not match the content (edited or truncated file; after a deliberate "
-                                 "edit, pusupu gains sign re-signs it once it validates)")
+                raise ParameterError(
+                    f"discrete.{name}: not the discretisation of the gains at the stated rates "
+                    "(edited by hand? check the gains, then pusupu gains sign)"
+                )
+        if doc["checksum"] != _checksum(text[: text.rfind("checksum:")]):
+            raise ParameterError(
+                "checksum: does not match the content (edited or truncated file; after a deliberate "
+                "edit, pusupu gains sign re-signs it once it validates)"
+            )
     return GainFile(servo, hybrid, rates, mode, doc, tuned_on)
 
 
@@ -299,8 +393,10 @@ def _same_block(stored, fresh) -> bool:
             pairs = [(s[k], f[k]) for s, f in zip(stored["per_axis"], fresh["per_axis"], strict=True) for k in "ABCD"]
         else:
             pairs = [(stored[k], fresh[k]) for k in "ABCD"]
-        return all(np.allclose(np.asarray(a, dtype=float), np.asarray(b, dtype=float), rtol=1e-12, atol=1e-15)
-                   for a, b in pairs)
+        return all(
+            np.allclose(np.asarray(a, dtype=float), np.asarray(b, dtype=float), rtol=1e-12, atol=1e-15)
+            for a, b in pairs
+        )
     except (KeyError, TypeError, ValueError):
         return False
 
@@ -326,15 +422,23 @@ def _check_plant(values: dict, where: str, machine: Machine | None = None) -> No
         ours = np.asarray(plant[name], dtype=float)
         if not np.allclose(np.broadcast_to(np.asarray(v, dtype=float), ours.shape), ours, rtol=1e-12, atol=0):
             whose = "the built-in plant's" if machine is None else f"the drive of machine {machine.name!r},"
-            raise ParameterError(f"{where}.{name}: expected {whose} {_compact(ours)!r}, got "
-                                 f"{inputs.shown(_compact(v))} (gains tuned on another plant are not these gains)")
+            raise ParameterError(
+                f"{where}.{name}: expected {whose} {_compact(ours)!r}, got "
+                f"{inputs.shown(_compact(v))} (gains tuned on another plant are not these gains)"
+            )
 
 
 def _parameters(doc, version: int, machine: Machine) -> tuple[ServoParams, HybridGains]:
     """The file's gains on ``machine``'s drives (the controller's values checked against the machine's ratings)."""
     expected = _controller_fields(version)
-    controller = inputs.check_keys(doc["controller"], "controller", CONTROLLER_SECTIONS, ParameterError,
-                                   required=CONTROLLER_SECTIONS, what="section")
+    controller = inputs.check_keys(
+        doc["controller"],
+        "controller",
+        CONTROLLER_SECTIONS,
+        ParameterError,
+        required=CONTROLLER_SECTIONS,
+        what="section",
+    )
     sections = dict(controller, plant=doc["plant"]) if version == 2 else controller
     values, units = {}, {f.name: f.metadata["unit"] for f in array_fields(ServoParams)}
     units |= {f.name: f.metadata["unit"] for f in gain_fields()}
@@ -344,14 +448,17 @@ def _parameters(doc, version: int, machine: Machine) -> tuple[ServoParams, Hybri
         for name in names:
             v = sections[section][name]
             if name in units:
-                entry = inputs.check_keys(v, f"{where}.{name}", ("value", "unit", "tuned"), ParameterError,
-                                          required=("value", "unit"))
+                entry = inputs.check_keys(
+                    v, f"{where}.{name}", ("value", "unit", "tuned"), ParameterError, required=("value", "unit")
+                )
                 if entry["unit"] != units[name]:
-                    raise ParameterError(f"{where}.{name}.unit: expected {units[name]!r}, got "
-                                         f"{inputs.shown(entry['unit'])}")
+                    raise ParameterError(
+                        f"{where}.{name}.unit: expected {units[name]!r}, got {inputs.shown(entry['unit'])}"
+                    )
                 if "tuned" in entry and not isinstance(entry["tuned"], bool):
-                    raise ParameterError(f"{where}.{name}.tuned: expected true or false, got "
-                                         f"{inputs.shown(entry['tuned'])}")
+                    raise ParameterError(
+                        f"{where}.{name}.tuned: expected true or false, got {inputs.shown(entry['tuned'])}"
+                    )
                 v = entry["value"]
             values[name] = v
     hybrid = HybridGains.from_mapping({k: values.pop(k) for k in expected["hybrid"]})
@@ -377,8 +484,10 @@ def sign(path, floors=FLOORS, machine: Machine | None = None) -> Path:
     except ParameterError as e:
         raise ParameterError(f"{path}: {e}") from None
     if g.document["version"] != VERSION:
-        raise ParameterError(f"{path}: version: expected {VERSION}, got {g.document['version']} (pusupu gains migrate "
-                             f"converts a version {g.document['version']} file)")
+        raise ParameterError(
+            f"{path}: version: expected {VERSION}, got {g.document['version']} (pusupu gains migrate "
+            f"converts a version {g.document['version']} file)"
+        )
     _check_machine(path, g, machine)
     return _rewrite(path, g, floors, "signed", machine)
 
@@ -386,9 +495,11 @@ def sign(path, floors=FLOORS, machine: Machine | None = None) -> Path:
 def _check_machine(path, g: GainFile, machine: Machine) -> None:
     """Refuse ``g`` unless it was tuned on ``machine``."""
     if not g.tuned_on(machine):
-        raise ParameterError(f"{path}: machine: tuned on {g.machine['name']!r} (digest {g.machine['digest'][:12]}), "
-                             f"not on {machine.name!r} (digest {machine_file.digest(machine)[:12]}); give its machine "
-                             "file with --machine")
+        raise ParameterError(
+            f"{path}: machine: tuned on {g.machine['name']!r} (digest {g.machine['digest'][:12]}), "
+            f"not on {machine.name!r} (digest {machine_file.digest(machine)[:12]}); give its machine "
+            "file with --machine"
+        )
 
 
 def migrate(path, out=None, floors=FLOORS) -> Path:
@@ -409,14 +520,26 @@ def _rewrite(path: Path, g: GainFile, floors, action: str, machine: Machine) -> 
     writes itself; ``action`` ('signed' or 'migrated') stamps when (``<action>_utc``), beside the creation time the
     file had (``created_utc_before``) and, for 'migrated', the version it came from."""
     tuned = g.document["provenance"].get("tuned_fields", [])
-    provenance = {k: v for k, v in g.document["provenance"].items()
-                  if k not in ("tuned_fields", "created_utc") and k not in _versions()}
+    provenance = {
+        k: v
+        for k, v in g.document["provenance"].items()
+        if k not in ("tuned_fields", "created_utc") and k not in _versions()
+    }
     provenance[f"{action}_utc"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
     provenance["created_utc_before"] = g.document["provenance"].get("created_utc")
     if action == "migrated":
         provenance["migrated_from_version"] = g.document["version"]
-    return write(path, g.servo, g.hybrid, g.rates, mode=g.mode, tuned=tuned, provenance=provenance, floors=floors,
-                 machine=machine)
+    return write(
+        path,
+        g.servo,
+        g.hybrid,
+        g.rates,
+        mode=g.mode,
+        tuned=tuned,
+        provenance=provenance,
+        floors=floors,
+        machine=machine,
+    )
 
 
 def rows(doc: dict) -> list[tuple[str, str, object, str, bool]]:
@@ -434,24 +557,33 @@ def rows(doc: dict) -> list[tuple[str, str, object, str, bool]]:
 def show(doc: dict) -> str:
     """A gain file as a table for people: sections, values (six when they differ), units, what was tuned."""
     machine = doc.get("machine", {"name": "built-in (version 3 or older)", "digest": ""})
-    lines = [f"{SCHEMA} v{doc['version']}, mode {doc['mode']}, rates {doc['rates']['f_current']:g} Hz current / "
-             f"{doc['rates']['n_velocity']} / {doc['rates']['n_position']} ({doc['rates']['method']})",
-             f"tuned on machine {machine['name']!r}" + (f" (digest {machine['digest'][:12]})" if machine["digest"]
-                                                        else ""),
-             f"{'section':<9} {'field':<10} {'value':<44} {'unit':<12} tuned"]
+    lines = [
+        f"{SCHEMA} v{doc['version']}, mode {doc['mode']}, rates {doc['rates']['f_current']:g} Hz current / "
+        f"{doc['rates']['n_velocity']} / {doc['rates']['n_position']} ({doc['rates']['method']})",
+        f"tuned on machine {machine['name']!r}" + (f" (digest {machine['digest'][:12]})" if machine["digest"] else ""),
+        f"{'section':<9} {'field':<10} {'value':<44} {'unit':<12} tuned",
+    ]
     for section, name, value, unit, tuned in rows(doc):
-        text = (" ".join(f"{x:.6g}" for x in value) if isinstance(value, list)
-                else f"{value:.6g}" if isinstance(value, float) else str(value))
+        text = (
+            " ".join(f"{x:.6g}" for x in value)
+            if isinstance(value, list)
+            else f"{value:.6g}"
+            if isinstance(value, float)
+            else str(value)
+        )
         lines.append(f"{section:<9} {name:<10} {text:<44} {unit:<12} {'yes' if tuned else ''}")
     for loop, m in doc["margins"].items():
         pm, gm = np.min(m["phase_margin_deg"]), np.min(m["gain_margin_db"])
         lines.append(f"margins   {loop:<10} {pm:.1f} deg, {gm:.1f} dB (smallest over the axes)")
     for loop, st in doc.get("stability", {}).items():
-        lines.append(f"poles     {loop:<10} largest modulus {np.max(st['spectral_radius']):.6f} over one period "
-                     "(stable below 1)")
+        lines.append(
+            f"poles     {loop:<10} largest modulus {np.max(st['spectral_radius']):.6f} over one period (stable below 1)"
+        )
     p = doc["provenance"]
-    lines.append(f"made by {p.get('package')} {p.get('package_version')} (jax {p.get('jax_version')}, mujoco "
-                 f"{p.get('mujoco_version')}, commit {p.get('git_commit')}) at {p.get('created_utc')}")
+    lines.append(
+        f"made by {p.get('package')} {p.get('package_version')} (jax {p.get('jax_version')}, mujoco "
+        f"{p.get('mujoco_version')}, commit {p.get('git_commit')}) at {p.get('created_utc')}"
+    )
     return "\n".join(lines)
 
 
@@ -461,8 +593,10 @@ def diff(a: dict, b: dict) -> list[str]:
     out = []
     for key in sorted(set(left) | set(right)):
         if left.get(key) != right.get(key):
-            out.append(f"{key[0]}.{key[1]}: {left.get(key, ('-', ''))[0]} -> {right.get(key, ('-', ''))[0]} "
-                       f"{(left.get(key) or right.get(key))[1]}")
+            out.append(
+                f"{key[0]}.{key[1]}: {left.get(key, ('-', ''))[0]} -> {right.get(key, ('-', ''))[0]} "
+                f"{(left.get(key) or right.get(key))[1]}"
+            )
     for k in sorted(set(a["rates"]) | set(b["rates"])):
         if a["rates"].get(k) != b["rates"].get(k):
             out.append(f"rates.{k}: {a['rates'].get(k)} -> {b['rates'].get(k)}")
@@ -477,28 +611,44 @@ def json_schema() -> dict:
     number = {"type": "number"}
 
     def per_axis(low=None, high=None):
-        item = dict(number) | ({"minimum": low} if low is not None else {}) | (
-            {"maximum": high} if isinstance(high, (int, float)) else {})
+        item = (
+            dict(number)
+            | ({"minimum": low} if low is not None else {})
+            | ({"maximum": high} if isinstance(high, (int, float)) else {})
+        )
         return {"oneOf": [item, {"type": "array", "items": item, "minItems": 6, "maxItems": 6}]}
 
     def field_schema(f):
         b = bounds(f)
         value = per_axis(*b[:2]) if b else per_axis()
-        out = {"type": "object", "required": ["value", "unit"], "additionalProperties": False,
-               "description": f.metadata["doc"] + (f" Range {b[0]:g} to {b[1]:g}" if b and not isinstance(b[1], str)
-                                                   else f" Range {b[0]:g} to the plant's {b[1]}" if b else "")
-               + (f": {b[2]}." if b else ""),
-               "properties": {"value": value, "unit": {"const": f.metadata["unit"]}, "tuned": {"type": "boolean"}}}
+        out = {
+            "type": "object",
+            "required": ["value", "unit"],
+            "additionalProperties": False,
+            "description": f.metadata["doc"]
+            + (
+                f" Range {b[0]:g} to {b[1]:g}"
+                if b and not isinstance(b[1], str)
+                else f" Range {b[0]:g} to the plant's {b[1]}"
+                if b
+                else ""
+            )
+            + (f": {b[2]}." if b else ""),
+            "properties": {"value": value, "unit": {"const": f.metadata["unit"]}, "tuned": {"type": "boolean"}},
+        }
         return out
 
-    sections = {name: {"type": "object", "additionalProperties": False, "properties": {}, "required": []}
-                for name in CONTROLLER_SECTIONS}
+    sections = {
+        name: {"type": "object", "additionalProperties": False, "properties": {}, "required": []}
+        for name in CONTROLLER_SECTIONS
+    }
     for f in dataclasses.fields(ServoParams):
         if f.metadata["section"] == "plant":
             continue
         sec = sections[f.metadata["section"]]
-        sec["properties"][f.name] = ({"enum": list(f.metadata["choices"])} if f.metadata.get("static")
-                                     else field_schema(f))
+        sec["properties"][f.name] = (
+            {"enum": list(f.metadata["choices"])} if f.metadata.get("static") else field_schema(f)
+        )
         sec["required"].append(f.name)
     sections["hybrid"]["properties"]["form"] = {"enum": ["rms", "signed"]}
     for f in gain_fields():
@@ -506,47 +656,94 @@ def json_schema() -> dict:
     sections["hybrid"]["required"] = ["form"] + [f.name for f in gain_fields()]
     matrix = {"type": "array", "items": {"type": "array", "items": number}}
     coefficients = {k: matrix for k in "ABCD"}
-    block = {"type": "object", "required": ["sample_period_s", "input", "output", "clamp"],
-             "properties": {"sample_period_s": number, "input": {"type": "string"}, "output": {"type": "string"},
-                            "clamp": {"type": "string"}, **coefficients,
-                            "per_axis": {"type": "array", "minItems": 6, "maxItems": 6,
-                                         "items": {"type": "object", "properties": coefficients,
-                                                   "required": list("ABCD")}}}}
+    block = {
+        "type": "object",
+        "required": ["sample_period_s", "input", "output", "clamp"],
+        "properties": {
+            "sample_period_s": number,
+            "input": {"type": "string"},
+            "output": {"type": "string"},
+            "clamp": {"type": "string"},
+            **coefficients,
+            "per_axis": {
+                "type": "array",
+                "minItems": 6,
+                "maxItems": 6,
+                "items": {"type": "object", "properties": coefficients, "required": list("ABCD")},
+            },
+        },
+    }
     loop = {"type": "object", "properties": {"phase_margin_deg": per_axis(), "gain_margin_db": per_axis()}}
-    radius = {"type": "object", "required": ["spectral_radius"],
-              "properties": {"spectral_radius": per_axis(0, 1)},
-              "description": "the largest eigenvalue modulus of the loop's closed-loop map over one period, at the "
-                             "file's rates on the machine named (pusupu_jax.stability): stable below 1"}
-    rates = {name: (low, high, why) for name, (low, high, why) in (
-        ("current", stability.F_CURRENT), ("velocity", stability.F_VELOCITY), ("position", stability.F_POSITION))}
+    radius = {
+        "type": "object",
+        "required": ["spectral_radius"],
+        "properties": {"spectral_radius": per_axis(0, 1)},
+        "description": "the largest eigenvalue modulus of the loop's closed-loop map over one period, at the "
+        "file's rates on the machine named (pusupu_jax.stability): stable below 1",
+    }
+    rates = {
+        name: (low, high, why)
+        for name, (low, high, why) in (
+            ("current", stability.F_CURRENT),
+            ("velocity", stability.F_VELOCITY),
+            ("position", stability.F_POSITION),
+        )
+    }
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "$id": "https://pusupu-jax/schemas/pusupu-gains.schema.json",
-        "title": "pusupu gain file", "description": __doc__.split("\n\n")[0],
-        "type": "object", "required": list(KEYS), "additionalProperties": False,
+        "title": "pusupu gain file",
+        "description": __doc__.split("\n\n")[0],
+        "type": "object",
+        "required": list(KEYS),
+        "additionalProperties": False,
         "properties": {
-            "schema": {"const": SCHEMA}, "version": {"const": VERSION}, "mode": {"enum": list(MODES)},
-            "machine": {"type": "object", "additionalProperties": False, "required": ["name", "digest"],
-                        "description": "the machine file the gains were tuned on (pusupu_jax.machine_file.digest)",
-                        "properties": {"name": {"type": "string", "minLength": 1},
-                                       "digest": {"type": "string", "pattern": "^[0-9a-f]{64}$"}}},
-            "controller": {"type": "object", "additionalProperties": False, "required": list(CONTROLLER_SECTIONS),
-                           "properties": {name: sections[name] for name in CONTROLLER_SECTIONS}},
-            "rates": {"type": "object", "additionalProperties": False,
-                      "required": [f.name for f in dataclasses.fields(LoopRates)],
-                      "description": "; ".join(f"the {k} loop's rate {lo:g} to {hi:g} Hz ({why})"
-                                               for k, (lo, hi, why) in rates.items()),
-                      "properties": {"f_current": number | {"minimum": stability.F_CURRENT[0],
-                                                            "maximum": stability.F_CURRENT[1]},
-                                     "n_velocity": {"type": "integer", "minimum": 1},
-                                     "n_position": {"type": "integer", "minimum": 1},
-                                     "n_mech": {"type": "integer", "minimum": 1},
-                                     "method": {"enum": ["tustin", "zoh"]}}},
-            "discrete": {"type": "object", "additionalProperties": False, "required": list(BLOCKS),
-                         "properties": {name: block for name in BLOCKS}},
+            "schema": {"const": SCHEMA},
+            "version": {"const": VERSION},
+            "mode": {"enum": list(MODES)},
+            "machine": {
+                "type": "object",
+                "additionalProperties": False,
+                "required": ["name", "digest"],
+                "description": "the machine file the gains were tuned on (pusupu_jax.machine_file.digest)",
+                "properties": {
+                    "name": {"type": "string", "minLength": 1},
+                    "digest": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
+                },
+            },
+            "controller": {
+                "type": "object",
+                "additionalProperties": False,
+                "required": list(CONTROLLER_SECTIONS),
+                "properties": {name: sections[name] for name in CONTROLLER_SECTIONS},
+            },
+            "rates": {
+                "type": "object",
+                "additionalProperties": False,
+                "required": [f.name for f in dataclasses.fields(LoopRates)],
+                "description": "; ".join(
+                    f"the {k} loop's rate {lo:g} to {hi:g} Hz ({why})" for k, (lo, hi, why) in rates.items()
+                ),
+                "properties": {
+                    "f_current": number | {"minimum": stability.F_CURRENT[0], "maximum": stability.F_CURRENT[1]},
+                    "n_velocity": {"type": "integer", "minimum": 1},
+                    "n_position": {"type": "integer", "minimum": 1},
+                    "n_mech": {"type": "integer", "minimum": 1},
+                    "method": {"enum": ["tustin", "zoh"]},
+                },
+            },
+            "discrete": {
+                "type": "object",
+                "additionalProperties": False,
+                "required": list(BLOCKS),
+                "properties": {name: block for name in BLOCKS},
+            },
             "margins": {"type": "object", "properties": {k: loop for k in ("current", "velocity", "position")}},
-            "stability": {"type": "object", "required": list(stability.LOOPS),
-                          "properties": {k: radius for k in stability.LOOPS}},
+            "stability": {
+                "type": "object",
+                "required": list(stability.LOOPS),
+                "properties": {k: radius for k in stability.LOOPS},
+            },
             "provenance": {"type": "object"},
             "checksum": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
         },

@@ -52,8 +52,10 @@ RHO_FORMS = ("rms", "signed")
 # (0.027 s): every run stayed within 1 mm and 93 N up to m6 = 1.4e5, c6 = 3e6 and g = 1e6; the first values that
 # diverged (branch forces of kN, errors of mm) were m6 = 2.1e5, c6 = 5e6 and g = 1e7.  The bounds keep a factor of
 # 2 to 3 below the largest stable value.
-HYBRID_BOUNDS_WHY = ("the largest value kept at least a factor 2 below the smallest that diverged on the machine "
-                     "(pusupu experiment hybrid_grid, its gain sweep)")
+HYBRID_BOUNDS_WHY = (
+    "the largest value kept at least a factor 2 below the smallest that diverged on the machine "
+    "(pusupu experiment hybrid_grid, its gain sweep)"
+)
 
 
 def _gain(default: float, unit: str, doc: str, high: float):
@@ -65,9 +67,14 @@ def _gain(default: float, unit: str, doc: str, high: float):
 class HybridGains:
     """Gains of eq. 14 (scalars, or arrays with a leading batch dimension) and the static form of ``rho``."""
 
-    m6: Any = _gain(7.0e3, "N*s/m", "gain on rho'' (the paper's 'mass' of branch 6); in the signed form rho'' is "
-                    "branch 6's velocity error implied by branches 1-5, so m6 damps branch 6: default Kv Kt eta / r^2 "
-                    "of Table 1 (7.05e3), the proportional action of its own velocity loop (docs/hybrid.md)", 7.0e4)
+    m6: Any = _gain(
+        7.0e3,
+        "N*s/m",
+        "gain on rho'' (the paper's 'mass' of branch 6); in the signed form rho'' is "
+        "branch 6's velocity error implied by branches 1-5, so m6 damps branch 6: default Kv Kt eta / r^2 "
+        "of Table 1 (7.05e3), the proportional action of its own velocity loop (docs/hybrid.md)",
+        7.0e4,
+    )
     c6: Any = _gain(1.0e3, "N/m", "gain on rho' (the paper's 'Coriolis coefficient')", 1.0e6)
     g: Any = _gain(1.0e2, "N/(m*s)", "gain on rho (the paper's 'gravitational acceleration')", 3.0e5)
     form: str = field(default="signed", metadata=dict(static=True))
@@ -76,8 +83,10 @@ class HybridGains:
     def from_mapping(cls, values: Mapping[str, Any], base: "HybridGains | None" = None) -> "HybridGains":
         """``base`` (default gains) with ``values`` replaced; validates (one number per gain, machine-wide)."""
         inputs.check_keys(values, "HybridGains", [f.name for f in dataclasses.fields(cls)], ParameterError)
-        changes = {k: v if k == "form" else inputs.number(v, f"HybridGains.{k}", ParameterError, finite=False)
-                   for k, v in values.items()}
+        changes = {
+            k: v if k == "form" else inputs.number(v, f"HybridGains.{k}", ParameterError, finite=False)
+            for k, v in values.items()
+        }
         out = dataclasses.replace(base or cls(), **changes)
         validate_gains(out)
         return out
@@ -102,13 +111,16 @@ def validate_gains(h: HybridGains, bounded: bool = True) -> None:
         try:
             v = np.asarray(getattr(h, f.name), dtype=float)
         except (TypeError, ValueError):
-            raise ParameterError(f"HybridGains.{f.name}: expected a number [{f.metadata['unit']}], "
-                                 f"got {getattr(h, f.name)!r}") from None
+            raise ParameterError(
+                f"HybridGains.{f.name}: expected a number [{f.metadata['unit']}], got {getattr(h, f.name)!r}"
+            ) from None
         low, high, why = f.metadata["bounds"] if bounded else (0.0, np.inf, "finite and non-negative")
         bad = ~(np.isfinite(v) & (v >= low) & (v <= high))
         if bad.any():
-            raise ParameterError(f"HybridGains.{f.name}: expected a number from {low:g} to {high:g} "
-                                 f"[{f.metadata['unit']}] ({why}), got {v[bad].ravel()[0]:.6g}")
+            raise ParameterError(
+                f"HybridGains.{f.name}: expected a number from {low:g} to {high:g} "
+                f"[{f.metadata['unit']}] ({why}), got {v[bad].ravel()[0]:.6g}"
+            )
 
 
 @jax.tree_util.register_dataclass

@@ -44,13 +44,20 @@ DIRECTIONS = {"x": (1.0, 0, 0, 0, 0), "y": (0, 1.0, 0, 0, 0), "z": (0, 0, 1.0, 0
 
 @functools.lru_cache(maxsize=None)
 def _step_tests(plant, rates):
-    return jax.jit(jax.vmap(functools.partial(rollout, plant=plant, rates=rates, outer="velocity"),
-                            in_axes=(None, None, 0)))
+    return jax.jit(
+        jax.vmap(functools.partial(rollout, plant=plant, rates=rates, outer="velocity"), in_axes=(None, None, 0))
+    )
 
 
-def identify_T0_machine(servo: ServoParams, options: ModelOptions = ModelOptions(),
-                        directions=("x", "y"), speed: float = 0.01, window: float = 0.2,
-                        rates: LoopRates = LoopRates(), geom: Geometry | None = None) -> dict:
+def identify_T0_machine(
+    servo: ServoParams,
+    options: ModelOptions = ModelOptions(),
+    directions=("x", "y"),
+    speed: float = 0.01,
+    window: float = 0.2,
+    rates: LoopRates = LoopRates(),
+    geom: Geometry | None = None,
+) -> dict:
     """Per-branch ``T0`` [s] from velocity steps of the machine (nominal geometry ``geom``, default
     :meth:`Geometry.default`) at its home pose.
 
@@ -79,5 +86,4 @@ def identify_T0_machine(servo: ServoParams, options: ModelOptions = ModelOptions
         T0.append(tau)
         model = w_ref[:, None, b] * (1.0 - np.exp(-t / tau))
         fit_rms.append(float(np.sqrt(np.mean((omega[:, :, b] - model) ** 2))))
-    return {"T0": T0, "directions": list(directions), "t": t, "omega": omega, "omega_ref": w_ref,
-            "fit_rms": fit_rms}
+    return {"T0": T0, "directions": list(directions), "t": t, "omega": omega, "omega_ref": w_ref, "fit_rms": fit_rms}

@@ -35,8 +35,10 @@ import numpy as np
 from .params import LoopRates
 from .sim import Injected
 
-BREAKS = {"velocity": "the velocity controller's output, the current reference [A]",
-          "position": "the position controller's output, the velocity reference [rad/s]"}
+BREAKS = {
+    "velocity": "the velocity controller's output, the current reference [A]",
+    "position": "the position controller's output, the velocity reference [rad/s]",
+}
 FADE_PERIODS = 2  # periods of the sine over which the injection fades in
 
 
@@ -64,8 +66,15 @@ def sine(t, f_hz: float, amplitude: float):
     return amplitude * fade * np.sin(phase)
 
 
-def injected(reference, loop: str, axis: int, f_hz: float, amplitude: float, rates: LoopRates = LoopRates(),
-             inner: int | None = None) -> Injected:
+def injected(
+    reference,
+    loop: str,
+    axis: int,
+    f_hz: float,
+    amplitude: float,
+    rates: LoopRates = LoopRates(),
+    inner: int | None = None,
+) -> Injected:
     """``reference`` ``(N, n_axes)`` (one sample per outer period of the rollout) with a sine of ``amplitude`` (the
     break's unit, :data:`BREAKS`) at ``f_hz`` injected at ``loop``'s break on ``axis``.
 
@@ -111,8 +120,9 @@ def fourier(x, t, f_hz: float, settle_s: float) -> complex:
     return complex(2.0 / (periods * per) * np.sum(np.asarray(x)[k] * np.exp(-2j * np.pi * f_hz * np.asarray(t)[k])))
 
 
-def loop_gain(trace, injection: Injected, loop: str, axis: int, f_hz: float, rates: LoopRates = LoopRates(),
-              settle_s: float = 0.0) -> complex:
+def loop_gain(
+    trace, injection: Injected, loop: str, axis: int, f_hz: float, rates: LoopRates = LoopRates(), settle_s: float = 0.0
+) -> complex:
     """``L(j 2 pi f) = -Y/X`` of one injection run (``trace`` and ``injection`` unbatched), over the whole periods
     after ``settle_s`` [s]."""
     x, d = _break_signals(trace, injection, loop, axis)
@@ -141,5 +151,7 @@ def crossover(f_hz, L) -> dict:
         return {"crossover_hz": None, "phase_margin_deg": None}
     k = down[0]
     a = mag[k] / (mag[k] - mag[k + 1])
-    return {"crossover_hz": float(np.exp(f[k] + a * (f[k + 1] - f[k]))),
-            "phase_margin_deg": float(180.0 + phase[k] + a * (phase[k + 1] - phase[k]))}
+    return {
+        "crossover_hz": float(np.exp(f[k] + a * (f[k + 1] - f[k]))),
+        "phase_margin_deg": float(180.0 + phase[k] + a * (phase[k + 1] - phase[k])),
+    }

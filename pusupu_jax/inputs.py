@@ -72,9 +72,15 @@ def parse_yaml(text: str, where: str, error):
 
 def file_kind(mode: int) -> str:
     """What a file of ``st_mode`` ``mode`` is, as errors name it: 'a regular file', 'a folder', 'a FIFO', ..."""
-    for test, name in ((stat.S_ISREG, "a regular file"), (stat.S_ISDIR, "a folder"), (stat.S_ISLNK, "a symlink"),
-                       (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
-                       (stat.S_ISBLK, "a block device")):
+    for test, name in (
+        (stat.S_ISREG, "a regular file"),
+        (stat.S_ISDIR, "a folder"),
+        (stat.S_ISLNK, "a symlink"),
+        (stat.S_ISFIFO, "a FIFO"),
+        (stat.S_ISSOCK, "a socket"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+    ):
         if test(mode):
             return name
     return "a special file"
@@ -114,8 +120,10 @@ def read_text(path, what: str, error) -> str:
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError as e:
-        raise error(f"{Path(path)}: expected a UTF-8 text {what}, found a byte 0x{data[e.start]:02x} at {e.start} "
-                    "that is not UTF-8") from None
+        raise error(
+            f"{Path(path)}: expected a UTF-8 text {what}, found a byte 0x{data[e.start]:02x} at {e.start} "
+            "that is not UTF-8"
+        ) from None
 
 
 def read_yaml(path, what: str, error):
@@ -140,7 +148,8 @@ def check_keys(value, where: str, known, error, required=(), what: str = "key") 
 
 
 def number(value, where: str, error, *, low=None, high=None, low_open=False, finite=True) -> float:
-    """A real number (an int or a float; not a bool, not a string) within ``[low, high]`` (``(low, ...`` if ``low_open``)."""
+    """A real number (an int or a float; not a bool, not a string) within ``[low, high]`` (``(low, ...`` if
+    ``low_open``)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise error(f"{where}: expected a number, got {_kind(value)}")
     v = float(value)

@@ -157,8 +157,9 @@ def filtered_pid(kp, ki, kd, tau) -> LTI:
 def imc_c2(lambda2, T0) -> LTI:
     """Eq. 9, ``C2 = (3 l2 s+1)(T0 s+1) / (3 l2^2 s (l2/3 s + 1))``: the PID ``Kp = (3 l2 + T0)/(3 l2^2)``,
     ``Ki = 1/(3 l2^2)``, ``Kd = T0/l2`` behind the filter ``1/((l2/3) s + 1)`` (:func:`filtered_pid`)."""
-    return filtered_pid((3.0 * lambda2 + T0) / (3.0 * lambda2**2), 1.0 / (3.0 * lambda2**2), T0 / lambda2,
-                        lambda2 / 3.0)
+    return filtered_pid(
+        (3.0 * lambda2 + T0) / (3.0 * lambda2**2), 1.0 / (3.0 * lambda2**2), T0 / lambda2, lambda2 / 3.0
+    )
 
 
 def pid_controller(kp, ki, kd, tf_) -> LTI:
@@ -185,16 +186,18 @@ def discretize(p: ServoParams, rates: LoopRates) -> Drive:
     m = rates.method
 
     def pi_loop(k, ti, k_fb, tau, limit, dt):
-        return PILoop(lti.c2d(first_order(jnp.ones_like(tau), tau), dt, m),
-                      lti.c2d(first_order(k_fb, tau), dt, m),
-                      lti.c2d(pi_controller(k, ti), dt, m), limit)
+        return PILoop(
+            lti.c2d(first_order(jnp.ones_like(tau), tau), dt, m),
+            lti.c2d(first_order(k_fb, tau), dt, m),
+            lti.c2d(pi_controller(k, ti), dt, m),
+            limit,
+        )
 
     dt_p = rates.dt_position
     return Drive(
         current=pi_loop(p.Ki, p.Ti, p.Kcf, p.Tcf, p.V_max / p.Kn, rates.dt_current),
         velocity=pi_loop(p.Kv, p.Tv, p.Kw, p.Tw, p.I_max, rates.dt_velocity),
-        imc=IMC(lti.c2d(imc_c1(p.lambda1, p.lambda2, p.imc_form), dt_p, m),
-                lti.c2d(imc_c2(p.lambda2, p.T0), dt_p, m)),
+        imc=IMC(lti.c2d(imc_c1(p.lambda1, p.lambda2, p.imc_form), dt_p, m), lti.c2d(imc_c2(p.lambda2, p.T0), dt_p, m)),
         pid=lti.c2d(pid_controller(p.Kp_pid, p.Ki_pid, p.Kd_pid, p.Tf_pid), dt_p, m),
         velocity_ff=p.Kff_pid / dt_p,
         ros=RosPID(p.Kp_pid, p.Ki_pid, p.Kd_pid, p.Kff_pid, p.V_max / p.Ke, dt_p),
@@ -209,6 +212,7 @@ def discretize(p: ServoParams, rates: LoopRates) -> Drive:
 
 # ---------------------------------------------------------------- init / step pairs
 
+
 def pi_loop_init(c: PILoop) -> PIState:
     return PIState(lti.zeros_state(c.ref_filter), lti.zeros_state(c.fb_filter), lti.zeros_state(c.pi))
 
@@ -216,7 +220,8 @@ def pi_loop_init(c: PILoop) -> PIState:
 def pi_loop_step(c: PILoop, s: PIState, ref, meas, feedforward=0.0):
     """One sample of a filtered PI loop (current: A -> V; velocity: rad/s -> A).
 
-    ``feedforward`` is added to the PI output; the sum is clamped to ``+-c.limit``; while clamped, the PI state is frozen when
+    ``feedforward`` is added to the PI output; the sum is clamped to ``+-c.limit``; while clamped, the PI state is
+    frozen when
     the error drives further into the limit (conditional-integration anti-windup).
     """
     x_ref, r = lti.step_siso(c.ref_filter, s.ref, ref)
@@ -236,8 +241,11 @@ def pi_loop_rest(c: PILoop, ref, meas, out) -> PIState:
     Both filters sit at their steady values and the PI's integrator holds ``out`` (its error
     must then be zero: ``ref`` and ``meas`` at the ratio of the feedback and reference filter gains).
     """
-    return PIState(lti.dc_state(c.ref_filter, ref[..., None]), lti.dc_state(c.fb_filter, meas[..., None]),
-                   lti.integrator_state(c.pi, out))
+    return PIState(
+        lti.dc_state(c.ref_filter, ref[..., None]),
+        lti.dc_state(c.fb_filter, meas[..., None]),
+        lti.integrator_state(c.pi, out),
+    )
 
 
 def imc_rest(c: IMC, theta0) -> IMCState:

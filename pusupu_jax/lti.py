@@ -2,7 +2,8 @@
 
 Every filter and controller of the cascade is a continuous state-space block of the
 parameters (:func:`ss`, :func:`series`), discretised once per rollout (:func:`c2d`, outside
-the scan) and stepped inside the scan (:func:`output`, :func:`update`).  Matrices carry leading batch dimensions (one block
+the scan) and stepped inside the scan (:func:`output`, :func:`update`).  Matrices carry leading batch dimensions (one
+block
 per axis, and more under vmap): ``A (..., n, n)``, ``B (..., n, m)``,
 ``C (..., p, n)``, ``D (..., p, m)``.
 
@@ -38,7 +39,8 @@ def _stack2(rows):
 
 
 def ss(A, B, C, D) -> LTI:
-    """A SISO block from nested lists of per-axis coefficient arrays (``A`` n x n, ``B`` n x 1, ``C`` 1 x n, ``D`` 1 x 1).
+    """A SISO block from nested lists of per-axis coefficient arrays (``A`` n x n, ``B`` n x 1, ``C`` 1 x n, ``D`` 1 x
+    1).
 
     The blocks of the cascade are written in realisations whose states hold physical values
     that do not depend on the gains (a low-pass state holds the filtered input, an integrator
@@ -62,8 +64,12 @@ def series(*blocks: LTI) -> LTI:
         batch = out.A.shape[:-2]
         top = jnp.concatenate([out.A, jnp.zeros(batch + (n1, n2))], axis=-1)
         bottom = jnp.concatenate([b.B @ out.C, b.A], axis=-1)
-        out = LTI(jnp.concatenate([top, bottom], axis=-2), jnp.concatenate([out.B, b.B @ out.D], axis=-2),
-                  jnp.concatenate([b.D @ out.C, b.C], axis=-1), b.D @ out.D)
+        out = LTI(
+            jnp.concatenate([top, bottom], axis=-2),
+            jnp.concatenate([out.B, b.B @ out.D], axis=-2),
+            jnp.concatenate([b.D @ out.C, b.C], axis=-1),
+            b.D @ out.D,
+        )
     return out
 
 
@@ -100,7 +106,8 @@ def zeros_state(sys: LTI):
 
 
 def dc_state(sys: LTI, u):
-    """The fixed point ``x = A x + B u`` of a discrete block without an integrator, for a constant input ``u (..., m)``."""
+    """The fixed point ``x = A x + B u`` of a discrete block without an integrator, for a constant input ``u (...,
+    m)``."""
     n = sys.A.shape[-1]
     return jnp.linalg.solve(jnp.eye(n) - sys.A, jnp.einsum("...ij,...j->...i", sys.B, u)[..., None])[..., 0]
 

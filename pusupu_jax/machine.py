@@ -38,9 +38,11 @@ def machine_rates(options: ModelOptions = ModelOptions(), rates: LoopRates = Loo
     current-loop ticks, or not a divisor of the velocity period)."""
     n_mech = rates.f_current * options.timestep
     if abs(n_mech - round(n_mech)) > 1e-9 or round(n_mech) < 1:
-        raise ParameterError(f"rates.f_current: expected a multiple of {1 / options.timestep:g} Hz (the machine's "
-                             f"{options.timestep * 1e3:g} ms mechanical step a whole number of current-loop ticks), "
-                             f"got {rates.f_current:g} Hz")
+        raise ParameterError(
+            f"rates.f_current: expected a multiple of {1 / options.timestep:g} Hz (the machine's "
+            f"{options.timestep * 1e3:g} ms mechanical step a whole number of current-loop ticks), "
+            f"got {rates.f_current:g} Hz"
+        )
     return dataclasses.replace(rates, n_mech=int(round(n_mech)))
 
 
@@ -50,8 +52,15 @@ def machine_plant(options: ModelOptions = ModelOptions()) -> MJXPlant:
     return MJXPlant.create(Geometry.default(), options)
 
 
-def machine_reference(servo: ServoParams, path, mode: str, *, options: ModelOptions = ModelOptions(),
-                      rates: LoopRates = LoopRates(), geom: Geometry | None = None):
+def machine_reference(
+    servo: ServoParams,
+    path,
+    mode: str,
+    *,
+    options: ModelOptions = ModelOptions(),
+    rates: LoopRates = LoopRates(),
+    geom: Geometry | None = None,
+):
     """The rollout reference for platform poses ``path`` (``(N, 5)``, one per position period), checked first against
     the machine (:func:`pusupu_jax.paths.check_path`: workspace, motor speeds and torques).
 
@@ -69,8 +78,9 @@ def machine_reference(servo: ServoParams, path, mode: str, *, options: ModelOpti
     if not control_mode(mode).hybrid:
         return theta
     force, J = dynamics.inverse_dynamics_forces(servo, path, rates.dt_position, geom, options)
-    return hybrid_law.HybridReference(theta, jnp.asarray(force[:, hybrid_law.FORCE_AXIS]),
-                                      jnp.asarray(dynamics.coupling_row(J)))
+    return hybrid_law.HybridReference(
+        theta, jnp.asarray(force[:, hybrid_law.FORCE_AXIS]), jnp.asarray(dynamics.coupling_row(J))
+    )
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -85,10 +95,17 @@ class Scenario:
     geometry: Geometry | None = None
 
 
-def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rates: LoopRates = LoopRates(),
-                       hybrid: hybrid_law.HybridGains | None = None, start: str = "rest",
-                       compliance: compliance_law.AdmittanceGains | None = None,
-                       force_setpoint=None) -> list[tuple[dict, dict]]:
+def simulate_scenarios(
+    servo: ServoParams,
+    scenarios,
+    *,
+    mode: str = "imc",
+    rates: LoopRates = LoopRates(),
+    hybrid: hybrid_law.HybridGains | None = None,
+    start: str = "rest",
+    compliance: compliance_law.AdmittanceGains | None = None,
+    force_setpoint=None,
+) -> list[tuple[dict, dict]]:
     """Run several :class:`Scenario` on the machine as one vmapped batch.
 
     The batch runs in calls of :func:`~pusupu_jax.sim.run_chunked`'s compiled program of
@@ -113,13 +130,20 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
     validate(servo)
     batched = np.ndim(servo.lambda1) == 2
     if batched and np.shape(servo.lambda1)[0] != len(scenarios):
-        raise ValueError(f"servo: expected one parameter set or {len(scenarios)} (one per scenario), "
-                         f"got {np.shape(servo.lambda1)[0]}")
+        raise ValueError(
+            f"servo: expected one parameter set or {len(scenarios)} (one per scenario), "
+            f"got {np.shape(servo.lambda1)[0]}"
+        )
     if control_mode(mode).hybrid:
         hybrid = hybrid_law.HybridGains() if hybrid is None else hybrid
         hybrid_law.validate_gains(hybrid, bounded=False)  # a gain file's bounds are checked where one is read
-    nominal = dataclasses.replace(scenarios[0].options, kin_error_seed=None, payload=0.0, payload_com=(0.0, 0.0, 0.0),
-                                  payload_inertia=(0.0, 0.0, 0.0))
+    nominal = dataclasses.replace(
+        scenarios[0].options,
+        kin_error_seed=None,
+        payload=0.0,
+        payload_com=(0.0, 0.0, 0.0),
+        payload_inertia=(0.0, 0.0, 0.0),
+    )
     rates = machine_rates(nominal, rates)
     if compliance is not None:
         if not nominal.contacts:
@@ -141,18 +165,28 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
         if compliance is not None:
             setpoint = np.zeros(3) if force_setpoint is None else np.asarray(force_setpoint, dtype=float)
             if setpoint.shape not in ((3,), (length, 3)) or not np.isfinite(setpoint).all():
-                raise ValueError(f"force_setpoint: expected finite forces [N] of shape (3,) or ({length}, 3), got "
-                                 f"shape {setpoint.shape}")
+                raise ValueError(
+                    f"force_setpoint: expected finite forces [N] of shape (3,) or ({length}, 3), got "
+                    f"shape {setpoint.shape}"
+                )
             setpoint = np.broadcast_to(setpoint, (length, 3))
             reference = compliance_law.ComplianceReference(jnp.asarray(padded), jnp.asarray(setpoint), reference)
         references.append(reference)
         models.append(plant.variant(sc.options, sc.geometry))
     t0 = time.perf_counter()
-    traces, _ = run_chunked(servo, stack(models), stack(references), plant=plant, rates=rates, outer=mode,
-                            hybrid=hybrid if control_mode(mode).hybrid else None, start=start,
-                            compliance=None if compliance is None else (
-                                compliance, scenarios[0].geometry or Geometry.default()),
-                            params_axis=0 if batched else None, hybrid_axis=hybrid_axis)
+    traces, _ = run_chunked(
+        servo,
+        stack(models),
+        stack(references),
+        plant=plant,
+        rates=rates,
+        outer=mode,
+        hybrid=hybrid if control_mode(mode).hybrid else None,
+        start=start,
+        compliance=None if compliance is None else (compliance, scenarios[0].geometry or Geometry.default()),
+        params_axis=0 if batched else None,
+        hybrid_axis=hybrid_axis,
+    )
     wall = time.perf_counter() - t0
     out = []
     for k, sc in enumerate(scenarios):
@@ -162,15 +196,35 @@ def simulate_scenarios(servo: ServoParams, scenarios, *, mode: str = "imc", rate
         if compliance is not None:
             reference = reference.inner
         result, arrays = machine_metrics(trace, servos[k], sc.path, reference, mode, rates.dt_position, hybrids[k])
-        out.append(({"name": sc.name, "mode": mode, "imc_form": servo.imc_form, "start": start,
-                     "kin_error_seed": sc.options.kin_error_seed, "payload_kg": sc.options.payload}
-                    | result | {"wall_s": wall}, arrays))
+        out.append(
+            (
+                {
+                    "name": sc.name,
+                    "mode": mode,
+                    "imc_form": servo.imc_form,
+                    "start": start,
+                    "kin_error_seed": sc.options.kin_error_seed,
+                    "payload_kg": sc.options.payload,
+                }
+                | result
+                | {"wall_s": wall},
+                arrays,
+            )
+        )
     return out
 
 
-def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: ModelOptions = ModelOptions(),
-                     rates: LoopRates = LoopRates(), hybrid: hybrid_law.HybridGains | None = None,
-                     start: str = "rest", geom: Geometry | None = None) -> tuple[dict, dict]:
+def simulate_machine(
+    servo: ServoParams,
+    path,
+    *,
+    mode: str = "imc",
+    options: ModelOptions = ModelOptions(),
+    rates: LoopRates = LoopRates(),
+    hybrid: hybrid_law.HybridGains | None = None,
+    start: str = "rest",
+    geom: Geometry | None = None,
+) -> tuple[dict, dict]:
     """Run platform poses ``path`` (``(N, 5)``, one per position period) on the machine of nominal geometry ``geom``
     (None: the default).
 
@@ -180,8 +234,9 @@ def simulate_machine(servo: ServoParams, path, *, mode: str = "imc", options: Mo
     plots (``t``, ``reference``, ``platform`` positions [m], ``branch_force`` [N]).  A batch of one
     :func:`simulate_scenarios`: seeded errors and payloads share the nominal machine's compile.
     """
-    result, arrays = simulate_scenarios(servo, [Scenario(np.asarray(path), options, geometry=geom)], mode=mode,
-                                        rates=rates, hybrid=hybrid, start=start)[0]
+    result, arrays = simulate_scenarios(
+        servo, [Scenario(np.asarray(path), options, geometry=geom)], mode=mode, rates=rates, hybrid=hybrid, start=start
+    )[0]
     result.pop("name")
     return result, arrays
 
@@ -202,12 +257,13 @@ def reversal_error(e_branch, s_ref, dt: float, window_s: float = REVERSAL_WINDOW
         moving = np.flatnonzero(np.abs(v[:, b]) > 1e-12)
         sign = np.sign(v[moving, b])
         at = moving[1:][sign[1:] != sign[:-1]] + 1  # the first sample moving the other way
-        out.append(max(float(e[k:k + n, b].max()) for k in at) if len(at) else None)
+        out.append(max(float(e[k : k + n, b].max()) for k in at) if len(at) else None)
     return out
 
 
-def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: float,
-                    hybrid: hybrid_law.HybridGains | None = None) -> tuple[dict, dict]:
+def machine_metrics(
+    trace, servo: ServoParams, path, reference, mode: str, dt: float, hybrid: hybrid_law.HybridGains | None = None
+) -> tuple[dict, dict]:
     """The metrics of ``pusupu sim --plant mjx`` from a machine trace (host-side), and arrays for plots.
 
     ``reference``: the rollout reference of the run (see :func:`machine_reference`); branch errors are taken
@@ -237,12 +293,21 @@ def machine_metrics(trace, servo: ServoParams, path, reference, mode: str, dt: f
     if control_mode(mode).hybrid:
         # the state is recorded at the start of each period, so F_6 of period k shows at k + 1
         f_rho = np.asarray(trace.state.force.force)[1:] - np.asarray(reference.force_ff)[:-1]
-        result["hybrid"] = {"form": hybrid.form, **{f.name: float(getattr(hybrid, f.name))
-                                                   for f in hybrid_law.gain_fields()},
-                            "force_ff_peak_n": float(np.abs(np.asarray(reference.force_ff)).max()),
-                            "f_rho_rms_n": float(np.sqrt(np.mean(f_rho**2))),
-                            "f_rho_peak_n": float(np.abs(f_rho).max())}
-    observed = {k: np.asarray(trace.observation[k]) for k in ("contact_force", "compliance_offset", "platform_mat")
-                if k in trace.observation}
-    return result, {"t": np.asarray(trace.t), "reference": np.asarray(path)[:, :3], "platform": platform,
-                    "branch_force": force} | observed
+        result["hybrid"] = {
+            "form": hybrid.form,
+            **{f.name: float(getattr(hybrid, f.name)) for f in hybrid_law.gain_fields()},
+            "force_ff_peak_n": float(np.abs(np.asarray(reference.force_ff)).max()),
+            "f_rho_rms_n": float(np.sqrt(np.mean(f_rho**2))),
+            "f_rho_peak_n": float(np.abs(f_rho).max()),
+        }
+    observed = {
+        k: np.asarray(trace.observation[k])
+        for k in ("contact_force", "compliance_offset", "platform_mat")
+        if k in trace.observation
+    }
+    return result, {
+        "t": np.asarray(trace.t),
+        "reference": np.asarray(path)[:, :3],
+        "platform": platform,
+        "branch_force": force,
+    } | observed

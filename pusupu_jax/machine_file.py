@@ -41,10 +41,15 @@ from .plant.geometry import Geometry, GeometryError, validate_geometry
 
 FORMAT, VERSION = "pusupu-machine", 1
 KEYS = ("format", "version", "name", "geometry", "drives", "payload")
-PAYLOAD_FIELDS = {"mass": ((), "kg", "the payload's mass (tool and workpiece)"),
-                  "com": ((3,), "m", "its centre of mass in the platform frame (origin at the platform centre)"),
-                  "inertia": ((3,), "kg*m^2", "its principal moments of inertia about its centre of mass, axes along "
-                                              "the platform frame's")}
+PAYLOAD_FIELDS = {
+    "mass": ((), "kg", "the payload's mass (tool and workpiece)"),
+    "com": ((3,), "m", "its centre of mass in the platform frame (origin at the platform centre)"),
+    "inertia": (
+        (3,),
+        "kg*m^2",
+        "its principal moments of inertia about its centre of mass, axes along the platform frame's",
+    ),
+}
 COND_MAX = 30.0  # the Jacobian condition number a pose may reach (kinematics.check_poses)
 
 
@@ -77,14 +82,18 @@ class Machine:
         """The built-in machine: the default geometry (``docs/geometry.md``), Table 1's drives with the documented
         choices (``docs/parameters.md``), no payload."""
         base = ServoParams.table1()
-        return cls("built-in", Geometry.default(), {f.name: np.asarray(getattr(base, f.name), dtype=float)
-                                                    for f in drive_fields()})
+        return cls(
+            "built-in",
+            Geometry.default(),
+            {f.name: np.asarray(getattr(base, f.name), dtype=float) for f in drive_fields()},
+        )
 
     def servo(self, gains: ServoParams) -> ServoParams:
         """``gains`` (what the controller is told) on this machine's drives; checked, so a controller limit beyond
         the machine's rating (``I_max > I_peak``, ``V_max > V_dc``) is refused."""
-        out = gains.replace(**{name: np.broadcast_to(v, np.shape(gains.lambda1)).copy()
-                               for name, v in self.drives.items()})
+        out = gains.replace(
+            **{name: np.broadcast_to(v, np.shape(gains.lambda1)).copy() for name, v in self.drives.items()}
+        )
         try:
             validate(out)
         except ParameterError as e:
@@ -96,16 +105,27 @@ class Machine:
         payload.  (MuJoCo is imported here, not with the module: a gain file is read on the robot side without it.)"""
         from .plant.model import ModelOptions
 
-        return dataclasses.replace(ModelOptions() if base is None else base, payload=float(self.payload.mass),
-                                   payload_com=tuple(self.payload.com), payload_inertia=tuple(self.payload.inertia))
+        return dataclasses.replace(
+            ModelOptions() if base is None else base,
+            payload=float(self.payload.mass),
+            payload_com=tuple(self.payload.com),
+            payload_inertia=tuple(self.payload.inertia),
+        )
 
     def content(self) -> dict:
         """The machine as plain data (lists and floats), every field: what :func:`digest` hashes."""
-        return {"format": FORMAT, "version": VERSION, "name": self.name,
-                "geometry": {k: np.asarray(getattr(self.geometry, k), dtype=float).tolist() for k in GEOMETRY_FIELDS},
-                "drives": {k: _compact(v) for k, v in self.drives.items()},
-                "payload": {"mass": float(self.payload.mass), "com": [float(x) for x in self.payload.com],
-                            "inertia": [float(x) for x in self.payload.inertia]}}
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "name": self.name,
+            "geometry": {k: np.asarray(getattr(self.geometry, k), dtype=float).tolist() for k in GEOMETRY_FIELDS},
+            "drives": {k: _compact(v) for k, v in self.drives.items()},
+            "payload": {
+                "mass": float(self.payload.mass),
+                "com": [float(x) for x in self.payload.com],
+                "inertia": [float(x) for x in self.payload.inertia],
+            },
+        }
 
 
 def digest(machine: Machine) -> str:
@@ -205,8 +225,9 @@ def _drives(values) -> dict:
         v, where = values[f.name], f"drives.{f.name}"
         if isinstance(v, list):
             if len(v) != N_AXES:
-                raise ParameterError(f"{where}: expected a number or a list of {N_AXES} (one per axis), got a list "
-                                     f"of {len(v)}")
+                raise ParameterError(
+                    f"{where}: expected a number or a list of {N_AXES} (one per axis), got a list of {len(v)}"
+                )
             arr = np.array([inputs.number(x, f"{where}[{k}]", ParameterError) for k, x in enumerate(v)])
         else:
             arr = np.full(N_AXES, inputs.number(v, where, ParameterError))
@@ -215,8 +236,10 @@ def _drives(values) -> dict:
         bad = (arr < low) | (arr > top)
         if bad.any():
             k = int(np.argmax(bad))
-            raise ParameterError(f"{where}: expected {low:g} to {high if isinstance(high, str) else f'{high:g}'} "
-                                 f"[{f.metadata['unit']}] ({why}), got {arr[k]:.6g} on axis {k}")
+            raise ParameterError(
+                f"{where}: expected {low:g} to {high if isinstance(high, str) else f'{high:g}'} "
+                f"[{f.metadata['unit']}] ({why}), got {arr[k]:.6g} on axis {k}"
+            )
         out[f.name] = arr
     return out
 
@@ -233,8 +256,10 @@ def _payload(values) -> Payload:
         raise ParameterError(f"payload.inertia: expected non-negative principal moments, got {inertia.tolist()}")
     a, b, c = inertia
     if a + b < c or b + c < a or a + c < b:
-        raise ParameterError(f"payload.inertia: expected principal moments obeying the triangle inequality (a body's "
-                             f"can), got {inertia.tolist()}")
+        raise ParameterError(
+            f"payload.inertia: expected principal moments obeying the triangle inequality (a body's "
+            f"can), got {inertia.tolist()}"
+        )
     return Payload(mass, tuple(com.tolist()), tuple(inertia.tolist()))
 
 
@@ -260,9 +285,14 @@ def template(machine: Machine | None = None) -> str:
     machine = Machine.default() if machine is None else machine
     content = machine.content()
     units = {f.name: (f.metadata["unit"], f.metadata["doc"]) for f in drive_fields()}
-    lines = [f"# {FORMAT} version {VERSION}: what the robot is (docs/machine.md). SI units throughout.",
-             "# A per-axis drive value is one number for all six axes, or a list of six.",
-             f"format: {FORMAT}", f"version: {VERSION}", f"name: {json.dumps(machine.name)}", "geometry:"]
+    lines = [
+        f"# {FORMAT} version {VERSION}: what the robot is (docs/machine.md). SI units throughout.",
+        "# A per-axis drive value is one number for all six axes, or a list of six.",
+        f"format: {FORMAT}",
+        f"version: {VERSION}",
+        f"name: {json.dumps(machine.name)}",
+        "geometry:",
+    ]
     for k, (_, unit, doc) in GEOMETRY_FIELDS.items():
         lines.append(f"  # {doc} [{unit}]")
         lines.append(f"  {k}: {_flow(content['geometry'][k])}")
@@ -284,6 +314,7 @@ def _flow(value) -> str:
 
 def json_schema() -> dict:
     """The JSON Schema of a machine file (for editors), generated from the field metadata."""
+
     def number():
         return {"type": "number"}
 
@@ -297,22 +328,37 @@ def json_schema() -> dict:
     for f in drive_fields():
         low, high, why = bounds(f)
         one = {"type": "number", "minimum": low} | ({} if isinstance(high, str) else {"maximum": high})
-        drives[f.name] = {"description": f"{f.metadata['doc']} [{f.metadata['unit']}]; range: {why}",
-                          "oneOf": [one, {"type": "array", "items": one, "minItems": N_AXES, "maxItems": N_AXES}]}
+        drives[f.name] = {
+            "description": f"{f.metadata['doc']} [{f.metadata['unit']}]; range: {why}",
+            "oneOf": [one, {"type": "array", "items": one, "minItems": N_AXES, "maxItems": N_AXES}],
+        }
     return {
-        "$schema": "https://json-schema.org/draft/2020-12/schema", "title": f"{FORMAT} version {VERSION}",
-        "type": "object", "additionalProperties": False, "required": list(KEYS),
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": f"{FORMAT} version {VERSION}",
+        "type": "object",
+        "additionalProperties": False,
+        "required": list(KEYS),
         "properties": {
-            "format": {"const": FORMAT}, "version": {"const": VERSION},
+            "format": {"const": FORMAT},
+            "version": {"const": VERSION},
             "name": {"type": "string", "minLength": 1, "maxLength": 100},
-            "geometry": {"type": "object", "additionalProperties": False, "required": list(GEOMETRY_FIELDS),
-                         "properties": {k: shaped(s) | {"description": f"{doc} [{unit}]"}
-                                        for k, (s, unit, doc) in GEOMETRY_FIELDS.items()}},
-            "drives": {"type": "object", "additionalProperties": False, "required": list(drives),
-                       "properties": drives},
-            "payload": {"type": "object", "additionalProperties": False, "required": list(PAYLOAD_FIELDS),
-                        "properties": {k: shaped(s) | {"description": f"{doc} [{unit}]"}
-                                       for k, (s, unit, doc) in PAYLOAD_FIELDS.items()}},
+            "geometry": {
+                "type": "object",
+                "additionalProperties": False,
+                "required": list(GEOMETRY_FIELDS),
+                "properties": {
+                    k: shaped(s) | {"description": f"{doc} [{unit}]"} for k, (s, unit, doc) in GEOMETRY_FIELDS.items()
+                },
+            },
+            "drives": {"type": "object", "additionalProperties": False, "required": list(drives), "properties": drives},
+            "payload": {
+                "type": "object",
+                "additionalProperties": False,
+                "required": list(PAYLOAD_FIELDS),
+                "properties": {
+                    k: shaped(s) | {"description": f"{doc} [{unit}]"} for k, (s, unit, doc) in PAYLOAD_FIELDS.items()
+                },
+            },
         },
     }
 

@@ -17,7 +17,8 @@ frequency (:func:`unwrapped_phase`), so it can be negative.  Where a loop has se
 crossovers, the smallest phase margin is taken; of several phase crossovers, the one whose gain
 margin is smallest in size, with its sign (as python-control's ``stability_margins`` does: a
 conditionally stable loop whose phase dips below -180 deg where its gain is high reports the margin
-nearest 0 dB); where a loop has none, the margin is ``inf``; :func:`in_band` says whether every gain crossover lies on the grid.  Margins describe robustness
+nearest 0 dB); where a loop has none, the margin is ``inf``; :func:`in_band` says whether every gain crossover lies on
+the grid.  Margins describe robustness
 only: whether a loop is stable is read from its poles (:mod:`pusupu_jax.stability`).
 Agreement with python-control is a test (0.5 deg, 0.1 dB).
 """
@@ -152,8 +153,11 @@ def margins(gain_fn, w=W_GRID) -> dict:
     x_p = refine(lambda x: jnp.imag(gain_fn(jnp.exp(x))), x_p, mask_p)
     gm = jnp.where(mask_p, -20 * jnp.log10(jnp.abs(at_roots(x_p, mask_p))), jnp.inf)
     gm = jnp.take_along_axis(gm, jnp.argmin(jnp.abs(gm), axis=-1)[..., None], axis=-1)[..., 0]
-    return {"phase_margin_deg": jnp.min(pm_all, axis=-1), "gain_margin_db": gm,
-            "crossover_rad_s": jnp.take_along_axis(jnp.exp(x_g), k[..., None], axis=-1)[..., 0]}
+    return {
+        "phase_margin_deg": jnp.min(pm_all, axis=-1),
+        "gain_margin_db": gm,
+        "crossover_rad_s": jnp.take_along_axis(jnp.exp(x_g), k[..., None], axis=-1)[..., 0],
+    }
 
 
 LOOPS = ("current", "velocity", "position")
@@ -165,6 +169,7 @@ def loop_margins(servo, load, mode: str = "imc") -> dict:
     The three loops go through :func:`margins` as one stack (leading axis), so that each evaluation of
     :func:`loop_gains` serves all three: a third of the program that tracing them apart made (the tuner's gradient
     compiles that much less)."""
+
     def stack(w):  # w: the grid (n,), or points per loop (3, ..., 6, k) where each loop refines its own
         gains = loop_gains(servo, load, w, mode)
         return jnp.stack([gains[name] if jnp.ndim(w) == 1 else gains[name][i] for i, name in enumerate(LOOPS)])

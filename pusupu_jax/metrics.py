@@ -43,5 +43,7 @@ def step_summary(trace, params, tolerance: float = 0.02) -> dict:
     outside = jnp.abs(e) > tolerance * jnp.abs(final)
     last = jnp.max(jnp.where(outside, jnp.arange(e.shape[-2])[:, None], -1), axis=-2)
     n, dt = e.shape[-2], float(trace.t[1] - trace.t[0])
-    return {"overshoot_pct": [float(v) for v in jnp.ravel(overshoot)],
-            "settling_time_s": [None if int(k) == n - 1 else (int(k) + 1) * dt for k in jnp.ravel(last)]}
+    return {
+        "overshoot_pct": [float(v) for v in jnp.ravel(overshoot)],
+        "settling_time_s": [None if int(k) == n - 1 else (int(k) + 1) * dt for k in jnp.ravel(last)],
+    }

@@ -39,8 +39,15 @@ def branch_force(trace, servo):
     return trace.torque * servo.eta / screw_ratio(servo)
 
 
-def terms(trace, servo, path, dt: float, sharpness_force: float = 1.0, sharpness_error: float = 2000.0,
-          sat_fraction: float = 0.95) -> dict:
+def terms(
+    trace,
+    servo,
+    path,
+    dt: float,
+    sharpness_force: float = 1.0,
+    sharpness_error: float = 2000.0,
+    sat_fraction: float = 0.95,
+) -> dict:
     """Every objective term of a machine trace (see the module docstring).
 
     ``path``: the platform poses ``(N, 5)`` the machine was asked to follow (one per

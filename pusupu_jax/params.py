@@ -36,17 +36,21 @@ class ParameterError(ValueError):
 
 
 def _f(default: float, unit: str, doc: str, kind: str = "positive", section: str = "", bounds=None):
-    """A per-axis field: ``kind`` is 'positive', 'nonnegative' or 'any' (finite); ``section``: where a gain file puts it;
+    """A per-axis field: ``kind`` is 'positive', 'nonnegative' or 'any' (finite); ``section``: where a gain file puts
+    it;
     ``bounds``: ``(low, high, why)``, the physically meaningful range and the reason for it (``high`` may name another
     field of the same class, a rating the value may not exceed)."""
-    return field(default=default, metadata={"unit": unit, "doc": doc, "kind": kind, "section": section,
-                                            "bounds": bounds})
+    return field(
+        default=default, metadata={"unit": unit, "doc": doc, "kind": kind, "section": section, "bounds": bounds}
+    )
 
 
 def _choice(default: str, choices: tuple, doc: str, section: str = ""):
     """A static, machine-wide field: one of ``choices`` (a jit-static pytree field: changing it recompiles)."""
-    return field(default=default, metadata={"unit": "", "doc": doc, "kind": "choice", "choices": choices,
-                                            "static": True, "section": section})
+    return field(
+        default=default,
+        metadata={"unit": "", "doc": doc, "kind": "choice", "choices": choices, "static": True, "section": section},
+    )
 
 
 def array_fields(cls) -> list:
@@ -65,8 +69,9 @@ def arrays(p) -> dict:
 
 
 def _pytree(cls):
-    return jax.tree_util.register_dataclass(cls, data_fields=[f.name for f in array_fields(cls)],
-                                            meta_fields=[f.name for f in static_fields(cls)])
+    return jax.tree_util.register_dataclass(
+        cls, data_fields=[f.name for f in array_fields(cls)], meta_fields=[f.name for f in static_fields(cls)]
+    )
 
 
 class _PerAxis:
@@ -102,112 +107,332 @@ class ServoParams(_PerAxis):
     """
 
     # --- position loop, 2-DOF IMC (eq. 9) ---
-    lambda1: Any = _f(0.018, "s", "IMC reference (tracking) filter time parameter, C1", section="position",
-        bounds=(5e-05, 10.0, "a filter faster than one period of the fastest position loop (20 kHz) does nothing; one "
-                             "of 10 s takes a minute to follow"))
-    lambda2: Any = _f(0.15, "s", "IMC feedback (robustness) filter time parameter, C1 and C2", section="position",
-        bounds=(5e-05, 10.0, "as lambda1: faster than one period of the fastest position loop does nothing, 10 s "
-                             "leaves the axis nearly uncontrolled"))
-    T0: Any = _f(0.01475, "s", "time constant of the closed velocity loop as modelled by C2", section="position",
-        bounds=(0.0001, 1.0, "a velocity loop closed faster than 0.1 ms or slower than 1 s is no servo drive's"))
+    lambda1: Any = _f(
+        0.018,
+        "s",
+        "IMC reference (tracking) filter time parameter, C1",
+        section="position",
+        bounds=(
+            5e-05,
+            10.0,
+            "a filter faster than one period of the fastest position loop (20 kHz) does nothing; one "
+            "of 10 s takes a minute to follow",
+        ),
+    )
+    lambda2: Any = _f(
+        0.15,
+        "s",
+        "IMC feedback (robustness) filter time parameter, C1 and C2",
+        section="position",
+        bounds=(
+            5e-05,
+            10.0,
+            "as lambda1: faster than one period of the fastest position loop does nothing, 10 s "
+            "leaves the axis nearly uncontrolled",
+        ),
+    )
+    T0: Any = _f(
+        0.01475,
+        "s",
+        "time constant of the closed velocity loop as modelled by C2",
+        section="position",
+        bounds=(0.0001, 1.0, "a velocity loop closed faster than 0.1 ms or slower than 1 s is no servo drive's"),
+    )
     # --- velocity loop (eq. 6-8) ---
-    Kv: Any = _f(0.015, "A/(rad/s)", "velocity PI proportional gain", section="velocity",
-        bounds=(1e-05, 10.0, "10 A per rad/s spends the whole 10 A current limit on 1 rad/s (10 rpm) of speed "
-                             "error; 1e-5 A per rad/s leaves the axis uncontrolled"))
-    Tv: Any = _f(5.0, "s", "velocity PI integral time", section="velocity",
-        bounds=(0.0001, 100.0, "an integral time beyond 100 s is no integral action; below 0.1 ms it is faster than "
-                               "the velocity loop"))
-    Kw: Any = _f(1.0, "1", "velocity feedback filter gain", section="velocity",
-        bounds=(0.5, 2.0, "a calibration factor of the speed measurement: beyond a factor 2 it is a wrong unit"))
-    Tw: Any = _f(0.01, "s", "velocity feedback and reference filter time constant", section="velocity",
-        bounds=(1e-06, 0.1, "a speed filter slower than 0.1 s is slower than any velocity loop it serves"))
+    Kv: Any = _f(
+        0.015,
+        "A/(rad/s)",
+        "velocity PI proportional gain",
+        section="velocity",
+        bounds=(
+            1e-05,
+            10.0,
+            "10 A per rad/s spends the whole 10 A current limit on 1 rad/s (10 rpm) of speed "
+            "error; 1e-5 A per rad/s leaves the axis uncontrolled",
+        ),
+    )
+    Tv: Any = _f(
+        5.0,
+        "s",
+        "velocity PI integral time",
+        section="velocity",
+        bounds=(
+            0.0001,
+            100.0,
+            "an integral time beyond 100 s is no integral action; below 0.1 ms it is faster than the velocity loop",
+        ),
+    )
+    Kw: Any = _f(
+        1.0,
+        "1",
+        "velocity feedback filter gain",
+        section="velocity",
+        bounds=(0.5, 2.0, "a calibration factor of the speed measurement: beyond a factor 2 it is a wrong unit"),
+    )
+    Tw: Any = _f(
+        0.01,
+        "s",
+        "velocity feedback and reference filter time constant",
+        section="velocity",
+        bounds=(1e-06, 0.1, "a speed filter slower than 0.1 s is slower than any velocity loop it serves"),
+    )
     # --- current loop (eq. 1-5) ---
-    Ki: Any = _f(1.0, "V/A", "current PI proportional gain (command volts per amp, before the inverter gain Kn)", section="current",
-        bounds=(0.001, 1000.0, "1 kV per amp of current error saturates any inverter on a milliamp; 1 mV per amp "
-                               "leaves the current uncontrolled"))
-    Ti: Any = _f(0.00208, "s", "current PI integral time (= L/R in the paper)", section="current",
-        bounds=(1e-06, 1.0, "an electrical time constant L/R is microseconds to a fraction of a second"))
-    Kcf: Any = _f(1.0, "1", "current feedback filter gain", section="current",
-        bounds=(0.5, 2.0, "a calibration factor of the current measurement: beyond a factor 2 it is a wrong unit"))
-    Tcf: Any = _f(0.00016, "s", "current feedback and reference filter time constant", section="current",
-        bounds=(1e-07, 0.01, "a current filter slower than 10 ms is slower than any current loop it serves"))
-    Kn: Any = _f(4.43, "1", "inverter (SPWM) gain", section="plant",
-        bounds=(0.1, 1000.0, "an inverter gain, volts out per volt of command"))
-    Tn: Any = _f(0.0001, "s", "inverter time constant", section="plant",
-        bounds=(1e-07, 0.01, "an inverter responds within microseconds to milliseconds"))
-    R: Any = _f(1.3, "ohm", "armature resistance", section="plant",
-        bounds=(0.001, 1000.0, "armature resistances of servo motors: milliohms to hundreds of ohms"))
-    L: Any = _f(0.0027, "H", "armature inductance", section="plant",
-        bounds=(1e-06, 1.0, "armature inductances of servo motors: microhenries to a henry"))
+    Ki: Any = _f(
+        1.0,
+        "V/A",
+        "current PI proportional gain (command volts per amp, before the inverter gain Kn)",
+        section="current",
+        bounds=(
+            0.001,
+            1000.0,
+            "1 kV per amp of current error saturates any inverter on a milliamp; 1 mV per amp "
+            "leaves the current uncontrolled",
+        ),
+    )
+    Ti: Any = _f(
+        0.00208,
+        "s",
+        "current PI integral time (= L/R in the paper)",
+        section="current",
+        bounds=(1e-06, 1.0, "an electrical time constant L/R is microseconds to a fraction of a second"),
+    )
+    Kcf: Any = _f(
+        1.0,
+        "1",
+        "current feedback filter gain",
+        section="current",
+        bounds=(0.5, 2.0, "a calibration factor of the current measurement: beyond a factor 2 it is a wrong unit"),
+    )
+    Tcf: Any = _f(
+        0.00016,
+        "s",
+        "current feedback and reference filter time constant",
+        section="current",
+        bounds=(1e-07, 0.01, "a current filter slower than 10 ms is slower than any current loop it serves"),
+    )
+    Kn: Any = _f(
+        4.43,
+        "1",
+        "inverter (SPWM) gain",
+        section="plant",
+        bounds=(0.1, 1000.0, "an inverter gain, volts out per volt of command"),
+    )
+    Tn: Any = _f(
+        0.0001,
+        "s",
+        "inverter time constant",
+        section="plant",
+        bounds=(1e-07, 0.01, "an inverter responds within microseconds to milliseconds"),
+    )
+    R: Any = _f(
+        1.3,
+        "ohm",
+        "armature resistance",
+        section="plant",
+        bounds=(0.001, 1000.0, "armature resistances of servo motors: milliohms to hundreds of ohms"),
+    )
+    L: Any = _f(
+        0.0027,
+        "H",
+        "armature inductance",
+        section="plant",
+        bounds=(1e-06, 1.0, "armature inductances of servo motors: microhenries to a henry"),
+    )
     # --- motor (J from Table 1; the rest chosen) ---
-    J: Any = _f(0.000188, "kg*m^2", "motor rotor inertia", section="plant",
-        bounds=(1e-07, 1.0, "rotor inertias of servo motors: 0.1 g cm^2 to 1 kg m^2"))
-    Kt: Any = _f(1.322, "N*m/A", "chosen: torque constant, solved so that the velocity loop identified "
-                 "from the model has T0 = 0.01475 s with the default AxisLoad (analysis.kt_for_T0)", section="plant",
-        bounds=(0.001, 100.0, "torque constants of servo motors"))
-    Ke: Any = _f(1.322, "V*s/rad", "chosen: back-EMF constant; equal to Kt (SI units, power balance of the "
-                 "DC-equivalent motor model)", section="plant",
-        bounds=(0.001, 100.0, "back-EMF constants of servo motors (equal to Kt in SI units)"))
-    I_peak: Any = _f(10.0, "A", "chosen: the drive's peak current rating; I_max may not exceed it", section="plant",
-        bounds=(0.001, 1000.0, "peak current ratings of servo drives: milliamps to a kiloamp"))
-    V_dc: Any = _f(310.0, "V", "chosen: the drive's DC bus voltage; V_max may not exceed it", section="plant",
-        bounds=(1.0, 10000.0, "DC bus voltages of servo drives"))
-    speed_max: Any = _f(314.16, "rad/s", "chosen: the motor's rated maximum speed (3000 rpm); a path whose motor "
-                        "speed exceeds it is refused", section="plant",
-        bounds=(1.0, 20000.0, "maximum speeds of servo motors: 10 rpm to 190 000 rpm"))
-    emf_ff: Any = _f(1.0, "1", "chosen: fraction of the back-EMF Ke*w fed forward into the current PI output "
-                     "(decoupling, as PMSM drives do; 1 = full, 0 = none)", kind="nonnegative", section="current",
-        bounds=(0.0, 1.0, "more than the whole back-EMF fed forward is positive speed feedback: from 1.7 on, Table "
-                          "1's current loop is unstable"))
-    I_max: Any = _f(10.0, "A", "chosen: current limit on the velocity PI output (13 N*m peak torque)", section="limits",
-        bounds=(0.0, "I_peak", "the drive's peak current rating I_peak (the clamp may not exceed what the machine "
-                               "is rated for)"))
-    V_max: Any = _f(300.0, "V", "chosen: armature voltage limit (310 V DC bus less margin); the current PI "
-                    "output saturates at V_max/Kn", section="limits",
-        bounds=(0.0, "V_dc", "the DC bus voltage V_dc (the inverter cannot apply more)"))
-    following_error: Any = _f(0.005, "m", "chosen: following-error window (CiA 402 object 0x6065), in slider travel: "
-                              "a branch whose position error stays beyond it for following_error_time stops the "
-                              "machine", section="limits",
-        bounds=(1e-05, 0.05, "a window under 10 um trips on encoder noise; one over 50 mm lets a branch run far off "
-                             "its path"))
-    following_error_time: Any = _f(0.05, "s", "chosen: following-error time-out (CiA 402 object 0x6066)",
-                                   section="limits",
-        bounds=(0.001, 1.0, "under 1 ms is a single position period; over 1 s lets a runaway go on for a second"))
+    J: Any = _f(
+        0.000188,
+        "kg*m^2",
+        "motor rotor inertia",
+        section="plant",
+        bounds=(1e-07, 1.0, "rotor inertias of servo motors: 0.1 g cm^2 to 1 kg m^2"),
+    )
+    Kt: Any = _f(
+        1.322,
+        "N*m/A",
+        "chosen: torque constant, solved so that the velocity loop identified "
+        "from the model has T0 = 0.01475 s with the default AxisLoad (analysis.kt_for_T0)",
+        section="plant",
+        bounds=(0.001, 100.0, "torque constants of servo motors"),
+    )
+    Ke: Any = _f(
+        1.322,
+        "V*s/rad",
+        "chosen: back-EMF constant; equal to Kt (SI units, power balance of the DC-equivalent motor model)",
+        section="plant",
+        bounds=(0.001, 100.0, "back-EMF constants of servo motors (equal to Kt in SI units)"),
+    )
+    I_peak: Any = _f(
+        10.0,
+        "A",
+        "chosen: the drive's peak current rating; I_max may not exceed it",
+        section="plant",
+        bounds=(0.001, 1000.0, "peak current ratings of servo drives: milliamps to a kiloamp"),
+    )
+    V_dc: Any = _f(
+        310.0,
+        "V",
+        "chosen: the drive's DC bus voltage; V_max may not exceed it",
+        section="plant",
+        bounds=(1.0, 10000.0, "DC bus voltages of servo drives"),
+    )
+    speed_max: Any = _f(
+        314.16,
+        "rad/s",
+        "chosen: the motor's rated maximum speed (3000 rpm); a path whose motor speed exceeds it is refused",
+        section="plant",
+        bounds=(1.0, 20000.0, "maximum speeds of servo motors: 10 rpm to 190 000 rpm"),
+    )
+    emf_ff: Any = _f(
+        1.0,
+        "1",
+        "chosen: fraction of the back-EMF Ke*w fed forward into the current PI output "
+        "(decoupling, as PMSM drives do; 1 = full, 0 = none)",
+        kind="nonnegative",
+        section="current",
+        bounds=(
+            0.0,
+            1.0,
+            "more than the whole back-EMF fed forward is positive speed feedback: from 1.7 on, Table "
+            "1's current loop is unstable",
+        ),
+    )
+    I_max: Any = _f(
+        10.0,
+        "A",
+        "chosen: current limit on the velocity PI output (13 N*m peak torque)",
+        section="limits",
+        bounds=(
+            0.0,
+            "I_peak",
+            "the drive's peak current rating I_peak (the clamp may not exceed what the machine is rated for)",
+        ),
+    )
+    V_max: Any = _f(
+        300.0,
+        "V",
+        "chosen: armature voltage limit (310 V DC bus less margin); the current PI output saturates at V_max/Kn",
+        section="limits",
+        bounds=(0.0, "V_dc", "the DC bus voltage V_dc (the inverter cannot apply more)"),
+    )
+    following_error: Any = _f(
+        0.005,
+        "m",
+        "chosen: following-error window (CiA 402 object 0x6065), in slider travel: "
+        "a branch whose position error stays beyond it for following_error_time stops the "
+        "machine",
+        section="limits",
+        bounds=(
+            1e-05,
+            0.05,
+            "a window under 10 um trips on encoder noise; one over 50 mm lets a branch run far off its path",
+        ),
+    )
+    following_error_time: Any = _f(
+        0.05,
+        "s",
+        "chosen: following-error time-out (CiA 402 object 0x6066)",
+        section="limits",
+        bounds=(0.001, 1.0, "under 1 ms is a single position period; over 1 s lets a runaway go on for a second"),
+    )
     # --- drive train (chosen) ---
-    lead: Any = _f(0.01, "m/rev", "chosen: ball-screw lead (10 mm per motor revolution)", section="plant",
-        bounds=(0.0001, 0.1, "ball-screw leads: 0.1 mm to 100 mm per revolution"))
-    eta: Any = _f(0.9, "1", "chosen: ball-screw efficiency (0 < eta <= 1); the load seen by the motor is divided by eta", section="plant",
-        bounds=(0.001, 1.0, "an efficiency: at most 1"))
+    lead: Any = _f(
+        0.01,
+        "m/rev",
+        "chosen: ball-screw lead (10 mm per motor revolution)",
+        section="plant",
+        bounds=(0.0001, 0.1, "ball-screw leads: 0.1 mm to 100 mm per revolution"),
+    )
+    eta: Any = _f(
+        0.9,
+        "1",
+        "chosen: ball-screw efficiency (0 < eta <= 1); the load seen by the motor is divided by eta",
+        section="plant",
+        bounds=(0.001, 1.0, "an efficiency: at most 1"),
+    )
     # --- drive-train friction at the slider (chosen; F = coulomb tanh(v / v_coulomb) + viscous v, opposing the
     # slider's speed v: pusupu_jax.plant.friction) ---
-    coulomb: Any = _f(20.0, "N", "chosen: Coulomb friction of the screw and the rail at the slider (smoothed by tanh)",
-                      kind="nonnegative", section="plant",
-        bounds=(0.0, 100000.0, "Coulomb friction of a rail and screw"))
-    viscous: Any = _f(50.0, "N*s/m", "chosen: viscous friction of the screw and the rail at the slider",
-                      kind="nonnegative", section="plant",
-        bounds=(0.0, 1000000.0, "viscous friction of a rail and screw"))
-    v_coulomb: Any = _f(0.001, "m/s", "chosen: slider speed over which the Coulomb friction builds up (the tanh's "
-                        "scale)", section="plant",
-        bounds=(1e-06, 10.0, "the speed over which Coulomb friction builds up"))
+    coulomb: Any = _f(
+        20.0,
+        "N",
+        "chosen: Coulomb friction of the screw and the rail at the slider (smoothed by tanh)",
+        kind="nonnegative",
+        section="plant",
+        bounds=(0.0, 100000.0, "Coulomb friction of a rail and screw"),
+    )
+    viscous: Any = _f(
+        50.0,
+        "N*s/m",
+        "chosen: viscous friction of the screw and the rail at the slider",
+        kind="nonnegative",
+        section="plant",
+        bounds=(0.0, 1000000.0, "viscous friction of a rail and screw"),
+    )
+    v_coulomb: Any = _f(
+        0.001,
+        "m/s",
+        "chosen: slider speed over which the Coulomb friction builds up (the tanh's scale)",
+        section="plant",
+        bounds=(1e-06, 10.0, "the speed over which Coulomb friction builds up"),
+    )
     # --- baseline PID position loop (chosen: same crossover as the nominal IMC loop, see docs/parameters.md) ---
-    Kp_pid: Any = _f(6.5, "1/s", "PID proportional gain, motor rad/s per rad of position error", section="pid",
-        bounds=(0.0001, 1000.0, "a position gain beyond 1000 1/s puts the crossover past the velocity loop's"))
-    Ki_pid: Any = _f(8.0, "1/s^2", "PID integral gain", section="pid",
-        bounds=(1e-06, 100000.0, "as Kp_pid: beyond 1e5 1/s^2 the integral alone crosses over past the velocity loop"))
-    Kd_pid: Any = _f(0.02, "1", "PID derivative gain", section="pid",
-        bounds=(1e-08, 10.0, "a derivative gain beyond 10 amplifies the encoder's noise tenfold into the speed "
-                             "reference"))
-    Tf_pid: Any = _f(0.005, "s", "PID derivative filter time constant, Kd s/(Tf s + 1)", section="pid",
-        bounds=(1e-05, 1.0, "a derivative filter faster than 10 us is faster than any position loop; one of 1 s "
-                            "removes the derivative"))
-    Kff_pid: Any = _f(1.0, "1", "velocity feedforward gain of mode pid_ff: the reference's backward difference "
-                      "[rad/s] times Kff is added to the PID output", kind="nonnegative", section="pid",
-        bounds=(0.0, 1.5, "1 feeds the whole reference speed forward; beyond 1.5 the feedforward alone overshoots "
-                          "by half"))
+    Kp_pid: Any = _f(
+        6.5,
+        "1/s",
+        "PID proportional gain, motor rad/s per rad of position error",
+        section="pid",
+        bounds=(0.0001, 1000.0, "a position gain beyond 1000 1/s puts the crossover past the velocity loop's"),
+    )
+    Ki_pid: Any = _f(
+        8.0,
+        "1/s^2",
+        "PID integral gain",
+        section="pid",
+        bounds=(1e-06, 100000.0, "as Kp_pid: beyond 1e5 1/s^2 the integral alone crosses over past the velocity loop"),
+    )
+    Kd_pid: Any = _f(
+        0.02,
+        "1",
+        "PID derivative gain",
+        section="pid",
+        bounds=(
+            1e-08,
+            10.0,
+            "a derivative gain beyond 10 amplifies the encoder's noise tenfold into the speed reference",
+        ),
+    )
+    Tf_pid: Any = _f(
+        0.005,
+        "s",
+        "PID derivative filter time constant, Kd s/(Tf s + 1)",
+        section="pid",
+        bounds=(
+            1e-05,
+            1.0,
+            "a derivative filter faster than 10 us is faster than any position loop; one of 1 s removes the derivative",
+        ),
+    )
+    Kff_pid: Any = _f(
+        1.0,
+        "1",
+        "velocity feedforward gain of mode pid_ff: the reference's backward difference "
+        "[rad/s] times Kff is added to the PID output",
+        kind="nonnegative",
+        section="pid",
+        bounds=(
+            0.0,
+            1.5,
+            "1 feeds the whole reference speed forward; beyond 1.5 the feedforward alone overshoots by half",
+        ),
+    )
     # --- static structure (machine-wide; changing it recompiles) ---
-    imc_form: str = _choice("full", IMC_FORMS, "form of the 2-DOF IMC prefilter C1: 'full' (reference response "
-                            "(3 l1 s+1)/(l1 s+1)^3, as section 2.2 describes; docs/imc.md) or 'printed' (eq. 9 "
-                            "as printed, (3 l1 s+1)/(3 l2 s+1))", section="position")
+    imc_form: str = _choice(
+        "full",
+        IMC_FORMS,
+        "form of the 2-DOF IMC prefilter C1: 'full' (reference response "
+        "(3 l1 s+1)/(l1 s+1)^3, as section 2.2 describes; docs/imc.md) or 'printed' (eq. 9 "
+        "as printed, (3 l1 s+1)/(3 l2 s+1))",
+        section="position",
+    )
 
     @classmethod
     def table1(cls) -> "ServoParams":
@@ -224,13 +449,26 @@ class AxisLoad(_PerAxis):
     Every field has shape ``(..., 6)``.  All values chosen (no load is published).
     """
 
-    mass: Any = _f(20.0, "kg", "lumped moving mass on the slider",
-        bounds=(0.001, 10000.0, "a slider and its share of the mechanism: grams to ten tonnes"))
-    inclination: Any = _f(0.0, "rad", "rail inclination from the horizontal (pi/2: vertical, gravity "
-                          "pulls the slider towards negative positions)", kind="any",
-        bounds=(-3.1416, 3.1416, "an angle from the horizontal, within half a turn either way"))
-    g: Any = _f(9.81, "m/s^2", "gravitational acceleration", kind="nonnegative",
-        bounds=(0.0, 100.0, "gravitational acceleration: 0 (no gravity) to ten times the earth's"))
+    mass: Any = _f(
+        20.0,
+        "kg",
+        "lumped moving mass on the slider",
+        bounds=(0.001, 10000.0, "a slider and its share of the mechanism: grams to ten tonnes"),
+    )
+    inclination: Any = _f(
+        0.0,
+        "rad",
+        "rail inclination from the horizontal (pi/2: vertical, gravity pulls the slider towards negative positions)",
+        kind="any",
+        bounds=(-3.1416, 3.1416, "an angle from the horizontal, within half a turn either way"),
+    )
+    g: Any = _f(
+        9.81,
+        "m/s^2",
+        "gravitational acceleration",
+        kind="nonnegative",
+        bounds=(0.0, 100.0, "gravitational acceleration: 0 (no gravity) to ten times the earth's"),
+    )
 
 
 @dataclass(frozen=True)
@@ -259,8 +497,7 @@ class LoopRates:
             if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1):
                 raise ParameterError(f"rates.{name}: expected an integer >= 1, got {v!r}")
         if self.n_velocity % self.n_mech:
-            raise ParameterError(
-                f"rates.n_mech: expected a divisor of n_velocity={self.n_velocity}, got {self.n_mech}")
+            raise ParameterError(f"rates.n_mech: expected a divisor of n_velocity={self.n_velocity}, got {self.n_mech}")
         if self.method not in ("tustin", "zoh"):
             raise ParameterError(f"rates.method: expected 'tustin' or 'zoh', got {self.method!r}")
 
@@ -294,12 +531,15 @@ def _fmt(x: float) -> str:
 
 
 def axis_cells(value) -> list[str]:
-    """One cell per axis of ``value`` ``(..., n_axes)``: the value, or ``lo..hi`` over the leading (batch) dimensions."""
+    """One cell per axis of ``value`` ``(..., n_axes)``: the value, or ``lo..hi`` over the leading (batch)
+    dimensions."""
     arr = np.asarray(value, dtype=float)
     arr = arr.reshape(-1, arr.shape[-1] if arr.ndim else 1)
     lo, hi = arr.min(axis=0), arr.max(axis=0)
-    return [_fmt(a) if a == b or not (np.isfinite(a) and np.isfinite(b)) else f"{_fmt(a)}..{_fmt(b)}"
-            for a, b in zip(lo, hi)]
+    return [
+        _fmt(a) if a == b or not (np.isfinite(a) and np.isfinite(b)) else f"{_fmt(a)}..{_fmt(b)}"
+        for a, b in zip(lo, hi)
+    ]
 
 
 def axis_table(title: str, rows, n_axes: int = N_AXES, markdown: bool = False) -> str:
@@ -311,8 +551,10 @@ def axis_table(title: str, rows, n_axes: int = N_AXES, markdown: bool = False) -
     head = [f"axis {k}" for k in range(n_axes)]
     if markdown:
         lines = [title, "", "| field | unit | " + " | ".join(head) + " |", "|---|---|" + "---:|" * n_axes]
-        lines += [f"| {name} | {unit} | " + " | ".join(cells if len(cells) == n_axes else cells * n_axes) + " |"
-                  for name, unit, cells in rows]
+        lines += [
+            f"| {name} | {unit} | " + " | ".join(cells if len(cells) == n_axes else cells * n_axes) + " |"
+            for name, unit, cells in rows
+        ]
         return "\n".join(lines)
     wn = max([5] + [len(name) for name, _, _ in rows])
     wu = max([4] + [len(unit) for _, unit, _ in rows])
@@ -365,10 +607,12 @@ def _from_mapping(cls, values, base):
             changes[name] = inputs.choice(v, where, static[name].metadata["choices"], ParameterError)
         elif isinstance(v, list):
             if len(v) != N_AXES:
-                raise ParameterError(f"{where}: expected a number or a list of {N_AXES} numbers (one per axis), "
-                                     f"got a list of {len(v)}")
-            changes[name] = np.array([inputs.number(x, f"{where}[{k}]", ParameterError, finite=False)
-                                      for k, x in enumerate(v)])
+                raise ParameterError(
+                    f"{where}: expected a number or a list of {N_AXES} numbers (one per axis), got a list of {len(v)}"
+                )
+            changes[name] = np.array(
+                [inputs.number(x, f"{where}[{k}]", ParameterError, finite=False) for k, x in enumerate(v)]
+            )
         else:
             changes[name] = np.full((N_AXES,), inputs.number(v, where, ParameterError, finite=False))
     out = dataclasses.replace(base, **changes)
@@ -408,14 +652,16 @@ def validate(p) -> None:
             raise ParameterError(f"{where}: expected numbers, got dtype {arr.dtype}")
         bad = ~np.isfinite(arr)
         if bad.any():
-            raise ParameterError(f"{where}: expected finite values [{f.metadata['unit']}], "
-                                 f"got {arr[bad].flat[0]} at {_index(bad)}")
+            raise ParameterError(
+                f"{where}: expected finite values [{f.metadata['unit']}], got {arr[bad].flat[0]} at {_index(bad)}"
+            )
         kind = f.metadata["kind"]
         bad = arr <= 0 if kind == "positive" else arr < 0 if kind == "nonnegative" else np.zeros_like(bad)
         if bad.any():
             word = "positive" if kind == "positive" else "non-negative"
-            raise ParameterError(f"{where}: expected a {word} value [{f.metadata['unit']}], "
-                                 f"got {arr[bad].flat[0]} at {_index(bad)}")
+            raise ParameterError(
+                f"{where}: expected a {word} value [{f.metadata['unit']}], got {arr[bad].flat[0]} at {_index(bad)}"
+            )
         _check_bounds(p, f, arr)
 
 
@@ -434,8 +680,10 @@ def _check_bounds(p, f, arr) -> None:
     bad = (arr < low) | (arr > top)
     if bad.any():
         limit = f"{high} = {np.broadcast_to(top, arr.shape)[bad].flat[0]:.6g}" if isinstance(high, str) else f"{high:g}"
-        raise ParameterError(f"{type(p).__name__}.{f.name}: expected {low:g} to {limit} [{f.metadata['unit']}] "
-                             f"({why}), got {arr[bad].flat[0]:.6g} at {_index(bad)}")
+        raise ParameterError(
+            f"{type(p).__name__}.{f.name}: expected {low:g} to {limit} [{f.metadata['unit']}] "
+            f"({why}), got {arr[bad].flat[0]:.6g} at {_index(bad)}"
+        )
 
 
 def _index(mask) -> str:

@@ -41,9 +41,17 @@ def load_params_file(path=None) -> ParamsFile:
     path = Path(path)
     data = read_yaml_mapping(path, "section", SECTIONS)
     try:
-        return ParamsFile(*(parse({} if data.get(name) is None else data[name]) for name, parse in (
-            ("servo", ServoParams.from_mapping), ("load", AxisLoad.from_mapping), ("rates", rates_from_mapping),
-            ("hybrid", HybridGains.from_mapping))))
+        return ParamsFile(
+            *(
+                parse({} if data.get(name) is None else data[name])
+                for name, parse in (
+                    ("servo", ServoParams.from_mapping),
+                    ("load", AxisLoad.from_mapping),
+                    ("rates", rates_from_mapping),
+                    ("hybrid", HybridGains.from_mapping),
+                )
+            )
+        )
     except ParameterError as e:
         raise ParameterError(f"{path}: {e}") from None
 
@@ -56,8 +64,7 @@ def rates_from_mapping(values) -> LoopRates:
     inputs.check_keys(values, where, [f.name for f in dataclasses.fields(LoopRates)], ParameterError)
     out = dict(values)
     if "f_current" in out:
-        out["f_current"] = inputs.number(out["f_current"], f"{where}.f_current", ParameterError, low=0.0,
-                                         low_open=True)
+        out["f_current"] = inputs.number(out["f_current"], f"{where}.f_current", ParameterError, low=0.0, low_open=True)
     for name in ("n_velocity", "n_position", "n_mech"):
         if name in out:
             out[name] = inputs.integer(out[name], f"{where}.{name}", ParameterError, low=1, high=1000)

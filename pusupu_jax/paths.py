@@ -47,11 +47,20 @@ COLUMNS = ("t", "x", "y", "z", "a", "b")  # s, then the pose offsets from home: 
 UNITS = ("s", "m", "m", "m", "rad", "rad")
 # What a waypoint file's segment gets for a limit it leaves out (and its ``defaults:`` does too): the named paths'
 # peak speed and acceleration along the path, and the tilts' (:data:`~pusupu_jax.trajectories.TILT_SPEED`).
-DEFAULTS = {"speed": trajectories.SPEED, "angular_speed": trajectories.TILT_SPEED,
-            "acceleration": trajectories.ACCELERATION, "angular_acceleration": trajectories.TILT_ACCELERATION,
-            "dwell": 0.0}
-LIMIT_UNITS = {"speed": "m/s", "angular_speed": "rad/s", "acceleration": "m/s^2", "angular_acceleration": "rad/s^2",
-               "dwell": "s"}
+DEFAULTS = {
+    "speed": trajectories.SPEED,
+    "angular_speed": trajectories.TILT_SPEED,
+    "acceleration": trajectories.ACCELERATION,
+    "angular_acceleration": trajectories.TILT_ACCELERATION,
+    "dwell": 0.0,
+}
+LIMIT_UNITS = {
+    "speed": "m/s",
+    "angular_speed": "rad/s",
+    "acceleration": "m/s^2",
+    "angular_acceleration": "rad/s^2",
+    "dwell": "s",
+}
 # The largest offset a file may give, m for x, y, z and rad for the tilts: far beyond any machine of this kind (the
 # workspace check refuses what this one cannot reach), it keeps the arithmetic of the timing finite; a tilt of a
 # quarter turn is where the two-tilt orientation ends.
@@ -69,8 +78,10 @@ def check_spec(spec, where: str, error=ParameterError) -> str:
     ``error`` naming ``where`` otherwise."""
     if isinstance(spec, str) and (spec in PLATFORM_TRAJECTORIES or is_path_file(spec)):
         return spec
-    raise error(f"{where}: expected one of {PLATFORM_TRAJECTORIES} or a path file ({', '.join(SUFFIXES)}), "
-                f"got {inputs.shown(spec)}")
+    raise error(
+        f"{where}: expected one of {PLATFORM_TRAJECTORIES} or a path file ({', '.join(SUFFIXES)}), "
+        f"got {inputs.shown(spec)}"
+    )
 
 
 def resolve(spec: str, folder) -> str:
@@ -123,15 +134,24 @@ class _Waypoints:
     @property
     def seconds(self) -> float:
         lim = self.limits
-        moves = trajectories.segment_seconds(self.points, lim["speed"], lim["acceleration"], lim["angular_speed"],
-                                             lim["angular_acceleration"])
+        moves = trajectories.segment_seconds(
+            self.points, lim["speed"], lim["acceleration"], lim["angular_speed"], lim["angular_acceleration"]
+        )
         return float(np.sum(moves) + np.sum(lim["dwell"]))
 
     def poses(self, home, rates):
         lim = self.limits
-        return trajectories.platform_waypoints(home, self.points, rates, lim["speed"], lim["acceleration"], hold=0.0,
-                                  w_max=lim["angular_speed"], alpha_max=lim["angular_acceleration"],
-                                  dwell=lim["dwell"])
+        return trajectories.platform_waypoints(
+            home,
+            self.points,
+            rates,
+            lim["speed"],
+            lim["acceleration"],
+            hold=0.0,
+            w_max=lim["angular_speed"],
+            alpha_max=lim["angular_acceleration"],
+            dwell=lim["dwell"],
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,8 +197,13 @@ def _pose_value(value, where: str, j: int) -> float:
 
 def _read_waypoints(spec: str) -> _Waypoints:
     data = inputs.read_yaml(spec, "path file", ParameterError)
-    inputs.check_keys(data, spec, ("format", "version", "defaults", "waypoints"), ParameterError,
-                      required=("format", "version", "waypoints"))
+    inputs.check_keys(
+        data,
+        spec,
+        ("format", "version", "defaults", "waypoints"),
+        ParameterError,
+        required=("format", "version", "waypoints"),
+    )
     if data["format"] != FORMAT:
         raise ParameterError(f"{spec}: format: expected {FORMAT!r}, got {inputs.shown(data['format'])}")
     if isinstance(data["version"], bool) or data["version"] != VERSION:
@@ -189,16 +214,19 @@ def _read_waypoints(spec: str) -> _Waypoints:
         defaults |= {k: _limit(v, f"{spec}: defaults.{k}", k) for k, v in given.items()}
     waypoints = data["waypoints"]
     if not isinstance(waypoints, list) or not waypoints:
-        raise ParameterError(f"{spec}: waypoints: expected a non-empty list of waypoints, got "
-                             f"{inputs.shown(waypoints, 40)}")
+        raise ParameterError(
+            f"{spec}: waypoints: expected a non-empty list of waypoints, got {inputs.shown(waypoints, 40)}"
+        )
     points, limits = [np.zeros(5)], {k: [] for k in DEFAULTS}
     for i, entry in enumerate(waypoints):
         where = f"{spec}: waypoints[{i}]"
         inputs.check_keys(entry, where, ("pose",) + tuple(DEFAULTS), ParameterError, required=("pose",))
         pose = entry["pose"]
         if not isinstance(pose, list) or len(pose) != 5:
-            raise ParameterError(f"{where}.pose: expected five numbers [x, y, z, a, b] (m, m, m, rad, rad, offsets "
-                                 f"from home), got {inputs.shown(pose, 60)}")
+            raise ParameterError(
+                f"{where}.pose: expected five numbers [x, y, z, a, b] (m, m, m, rad, rad, offsets "
+                f"from home), got {inputs.shown(pose, 60)}"
+            )
         points.append([_pose_value(v, f"{where}.pose[{j}] ({COLUMNS[j + 1]})", j) for j, v in enumerate(pose)])
         for k in DEFAULTS:
             limits[k].append(_limit(entry[k], f"{where}.{k}", k) if k in entry else defaults[k])
@@ -219,8 +247,10 @@ def _read_table(spec: str) -> _PoseTable:
     n, line = rows[0]
     names = [c.strip() for c in line.split(",")]
     if sorted(names) != sorted(COLUMNS):
-        raise ParameterError(f"{spec}: row {n}: expected the header {header} (the six columns in any order), got "
-                             f"{inputs.shown(line, 80)}")
+        raise ParameterError(
+            f"{spec}: row {n}: expected the header {header} (the six columns in any order), got "
+            f"{inputs.shown(line, 80)}"
+        )
     order = [names.index(c) for c in COLUMNS]
     values, numbers = [], []
     for n, line in rows[1:]:
@@ -233,11 +263,15 @@ def _read_table(spec: str) -> _PoseTable:
             try:
                 v = float(cell)
             except ValueError:
-                raise ParameterError(f"{spec}: row {n}, {name}: expected a number, got {inputs.shown(cell, 40)}") \
-                    from None
+                raise ParameterError(
+                    f"{spec}: row {n}, {name}: expected a number, got {inputs.shown(cell, 40)}"
+                ) from None
             where = f"{spec}: row {n}, {name} [{UNITS[COLUMNS.index(name)]}]"
-            row.append(inputs.number(v, where, ParameterError) if name == "t"
-                       else _pose_value(v, where, COLUMNS.index(name) - 1))
+            row.append(
+                inputs.number(v, where, ParameterError)
+                if name == "t"
+                else _pose_value(v, where, COLUMNS.index(name) - 1)
+            )
         values.append(row)
         numbers.append(n)
     if len(values) < 2:
@@ -247,19 +281,29 @@ def _read_table(spec: str) -> _PoseTable:
     back = np.flatnonzero(np.diff(t) <= 0)
     if back.size:
         k = int(back[0]) + 1
-        raise ParameterError(f"{spec}: row {numbers[k]}, t: expected a time after the row before's {t[k - 1]:.9g} s "
-                             f"(times strictly increasing), got {t[k]:.9g} s")
+        raise ParameterError(
+            f"{spec}: row {numbers[k]}, t: expected a time after the row before's {t[k - 1]:.9g} s "
+            f"(times strictly increasing), got {t[k]:.9g} s"
+        )
     away = np.flatnonzero(np.abs(table[0, 1:]) > HOME_TOLERANCE)
     if away.size:
         j = int(away[0]) + 1
-        raise ParameterError(f"{spec}: row {numbers[0]}, {COLUMNS[j]}: expected 0 (the path starts at home, where "
-                             f"the machine starts: every offset within {HOME_TOLERANCE:g}), got "
-                             f"{table[0, j]:.6g} {UNITS[j]}")
+        raise ParameterError(
+            f"{spec}: row {numbers[0]}, {COLUMNS[j]}: expected 0 (the path starts at home, where "
+            f"the machine starts: every offset within {HOME_TOLERANCE:g}), got "
+            f"{table[0, j]:.6g} {UNITS[j]}"
+        )
     return _PoseTable(t - t[0], table[:, 1:])
 
 
-def check_path(path, servo: ServoParams, dt: float, geom: Geometry | None = None,
-               options: ModelOptions = ModelOptions(), where: str = "path") -> dict:
+def check_path(
+    path,
+    servo: ServoParams,
+    dt: float,
+    geom: Geometry | None = None,
+    options: ModelOptions = ModelOptions(),
+    where: str = "path",
+) -> dict:
     """Check platform poses ``path`` ``(N, 5)`` (one every ``dt`` [s]) against the machine before anything runs.
 
     1. The workspace (:func:`pusupu_jax.plant.kinematics.check_poses`): every branch reachable,
@@ -298,18 +342,27 @@ def check_path(path, servo: ServoParams, dt: float, geom: Geometry | None = None
     torque = np.abs(force + np.asarray(slider_friction(servo, v))) * r / eta
     speed_max = np.asarray(servo.speed_max, dtype=float)
     torque_max = np.asarray(servo.Kt, dtype=float) * np.asarray(servo.I_max, dtype=float)
-    failing = [(int(np.argmax(bad.any(axis=1))), n) for n, bad in enumerate((speed > speed_max, torque > torque_max))
-               if bad.any()]
+    failing = [
+        (int(np.argmax(bad.any(axis=1))), n)
+        for n, bad in enumerate((speed > speed_max, torque > torque_max))
+        if bad.any()
+    ]
     if failing:
         j, n = min(failing)
         k = min(max(j - 1, 0), len(path) - 1)  # the pose of row j of ``still``
         at = f"{where} exceeds the drives: pose {k} (t = {k * dt:.6g} s)"
         if n == 0:
             i = int(np.argmax(speed[j] > speed_max))
-            raise GeometryError(f"{at}: branch {i + 1} motor speed {speed[j, i]:.4g} rad/s (slider {abs(v[j, i]):.3g} "
-                                f"m/s), expected at most speed_max = {speed_max[i]:.4g} rad/s")
+            raise GeometryError(
+                f"{at}: branch {i + 1} motor speed {speed[j, i]:.4g} rad/s (slider {abs(v[j, i]):.3g} "
+                f"m/s), expected at most speed_max = {speed_max[i]:.4g} rad/s"
+            )
         i = int(np.argmax(torque[j] > torque_max))
-        raise GeometryError(f"{at}: branch {i + 1} motor torque {torque[j, i]:.4g} N m (slider force "
-                            f"{force[j, i]:.4g} N), expected at most Kt I_max = {torque_max[i]:.4g} N m")
-    return report | {"motor_speed_peak_rad_s": speed.max(axis=0).tolist(),
-                     "motor_torque_peak_nm": torque.max(axis=0).tolist()}
+        raise GeometryError(
+            f"{at}: branch {i + 1} motor torque {torque[j, i]:.4g} N m (slider force "
+            f"{force[j, i]:.4g} N), expected at most Kt I_max = {torque_max[i]:.4g} N m"
+        )
+    return report | {
+        "motor_speed_peak_rad_s": speed.max(axis=0).tolist(),
+        "motor_torque_peak_nm": torque.max(axis=0).tolist(),
+    }

@@ -75,8 +75,11 @@ def plot_loops(servo, load, path=None, axis: int = 0, mode: str = "imc") -> Figu
         m = analysis.margins(ol[name])
         ax[0, col].semilogx(w / (2 * np.pi), 20 * np.log10(np.abs(resp)))
         ax[0, col].axhline(0, color="k", lw=0.5)
-        ax[0, col].set_title(f"{name} loop: fc={_fmt(m['crossover_hz'])} Hz, PM={_fmt(m['phase_margin_deg'])} deg, "
-                             f"GM={_fmt(m['gain_margin_db'])} dB", fontsize=9)
+        ax[0, col].set_title(
+            f"{name} loop: fc={_fmt(m['crossover_hz'])} Hz, PM={_fmt(m['phase_margin_deg'])} deg, "
+            f"GM={_fmt(m['gain_margin_db'])} dB",
+            fontsize=9,
+        )
         ax[0, col].set_ylabel("|L| [dB]")
         ax[1, col].semilogx(w / (2 * np.pi), np.degrees(np.unwrap(np.angle(resp))))
         ax[1, col].axhline(-180, color="k", lw=0.5)
@@ -131,13 +134,15 @@ def plot_platform_path(trace: dict, path=None, title: str = "") -> Figure:
 
 
 def plot_identification(result: dict, path=None, title: str = "") -> Figure:
-    """The machine's velocity-step responses (:func:`pusupu_jax.identify.identify_T0_machine`) and their first-order fits."""
+    """The machine's velocity-step responses (:func:`pusupu_jax.identify.identify_T0_machine`) and their first-order
+    fits."""
     t = np.asarray(result["t"])
-    fig, axes = plt.subplots(len(result["directions"]), 1, figsize=(8, 3.2 * len(result["directions"])),
-                             sharex=True, squeeze=False)
+    fig, axes = plt.subplots(
+        len(result["directions"]), 1, figsize=(8, 3.2 * len(result["directions"])), sharex=True, squeeze=False
+    )
     for ax, d, omega, ref in zip(axes[:, 0], result["directions"], result["omega"], result["omega_ref"]):
         for b in range(6):
-            line, = ax.plot(t, omega[:, b], lw=1.2, label=f"branch {b + 1}: T0 {result['T0'][b] * 1e3:.1f} ms")
+            (line,) = ax.plot(t, omega[:, b], lw=1.2, label=f"branch {b + 1}: T0 {result['T0'][b] * 1e3:.1f} ms")
             ax.plot(t, ref[b] * (1 - np.exp(-t / result["T0"][b])), "--", lw=0.8, color=line.get_color())
         ax.set_ylabel(f"motor speed [rad/s]\n({d} step)")
         ax.grid(True, alpha=0.3)

@@ -72,7 +72,7 @@ def describe(x) -> str:
     if isinstance(x, tuple) and hasattr(x, "_fields"):
         return f"{_name(type(x))}({','.join(f'{f}={describe(v)}' for f, v in zip(x._fields, x))})"
     if isinstance(x, (list, tuple, dict)):
-        items = (sorted(x.items(), key=lambda kv: repr(kv[0])) if isinstance(x, dict) else enumerate(x))
+        items = sorted(x.items(), key=lambda kv: repr(kv[0])) if isinstance(x, dict) else enumerate(x)
         return f"{_name(type(x))}[{','.join(f'{describe(k)}:{describe(v)}' for k, v in items)}]"
     if dataclasses.is_dataclass(x):
         fields = ",".join(f"{f.name}={describe(getattr(x, f.name))}" for f in dataclasses.fields(x))
@@ -123,8 +123,9 @@ class Program:
     a plain jit returns them): this is for programs with small outputs, such as a value and its gradient.
     """
 
-    def __init__(self, fun: Callable, key: str | Callable[[], str], sources: tuple[Path, ...] = (),
-                 folder: Path | None = None):
+    def __init__(
+        self, fun: Callable, key: str | Callable[[], str], sources: tuple[Path, ...] = (), folder: Path | None = None
+    ):
         self.fun, self.key, self.folder = fun, key, folder
         self.sources = tuple(Path(s) for s in sources)
         self.loaded = 0
@@ -156,8 +157,15 @@ class Program:
         """The file name's hash for arguments of structure ``tree`` and types ``avals``."""
         h = hashlib.sha256()
         settings = ",".join(f"{name}={getattr(jax.config, name)}" for name in _SETTINGS)
-        for part in (self.key() if callable(self.key) else self.key, _versions(), jax.default_backend(), settings,
-                     describe(tree), ";".join(avals), *(_source_digest(f) for f in (HERE, *self.sources))):
+        for part in (
+            self.key() if callable(self.key) else self.key,
+            _versions(),
+            jax.default_backend(),
+            settings,
+            describe(tree),
+            ";".join(avals),
+            *(_source_digest(f) for f in (HERE, *self.sources)),
+        ):
             h.update(part.encode() + b"\0")
         return h.hexdigest()
 
@@ -179,13 +187,16 @@ class Program:
                 self.loaded += 1
                 return call
             except Exception as e:  # damaged, foreign, or for other arguments: trace again and replace it
-                warnings.warn(f"pusupu_jax.programs: {path} did not load ({type(e).__name__}: {e}); tracing again",
-                              stacklevel=4)
+                warnings.warn(
+                    f"pusupu_jax.programs: {path} did not load ({type(e).__name__}: {e}); tracing again", stacklevel=4
+                )
         try:
             exported = export.export(jax.jit(flat))(*leaves)
         except Exception as e:  # what jax.export refuses (host callbacks, some custom calls): jit it as it is
-            warnings.warn(f"pusupu_jax.programs: not exported, traced in this process only ({type(e).__name__}: {e})",
-                          stacklevel=4)
+            warnings.warn(
+                f"pusupu_jax.programs: not exported, traced in this process only ({type(e).__name__}: {e})",
+                stacklevel=4,
+            )
             return jax.jit(flat)
         try:
             blob = bytes(exported.serialize())

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from . import files
+from . import files as outputs
 from .cascade import MODES, control_mode
 from .inputs import shown
 from .params import LoopRates, ParameterError, ServoParams
@@ -50,8 +50,12 @@ def ros_gains(servo: ServoParams, mode: str) -> dict:
     law = control_mode(mode).law if mode in MODES else None
     if law in ("pid", "pid_ff"):
         ff = np.asarray(servo.Kff_pid, dtype=float) if law == "pid_ff" else np.zeros(6)
-        return {"p": np.asarray(servo.Kp_pid, dtype=float), "i": np.asarray(servo.Ki_pid, dtype=float),
-                "d": np.asarray(servo.Kd_pid, dtype=float), "ff": ff}
+        return {
+            "p": np.asarray(servo.Kp_pid, dtype=float),
+            "i": np.asarray(servo.Ki_pid, dtype=float),
+            "d": np.asarray(servo.Kd_pid, dtype=float),
+            "ff": ff,
+        }
     if law != "imc":
         raise ParameterError(f"ROS export: expected a mode of imc, pid, pid_ff or hybrid, got {mode!r}")
     l2, T0 = np.asarray(servo.lambda2, dtype=float), np.asarray(servo.T0, dtype=float)
@@ -73,72 +77,114 @@ def update_rate(rates: LoopRates) -> int:
     """The controller_manager rate [Hz]: the position loop's."""
     hz = 1.0 / rates.dt_position
     if abs(hz - round(hz)) > 1e-6:
-        raise ParameterError(f"ROS export: the position loop runs at {hz} Hz; controller_manager needs a whole "
-                             "number of Hz")
+        raise ParameterError(
+            f"ROS export: the position loop runs at {hz} Hz; controller_manager needs a whole number of Hz"
+        )
     return int(round(hz))
 
 
 def _gains_block(servo, mode, joints, ff_key):
     g, clamp = ros_gains(servo, mode), speed_clamp(servo)
-    return {j: {"p": float(g["p"][a]), "i": float(g["i"][a]), "d": float(g["d"][a]), ff_key: float(g["ff"][a]),
-                "u_clamp_max": float(clamp[a]), "u_clamp_min": -float(clamp[a]),
-                "i_clamp_max": float(clamp[a]), "i_clamp_min": -float(clamp[a]), "antiwindup_strategy": ANTIWINDUP}
-            for a, j in enumerate(joints)}
+    return {
+        j: {
+            "p": float(g["p"][a]),
+            "i": float(g["i"][a]),
+            "d": float(g["d"][a]),
+            ff_key: float(g["ff"][a]),
+            "u_clamp_max": float(clamp[a]),
+            "u_clamp_min": -float(clamp[a]),
+            "i_clamp_max": float(clamp[a]),
+            "i_clamp_min": -float(clamp[a]),
+            "antiwindup_strategy": ANTIWINDUP,
+        }
+        for a, j in enumerate(joints)
+    }
 
 
-def pid_controller_params(servo: ServoParams, mode: str, rates: LoopRates, joints=JOINTS,
-                          name: str = PID_CONTROLLER) -> dict:
+def pid_controller_params(
+    servo: ServoParams, mode: str, rates: LoopRates, joints=JOINTS, name: str = PID_CONTROLLER
+) -> dict:
     """A ``pid_controller/PidController`` on the six slider joints, commanding velocity, with its controller_manager."""
     check_joints(joints)
-    return {"controller_manager": {"ros__parameters": {"update_rate": update_rate(rates),
-                                                       name: {"type": "pid_controller/PidController"}}},
-            name: {"ros__parameters": {"dof_names": list(joints), "command_interface": "velocity",
-                                       "reference_and_state_interfaces": ["position", "velocity"],
-                                       "gains": _gains_block(servo, mode, joints, "feedforward_gain")}}}
+    return {
+        "controller_manager": {
+            "ros__parameters": {"update_rate": update_rate(rates), name: {"type": "pid_controller/PidController"}}
+        },
+        name: {
+            "ros__parameters": {
+                "dof_names": list(joints),
+                "command_interface": "velocity",
+                "reference_and_state_interfaces": ["position", "velocity"],
+                "gains": _gains_block(servo, mode, joints, "feedforward_gain"),
+            }
+        },
+    }
 
 
-def trajectory_controller_params(servo: ServoParams, mode: str, rates: LoopRates, joints=JOINTS,
-                                 name: str = TRAJECTORY_CONTROLLER) -> dict:
+def trajectory_controller_params(
+    servo: ServoParams, mode: str, rates: LoopRates, joints=JOINTS, name: str = TRAJECTORY_CONTROLLER
+) -> dict:
     """A ``joint_trajectory_controller/JointTrajectoryController`` commanding velocity, with the same PIDs."""
     check_joints(joints)
-    return {"controller_manager": {"ros__parameters": {
+    return {
+        "controller_manager": {
+            "ros__parameters": {
                 "update_rate": update_rate(rates),
-                name: {"type": "joint_trajectory_controller/JointTrajectoryController"}}},
-            name: {"ros__parameters": {"joints": list(joints), "command_interfaces": ["velocity"],
-                                       "state_interfaces": ["position", "velocity"],
-                                       "gains": _gains_block(servo, mode, joints, "ff_velocity_scale")}}}
+                name: {"type": "joint_trajectory_controller/JointTrajectoryController"},
+            }
+        },
+        name: {
+            "ros__parameters": {
+                "joints": list(joints),
+                "command_interfaces": ["velocity"],
+                "state_interfaces": ["position", "velocity"],
+                "gains": _gains_block(servo, mode, joints, "ff_velocity_scale"),
+            }
+        },
+    }
 
 
 def check_joints(joints, where: str = "ROS joints") -> None:
     """The exporter's rule for joint names: 6 distinct names of letters, digits and ``_`` (ParameterError naming
     ``where`` otherwise)."""
-    if (not isinstance(joints, (list, tuple)) or len(joints) != 6 or len(set(joints)) != 6
-            or not all(isinstance(j, str) and j and j.replace("_", "").isalnum() and j.isascii() for j in joints)):
+    if (
+        not isinstance(joints, (list, tuple))
+        or len(joints) != 6
+        or len(set(joints)) != 6
+        or not all(isinstance(j, str) and j and j.replace("_", "").isalnum() and j.isascii() for j in joints)
+    ):
         raise ParameterError(f"{where}: expected 6 distinct names of letters, digits and _, got {shown(joints)}")
 
 
 def header(mode: str, source: str) -> str:
     """The comment at the top of an exported file: where it comes from, its units, what ROS carries and drops."""
-    dropped = ("the derivative filter Tf_pid (ROS uses the velocity error instead)"
-               if control_mode(mode).law in ("pid", "pid_ff") else
-               "the IMC prefilter C1 (which sets tracking), C2's output filter 1/((lambda2/3) s + 1)"
-               + (", and branch 6's force control (hybrid mode): ROS holds its position" if control_mode(mode).hybrid else ""))
-    return (f"# Exported by pusupu_jax from {source}: the tuned {mode} position loop as ROS 2 PIDs.\n"
-            "# Joint units: slider position [m], velocity [m/s]; p [1/s], i [1/s^2], d [1], feedforward [1]; clamps\n"
-            "# [m/s] (the slider speed at which the back-EMF reaches V_max).\n"
-            "# ROS's PID carries: p, i, d on the position and velocity errors, the velocity feedforward, clamps,\n"
-            f"# {ANTIWINDUP} anti-windup. It drops: {dropped}.\n"
-            "# pusupu gains check-ros shows what that costs on the simulated machine.\n")
+    dropped = (
+        "the derivative filter Tf_pid (ROS uses the velocity error instead)"
+        if control_mode(mode).law in ("pid", "pid_ff")
+        else "the IMC prefilter C1 (which sets tracking), C2's output filter 1/((lambda2/3) s + 1)"
+        + (", and branch 6's force control (hybrid mode): ROS holds its position" if control_mode(mode).hybrid else "")
+    )
+    return (
+        f"# Exported by pusupu_jax from {source}: the tuned {mode} position loop as ROS 2 PIDs.\n"
+        "# Joint units: slider position [m], velocity [m/s]; p [1/s], i [1/s^2], d [1], feedforward [1]; clamps\n"
+        "# [m/s] (the slider speed at which the back-EMF reaches V_max).\n"
+        "# ROS's PID carries: p, i, d on the position and velocity errors, the velocity feedforward, clamps,\n"
+        f"# {ANTIWINDUP} anti-windup. It drops: {dropped}.\n"
+        "# pusupu gains check-ros shows what that costs on the simulated machine.\n"
+    )
 
 
 def files(servo: ServoParams, mode: str, rates: LoopRates, source: str, joints=JOINTS) -> dict:
     """``{file name: text}`` of the two parameter files (:data:`FILES`), each with its :func:`header`."""
-    params = (pid_controller_params(servo, mode, rates, joints),
-              trajectory_controller_params(servo, mode, rates, joints))
+    params = (
+        pid_controller_params(servo, mode, rates, joints),
+        trajectory_controller_params(servo, mode, rates, joints),
+    )
     return {name: header(mode, source) + yaml.safe_dump(p, sort_keys=False) for name, p in zip(FILES, params)}
 
 
 def write_files(folder, servo: ServoParams, mode: str, rates: LoopRates, source: str, joints=JOINTS) -> list:
     """Write the two parameter files (:func:`files`) into ``folder`` (atomically, both or neither)."""
-    return files.write_files({Path(folder) / name: text for name, text in
-                               files(servo, mode, rates, source, joints).items()})
+    return outputs.write_files(
+        {Path(folder) / name: text for name, text in files(servo, mode, rates, source, joints).items()}
+    )

@@ -70,8 +70,11 @@ def apply_xla_workaround(one_thread: bool = False) -> None:
         return
     wanted = (XLA_CPU_WORKAROUND,)
     if _jaxlib_version().startswith(XLA_COMPILE_MEASURED_ON):
-        wanted += (*XLA_CPU_COMPILE, *(() if _gpu_plugin_installed() else XLA_LLVM_CPU_ONLY),
-                   *(XLA_CPU_ONE_THREAD if one_thread else ()))
+        wanted += (
+            *XLA_CPU_COMPILE,
+            *(() if _gpu_plugin_installed() else XLA_LLVM_CPU_ONLY),
+            *(XLA_CPU_ONE_THREAD if one_thread else ()),
+        )
     flags = os.environ.get("XLA_FLAGS", "")
     for flag in wanted:
         if flag.split("=")[0] not in flags:
@@ -87,8 +90,12 @@ def setup_jax(cache_dir: str | os.PathLike | None = None, x64: bool = True) -> P
     """
     import jax
 
-    path = Path(cache_dir or os.environ.get("PUSUPU_JAX_CACHE") or os.environ.get("JAX_COMPILATION_CACHE_DIR")
-                or Path.home() / ".cache" / "pusupu_jax" / "jax")
+    path = Path(
+        cache_dir
+        or os.environ.get("PUSUPU_JAX_CACHE")
+        or os.environ.get("JAX_COMPILATION_CACHE_DIR")
+        or Path.home() / ".cache" / "pusupu_jax" / "jax"
+    )
     path.mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_enable_x64", x64)
     jax.config.update("jax_compilation_cache_dir", str(path))

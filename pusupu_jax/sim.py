@@ -87,18 +87,22 @@ def _trace_table(tr: Trace, shapes: dict, markdown: bool) -> str:
     batch = shapes["position"][:-2]
     t = np.asarray(tr.t).reshape(-1, n)[0] if n else np.zeros(0)
     dt = float(t[1] - t[0]) if n > 1 else float("nan")
-    title = (f"Trace: {n * dt:.4g} s, {n} periods of {dt * 1e3:.4g} ms, {axes} axes"
-             + (f", a batch of shape {batch} (lo..hi over the batch)" if batch else "")
-             + f"; arrays (..., N, axes) {shapes['position']}, current_reference {np.shape(tr.current_reference)}, "
-             "state and observation pytrees")
+    title = (
+        f"Trace: {n * dt:.4g} s, {n} periods of {dt * 1e3:.4g} ms, {axes} axes"
+        + (f", a batch of shape {batch} (lo..hi over the batch)" if batch else "")
+        + f"; arrays (..., N, axes) {shapes['position']}, current_reference {np.shape(tr.current_reference)}, "
+        "state and observation pytrees"
+    )
     if not n:
         return title
     peak = lambda x: np.abs(np.asarray(x)).max(axis=-2)  # noqa: E731
     position = np.asarray(tr.position) * 1e3
-    rows = [("slider min", "mm", axis_cells(position.min(axis=-2))),
-            ("slider max", "mm", axis_cells(position.max(axis=-2))),
-            ("peak current", "A", axis_cells(peak(tr.current))),
-            ("peak torque", "N m", axis_cells(peak(tr.torque)))]
+    rows = [
+        ("slider min", "mm", axis_cells(position.min(axis=-2))),
+        ("slider max", "mm", axis_cells(position.max(axis=-2))),
+        ("peak current", "A", axis_cells(peak(tr.current))),
+        ("peak torque", "N m", axis_cells(peak(tr.torque))),
+    ]
     return axis_table(f"**{title}**" if markdown else title, rows, axes, markdown)
 
 
@@ -135,8 +139,9 @@ class Carry(NamedTuple):
     outer: Any = None  # the compliance law's state (compliance.AdmittanceState) when one runs outside the cascade
 
 
-def initial_state(drive: loops.Drive, plant, aux, mode: cascade_.ControlMode, start: str = "rest",
-                  force_ff0=None) -> Carry:
+def initial_state(
+    drive: loops.Drive, plant, aux, mode: cascade_.ControlMode, start: str = "rest", force_ff0=None
+) -> Carry:
     """The plant at rest in its initial state, and the cascade as ``start`` says.
 
     ``start='rest'``: the cascade holding the plant there, as on a machine that has been standing
@@ -165,6 +170,7 @@ def current_ticks(drive: loops.Drive, electrical, s: cascade_.CascadeState, i_re
     Returns ``(electrical, state, mean motor torque [N m], the first period's inverter command [V])``:
     the mechanics then advances one step with that torque (``n = rates.n_mech``).
     """
+
     def tick(ce, _):
         xe, sc = ce
         sc, u = cascade_.current_tick(drive, sc, i_ref, loops.electrical_current(xe), omega)
@@ -205,9 +211,19 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
         theta, omega = plant.measure(aux, c.plant)
         x, v = plant.slider(aux, c.plant)
         i = loops.electrical_current(c.electrical)
-        return dict(reference=mode.theta(ref), command=command, theta=theta, omega=omega,
-                    position=x, velocity=v, current=i, torque=drive.Kt * i, current_reference=i_refs, state=c.cascade,
-                    observation=plant.observe(aux, c.plant) if observation is None else observation)
+        return dict(
+            reference=mode.theta(ref),
+            command=command,
+            theta=theta,
+            omega=omega,
+            position=x,
+            velocity=v,
+            current=i,
+            torque=drive.Kt * i,
+            current_reference=i_refs,
+            state=c.cascade,
+            observation=plant.observe(aux, c.plant) if observation is None else observation,
+        )
 
     def mech_step(c: Carry, i_ref):
         _, omega = plant.measure(aux, c.plant)
@@ -238,8 +254,12 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
         sc, w_ref, i_force = cascade_.position_tick(drive, mode, c.cascade, ref, theta, omega, hybrid)
         if injected is not None:
             w_ref = w_ref + injected.velocity
-        c, i_refs = jax.lax.scan(lambda cc, d: velocity_period(cc, w_ref, i_force, d), c._replace(cascade=sc),
-                                 None if injected is None else injected.current, length=rates.n_position)
+        c, i_refs = jax.lax.scan(
+            lambda cc, d: velocity_period(cc, w_ref, i_force, d),
+            c._replace(cascade=sc),
+            None if injected is None else injected.current,
+            length=rates.n_position,
+        )
         return c, (w_ref, i_refs)
 
     def current_period(c: Carry, i_ref):
@@ -256,13 +276,18 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
         return c, (i_ref, i_ref[None])
 
     period = {"current": current_period, "velocity": inner_velocity_period, "position": position_period}[mode.closed]
-    return Pieces(period, record, period_dt(rates, mode),
-                  lambda start, force_ff0: initial_state(drive, plant, aux, mode, start, force_ff0),
-                  lambda c: plant.observe(aux, c.plant))
+    return Pieces(
+        period,
+        record,
+        period_dt(rates, mode),
+        lambda start, force_ff0: initial_state(drive, plant, aux, mode, start, force_ff0),
+        lambda c: plant.observe(aux, c.plant),
+    )
 
 
-def compliant_pieces(base: Pieces, params, gains: compliance_law.AdmittanceGains, geom, *,
-                     mode: cascade_.ControlMode) -> Pieces:
+def compliant_pieces(
+    base: Pieces, params, gains: compliance_law.AdmittanceGains, geom, *, mode: cascade_.ControlMode
+) -> Pieces:
     """``base`` (closed up to the position loop) under the admittance of :mod:`pusupu_jax.compliance`.
 
     Each position period first reads the plant's ``contact_force`` [N] (as at the period's
@@ -295,15 +320,31 @@ def compliant_pieces(base: Pieces, params, gains: compliance_law.AdmittanceGains
         rec = base.record(c, inner_ref, command, observation)
         return rec | {"observation": rec["observation"] | {"compliance_offset": c.outer.offset}}
 
-    return Pieces(period, record, base.dt,
-                  lambda start, force_ff0: base.init(start, force_ff0)._replace(outer=compliance_law.init()),
-                  base.observe)
+    return Pieces(
+        period,
+        record,
+        base.dt,
+        lambda start, force_ff0: base.init(start, force_ff0)._replace(outer=compliance_law.init()),
+        base.observe,
+    )
 
 
-def rollout(params: ServoParams, plant_params, reference, *, plant=AxisPlant(), rates: LoopRates = LoopRates(),
-            outer: str = "imc", remat: bool = False, hybrid: hybrid_law.HybridGains | None = None,
-            start: str = "rest", init=None, compliance=None) -> Trace:
-    """Run the cascade closed up to ``outer`` against ``plant`` (pure; jit with plant, rates, outer, remat, start static).
+def rollout(
+    params: ServoParams,
+    plant_params,
+    reference,
+    *,
+    plant=AxisPlant(),
+    rates: LoopRates = LoopRates(),
+    outer: str = "imc",
+    remat: bool = False,
+    hybrid: hybrid_law.HybridGains | None = None,
+    start: str = "rest",
+    init=None,
+    compliance=None,
+) -> Trace:
+    """Run the cascade closed up to ``outer`` against ``plant`` (pure; jit with plant, rates, outer, remat, start
+    static).
 
     ``outer``: 'current', 'velocity', 'imc' (2-DOF IMC, ``params.imc_form``), 'pid', 'pid_ff'
     (PID with velocity feedforward), 'ros_pid' (the PID fields run as ROS's PID does:
@@ -353,19 +394,39 @@ def _start(cascade: Pieces, mode, first, start: str, compliance):
     return cascade.init(start, first.force_ff if mode.hybrid else None)
 
 
-def initial_carry(params: ServoParams, plant_params, first, *, plant=AxisPlant(), rates: LoopRates = LoopRates(),
-                  outer: str = "imc", hybrid: hybrid_law.HybridGains | None = None, start: str = "rest",
-                  compliance=None) -> Carry:
+def initial_carry(
+    params: ServoParams,
+    plant_params,
+    first,
+    *,
+    plant=AxisPlant(),
+    rates: LoopRates = LoopRates(),
+    outer: str = "imc",
+    hybrid: hybrid_law.HybridGains | None = None,
+    start: str = "rest",
+    compliance=None,
+) -> Carry:
     """The carry :func:`rollout` starts from, for a reference whose first sample is ``first`` (pure; arguments as
     :func:`rollout`'s).  With :func:`rollout_chunk`, a run cut into calls of one fixed length."""
     mode = cascade_.control_mode(outer)
-    return _start(_cascade(params, plant_params, plant, rates, mode, hybrid, compliance), mode, first, start,
-                  compliance)
+    return _start(
+        _cascade(params, plant_params, plant, rates, mode, hybrid, compliance), mode, first, start, compliance
+    )
 
 
-def rollout_chunk(params: ServoParams, plant_params, reference, carry: Carry, n_valid=None, *, plant=AxisPlant(),
-                  rates: LoopRates = LoopRates(), outer: str = "imc", hybrid: hybrid_law.HybridGains | None = None,
-                  compliance=None) -> tuple[dict, Carry]:
+def rollout_chunk(
+    params: ServoParams,
+    plant_params,
+    reference,
+    carry: Carry,
+    n_valid=None,
+    *,
+    plant=AxisPlant(),
+    rates: LoopRates = LoopRates(),
+    outer: str = "imc",
+    hybrid: hybrid_law.HybridGains | None = None,
+    compliance=None,
+) -> tuple[dict, Carry]:
     """``reference`` ``(C, ...)`` from ``carry``: ``(records, the carry after them)`` (pure; arguments as
     :func:`rollout`'s).  The records are :class:`Trace`'s fields but ``t``.
 
@@ -408,9 +469,19 @@ CHUNK = 250  # periods per call of run_chunked's compiled program
 @functools.lru_cache(maxsize=None)
 def _init_program(plant, rates, outer, start, params_axis, hybrid_axis):
     """:func:`initial_carry` vmapped over a batch, jitted (cached per static arguments)."""
+
     def init(params, model, first, hybrid, compliance):
-        return initial_carry(params, model, first, plant=plant, rates=rates, outer=outer, hybrid=hybrid, start=start,
-                             compliance=compliance)
+        return initial_carry(
+            params,
+            model,
+            first,
+            plant=plant,
+            rates=rates,
+            outer=outer,
+            hybrid=hybrid,
+            start=start,
+            compliance=compliance,
+        )
 
     return jax.jit(jax.vmap(init, in_axes=(params_axis, 0, 0, hybrid_axis, None)))
 
@@ -419,16 +490,40 @@ def _init_program(plant, rates, outer, start, params_axis, hybrid_axis):
 def _chunk_program(plant, rates, outer, params_axis, hybrid_axis, masked: bool):
     """:func:`rollout_chunk` (with ``n_valid`` when ``masked``) vmapped over a batch, jitted (cached per static
     arguments: one compile serves every path length)."""
+
     def chunk(params, model, reference, hybrid, compliance, carry, n_valid):
-        return rollout_chunk(params, model, reference, carry, n_valid if masked else None, plant=plant, rates=rates,
-                             outer=outer, hybrid=hybrid, compliance=compliance)
+        return rollout_chunk(
+            params,
+            model,
+            reference,
+            carry,
+            n_valid if masked else None,
+            plant=plant,
+            rates=rates,
+            outer=outer,
+            hybrid=hybrid,
+            compliance=compliance,
+        )
 
     return jax.jit(jax.vmap(chunk, in_axes=(params_axis, 0, 0, hybrid_axis, None, 0, None)))
 
 
-def run_chunked(params: ServoParams, models, reference, *, plant=AxisPlant(), rates: LoopRates = LoopRates(),
-                outer: str = "imc", hybrid: hybrid_law.HybridGains | None = None, start: str = "rest",
-                compliance=None, params_axis=None, hybrid_axis=None, marks=(), chunk: int = CHUNK):
+def run_chunked(
+    params: ServoParams,
+    models,
+    reference,
+    *,
+    plant=AxisPlant(),
+    rates: LoopRates = LoopRates(),
+    outer: str = "imc",
+    hybrid: hybrid_law.HybridGains | None = None,
+    start: str = "rest",
+    compliance=None,
+    params_axis=None,
+    hybrid_axis=None,
+    marks=(),
+    chunk: int = CHUNK,
+):
     """A batch of runs, each :func:`rollout` of its ``models[b]`` over ``reference[b]`` ``(B, N, ...)``, cut into
     calls of one compiled program of ``chunk`` periods (host-side): ``(trace (B, N, ...), carries (B, len(marks),
     ...))``.
@@ -456,15 +551,18 @@ def run_chunked(params: ServoParams, models, reference, *, plant=AxisPlant(), ra
         while done < stop:
             k = min(chunk, stop - done)
             pad = [(0, 0), (0, chunk - k)]  # the last sample held
-            piece = jax.tree.map(lambda x: np.pad(x[:, done:done + k], pad + [(0, 0)] * (x.ndim - 2), mode="edge"),
-                                 host)
+            piece = jax.tree.map(
+                lambda x: np.pad(x[:, done : done + k], pad + [(0, 0)] * (x.ndim - 2), mode="edge"), host
+            )
             rec, carry = step(params, models, piece, hybrid, compliance, carry, np.int32(k))
             records.append((rec, k))
             done += k
         if done in marks:
             kept[done] = carry
-    rec = jax.tree.map(lambda *x: np.concatenate([np.asarray(r)[:, :k] for r, (_, k) in zip(x, records)], axis=1),
-                       *[r for r, _ in records])  # fetched at the end: the calls before queue without waiting
+    rec = jax.tree.map(
+        lambda *x: np.concatenate([np.asarray(r)[:, :k] for r, (_, k) in zip(x, records)], axis=1),
+        *[r for r, _ in records],
+    )  # fetched at the end: the calls before queue without waiting
     carries = jax.tree.map(lambda *c: jnp.stack(c, axis=1), *[kept[m] for m in marks]) if marks else None
     t = np.arange(n) * period_dt(rates, cascade_.control_mode(outer))
     return Trace(t=np.repeat(t[None], len(rec["theta"]), axis=0), **rec), carries
@@ -475,12 +573,23 @@ _rollout_jit = jax.jit(rollout, static_argnames=("plant", "rates", "outer", "rem
 
 @functools.lru_cache(maxsize=None)
 def _batched_rollout(plant, rates, outer, load_axis, start):
-    return jax.jit(jax.vmap(functools.partial(rollout, plant=plant, rates=rates, outer=outer, start=start),
-                            in_axes=(0, load_axis, 0)))
+    return jax.jit(
+        jax.vmap(
+            functools.partial(rollout, plant=plant, rates=rates, outer=outer, start=start), in_axes=(0, load_axis, 0)
+        )
+    )
 
 
-def simulate(params: ServoParams | None = None, reference=None, *, load=None, plant=AxisPlant(),
-             rates: LoopRates = LoopRates(), mode: str = "imc", start: str = "rest") -> Trace:
+def simulate(
+    params: ServoParams | None = None,
+    reference=None,
+    *,
+    load=None,
+    plant=AxisPlant(),
+    rates: LoopRates = LoopRates(),
+    mode: str = "imc",
+    start: str = "rest",
+) -> Trace:
     """Simulate the position-controlled machine (host-side entry point).
 
     ``reference``: slider positions [m], shape ``(N,)`` (same for every axis) or
@@ -501,8 +610,10 @@ def simulate(params: ServoParams | None = None, reference=None, *, load=None, pl
     validate(load)
     ref = np.asarray(reference, dtype=float) if reference is not None else None
     if ref is None or ref.ndim not in (1, 2) or ref.shape[0] < 1 or (ref.ndim == 2 and ref.shape[1] != plant.n_axes):
-        raise ParameterError(f"reference: expected slider positions of shape (N,) or (N, {plant.n_axes}), "
-                             f"got {None if ref is None else ref.shape}")
+        raise ParameterError(
+            f"reference: expected slider positions of shape (N,) or (N, {plant.n_axes}), "
+            f"got {None if ref is None else ref.shape}"
+        )
     if not np.isfinite(ref).all():
         raise ParameterError("reference: expected finite slider positions [m], found NaN or inf")
     if ref.ndim == 1:

@@ -66,9 +66,14 @@ def _monodromy_program(rates: LoopRates, mode: cascade.ControlMode):
         p = pieces(servo, load, plant=AxisPlant(), rates=rates, mode=mode, hybrid=None)
         carry = p.init("zero", None)
         flat, unravel = ravel_pytree(carry)
-        axis_of = ravel_pytree(jax.tree.map(
-            lambda x: jnp.broadcast_to(jnp.arange(N_AXES, dtype=x.dtype).reshape((N_AXES,) + (1,) * (x.ndim - 1)),
-                                       x.shape), carry))[0]
+        axis_of = ravel_pytree(
+            jax.tree.map(
+                lambda x: jnp.broadcast_to(
+                    jnp.arange(N_AXES, dtype=x.dtype).reshape((N_AXES,) + (1,) * (x.ndim - 1)), x.shape
+                ),
+                carry,
+            )
+        )[0]
         rest = jnp.zeros(N_AXES, flat.dtype)
         return jax.jacfwd(lambda x: ravel_pytree(p.period(unravel(x), rest)[0])[0])(flat), axis_of
 
@@ -88,8 +93,10 @@ def margins(servo: ServoParams, mode="imc", load: AxisLoad | None = None) -> tup
     load = AxisLoad.default() if load is None else load
     law = cascade.control_mode(mode).law
     with jax.enable_x64(True):
-        return jax.tree.map(np.asarray, _margins_program(law)(
-            *(jax.tree.map(lambda x: np.asarray(x, dtype=np.float64), p) for p in (servo, load))))
+        return jax.tree.map(
+            np.asarray,
+            _margins_program(law)(*(jax.tree.map(lambda x: np.asarray(x, dtype=np.float64), p) for p in (servo, load))),
+        )
 
 
 def _in_loop(m: np.ndarray) -> np.ndarray:
@@ -154,9 +161,11 @@ F_POSITION = (100.0, 2e4, "position loops, on a drive or a ROS 2 controller mana
 def check_rates(rates: LoopRates) -> None:
     """Raise :class:`~pusupu_jax.params.ParameterError` unless each loop's rate [Hz] lies in its range
     (:data:`F_CURRENT`, :data:`F_VELOCITY`, :data:`F_POSITION`, each with its reason)."""
-    for name, hz, (low, high, why) in (("f_current", 1 / rates.dt_current, F_CURRENT),
-                                       ("f_current / n_velocity", 1 / rates.dt_velocity, F_VELOCITY),
-                                       ("f_current / (n_velocity n_position)", 1 / rates.dt_position, F_POSITION)):
+    for name, hz, (low, high, why) in (
+        ("f_current", 1 / rates.dt_current, F_CURRENT),
+        ("f_current / n_velocity", 1 / rates.dt_velocity, F_VELOCITY),
+        ("f_current / (n_velocity n_position)", 1 / rates.dt_position, F_POSITION),
+    ):
         if not low <= hz <= high:
             raise ParameterError(f"rates: {name} is {hz:.6g} Hz; expected {low:g} to {high:g} Hz ({why})")
 
@@ -186,8 +195,10 @@ class GainCheck:
 
     def margins(self) -> dict:
         """``{loop: {phase_margin_deg, gain_margin_db}}`` as lists of six floats (a gain file's ``margins``)."""
-        return {loop: {"phase_margin_deg": c.phase_margin_deg.tolist(), "gain_margin_db": c.gain_margin_db.tolist()}
-                for loop, c in self.loops.items()}
+        return {
+            loop: {"phase_margin_deg": c.phase_margin_deg.tolist(), "gain_margin_db": c.gain_margin_db.tolist()}
+            for loop, c in self.loops.items()
+        }
 
     def radii(self) -> dict:
         """``{loop: [six spectral radii]}`` (a gain file's ``stability``)."""
@@ -199,20 +210,26 @@ class GainCheck:
         for loop, c in self.loops.items():
             if not (c.spectral_radius < 1).all():
                 a = int(np.argmax(c.spectral_radius))
-                return (f"the {loop} loop of axis {a + 1} is unstable: a closed-loop pole of modulus "
-                        f"{c.spectral_radius[a]:.6g} over {c.period_s * 1e3:.4g} ms (growing at "
-                        f"{c.growth_per_s[a]:.4g} 1/s) at the file's rates; expected every pole inside the unit circle")
+                return (
+                    f"the {loop} loop of axis {a + 1} is unstable: a closed-loop pole of modulus "
+                    f"{c.spectral_radius[a]:.6g} over {c.period_s * 1e3:.4g} ms (growing at "
+                    f"{c.growth_per_s[a]:.4g} 1/s) at the file's rates; expected every pole inside the unit circle"
+                )
         for loop, c in self.loops.items():
             if not c.in_band.all():
                 a = int(np.argmin(c.in_band))
-                return (f"the {loop} loop of axis {a + 1} crosses over outside {W_GRID[0]:g} to {W_GRID[-1]:g} rad/s, "
-                        "where its margins are read; expected a loop gain above 1 at the lowest and below 1 at the "
-                        "highest of those frequencies")
+                return (
+                    f"the {loop} loop of axis {a + 1} crosses over outside {W_GRID[0]:g} to {W_GRID[-1]:g} rad/s, "
+                    "where its margins are read; expected a loop gain above 1 at the lowest and below 1 at the "
+                    "highest of those frequencies"
+                )
             slack = np.minimum(c.phase_margin_deg - pm_min, c.gain_margin_db - gm_min)
             if not (slack >= 0).all():
                 a = int(np.argmin(np.where(np.isnan(slack), -np.inf, slack)))
-                return (f"the {loop} loop of axis {a + 1} has {c.phase_margin_deg[a]:.1f} deg phase margin and "
-                        f"{c.gain_margin_db[a]:.1f} dB gain margin; expected at least {pm_min:g} deg and {gm_min:g} dB")
+                return (
+                    f"the {loop} loop of axis {a + 1} has {c.phase_margin_deg[a]:.1f} deg phase margin and "
+                    f"{c.gain_margin_db[a]:.1f} dB gain margin; expected at least {pm_min:g} deg and {gm_min:g} dB"
+                )
         return None
 
 
@@ -224,8 +241,15 @@ def check_values(servo: ServoParams, hybrid, rates: LoopRates) -> None:
     check_rates(rates)
 
 
-def check(servo: ServoParams, hybrid, rates: LoopRates, mode="imc", floors=FLOORS, raise_error: bool = True,
-          load: AxisLoad | None = None) -> GainCheck:
+def check(
+    servo: ServoParams,
+    hybrid,
+    rates: LoopRates,
+    mode="imc",
+    floors=FLOORS,
+    raise_error: bool = True,
+    load: AxisLoad | None = None,
+) -> GainCheck:
     """The one check every gain set passes before it is simulated, run, exported or signed.
 
     In order: every field inside its documented bounds (:func:`pusupu_jax.params.validate`, the hybrid gains'
@@ -241,10 +265,15 @@ def check(servo: ServoParams, hybrid, rates: LoopRates, mode="imc", floors=FLOOR
     load = AxisLoad.default() if load is None else load
     radii = spectral_radii(servo, rates, mode, load)
     m, band = margins(servo, mode, load)
-    loops = {loop: LoopCheck(radii[loop], loop_period(rates, loop),
-                             *(np.asarray(m[loop][k], dtype=float) for k in ("phase_margin_deg", "gain_margin_db")),
-                             np.asarray(band[loop]))
-             for loop in LOOPS}
+    loops = {
+        loop: LoopCheck(
+            radii[loop],
+            loop_period(rates, loop),
+            *(np.asarray(m[loop][k], dtype=float) for k in ("phase_margin_deg", "gain_margin_db")),
+            np.asarray(band[loop]),
+        )
+        for loop in LOOPS
+    }
     out = GainCheck(loops, tuple(floors))
     problem = out.problem()
     if raise_error and problem is not None:
@@ -266,7 +295,10 @@ def bounds_table() -> str:
             if b is not None:
                 high = b[1] if isinstance(b[1], str) else f"{b[1]:g}"
                 rows.append(f"| `{cls.__name__}.{f.name}` | {b[0]:g} to {high} | {f.metadata['unit']} | {b[2]} |")
-    for name, (low, high, why) in (("current loop rate", F_CURRENT), ("velocity loop rate", F_VELOCITY),
-                                   ("position loop rate", F_POSITION)):
+    for name, (low, high, why) in (
+        ("current loop rate", F_CURRENT),
+        ("velocity loop rate", F_VELOCITY),
+        ("position loop rate", F_POSITION),
+    ):
         rows.append(f"| {name} | {low:g} to {high:g} | Hz | {why} |")
     return "\n".join(rows)

@@ -50,8 +50,9 @@ def _crossovers(servo: ServoParams, mass) -> tuple[np.ndarray, np.ndarray]:
     return w_i, w_v
 
 
-def derive(machine: Machine, rates: LoopRates = LoopRates(), identify: bool = True,
-           shared: bool = True) -> tuple[ServoParams, dict]:
+def derive(
+    machine: Machine, rates: LoopRates = LoopRates(), identify: bool = True, shared: bool = True
+) -> tuple[ServoParams, dict]:
     """Start gains for ``machine`` (the module docstring's steps) and a report of what was derived (per axis).
 
     ``identify=False`` leaves ``T0`` (and so the IMC and PID time scales) at Table 1's, skipping the MJX identification.
@@ -62,8 +63,12 @@ def derive(machine: Machine, rates: LoopRates = LoopRates(), identify: bool = Tr
     table1, builtin = ServoParams.table1(), Machine.default()
     ref = builtin.servo(table1)
     wi_ref, wv_ref = _crossovers(ref, carried_mass(builtin))
-    on = machine.servo(table1.replace(I_max=np.asarray(machine.drives["I_peak"]),
-                                      V_max=np.asarray(machine.drives["V_dc"]) * (table1.V_max / ref.V_dc)))
+    on = machine.servo(
+        table1.replace(
+            I_max=np.asarray(machine.drives["I_peak"]),
+            V_max=np.asarray(machine.drives["V_dc"]) * (table1.V_max / ref.V_dc),
+        )
+    )
     mass = carried_mass(machine)
     d = {k: np.asarray(machine.drives[k], dtype=float) for k in machine.drives}
     w_i = wi_ref * ref.Tn / d["Tn"]  # Table 1's w_i Tn
@@ -71,8 +76,12 @@ def derive(machine: Machine, rates: LoopRates = LoopRates(), identify: bool = Tr
     _, wv_unit = _crossovers(servo.replace(Kv=np.ones(6)), mass)
     w_v = wv_ref / wi_ref * w_i
     servo = servo.replace(Kv=w_v / wv_unit, Tv=table1.Tv * wv_ref / w_v, Tw=table1.Tw * wv_ref / w_v)
-    report = {"carried_mass_kg": mass.tolist(), "current_crossover_rad_s": w_i.tolist(),
-              "velocity_crossover_rad_s": w_v.tolist(), "T0_table1_s": T0_TABLE1}
+    report = {
+        "carried_mass_kg": mass.tolist(),
+        "current_crossover_rad_s": w_i.tolist(),
+        "velocity_crossover_rad_s": w_v.tolist(),
+        "T0_table1_s": T0_TABLE1,
+    }
     if identify:
         found = identify_T0_machine(servo, machine.options(), rates=rates, geom=machine.geometry)
         T0 = np.asarray(found["T0"], dtype=float)
@@ -80,9 +89,20 @@ def derive(machine: Machine, rates: LoopRates = LoopRates(), identify: bool = Tr
     else:
         T0 = np.full(6, T0_TABLE1)
     k = T0 / T0_TABLE1
-    servo = servo.replace(T0=T0, lambda1=table1.lambda1 * k, lambda2=table1.lambda2 * k,
-                          Kp_pid=table1.Kp_pid / k, Ki_pid=table1.Ki_pid / k**2, Tf_pid=table1.Tf_pid * k)
+    servo = servo.replace(
+        T0=T0,
+        lambda1=table1.lambda1 * k,
+        lambda2=table1.lambda2 * k,
+        Kp_pid=table1.Kp_pid / k,
+        Ki_pid=table1.Ki_pid / k**2,
+        Tf_pid=table1.Tf_pid * k,
+    )
     if shared:
-        servo = servo.replace(**{f.name: np.full(6, np.mean(getattr(servo, f.name))) for f in array_fields(ServoParams)
-                                 if f.metadata["section"] != "plant"})
+        servo = servo.replace(
+            **{
+                f.name: np.full(6, np.mean(getattr(servo, f.name)))
+                for f in array_fields(ServoParams)
+                if f.metadata["section"] != "plant"
+            }
+        )
     return machine.servo(servo), report

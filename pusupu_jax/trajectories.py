@@ -89,11 +89,17 @@ def segment_seconds(waypoints, v_max, a_max, w_max=TILT_SPEED, alpha_max=TILT_AC
     [m/s] and ``a_max`` [m/s^2] and what its tilts need under ``w_max`` [rad/s] and ``alpha_max`` [rad/s^2] (each
     one value or one per segment)."""
     steps = np.diff(np.asarray(waypoints, dtype=float), axis=0)
-    limits = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (v_max, a_max, w_max, alpha_max)),
-                                 np.zeros(len(steps)))[:4]
-    return np.array([max(_quintic_time(float(np.linalg.norm(d[:3])), v, a),
-                         _quintic_time(float(np.linalg.norm(d[3:])), w, alpha))
-                     for d, v, a, w, alpha in zip(steps, *limits)])
+    limits = np.broadcast_arrays(
+        *(np.asarray(v, dtype=float) for v in (v_max, a_max, w_max, alpha_max)), np.zeros(len(steps))
+    )[:4]
+    return np.array(
+        [
+            max(
+                _quintic_time(float(np.linalg.norm(d[:3])), v, a), _quintic_time(float(np.linalg.norm(d[3:])), w, alpha)
+            )
+            for d, v, a, w, alpha in zip(steps, *limits)
+        ]
+    )
 
 
 def _check_limits(positive: dict, nonnegative: dict):
@@ -110,12 +116,18 @@ def _poses(home, offsets, dt, hold):
     [rad]; the others stay at home), then ``hold`` [s] at rest."""
     offsets = np.concatenate([offsets, np.repeat(offsets[-1:], int(round(hold / dt)), axis=0)])
     q = np.repeat(np.asarray(home, dtype=float)[None], len(offsets), axis=0)
-    q[:, :offsets.shape[1]] += offsets
+    q[:, : offsets.shape[1]] += offsets
     return q
 
 
-def platform_path(kind: str, home, rates: LoopRates = LoopRates(), v_max: float = SPEED, a_max: float = ACCELERATION,
-                  hold: float = 0.5) -> np.ndarray:
+def platform_path(
+    kind: str,
+    home,
+    rates: LoopRates = LoopRates(),
+    v_max: float = SPEED,
+    a_max: float = ACCELERATION,
+    hold: float = 0.5,
+) -> np.ndarray:
     """Platform poses ``(N, 5)`` at the position-loop rate for the named paths, starting and ending at rest.
 
     * ``arc``: from home straight out to (200, 0, 0) mm, then a 270 deg major arc of 200 mm
@@ -137,8 +149,10 @@ def platform_path(kind: str, home, rates: LoopRates = LoopRates(), v_max: float 
     dt = rates.dt_position
     if kind == "arc":
         phi = 1.5 * np.pi * _quintic(dt, _quintic_time(0.2 * 1.5 * np.pi, v_max, a_max))
-        xy = [_line([0.0, 0.0], [0.2, 0.0], dt, segment_seconds([[0.0, 0.0], [0.2, 0.0]], v_max, a_max)[0]),
-              np.stack([0.2 * np.cos(phi), 0.2 * np.sin(phi)], axis=1)]
+        xy = [
+            _line([0.0, 0.0], [0.2, 0.0], dt, segment_seconds([[0.0, 0.0], [0.2, 0.0]], v_max, a_max)[0]),
+            np.stack([0.2 * np.cos(phi), 0.2 * np.sin(phi)], axis=1),
+        ]
         return _poses(home, np.concatenate(xy), dt, hold)
     if kind == "circle":
         return iso_circle(home, rates, CIRCLE_RADIUS, v_max, a_max, hold)
@@ -147,8 +161,14 @@ def platform_path(kind: str, home, rates: LoopRates = LoopRates(), v_max: float 
     return platform_waypoints(home, [[0.0, 0.0, 0.0], [-0.1, -0.1, 0.0], [0.1, 0.1, 0.0]], rates, v_max, a_max, hold)
 
 
-def iso_circle(home, rates: LoopRates = LoopRates(), radius: float = CIRCLE_RADIUS, feed: float = SPEED,
-               a_max: float = ACCELERATION, hold: float = 0.5) -> np.ndarray:
+def iso_circle(
+    home,
+    rates: LoopRates = LoopRates(),
+    radius: float = CIRCLE_RADIUS,
+    feed: float = SPEED,
+    a_max: float = ACCELERATION,
+    hold: float = 0.5,
+) -> np.ndarray:
     """The circular test of ISO 230-4 as platform poses ``(N, 5)``: a circle of ``radius`` [m] about home in the
     horizontal plane, contoured at ``feed`` [m/s] in both directions, the platform level.
 
@@ -172,8 +192,14 @@ def iso_circle(home, rates: LoopRates = LoopRates(), radius: float = CIRCLE_RADI
     return _poses(home, np.concatenate(offsets), dt, hold)
 
 
-def tilt_sweep(home, rates: LoopRates = LoopRates(), amplitude: float = TILT_AMPLITUDE, w_max: float = TILT_SPEED,
-               alpha_max: float = TILT_ACCELERATION, hold: float = 0.5) -> np.ndarray:
+def tilt_sweep(
+    home,
+    rates: LoopRates = LoopRates(),
+    amplitude: float = TILT_AMPLITUDE,
+    w_max: float = TILT_SPEED,
+    alpha_max: float = TILT_ACCELERATION,
+    hold: float = 0.5,
+) -> np.ndarray:
     """A tilt sweep as platform poses ``(N, 5)``, the platform centre at home: tilt ``a`` to ``+amplitude``, to
     ``-amplitude`` and back to level [rad], then ``b`` the same way, then both together (``a = b``); each move
     straight with quintic timing under ``w_max`` [rad/s] and ``alpha_max`` [rad/s^2], at rest between moves, then
@@ -190,8 +216,18 @@ def path_seconds(kind: str) -> float:
     return len(platform_path(kind, np.zeros(5))) * LoopRates().dt_position
 
 
-def platform_waypoints(home, waypoints, rates: LoopRates = LoopRates(), v_max=SPEED, a_max=ACCELERATION, hold=0.5,
-                       *, w_max=TILT_SPEED, alpha_max=TILT_ACCELERATION, dwell=0.0) -> np.ndarray:
+def platform_waypoints(
+    home,
+    waypoints,
+    rates: LoopRates = LoopRates(),
+    v_max=SPEED,
+    a_max=ACCELERATION,
+    hold=0.5,
+    *,
+    w_max=TILT_SPEED,
+    alpha_max=TILT_ACCELERATION,
+    dwell=0.0,
+) -> np.ndarray:
     """Platform poses ``(N, 5)`` through ``waypoints``, offsets from ``home``: ``(K, 3)`` (x, y, z [m], the platform
     level) or ``(K, 5)`` (x, y, z [m], a, b [rad]).  Straight segments in pose space with quintic timing, at rest
     at every waypoint (:func:`segment_seconds`), each followed by ``dwell`` [s] at rest, then ``hold`` [s] at rest.
@@ -202,10 +238,13 @@ def platform_waypoints(home, waypoints, rates: LoopRates = LoopRates(), v_max=SP
     """
     points = np.asarray(waypoints, dtype=float)
     if points.ndim != 2 or points.shape[1] not in (3, 5) or len(points) < 2 or not np.isfinite(points).all():
-        raise ParameterError("waypoints: expected at least two finite (x, y, z) offsets [m] or (x, y, z, a, b) "
-                             f"offsets [m, rad], got shape {points.shape}")
-    limits = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (v_max, a_max, w_max, alpha_max, dwell)),
-                                 np.zeros(len(points) - 1))[:5]
+        raise ParameterError(
+            "waypoints: expected at least two finite (x, y, z) offsets [m] or (x, y, z, a, b) "
+            f"offsets [m, rad], got shape {points.shape}"
+        )
+    limits = np.broadcast_arrays(
+        *(np.asarray(v, dtype=float) for v in (v_max, a_max, w_max, alpha_max, dwell)), np.zeros(len(points) - 1)
+    )[:5]
     for v, a, w, alpha, d in zip(*limits):
         _check_limits({"v_max": v, "a_max": a, "w_max": w, "alpha_max": alpha}, {"dwell": d, "hold": hold})
     dt = rates.dt_position

@@ -33,24 +33,33 @@ def check_run(where: str, seconds: float, rates: LoopRates, *, machine: bool = F
     steps every ``rates.dt_mech`` s): at most :data:`MAX_TICKS` current-loop ticks, :data:`MAX_PERIODS` position
     periods and (``machine``) :data:`MAX_MACHINE_STEPS` mechanical steps; ``error`` naming ``where`` and the limit in
     seconds at these rates otherwise."""
-    limits = [(MAX_TICKS, rates.dt_current, f"current-loop ticks of {rates.dt_current * 1e6:.3g} us"),
-              (MAX_PERIODS, rates.dt_position, f"position periods of {rates.dt_position * 1e3:.3g} ms kept in the "
-                                               "trace")]
+    limits = [
+        (MAX_TICKS, rates.dt_current, f"current-loop ticks of {rates.dt_current * 1e6:.3g} us"),
+        (MAX_PERIODS, rates.dt_position, f"position periods of {rates.dt_position * 1e3:.3g} ms kept in the trace"),
+    ]
     if machine:
         limits.append((MAX_MACHINE_STEPS, rates.dt_mech, f"mechanical steps of {rates.dt_mech * 1e3:.3g} ms"))
     for most, dt, what in limits:
         if not seconds <= most * dt:
-            raise error(f"{where}: expected at most {most * dt:g} s at these rates ({most:.3g} {what}), got "
-                        f"{seconds:g} s")
+            raise error(
+                f"{where}: expected at most {most * dt:g} s at these rates ({most:.3g} {what}), got {seconds:g} s"
+            )
 
 
 def check_tuning(where: str, gradient_steps: float, total_steps: float, error=ParameterError) -> None:
     """A tuning problem of ``gradient_steps`` mechanical steps in one gradient and ``total_steps`` in all: at most
     :data:`MAX_GRADIENT_STEPS` and :data:`MAX_TUNE_STEPS`; ``error`` naming ``where`` and the limit otherwise."""
-    for steps, most, what in ((gradient_steps, MAX_GRADIENT_STEPS, "in one gradient (scenarios x windows x window "
-                                                                    "length; reverse mode keeps them in memory)"),
-                              (total_steps, MAX_TUNE_STEPS, "in all (gradients over the iterations and starts, "
-                                                            "forward passes over the whole paths)")):
+    for steps, most, what in (
+        (
+            gradient_steps,
+            MAX_GRADIENT_STEPS,
+            "in one gradient (scenarios x windows x window length; reverse mode keeps them in memory)",
+        ),
+        (
+            total_steps,
+            MAX_TUNE_STEPS,
+            "in all (gradients over the iterations and starts, forward passes over the whole paths)",
+        ),
+    ):
         if steps > most:
-            raise error(f"{where}: expected at most {most:.3g} mechanical steps of the machine {what}, got "
-                        f"{steps:.3g}")
+            raise error(f"{where}: expected at most {most:.3g} mechanical steps of the machine {what}, got {steps:.3g}")

@@ -151,7 +151,8 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
     Tolerance 1e-7 relative: the same operations, but vmapping over 6 members changes XLA's fusion and
     summation order (last-bit differences) and 3 Adam steps carry them on; measured 3e-10 on the gains.
     The two lone problems differ only in their scenarios, so they share one traced and compiled gradient
-    (pusupu_jax.tune.run._shared_gradient): each still equals its own batch member.  A problem started elsewhere does not
+    (pusupu_jax.tune.run._shared_gradient): each still equals its own batch member.  A problem started elsewhere does
+    not
     share it (here the current loop's gain, which is not tuned and enters the program as a constant).  Built again
     with nothing in memory, a problem reads the traced program from disk (pusupu_jax.programs) instead of tracing.
     benchmarks/batch_equivalence.py checks every scenario of a 64-scenario batch the same way.
@@ -165,12 +166,14 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
         alone = problem.tune()
         report = json.loads((out / "jobs" / job.name / "report.json").read_text())
         assert [h["objective"] for h in report["history"]] == pytest.approx(
-            [h["objective"] for h in alone["history"]], rel=1e-7)
+            [h["objective"] for h in alone["history"]], rel=1e-7
+        )
         for field, value in problem.space.values(alone["z"]).items():
             assert np.ravel(report["result"][field])[0] == pytest.approx(float(np.ravel(value)[0]), rel=1e-7)
     assert problems[0]._value_and_grad is problems[1]._value_and_grad
-    elsewhere = Problem(cfg, ServoParams.table1().replace(Ki=ServoParams.table1().Ki * 1.1), HybridGains(),
-                        specs=list(job.specs))
+    elsewhere = Problem(
+        cfg, ServoParams.table1().replace(Ki=ServoParams.table1().Ki * 1.1), HybridGains(), specs=list(job.specs)
+    )
     assert elsewhere._value_and_grad is not problems[1]._value_and_grad
     # as a new process would: the gradient's traced program is read from disk, not traced, and gives the same numbers
     monkeypatch.setattr(run, "_GRADIENTS", {})
@@ -211,8 +214,12 @@ def test_ray_retries_a_killed_worker_and_gives_the_in_process_summary(batch, tmp
 
     killer = threading.Thread(target=kill_after_first_checkpoint, daemon=True)
     killer.start()
-    r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", "batch", str(job), "--out", str(out), "--ray",
-                        "--workers", "2"], capture_output=True, text=True, timeout=1500)
+    r = subprocess.run(
+        [sys.executable, "-m", "pusupu_jax.cli", "batch", str(job), "--out", str(out), "--ray", "--workers", "2"],
+        capture_output=True,
+        text=True,
+        timeout=1500,
+    )
     killer.join(timeout=1)
     assert killed, "the shard never checkpointed"
     folder, pid = killed[0]

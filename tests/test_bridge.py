@@ -99,9 +99,18 @@ def test_the_bridge_commands_what_the_simulator_scans(mode, drive, monkeypatch, 
         reference = HybridReference(theta_ref, jnp.asarray(ff), jnp.asarray(w))
         br = BridgeReference(np.asarray(theta_ref), ff, w)
     with jax.enable_x64(True):
-        trace = jax.jit(lambda rec, ref: sim.rollout(SERVO, rec, ref, plant=ReplayPlant(), rates=RATES, outer=mode,
-                                                     start="zero", hybrid=HybridGains() if cmode.hybrid else None))(
-            recorded, reference)
+        trace = jax.jit(
+            lambda rec, ref: sim.rollout(
+                SERVO,
+                rec,
+                ref,
+                plant=ReplayPlant(),
+                rates=RATES,
+                outer=mode,
+                start="zero",
+                hybrid=HybridGains() if cmode.hybrid else None,
+            )
+        )(recorded, reference)
         sim_calls = dict(calls)
         loop = BridgeLoop(_gain_file(mode, tmp_path), br, None if drive == "csv" else [drive] * 6)
     assert sim_calls.get("position_tick") and calls["position_tick"] > sim_calls["position_tick"]
@@ -125,17 +134,26 @@ def test_the_bridge_commands_what_the_simulator_scans(mode, drive, monkeypatch, 
     if (loop.drive_modes == protocol.CSV).any():
         csv = loop.drive_modes == protocol.CSV
         want = np.asarray(trace.command)
-        np.testing.assert_allclose(got[::loop.n_position][:, csv], want[:, csv], rtol=1e-12,
-                                   atol=1e-12 * np.abs(want).max())
+        np.testing.assert_allclose(
+            got[:: loop.n_position][:, csv], want[:, csv], rtol=1e-12, atol=1e-12 * np.abs(want).max()
+        )
 
 
-@pytest.mark.parametrize("modules,absent", [
-    ("pusupu_jax.hw_bridge.loop, pusupu_jax.hw_bridge.session, pusupu_jax.hw_bridge.udp, pusupu_jax.hw_bridge.safety, "
-     "pusupu_jax.hw_bridge.runner, pusupu_jax.hw_bridge.canopen_link",
-     ("mujoco", "optax", "matplotlib", "pusupu_jax.tune")),
-    ("pusupu_jax.sim, pusupu_jax.machine, pusupu_jax.gains, pusupu_jax.ros2, pusupu_jax.identify, pusupu_jax.analysis",
-     ("pusupu_jax.tune", "pusupu_jax.experiments", "pusupu_jax.hw_bridge", "pusupu_jax.cli")),
-])
+@pytest.mark.parametrize(
+    "modules,absent",
+    [
+        (
+            "pusupu_jax.hw_bridge.loop, pusupu_jax.hw_bridge.session, pusupu_jax.hw_bridge.udp, "
+            "pusupu_jax.hw_bridge.safety, pusupu_jax.hw_bridge.runner, pusupu_jax.hw_bridge.canopen_link",
+            ("mujoco", "optax", "matplotlib", "pusupu_jax.tune"),
+        ),
+        (
+            "pusupu_jax.sim, pusupu_jax.machine, pusupu_jax.gains, pusupu_jax.ros2, pusupu_jax.identify, "
+            "pusupu_jax.analysis",
+            ("pusupu_jax.tune", "pusupu_jax.experiments", "pusupu_jax.hw_bridge", "pusupu_jax.cli"),
+        ),
+    ],
+)
 def test_what_each_layer_does_not_import(modules, absent):
     """The robot-side package runs without MuJoCo, optax, matplotlib or the tuner, and the core imports none of its
     applications (fresh interpreters)."""
@@ -146,21 +164,45 @@ def test_what_each_layer_does_not_import(modules, absent):
 
 # ---------------------------------------------------------------- protocol
 
-FEEDBACK = protocol.Feedback(7, 123456789, 6, np.full(6, 0x27, np.uint16), np.full(6, 9, np.int8),
-                             np.linspace(-1, 1, 6), np.arange(6.0), np.ones(6), np.array([0.1, 0.2, 0.8]))
+FEEDBACK = protocol.Feedback(
+    7,
+    123456789,
+    6,
+    np.full(6, 0x27, np.uint16),
+    np.full(6, 9, np.int8),
+    np.linspace(-1, 1, 6),
+    np.arange(6.0),
+    np.ones(6),
+    np.array([0.1, 0.2, 0.8]),
+)
 
 
 def test_packets_have_the_documented_layout_and_round_trip_every_field():
     """The payloads, byte for byte, are the layout of protocol.py's docstring, written here independently as numpy
     structured arrays (little-endian, no padding), after the 26-byte header; decoding gives every field back."""
-    command = protocol.Command(3, 42, 7, np.array([0x0F, 0x06, 0x07, 0x0F, 0x0F, 0x02], np.uint16),
-                               np.array([9, 9, 10, 9, 10, 9], np.int8), np.linspace(-3, 2, 6))
+    command = protocol.Command(
+        3,
+        42,
+        7,
+        np.array([0x0F, 0x06, 0x07, 0x0F, 0x0F, 0x02], np.uint16),
+        np.array([9, 9, 10, 9, 10, 9], np.int8),
+        np.linspace(-3, 2, 6),
+    )
     layouts = {
-        protocol.COMMAND: (command, np.dtype([("w", "<u2"), ("m", "i1"), ("pad", "u1"), ("target", "<f8")]),
-                           ("controlword", "mode", "target"), b""),
-        protocol.FEEDBACK: (FEEDBACK, np.dtype([("w", "<u2"), ("m", "i1"), ("pad", "u1"), ("position", "<f8"),
-                                                ("velocity", "<f8"), ("torque", "<f8")]),
-                            ("statusword", "mode", "position", "velocity", "torque"), FEEDBACK.platform.astype("<f8").tobytes()),
+        protocol.COMMAND: (
+            command,
+            np.dtype([("w", "<u2"), ("m", "i1"), ("pad", "u1"), ("target", "<f8")]),
+            ("controlword", "mode", "target"),
+            b"",
+        ),
+        protocol.FEEDBACK: (
+            FEEDBACK,
+            np.dtype(
+                [("w", "<u2"), ("m", "i1"), ("pad", "u1"), ("position", "<f8"), ("velocity", "<f8"), ("torque", "<f8")]
+            ),
+            ("statusword", "mode", "position", "velocity", "torque"),
+            FEEDBACK.platform.astype("<f8").tobytes(),
+        ),
     }
     for kind, (packet, dtype, names, tail) in layouts.items():
         data = (protocol.encode_command if kind == protocol.COMMAND else protocol.encode_feedback)(packet)
@@ -180,8 +222,14 @@ def test_packets_round_trip_and_every_check_refuses_its_corruption():
     back = protocol.decode(data, protocol.FEEDBACK)
     np.testing.assert_array_equal(back.position, FEEDBACK.position)
     assert back.sequence == 7 and back.ack == 6
-    cases = {"size": data[:20], "magic": b"XXXX" + data[4:], "version": data[:4] + b"\x02" + data[5:],
-             "kind": data[:5] + b"\x01" + data[6:], "length": data + b"\x00", "crc": data[:-1] + bytes([data[-1] ^ 1])}
+    cases = {
+        "size": data[:20],
+        "magic": b"XXXX" + data[4:],
+        "version": data[:4] + b"\x02" + data[5:],
+        "kind": data[:5] + b"\x01" + data[6:],
+        "length": data + b"\x00",
+        "crc": data[:-1] + bytes([data[-1] ^ 1]),
+    }
     for reason, bad in cases.items():
         with pytest.raises(protocol.ProtocolError) as e:
             protocol.decode(bad, protocol.FEEDBACK)
@@ -256,8 +304,9 @@ def test_realtime_setup_puts_every_thread_on_the_cpu_and_the_others_just_below_a
     last CPU; ``restore`` puts both back as they were (fresh interpreter)."""
     import json
 
-    out = subprocess.run([sys.executable, "-c", REALTIME_PROBE], capture_output=True, text=True, timeout=TIMEOUT,
-                         check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", REALTIME_PROBE], capture_output=True, text=True, timeout=TIMEOUT, check=True
+    )
     r = json.loads(out.stdout)
     last = r["before"]["main"][2][-1:]
     assert r["during"]["main"][2] == r["during"]["helper"][2] == last
@@ -271,17 +320,28 @@ def test_realtime_setup_puts_every_thread_on_the_cpu_and_the_others_just_below_a
 
 def test_cia402_state_machine_walks_up_and_faults():
     d = cia402.DriveStateMachine()
-    for word, state in ((cia402.SHUTDOWN, cia402.READY), (cia402.SWITCH_ON, cia402.SWITCHED_ON),
-                        (cia402.ENABLE_OPERATION, cia402.OPERATION_ENABLED), (cia402.QUICK_STOP, cia402.QUICK_STOP_ACTIVE),
-                        (cia402.DISABLE_VOLTAGE, cia402.SWITCH_ON_DISABLED)):
+    for word, state in (
+        (cia402.SHUTDOWN, cia402.READY),
+        (cia402.SWITCH_ON, cia402.SWITCHED_ON),
+        (cia402.ENABLE_OPERATION, cia402.OPERATION_ENABLED),
+        (cia402.QUICK_STOP, cia402.QUICK_STOP_ACTIVE),
+        (cia402.DISABLE_VOLTAGE, cia402.SWITCH_ON_DISABLED),
+    ):
         assert d.command(word) == state and cia402.state_of(d.statusword) == state
     d.fault()
     assert d.command(cia402.SHUTDOWN) == cia402.FAULT and d.command(cia402.FAULT_RESET) == cia402.SWITCH_ON_DISABLED
 
 
 def test_safety_guards_feedback_and_clamps_commands():
-    lim = Limits(np.full(6, -1.0), np.full(6, 1.0), np.full(6, 10.0), np.full(6, 2.0), np.full(6, 0.005),
-                 np.full(6, 0.05), np.full(6, 0.01 / (2 * np.pi)))
+    lim = Limits(
+        np.full(6, -1.0),
+        np.full(6, 1.0),
+        np.full(6, 10.0),
+        np.full(6, 2.0),
+        np.full(6, 0.005),
+        np.full(6, 0.05),
+        np.full(6, 0.01 / (2 * np.pi)),
+    )
     s = Safety(lim, watchdog_cycles=3)
     z = np.zeros(6)
     assert s.check_feedback(0, 3, z, z, z)
@@ -294,8 +354,9 @@ def test_safety_guards_feedback_and_clamps_commands():
         assert not s.check_feedback(3, 0, z, v, t) and s.faults[-1].kind == "feedback invalid"
     modes = np.array([9, 9, 9, 10, 10, 10])
     np.testing.assert_array_equal(s.limit_command(4, modes, np.full(6, 50.0)), [10, 10, 10, 2, 2, 2])
-    np.testing.assert_array_equal(s.limit_command(4, modes, np.array([-50.0, 3, -3, -50, 1.5, -1.5])),
-                                  [-10, 3, -3, -2, 1.5, -1.5])
+    np.testing.assert_array_equal(
+        s.limit_command(4, modes, np.array([-50.0, 3, -3, -50, 1.5, -1.5])), [-10, 3, -3, -2, 1.5, -1.5]
+    )
     np.testing.assert_array_equal(s.limit_command(5, modes, np.full(6, np.nan)), z)
 
 
@@ -317,8 +378,12 @@ def _pure_arc():
     with jax.enable_x64(True):
         g = gains.parse(gains.document(SERVO, HybridGains(), RATES, mode="imc"))
         rates = plan(g, None, RATE)[1]
-        path = platform_path("arc", Geometry.default().home, rates)[:int(SECONDS * RATE)]
-        return simulate_machine(SERVO, path, mode="imc", rates=rates, options=ModelOptions(timestep=rates.dt_velocity))[0]
+        path = platform_path("arc", Geometry.default().home, rates)[: int(SECONDS * RATE)]
+        return simulate_machine(SERVO, path, mode="imc", rates=rates, options=ModelOptions(timestep=rates.dt_velocity))[
+            0
+        ]
+
+
 # the simulated drives' own sync watchdog [s]: the lock-step sessions below wait on the bridge's scheduling, not a
 # clock, and a clean-clone CI run once saw 50 ms (the default) pass between two commands while the other test worker
 # compiled. The bridge's own watchdog, which these tests are about, counts cycles: replies delayed by 3 s (longer than
@@ -327,8 +392,17 @@ DRIVE_WATCHDOG_S = 2.0
 # every encoder 20 mm of slider travel off (12.57 rad of motor angle): within the strokes, beyond the following-error
 # window (5 mm) for longer than its time-out (50 ms) while the loops bring the machine back to it
 FOLLOWING = "range@0.3:12.57"
-FAULTS = ["none", "stop@0.3:2", "nan@0.3", "range@0.3", FOLLOWING, "drop@0.3", "delay@0.3:3", "reorder@0.3:12",
-          "garbage@0.0"]
+FAULTS = [
+    "none",
+    "stop@0.3:2",
+    "nan@0.3",
+    "range@0.3",
+    FOLLOWING,
+    "drop@0.3",
+    "delay@0.3:3",
+    "reorder@0.3:12",
+    "garbage@0.0",
+]
 
 
 @pytest.fixture(scope="module")
@@ -341,9 +415,23 @@ def robot(tmp_path_factory):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    cmd = [sys.executable, "-m", "pusupu_jax.cli", "sim-robot", "--gains", str(path), "--listen",
-           f"udp://127.0.0.1:{port}", "--seconds", str(TIMEOUT), "--rate", str(RATE),
-           "--drive-watchdog", str(DRIVE_WATCHDOG_S), "--no-realtime"] + [a for f in FAULTS for a in ("--fault", f)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pusupu_jax.cli",
+        "sim-robot",
+        "--gains",
+        str(path),
+        "--listen",
+        f"udp://127.0.0.1:{port}",
+        "--seconds",
+        str(TIMEOUT),
+        "--rate",
+        str(RATE),
+        "--drive-watchdog",
+        str(DRIVE_WATCHDOG_S),
+        "--no-realtime",
+    ] + [a for f in FAULTS for a in ("--fault", f)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ.copy())
     line = proc.stdout.readline()
     assert "listening" in line, proc.stderr.read()
@@ -422,8 +510,14 @@ def test_faults_reach_the_safe_state_within_the_watchdog(robot, fault):
     # a robot that withholds its replies: the bridge's watchdog, or (the bridge waiting in lock step) the drives' own
     # sync watchdog, which the bridge sees as a drive leaving 'operation enabled'
     silent = {"feedback stale", "drive fault"}
-    kinds = {"stop": silent, "drop": silent, "delay": silent, "reorder": silent, "nan": {"feedback invalid"},
-             "range": {"position limit"}}
+    kinds = {
+        "stop": silent,
+        "drop": silent,
+        "delay": silent,
+        "reorder": silent,
+        "nan": {"feedback invalid"},
+        "range": {"position limit"},
+    }
     assert f.kind in kinds[fault.split("@")[0]], f.line()
 
 
@@ -435,8 +529,21 @@ def test_a_bad_gain_file_is_refused_before_anything_is_sent(tmp_path):
         s.bind(("127.0.0.1", 0))
         s.settimeout(0.5)
         port = s.getsockname()[1]
-        r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", "bridge", "--gains", str(bad), "--robot",
-                            f"udp://127.0.0.1:{port}"], capture_output=True, text=True, timeout=TIMEOUT)
+        r = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "pusupu_jax.cli",
+                "bridge",
+                "--gains",
+                str(bad),
+                "--robot",
+                f"udp://127.0.0.1:{port}",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=TIMEOUT,
+        )
         with pytest.raises(socket.timeout):
             s.recvfrom(2048)
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and r.stderr.startswith("pusupu: error:"), r.stderr
@@ -459,12 +566,32 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
     from pusupu_jax.hw_bridge.loop import bridge_reference, plan
     from pusupu_jax.hw_bridge.safety import limits_for
     from pusupu_jax.hw_bridge.session import Bridge
+
     path = gains.write(tmp_path / "imc.yaml", SERVO, HybridGains(), RATES, mode="imc")
     url = f"can://udp_multicast/239.74.{np.random.default_rng().integers(1, 255)}.{os.getpid() % 250 + 1}"
-    proc = subprocess.Popen([sys.executable, "-m", "pusupu_jax.cli", "sim-robot", "--gains", str(path), "--listen", url,
-                             "--rate", str(RATE), "--seconds", str(TIMEOUT), "--drive-watchdog", str(DRIVE_WATCHDOG_S),
-                             "--no-realtime"] + [a for f in CAN_FAULTS for a in ("--fault", f)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "pusupu_jax.cli",
+            "sim-robot",
+            "--gains",
+            str(path),
+            "--listen",
+            url,
+            "--rate",
+            str(RATE),
+            "--seconds",
+            str(TIMEOUT),
+            "--drive-watchdog",
+            str(DRIVE_WATCHDOG_S),
+            "--no-realtime",
+        ]
+        + [a for f in CAN_FAULTS for a in ("--fault", f)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert "listening" in proc.stdout.readline(), proc.stderr.read()
         g = gains.load(path)
@@ -473,7 +600,9 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
         for _ in CAN_FAULTS:
             link = CanLink(open_bus(url), loop.drive_modes, np.asarray(SERVO.Kt * SERVO.I_max))
             try:
-                runs.append(Bridge(loop, link, Safety(limits_for(g.servo), 5), lockstep_s=0.2).run(SECONDS, realtime=False))
+                runs.append(
+                    Bridge(loop, link, Safety(limits_for(g.servo), 5), lockstep_s=0.2).run(SECONDS, realtime=False)
+                )
             finally:
                 link.close()
     finally:
@@ -504,6 +633,7 @@ def test_canopen_feedback_names_the_sync_it_answers():
     import canopen
 
     from pusupu_jax.hw_bridge.canopen_link import COUNTS_PER_RAD, SYNC_OVERFLOW, CanLink, node_dictionary
+
     channel = f"sync-echo-{os.getpid()}"
     drives = canopen.Network(can.Bus(interface="virtual", channel=channel))
     drives.notifier = can.Notifier(drives.bus, drives.listeners, 0.1)
@@ -530,8 +660,9 @@ def test_canopen_feedback_names_the_sync_it_answers():
             t2.transmit()
 
     def command(sequence):
-        link.send_command(protocol.Command(sequence, 0, 0, np.full(6, 0x0F, np.uint16), np.full(6, protocol.CSV),
-                                           np.zeros(6)))
+        link.send_command(
+            protocol.Command(sequence, 0, 0, np.full(6, 0x0F, np.uint16), np.full(6, protocol.CSV), np.zeros(6))
+        )
 
     try:
         for s in (SYNC_OVERFLOW - 2, SYNC_OVERFLOW - 1):  # the counter wraps from 240 to 1

@@ -3,7 +3,8 @@
 The bridge runs against :class:`WireRobot`, a robot on a real loopback socket that keeps every command reaching it: in
 this process and in lock step (``Bridge(lockstep_s=...)``: the results do not depend on how loaded the machine is), or
 as ``pusupu bridge`` processes for their signals and exit status.  The simulated robot's controller
-(:class:`~pusupu_jax.hw_bridge.sim_robot.SimRobot`) is tested alone, and behind its own UDP server; the command lines' checks run
+(:class:`~pusupu_jax.hw_bridge.sim_robot.SimRobot`) is tested alone, and behind its own UDP server; the command lines'
+checks run
 their ``main`` in this process.  Every packet goes through the real protocol.
 """
 
@@ -58,6 +59,7 @@ def setup(tmp_path_factory):
 @contextlib.contextmanager
 def _time_limit(seconds: int):
     """The block ends in TimeoutError after ``seconds`` (what runs in this process would hang if it regressed)."""
+
     def expire(signum, frame):
         raise TimeoutError(f"more than {seconds} s")
 
@@ -72,8 +74,13 @@ def _time_limit(seconds: int):
 
 def _resized(fb: protocol.Feedback, n: int) -> protocol.Feedback:
     """``fb`` with ``n`` axes (the first ones, or the first ones repeated): a valid packet of another axis count."""
-    return protocol.Feedback(fb.sequence, fb.timestamp_ns, fb.ack, *(np.resize(a, n) for a in (
-        fb.statusword, fb.mode, fb.position, fb.velocity, fb.torque)), fb.platform)
+    return protocol.Feedback(
+        fb.sequence,
+        fb.timestamp_ns,
+        fb.ack,
+        *(np.resize(a, n) for a in (fb.statusword, fb.mode, fb.position, fb.velocity, fb.torque)),
+        fb.platform,
+    )
 
 
 class WireRobot:
@@ -122,9 +129,17 @@ class WireRobot:
                     speed = cmd.target
                     self.theta = self.theta + speed / RATE
                     self.enabled += 1
-                fb = protocol.Feedback(sequence, time.monotonic_ns(), cmd.sequence,
-                                       np.array([d.statusword for d in self.drives], np.uint16), cmd.mode,
-                                       self.theta.copy(), speed, np.zeros(N), np.full(3, np.nan))
+                fb = protocol.Feedback(
+                    sequence,
+                    time.monotonic_ns(),
+                    cmd.sequence,
+                    np.array([d.statusword for d in self.drives], np.uint16),
+                    cmd.mode,
+                    self.theta.copy(),
+                    speed,
+                    np.zeros(N),
+                    np.full(3, np.nan),
+                )
                 sequence += 1
                 for datagram, s in self.act(self, fb):
                     s.sendto(datagram, addr)
@@ -147,8 +162,10 @@ class WireRobot:
 
 def _from(enabled: int, fault):
     """An ``act`` that answers as the drives do until ``enabled`` commands ran enabled, then as ``fault`` does."""
+
     def act(robot, fb):
         return fault(robot, fb) if robot.enabled >= enabled else [(protocol.encode_feedback(fb), robot.sock)]
+
     return act
 
 
@@ -157,8 +174,9 @@ def _bridge_run(setup: Setup, robot: WireRobot, duration=0.6):
     it sent has reached the robot."""
     ep = Endpoint(protocol.FEEDBACK, n_axes=N, peer=("127.0.0.1", robot.port))
     try:
-        run = Bridge(setup.loop, ep, Safety(setup.limits, 5), connect_s=1.0, lockstep_s=0.05).run(duration,
-                                                                                                     realtime=False)
+        run = Bridge(setup.loop, ep, Safety(setup.limits, 5), connect_s=1.0, lockstep_s=0.05).run(
+            duration, realtime=False
+        )
     finally:
         ep.close()
     robot.close(len(run.commands))
@@ -182,13 +200,15 @@ def _ended_safe(robot: WireRobot, limits: Limits) -> None:
 
 # ---------------------------------------------------------------- packets of another axis count
 
+
 def test_packets_are_decoded_only_at_their_versions_length_and_the_sessions_axis_count():
     """A valid packet (CRC and all) whose axis count is not the session's is refused ("axes"), and so is one a byte
     longer or shorter than its version's layout gives for its kind and axis count ("length")."""
     import zlib
 
-    fb = protocol.Feedback(3, 0, 2, np.full(N, 0x27, np.uint16), np.full(N, 9, np.int8), np.ones(N), np.ones(N),
-                           np.ones(N), np.zeros(3))
+    fb = protocol.Feedback(
+        3, 0, 2, np.full(N, 0x27, np.uint16), np.full(N, 9, np.int8), np.ones(N), np.ones(N), np.ones(N), np.zeros(3)
+    )
     assert len(protocol.encode_feedback(fb)) == 26 + 28 * N + 24 + 4  # version 1: header, axes, platform, CRC
     assert protocol.decode(protocol.encode_feedback(fb), protocol.FEEDBACK, N).sequence == 3
     for n in (1, N - 1, N + 1, protocol.MAX_AXES):
@@ -226,8 +246,14 @@ def robot_model(setup):
 
 
 def _command(sequence, word, target=np.zeros(N), mode=protocol.CSV):
-    return protocol.Command(sequence, 0, 0, np.full(N, word, np.uint16), np.broadcast_to(np.asarray(mode, np.int8), N),
-                            np.asarray(target, float))
+    return protocol.Command(
+        sequence,
+        0,
+        0,
+        np.full(N, word, np.uint16),
+        np.broadcast_to(np.asarray(mode, np.int8), N),
+        np.asarray(target, float),
+    )
 
 
 def test_the_simulated_robot_refuses_a_command_of_another_axis_count_and_serves_on(robot_model):
@@ -246,8 +272,9 @@ def test_the_simulated_robot_refuses_a_command_of_another_axis_count_and_serves_
         words = (cia402.SHUTDOWN, cia402.SWITCH_ON, cia402.ENABLE_OPERATION, cia402.ENABLE_OPERATION)
         for seq, word in enumerate(words):
             if seq == 3:
-                one = protocol.Command(seq + 100, 0, 0, np.array([word], np.uint16), np.array([protocol.CSV], np.int8),
-                                       np.array([1.0]))
+                one = protocol.Command(
+                    seq + 100, 0, 0, np.array([word], np.uint16), np.array([protocol.CSV], np.int8), np.array([1.0])
+                )
                 bridge.sendto(protocol.encode_command(one), ep.address)
             bridge.sendto(protocol.encode_command(_command(seq + 200, word, np.full(N, 1.0))), ep.address)
             replies.append(protocol.decode(bridge.recvfrom(protocol.MAX_PACKET)[0], protocol.FEEDBACK, N))
@@ -261,6 +288,7 @@ def test_the_simulated_robot_refuses_a_command_of_another_axis_count_and_serves_
 
 
 # ---------------------------------------------------------------- feedback from the robot alone
+
 
 def test_the_endpoint_takes_feedback_from_the_robots_address_and_port_alone():
     """The peer named by host name is resolved to the address senders are seen from; the same valid packet from
@@ -291,12 +319,16 @@ def test_feedback_from_another_port_is_refused_and_the_run_stops_safely(setup):
     run = _bridge_run(setup, robot)
     rep = run.report()
     assert [f.kind for f in run.faults] == ["feedback stale"], rep["faults"]
-    assert rep["rejected_packets"] == {"sender": rep["rejected_packets"]["sender"]} and \
-        rep["rejected_packets"]["sender"] >= 5 and not rep["completed"]
+    assert (
+        rep["rejected_packets"] == {"sender": rep["rejected_packets"]["sender"]}
+        and rep["rejected_packets"]["sender"] >= 5
+        and not rep["completed"]
+    )
     _ended_safe(robot, setup.limits)
 
 
 # ---------------------------------------------------------------- the simulated drives check their targets
+
 
 def test_a_simulated_drive_faults_on_a_target_beyond_its_limits_or_a_mode_it_does_not_have(robot_model, setup):
     """As a CiA 402 drive does: enabled, a drive given a NaN, inf, 1e308 or beyond-the-limit target (CSV: V_max/Ke, CST:
@@ -305,9 +337,15 @@ def test_a_simulated_drive_faults_on_a_target_beyond_its_limits_or_a_mode_it_doe
     from pusupu_jax.hw_bridge.sim_robot import SimRobot
 
     vmax, tmax = setup.limits.velocity[1], setup.limits.torque[1]
-    cases = {"nan": (np.nan, protocol.CSV), "inf": (-np.inf, protocol.CSV), "1e308": (1e308, protocol.CSV),
-             "speed": (1.01 * vmax, protocol.CSV), "torque": (-1.01 * tmax, protocol.CST), "mode 8 (CSP)": (0.0, 8),
-             "mode -1": (0.0, -1)}
+    cases = {
+        "nan": (np.nan, protocol.CSV),
+        "inf": (-np.inf, protocol.CSV),
+        "1e308": (1e308, protocol.CSV),
+        "speed": (1.01 * vmax, protocol.CSV),
+        "torque": (-1.01 * tmax, protocol.CST),
+        "mode 8 (CSP)": (0.0, 8),
+        "mode -1": (0.0, -1),
+    }
     for name, (bad, mode_2) in cases.items():
         log = []
         robot = SimRobot(robot_model, watchdog_s=WAIT, log=log.append)
@@ -315,8 +353,9 @@ def test_a_simulated_drive_faults_on_a_target_beyond_its_limits_or_a_mode_it_doe
             robot.handle(_command(seq, word), time.monotonic())
         cst = protocol.CST if mode_2 == protocol.CST else protocol.CSV
         modes = np.where(np.arange(N) == 1, cst, protocol.CSV)
-        moved = robot.handle(_command(3, cia402.ENABLE_OPERATION, np.where(modes == protocol.CST, tmax, vmax), modes),
-                             time.monotonic())
+        moved = robot.handle(
+            _command(3, cia402.ENABLE_OPERATION, np.where(modes == protocol.CST, tmax, vmax), modes), time.monotonic()
+        )
         assert {cia402.state_of(int(w)) for w in moved.statusword} == {cia402.OPERATION_ENABLED}, name
         target = np.where(np.arange(N) == 1, bad, 0.0)
         modes[1] = mode_2
@@ -330,6 +369,7 @@ def test_a_simulated_drive_faults_on_a_target_beyond_its_limits_or_a_mode_it_doe
 
 
 # ---------------------------------------------------------------- every way out of a run ends in the stop
+
 
 @pytest.mark.parametrize("where", ["step", "decoder"])
 def test_an_exception_inside_a_cycle_ends_in_the_stop_and_the_report(setup, monkeypatch, where):
@@ -377,6 +417,7 @@ def _lagging(lag: int, states: list):
             held.clear()
             return [(protocol.encode_feedback(fb), robot.sock)]
         return [(held.pop(0), robot.sock)] if len(held) > lag else []
+
     return act
 
 
@@ -396,8 +437,15 @@ def test_bring_up_on_late_feedback_walks_the_state_machine_once(setup, lag):
     assert all(len(s) == 1 for s in states)
     walk = [s.pop() for s in states]
     walk = [w for k, w in enumerate(walk) if not k or w != walk[k - 1]]
-    assert walk == [cia402.FAULT, cia402.SWITCH_ON_DISABLED, cia402.READY, cia402.SWITCHED_ON,
-                    cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE, cia402.SWITCH_ON_DISABLED], walk
+    assert walk == [
+        cia402.FAULT,
+        cia402.SWITCH_ON_DISABLED,
+        cia402.READY,
+        cia402.SWITCHED_ON,
+        cia402.OPERATION_ENABLED,
+        cia402.QUICK_STOP_ACTIVE,
+        cia402.SWITCH_ON_DISABLED,
+    ], walk
     _ended_safe(robot, setup.limits)
 
 
@@ -411,6 +459,7 @@ def _signal_at(enabled: int, sig):
         if robot.enabled == enabled and signal.getsignal(sig) is not usual:
             os.kill(os.getpid(), sig)
         return [(protocol.encode_feedback(fb), robot.sock)]
+
     return act
 
 
@@ -438,10 +487,30 @@ def test_pusupu_bridge_on_sigint_or_sigterm_prints_its_report_and_exits_130_or_1
     for sig in (signal.SIGINT, signal.SIGTERM):
         robot = WireRobot()
         bind = ["--bind", "0.0.0.0"] if sig == signal.SIGINT else []
-        proc = subprocess.Popen([sys.executable, "-m", "pusupu_jax.cli", "bridge", "--gains", str(setup.path), "--robot",
-                                 f"udp://127.0.0.1:{robot.port}", "--rate", "100", "--duration", "30", "--watchdog",
-                                 "50", "--no-realtime", "--json", *bind], stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True)
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "pusupu_jax.cli",
+                "bridge",
+                "--gains",
+                str(setup.path),
+                "--robot",
+                f"udp://127.0.0.1:{robot.port}",
+                "--rate",
+                "100",
+                "--duration",
+                "30",
+                "--watchdog",
+                "50",
+                "--no-realtime",
+                "--json",
+                *bind,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         runs[sig] = (robot, proc)
     try:
         for sig, (robot, proc) in runs.items():
@@ -457,8 +526,14 @@ def test_pusupu_bridge_on_sigint_or_sigterm_prints_its_report_and_exits_130_or_1
             assert rep["ended"] == sig.name and not rep["completed"] and not rep["faults"], rep
             assert f"pusupu: {sig.name}: the run stopped (quick stop, then disable voltage)" in err.splitlines()
             warnings = [line for line in err.splitlines() if line.startswith("pusupu: warning:")]
-            assert warnings == (["pusupu: warning: --bind 0.0.0.0: the bridge takes packets on every interface "
-                                 "(0.0.0.0), not on loopback alone"] if sig == signal.SIGINT else []), err
+            assert warnings == (
+                [
+                    "pusupu: warning: --bind 0.0.0.0: the bridge takes packets on every interface "
+                    "(0.0.0.0), not on loopback alone"
+                ]
+                if sig == signal.SIGINT
+                else []
+            ), err
             _ended_safe(robot, setup.limits)
     finally:
         for robot, proc in runs.values():
@@ -467,6 +542,7 @@ def test_pusupu_bridge_on_sigint_or_sigterm_prints_its_report_and_exits_130_or_1
 
 
 # ---------------------------------------------------------------- the following error (CiA 402 0x6065, 0x6066)
+
 
 def test_the_following_error_trips_once_an_error_stays_beyond_its_window_past_its_time_out(setup):
     """Cycle by cycle at 1 kHz: an error beyond the window (converted from slider travel with the screw ratio) for up to
@@ -484,8 +560,10 @@ def test_the_following_error_trips_once_an_error_stays_beyond_its_window_past_it
         assert safety.check_following(k, k * 1e-3, np.zeros(N), -beyond), k
     assert not safety.check_following(2 * steps + 3, (2 * steps + 3) * 1e-3, np.zeros(N), -beyond)
     assert [f.kind for f in safety.faults] == ["following error"]
-    assert safety.faults[0].detail == "axis 3 5.05 mm of slider travel from its reference, beyond its 5 mm window " \
-                                      "for 51 ms (time-out 50 ms)"
+    assert (
+        safety.faults[0].detail == "axis 3 5.05 mm of slider travel from its reference, beyond its 5 mm window "
+        "for 51 ms (time-out 50 ms)"
+    )
 
 
 def _axis_1_stuck(offset: float):
@@ -497,6 +575,7 @@ def _axis_1_stuck(offset: float):
             held.append(robot.theta[0] + offset)
         robot.theta[0] = fb.position[0] = held[0]
         return [(protocol.encode_feedback(fb), robot.sock)]
+
     return fault
 
 
@@ -508,8 +587,9 @@ def test_an_axis_that_stops_following_its_path_trips_the_following_error_and_a_c
     lim = setup.limits
     robot = WireRobot(_from(50, _axis_1_stuck(2 * lim.following_error[0] / lim.screw[0])))
     run = _bridge_run(setup, robot)
-    assert [f.kind for f in run.faults] == ["following error"] and run.faults[0].detail.startswith("axis 1 "), \
+    assert [f.kind for f in run.faults] == ["following error"] and run.faults[0].detail.startswith("axis 1 "), (
         run.report()["faults"]
+    )
     enabled = next(k for k, word, _ in run.commands if word == cia402.ENABLE_OPERATION)
     stuck = enabled + 50  # the robot's 50th enabled command: the bridge's of cycle enabled + 49, answered in lock step
     assert stuck + 26 <= run.faults[0].cycle <= stuck + 26 + 3, (run.faults[0].line(), enabled)  # late replies: later
@@ -525,6 +605,7 @@ def test_an_axis_that_stops_following_its_path_trips_the_following_error_and_a_c
 
 # ---------------------------------------------------------------- an address beyond loopback is said
 
+
 def test_the_simulated_robot_says_so_when_it_listens_beyond_loopback(setup, monkeypatch, capsys):
     """``pusupu sim-robot --listen udp://0.0.0.0:PORT`` (its ``main``, in this process): one line on stderr as soon as
     the address is read, naming it, before anything else (here a bad option ends the command there, nothing bound)."""
@@ -534,8 +615,13 @@ def test_the_simulated_robot_says_so_when_it_listens_beyond_loopback(setup, monk
     with pytest.raises(SystemExit) as e:
         main(["sim-robot", "--gains", str(setup.path), "--listen", "udp://0.0.0.0:5600", "--drive-watchdog", "0"])
     err = capsys.readouterr().err.splitlines()
-    assert e.value.code == 2 and err[0] == "pusupu: warning: --listen udp://0.0.0.0:5600: the simulated robot takes " \
-        "commands on every interface (0.0.0.0), not on loopback alone" and err[1].startswith("pusupu: error:"), err
+    assert (
+        e.value.code == 2
+        and err[0]
+        == "pusupu: warning: --listen udp://0.0.0.0:5600: the simulated robot takes "
+        "commands on every interface (0.0.0.0), not on loopback alone"
+        and err[1].startswith("pusupu: error:")
+    ), err
     with pytest.raises(SystemExit):
         main(["sim-robot", "--gains", str(setup.path), "--listen", "udp://localhost:5600", "--drive-watchdog", "0"])
     assert not capsys.readouterr().err.startswith("pusupu: warning:")
@@ -550,8 +636,10 @@ BEYOND = [
     (["sim-robot", "--kin-error", "-1"], "--kin-error: expected a non-negative integer seed, got -1"),
     (["sim-robot", "--seconds", "nan"], "--seconds: expected a positive number of seconds, got nan"),
     (["sim-robot", "--rate", "0.001"], "rate: expected a number of Hz in [1, 4000], got 0.001"),
-    (["sim-robot", "--fault", "reorder@0.3:1e18"],
-     "--fault reorder@0.3:1e18: expected ARG a whole number of replies in [1, 1000], got 1e18"),
+    (
+        ["sim-robot", "--fault", "reorder@0.3:1e18"],
+        "--fault reorder@0.3:1e18: expected ARG a whole number of replies in [1, 1000], got 1e18",
+    ),
     (["sim-robot", "--fault", "drop@0.3:2"], "--fault drop@0.3:2: expected ARG a probability in [0, 1], got 2"),
 ]
 

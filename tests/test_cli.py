@@ -12,8 +12,13 @@ import pytest
 
 
 def pusupu(*args, check=True):
-    r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", *args], capture_output=True, text=True,
-                       env=dict(os.environ), timeout=600)
+    r = subprocess.run(
+        [sys.executable, "-m", "pusupu_jax.cli", *args],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ),
+        timeout=600,
+    )
     if check:
         assert r.returncode == 0, r.stderr
     return r
@@ -25,16 +30,26 @@ def test_analyze_json_has_every_loop_of_every_axis(tmp_path):
     assert len(out["axes"]) == 6
     for axis in out["axes"]:
         for loop in ("current", "velocity", "position"):
-            assert set(axis[loop]) == {"crossover_hz", "phase_margin_deg", "gain_margin_db", "bandwidth_hz",
-                                       "rise_time_s", "settling_time_s", "overshoot_pct"}
+            assert set(axis[loop]) == {
+                "crossover_hz",
+                "phase_margin_deg",
+                "gain_margin_db",
+                "bandwidth_hz",
+                "rise_time_s",
+                "settling_time_s",
+                "overshoot_pct",
+            }
     assert out["axes"][0]["current"]["crossover_hz"] == pytest.approx(245.6, rel=0.005)  # the machine's 71.2 kg
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_sim_step_prints_metrics_and_plots(tmp_path):
     png = tmp_path / "step.png"
-    out = json.loads(pusupu("sim", "--plant", "axis", "--trajectory", "step", "--json", "--plot", str(png),
-                            "--duration", "0.5").stdout)
+    out = json.loads(
+        pusupu(
+            "sim", "--plant", "axis", "--trajectory", "step", "--json", "--plot", str(png), "--duration", "0.5"
+        ).stdout
+    )
     assert out["duration_s"] == pytest.approx(0.5)
     assert len(out["rms_error_mm"]) == 6 and 0 < out["rms_error_mm"][0] < 5
     assert out["max_error_mm"][0] == pytest.approx(5.0, rel=1e-3)  # the step itself, at t = 0
@@ -43,13 +58,16 @@ def test_sim_step_prints_metrics_and_plots(tmp_path):
     assert "rms_error_mm" in table and "pid mode" in table
 
 
-@pytest.mark.parametrize("args,message", [
-    (["sim", "--params", "{bad}"], "servo: {Tv: -1}"),
-    (["analyze", "--params", "{bad}"], "servo: {Foo: 1}"),
-    (["sim", "--trajectory", "bogus"], None),
-    (["sim", "--plot", "/no/such/folder/x.png"], None),
-    (["analyze", "--params", "/no/such/file.yaml"], None),
-])
+@pytest.mark.parametrize(
+    "args,message",
+    [
+        (["sim", "--params", "{bad}"], "servo: {Tv: -1}"),
+        (["analyze", "--params", "{bad}"], "servo: {Foo: 1}"),
+        (["sim", "--trajectory", "bogus"], None),
+        (["sim", "--plot", "/no/such/folder/x.png"], None),
+        (["analyze", "--params", "/no/such/file.yaml"], None),
+    ],
+)
 def test_bad_input_exits_2_with_one_line(tmp_path, args, message):
     bad = tmp_path / "bad.yaml"
     if message:
@@ -63,8 +81,9 @@ def test_bad_input_exits_2_with_one_line(tmp_path, args, message):
 
 def test_sim_mjx_reports_the_machine_metrics(tmp_path):
     png = tmp_path / "p2p.png"
-    out = json.loads(pusupu("sim", "--plant", "mjx", "--trajectory", "p2p", "--mode", "pid", "--json",
-                            "--plot", str(png)).stdout)
+    out = json.loads(
+        pusupu("sim", "--plant", "mjx", "--trajectory", "p2p", "--mode", "pid", "--json", "--plot", str(png)).stdout
+    )
     assert "hybrid" not in out
     for key in ("branch_rms_error_mm", "motor_torque_peak_nm", "branch_force_peak_n"):
         assert len(out[key]) == 6 and all(v > 0 for v in out[key])
@@ -74,11 +93,16 @@ def test_sim_mjx_reports_the_machine_metrics(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-@pytest.mark.parametrize("args", [["sim", "--plant", "mjx", "--trajectory", "sine"],
-                                  ["sim", "--plant", "axis", "--trajectory", "arc"],
-                                  ["sim", "--plant", "axis", "--kin-error", "3"],
-                                  ["sim", "--plant", "mjx", "--duration", "2"],
-                                  ["sim", "--plant", "axis", "--mode", "hybrid"]])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["sim", "--plant", "mjx", "--trajectory", "sine"],
+        ["sim", "--plant", "axis", "--trajectory", "arc"],
+        ["sim", "--plant", "axis", "--kin-error", "3"],
+        ["sim", "--plant", "mjx", "--duration", "2"],
+        ["sim", "--plant", "axis", "--mode", "hybrid"],
+    ],
+)
 def test_bad_machine_arguments_exit_2_with_one_line(args):
     r = pusupu(*args, check=False)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
@@ -89,8 +113,22 @@ def test_sim_mjx_hybrid_takes_its_gains_from_the_params_file(tmp_path):
     """Hybrid mode on the p2p path with kinematic errors; the eq. 14 gains come from the file's hybrid section."""
     params = tmp_path / "params.yaml"
     params.write_text("hybrid: {m6: 0.5, c6: 4000.0, g: 500.0, form: signed}\n")
-    out = json.loads(pusupu("sim", "--plant", "mjx", "--trajectory", "p2p", "--mode", "hybrid", "--kin-error", "3",
-                            "--params", str(params), "--json").stdout)
+    out = json.loads(
+        pusupu(
+            "sim",
+            "--plant",
+            "mjx",
+            "--trajectory",
+            "p2p",
+            "--mode",
+            "hybrid",
+            "--kin-error",
+            "3",
+            "--params",
+            str(params),
+            "--json",
+        ).stdout
+    )
     assert out["mode"] == "hybrid" and out["kin_error_seed"] == 3
     assert out["hybrid"]["form"] == "signed" and out["hybrid"]["c6"] == 4000.0
     assert 50.0 < out["hybrid"]["force_ff_peak_n"] < 200.0  # branch 6's share of the ~90 kg machine's weight
@@ -137,8 +175,16 @@ def test_tune_writes_gains_ros_files_report_and_plots(tuned):
 
     folder, report = tuned
     out = folder / "out"
-    for name in ("gains.yaml", "ros2_pid_controller.yaml", "ros2_joint_trajectory_controller.yaml", "report.json",
-                 "objective.png", "path_p2p.png", "forces_p2p.png", "checkpoint.npz"):
+    for name in (
+        "gains.yaml",
+        "ros2_pid_controller.yaml",
+        "ros2_joint_trajectory_controller.yaml",
+        "report.json",
+        "objective.png",
+        "path_p2p.png",
+        "forces_p2p.png",
+        "checkpoint.npz",
+    ):
         assert (out / name).stat().st_size > 0, name
     assert not list(out.glob("*.pkl"))
     assert report["tuned_fields"] == ["lambda1", "lambda2", "T0", "Kv", "Tv", "m6", "c6", "g"]
@@ -166,8 +212,17 @@ def test_tune_writes_gains_ros_files_report_and_plots(tuned):
 def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
     """SIGKILL after the first checkpoint, run the same command again: the result equals the uninterrupted run's."""
     folder, report = tuned
-    cmd = [sys.executable, "-m", "pusupu_jax.cli", "tune", "--config", str(folder / "tiny.yaml"),
-           "--out", str(tmp_path / "out"), "--json"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pusupu_jax.cli",
+        "tune",
+        "--config",
+        str(folder / "tiny.yaml"),
+        "--out",
+        str(tmp_path / "out"),
+        "--json",
+    ]
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ))
     deadline = time.time() + 600
     while not (tmp_path / "out" / "checkpoint.npz").exists() and p.poll() is None and time.time() < deadline:
@@ -184,12 +239,26 @@ def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
 def test_ctrl_c_during_a_tune_ends_with_one_line(tuned, tmp_path):
     """Ctrl-C used to end in a KeyboardInterrupt traceback; now one line saying how to resume, and exit status 130."""
     folder, _ = tuned
-    cmd = [sys.executable, "-m", "pusupu_jax.cli", "tune", "--config", str(folder / "tiny.yaml"),
-           "--out", str(tmp_path / "out")]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pusupu_jax.cli",
+        "tune",
+        "--config",
+        str(folder / "tiny.yaml"),
+        "--out",
+        str(tmp_path / "out"),
+    ]
     # Ctrl-C as at a terminal: SIGINT's default action in the child, even where this suite runs as a background job
     # of a non-interactive shell, which starts with SIGINT ignored (and Python then installs no KeyboardInterrupt)
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=dict(os.environ),
-                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    p = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=dict(os.environ),
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     deadline = time.time() + 600
     while not (tmp_path / "out" / ".pusupu.lock").exists() and p.poll() is None and time.time() < deadline:
         time.sleep(0.05)
@@ -197,8 +266,9 @@ def test_ctrl_c_during_a_tune_ends_with_one_line(tuned, tmp_path):
     _, err = p.communicate(timeout=600)
     assert p.returncode == 130, err
     lines = [line for line in err.splitlines() if line.startswith("pusupu")]
-    assert lines == [f"pusupu: interrupted (the checkpoint in {tmp_path / 'out'} keeps the run: the same command "
-                     "resumes it)"], err
+    assert lines == [
+        f"pusupu: interrupted (the checkpoint in {tmp_path / 'out'} keeps the run: the same command resumes it)"
+    ], err
     assert "Traceback" not in err
 
 
@@ -223,8 +293,13 @@ status = cli.main(["analyze", "--json"])
 print("fired", len(fired), file=sys.stderr)
 sys.exit(status)
 """
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
-                       preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    r = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+    )
     assert "fired 1" in r.stderr, r.stderr[-2000:]
     assert r.returncode == 130, r.stderr[-2000:]
     # one line, as for any Ctrl-C: no 'Exception ignored in ...' traceback for the dropped KeyboardInterrupt
@@ -244,8 +319,18 @@ def test_a_bad_gain_file_exits_2_with_one_line(tuned, tmp_path):
 
 def test_gains_check_ros_prints_both_controllers(tuned):
     folder, _ = tuned
-    out = json.loads(pusupu("gains", "check-ros", str(folder / "out" / "gains.yaml"), "--trajectory", "p2p",
-                            "--seconds", "0.3", "--json").stdout)
+    out = json.loads(
+        pusupu(
+            "gains",
+            "check-ros",
+            str(folder / "out" / "gains.yaml"),
+            "--trajectory",
+            "p2p",
+            "--seconds",
+            "0.3",
+            "--json",
+        ).stdout
+    )
     for who in ("pusupu", "ros"):
         assert out["paths"]["p2p"][who]["rms_tracking_error_mm"] > 0
         assert out["position_margins"][who]["phase_margin_deg"] > 0
@@ -282,32 +367,45 @@ def test_a_second_run_into_a_busy_folder_is_refused(tmp_path):
     assert r.returncode == 2 and f"pid {os.getpid()}" in r.stderr and "in use" in r.stderr, r.stderr
 
 
-@pytest.mark.parametrize("args, message", [
-    (["tune", "--out", ""], "--out: expected a folder, got an empty name"),
-    (["tune", "--quick", "--out", "{file}/sub"], "--out: cannot write"),
-    (["tune", "--quick", "--out", "{file}"], "--out: expected a folder, got the file"),
-    (["tune", "--config", "{config}"], "pm_min: expected a finite number"),
-    (["sim", "--plot", "{dir}"], "--plot: expected the path of a PNG file, got the folder"),
-    (["sim", "--duration", "1e4"], "trajectory duration: expected at most 2000 s"),
-    (["sim", "--params", "{rates}"], "rates: f_current is 1e+12 Hz; expected 1000 to 100000 Hz"),
-    (["sim", "--plant", "mjx", "--kin-error", "-1"], "expected a non-negative integer seed"),
-    (["sim", "--params", "{binary}"], "expected a UTF-8 text"),
-    (["sim", "--params", "{bomb}"], "anchors are not accepted"),
-    (["sim", "--params", "{mixed}"], "expected string keys"),
-    (["sim", "--params", "{quoted}"], "ServoParams.Kv: expected a number, got str"),
-    (["sim", "--params", "{duplicate}"], "duplicate key 'servo'"),
-    (["sim", "--params", "{zero}"], "ServoParams: expected a mapping of fields, got int 0"),
-    (["sim", "--plant", "mjx", "--mode", "hybrid", "--params", "{hybrid_list}"], "HybridGains.m6: expected a number"),
-])
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["tune", "--out", ""], "--out: expected a folder, got an empty name"),
+        (["tune", "--quick", "--out", "{file}/sub"], "--out: cannot write"),
+        (["tune", "--quick", "--out", "{file}"], "--out: expected a folder, got the file"),
+        (["tune", "--config", "{config}"], "pm_min: expected a finite number"),
+        (["sim", "--plot", "{dir}"], "--plot: expected the path of a PNG file, got the folder"),
+        (["sim", "--duration", "1e4"], "trajectory duration: expected at most 2000 s"),
+        (["sim", "--params", "{rates}"], "rates: f_current is 1e+12 Hz; expected 1000 to 100000 Hz"),
+        (["sim", "--plant", "mjx", "--kin-error", "-1"], "expected a non-negative integer seed"),
+        (["sim", "--params", "{binary}"], "expected a UTF-8 text"),
+        (["sim", "--params", "{bomb}"], "anchors are not accepted"),
+        (["sim", "--params", "{mixed}"], "expected string keys"),
+        (["sim", "--params", "{quoted}"], "ServoParams.Kv: expected a number, got str"),
+        (["sim", "--params", "{duplicate}"], "duplicate key 'servo'"),
+        (["sim", "--params", "{zero}"], "ServoParams: expected a mapping of fields, got int 0"),
+        (
+            ["sim", "--plant", "mjx", "--mode", "hybrid", "--params", "{hybrid_list}"],
+            "HybridGains.m6: expected a number",
+        ),
+    ],
+)
 def test_every_probe_input_ends_in_one_line_and_exit_2(tmp_path, args, message):
     """A reliability probe: inputs that ended in tracebacks, hangs or silent acceptance, each one line now,
     before any compile."""
-    files = {"file": ("f.txt", b"x"), "dir": ("d", None), "config": ("c.yaml", b"pm_min: .nan\n"),
-             "rates": ("r.yaml", b"rates: {f_current: 1.0e+12}\n"), "binary": ("b.yaml", bytes(range(256))),
-             "bomb": ("bomb.yaml", b"a: &a [x, x]\nb: &b [*a, *a]\nservo: [*b, *b]\n"),
-             "mixed": ("m.yaml", b"{1: 2, foo: 3}\n"), "quoted": ("q.yaml", b"servo: {Kv: '0.015'}\n"),
-             "duplicate": ("dup.yaml", b"servo: {Kv: 0.01}\nservo: {Kv: 0.02}\n"), "zero": ("z.yaml", b"servo: 0\n"),
-             "hybrid_list": ("h.yaml", b"hybrid: {m6: [1, 2, 3]}\n")}
+    files = {
+        "file": ("f.txt", b"x"),
+        "dir": ("d", None),
+        "config": ("c.yaml", b"pm_min: .nan\n"),
+        "rates": ("r.yaml", b"rates: {f_current: 1.0e+12}\n"),
+        "binary": ("b.yaml", bytes(range(256))),
+        "bomb": ("bomb.yaml", b"a: &a [x, x]\nb: &b [*a, *a]\nservo: [*b, *b]\n"),
+        "mixed": ("m.yaml", b"{1: 2, foo: 3}\n"),
+        "quoted": ("q.yaml", b"servo: {Kv: '0.015'}\n"),
+        "duplicate": ("dup.yaml", b"servo: {Kv: 0.01}\nservo: {Kv: 0.02}\n"),
+        "zero": ("z.yaml", b"servo: 0\n"),
+        "hybrid_list": ("h.yaml", b"hybrid: {m6: [1, 2, 3]}\n"),
+    }
     paths = {}
     for key, (name, data) in files.items():
         paths[key] = tmp_path / name
@@ -325,7 +423,9 @@ def test_version_and_python_m():
     from pusupu_jax import __version__
 
     assert pusupu("--version").stdout.strip() == f"pusupu {__version__}"
-    r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", "--version"], capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "pusupu_jax.cli", "--version"], capture_output=True, text=True, timeout=120
+    )
     assert r.returncode == 0 and r.stdout.strip() == f"pusupu {__version__}"
 
 
@@ -338,11 +438,15 @@ def test_a_write_that_fails_midway_keeps_the_old_file_and_ends_in_one_line(tmp_p
 
     path = gains.write(tmp_path / "gains.yaml", ServoParams.table1(), HybridGains(), LoopRates(n_mech=5), mode="imc")
     before = path.read_bytes()
-    limited = ("import resource, runpy, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
-               "resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096)); "
-               f"sys.argv = ['pusupu', 'gains', 'sign', {str(path)!r}]; runpy.run_module('pusupu_jax.cli', run_name='__main__')")
-    r = subprocess.run([sys.executable, "-c", limited], capture_output=True, text=True, env=dict(os.environ),
-                       timeout=300)
+    limited = (
+        "import resource, runpy, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (4096, 4096)); "
+        f"sys.argv = ['pusupu', 'gains', 'sign', {str(path)!r}]; "
+        "runpy.run_module('pusupu_jax.cli', run_name='__main__')"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", limited], capture_output=True, text=True, env=dict(os.environ), timeout=300
+    )
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "File too large" in r.stderr
     assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["gains.yaml"]

@@ -19,6 +19,7 @@ GAINS = C.AdmittanceGains(mass=np.full(3, 20.0), damping=np.full(3, 8000.0), sti
 
 def _step_response(gains, force, dt, seconds):
     """The offsets [m] after each period under a constant contact force ``force`` [N] from rest, ``(N, 3)``."""
+
     def body(state, _):
         state = C.step(gains, state, jnp.asarray(force), jnp.zeros(3), dt)
         return state, state.offset
@@ -36,8 +37,9 @@ def test_the_admittance_converges_to_python_controls_mass_damper_spring():
     for dt in (1e-3, 5e-4):
         x = _step_response(GAINS, [0.0, 0.0, 10.0], dt, 1.0)[:, 2]
         t = np.arange(1, len(x) + 1) * dt
-        _, y = ct.forced_response(ct.tf([1.0], [20.0, 8000.0, 2e4]), T=np.concatenate([[0.0], t]),
-                                  U=np.full(len(t) + 1, 10.0))
+        _, y = ct.forced_response(
+            ct.tf([1.0], [20.0, 8000.0, 2e4]), T=np.concatenate([[0.0], t]), U=np.full(len(t) + 1, 10.0)
+        )
         errors.append(float(np.max(np.abs(x - np.asarray(y)[1:]))) / 5e-4)
     assert errors[0] < 0.01, errors
     assert 1.8 < errors[0] / errors[1] < 2.2, errors
@@ -49,28 +51,35 @@ def test_selection_and_clamp():
     x = _step_response(gains, [50.0, 50.0, 0.0], 1e-3, 2.0)
     assert np.all(x[:, 0] == 0.0)
     assert x[-1, 1] == pytest.approx(0.001)  # the y damper would run on forever: clamped at 1 mm
-    back = C.step(gains, C.AdmittanceState(jnp.asarray(x[-1]), jnp.zeros(3)), jnp.asarray([0.0, -50.0, 0.0]),
-                  jnp.zeros(3), 1e-3)
+    back = C.step(
+        gains, C.AdmittanceState(jnp.asarray(x[-1]), jnp.zeros(3)), jnp.asarray([0.0, -50.0, 0.0]), jnp.zeros(3), 1e-3
+    )
     assert float(back.offset[1]) < 0.001  # and leaves it as soon as the force turns
 
 
-@pytest.mark.parametrize("change, message", [
-    (dict(mass=np.array([20.0, -1.0, 20.0])), "mass > 0"),
-    (dict(damping=np.full(3, np.nan)), "admittance.damping: expected one finite number or three"),
-    (dict(max_offset=0.0), "admittance.max_offset: expected a positive offset"),
-    (dict(mass=np.full(3, 1.0)), "dt D/M < 1"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(mass=np.array([20.0, -1.0, 20.0])), "mass > 0"),
+        (dict(damping=np.full(3, np.nan)), "admittance.damping: expected one finite number or three"),
+        (dict(max_offset=0.0), "admittance.max_offset: expected a positive offset"),
+        (dict(mass=np.full(3, 1.0)), "dt D/M < 1"),
+    ],
+)
 def test_bad_admittance_gains_are_named(change, message):
     with pytest.raises(ParameterError, match=message):
         C.validate_gains(GAINS.replace(**change), 1e-3)
 
 
-@pytest.mark.parametrize("change, message", [
-    (dict(scene="wavy"), "ModelOptions.scene: expected one of"),
-    (dict(cone="round"), "ModelOptions.cone: expected one of"),
-    (dict(friction=-0.1), "ModelOptions.friction: expected a finite number >= 0"),
-    (dict(hole_offset=(0.001,)), "ModelOptions.hole_offset: expected"),
-])
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (dict(scene="wavy"), "ModelOptions.scene: expected one of"),
+        (dict(cone="round"), "ModelOptions.cone: expected one of"),
+        (dict(friction=-0.1), "ModelOptions.friction: expected a finite number >= 0"),
+        (dict(hole_offset=(0.001,)), "ModelOptions.hole_offset: expected"),
+    ],
+)
 def test_bad_contact_options_are_named(change, message):
     from pusupu_jax.plant.model import build_model
 
@@ -82,5 +91,10 @@ def test_a_force_setpoint_of_the_wrong_shape_is_named():
     options = ModelOptions(contacts=True, solver_iterations=4, cone="elliptic")
     path = np.repeat(np.asarray(Geometry.default().home)[None], 10, axis=0)
     with pytest.raises(ValueError, match=r"force_setpoint: expected finite forces \[N\] of shape \(3,\) or \(10, 3\)"):
-        simulate_scenarios(ServoParams.table1(), [Scenario(path, options)], mode="imc", compliance=GAINS,
-                           force_setpoint=np.zeros((5, 3)))
+        simulate_scenarios(
+            ServoParams.table1(),
+            [Scenario(path, options)],
+            mode="imc",
+            compliance=GAINS,
+            force_setpoint=np.zeros((5, 3)),
+        )

@@ -24,9 +24,10 @@ def test_a_compliant_run_with_nothing_touching_is_the_plain_run():
     closed form, evaluated in the scan instead of before it)."""
     options = peg_in_hole.options()  # the experiment's scene and solver: 3 mm misalignment, 4 Newton iterations
     path = np.repeat(np.asarray(Geometry.default().home)[None], 100, axis=0)
-    (plain, a), = simulate_scenarios(ServoParams.table1(), [Scenario(path, options)], mode="imc")
-    (soft, b), = simulate_scenarios(ServoParams.table1(), [Scenario(path, options)], mode="imc",
-                                    compliance=peg_in_hole.ADMITTANCE)
+    ((plain, a),) = simulate_scenarios(ServoParams.table1(), [Scenario(path, options)], mode="imc")
+    ((soft, b),) = simulate_scenarios(
+        ServoParams.table1(), [Scenario(path, options)], mode="imc", compliance=peg_in_hole.ADMITTANCE
+    )
     assert np.all(b["contact_force"] == 0.0) and np.all(b["compliance_offset"] == 0.0)
     np.testing.assert_allclose(b["platform"], a["platform"], rtol=1e-12, atol=1e-15)
     np.testing.assert_allclose(soft["branch_force_peak_n"], plain["branch_force_peak_n"], rtol=1e-12)
@@ -34,8 +35,12 @@ def test_a_compliant_run_with_nothing_touching_is_the_plain_run():
 
 
 def _experiment(name, out):
-    proc = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", "experiment", name, "--quick", "--out", str(out),
-                           "--json"], capture_output=True, text=True, timeout=TIMEOUT_S)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pusupu_jax.cli", "experiment", name, "--quick", "--out", str(out), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT_S,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     for suffix in (".json", ".md", ".png"):
         assert (out / f"{name}{suffix}").stat().st_size > 0

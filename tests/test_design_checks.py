@@ -51,14 +51,18 @@ def test_2dof_imc_responses_with_a_perfect_model(table1, lambda1, lambda2, sourc
     f_d = (3 * lambda2 * s + 1) / (lambda2 * s + 1) ** 3
     P = ct.ss(1 / (s * (T0 * s + 1)))
     if source == "jax":  # the discretiser's continuous blocks, brought into python-control
+
         def c1(form):
             blk = loops.imc_c1(jnp.full(6, lambda1), jnp.full(6, lambda2), form)
             return ct.ss(*(np.asarray(m)[0] for m in (blk.A, blk.B, blk.C, blk.D)))
+
         blk = loops.imc_c2(jnp.full(6, lambda2), jnp.full(6, T0))
         c2 = ct.ss(*(np.asarray(m)[0] for m in (blk.A, blk.B, blk.C, blk.D)))
     else:
+
         def c1(form):
             return an.imc_c1(lambda1, lambda2, form)
+
         c2 = an.blocks(table1.replace(lambda2=np.full(6, lambda2)), AxisLoad.default())["C2"]
         c2 = ct.ss(*ct.ssdata(c2))
     loop = ct.feedback(c2 * P, 1)  # theta / r1: the loop's complementary sensitivity
@@ -75,11 +79,16 @@ def test_jax_blocks_match_the_analysis_blocks(table1, name):
     p = table1.replace(imc_form="printed") if name == "C1 printed" else table1
     name = name.split()[0]
     jax_block = {
-        "Gxi": loops.first_order(jnp.ones(6), p.Tcf), "Gcf": loops.first_order(p.Kcf, p.Tcf),
-        "Gi": loops.pi_controller(p.Ki, p.Ti), "Gxv": loops.first_order(jnp.ones(6), p.Tw),
-        "Gw": loops.first_order(p.Kw, p.Tw), "Gv": loops.pi_controller(p.Kv, p.Tv),
-        "C1": loops.imc_c1(p.lambda1, p.lambda2, p.imc_form), "C2": loops.imc_c2(p.lambda2, p.T0),
-        "PID": loops.pid_controller(p.Kp_pid, p.Ki_pid, p.Kd_pid, p.Tf_pid)}[name]
+        "Gxi": loops.first_order(jnp.ones(6), p.Tcf),
+        "Gcf": loops.first_order(p.Kcf, p.Tcf),
+        "Gi": loops.pi_controller(p.Ki, p.Ti),
+        "Gxv": loops.first_order(jnp.ones(6), p.Tw),
+        "Gw": loops.first_order(p.Kw, p.Tw),
+        "Gv": loops.pi_controller(p.Kv, p.Tv),
+        "C1": loops.imc_c1(p.lambda1, p.lambda2, p.imc_form),
+        "C2": loops.imc_c2(p.lambda2, p.T0),
+        "PID": loops.pid_controller(p.Kp_pid, p.Ki_pid, p.Kd_pid, p.Tf_pid),
+    }[name]
     ref = an.blocks(p, AxisLoad.default())[name]
     np.testing.assert_allclose(_freq(jax_block, W), ref(1j * W), rtol=1e-8)
 

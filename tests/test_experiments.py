@@ -6,6 +6,7 @@ from pathlib import Path
 import pytest
 
 from pusupu_jax import experiments
+from pusupu_jax.experiments import hybrid_grid
 from pusupu_jax.params import ParameterError
 
 
@@ -31,8 +32,10 @@ def test_hybrid_grid_quick_is_stable_at_the_smallest_admissible_lambda2(tmp_path
     assert m["lambda2_min"] == pytest.approx(0.0273, abs=5e-4)
     assert m["default_m6_diverged"] == 0
     for rule in ("lambda1 = lambda2", "lambda1 = 0.018"):
-        new, old = (next(r for r in m["rows"] if r["m6"] == m6 and r["rule"] == rule and r["lambda2"] == m["lambda2_min"])
-                    for m6 in (m["m6_default"], pusupu_jax.experiments.hybrid_grid.OLD_M6))
+        new, old = (
+            next(r for r in m["rows"] if r["m6"] == m6 and r["rule"] == rule and r["lambda2"] == m["lambda2_min"])
+            for m6 in (m["m6_default"], hybrid_grid.OLD_M6)
+        )
         assert old["max_tracking_error_mm"] > 2.5 * new["max_tracking_error_mm"], (rule, old, new)
         assert old["highest_force_peak_n"] > 1.4 * new["highest_force_peak_n"], (rule, old, new)
 
@@ -63,10 +66,17 @@ def tweaked_gains(tmp_path_factory):
     from pusupu_jax import LoopRates, ServoParams, gains
     from pusupu_jax.hybrid import HybridGains
 
-    servo = ServoParams.table1().replace(lambda1=np.full(6, 0.012), lambda2=np.full(6, 0.08), T0=np.full(6, 0.03),
-                                         Kv=np.full(6, 0.012))
-    return gains.write(tmp_path_factory.mktemp("gains") / "gains.yaml", servo, HybridGains(m6=5000.0), LoopRates(),
-                       mode="hybrid", tuned=("lambda1", "lambda2", "T0", "Kv", "m6"))
+    servo = ServoParams.table1().replace(
+        lambda1=np.full(6, 0.012), lambda2=np.full(6, 0.08), T0=np.full(6, 0.03), Kv=np.full(6, 0.012)
+    )
+    return gains.write(
+        tmp_path_factory.mktemp("gains") / "gains.yaml",
+        servo,
+        HybridGains(m6=5000.0),
+        LoopRates(),
+        mode="hybrid",
+        tuned=("lambda1", "lambda2", "T0", "Kv", "m6"),
+    )
 
 
 def test_servo_quick_margins_agree_with_the_jax_margins_and_the_gain_file(tmp_path, tweaked_gains):
@@ -82,8 +92,13 @@ def test_servo_quick_margins_agree_with_the_jax_margins_and_the_gain_file(tmp_pa
     from pusupu_jax.machine_file import Machine
 
     result, files = experiments.run_experiment("servo", tmp_path, quick=True, gains=tweaked_gains)
-    assert {f.name for f in files} == {"servo_current.png", "servo_velocity.png", "servo_position.png",
-                                       "servo.json", "servo.md"}
+    assert {f.name for f in files} == {
+        "servo_current.png",
+        "servo_velocity.png",
+        "servo_position.png",
+        "servo.json",
+        "servo.md",
+    }
     m = json.loads((tmp_path / "servo.json").read_text())
     g = gains.load(tweaked_gains)
     assert m["mode"] == "hybrid" and set(m["sets"]) == {"Table 1", "tuned"}
@@ -130,21 +145,26 @@ def test_tuned_quick_with_a_gain_file_compares_every_mode_on_both_paths(tmp_path
         for mode, r in m["runs"][path].items():
             assert r["tuned"]["rms_tracking_error_mm"] != r["Table 1"]["rms_tracking_error_mm"], (path, mode)
             assert r["change_pct"]["rms_tracking_error_mm"] == pytest.approx(
-                experiments.pct(r["tuned"]["rms_tracking_error_mm"], r["Table 1"]["rms_tracking_error_mm"]))
+                experiments.pct(r["tuned"]["rms_tracking_error_mm"], r["Table 1"]["rms_tracking_error_mm"])
+            )
         for mode in ("IMC, six branches", "hybrid"):
             assert m["runs"][path][mode]["change_pct"]["rms_tracking_error_mm"] < -15, (path, mode)
     assert m["tuned_mode"] == "hybrid"
     assert "| p2p | hybrid |" in (tmp_path / "tuned.md").read_text()
 
 
-@pytest.mark.parametrize("name, option, value, message", [
-    ("arc", "--gains", "GAINS", "--gains: only the experiments servo, tuned take a gain file, not arc"),
-    ("servo", "--gains", "missing.yaml", "missing.yaml: cannot read gain file"),
-    ("arc", "--machine", "MACHINE", "--machine: only the experiments loop_match run on a machine file, not arc"),
-    ("loop_match", "--machine", "missing.yaml", "missing.yaml: cannot read machine file"),
-])
-def test_experiment_gains_or_machine_misuse_exits_2_with_one_line(tmp_path, tweaked_gains, capsys, name, option,
-                                                                  value, message):
+@pytest.mark.parametrize(
+    "name, option, value, message",
+    [
+        ("arc", "--gains", "GAINS", "--gains: only the experiments servo, tuned take a gain file, not arc"),
+        ("servo", "--gains", "missing.yaml", "missing.yaml: cannot read gain file"),
+        ("arc", "--machine", "MACHINE", "--machine: only the experiments loop_match run on a machine file, not arc"),
+        ("loop_match", "--machine", "missing.yaml", "missing.yaml: cannot read machine file"),
+    ],
+)
+def test_experiment_gains_or_machine_misuse_exits_2_with_one_line(
+    tmp_path, tweaked_gains, capsys, name, option, value, message
+):
     """``pusupu experiment NAME --gains FILE`` or ``--machine FILE``: an experiment that takes no gains or runs on no
     machine file, or a file that cannot be read, is one line on stderr and exit status 2, before anything is
     written."""

@@ -29,8 +29,9 @@ def limited(code: str, timeout: float = 120, memory: int = 3 << 30) -> subproces
     or a memory blow-up of the code under test ends its subprocess and fails the test, not the suite."""
     setup = f"import resource; resource.setrlimit(resource.RLIMIT_AS, ({memory}, {memory}))\n"
     try:
-        return subprocess.run([sys.executable, "-c", setup + code], capture_output=True, text=True, timeout=timeout,
-                              env=dict(os.environ))
+        return subprocess.run(
+            [sys.executable, "-c", setup + code], capture_output=True, text=True, timeout=timeout, env=dict(os.environ)
+        )
     except subprocess.TimeoutExpired:
         pytest.fail(f"still running after {timeout} s: {code}")
 
@@ -39,7 +40,8 @@ def commands(*argvs, timeout: float = 300) -> list:
     """``[(exit status, stderr)]`` of each ``pusupu`` command line of ``argvs``, run by ``cli.main`` one after the other
     in one :func:`limited` subprocess (the imports paid once); an exception out of ``main`` is status 1 and its
     traceback, as Python would end the command."""
-    r = limited(f"""
+    r = limited(
+        f"""
 import contextlib, io, json, traceback
 from pusupu_jax.cli import cli
 out = []
@@ -55,7 +57,9 @@ for argv in {[[str(a) for a in argv] for argv in argvs]!r}:
             traceback.print_exc()
     out.append((status, err.getvalue()))
 print(json.dumps(out))
-""", timeout)
+""",
+        timeout,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     return json.loads(r.stdout.splitlines()[-1])
 
@@ -98,9 +102,13 @@ def special(tmp_path, kind: str):
 
 def same_node(path, kind: str) -> bool:
     st = os.lstat(path)
-    return {"fifo": stat.S_ISFIFO, "socket": stat.S_ISSOCK, "device": stat.S_ISCHR, "folder": stat.S_ISDIR,
-            "symlink": stat.S_ISLNK}[kind](st.st_mode) and (
-        kind != "symlink" or Path(os.readlink(path)).read_text() == "the target's own text\n")
+    return {
+        "fifo": stat.S_ISFIFO,
+        "socket": stat.S_ISSOCK,
+        "device": stat.S_ISCHR,
+        "folder": stat.S_ISDIR,
+        "symlink": stat.S_ISLNK,
+    }[kind](st.st_mode) and (kind != "symlink" or Path(os.readlink(path)).read_text() == "the target's own text\n")
 
 
 @pytest.mark.parametrize("kind", ["fifo", "socket", "device", "folder", "symlink"])
@@ -109,7 +117,7 @@ def test_only_a_regular_file_is_ever_replaced(tmp_path, kind):
     its temporary over whatever stood at the path, a device node or FIFO included, and over a symlink instead of
     refusing it.  Now anything but a regular file is refused, left as it is, and no temporary is left behind."""
     path = special(tmp_path, kind)
-    with pytest.raises(ParameterError, match=f"expected a regular file to write .or nothing., found a"):
+    with pytest.raises(ParameterError, match="expected a regular file to write .or nothing., found a"):
         write_atomic(path, b"\x89PNG")
     assert same_node(path, kind)
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
@@ -130,8 +138,13 @@ def gain_file(tmp_path_factory):
     from pusupu_jax import LoopRates, ServoParams, gains
     from pusupu_jax.hybrid import HybridGains
 
-    path = gains.write(tmp_path_factory.mktemp("gains") / "gains.yaml", ServoParams.table1(), HybridGains(),
-                       LoopRates(n_mech=5), mode="imc")
+    path = gains.write(
+        tmp_path_factory.mktemp("gains") / "gains.yaml",
+        ServoParams.table1(),
+        HybridGains(),
+        LoopRates(n_mech=5),
+        mode="imc",
+    )
     return path.read_bytes()
 
 
@@ -222,8 +235,10 @@ def test_a_job_named_with_a_newline_is_reported_on_one_line(tmp_path):
     job.write_text('scenarios: [{name: "two\\nlines", trajectory: p2p}]\n')
     status, err = pusupu("batch", job, "--out", tmp_path / "out")
     errors = [line for line in err.splitlines() if line.startswith("pusupu")]
-    assert status == 1 and errors == [r"pusupu: job two\nlines: failed: scenarios[0].name: expected letters, digits "
-                                      r"and - _ . / (not first: .), got 'two\nlines'"], err[-3000:]
+    assert status == 1 and errors == [
+        r"pusupu: job two\nlines: failed: scenarios[0].name: expected letters, digits "
+        r"and - _ . / (not first: .), got 'two\nlines'"
+    ], err[-3000:]
 
 
 @pytest.mark.parametrize("kind", ["symlink", "fifo", "device", "hard link"])
@@ -240,9 +255,12 @@ def test_a_planted_lock_file_is_refused_and_its_target_untouched(tmp_path, kind)
         os.link(tmp_path / "target", lock)
     else:
         special(tmp_path, kind).rename(lock)
-    with pytest.raises(ParameterError, match=r"\.pusupu\.lock: expected a (regular file to write \(or nothing\)|lock "
-                                             r"file of one link), found (a symlink|a FIFO|a character device|2 hard "
-                                             r"links)"):
+    with pytest.raises(
+        ParameterError,
+        match=r"\.pusupu\.lock: expected a (regular file to write \(or nothing\)|lock "
+        r"file of one link), found (a symlink|a FIFO|a character device|2 hard "
+        r"links)",
+    ):
         OutputLock(out)
     if kind == "hard link":
         assert (tmp_path / "target").read_text() == "the target's own text\n" and lock.stat().st_nlink == 2
@@ -341,8 +359,10 @@ def zip_bomb(name: str, header: bytes, mib: int) -> bytes:
     stream += (c.compress(bytes(1 << 20)) + c.flush(zlib.Z_FULL_FLUSH)) * mib + c.flush()
     size, n = len(header) + (mib << 20), name.encode()
     local = struct.pack("<4s5H3L2H", b"PK\x03\x04", 20, 0, 8, 0, 0x21, 0, len(stream), size, len(n), 0) + n
-    central = struct.pack("<4s6H3L5H2L", b"PK\x01\x02", 20, 20, 0, 8, 0, 0x21, 0, len(stream), size, len(n), 0, 0, 0,
-                          0, 0, 0) + n
+    central = (
+        struct.pack("<4s6H3L5H2L", b"PK\x01\x02", 20, 20, 0, 8, 0, 0x21, 0, len(stream), size, len(n), 0, 0, 0, 0, 0, 0)
+        + n
+    )
     end = struct.pack("<4s4H2LH", b"PK\x05\x06", 0, 0, 1, 1, len(central), len(local) + len(stream), 0)
     return local + stream + central + end
 
@@ -357,32 +377,47 @@ def test_crafted_checkpoints_end_in_one_line_without_loading_them(tmp_path, fini
     bomb = npy(descr="|u1", shape=(3800 << 20,))
     cases = {
         "bomb": (zip_bomb("meta.npy", bomb, 3800), "expected a pusupu checkpoint of at most"),
-        "small bomb": (rezip(finished, add={"best/lambda1.npy": npy(descr="<f8", shape=(5 << 20,),
-                                                                    data=bytes(40 << 20))}),
-                       "best/lambda1.npy' declares 41943168 bytes, expected at most"),
-        "meta's header": (rezip(finished, add={"meta.npy": npy(descr="|u1", shape=(4 << 30,), data=b"{}")}),
-                          "meta: expected at most"),
+        "small bomb": (
+            rezip(finished, add={"best/lambda1.npy": npy(descr="<f8", shape=(5 << 20,), data=bytes(40 << 20))}),
+            "best/lambda1.npy' declares 41943168 bytes, expected at most",
+        ),
+        "meta's header": (
+            rezip(finished, add={"meta.npy": npy(descr="|u1", shape=(4 << 30,), data=b"{}")}),
+            "meta: expected at most",
+        ),
         "member name": (rezip(finished, add={"evil.npy": npy(np.zeros(3))}), "unexpected member 'evil.npy'"),
-        "shape": (rezip(finished, add={"best/lambda1.npy": npy(np.zeros(7))}),
-                  f"best/lambda1: expected float64 of shape {shape}, got float64 of shape (7,)"),
-        "dtype": (rezip(finished, add={"best/lambda1.npy": npy(np.zeros(shape, np.float32))}),
-                  "best/lambda1: expected float64"),
-        "object array": (rezip(finished, add={"best/lambda1.npy": npy(descr="|O", shape=shape, data=b"\x80\x04N.")}),
-                         "an object array, expected numbers"),
+        "shape": (
+            rezip(finished, add={"best/lambda1.npy": npy(np.zeros(7))}),
+            f"best/lambda1: expected float64 of shape {shape}, got float64 of shape (7,)",
+        ),
+        "dtype": (
+            rezip(finished, add={"best/lambda1.npy": npy(np.zeros(shape, np.float32))}),
+            "best/lambda1: expected float64",
+        ),
+        "object array": (
+            rezip(finished, add={"best/lambda1.npy": npy(descr="|O", shape=shape, data=b"\x80\x04N.")}),
+            "an object array, expected numbers",
+        ),
         "a missing key": (rezip(finished, meta={"history": None}), "meta: missing key 'history'"),
         "a key's kind": (rezip(finished, meta={"iteration": "4"}), "meta.iteration: expected an integer, got str"),
         "an entry": (rezip(finished, meta={"history": [{"start": 0}]}), "meta.history[0]: missing key 'iteration'"),
-        "nesting": (rezip(finished, add={"meta.npy": npy(np.frombuffer(b"[" * 5000, np.uint8))}),
-                    "not a pusupu checkpoint (maximum recursion depth exceeded"),
-        "another configuration": (rezip(finished, meta={"digest": "e"}, add={"best/lambda1.npy": bomb}),
-                                  "checkpoint of another configuration (hash 'e', this one d)"),
+        "nesting": (
+            rezip(finished, add={"meta.npy": npy(np.frombuffer(b"[" * 5000, np.uint8))}),
+            "not a pusupu checkpoint (maximum recursion depth exceeded",
+        ),
+        "another configuration": (
+            rezip(finished, meta={"digest": "e"}, add={"best/lambda1.npy": bomb}),
+            "checkpoint of another configuration (hash 'e', this one d)",
+        ),
         "not a zip": (b"\x80\x04N.", "not a pusupu checkpoint (File is not a zip file)"),
     }
     for name, (data, _) in cases.items():
         (tmp_path / f"{name}.npz").write_bytes(data)
     os.mkfifo(tmp_path / "fifo.npz")
     cases["fifo"] = (None, "expected a pusupu checkpoint, got a FIFO")
-    r = limited(OPTIMISATION + f"""
+    r = limited(
+        OPTIMISATION
+        + f"""
 for name in {list(cases)!r}:
     try:
         resume({str(tmp_path)!r} + f"/{{name}}.npz")
@@ -390,7 +425,8 @@ for name in {list(cases)!r}:
         print(name, "|", e)
     else:
         print(name, "| resumed")
-""")
+"""
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     got = dict(line.split(" | ", 1) for line in r.stdout.splitlines())
     for name, (_, message) in cases.items():
@@ -407,8 +443,11 @@ def test_a_finished_checkpoint_missing_a_field_is_refused_before_anything_is_exp
     def never(z):
         raise AssertionError("a finished run is not evaluated again")
 
-    with pytest.raises(ParameterError, match=r"not a pusupu checkpoint \(best/lambda2 missing\); delete it or use "
-                                             r"--fresh"):
+    with pytest.raises(
+        ParameterError,
+        match=r"not a pusupu checkpoint \(best/lambda2 missing\); delete it or use "
+        r"--fresh",
+    ):
         optimisation["resume"](path, value_and_grad=never)
     path.write_bytes(rezip(finished, drop=[f"best/{k}.npy" for k in ("lambda1", "lambda2", "T0")]))
     with pytest.raises(ParameterError, match="missing arrays: best"):
@@ -424,8 +463,11 @@ def test_ros_joint_names_are_checked_with_the_tune_config(tmp_path):
 
     config = tmp_path / "tune.yaml"
     config.write_text("ros_joints: [slide 1, slide_2, slide_3, slide_4, slide_5, slide_6]\n")
-    with pytest.raises(ParameterError, match=r"tune config ros_joints: expected 6 distinct names of letters, digits "
-                                             r"and _, got \('slide 1', "):
+    with pytest.raises(
+        ParameterError,
+        match=r"tune config ros_joints: expected 6 distinct names of letters, digits "
+        r"and _, got \('slide 1', ",
+    ):
         TuneConfig.load(config)
 
 
@@ -442,8 +484,10 @@ def test_the_export_writes_every_file_or_none(tmp_path, refused):
     from pusupu_jax.tune.job import export
 
     cfg = TuneConfig()
-    old = {name: f"the earlier {name}\n" for name in ("gains.yaml", "ros2_pid_controller.yaml",
-                                                      "ros2_joint_trajectory_controller.yaml")}
+    old = {
+        name: f"the earlier {name}\n"
+        for name in ("gains.yaml", "ros2_pid_controller.yaml", "ros2_joint_trajectory_controller.yaml")
+    }
     for name, text in old.items():
         (tmp_path / name).write_text(text)
     if refused == "joint names":  # a configuration made without its checks, as an older pusupu_jax's was
@@ -499,17 +543,28 @@ def test_every_duration_rate_and_horizon_is_bounded_by_its_work(tmp_path, fast_r
     (tmp_path / "wide.yaml").write_text(f"kin_error_seeds: {list(range(100))}\n")
     (tmp_path / "job.yaml").write_text("tune: {iterations: 100000}\nscenarios: [{trajectory: p2p}]\n")
     cases = [
-        (["sim", "--params", params, "--duration", "2000"],
-         "trajectory duration: expected at most 400 s at these rates (4e+07 current-loop ticks of 10 us), got 2000 s"),
+        (
+            ["sim", "--params", params, "--duration", "2000"],
+            "trajectory duration: expected at most 400 s at these rates (4e+07 current-loop ticks of 10 us), "
+            "got 2000 s",
+        ),
         (["sim", "--params", mhz], "rates: f_current is 1e+06 Hz; expected 1000 to 100000 Hz"),
-        (["gains", "check-ros", tmp_path / "gains.yaml", "--seconds", "inf"],
-         "--seconds: expected a finite number, got inf"),
-        (["tune", "--config", tmp_path / "tune.yaml", "--out", tmp_path / "tune"],
-         "tune config: expected at most 5e+08 mechanical steps of the machine in all"),
-        (["tune", "--config", tmp_path / "wide.yaml", "--out", tmp_path / "tune"],
-         "tune config: expected at most 1e+06 mechanical steps of the machine in one gradient"),
-        (["batch", tmp_path / "job.yaml", "--out", tmp_path / "batch"],
-         "pusupu: job p2p: failed: its tuning work: expected at most 5e+08 mechanical steps"),
+        (
+            ["gains", "check-ros", tmp_path / "gains.yaml", "--seconds", "inf"],
+            "--seconds: expected a finite number, got inf",
+        ),
+        (
+            ["tune", "--config", tmp_path / "tune.yaml", "--out", tmp_path / "tune"],
+            "tune config: expected at most 5e+08 mechanical steps of the machine in all",
+        ),
+        (
+            ["tune", "--config", tmp_path / "wide.yaml", "--out", tmp_path / "tune"],
+            "tune config: expected at most 1e+06 mechanical steps of the machine in one gradient",
+        ),
+        (
+            ["batch", tmp_path / "job.yaml", "--out", tmp_path / "batch"],
+            "pusupu: job p2p: failed: its tuning work: expected at most 5e+08 mechanical steps",
+        ),
     ]
     results = commands(*(argv for argv, _ in cases))
     for (argv, message), (status, err) in zip(cases, results):
@@ -527,15 +582,24 @@ def test_the_work_limits_leave_the_defaults_far_inside():
     workload.check_run("both paths, two controllers", 2 * 60.0, LoopRates(n_mech=5), machine=True)
     check_work(TuneConfig())
     check_work(TuneConfig().replace(iterations=250, starts=4))
-    with pytest.raises(ParameterError, match=r"sim: expected at most 2000 s at these rates \(4e\+07 current-loop "
-                                             r"ticks of 50 us\), got 2001 s"):
+    with pytest.raises(
+        ParameterError,
+        match=r"sim: expected at most 2000 s at these rates \(4e\+07 current-loop "
+        r"ticks of 50 us\), got 2001 s",
+    ):
         workload.check_run("sim", 2001.0, LoopRates())
 
 
-@pytest.mark.parametrize("values, field", [
-    ("servo: {Kv: 1.0e+308}", "ServoParams.Kv"), ("servo: {lambda2: 1.0e-300}", "ServoParams.lambda2"),
-    ("servo: {lead: 1.0e+300}", "ServoParams.lead"), ("servo: {Tw: 1.0e+5}", "ServoParams.Tw"),
-    ("load: {mass: 1.0e+308}", "AxisLoad.mass")])
+@pytest.mark.parametrize(
+    "values, field",
+    [
+        ("servo: {Kv: 1.0e+308}", "ServoParams.Kv"),
+        ("servo: {lambda2: 1.0e-300}", "ServoParams.lambda2"),
+        ("servo: {lead: 1.0e+300}", "ServoParams.lead"),
+        ("servo: {Tw: 1.0e+5}", "ServoParams.Tw"),
+        ("load: {mass: 1.0e+308}", "AxisLoad.mass"),
+    ],
+)
 def test_absurd_parameters_end_in_one_line(tmp_path, values, field):
     """``analyze --params`` with these values ended in tracebacks from python-control and numpy.  Each field's
     documented range refuses them as the file is read: one line naming the file and the field, exit 2."""

@@ -45,8 +45,10 @@ def test_at_constant_speed_the_drives_pay_the_friction_law_in_torque():
     path[:, 2] -= travel
     path[:, 0] += 0.5 * travel
     ref = machine_reference(SERVO, path, "pid_ff", rates=RATES)
-    varied = SERVO.replace(coulomb=np.array([10.0, 15.0, 20.0, 25.0, 30.0, 35.0]),
-                           viscous=np.array([200.0, 0.0, 100.0, 50.0, 300.0, 150.0]))
+    varied = SERVO.replace(
+        coulomb=np.array([10.0, 15.0, 20.0, 25.0, 30.0, 35.0]),
+        viscous=np.array([200.0, 0.0, 100.0, 50.0, 300.0, 150.0]),
+    )
     servos = [SERVO.replace(coulomb=np.zeros(6), viscous=np.zeros(6)), SERVO, varied]
     run = jax.jit(jax.vmap(lambda servo: rollout(servo, None, ref, plant=PLANT, rates=RATES, outer="pid_ff")))
     trace = run(stack(servos))

@@ -24,8 +24,9 @@ V2_OTHER_PLANT = DATA / "gains_v2_other_plant.yaml"  # the same with Kt and Ke 1
 
 
 def pusupu(*args, timeout=600):
-    return subprocess.run([sys.executable, "-m", "pusupu_jax.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "pusupu_jax.cli", *map(str, args)], capture_output=True, text=True, timeout=timeout
+    )
 
 
 def forge(path: Path, section: str, name: str, value: float) -> Path:

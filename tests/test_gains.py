@@ -19,8 +19,16 @@ TUNED = ("lambda1", "lambda2", "c6")
 
 
 def _write(path, servo=GOOD, hybrid=HYBRID, **kw):
-    return gains.write(path, servo, hybrid, RATES, mode="hybrid", tuned=TUNED,
-                       provenance={"config_hash": "test", "objective_before": 1.0, "objective_after": 0.5}, **kw)
+    return gains.write(
+        path,
+        servo,
+        hybrid,
+        RATES,
+        mode="hybrid",
+        tuned=TUNED,
+        provenance={"config_hash": "test", "objective_before": 1.0, "objective_after": 0.5},
+        **kw,
+    )
 
 
 def test_a_gain_file_reads_back_exactly(tmp_path):
@@ -65,46 +73,65 @@ def _rewrite(path, change):
 def _set(section, name, value):
     def change(d):
         d["controller"][section][name]["value"] = value
+
     return change
 
 
 BAD = {
     "missing key": (lambda d: d.pop("margins"), "missing key 'margins'"),
     "unknown key": (lambda d: d.update(extra=1), "unknown key 'extra'"),
-    "wrong unit": (lambda d: d["controller"]["position"]["lambda1"].update(unit="ms"),
-                   "controller.position.lambda1.unit: expected 's', got 'ms'"),
+    "wrong unit": (
+        lambda d: d["controller"]["position"]["lambda1"].update(unit="ms"),
+        "controller.position.lambda1.unit: expected 's', got 'ms'",
+    ),
     "unit an int": (lambda d: d["controller"]["position"]["lambda1"].update(unit=1), "unit: expected 's', got 1"),
     "unit a list": (lambda d: d["controller"]["position"]["lambda1"].update(unit=["s"]), "unit: expected 's'"),
     "wrong length": (_set("velocity", "Kv", [0.015] * 5), r"ServoParams.Kv: expected a number or a list of 6"),
     "a quoted number": (_set("velocity", "Kv", "0.015"), "ServoParams.Kv: expected a number, got str"),
     "a boolean": (_set("velocity", "Kv", True), "ServoParams.Kv: expected a number, got bool"),
-    "NaN": (_set("current", "Ti", [0.00208] * 2 + [float("nan")] + [0.00208] * 3), r"ServoParams.Ti\[2\]: expected a number, got nan"),
+    "NaN": (
+        _set("current", "Ti", [0.00208] * 2 + [float("nan")] + [0.00208] * 3),
+        r"ServoParams.Ti\[2\]: expected a number, got nan",
+    ),
     "negative time constant": (_set("velocity", "Tv", -5.0), "ServoParams.Tv: expected a positive"),
     "unstable gains": (_set("velocity", "Kv", [0.015] * 5 + [2.0]), "velocity loop of axis 6 is unstable"),
     "too little margin": (_set("position", "lambda2", 0.02), "position loop of axis 1 has .* expected at least 45"),
     "emf_ff beyond the whole back-EMF": (_set("current", "emf_ff", 3.0), r"ServoParams.emf_ff: expected 0 to 1 "),
-    "a current limit above the drive's rating": (_set("limits", "I_max", 1e6), r"ServoParams.I_max: expected 0 to "
-                                                                               r"I_peak = 10 \[A\]"),
+    "a current limit above the drive's rating": (
+        _set("limits", "I_max", 1e6),
+        r"ServoParams.I_max: expected 0 to "
+        r"I_peak = 10 \[A\]",
+    ),
     "a voltage limit above the DC bus": (_set("limits", "V_max", 1e6), r"ServoParams.V_max: expected 0 to V_dc"),
-    "a hybrid gain beyond what the machine kept stable": (lambda d: d["controller"]["hybrid"]["g"].update(value=1e12),
-                                                          r"HybridGains.g: expected a number from 0 to 300000"),
-    "loop rates too slow": (lambda d: d["rates"].update(n_velocity=100, n_mech=100),
-                            r"rates: f_current / n_velocity is 200 Hz|position\) is 50 Hz; expected 100"),
+    "a hybrid gain beyond what the machine kept stable": (
+        lambda d: d["controller"]["hybrid"]["g"].update(value=1e12),
+        r"HybridGains.g: expected a number from 0 to 300000",
+    ),
+    "loop rates too slow": (
+        lambda d: d["rates"].update(n_velocity=100, n_mech=100),
+        r"rates: f_current / n_velocity is 200 Hz|position\) is 50 Hz; expected 100",
+    ),
     "a plant section (version 2's) in a version 4 file": (lambda d: d.update(plant={}), "unknown key 'plant'"),
     "schema version": (lambda d: d.update(version=5), "version: expected 4"),
     "a version 3 file with a machine key": (lambda d: d.update(version=3), "unknown key 'machine'"),
     "no machine": (lambda d: d.pop("machine"), "missing key 'machine'"),
     "a machine digest that is no sha256": (lambda d: d["machine"].update(digest="abc"), "machine.digest"),
     "version 1 (printed-form era)": (lambda d: d.update(version=1), "version 1 files predate the choice of IMC"),
-    "unknown IMC form": (lambda d: d["controller"]["position"].update(imc_form="exact"),
-                         "ServoParams.imc_form: expected one of"),
+    "unknown IMC form": (
+        lambda d: d["controller"]["position"].update(imc_form="exact"),
+        "ServoParams.imc_form: expected one of",
+    ),
     "unknown mode": (lambda d: d.update(mode="fuzzy"), "mode: expected one of"),
-    "hybrid gain a list": (lambda d: d["controller"]["hybrid"]["m6"].update(value=[1, 2, 3]),
-                           "HybridGains.m6: expected a number, got list"),
+    "hybrid gain a list": (
+        lambda d: d["controller"]["hybrid"]["m6"].update(value=[1, 2, 3]),
+        "HybridGains.m6: expected a number, got list",
+    ),
     "stale discrete": (lambda d: d["discrete"]["pid"]["D"][0].__setitem__(0, 1.0), "discrete.pid: not the"),
     "rates not a mapping": (lambda d: d.update(rates=5), "rates: expected a mapping"),
-    "tuned not a boolean": (lambda d: d["controller"]["position"]["lambda1"].update(tuned="yes"),
-                            "lambda1.tuned: expected true or false"),
+    "tuned not a boolean": (
+        lambda d: d["controller"]["position"]["lambda1"].update(tuned="yes"),
+        "lambda1.tuned: expected true or false",
+    ),
 }
 
 
@@ -227,8 +254,11 @@ def test_a_refused_export_says_so_and_names_the_file_left_in_place(tmp_path):
     cfg = TuneConfig()
     good = export(tmp_path, cfg, GOOD, HYBRID, RATES, TUNED, {})
     assert good["gains_file"]["sha256"] == hashlib.sha256((tmp_path / "gains.yaml").read_bytes()).hexdigest()
-    assert {p.split("/")[-1] for p in good["exported"]} == {"gains.yaml", "ros2_pid_controller.yaml",
-                                                           "ros2_joint_trajectory_controller.yaml"}
+    assert {p.split("/")[-1] for p in good["exported"]} == {
+        "gains.yaml",
+        "ros2_pid_controller.yaml",
+        "ros2_joint_trajectory_controller.yaml",
+    }
     before = (tmp_path / "gains.yaml").read_bytes()
     bad = export(tmp_path, cfg, GOOD.replace(Kv=np.full(6, 2.0)), HYBRID, RATES, TUNED, {})
     assert bad["exported"] == [] and "velocity loop" in bad["export_error"]

@@ -22,8 +22,10 @@ def objective(params, mode):
 
 _value = {m: jax.jit(lambda p, m=m: objective(p, m)) for m in ("imc", "pid")}
 _grad = {m: jax.jit(jax.grad(lambda p, m=m: objective(p, m))) for m in ("imc", "pid")}
-GROUPS = [("imc", ["lambda1", "lambda2", "T0", "Kv", "Tv", "Ki", "Ti"]),
-          ("pid", ["Kp_pid", "Ki_pid", "Kd_pid", "Tf_pid"])]
+GROUPS = [
+    ("imc", ["lambda1", "lambda2", "T0", "Kv", "Tv", "Ki", "Ti"]),
+    ("pid", ["Kp_pid", "Ki_pid", "Kd_pid", "Tf_pid"]),
+]
 
 
 @pytest.mark.parametrize("mode,names", GROUPS)
@@ -36,7 +38,9 @@ def test_gradient_matches_central_differences(table1, mode, names):
             h = 1e-5 * abs(v[axis])
             e = np.zeros(6)
             e[axis] = h
-            fd = (_value[mode](table1.replace(**{name: v + e})) - _value[mode](table1.replace(**{name: v - e}))) / (2 * h)
+            fd = (_value[mode](table1.replace(**{name: v + e})) - _value[mode](table1.replace(**{name: v - e}))) / (
+                2 * h
+            )
             ad = float(np.asarray(getattr(grad, name))[axis])
             assert abs(ad - fd) <= 1e-5 * abs(fd), f"{mode} {name} axis {axis}: grad {ad:.10g} vs fd {float(fd):.10g}"
 
@@ -56,6 +60,7 @@ def test_changing_gains_never_recompiles(table1):
 
 def test_rematerialised_gradient_is_the_same(table1):
     """remat=True changes memory and time, not the numbers."""
+
     def loss(p, remat):
         trace = sim.rollout(p, LOAD, REF[:20], outer="imc", remat=remat)
         return jnp.mean((trace.theta - trace.reference) ** 2)
@@ -77,7 +82,9 @@ def test_forward_and_reverse_value_and_grad_agree_on_a_pytree():
     x = {"a": jnp.array([0.3, -1.2, 2.0]), "b": jnp.array(0.7)}
     (v_r, aux_r), g_r = value_and_grad(fun, "reverse")(x, 1.5)
     (v_f, aux_f), g_f = jax.jit(value_and_grad(fun, "forward"))(x, 1.5)
-    assert float(v_f) == pytest.approx(float(v_r), rel=1e-15) and float(aux_f["doubled"]) == pytest.approx(2 * float(v_r))
+    assert float(v_f) == pytest.approx(float(v_r), rel=1e-15) and float(aux_f["doubled"]) == pytest.approx(
+        2 * float(v_r)
+    )
     np.testing.assert_allclose(g_f["a"], 1.5 * np.sin(2 * np.asarray(x["a"])), rtol=1e-14)
     np.testing.assert_allclose(g_f["b"], 1.5 * 3 * 0.7**2, rtol=1e-14)
     for k in x:

@@ -17,9 +17,18 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 # written in pieces, so that this file does not hold the phrases it looks for
-PROCESS_WORDS = re.compile("|".join((r"\b" + "stop" + r"s? [0-9]+(-[0-9]+)?\b", "_" + "stop" + r"[0-9]+",
-                                     r"\b" + "issue" + r"s? [0-9]+\b", r"\b" + "was" + r" lent\b",
-                                     r"\b" + "same" + r" session\b")), re.IGNORECASE)
+PROCESS_WORDS = re.compile(
+    "|".join(
+        (
+            r"\b" + "stop" + r"s? [0-9]+(-[0-9]+)?\b",
+            "_" + "stop" + r"[0-9]+",
+            r"\b" + "issue" + r"s? [0-9]+\b",
+            r"\b" + "was" + r" lent\b",
+            r"\b" + "same" + r" session\b",
+        )
+    ),
+    re.IGNORECASE,
+)
 
 
 def _tracked() -> list[str]:
@@ -50,8 +59,12 @@ def test_no_tracked_file_speaks_of_the_development_process():
 # the layers, lowest first, by folder: each may import those below it, none above it
 LAYERS = (("pusupu_jax",), ("tune", "experiments", "hw_bridge"), ("pusupu_cli",), ("benchmarks",))
 # the name each folder is installed under (pyproject.toml): one namespace, no generic top-level names
-INSTALLED = {"tune": "pusupu_jax.tune", "experiments": "pusupu_jax.experiments", "hw_bridge": "pusupu_jax.hw_bridge",
-             "pusupu_cli": "pusupu_jax.cli"}
+INSTALLED = {
+    "tune": "pusupu_jax.tune",
+    "experiments": "pusupu_jax.experiments",
+    "hw_bridge": "pusupu_jax.hw_bridge",
+    "pusupu_cli": "pusupu_jax.cli",
+}
 
 
 def _import_graph() -> dict:
@@ -130,10 +143,13 @@ def test_the_install_puts_no_generic_top_level_name(tmp_path):
     """Outside the checkout (a fresh interpreter in another folder, no PYTHONPATH), the applications import under
     ``pusupu_jax`` only: ``import tune`` finds nothing (a user's own ``tune`` stays theirs)."""
     names = [*INSTALLED, *INSTALLED.values()]
-    code = ("import importlib.util, json; "
-            f"print(json.dumps({{n: importlib.util.find_spec(n) is not None for n in {names!r}}}))")
+    code = (
+        "import importlib.util, json; "
+        f"print(json.dumps({{n: importlib.util.find_spec(n) is not None for n in {names!r}}}))"
+    )
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True,
-                         timeout=120, check=True)
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120, check=True
+    )
     found = json.loads(out.stdout)
     assert found == {n: n.startswith("pusupu_jax.") for n in names}, found

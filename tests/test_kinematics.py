@@ -55,13 +55,16 @@ def test_jacobian_matches_central_differences():
     for k in range(5):
         e = np.zeros(5)
         e[k] = h
-        fd = (np.asarray(K.inverse_kinematics(G, jnp.asarray(q + e)))
-              - np.asarray(K.inverse_kinematics(G, jnp.asarray(q - e)))) / (2 * h)
+        fd = (
+            np.asarray(K.inverse_kinematics(G, jnp.asarray(q + e)))
+            - np.asarray(K.inverse_kinematics(G, jnp.asarray(q - e)))
+        ) / (2 * h)
         np.testing.assert_allclose(J[:, :, k], fd, rtol=1e-6, atol=1e-9)
 
 
 def test_upu_branch_imposes_the_orientation():
-    """R is a rotation, its normal is the commanded tilt, and it is the UPU chain Rx(phi1) Ry(phi2) Ry(alpha) Rx(beta)."""
+    """R is a rotation, its normal is the commanded tilt, and it is the UPU chain Rx(phi1) Ry(phi2) Ry(alpha)
+    Rx(beta)."""
     q = jnp.asarray(workspace_sample(50, seed=2))
     R = np.asarray(K.platform_rotation(q))
     np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape), atol=1e-14)
@@ -74,8 +77,9 @@ def test_upu_branch_imposes_the_orientation():
     np.testing.assert_allclose(np.asarray(chain), R, atol=1e-14)
     # a level pose is level and unturned wherever the platform is
     arc, _ = paper_paths(37)
-    np.testing.assert_allclose(np.asarray(K.platform_rotation(jnp.asarray(arc))), np.broadcast_to(np.eye(3), (37, 3, 3)),
-                               atol=1e-14)
+    np.testing.assert_allclose(
+        np.asarray(K.platform_rotation(jnp.asarray(arc))), np.broadcast_to(np.eye(3), (37, 3, 3)), atol=1e-14
+    )
 
 
 def test_forward_kinematics_is_differentiable():
@@ -85,12 +89,15 @@ def test_forward_kinematics_is_differentiable():
     np.testing.assert_allclose(np.asarray(dq) @ J, np.eye(5), atol=1e-9)  # FK is a left inverse of IK
 
 
-@pytest.mark.parametrize("pose,message", [
-    ([1.0, 0.0, Z0, 0, 0], "branch . unreachable"),
-    ([0.0, 0.0, Z0 + 0.45, 0, 0], "slider . out of stroke"),
-    ([0.0, 0.0, -0.1, 0, 0], "above the base"),
-    ([0.0, 0.0, 0.5, 0, 0], "UPU leg"),
-])
+@pytest.mark.parametrize(
+    "pose,message",
+    [
+        ([1.0, 0.0, Z0, 0, 0], "branch . unreachable"),
+        ([0.0, 0.0, Z0 + 0.45, 0, 0], "slider . out of stroke"),
+        ([0.0, 0.0, -0.1, 0, 0], "above the base"),
+        ([0.0, 0.0, 0.5, 0, 0], "UPU leg"),
+    ],
+)
 def test_bad_poses_are_named(pose, message):
     g = G.replace(stroke_min=np.full(6, -1.0)) if "UPU" in message else G
     with pytest.raises(GeometryError, match=message):
@@ -103,11 +110,13 @@ def test_near_singular_poses_are_caught():
 
 
 def test_inconsistent_geometry_and_files(tmp_path):
-    cases = [(dict(rail_points=np.zeros((5, 3))), r"rail_points: expected shape \(6, 3\)"),
-             (dict(rail_dirs=np.tile([0, 0, 2.0], (6, 1))), "expected unit vectors"),
-             (dict(rod_lengths=np.full(6, -0.9)), "rod_lengths: expected positive"),
-             (dict(stroke_min=np.full(6, 0.5)), "expected < stroke_max"),
-             (dict(home=np.array([0, 0, np.nan, 0, 0])), "home: expected finite")]
+    cases = [
+        (dict(rail_points=np.zeros((5, 3))), r"rail_points: expected shape \(6, 3\)"),
+        (dict(rail_dirs=np.tile([0, 0, 2.0], (6, 1))), "expected unit vectors"),
+        (dict(rod_lengths=np.full(6, -0.9)), "rod_lengths: expected positive"),
+        (dict(stroke_min=np.full(6, 0.5)), "expected < stroke_max"),
+        (dict(home=np.array([0, 0, np.nan, 0, 0])), "home: expected finite"),
+    ]
     for change, message in cases:
         with pytest.raises(GeometryError, match=message):
             validate_geometry(G.replace(**change))

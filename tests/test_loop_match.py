@@ -36,18 +36,25 @@ def discrete_loop_gain(servo, load, loop: str, f_hz: float) -> complex:
     return complex(c(z) * plant(z))
 
 
-@pytest.mark.parametrize("loop, outer, freqs, duration_s, settle_s, amplitude", [
-    ("position", "imc", (1.0, 2.5), 8.0, 4.0, 0.5),
-    ("velocity", "velocity", (8.0, 20.0), 1.0, 0.5, 0.05),
-])
-def test_injection_measures_the_single_axis_loop_gain_of_python_control(table1_linear, linear_load, loop, outer,
-                                                                        freqs, duration_s, settle_s, amplitude):
+@pytest.mark.parametrize(
+    "loop, outer, freqs, duration_s, settle_s, amplitude",
+    [
+        ("position", "imc", (1.0, 2.5), 8.0, 4.0, 0.5),
+        ("velocity", "velocity", (8.0, 20.0), 1.0, 0.5, 0.05),
+    ],
+)
+def test_injection_measures_the_single_axis_loop_gain_of_python_control(
+    table1_linear, linear_load, loop, outer, freqs, duration_s, settle_s, amplitude
+):
     inner = RATES.n_position if outer == "imc" else 1
     dt = RATES.dt_position if outer == "imc" else RATES.dt_velocity
-    runs = [injection.injected(np.zeros((int(round(duration_s / dt)), 6)), loop, 0, f, amplitude, RATES, inner)
-            for f in freqs]
-    program = jax.jit(jax.vmap(functools.partial(rollout, plant=AxisPlant(), rates=RATES, outer=outer),
-                               in_axes=(None, None, 0)))
+    runs = [
+        injection.injected(np.zeros((int(round(duration_s / dt)), 6)), loop, 0, f, amplitude, RATES, inner)
+        for f in freqs
+    ]
+    program = jax.jit(
+        jax.vmap(functools.partial(rollout, plant=AxisPlant(), rates=RATES, outer=outer), in_axes=(None, None, 0))
+    )
     traces = program(table1_linear, linear_load, stack(runs))
     for b, (f, inj) in enumerate(zip(freqs, runs)):
         trace = jax.tree.map(lambda x: np.asarray(x)[b], traces)

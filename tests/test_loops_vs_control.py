@@ -15,8 +15,12 @@ import pytest
 from pusupu_jax import LoopRates, rollout
 from pusupu_jax import analysis as an
 
-LOOPS = [("current", "current", 0, 1.0), ("velocity", "omega", 1, 10.0), ("imc", "theta", 2, 3.0),
-         ("pid", "theta", 2, 3.0)]
+LOOPS = [
+    ("current", "current", 0, 1.0),
+    ("velocity", "omega", 1, 10.0),
+    ("imc", "theta", 2, 3.0),
+    ("pid", "theta", 2, 3.0),
+]
 
 
 def _control_loop(table1_linear, load, outer, rates):
@@ -26,8 +30,10 @@ def _control_loop(table1_linear, load, outer, rates):
 
 
 @pytest.mark.parametrize("method", ["tustin", "zoh"])
-@pytest.mark.parametrize("outer,signal,out,amp,form", [loop + ("full",) for loop in LOOPS]
-                         + [("imc", "theta", 2, 3.0, "printed"), ("pid_ff", "theta", 2, 3.0, "full")])
+@pytest.mark.parametrize(
+    "outer,signal,out,amp,form",
+    [loop + ("full",) for loop in LOOPS] + [("imc", "theta", 2, 3.0, "printed"), ("pid_ff", "theta", 2, 3.0, "full")],
+)
 def test_discrete_loop_equals_python_control(table1_linear, linear_load, method, outer, signal, out, amp, form):
     """Every loop, both forms of the IMC prefilter and the PID with velocity feedforward (exact at the samples)."""
     import control as ct
@@ -84,7 +90,9 @@ def test_discretisation_converges_to_continuous(table1_linear, linear_load, oute
     assert coarse / fine >= 8.0, f"{outer}: error only shrank {coarse / fine:.1f}x for 10x finer steps"
 
 
-@pytest.mark.parametrize("outer,signal,out,name", [("velocity", "omega", 1, "velocity"), ("imc", "theta", 2, "position")])
+@pytest.mark.parametrize(
+    "outer,signal,out,name", [("velocity", "omega", 1, "velocity"), ("imc", "theta", 2, "position")]
+)
 def test_step_metrics_agree_with_the_simulated_step(table1_linear, linear_load, outer, signal, out, name):
     """analysis.step_metrics of the continuous loop vs the same metrics of the scan at 10x rates: within 2 %.
 

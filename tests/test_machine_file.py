@@ -20,8 +20,9 @@ EXAMPLE = Path(__file__).parent.parent / "docs" / "examples" / "machine_user.yam
 
 
 def pusupu(*args, timeout=600):
-    return subprocess.run([sys.executable, "-m", "pusupu_jax.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "pusupu_jax.cli", *map(str, args)], capture_output=True, text=True, timeout=timeout
+    )
 
 
 def test_the_template_is_the_built_in_machine_and_the_digest_ignores_layout():
@@ -58,8 +59,7 @@ BAD = {
     "NaN": (lambda d: d["drives"].update(R=float("nan")), "drives.R"),
     "an unknown key": (lambda d: d["drives"].update(Rs=1.0), "unknown field 'Rs'"),
     "a missing section": (lambda d: d.pop("payload"), "missing key 'payload'"),
-    "a payload no body can have": (lambda d: d["payload"].update(mass=1.0, inertia=[1.0, 0.1, 0.1]),
-                                   "payload.inertia"),
+    "a payload no body can have": (lambda d: d["payload"].update(mass=1.0, inertia=[1.0, 0.1, 0.1]), "payload.inertia"),
     "a drive list of five": (lambda d: d["drives"].update(Kt=[1.0] * 5), "drives.Kt"),
 }
 
@@ -116,8 +116,9 @@ def test_the_bridge_refuses_gains_tuned_on_another_machine(tmp_path):
     """The built-in machine renamed: the same drives, so only the digest tells the machines apart."""
     other = Machine("twin", Machine.default().geometry, Machine.default().drives)
     path = tmp_path / "gains.yaml"
-    path.write_text(gains.document(other.servo(ServoParams.table1()), HybridGains(), LoopRates(n_mech=5), mode="imc",
-                                   machine=other))
+    path.write_text(
+        gains.document(other.servo(ServoParams.table1()), HybridGains(), LoopRates(n_mech=5), mode="imc", machine=other)
+    )
     r = pusupu("bridge", "--gains", path, "--robot", "udp://127.0.0.1:5612", "--duration", "1", "--no-realtime")
     assert r.returncode == 2 and "tuned on machine 'twin'" in r.stderr and "--allow-other-machine" in r.stderr
     assert r.stderr.count("\n") == 1

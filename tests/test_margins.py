@@ -14,8 +14,11 @@ from pusupu_jax.margins import loop_margins
 SERVO = ServoParams.table1()
 LOAD = AxisLoad.default()
 # six different axes: faster and slower position and velocity loops than Table 1
-VARIED = SERVO.replace(lambda2=SERVO.lambda2 * np.linspace(0.2, 1.5, 6), Kv=SERVO.Kv * np.linspace(0.5, 2.0, 6),
-                       Kp_pid=SERVO.Kp_pid * np.linspace(0.5, 3.0, 6))
+VARIED = SERVO.replace(
+    lambda2=SERVO.lambda2 * np.linspace(0.2, 1.5, 6),
+    Kv=SERVO.Kv * np.linspace(0.5, 2.0, 6),
+    Kp_pid=SERVO.Kp_pid * np.linspace(0.5, 3.0, 6),
+)
 _margins = jax.jit(loop_margins, static_argnames="mode")
 
 
@@ -30,8 +33,9 @@ def test_margins_agree_with_python_control(mode):
                 m = analysis.margins(ref[loop])
                 assert float(ours[loop]["phase_margin_deg"][axis]) == pytest.approx(m["phase_margin_deg"], abs=0.5)
                 assert float(ours[loop]["gain_margin_db"][axis]) == pytest.approx(m["gain_margin_db"], abs=0.1)
-                assert float(ours[loop]["crossover_rad_s"][axis]) / (2 * np.pi) == pytest.approx(m["crossover_hz"],
-                                                                                             rel=1e-3)
+                assert float(ours[loop]["crossover_rad_s"][axis]) / (2 * np.pi) == pytest.approx(
+                    m["crossover_hz"], rel=1e-3
+                )
 
 
 def _on_axis_0(name, value):
@@ -39,9 +43,14 @@ def _on_axis_0(name, value):
     return SERVO.replace(**{name: value * np.eye(6)[0] + base * (1 - np.eye(6)[0])})
 
 
-@pytest.mark.parametrize("name, x, loop, key", [("lambda2", 0.15, "position", "phase_margin_deg"),
-                                               ("Kv", 0.015, "velocity", "gain_margin_db"),
-                                               ("Kp_pid", 6.5, "position", "phase_margin_deg")])
+@pytest.mark.parametrize(
+    "name, x, loop, key",
+    [
+        ("lambda2", 0.15, "position", "phase_margin_deg"),
+        ("Kv", 0.015, "velocity", "gain_margin_db"),
+        ("Kp_pid", 6.5, "position", "phase_margin_deg"),
+    ],
+)
 def test_margin_gradients_match_central_differences(name, x, loop, key):
     """Margins are differentiable in the gains (axis 0): reverse mode within 1e-4 of central differences."""
     mode = "pid" if name.endswith("_pid") else "imc"
@@ -82,9 +91,21 @@ def test_margin_gradients_are_finite_in_float32():
     unused secant steps and angles there had overflowing derivatives: zero cotangent times inf gave NaN in every gain.
     Each precision runs in its own interpreter: JAX's float64 switch is process-wide.
     """
-    wide, narrow = ({f: np.asarray(v) for f, v in json.loads(subprocess.run(
-        [sys.executable, "-c", _MARGIN_GRADIENTS, dtype], capture_output=True, text=True, timeout=600,
-        check=True).stdout).items()} for dtype in ("float64", "float32"))
+    wide, narrow = (
+        {
+            f: np.asarray(v)
+            for f, v in json.loads(
+                subprocess.run(
+                    [sys.executable, "-c", _MARGIN_GRADIENTS, dtype],
+                    capture_output=True,
+                    text=True,
+                    timeout=600,
+                    check=True,
+                ).stdout
+            ).items()
+        }
+        for dtype in ("float64", "float32")
+    )
     for f, w in wide.items():
         assert np.all(np.isfinite(narrow[f])), f
         scale = np.max(np.abs(w))

@@ -108,7 +108,10 @@ def test_mjx_matches_c_mujoco_step_by_step_float64():
     aux = PLANT.prepare(SERVO, None, RATES.dt_mech)
     qpos, qvel = (np.asarray(a) for a in mjx_run(PLANT, aux))
     c_qpos, c_qvel, residual, _ = c_mujoco_run(PLANT, aux)
-    assert np.max(np.abs(c_qpos[-1, M.slide_qpos(PLANT.mj_model)] - PLANT.mj_model.qpos0[M.slide_qpos(PLANT.mj_model)])) > 1e-3
+    assert (
+        np.max(np.abs(c_qpos[-1, M.slide_qpos(PLANT.mj_model)] - PLANT.mj_model.qpos0[M.slide_qpos(PLANT.mj_model)]))
+        > 1e-3
+    )
     assert np.max(np.abs(qpos - c_qpos)) < 1e-6
     assert np.max(np.abs(qvel - c_qvel)) < 1e-5
     assert residual.max() < 1e-5  # stiff connects: the chain stays closed to micrometres
@@ -160,9 +163,13 @@ def test_mjx_matches_c_mujoco_in_float32():
     into acceleration through their stiffness ~ 1/timeconst^2, so the error scales with
     ``1/solref_timeconst^2`` (one-step qvel error 3.6e-4 at 0.5 ms, 8.9e-5 at 1 ms, 2.7e-5 at 2 ms).
     """
-    r = subprocess.run([sys.executable, "-c", FLOAT32], capture_output=True, text=True, timeout=600,
-                       env={"JAX_ENABLE_X64": "0", **{k: v for k, v in __import__("os").environ.items()
-                                                       if k != "JAX_ENABLE_X64"}})
+    r = subprocess.run(
+        [sys.executable, "-c", FLOAT32],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={"JAX_ENABLE_X64": "0", **{k: v for k, v in __import__("os").environ.items() if k != "JAX_ENABLE_X64"}},
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["dtype"] == "float32"
@@ -286,7 +293,7 @@ def test_gradient_through_contact_matches_central_differences():
             return d, d.xpos[platform, 2]
 
         d0 = mjx.forward(aux.model, CONTACT_PLANT.init(aux).replace(qpos=q0))
-        return jnp.mean(jax.lax.scan(body, d0, None, length=n)[1][-n // 4:])
+        return jnp.mean(jax.lax.scan(body, d0, None, length=n)[1][-n // 4 :])
 
     value_and_grad = jax.jit(jax.value_and_grad(height))
     for steps in (3 * n // 4, n):
@@ -406,8 +413,9 @@ def test_model_variants_vmapped_equal_their_own_plants():
         trace = jax.jit(lambda r: rollout(SERVO, None, r, plant=own, rates=RATES, outer="pid"))(ref)
         np.testing.assert_allclose(batch.position[k], trace.position, atol=1e-12)
         np.testing.assert_allclose(batch.torque[k], trace.torque, atol=1e-9)
-        np.testing.assert_allclose(batch.observation["closure_residual"][k], trace.observation["closure_residual"],
-                                   atol=1e-12)
+        np.testing.assert_allclose(
+            batch.observation["closure_residual"][k], trace.observation["closure_residual"], atol=1e-12
+        )
     assert np.max(np.abs(np.asarray(batch.torque[0] - batch.torque[1]))) > 1e-3  # the variants do differ
 
 
@@ -423,8 +431,9 @@ def test_a_payload_is_a_variant_of_the_same_structure_and_adds_its_mass():
         variant = PLANT.variant(options)
         assert jax.tree.map(jnp.shape, variant) == jax.tree.map(jnp.shape, PLANT.mjx_model)
         platform = PLANT.mj_model.body("platform").id
-        assert float(variant.body_subtreemass[platform] - PLANT.mjx_model.body_subtreemass[platform]) == \
-            pytest.approx(options.payload, abs=1e-12)
+        assert float(variant.body_subtreemass[platform] - PLANT.mjx_model.body_subtreemass[platform]) == pytest.approx(
+            options.payload, abs=1e-12
+        )
 
 
 def test_a_payloads_weight_and_centre_of_mass_show_in_the_holding_forces():
@@ -441,6 +450,7 @@ def test_a_payloads_weight_and_centre_of_mass_show_in_the_holding_forces():
 
     Bounds 1e-9 of the forces without payload (63 N; exact but for rounding): observed 1e-15 at most.
     """
+
     @jax.jit
     def hold(model):
         aux = PLANT.prepare(SERVO, model, RATES.dt_mech)
@@ -455,8 +465,9 @@ def test_a_payloads_weight_and_centre_of_mass_show_in_the_holding_forces():
     np.testing.assert_allclose(centred - empty, m * g / 6, atol=tol)
     np.testing.assert_allclose(force(geom=G.replace(platform_mass=np.asarray(G.platform_mass) + m)), centred, atol=tol)
     for same in ((0, 0, 0.1), (0, 0, 0)), ((0, 0, 0), (0.1, 0.2, 0.25)):
-        np.testing.assert_allclose(force(M.ModelOptions(payload=m, payload_com=same[0], payload_inertia=same[1])),
-                                   centred, atol=tol)
+        np.testing.assert_allclose(
+            force(M.ModelOptions(payload=m, payload_com=same[0], payload_inertia=same[1])), centred, atol=tol
+        )
     plus, minus = (force(M.ModelOptions(payload=m, payload_com=(x, 0, 0))) for x in (0.1, -0.1))
     for off in (plus, minus, force(OFF_CENTRE)):
         assert np.sum(off - empty) == pytest.approx(m * g, abs=6 * tol)
@@ -465,18 +476,36 @@ def test_a_payloads_weight_and_centre_of_mass_show_in_the_holding_forces():
     np.testing.assert_allclose(minus, plus[[1, 0, 5, 4, 3, 2]], atol=tol)
 
 
-@pytest.mark.parametrize("options, message", [
-    (M.ModelOptions(payload=-1.0), r"ModelOptions.payload: expected a finite mass >= 0 \[kg\], got -1.0"),
-    (M.ModelOptions(payload=float("nan")), r"ModelOptions.payload: expected a finite mass >= 0 \[kg\], got nan"),
-    (M.ModelOptions(payload=1.0, payload_com=(0.0, float("inf"), 0.0)), r"ModelOptions.payload_com: expected a finite"),
-    (M.ModelOptions(payload=1.0, payload_com=(0.0, 0.0)), r"ModelOptions.payload_com: expected a finite \(x, y, z\)"),
-    (M.ModelOptions(payload=1.0, payload_inertia=(0.1, -0.1, 0.1)), r"payload_inertia: expected three finite principal "
-                                                                      r"moments >= 0 \[kg m\^2\], got \(0.1, -0.1, 0.1\)"),
-    (M.ModelOptions(payload=1.0, payload_inertia=(0.1, 0.1, 0.3)), r"payload_inertia: expected principal moments of a "
-                                                                     r"rigid body \(each at most the sum of the other two\)"),
-    (M.ModelOptions(payload=0.0, payload_inertia=(0.1, 0.1, 0.1)), r"payload_inertia: expected \(0, 0, 0\) without a "
-                                                                     r"payload mass"),
-])
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (M.ModelOptions(payload=-1.0), r"ModelOptions.payload: expected a finite mass >= 0 \[kg\], got -1.0"),
+        (M.ModelOptions(payload=float("nan")), r"ModelOptions.payload: expected a finite mass >= 0 \[kg\], got nan"),
+        (
+            M.ModelOptions(payload=1.0, payload_com=(0.0, float("inf"), 0.0)),
+            r"ModelOptions.payload_com: expected a finite",
+        ),
+        (
+            M.ModelOptions(payload=1.0, payload_com=(0.0, 0.0)),
+            r"ModelOptions.payload_com: expected a finite \(x, y, z\)",
+        ),
+        (
+            M.ModelOptions(payload=1.0, payload_inertia=(0.1, -0.1, 0.1)),
+            r"payload_inertia: expected three finite principal "
+            r"moments >= 0 \[kg m\^2\], got \(0.1, -0.1, 0.1\)",
+        ),
+        (
+            M.ModelOptions(payload=1.0, payload_inertia=(0.1, 0.1, 0.3)),
+            r"payload_inertia: expected principal moments of a "
+            r"rigid body \(each at most the sum of the other two\)",
+        ),
+        (
+            M.ModelOptions(payload=0.0, payload_inertia=(0.1, 0.1, 0.1)),
+            r"payload_inertia: expected \(0, 0, 0\) without a "
+            r"payload mass",
+        ),
+    ],
+)
 def test_a_payload_that_is_no_rigid_body_is_refused_in_one_line(options, message):
     with pytest.raises(ValueError, match=message) as e:
         M.build_model(G, options)
@@ -484,13 +513,16 @@ def test_a_payload_that_is_no_rigid_body_is_refused_in_one_line(options, message
 
 
 def _hold(periods=HOLD_PERIODS):
-    """Two scenarios, the batch size of pusupu_jax.experiments.p2p's quick run (two seeds): p2p's first second (padded) and
+    """Two scenarios, the batch size of pusupu_jax.experiments.p2p's quick run (two seeds): p2p's first second (padded)
+    and
     holding still.  run_chunked's programs depend on the batch size, not on the horizon."""
     from pusupu_jax.machine import Scenario
     from pusupu_jax.trajectories import platform_path
 
-    return [Scenario(platform_path("p2p", G.home, RATES)[:1000]),
-            Scenario(np.repeat(G.home[None], periods, axis=0), M.ModelOptions(kin_error_seed=3))]
+    return [
+        Scenario(platform_path("p2p", G.home, RATES)[:1000]),
+        Scenario(np.repeat(G.home[None], periods, axis=0), M.ModelOptions(kin_error_seed=3)),
+    ]
 
 
 def test_the_spherical_joints_jacobian_is_the_derivative_of_their_gap():
@@ -531,9 +563,11 @@ def test_printed_form_started_as_before_reproduces_the_old_figures():
     (r, _), (_, hold) = simulate_scenarios(before, _hold(), mode="imc", start="zero")
     assert r["rms_tracking_error_mm"] == pytest.approx(2.065628150536743, rel=1e-9)
     assert r["max_tracking_error_mm"] == pytest.approx(4.578009063579978, rel=1e-9)
-    np.testing.assert_allclose(r["branch_force_peak_n"], [79.30522842232436, 79.30532047297841, 79.30509074855742,
-                                                          79.30512444143275, 79.305292611425, 79.3051668677709],
-                               rtol=1e-9)
+    np.testing.assert_allclose(
+        r["branch_force_peak_n"],
+        [79.30522842232436, 79.30532047297841, 79.30509074855742, 79.30512444143275, 79.305292611425, 79.3051668677709],
+        rtol=1e-9,
+    )
     sag = np.linalg.norm(hold["platform"][:200] - hold["platform"][0], axis=1).max()
     assert sag > 1e-4, sag
 
@@ -553,10 +587,18 @@ def test_a_run_starts_at_rest_in_every_mode(mode):
 
 
 CONTACT_SCENES = {  # the contact experiments' scenes and solver settings (experiments/contact.py)
-    "peg": (M.ModelOptions(contacts=True, scene="peg_in_hole", hole_offset=(0.0048, 0.0), solver_iterations=4,
-                           cone="elliptic"), {"hole_chamfer_1", "hole_wall_1"}),
-    "tilted surface": (M.ModelOptions(contacts=True, scene="surface", surface_tilt=0.01, friction=0.2,
-                                      solver_iterations=4, cone="elliptic"), {"surface"}),
+    "peg": (
+        M.ModelOptions(
+            contacts=True, scene="peg_in_hole", hole_offset=(0.0048, 0.0), solver_iterations=4, cone="elliptic"
+        ),
+        {"hole_chamfer_1", "hole_wall_1"},
+    ),
+    "tilted surface": (
+        M.ModelOptions(
+            contacts=True, scene="surface", surface_tilt=0.01, friction=0.2, solver_iterations=4, cone="elliptic"
+        ),
+        {"surface"},
+    ),
 }
 
 
@@ -576,7 +618,7 @@ def _over_first_contact(plant, gap):
 def _c_contact_force(m, d):
     """The force [N] on the tool from every contact of C MuJoCo's ``d`` (world axes), as ``mj_contactForce`` gives."""
     tool, total = m.geom("tool").id, np.zeros(3)
-    for k, contact in enumerate(d.contact[:d.ncon]):
+    for k, contact in enumerate(d.contact[: d.ncon]):
         local = np.zeros(6)
         mujoco.mj_contactForce(m, d, k, local)
         world = local[:3] @ contact.frame.reshape(3, 3)
@@ -606,8 +648,9 @@ def test_the_contact_scenes_land_as_in_c_mujoco(scene):
     assert np.max(np.abs(qpos - c_qpos)) < 1e-7
     assert np.max(np.abs(qvel - c_qvel)) < 1e-5
     m = plant.mj_model
-    contact_force = jax.jit(lambda model, q, v: plant.contact_force(
-        model, mjx.forward(model, mjx.make_data(model).replace(qpos=q, qvel=v))))
+    contact_force = jax.jit(
+        lambda model, q, v: plant.contact_force(model, mjx.forward(model, mjx.make_data(model).replace(qpos=q, qvel=v)))
+    )
     touched, worst = set(), 0.0
     for k in range(24, len(TORQUE), 25):
         d = mujoco.MjData(m)
@@ -615,7 +658,7 @@ def test_the_contact_scenes_land_as_in_c_mujoco(scene):
         mujoco.mj_forward(m, d)
         c_force = _c_contact_force(m, d)
         force = np.asarray(contact_force(aux.model, c_qpos[k], c_qvel[k]))
-        touched |= {m.geom(c.geom[1]).name for c in d.contact[:d.ncon]}
+        touched |= {m.geom(c.geom[1]).name for c in d.contact[: d.ncon]}
         if d.ncon:
             worst = max(worst, np.linalg.norm(force - c_force) / np.linalg.norm(c_force))
         else:

@@ -26,28 +26,45 @@ MAX_REPR = 2800  # characters: one short line per field (37 fields of ServoParam
 
 def _backend_for_the_test() -> str:
     """A backend other than Agg that loads without a display."""
-    return ("module://matplotlib_inline.backend_inline" if importlib.util.find_spec("matplotlib_inline")
-            else "svg")
+    return "module://matplotlib_inline.backend_inline" if importlib.util.find_spec("matplotlib_inline") else "svg"
 
 
 def test_importing_the_packages_leaves_the_matplotlib_backend_alone():
-    """Probe: pusupu_jax.plots and pusupu_jax.tune.job called matplotlib.use("Agg") on import, so a notebook lost its inline
+    """Probe: pusupu_jax.plots and pusupu_jax.tune.job called matplotlib.use("Agg") on import, so a notebook lost its
+    inline
     backend.  A fresh interpreter with MPLBACKEND set keeps it after importing every layer that plots."""
     backend = _backend_for_the_test()
-    code = ("import matplotlib, pusupu_jax, pusupu_jax.plots, tune, pusupu_jax.tune.run, pusupu_jax.tune.job, pusupu_jax.tune.batchjob, experiments, "
-            "pusupu_jax.experiments.arc, pusupu_jax.cli.cli; print(matplotlib.get_backend())")
-    out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, MPLBACKEND=backend), capture_output=True,
-                         text=True, timeout=300, check=True)
+    code = (
+        "import matplotlib, pusupu_jax, pusupu_jax.plots, pusupu_jax.tune, pusupu_jax.tune.run, pusupu_jax.tune.job, "
+        "pusupu_jax.tune.batchjob, pusupu_jax.experiments, pusupu_jax.experiments.arc, pusupu_jax.cli.cli; "
+        "print(matplotlib.get_backend())"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        env=dict(os.environ, MPLBACKEND=backend),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    )
     assert out.stdout.strip() == backend, out.stderr[-2000:]
 
 
 def test_the_command_selects_agg_itself(tmp_path):
     """The ``pusupu`` command writes its figures with Agg whatever MPLBACKEND says (here a backend it must not keep)."""
-    code = ("import sys, matplotlib; from pusupu_jax.cli.cli import main; "
-            f"status = main(['analyze', '--json', '--plot', {str(tmp_path / 'loops.png')!r}]); "
-            "print(matplotlib.get_backend().lower(), status, file=sys.stderr)")
-    out = subprocess.run([sys.executable, "-c", code], env=dict(os.environ, MPLBACKEND=_backend_for_the_test()),
-                         capture_output=True, text=True, timeout=300, check=True)
+    code = (
+        "import sys, matplotlib; from pusupu_jax.cli.cli import main; "
+        f"status = main(['analyze', '--json', '--plot', {str(tmp_path / 'loops.png')!r}]); "
+        "print(matplotlib.get_backend().lower(), status, file=sys.stderr)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        env=dict(os.environ, MPLBACKEND=_backend_for_the_test()),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=True,
+    )
     assert out.stderr.strip().splitlines()[-1] == "agg 0", out.stderr[-2000:]
     assert (tmp_path / "loops.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
@@ -87,7 +104,8 @@ def test_parameter_sets_show_as_a_short_table_per_axis_with_units():
 
 
 def test_a_trace_shows_its_duration_shapes_and_per_axis_peaks():
-    """The 0.5 s step of ``pusupu sim`` (a shape the suite compiles anyway): a few lines, not 15k characters of arrays."""
+    """The 0.5 s step of ``pusupu sim`` (a shape the suite compiles anyway): a few lines, not 15k characters of
+    arrays."""
     servo = ServoParams.table1()
     trace = simulate(servo, axis_reference("step", LoopRates(), 0.5))
     text = repr(trace)
@@ -101,8 +119,12 @@ def test_a_trace_shows_its_duration_shapes_and_per_axis_peaks():
 def test_an_experiment_result_shows_its_name_and_top_level_metrics():
     from pusupu_jax.experiments import Result
 
-    metrics = {"rms_tracking_error_mm": {"pid": 0.9181234, "imc": 0.4081234}, "branch_rms_error_mm": [0.1] * 6,
-               "seeds": list(range(500)), "note": "x" * 5000}
+    metrics = {
+        "rms_tracking_error_mm": {"pid": 0.9181234, "imc": 0.4081234},
+        "branch_rms_error_mm": [0.1] * 6,
+        "seeds": list(range(500)),
+        "note": "x" * 5000,
+    }
     text = repr(Result("arc", metrics, {"t": np.zeros(100_000)}))
     assert len(text) < MAX_REPR, len(text)
     assert text.startswith("Result 'arc'") and "pid: 0.9181" in text and "branch_rms_error_mm" in text
@@ -124,11 +146,27 @@ def test_the_tuners_results_show_as_summaries():
     assert len(text) < MAX_REPR and text.startswith("OptimiseResult: objective 6 at the start")
     assert "41 evaluations over 1 start(s)" in text and "lambda1 " in text
     assert isinstance(result, dict) and set(result) == {"z", "objective", "history"}
-    run = {"p2p": {"rms_tracking_error_mm": 0.02, "max_tracking_error_mm": 0.04, "sync_error_rho": 0.001,
-                   "highest_branch_force_peak_n": 64.0}}
-    report = TuneReport(before=run, after=run, baselines={}, objective_before=1.1, objective_after=0.79,
-                        iterations=3, wall_s=57.0, tuned_fields=["lambda1"], start={"lambda1": [0.018] * 6},
-                        result={"lambda1": [0.0147] * 6}, history=[{"start": 0, "iteration": k} for k in range(999)])
+    run = {
+        "p2p": {
+            "rms_tracking_error_mm": 0.02,
+            "max_tracking_error_mm": 0.04,
+            "sync_error_rho": 0.001,
+            "highest_branch_force_peak_n": 64.0,
+        }
+    }
+    report = TuneReport(
+        before=run,
+        after=run,
+        baselines={},
+        objective_before=1.1,
+        objective_after=0.79,
+        iterations=3,
+        wall_s=57.0,
+        tuned_fields=["lambda1"],
+        start={"lambda1": [0.018] * 6},
+        result={"lambda1": [0.0147] * 6},
+        history=[{"start": 0, "iteration": k} for k in range(999)],
+    )
     text = repr(report)
     assert len(text) < MAX_REPR and "objective 1.1000 -> 0.7900 in 3 evaluations" in text
     assert "lambda1  0.018 -> 0.0147" in text and json.loads(json.dumps(report)) == dict(report)
@@ -143,8 +181,9 @@ def test_the_notebook_runs_in_a_fresh_kernel_with_its_figures_inline():
     nb = nbformat.read(NOTEBOOK, as_version=4)
     code = [c for c in nb.cells if c.cell_type == "code"]
     assert all(not c.outputs and c.execution_count is None for c in code), "store the notebook without outputs"
-    client = nbclient.NotebookClient(nb, timeout=CELL_TIMEOUT, kernel_name="python3",
-                                     resources={"metadata": {"path": str(NOTEBOOK.parent)}})
+    client = nbclient.NotebookClient(
+        nb, timeout=CELL_TIMEOUT, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOK.parent)}}
+    )
     t0 = time.perf_counter()
     client.execute()  # raises CellExecutionError, naming the cell, on an error
     wall = time.perf_counter() - t0

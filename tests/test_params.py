@@ -16,8 +16,11 @@ POSITIVE = [n for n, f in ServoParams.__dataclass_fields__.items() if f.metadata
 
 
 @settings(max_examples=40, deadline=None)
-@given(name=st.sampled_from(POSITIVE), value=st.sampled_from([0.0, -1.0, -1e-9, math.nan, math.inf]),
-       axis=st.integers(0, 5))
+@given(
+    name=st.sampled_from(POSITIVE),
+    value=st.sampled_from([0.0, -1.0, -1e-9, math.nan, math.inf]),
+    axis=st.integers(0, 5),
+)
 def test_bad_values_name_the_field_and_axis(table1, name, value, axis):
     v = np.array(getattr(table1, name), dtype=float)
     v[axis] = value
@@ -53,20 +56,24 @@ def test_simulate_rejects_bad_input_before_running(table1):
 
 def test_parameter_file_round_trip_and_errors(tmp_path):
     good = tmp_path / "p.yaml"
-    good.write_text("servo: {lambda1: 0.02, Kv: [0.01, 0.02, 0.03, 0.04, 0.05, 0.06]}\n"
-                    "load: {mass: 30}\nrates: {f_current: 10000, n_velocity: 4}\nhybrid: {g: 20.0, form: rms}\n")
+    good.write_text(
+        "servo: {lambda1: 0.02, Kv: [0.01, 0.02, 0.03, 0.04, 0.05, 0.06]}\n"
+        "load: {mass: 30}\nrates: {f_current: 10000, n_velocity: 4}\nhybrid: {g: 20.0, form: rms}\n"
+    )
     servo, load, rates, hybrid = load_params_file(good)
     assert hybrid.g == 20.0 and hybrid.form == "rms" and hybrid.c6 == HybridGains().c6
     assert np.allclose(servo.lambda1, 0.02) and np.allclose(servo.Kv, [0.01, 0.02, 0.03, 0.04, 0.05, 0.06])
     assert np.allclose(load.mass, 30) and rates == LoopRates(f_current=10000.0, n_velocity=4)
-    cases = {"servo: {Ti: .nan}": "ServoParams.Ti: expected a number, got nan",
-             "servo: {Kv: [1, 2]}": r"ServoParams.Kv: expected a number or a list of 6 numbers .*got a list of 2",
-             "servo: {Kv: fast}": "ServoParams.Kv: expected a number",
-             "gains: {}": "unknown section 'gains'",
-             "hybrid: {m6: -1}": "HybridGains.m6: expected a number from 0 to 70000",
-             "rates: {f_current: -5}": "rates.f_current: expected a number > 0",
-             "servo: {lambda1: [0.1,": "not valid YAML",
-             "- 1\n- 2": "expected a mapping"}
+    cases = {
+        "servo: {Ti: .nan}": "ServoParams.Ti: expected a number, got nan",
+        "servo: {Kv: [1, 2]}": r"ServoParams.Kv: expected a number or a list of 6 numbers .*got a list of 2",
+        "servo: {Kv: fast}": "ServoParams.Kv: expected a number",
+        "gains: {}": "unknown section 'gains'",
+        "hybrid: {m6: -1}": "HybridGains.m6: expected a number from 0 to 70000",
+        "rates: {f_current: -5}": "rates.f_current: expected a number > 0",
+        "servo: {lambda1: [0.1,": "not valid YAML",
+        "- 1\n- 2": "expected a mapping",
+    }
     for text, message in cases.items():
         bad = tmp_path / "bad.yaml"
         bad.write_text(text)
@@ -92,9 +99,11 @@ def test_large_vmapped_batch_completes():
     import subprocess
     import sys
 
-    code = ("import numpy as np, jax; from pusupu_jax import ServoParams, simulate; from pusupu_jax.params import stack;"
-            "p = ServoParams.table1(); ps = stack([p.replace(Kv=p.Kv * f) for f in np.linspace(0.8, 1.2, 1024)]);"
-            "[jax.block_until_ready(simulate(ps, np.zeros(5))) for _ in range(2)]; print('ok')")
+    code = (
+        "import numpy as np, jax; from pusupu_jax import ServoParams, simulate; from pusupu_jax.params import stack;"
+        "p = ServoParams.table1(); ps = stack([p.replace(Kv=p.Kv * f) for f in np.linspace(0.8, 1.2, 1024)]);"
+        "[jax.block_until_ready(simulate(ps, np.zeros(5))) for _ in range(2)]; print('ok')"
+    )
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert r.stdout.strip() == "ok", r.stderr[-2000:]
 
@@ -169,5 +178,10 @@ print(json.dumps({"modules": names, "named": named, "live": len(jax.live_arrays(
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, env=env)
     assert r.returncode == 0, r.stderr[-2000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
-    assert {"pusupu_jax.margins", "pusupu_jax.plant.mjx_plant", "pusupu_jax.tune.batch", "pusupu_jax.hw_bridge.loop"} <= set(out["modules"])
+    assert {
+        "pusupu_jax.margins",
+        "pusupu_jax.plant.mjx_plant",
+        "pusupu_jax.tune.batch",
+        "pusupu_jax.hw_bridge.loop",
+    } <= set(out["modules"])
     assert out["named"] == [] and out["live"] == 0 and out["x64"] is False, out

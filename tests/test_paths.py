@@ -57,18 +57,27 @@ def test_every_named_path_fits_the_default_machine(name):
 def test_a_segment_takes_the_longest_time_its_limits_need_and_dwells_at_its_arrival(tmp_path):
     """Segment 1: 100 mm and 0.05 rad at 0.05 m/s and 0.01 rad/s: the tilt's 9.375 s (1.875 x 0.05 / 0.01) rules, the
     centre peaks at 1.875 x 0.1 / 9.375 = 0.02 m/s; then 1 s at rest.  Segment 2 takes the file's defaults."""
-    spec = _file(tmp_path, "p.yaml", HEAD + "defaults: {speed: 0.025, dwell: 0.5}\nwaypoints:\n"
-                 "  - {pose: [0.1, 0, 0, 0.05, 0], speed: 0.05, angular_speed: 0.01, dwell: 1.0}\n"
-                 "  - {pose: [0, 0, 0, 0, 0]}\n")
+    spec = _file(
+        tmp_path,
+        "p.yaml",
+        HEAD + "defaults: {speed: 0.025, dwell: 0.5}\nwaypoints:\n"
+        "  - {pose: [0.1, 0, 0, 0.05, 0], speed: 0.05, angular_speed: 0.01, dwell: 1.0}\n"
+        "  - {pose: [0, 0, 0, 0, 0]}\n",
+    )
     q = paths.platform_path_from(spec, HOME, RATES) - HOME
     first = int(round(9.375 / DT)) + 1
     np.testing.assert_allclose(q[first - 1], [0.1, 0, 0, 0.05, 0], atol=1e-15)
-    assert np.all(q[first - 1:first - 1 + int(round(1.0 / DT)) + 1] == q[first - 1])  # the dwell
+    assert np.all(q[first - 1 : first - 1 + int(round(1.0 / DT)) + 1] == q[first - 1])  # the dwell
     speed = np.linalg.norm(np.diff(q[:first, :3], axis=0), axis=1) / DT
     rate = np.linalg.norm(np.diff(q[:first, 3:], axis=0), axis=1) / DT
     assert speed.max() == pytest.approx(0.02, rel=1e-3) and rate.max() == pytest.approx(0.01, rel=1e-3)
-    back = trajectories.segment_seconds([[0.1, 0, 0, 0.05, 0], [0] * 5], 0.025, paths.DEFAULTS["acceleration"],
-                                        paths.DEFAULTS["angular_speed"], paths.DEFAULTS["angular_acceleration"])[0]
+    back = trajectories.segment_seconds(
+        [[0.1, 0, 0, 0.05, 0], [0] * 5],
+        0.025,
+        paths.DEFAULTS["acceleration"],
+        paths.DEFAULTS["angular_speed"],
+        paths.DEFAULTS["angular_acceleration"],
+    )[0]
     assert back == pytest.approx(1.875 * 0.1 / 0.025)  # defaults: speed from the file's, the others built in
     assert len(q) == first + int(round(1.0 / DT)) + int(np.ceil(back / DT)) + 1 + int(round(0.5 / DT))
     assert paths.path_seconds(spec) == pytest.approx(9.375 + 1.0 + back + 0.5)
@@ -77,8 +86,14 @@ def test_a_segment_takes_the_longest_time_its_limits_need_and_dwells_at_its_arri
 def test_a_pose_table_is_resampled_by_a_monotone_cubic_through_its_rows(tmp_path):
     """Rows at uneven times, a rest between two equal rows and a sharp move: the samples pass through every row, stay
     within each pair of neighbouring rows (no overshoot; the rest stays a rest), and their speed has no jump."""
-    rows = [(0, 0, 0, 0, 0, 0), (0.3, 0.01, 0, 0, 0.02, 0), (0.35, 0.012, 0, 0, 0.02, 0), (1.0, 0.012, 0, 0, 0.02, 0),
-            (1.2, 0.05, -0.01, 0, 0, 0.03), (2.0, 0.05, -0.01, 0, 0, 0.03)]
+    rows = [
+        (0, 0, 0, 0, 0, 0),
+        (0.3, 0.01, 0, 0, 0.02, 0),
+        (0.35, 0.012, 0, 0, 0.02, 0),
+        (1.0, 0.012, 0, 0, 0.02, 0),
+        (1.2, 0.05, -0.01, 0, 0, 0.03),
+        (2.0, 0.05, -0.01, 0, 0, 0.03),
+    ]
     spec = _table(tmp_path, rows)
     q = paths.platform_path_from(spec, HOME, RATES) - HOME
     assert len(q) == int(round(2.0 / DT)) + 1
@@ -92,8 +107,9 @@ def test_a_pose_table_is_resampled_by_a_monotone_cubic_through_its_rows(tmp_path
     assert np.all(q[(t >= 0.35) & (t <= 1.0)] == q[int(round(0.35 / DT))])  # the rest
     speed = np.diff(q, axis=0) / DT
     assert np.abs(np.diff(speed, axis=0)).max() < 0.01  # m/s or rad/s from one period to the next: no jump
-    shuffled = _table(tmp_path, [(r[3], r[0], r[5], r[1], r[4], r[2]) for r in rows], header="z,t,b,x,a,y",
-                      name="shuffled.csv")
+    shuffled = _table(
+        tmp_path, [(r[3], r[0], r[5], r[1], r[4], r[2]) for r in rows], header="z,t,b,x,a,y", name="shuffled.csv"
+    )
     np.testing.assert_array_equal(paths.platform_path_from(shuffled, HOME, RATES) - HOME, q)  # any column order
     assert paths.path_seconds(spec) == 2.0
 
@@ -102,11 +118,16 @@ WAYPOINT_FAULTS = [
     ("speeed: 1\nwaypoints: [{pose: [0, 0, 0, 0, 0]}]\n", "p.yaml: unknown key 'speeed'"),
     ("waypoints: [{pose: [0, 0, 0, 0, 0]}, {pose: [0, 0, 0, 0, 0], sped: 1}]\n", "waypoints[1]: unknown key 'sped'"),
     ("waypoints: [{speed: 0.1}]\n", "waypoints[0]: missing key 'pose'"),
-    ("waypoints: [{pose: [0.1, 0, 0, 0, 0], speed: -0.1}]\n", r"waypoints[0].speed [m/s]: expected a number > 0, "
-                                                               "got -0.1"),
+    (
+        "waypoints: [{pose: [0.1, 0, 0, 0, 0], speed: -0.1}]\n",
+        r"waypoints[0].speed [m/s]: expected a number > 0, "
+        "got -0.1",
+    ),
     ("waypoints: [{pose: [0.1, 0, 0, 0, 0], dwell: -1}]\n", "waypoints[0].dwell [s]: expected a number >= 0, got -1"),
-    ("defaults: {acceleration: 0}\nwaypoints: [{pose: [0.1, 0, 0, 0, 0]}]\n",
-     "defaults.acceleration [m/s^2]: expected a number > 0, got 0"),
+    (
+        "defaults: {acceleration: 0}\nwaypoints: [{pose: [0.1, 0, 0, 0, 0]}]\n",
+        "defaults.acceleration [m/s^2]: expected a number > 0, got 0",
+    ),
     ("waypoints: [{pose: [0.1, 0, 0]}]\n", "waypoints[0].pose: expected five numbers [x, y, z, a, b]"),
     ("waypoints: [{pose: [0, 0, '0.1', 0, 0]}]\n", "waypoints[0].pose[2] (z): expected a number, got str '0.1'"),
     ("waypoints: [{pose: [0, 0, 0, .nan, 0]}]\n", "waypoints[0].pose[3] (a): expected a finite number"),
@@ -124,14 +145,19 @@ def test_a_bad_waypoint_file_is_refused_in_one_line_naming_the_field(tmp_path, b
         assert "\n" not in str(e.value) and str(e.value).startswith(spec)
 
 
-@pytest.mark.parametrize("text,message", [
-    ("version: 1\nwaypoints: [{pose: [0, 0, 0, 0, 0]}]\n", "missing key 'format'"),
-    ("format: pusupu-batch-1\nversion: 1\nwaypoints: [{pose: [0, 0, 0, 0, 0]}]\n",
-     "format: expected 'pusupu-path', got 'pusupu-batch-1'"),
-    ("format: pusupu-path\nversion: 2\nwaypoints: [{pose: [0, 0, 0, 0, 0]}]\n", "version: expected 1, got 2"),
-    ("format: pusupu-path\nversion: true\nwaypoints: [{pose: [0, 0, 0, 0, 0]}]\n", "version: expected 1, got True"),
-    ("format: pusupu-path\nversion: 1\nwaypoints: [{pose: [0, 0, 0, 0, 0]}\n", "not valid YAML"),
-])
+@pytest.mark.parametrize(
+    "text,message",
+    [
+        ("version: 1\nwaypoints: [{pose: [0, 0, 0, 0, 0]}]\n", "missing key 'format'"),
+        (
+            "format: pusupu-batch-1\nversion: 1\nwaypoints: [{pose: [0, 0, 0, 0, 0]}]\n",
+            "format: expected 'pusupu-path', got 'pusupu-batch-1'",
+        ),
+        ("format: pusupu-path\nversion: 2\nwaypoints: [{pose: [0, 0, 0, 0, 0]}]\n", "version: expected 1, got 2"),
+        ("format: pusupu-path\nversion: true\nwaypoints: [{pose: [0, 0, 0, 0, 0]}]\n", "version: expected 1, got True"),
+        ("format: pusupu-path\nversion: 1\nwaypoints: [{pose: [0, 0, 0, 0, 0]}\n", "not valid YAML"),
+    ],
+)
 def test_a_waypoint_file_of_another_format_or_version_is_refused(tmp_path, text, message):
     with pytest.raises(ParameterError, match=re.escape(message)):
         paths.platform_path_from(_file(tmp_path, "p.yml", text), HOME, RATES)
@@ -139,8 +165,10 @@ def test_a_waypoint_file_of_another_format_or_version_is_refused(tmp_path, text,
 
 TABLE_FAULTS = [
     ("", "expected a header t,x,y,z,a,b, got an empty file"),
-    ("t,x,y,z,a\n0,0,0,0,0\n1,0,0,0,0\n", "row 1: expected the header t,x,y,z,a,b (the six columns in any order), "
-                                          "got 't,x,y,z,a'"),
+    (
+        "t,x,y,z,a\n0,0,0,0,0\n1,0,0,0,0\n",
+        "row 1: expected the header t,x,y,z,a,b (the six columns in any order), got 't,x,y,z,a'",
+    ),
     ("t,x,y,z,a,c\n0,0,0,0,0,0\n1,0,0,0,0,0\n", "row 1: expected the header t,x,y,z,a,b"),
     ("t,x,y,z,a,b\n", "expected at least two rows of poses under the header, got 0"),
     ("t,x,y,z,a,b\n0,0,0,0,0,0\n", "expected at least two rows of poses under the header, got 1"),
@@ -148,12 +176,19 @@ TABLE_FAULTS = [
     ("t,x,y,z,a,b\n0,0,0,0,0,0\n1,0,nan,0,0,0\n", "row 3, y [m]: expected a finite number, got nan"),
     ("t,x,y,z,a,b\n0,0,0,0,0,0\n1,0,0,abc,0,0\n", "row 3, z: expected a number, got 'abc'"),
     ("t,x,y,z,a,b\n0,0,0,0,0,0\n1,0,0,0,0,inf\n", "row 3, b [rad]: expected a finite number, got inf"),
-    ("t,x,y,z,a,b\n0,0,0,0,0,0\n0.2,0,0,0,0,0\n\n0.1,0.01,0,0,0,0\n",
-     "row 5, t: expected a time after the row before's 0.2 s (times strictly increasing), got 0.1 s"),
-    ("t,x,y,z,a,b\n0,0,0,0,0,0\n0.1,0,0,0,0,0\n0.1,0.01,0,0,0,0\n",
-     "row 4, t: expected a time after the row before's 0.1 s (times strictly increasing), got 0.1 s"),
-    ("t,x,y,z,a,b\n0,0.01,0,0,0,0\n1,0,0,0,0,0\n", "row 2, x: expected 0 (the path starts at home, where the machine "
-                                                   "starts: every offset within 1e-06), got 0.01 m"),
+    (
+        "t,x,y,z,a,b\n0,0,0,0,0,0\n0.2,0,0,0,0,0\n\n0.1,0.01,0,0,0,0\n",
+        "row 5, t: expected a time after the row before's 0.2 s (times strictly increasing), got 0.1 s",
+    ),
+    (
+        "t,x,y,z,a,b\n0,0,0,0,0,0\n0.1,0,0,0,0,0\n0.1,0.01,0,0,0,0\n",
+        "row 4, t: expected a time after the row before's 0.1 s (times strictly increasing), got 0.1 s",
+    ),
+    (
+        "t,x,y,z,a,b\n0,0.01,0,0,0,0\n1,0,0,0,0,0\n",
+        "row 2, x: expected 0 (the path starts at home, where the machine "
+        "starts: every offset within 1e-06), got 0.01 m",
+    ),
     ("t,x,y,z,a,b\n0,0,0,0,0,2e-6\n1,0,0,0,0,0\n", "row 2, b: expected 0"),
     ("t,x,y,z,a,b\n0,0,0,0,0,0\n1,0,0,0,3.0,0\n", "row 3, a [rad]: expected a number <= 1.5708, got 3"),
 ]
@@ -178,8 +213,11 @@ def test_a_file_over_1_mib_is_refused_before_it_is_read(tmp_path, name, what):
 
 def test_an_unknown_name_or_kind_of_file_is_refused(tmp_path):
     for spec in ("square", str(tmp_path / "p.txt"), 3):
-        with pytest.raises(ParameterError, match=r"trajectory: expected one of \('arc', 'p2p', 'circle', 'tilt'\) or "
-                                                 r"a path file \(\.yaml, \.yml, \.csv\)"):
+        with pytest.raises(
+            ParameterError,
+            match=r"trajectory: expected one of \('arc', 'p2p', 'circle', 'tilt'\) or "
+            r"a path file \(\.yaml, \.yml, \.csv\)",
+        ):
             paths.platform_path_from(spec, HOME, RATES)
     with pytest.raises(ParameterError, match="cannot read path file"):
         paths.platform_path_from(str(tmp_path / "missing.yaml"), HOME, RATES)
@@ -204,8 +242,11 @@ def test_a_segment_too_fast_for_the_motors_names_its_first_pose_branch_speed_and
     with pytest.raises(GeometryError) as e:
         paths.check_path(q, SERVO, DT)
     message = str(e.value)
-    assert re.fullmatch(r"path exceeds the drives: pose \d+ \(t = \S+ s\): branch [1-6] motor speed \S+ rad/s "
-                        r"\(slider \S+ m/s\), expected at most speed_max = 314\.2 rad/s", message), message
+    assert re.fullmatch(
+        r"path exceeds the drives: pose \d+ \(t = \S+ s\): branch [1-6] motor speed \S+ rad/s "
+        r"\(slider \S+ m/s\), expected at most speed_max = 314\.2 rad/s",
+        message,
+    ), message
     k, branch = _first(message), int(re.search(r"branch (\d)", message).group(1))
     s = np.asarray(kinematics.inverse_kinematics(G, jnp.asarray(q)))
     motor = np.abs(np.gradient(s, DT, axis=0)) / np.asarray(screw_ratio(SERVO))  # the oracle: central differences
@@ -219,8 +260,11 @@ def test_a_path_beyond_the_motors_torque_names_its_first_pose_branch_torque_and_
     with pytest.raises(GeometryError) as e:
         paths.check_path(q, weak, DT, where="the arc")
     message = str(e.value)
-    assert re.fullmatch(r"the arc exceeds the drives: pose \d+ \(t = \S+ s\): branch [1-6] motor torque \S+ N m "
-                        r"\(slider force \S+ N\), expected at most Kt I_max = 0\.2644 N m", message), message
+    assert re.fullmatch(
+        r"the arc exceeds the drives: pose \d+ \(t = \S+ s\): branch [1-6] motor torque \S+ N m "
+        r"\(slider force \S+ N\), expected at most Kt I_max = 0\.2644 N m",
+        message,
+    ), message
     force, _ = dynamics.inverse_dynamics_forces(weak, q, DT)  # the oracle: the formula of docs/paths.md
     v = np.gradient(np.asarray(kinematics.inverse_kinematics(G, jnp.asarray(q))), DT, axis=0)
     friction = 20.0 * np.tanh(v / 0.001) + 50.0 * v
@@ -231,8 +275,11 @@ def test_a_path_beyond_the_motors_torque_names_its_first_pose_branch_torque_and_
 def test_a_pose_outside_the_workspace_names_the_first_one_out(tmp_path):
     spec = _file(tmp_path, "far.yaml", HEAD + "waypoints: [{pose: [0.6, 0, 0, 0, 0]}]\n")
     q = paths.platform_path_from(spec, HOME, RATES)
-    with pytest.raises(GeometryError, match=r"path leaves the workspace: pose \d+ \(t = \S+ s\) \(x=.*: slider [1-6] "
-                                            r"out of stroke, s = \S+ mm, expected 0\.0 to 500\.0 mm") as e:
+    with pytest.raises(
+        GeometryError,
+        match=r"path leaves the workspace: pose \d+ \(t = \S+ s\) \(x=.*: slider [1-6] "
+        r"out of stroke, s = \S+ mm, expected 0\.0 to 500\.0 mm",
+    ) as e:
         paths.check_path(q, SERVO, DT)
     k = _first(str(e.value))
     kinematics.check_poses(G, q[:k])  # every pose before it is fine
@@ -248,8 +295,9 @@ def test_a_tuning_configuration_takes_path_files_named_from_its_folder(tmp_path)
     folder = tmp_path / "conf"
     folder.mkdir()
     (folder / "paths").mkdir()
-    table = _table(folder / "paths", [(0, 0, 0, 0, 0, 0), (0.5, 0, 0, 0, 0, 0), (2.0, 0.02, 0, 0, 0.02, 0)],
-                   name="wiggle.csv")
+    table = _table(
+        folder / "paths", [(0, 0, 0, 0, 0, 0), (0.5, 0, 0, 0, 0, 0), (2.0, 0.02, 0, 0, 0.02, 0)], name="wiggle.csv"
+    )
     config = _file(folder, "tune.yaml", "trajectories: [paths/wiggle.csv, p2p]\npath_s: 1.0\n")
     cfg = TuneConfig.load(config)
     assert cfg.trajectories == (table, "p2p")
@@ -260,8 +308,10 @@ def test_a_tuning_configuration_takes_path_files_named_from_its_folder(tmp_path)
     before = cfg.digest()
     Path(table).write_text(Path(table).read_text().replace("0.02,0,0,0.02", "0.03,0,0,0.02"))
     assert cfg.digest() != before  # a checkpoint does not resume over an edited path
-    for value, message in ((["arc", "x/arc.yaml"], "distinct paths, distinctly named"),
-                           (["arc", "square"], "trajectories[1]: expected one of")):
+    for value, message in (
+        (["arc", "x/arc.yaml"], "distinct paths, distinctly named"),
+        (["arc", "square"], "trajectories[1]: expected one of"),
+    ):
         with pytest.raises(ParameterError, match=re.escape(message)):
             cfg.replace(trajectories=value)
 
@@ -269,17 +319,30 @@ def test_a_tuning_configuration_takes_path_files_named_from_its_folder(tmp_path)
 def test_a_batch_scenario_takes_a_path_file_and_fails_alone_when_the_drives_cannot_follow_it(tmp_path):
     from pusupu_jax.tune import jobfile
 
-    _table(tmp_path, [(0, 0, 0, 0, 0, 0), (0.2, 0, 0, 0, 0, 0), (1.0, 0.01, 0, 0, 0, 0.01), (1.5, 0.01, 0, 0, 0, 0.01)],
-           name="gentle.csv")
+    _table(
+        tmp_path,
+        [(0, 0, 0, 0, 0, 0), (0.2, 0, 0, 0, 0, 0), (1.0, 0.01, 0, 0, 0, 0.01), (1.5, 0.01, 0, 0, 0, 0.01)],
+        name="gentle.csv",
+    )
     _file(tmp_path, "fast.yaml", FAST)
-    job = _file(tmp_path, "job.yaml", json.dumps({"tune": {"iterations": 1, "windows": 2, "window_s": 0.1},
-                                                  "scenarios": [{"trajectory": "gentle.csv"},
-                                                                {"trajectory": "fast.yaml"}]}))
+    job = _file(
+        tmp_path,
+        "job.yaml",
+        json.dumps(
+            {
+                "tune": {"iterations": 1, "windows": 2, "window_s": 0.1},
+                "scenarios": [{"trajectory": "gentle.csv"}, {"trajectory": "fast.yaml"}],
+            }
+        ),
+    )
     gentle, fast = jobfile.read(job).jobs
     assert gentle.name == "gentle" and gentle.error is None  # named by its stem, read from the job file's folder
     assert gentle.specs[0].trajectory == str(tmp_path / "gentle.csv")
-    assert re.match(r"scenarios\[1\] \(fast\): the fast path exceeds the drives: pose \d+ \(t = \S+ s\): branch [1-6] "
-                    r"motor speed", fast.error), fast.error
+    assert re.match(
+        r"scenarios\[1\] \(fast\): the fast path exceeds the drives: pose \d+ \(t = \S+ s\): branch [1-6] "
+        r"motor speed",
+        fast.error,
+    ), fast.error
     before = gentle.digest()
     (tmp_path / "gentle.csv").write_text((tmp_path / "gentle.csv").read_text() + "2.0,0,0,0,0,0.01\n")
     assert jobfile.read(job).jobs[0].digest() != before  # a done report of the old path is not taken for this one
@@ -287,21 +350,47 @@ def test_a_batch_scenario_takes_a_path_file_and_fails_alone_when_the_drives_cann
 
 def test_the_sim_command_refuses_a_path_the_drives_cannot_follow_in_one_line(tmp_path):
     spec = _file(tmp_path, "fast.yaml", FAST)
-    r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", "sim", "--plant", "mjx", "--trajectory", spec],
-                       capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [sys.executable, "-m", "pusupu_jax.cli", "sim", "--plant", "mjx", "--trajectory", spec],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 2 and r.stdout == "", r.stderr
     (line,) = r.stderr.strip().splitlines()
-    assert re.match(r"pusupu: error: --trajectory \S+fast\.yaml exceeds the drives: pose \d+ \(t = \S+ s\): "
-                    r"branch [1-6] motor speed", line), line
+    assert re.match(
+        r"pusupu: error: --trajectory \S+fast\.yaml exceeds the drives: pose \d+ \(t = \S+ s\): "
+        r"branch [1-6] motor speed",
+        line,
+    ), line
 
 
 def test_the_sim_command_runs_a_pose_table_on_the_machine(tmp_path):
     """A second of a table with tilts, end to end in PID mode (the compiled program of every PID run on the machine,
     from the persistent cache when test_cli ran before)."""
-    spec = _table(tmp_path, [(0, 0, 0, 0, 0, 0), (0.2, 0, 0, 0, 0, 0), (0.7, 0.005, 0, -0.002, 0.01, 0),
-                             (1.0, 0.005, 0, -0.002, 0.01, 0)], name="nudge.csv")
-    r = subprocess.run([sys.executable, "-m", "pusupu_jax.cli", "sim", "--plant", "mjx", "--trajectory", spec, "--mode",
-                        "pid", "--json"], capture_output=True, text=True, timeout=600)
+    spec = _table(
+        tmp_path,
+        [(0, 0, 0, 0, 0, 0), (0.2, 0, 0, 0, 0, 0), (0.7, 0.005, 0, -0.002, 0.01, 0), (1.0, 0.005, 0, -0.002, 0.01, 0)],
+        name="nudge.csv",
+    )
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pusupu_jax.cli",
+            "sim",
+            "--plant",
+            "mjx",
+            "--trajectory",
+            spec,
+            "--mode",
+            "pid",
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["trajectory"] == spec and out["duration_s"] == pytest.approx(1.0 + DT)

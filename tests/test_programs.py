@@ -79,7 +79,7 @@ def test_a_damaged_or_misplaced_file_is_traced_again_and_replaced(tmp_path, dama
     if damage == "truncated":
         path.write_bytes(data[:100])
     elif damage == "one byte flipped":  # in the module's bytes: the checksum, not the parser, has to catch it
-        path.write_bytes(data[:len(data) // 2] + bytes([data[len(data) // 2] ^ 1]) + data[len(data) // 2 + 1:])
+        path.write_bytes(data[: len(data) // 2] + bytes([data[len(data) // 2] ^ 1]) + data[len(data) // 2 + 1 :])
     else:  # this file under the name of the program for a longer x
         leaves, tree = jax.tree.flatten(LONGER)
         path = tmp_path / (Program(fun, "key").digest(tree, [str(jax.typeof(x)) for x in leaves]) + SUFFIX)

@@ -52,8 +52,10 @@ def test_exported_files_load_as_ros2_controllers_defines_them(tmp_path, mode):
     pid = yaml.safe_load(files[0].read_text())
     jtc = yaml.safe_load(files[1].read_text())
     assert files[0].read_text().startswith("# Exported by pusupu_jax")
-    for doc, name, kind, joints_key in ((pid, ros2.PID_CONTROLLER, "pid_controller", "dof_names"),
-                                        (jtc, ros2.TRAJECTORY_CONTROLLER, "joint_trajectory_controller", "joints")):
+    for doc, name, kind, joints_key in (
+        (pid, ros2.PID_CONTROLLER, "pid_controller", "dof_names"),
+        (jtc, ros2.TRAJECTORY_CONTROLLER, "joint_trajectory_controller", "joints"),
+    ):
         manager = doc["controller_manager"]["ros__parameters"]
         assert manager["update_rate"] == 1000 and manager[name]["type"].startswith(kind)
         _check(doc[name]["ros__parameters"], DEFINITIONS[kind], joints_key)
@@ -89,8 +91,9 @@ def test_c2_is_the_exported_pid_behind_its_output_filter(lambda2, T0):
 def test_the_simulated_ros_loop_is_control_toolbox_s_pid():
     """rollout(outer='ros_pid') against control_toolbox's Pid::compute_command written out in Python, fed the same
     measurements: a 20 mm step (the output and the integral clamp, conditional integration holds), then a ramp."""
-    servo = SERVO.replace(Kp_pid=np.full(6, 40.0), Ki_pid=np.full(6, 200.0), Kd_pid=np.full(6, 0.05),
-                          Kff_pid=np.full(6, 0.8))
+    servo = SERVO.replace(
+        Kp_pid=np.full(6, 40.0), Ki_pid=np.full(6, 200.0), Kd_pid=np.full(6, 0.05), Kff_pid=np.full(6, 0.8)
+    )
     r = float(screw_ratio(servo)[0])
     t = np.arange(400) * RATES.dt_position
     ref = (0.02 + 0.02 * np.clip(t - 0.2, 0, None)) / r  # motor angle [rad]

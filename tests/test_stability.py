@@ -29,8 +29,25 @@ from pusupu_jax.params import bounds
 LOAD = AxisLoad.default()
 # one rate set and method per position law: each pair is a compile of the check's programs
 CASES = (("imc", LoopRates()), ("pid", LoopRates(method="zoh")), ("pid_ff", LoopRates()))
-GAINS = ("lambda1", "lambda2", "T0", "Kv", "Tv", "Kw", "Tw", "Ki", "Ti", "Kcf", "Tcf", "emf_ff", "Kp_pid", "Ki_pid",
-         "Kd_pid", "Tf_pid", "Kff_pid")
+GAINS = (
+    "lambda1",
+    "lambda2",
+    "T0",
+    "Kv",
+    "Tv",
+    "Kw",
+    "Tw",
+    "Ki",
+    "Ti",
+    "Kcf",
+    "Tcf",
+    "emf_ff",
+    "Kp_pid",
+    "Ki_pid",
+    "Kd_pid",
+    "Tf_pid",
+    "Kff_pid",
+)
 TABLE1 = ServoParams.table1()
 FIELDS = {f.name: f for f in all_fields(ServoParams)}
 
@@ -102,7 +119,8 @@ def test_every_gain_set_the_oracle_finds_unstable_is_refused(values, case):
 @settings(max_examples=60, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow])
 @given(values=gain_sets(1.5), case=st.sampled_from(CASES))
 def test_every_stable_set_with_45_deg_and_6_db_is_accepted_and_its_margins_agree(values, case):
-    """Within a factor e^1.5 of Table 1, where a quarter of the sets (15 of 60 when this was written) are stable with both margins to spare."""
+    """Within a factor e^1.5 of Table 1, where a quarter of the sets (15 of 60 when this was written) are stable with
+    both margins to spare."""
     mode, rates = case
     servo = _servo(values)
     radius, margins = oracle(servo, rates, mode)
@@ -114,8 +132,11 @@ def test_every_stable_set_with_45_deg_and_6_db_is_accepted_and_its_margins_agree
             assert found.loops[loop].phase_margin_deg[0] == pytest.approx(pm, abs=0.5), loop
         if stable and gm is not None:
             assert found.loops[loop].gain_margin_db[0] == pytest.approx(gm, abs=0.1), loop
-    clear = all((m["phase_margin_deg"] is None or m["phase_margin_deg"] >= 45.5)
-                and (m["gain_margin_db"] is None or m["gain_margin_db"] >= 6.1) for m in margins.values())
+    clear = all(
+        (m["phase_margin_deg"] is None or m["phase_margin_deg"] >= 45.5)
+        and (m["gain_margin_db"] is None or m["gain_margin_db"] >= 6.1)
+        for m in margins.values()
+    )
     if stable and clear:
         assert found.problem() is None
 
@@ -141,8 +162,9 @@ def test_a_crossover_below_the_old_grid_is_seen():
     _, margins = oracle(servo, LoopRates(), "pid")
     assert margins["position"]["crossover_hz"] * 2 * np.pi < 1e-2
     assert found.loops["position"].in_band.all()
-    assert found.loops["position"].phase_margin_deg[0] == pytest.approx(margins["position"]["phase_margin_deg"],
-                                                                        abs=0.5)
+    assert found.loops["position"].phase_margin_deg[0] == pytest.approx(
+        margins["position"]["phase_margin_deg"], abs=0.5
+    )
 
 
 def test_docs_give_every_range_as_the_code_has_it():

@@ -39,10 +39,15 @@ def test_p2p_visits_the_papers_points():
         assert np.min(np.linalg.norm(xy - point, axis=1)) < 1e-12
 
 
-@pytest.mark.parametrize("kwargs,message", [(dict(kind="square"), "expected one of"),
-                                            (dict(kind="arc", v_max=0), "v_max: expected a positive"),
-                                            (dict(kind="arc", a_max=np.nan), "a_max: expected a positive"),
-                                            (dict(kind="p2p", hold=-1), "hold: expected a non-negative")])
+@pytest.mark.parametrize(
+    "kwargs,message",
+    [
+        (dict(kind="square"), "expected one of"),
+        (dict(kind="arc", v_max=0), "v_max: expected a positive"),
+        (dict(kind="arc", a_max=np.nan), "a_max: expected a positive"),
+        (dict(kind="p2p", hold=-1), "hold: expected a non-negative"),
+    ],
+)
 def test_bad_path_settings(kwargs, message):
     with pytest.raises(ParameterError, match=message):
         platform_path(home=HOME, **kwargs)
@@ -58,7 +63,7 @@ def test_circle_is_the_iso_230_4_test_both_ways_at_the_feed():
     assert np.all(np.diff(on) == 1)  # one stretch on the circle: out along a radius, around twice, back
     turn = np.unwrap(np.arctan2(xy[on, 1], xy[on, 0]))
     top = int(np.argmax(turn))
-    assert np.all(np.diff(turn[:top + 1]) >= 0) and np.all(np.diff(turn[top:]) <= 0)  # counterclockwise, then back
+    assert np.all(np.diff(turn[: top + 1]) >= 0) and np.all(np.diff(turn[top:]) <= 0)  # counterclockwise, then back
     speed = np.linalg.norm(np.diff(xy[on], axis=0), axis=1) / DT
     for half in (slice(0, top), slice(top, None)):
         cruising = np.abs(speed[half] - 0.05) < 1e-9

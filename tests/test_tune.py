@@ -33,8 +33,7 @@ def _synthetic():
 def test_tuner_recovers_known_gains_from_a_perturbed_start():
     """lambda1 0.018 -> 0.03 and lambda2 0.15 -> 0.08 recovered to 1 % (observed 0.1 %) by clipped Adam on log-gains."""
     space, vg = _synthetic()
-    out = optimise(vg, space.z0(), space.project, iterations=300, learning_rate=0.03,
-                   final_lr_fraction=0.05)
+    out = optimise(vg, space.z0(), space.project, iterations=300, learning_rate=0.03, final_lr_fraction=0.05)
     got = space.values(out["z"])
     assert float(got["lambda1"]) == pytest.approx(0.03, rel=0.01)
     assert float(got["lambda2"]) == pytest.approx(0.08, rel=0.01)
@@ -62,8 +61,7 @@ def test_resuming_from_a_checkpoint_gives_the_uninterrupted_result(tmp_path):
     for name in whole["z"]:
         assert np.array_equal(np.asarray(resumed["z"][name]), np.asarray(whole["z"][name]))
     with pytest.raises(ParameterError, match="checkpoint of another configuration"):
-        optimise(vg, space.z0(), space.project, iterations=12, checkpoint=tmp_path / "b.npz",
-                 **(kw | {"digest": "y"}))
+        optimise(vg, space.z0(), space.project, iterations=12, checkpoint=tmp_path / "b.npz", **(kw | {"digest": "y"}))
 
 
 def test_per_axis_space_tunes_each_axis_and_checks_bounds():
@@ -79,31 +77,34 @@ def test_per_axis_space_tunes_each_axis_and_checks_bounds():
         Space.create(("imc",), SERVO.replace(lambda1=np.linspace(0.01, 0.02, 6)), HybridGains())
 
 
-@pytest.mark.parametrize("text, message", [
-    ("iterations: 0", "iterations: expected an integer >= 1"),
-    ("groups: [imc, foo]", "groups: expected a list of distinct names from"),
-    ("colour: red", "unknown key 'colour'"),
-    ("mode: imc\ngroups: [hybrid]", "the 'hybrid' group only in hybrid mode"),
-    ("weights: {speed: 1}", "weights: expected a mapping of some of"),
-    ("aggregate: median", "aggregate: expected mean or max"),
-    ("gradient: backward", "gradient: expected one of \\('reverse', 'forward'\\)"),
-    ("remat: 1", "remat: expected true or false, got 1"),
-    ("pm_min: -1000", "pm_min: expected a number >= 0"),
-    ("pm_min: .nan", "pm_min: expected a finite number"),
-    ("payloads: [.inf]", r"payloads\[0\]: expected a finite number"),
-    ("weights: {track_rms: .inf}", "weights.track_rms: expected a finite number"),
-    ("groups: [imc, imc]", "groups: expected a list of distinct names"),
-    ("window_s: .inf", "window_s: expected a finite number"),
-    ("path_s: .inf", "path_s: expected a finite number"),
-    ("horizon_s: 2.0", "unknown key 'horizon_s'"),
-    ("iterations: 2.5", "iterations: expected an integer"),
-    ("learning_rate: '0.1'", "learning_rate: expected a number, got str"),
-    ("checkpoint_every: 3", "checkpoint_every: expected a multiple of refresh_every"),
-    ("imc_form: exact", "imc_form: expected one of"),
-    ("baselines: [hybrid]", "baselines: expected a list of distinct modes"),
-    ("ros_joints: [a, b]", "ros_joints: expected 6 distinct names of letters, digits and _"),
-    ("a: &x 1\nb: *x", "anchors are not accepted"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("iterations: 0", "iterations: expected an integer >= 1"),
+        ("groups: [imc, foo]", "groups: expected a list of distinct names from"),
+        ("colour: red", "unknown key 'colour'"),
+        ("mode: imc\ngroups: [hybrid]", "the 'hybrid' group only in hybrid mode"),
+        ("weights: {speed: 1}", "weights: expected a mapping of some of"),
+        ("aggregate: median", "aggregate: expected mean or max"),
+        ("gradient: backward", "gradient: expected one of \\('reverse', 'forward'\\)"),
+        ("remat: 1", "remat: expected true or false, got 1"),
+        ("pm_min: -1000", "pm_min: expected a number >= 0"),
+        ("pm_min: .nan", "pm_min: expected a finite number"),
+        ("payloads: [.inf]", r"payloads\[0\]: expected a finite number"),
+        ("weights: {track_rms: .inf}", "weights.track_rms: expected a finite number"),
+        ("groups: [imc, imc]", "groups: expected a list of distinct names"),
+        ("window_s: .inf", "window_s: expected a finite number"),
+        ("path_s: .inf", "path_s: expected a finite number"),
+        ("horizon_s: 2.0", "unknown key 'horizon_s'"),
+        ("iterations: 2.5", "iterations: expected an integer"),
+        ("learning_rate: '0.1'", "learning_rate: expected a number, got str"),
+        ("checkpoint_every: 3", "checkpoint_every: expected a multiple of refresh_every"),
+        ("imc_form: exact", "imc_form: expected one of"),
+        ("baselines: [hybrid]", "baselines: expected a list of distinct modes"),
+        ("ros_joints: [a, b]", "ros_joints: expected 6 distinct names of letters, digits and _"),
+        ("a: &x 1\nb: *x", "anchors are not accepted"),
+    ],
+)
 def test_bad_tune_configurations_are_rejected(tmp_path, text, message):
     from pusupu_jax.tune.config import TuneConfig
 
@@ -161,8 +162,14 @@ def test_progress_keeps_the_first_iteration_apart_from_the_rate(tty):
     from pusupu_jax.tune.run import progress_reporter
 
     stream = _Stream(tty)
-    optimise(_slow_first(), {"a": jnp.zeros(2)}, lambda z: z, iterations=4, learning_rate=0.1,
-             progress=progress_reporter(1, stream))
+    optimise(
+        _slow_first(),
+        {"a": jnp.zeros(2)},
+        lambda z: z,
+        iterations=4,
+        learning_rate=0.1,
+        progress=progress_reporter(1, stream),
+    )
     if not tty:
         lines = stream.text.splitlines()
         assert len(lines) == 4 and lines[0].startswith("tune [start 1/1] [#####...............] 1/4 J=2.0000")

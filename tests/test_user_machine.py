@@ -14,8 +14,9 @@ MACHINE, PATH = EXAMPLES / "machine_user.yaml", EXAMPLES / "pose_table.csv"
 
 
 def pusupu(*args, timeout=900):
-    return subprocess.run([sys.executable, "-m", "pusupu_jax.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "pusupu_jax.cli", *map(str, args)], capture_output=True, text=True, timeout=timeout
+    )
 
 
 def test_a_users_machine_end_to_end(tmp_path):
@@ -37,16 +38,56 @@ def test_a_users_machine_end_to_end(tmp_path):
     assert r.returncode == 0 and "tuned on machine 'user-1FT7044-lead5'" in r.stdout, r.stderr
     r = pusupu("gains", "check", gain_file)  # on the built-in machine: its 10 A drive, the user's 31 A clamp
     assert r.returncode == 2 and "I_max: expected 0 to I_peak = 10" in r.stderr and r.stderr.count("\n") == 1
-    robot = subprocess.Popen([sys.executable, "-m", "pusupu_jax.cli", "sim-robot", "--gains", gain_file, "--machine",
-                              MACHINE, "--listen", "udp://127.0.0.1:5611", "--seconds", "120", "--no-realtime"],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    robot = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "pusupu_jax.cli",
+            "sim-robot",
+            "--gains",
+            gain_file,
+            "--machine",
+            MACHINE,
+            "--listen",
+            "udp://127.0.0.1:5611",
+            "--seconds",
+            "120",
+            "--no-realtime",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         time.sleep(1.0)
-        r = pusupu("bridge", "--gains", gain_file, "--robot", "udp://127.0.0.1:5611", "--trajectory", PATH,
-                   "--duration", "1", "--no-realtime")  # without the machine file: the built-in machine refuses
+        r = pusupu(
+            "bridge",
+            "--gains",
+            gain_file,
+            "--robot",
+            "udp://127.0.0.1:5611",
+            "--trajectory",
+            PATH,
+            "--duration",
+            "1",
+            "--no-realtime",
+        )  # without the machine file: the built-in machine refuses
         assert r.returncode == 2 and "I_max" in r.stderr, r.stderr
-        r = pusupu("bridge", "--gains", gain_file, "--machine", MACHINE, "--robot", "udp://127.0.0.1:5611",
-                   "--trajectory", PATH, "--duration", "2", "--no-realtime", "--json")
+        r = pusupu(
+            "bridge",
+            "--gains",
+            gain_file,
+            "--machine",
+            MACHINE,
+            "--robot",
+            "udp://127.0.0.1:5611",
+            "--trajectory",
+            PATH,
+            "--duration",
+            "2",
+            "--no-realtime",
+            "--json",
+        )
         assert r.returncode == 0, r.stderr
         run = json.loads(r.stdout)
         assert run["faults"] == [] and run["cycles"] > 0
@@ -59,9 +100,11 @@ def test_a_batch_on_a_users_machine_exports_gains_that_name_it(tmp_path):
     """One job of a job file naming the machine (one iteration on the pose table's first 0.2 s): the start gains are
     derived for that machine, and the exported gain file passes ``gains check`` on it and names it."""
     job = tmp_path / "job.yaml"
-    job.write_text(f"format: pusupu-batch-1\nplots: false\nmachine: {MACHINE}\n"
-                   "tune: {mode: imc, groups: [imc], iterations: 1, windows: 1, window_s: 0.1}\n"
-                   f"scenarios: [{{name: table, trajectory: {PATH}, path_s: 0.2}}]\n")
+    job.write_text(
+        f"format: pusupu-batch-1\nplots: false\nmachine: {MACHINE}\n"
+        "tune: {mode: imc, groups: [imc], iterations: 1, windows: 1, window_s: 0.1}\n"
+        f"scenarios: [{{name: table, trajectory: {PATH}, path_s: 0.2}}]\n"
+    )
     r = pusupu("batch", job, "--out", tmp_path / "out", "--json")
     assert r.returncode == 0, r.stderr
     report = json.loads((tmp_path / "out" / "jobs" / "table" / "report.json").read_text())

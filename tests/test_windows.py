@@ -36,11 +36,16 @@ def test_a_run_cut_into_chunks_is_the_whole_run_and_restarts_from_its_carries():
                 a, b = np.asarray(getattr(whole, field)), getattr(run, field)
                 np.testing.assert_allclose(b, a, rtol=0, atol=1e-13 * np.abs(a).max(), err_msg=f"{mode} {field}")
         for j, k in enumerate((0, 300, 901)):
-            window = rollout(SERVO, LOAD, REF[k:k + 200], outer=mode, init=jax.tree.map(lambda x: x[j], carries))
+            window = rollout(SERVO, LOAD, REF[k : k + 200], outer=mode, init=jax.tree.map(lambda x: x[j], carries))
             for field in ("theta", "current"):
                 a = np.asarray(getattr(whole, field))
-                np.testing.assert_allclose(np.asarray(getattr(window, field)), a[k:k + 200], rtol=0,
-                                           atol=1e-13 * np.abs(a).max(), err_msg=f"{mode} {field} from {k}")
+                np.testing.assert_allclose(
+                    np.asarray(getattr(window, field)),
+                    a[k : k + 200],
+                    rtol=0,
+                    atol=1e-13 * np.abs(a).max(),
+                    err_msg=f"{mode} {field} from {k}",
+                )
 
 
 @pytest.mark.parametrize("field", ["lambda1", "lambda2", "T0", "Kv", "Tv", "Kp_pid"])

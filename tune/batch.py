@@ -40,9 +40,22 @@ from pusupu_jax.programs import Program
 from pusupu_jax.sim import rollout
 
 from .config import TuneConfig
-from .run import (HERE, CheckpointLayout, Scenarios, ScenarioSpec, WindowStarts, aggregate, join_windows,
-                  load_checkpoint, optimiser, save_checkpoint, scenario_objective, start_point, structure_key,
-                  whole_path_metrics)
+from .run import (
+    HERE,
+    CheckpointLayout,
+    Scenarios,
+    ScenarioSpec,
+    WindowStarts,
+    aggregate,
+    join_windows,
+    load_checkpoint,
+    optimiser,
+    save_checkpoint,
+    scenario_objective,
+    start_point,
+    structure_key,
+    whole_path_metrics,
+)
 from .space import Space
 
 
@@ -57,14 +70,23 @@ class BatchProblem(WindowStarts):
     ``servo0`` and ``specs`` are on (default the built-in one), whose load the margin constraints take.
     """
 
-    def __init__(self, cfg: TuneConfig, specs: list[ScenarioSpec], problems: list[list[int]], servo0: ServoParams,
-                 hybrid0: HybridGains, devices=None, machine: Machine | None = None):
+    def __init__(
+        self,
+        cfg: TuneConfig,
+        specs: list[ScenarioSpec],
+        problems: list[list[int]],
+        servo0: ServoParams,
+        hybrid0: HybridGains,
+        devices=None,
+        machine: Machine | None = None,
+    ):
         if len({len(p) for p in problems}) != 1:
             raise ValueError("BatchProblem: every problem needs the same number of scenarios")
         self.cfg = cfg
         self.rates = machine_rates()
-        self.space = Space.create(cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared,
-                                  bounds=cfg.bounds)
+        self.space = Space.create(
+            cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared, bounds=cfg.bounds
+        )
         self.scenarios = sc = Scenarios.build(cfg, self.space.servo0, self.rates, specs)
         # the margin constraints' load (the machine's, as the export's): ``servo0`` and ``specs`` are on ``machine``
         self.load = machine_file.axis_load(Machine.default() if machine is None else machine)
@@ -82,14 +104,24 @@ class BatchProblem(WindowStarts):
         mesh = Mesh(np.array(self.devices), ("batch",))
         self.sharding = NamedSharding(mesh, PartitionSpec("batch"))
         # arguments of the gradient, not constants in it (as pusupu_jax.tune.run.Problem.windows)
-        self.windows = self.shard((_take(sc.window_models, windows), _take(sc.window_reference, windows),
-                                   jnp.asarray(sc.window_path)[windows]))
+        self.windows = self.shard(
+            (
+                _take(sc.window_models, windows),
+                _take(sc.window_reference, windows),
+                jnp.asarray(sc.window_path)[windows],
+            )
+        )
         self._apply = jax.jit(jax.vmap(self.space.apply))
         self.rows = len(self.pairs)  # the baseline's terms are per pair
         gradient = value_and_grad(self.objective, cfg.gradient)
-        if len(self.devices) == 1:  # traced once for every process (Ray's workers, a resumed batch) that runs this layout
-            self._value_and_grad = Program(gradient, lambda: structure_key(self, len(members), self.window_member,
-                                                                           self.pair_member), sources=(HERE,))
+        if (
+            len(self.devices) == 1
+        ):  # traced once for every process (Ray's workers, a resumed batch) that runs this layout
+            self._value_and_grad = Program(
+                gradient,
+                lambda: structure_key(self, len(members), self.window_member, self.pair_member),
+                sources=(HERE,),
+            )
         else:  # sharded arguments: jitted as it is (an exported program is kept for one device)
             self._value_and_grad = jax.jit(gradient)
 
@@ -111,8 +143,9 @@ class BatchProblem(WindowStarts):
             qs = np.array([q for q, (_, s) in enumerate(self.pairs) if sc.group_of[s] == length])
             local = np.array([idx.index(self.pairs[q][1]) for q in qs])
             servo, hybrid = self._apply(_take(zb, self.pair_member[qs]))
-            traces, carries = sc.whole(servo, hybrid, _take(models, local), _take(refs, local), self.cfg.mode,
-                                       self.rates, batched=True)
+            traces, carries = sc.whole(
+                servo, hybrid, _take(models, local), _take(refs, local), self.cfg.mode, self.rates, batched=True
+            )
             out.append((qs, traces, carries))
         return out
 
@@ -131,8 +164,17 @@ class BatchProblem(WindowStarts):
 
         def one(z, model, reference, init):
             servo, hybrid = self.space.apply(z)
-            return rollout(servo, model, reference, plant=sc.plant, rates=self.rates, outer=cfg.mode,
-                           hybrid=hybrid if hybrid_mode else None, init=init, remat=cfg.remat)
+            return rollout(
+                servo,
+                model,
+                reference,
+                plant=sc.plant,
+                rates=self.rates,
+                outer=cfg.mode,
+                hybrid=hybrid if hybrid_mode else None,
+                init=init,
+                remat=cfg.remat,
+            )
 
         models, reference, path = windows
         traces = jax.vmap(one)(_take(zb, self.window_member), models, reference, starts)
@@ -141,8 +183,9 @@ class BatchProblem(WindowStarts):
         path = join_windows(path, Q, K)
 
         def terms(z, trace, p):
-            return objectives.terms(trace, self.space.apply(z)[0], p, self.rates.dt_position,
-                                    sharpness_force=cfg.sharpness_force)
+            return objectives.terms(
+                trace, self.space.apply(z)[0], p, self.rates.dt_position, sharpness_force=cfg.sharpness_force
+            )
 
         t = jax.vmap(terms)(_take(zb, self.pair_member), joined, path)
         per = scenario_objective(cfg, t, baseline)
@@ -169,13 +212,15 @@ class BatchProblem(WindowStarts):
                 m, s = self.pairs[q]
                 if m < self.n_real:
                     servo, hybrid = self.space.host_values(self.member_z(zb, m))
-                    out[m][sc.names[s]] = whole_path_metrics(self.cfg, sc, s, _take(traces, j), servo, hybrid,
-                                                             self.rates)
+                    out[m][sc.names[s]] = whole_path_metrics(
+                        self.cfg, sc, s, _take(traces, j), servo, hybrid, self.rates
+                    )
         return out
 
 
-def optimise_batch(problem: BatchProblem, *, checkpoint: Path | None = None, digest: str = "",
-                   progress: Callable | None = None) -> dict:
+def optimise_batch(
+    problem: BatchProblem, *, checkpoint: Path | None = None, digest: str = "", progress: Callable | None = None
+) -> dict:
     """:func:`pusupu_jax.tune.run.optimise` for every member of ``problem`` at once, with its configuration's settings.
 
     Returns per real member ``best_value`` ``(P,)``, ``best_z``, ``history`` (per member, entries as
@@ -192,9 +237,17 @@ def optimise_batch(problem: BatchProblem, *, checkpoint: Path | None = None, dig
     layout = CheckpointLayout(zb, opt_template, cfg.iterations, cfg.starts, members=P)
     state = load_checkpoint(checkpoint, digest, layout) if checkpoint else None
     if state is None:
-        state = {"digest": digest, "iteration": 0, "z": zb, "opt": opt_template, "history": [[] for _ in range(P)],
-                 "best_value": np.full(P, np.inf), "best_z": {k: np.asarray(v) for k, v in zb.items()},
-                 "failed": {}, "done": False}
+        state = {
+            "digest": digest,
+            "iteration": 0,
+            "z": zb,
+            "opt": opt_template,
+            "history": [[] for _ in range(P)],
+            "best_value": np.full(P, np.inf),
+            "best_z": {k: np.asarray(v) for k, v in zb.items()},
+            "failed": {},
+            "done": False,
+        }
     zb, opt_state = problem.shard(state["z"]), problem.shard(state["opt"])  # placed once: no recompiles later
     best_value = np.asarray(state["best_value"], dtype=float)
     best_z = {k: np.array(v) for k, v in state["best_z"].items()}
@@ -218,17 +271,22 @@ def optimise_batch(problem: BatchProblem, *, checkpoint: Path | None = None, dig
         (_, aux), grad = problem.value_and_grad(zb)
         values = np.asarray(aux["value"], dtype=float)
         zh = {n: np.asarray(v) for n, v in zb.items()}  # host copies: per-member indexing without device calls
-        finite = np.isfinite(values) & np.all([np.isfinite(np.asarray(g)).reshape(P, -1).all(axis=1)
-                                               for g in grad.values()], axis=0)
+        finite = np.isfinite(values) & np.all(
+            [np.isfinite(np.asarray(g)).reshape(P, -1).all(axis=1) for g in grad.values()], axis=0
+        )
         for m in np.flatnonzero(~finite):
-            failed.setdefault(int(m), f"non-finite objective or gradient at iteration {iteration} "
-                                      f"(value {values[m]})")
+            failed.setdefault(int(m), f"non-finite objective or gradient at iteration {iteration} (value {values[m]})")
         for m in range(P):
             if int(m) in failed:
                 continue
-            state["history"][m].append({"start": problem.members[m][1], "iteration": iteration,
-                                        "objective": float(values[m]),
-                                        "z": {n: v[m].tolist() for n, v in zh.items()}})
+            state["history"][m].append(
+                {
+                    "start": problem.members[m][1],
+                    "iteration": iteration,
+                    "objective": float(values[m]),
+                    "z": {n: v[m].tolist() for n, v in zh.items()},
+                }
+            )
             if values[m] < best_value[m]:
                 best_value[m] = values[m]
                 for n, v in zh.items():
@@ -243,7 +301,7 @@ def optimise_batch(problem: BatchProblem, *, checkpoint: Path | None = None, dig
             state["iteration"] += 1
             state.update(z=zb, opt=opt_state, best_value=best_value, best_z=best_z, failed=failed)
             if progress:
-                progress(state["iteration"], cfg.iterations, values[:problem.n_real], time.perf_counter() - t_start)
+                progress(state["iteration"], cfg.iterations, values[: problem.n_real], time.perf_counter() - t_start)
             if checkpoint and state["iteration"] % cfg.checkpoint_every == 0:
                 save_checkpoint(checkpoint, state)
         evaluate(zb, cfg.iterations)  # the last step's result is evaluated too: it may be the best
@@ -251,5 +309,9 @@ def optimise_batch(problem: BatchProblem, *, checkpoint: Path | None = None, dig
         if checkpoint:
             save_checkpoint(checkpoint, state)
     n = problem.n_real
-    return {"best_value": best_value[:n], "best_z": {k: v[:n] for k, v in best_z.items()},
-            "history": state["history"][:n], "failed": {m: msg for m, msg in failed.items() if m < n}}
+    return {
+        "best_value": best_value[:n],
+        "best_z": {k: v[:n] for k, v in best_z.items()},
+        "history": state["history"][:n],
+        "failed": {m: msg for m, msg in failed.items() if m < n},
+    }

@@ -37,8 +37,18 @@ from .config import TuneConfig
 
 SUMMARY_FILES = ("summary.csv", "summary.md", "summary.json", "summary.png")
 MAX_REPORT_BYTES = 64 << 20  # a job's report.json: its history, a few hundred bytes an iteration
-SUMMARY_COLUMNS = ("job", "status", "scenarios", "objective_before", "objective_after", "rms_before_mm",
-                   "rms_after_mm", "max_after_mm", "force_peak_after_n", "error")
+SUMMARY_COLUMNS = (
+    "job",
+    "status",
+    "scenarios",
+    "objective_before",
+    "objective_after",
+    "rms_before_mm",
+    "rms_after_mm",
+    "max_after_mm",
+    "force_peak_after_n",
+    "error",
+)
 
 
 def job_dir(out: Path, name: str) -> Path:
@@ -62,9 +72,10 @@ def shards(jobs: list, shard_size: int | None) -> list[dict]:
     config = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()}
     tasks = []
     for a in range(0, len(jobs), size):
-        part = jobs[a:a + size]
-        entries = [{"name": j.name, "digest": j.digest(), "specs": [jobfile.spec_dict(s) for s in j.specs]}
-                   for j in part]
+        part = jobs[a : a + size]
+        entries = [
+            {"name": j.name, "digest": j.digest(), "specs": [jobfile.spec_dict(s) for s in j.specs]} for j in part
+        ]
         pad = size - len(part)
         ident = hashlib.sha256(json.dumps([[e["digest"] for e in entries], pad]).encode()).hexdigest()[:12]
         machine = None if part[0].machine is None else part[0].machine.content()
@@ -96,14 +107,18 @@ def run_shard(task: dict, out: str, plots: bool = True, stream=None) -> list[dic
     n_jobs = len(task["jobs"])
     t0 = time.perf_counter()
     padding = f", {task['pad']} padding" if task["pad"] else ""
-    print(f"batch: shard {task['id']}: {n_jobs} job(s) x {cfg.starts} start(s) "
-          f"({len(specs)} scenario runs{padding}); compiling",
-          file=stream, flush=True)
+    print(
+        f"batch: shard {task['id']}: {n_jobs} job(s) x {cfg.starts} start(s) "
+        f"({len(specs)} scenario runs{padding}); compiling",
+        file=stream,
+        flush=True,
+    )
     machine = Machine.default() if task["machine"] is None else machine_file.parse(task["machine"])
     servo0, hybrid0, start = start_gains(machine, None, stream)
     problem = BatchProblem(cfg, specs, problems, servo0, hybrid0, machine=machine)
-    result = optimise_batch(problem, checkpoint=folder / "checkpoint.npz", digest=task["id"],
-                            progress=progress_printer(task["id"], stream))
+    result = optimise_batch(
+        problem, checkpoint=folder / "checkpoint.npz", digest=task["id"], progress=progress_printer(task["id"], stream)
+    )
     R = cfg.starts
     best_members = []
     for j in range(n_jobs):
@@ -121,14 +136,40 @@ def run_shard(task: dict, out: str, plots: bool = True, stream=None) -> list[dic
         m = best_members[j]
         history = [h for mm in range(j * R, (j + 1) * R) for h in result["history"][mm]]
         failed = {mm - j * R: result["failed"][mm] for mm in range(j * R, (j + 1) * R) if mm in result["failed"]}
-        rows.append(write_job(out, e, cfg, problem, None if m is None else problem.member_z(zb, j * R), history,
-                              failed, before[j * R], after[j * R], plots, machine, start))
+        rows.append(
+            write_job(
+                out,
+                e,
+                cfg,
+                problem,
+                None if m is None else problem.member_z(zb, j * R),
+                history,
+                failed,
+                before[j * R],
+                after[j * R],
+                plots,
+                machine,
+                start,
+            )
+        )
     print(f"batch: shard {task['id']} done in {time.perf_counter() - t0:.0f} s", file=stream, flush=True)
     return rows
 
 
-def write_job(out: Path, entry: dict, cfg: TuneConfig, problem, z, history, failed, before, after,
-              plots: bool, machine: Machine, start: dict) -> dict:
+def write_job(
+    out: Path,
+    entry: dict,
+    cfg: TuneConfig,
+    problem,
+    z,
+    history,
+    failed,
+    before,
+    after,
+    plots: bool,
+    machine: Machine,
+    start: dict,
+) -> dict:
     """One job's outputs on ``machine`` from the start gains ``start`` (what the report says of them): gains and ROS 2
     files if they pass every check, plots, report.json last; its summary row."""
     from .job import _plots, _summary, export
@@ -137,27 +178,45 @@ def write_job(out: Path, entry: dict, cfg: TuneConfig, problem, z, history, fail
     folder.mkdir(parents=True, exist_ok=True)
     first = [h for h in history if h["iteration"] == 0 and h["start"] == 0]
     objective_before = first[0]["objective"] if first else float("nan")
-    report = {"job": entry["name"], "job_digest": entry["digest"], "scenarios": entry["specs"],
-              "machine": machine_file.reference(machine), "start_gains": start,
-              "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
-              "tuned_fields": list(problem.space.fields), "failed_starts": {str(k): v for k, v in failed.items()},
-              "history": [{k: h[k] for k in ("start", "iteration", "objective")} for h in history],
-              "objective_before": objective_before,
-              "before": {n: _summary(r) for n, (r, _) in before.items()}}
+    report = {
+        "job": entry["name"],
+        "job_digest": entry["digest"],
+        "scenarios": entry["specs"],
+        "machine": machine_file.reference(machine),
+        "start_gains": start,
+        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
+        "tuned_fields": list(problem.space.fields),
+        "failed_starts": {str(k): v for k, v in failed.items()},
+        "history": [{k: h[k] for k in ("start", "iteration", "objective")} for h in history],
+        "objective_before": objective_before,
+        "before": {n: _summary(r) for n, (r, _) in before.items()},
+    }
     if z is None:
         report |= {"status": "failed", "error": "every start failed: " + "; ".join(failed.values())}
     else:
         servo, hybrid = problem.space.host_values(z)
         best = min(h["objective"] for h in history)
-        report |= {"objective_after": best, "after": {n: _summary(r) for n, (r, _) in after.items()},
-                   "start": {f: np.asarray(v).tolist() for f, v in problem.space.values(problem.space.z0()).items()},
-                   "result": {f: np.asarray(v).tolist() for f, v in problem.space.values(z).items()}}
-        provenance = {"config_hash": cfg.digest(), "job": entry["name"], "job_digest": entry["digest"],
-                      "objective_before": objective_before, "objective_after": best,
-                      "floors": [cfg.pm_min, cfg.gm_min], "metrics_after": report["after"]}
+        report |= {
+            "objective_after": best,
+            "after": {n: _summary(r) for n, (r, _) in after.items()},
+            "start": {f: np.asarray(v).tolist() for f, v in problem.space.values(problem.space.z0()).items()},
+            "result": {f: np.asarray(v).tolist() for f, v in problem.space.values(z).items()},
+        }
+        provenance = {
+            "config_hash": cfg.digest(),
+            "job": entry["name"],
+            "job_digest": entry["digest"],
+            "objective_before": objective_before,
+            "objective_after": best,
+            "floors": [cfg.pm_min, cfg.gm_min],
+            "metrics_after": report["after"],
+        }
         report |= export(folder, cfg, servo, hybrid, problem.rates, problem.space.fields, provenance, machine)
-        report |= ({"status": "not exported", "error": report["export_error"]} if "export_error" in report
-                   else {"status": "ok", "error": ""})
+        report |= (
+            {"status": "not exported", "error": report["export_error"]}
+            if "export_error" in report
+            else {"status": "ok", "error": ""}
+        )
         if plots:
             report["plots"] = _plots(folder, history, before, after, {})
     report["row"] = summary_row(report)
@@ -170,12 +229,18 @@ def summary_row(report: dict) -> dict:
         runs = report.get(side) or {}
         return float(np.mean([r[key] for r in runs.values()])) if runs else float("nan")
 
-    row = {"job": report["job"], "status": report["status"], "scenarios": len(report.get("scenarios") or []),
-           "objective_before": report.get("objective_before", float("nan")),
-           "objective_after": report.get("objective_after", float("nan")),
-           "rms_before_mm": mean("before", "rms_tracking_error_mm"), "rms_after_mm": mean("after", "rms_tracking_error_mm"),
-           "max_after_mm": mean("after", "max_tracking_error_mm"),
-           "force_peak_after_n": mean("after", "highest_branch_force_peak_n"), "error": report.get("error", "")}
+    row = {
+        "job": report["job"],
+        "status": report["status"],
+        "scenarios": len(report.get("scenarios") or []),
+        "objective_before": report.get("objective_before", float("nan")),
+        "objective_after": report.get("objective_after", float("nan")),
+        "rms_before_mm": mean("before", "rms_tracking_error_mm"),
+        "rms_after_mm": mean("after", "rms_tracking_error_mm"),
+        "max_after_mm": mean("after", "max_tracking_error_mm"),
+        "force_peak_after_n": mean("after", "highest_branch_force_peak_n"),
+        "error": report.get("error", ""),
+    }
     for field, value in (report.get("result") or {}).items():
         row[field] = float(np.ravel(value)[0])
     return row
@@ -196,8 +261,16 @@ def progress_printer(shard: str, stream=sys.stderr) -> Callable:
     return progress
 
 
-def run_batch(path, out, *, ray: bool = False, address: str | None = None, workers: int | None = None,
-              fresh: bool = False, stream=sys.stderr) -> tuple[dict, int]:
+def run_batch(
+    path,
+    out,
+    *,
+    ray: bool = False,
+    address: str | None = None,
+    workers: int | None = None,
+    fresh: bool = False,
+    stream=sys.stderr,
+) -> tuple[dict, int]:
     """Run a job file; returns ``(summary, exit status)``: 0 when every job exported gains, 1 otherwise."""
     from .job import OutputLock, prepare_output
 
@@ -208,8 +281,11 @@ def run_batch(path, out, *, ray: bool = False, address: str | None = None, worke
         if fresh:
             for sub in ("shards", "jobs"):
                 shutil.rmtree(out / sub, ignore_errors=True)
-        rows = {j.name: {"job": j.name, "status": "failed", "scenarios": 0, "error": j.error}
-                for j in jf.jobs if j.error is not None}
+        rows = {
+            j.name: {"job": j.name, "status": "failed", "scenarios": 0, "error": j.error}
+            for j in jf.jobs
+            if j.error is not None
+        }
         unreadable, tasks = len(rows), []
         for jobs in jobfile.groups(jf.jobs).values():
             pending = []
@@ -221,8 +297,12 @@ def run_batch(path, out, *, ray: bool = False, address: str | None = None, worke
                     rows[j.name] = report["row"]
             if pending:
                 tasks += shards(pending, jf.shard_size)
-        print(f"batch: {len(jf.jobs)} job(s) ({jf.problems}), {unreadable} failed to read, {len(rows) - unreadable} done "
-              f"before, {len(tasks)} shard(s) to run" + (" as Ray tasks" if ray else ""), file=stream, flush=True)
+        print(
+            f"batch: {len(jf.jobs)} job(s) ({jf.problems}), {unreadable} failed to read, {len(rows) - unreadable} done "
+            f"before, {len(tasks)} shard(s) to run" + (" as Ray tasks" if ray else ""),
+            file=stream,
+            flush=True,
+        )
         if ray:
             from .cluster import run_tasks
 
@@ -253,8 +333,12 @@ def write_summary(out: Path, rows: list[dict]) -> dict:
         writer.writerow({c: _fmt(r.get(c, "")) for c in columns})
     write_atomic(out / "summary.csv", buffer.getvalue())
     write_atomic(out / "summary.md", markdown(rows, columns))
-    summary = {"jobs": len(rows), "ok": sum(r["status"] == "ok" for r in rows),
-               "failed": [r["job"] for r in rows if r["status"] != "ok"], "rows": rows}
+    summary = {
+        "jobs": len(rows),
+        "ok": sum(r["status"] == "ok" for r in rows),
+        "failed": [r["job"] for r in rows if r["status"] != "ok"],
+        "rows": rows,
+    }
     write_atomic(out / "summary.json", json.dumps(summary, indent=2))
     summary_plot(out / "summary.png", rows, fields)
     return summary

@@ -21,25 +21,41 @@ from pusupu_jax.params import ParameterError
 MAX_RETRIES = 3
 
 
-def run_tasks(run_shard, tasks: list[dict], out, *, plots: bool = True, address: str | None = None,
-              workers: int | None = None, cpus_per_task: int = 1, stream=sys.stderr) -> list[list[dict]]:
+def run_tasks(
+    run_shard,
+    tasks: list[dict],
+    out,
+    *,
+    plots: bool = True,
+    address: str | None = None,
+    workers: int | None = None,
+    cpus_per_task: int = 1,
+    stream=sys.stderr,
+) -> list[list[dict]]:
     """Every task's result (``run_shard(task, out, plots)``: its summary rows), in task order; progress over shards on
     ``stream``."""
     try:
         import ray
     except ImportError:
-        raise ParameterError("--ray: Ray is not installed; pip install -e \".[cluster]\"") from None
+        raise ParameterError('--ray: Ray is not installed; pip install -e ".[cluster]"') from None
     with contextlib.redirect_stdout(stream):  # Ray's own messages (a worker died...) stay off the summary's stdout
         return _run(ray, run_shard, tasks, out, plots, address, workers, cpus_per_task, stream)
 
 
 def _run(ray, run_shard, tasks, out, plots, address, workers, cpus_per_task, stream):
-    env = {k: v for k, v in os.environ.items() if k in ("PUSUPU_JAX_CACHE", "JAX_COMPILATION_CACHE_DIR", "XLA_FLAGS",
-                                                          "JAX_PLATFORMS")}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k in ("PUSUPU_JAX_CACHE", "JAX_COMPILATION_CACHE_DIR", "XLA_FLAGS", "JAX_PLATFORMS")
+    }
     env["MPLBACKEND"] = "Agg"  # the workers' figures are files (importing the packages leaves the backend alone)
     if address is None:
-        ray.init(num_cpus=workers or os.cpu_count(), include_dashboard=False, runtime_env={"env_vars": env},
-                 log_to_driver=True)
+        ray.init(
+            num_cpus=workers or os.cpu_count(),
+            include_dashboard=False,
+            runtime_env={"env_vars": env},
+            log_to_driver=True,
+        )
     else:
         ray.init(address=address, runtime_env={"env_vars": env}, log_to_driver=True)
     try:
@@ -48,13 +64,20 @@ def _run(ray, run_shard, tasks, out, plots, address, workers, cpus_per_task, str
         refs = [remote.remote(task, str(out), plots) for task in tasks]
         index = {ref: k for k, ref in enumerate(refs)}
         results, pending, t0 = [None] * len(refs), list(refs), time.perf_counter()
-        print(f"batch: {len(refs)} Ray task(s) on {ray.cluster_resources().get('CPU', 0):g} CPU(s), "
-              f"{gpus and ray.cluster_resources().get('GPU', 0):g} GPU(s)", file=stream, flush=True)
+        print(
+            f"batch: {len(refs)} Ray task(s) on {ray.cluster_resources().get('CPU', 0):g} CPU(s), "
+            f"{gpus and ray.cluster_resources().get('GPU', 0):g} GPU(s)",
+            file=stream,
+            flush=True,
+        )
         while pending:
             ready, pending = ray.wait(pending, num_returns=1)
             results[index[ready[0]]] = ray.get(ready[0])
-            print(f"batch: {len(refs) - len(pending)}/{len(refs)} shard(s) done, {time.perf_counter() - t0:.0f} s",
-                  file=stream, flush=True)
+            print(
+                f"batch: {len(refs) - len(pending)}/{len(refs)} shard(s) done, {time.perf_counter() - t0:.0f} s",
+                file=stream,
+                flush=True,
+            )
         return results
     finally:
         ray.shutdown()

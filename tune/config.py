@@ -94,16 +94,25 @@ class TuneConfig:
     @classmethod
     def quick(cls) -> "TuneConfig":
         """A smoke run: the arc's first 2 s in 2 windows of 0.3 s, 5 iterations, no baselines (no extra compile)."""
-        return cls(trajectories=("arc",), path_s=2.0, windows=2, window_s=0.3, refresh_every=1, iterations=5,
-                   checkpoint_every=2, baselines=())
+        return cls(
+            trajectories=("arc",),
+            path_s=2.0,
+            windows=2,
+            window_s=0.3,
+            refresh_every=1,
+            iterations=5,
+            checkpoint_every=2,
+            baselines=(),
+        )
 
     @classmethod
     def load(cls, path, base: "TuneConfig | None" = None) -> "TuneConfig":
         names = [f.name for f in dataclasses.fields(cls)]
         data = read_yaml_mapping(Path(path), "key", names)
         if isinstance(data.get("trajectories"), list):  # path files named relative to the configuration
-            data["trajectories"] = [paths.resolve(t, Path(path).parent) if isinstance(t, str) else t
-                                    for t in data["trajectories"]]
+            data["trajectories"] = [
+                paths.resolve(t, Path(path).parent) if isinstance(t, str) else t for t in data["trajectories"]
+            ]
         try:
             return (base or cls()).replace(**data)
         except ParameterError as e:
@@ -121,6 +130,7 @@ class TuneConfig:
 
     def validate(self) -> None:
         """Every key's kind and range (one line naming the key); numbers must be finite unless a key says so."""
+
         def need(ok, key, expected, got):
             if not ok:
                 raise ParameterError(f"tune config {key}: expected {expected}, got {inputs.shown(got)}")
@@ -133,23 +143,45 @@ class TuneConfig:
 
         def names(key, allowed):
             v = getattr(self, key)
-            need(isinstance(v, tuple) and v and set(v) <= set(allowed) and len(set(v)) == len(v), key,
-                 f"a list of distinct names from {sorted(allowed)}", v)
+            need(
+                isinstance(v, tuple) and v and set(v) <= set(allowed) and len(set(v)) == len(v),
+                key,
+                f"a list of distinct names from {sorted(allowed)}",
+                v,
+            )
 
-        need(self.mode in MACHINE_MODES and self.mode != "ros_pid", "mode",
-             f"one of {tuple(m for m in MACHINE_MODES if m != 'ros_pid')}", self.mode)
+        need(
+            self.mode in MACHINE_MODES and self.mode != "ros_pid",
+            "mode",
+            f"one of {tuple(m for m in MACHINE_MODES if m != 'ros_pid')}",
+            self.mode,
+        )
         names("groups", GROUPS)
-        need(isinstance(self.trajectories, tuple) and self.trajectories, "trajectories",
-             "a list of named paths or path files", self.trajectories)
+        need(
+            isinstance(self.trajectories, tuple) and self.trajectories,
+            "trajectories",
+            "a list of named paths or path files",
+            self.trajectories,
+        )
         for k, spec in enumerate(self.trajectories):
             paths.check_spec(spec, f"tune config trajectories[{k}]")
         labels = [paths.path_label(spec) for spec in self.trajectories]
-        need(len(set(labels)) == len(labels), "trajectories", "distinct paths, distinctly named (a file is named by "
-             "its stem)", self.trajectories)
-        need(isinstance(self.kin_error_seeds, tuple) and self.kin_error_seeds
-             and all(s is None or (isinstance(s, int) and not isinstance(s, bool) and s >= 0)
-                     for s in self.kin_error_seeds), "kin_error_seeds", "a list of null or non-negative integers",
-             self.kin_error_seeds)
+        need(
+            len(set(labels)) == len(labels),
+            "trajectories",
+            "distinct paths, distinctly named (a file is named by its stem)",
+            self.trajectories,
+        )
+        need(
+            isinstance(self.kin_error_seeds, tuple)
+            and self.kin_error_seeds
+            and all(
+                s is None or (isinstance(s, int) and not isinstance(s, bool) and s >= 0) for s in self.kin_error_seeds
+            ),
+            "kin_error_seeds",
+            "a list of null or non-negative integers",
+            self.kin_error_seeds,
+        )
         need(isinstance(self.payloads, tuple) and self.payloads, "payloads", "a list of masses [kg]", self.payloads)
         for k, p in enumerate(self.payloads):
             inputs.number(p, f"tune config payloads[{k}]", ParameterError, low=0.0, high=1000.0)
@@ -168,32 +200,58 @@ class TuneConfig:
         integer("seed", low=None)
         need(isinstance(self.shared, bool), "shared", "true or false", self.shared)
         need(isinstance(self.remat, bool), "remat", "true or false", self.remat)
-        need(isinstance(self.weights, dict) and set(self.weights) <= set(TERMS) and self.weights, "weights",
-             f"a mapping of some of {TERMS} to non-negative numbers", self.weights)
+        need(
+            isinstance(self.weights, dict) and set(self.weights) <= set(TERMS) and self.weights,
+            "weights",
+            f"a mapping of some of {TERMS} to non-negative numbers",
+            self.weights,
+        )
         for term, w in self.weights.items():
             inputs.number(w, f"tune config weights.{term}", ParameterError, low=0.0)
-        need(control_mode(self.mode).hybrid or "hybrid" not in self.groups, "groups", "the 'hybrid' group only in hybrid mode",
-             self.groups)
-        need(isinstance(self.bounds, dict) and all(isinstance(v, tuple) and len(v) == 2 for v in self.bounds.values()),
-             "bounds", "a mapping of field names to [lower, upper]", self.bounds)
+        need(
+            control_mode(self.mode).hybrid or "hybrid" not in self.groups,
+            "groups",
+            "the 'hybrid' group only in hybrid mode",
+            self.groups,
+        )
+        need(
+            isinstance(self.bounds, dict) and all(isinstance(v, tuple) and len(v) == 2 for v in self.bounds.values()),
+            "bounds",
+            "a mapping of field names to [lower, upper]",
+            self.bounds,
+        )
         for field_name, pair in self.bounds.items():
             for k, v in enumerate(pair):
                 inputs.number(v, f"tune config bounds.{field_name}[{k}]", ParameterError, low=0.0, low_open=True)
         need(self.gradient in GRADIENT_MODES, "gradient", f"one of {GRADIENT_MODES}", self.gradient)
-        need(self.checkpoint_every % self.refresh_every == 0, "checkpoint_every",
-             f"a multiple of refresh_every ({self.refresh_every})", self.checkpoint_every)
+        need(
+            self.checkpoint_every % self.refresh_every == 0,
+            "checkpoint_every",
+            f"a multiple of refresh_every ({self.refresh_every})",
+            self.checkpoint_every,
+        )
         need(self.imc_form in IMC_FORMS, "imc_form", f"one of {IMC_FORMS}", self.imc_form)
-        need(isinstance(self.baselines, tuple) and set(self.baselines) <= {"pid", "pid_ff", "imc", "ros_pid"}
-             and len(set(self.baselines)) == len(self.baselines), "baselines",
-             "a list of distinct modes from pid, pid_ff, imc, ros_pid", self.baselines)
-        need(self.mode in ("pid", "pid_ff") or not {"pid", "feedforward"} & set(self.groups), "groups",
-             "the pid and feedforward groups only in the pid and pid_ff modes", self.groups)
+        need(
+            isinstance(self.baselines, tuple)
+            and set(self.baselines) <= {"pid", "pid_ff", "imc", "ros_pid"}
+            and len(set(self.baselines)) == len(self.baselines),
+            "baselines",
+            "a list of distinct modes from pid, pid_ff, imc, ros_pid",
+            self.baselines,
+        )
+        need(
+            self.mode in ("pid", "pid_ff") or not {"pid", "feedforward"} & set(self.groups),
+            "groups",
+            "the pid and feedforward groups only in the pid and pid_ff modes",
+            self.groups,
+        )
         check_joints(self.ros_joints, "tune config ros_joints")  # the exporter's own rule, before any work
 
     def digest(self) -> str:
         """A hash of every setting and of the path files' contents (the checkpoint and the gain file's provenance
         carry it)."""
         files = {spec: paths.source_digest(spec) for spec in self.trajectories if paths.is_path_file(spec)}
-        text = json.dumps(dataclasses.asdict(self) | ({"path_files": files} if files else {}), sort_keys=True,
-                          default=str)
+        text = json.dumps(
+            dataclasses.asdict(self) | ({"path_files": files} if files else {}), sort_keys=True, default=str
+        )
         return hashlib.sha256(text.encode()).hexdigest()[:16]

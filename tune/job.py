@@ -3,7 +3,8 @@
 1. Build the problem (:class:`pusupu_jax.tune.run.Problem`) from the configuration on the machine (a machine
    file, or the built-in machine); the start (:func:`start_gains`) is Table 1 with the default hybrid
    gains on the built-in machine, gains derived for the machine otherwise, or a gain file.
-2. Optimise (:meth:`pusupu_jax.tune.run.Problem.tune`: :func:`pusupu_jax.tune.run.optimise` with the config's settings) on
+2. Optimise (:meth:`pusupu_jax.tune.run.Problem.tune`: :func:`pusupu_jax.tune.run.optimise` with the config's settings)
+   on
    training windows spread over the whole paths, checkpointing to ``DIR/checkpoint.npz`` (arrays and
    JSON, never a pickle); a run that finds a checkpoint of the same configuration continues from it.
    ``DIR`` is locked while a run uses it.
@@ -53,9 +54,10 @@ def evaluate_baselines(cfg: TuneConfig, rates, specs=None, servo: ServoParams | 
     specs = scenario_list(cfg) if specs is None else specs
     servo = ServoParams.table1() if servo is None else servo
     scenarios = [Scenario(spec.path(rates), spec.options, spec.name, spec.geometry) for spec in specs]
-    return {mode: {sc.name: out for sc, out in zip(scenarios, simulate_scenarios(servo, scenarios, mode=mode,
-                                                                                   rates=rates))}
-            for mode in cfg.baselines}
+    return {
+        mode: {sc.name: out for sc, out in zip(scenarios, simulate_scenarios(servo, scenarios, mode=mode, rates=rates))}
+        for mode in cfg.baselines
+    }
 
 
 def start_gains(machine: Machine, start=None, stream=None) -> tuple[ServoParams, HybridGains, dict]:
@@ -70,8 +72,12 @@ def start_gains(machine: Machine, start=None, stream=None) -> tuple[ServoParams,
         return machine.servo(ServoParams.table1()), HybridGains(), {"source": "table1"}
     if start == "derived":
         if stream is not None:
-            print(f"tune: deriving start gains for machine {machine.name!r} (docs/machine.md; T0 identified on the "
-                  "MJX machine)", file=stream, flush=True)
+            print(
+                f"tune: deriving start gains for machine {machine.name!r} (docs/machine.md; T0 identified on the "
+                "MJX machine)",
+                file=stream,
+                flush=True,
+            )
         servo, derivation = derive(machine)
         return servo, HybridGains(), {"source": "derived"} | derivation
     raise ParameterError(f"--start-gains: expected a gain file, table1 or derived, got {start!r}")
@@ -96,15 +102,20 @@ def _plots(out: Path, history, before, after, baselines) -> list[str]:
         ax.plot(tb["platform"][:, 0] * 1e3, tb["platform"][:, 1] * 1e3, label="before (Table 1)")
         ax.plot(ta["platform"][:, 0] * 1e3, ta["platform"][:, 1] * 1e3, label="after (tuned)")
         for mode, runs in baselines.items():
-            ax.plot(runs[name][1]["platform"][:, 0] * 1e3, runs[name][1]["platform"][:, 1] * 1e3, lw=0.8,
-                    label=f"baseline {mode}")
+            ax.plot(
+                runs[name][1]["platform"][:, 0] * 1e3,
+                runs[name][1]["platform"][:, 1] * 1e3,
+                lw=0.8,
+                label=f"baseline {mode}",
+            )
         ax.set_xlabel("x [mm]")
         ax.set_ylabel("y [mm]")
         ax.axis("equal")
         ax.legend()
         ax2 = fig.add_subplot(1, 2, 2)
-        curves = [("before", tb), ("after", ta)] + [(f"baseline {mode}", runs[name][1])
-                                                     for mode, runs in baselines.items()]
+        curves = [("before", tb), ("after", ta)] + [
+            (f"baseline {mode}", runs[name][1]) for mode, runs in baselines.items()
+        ]
         for label, tr in curves:
             ax2.plot(tr["t"], np.linalg.norm(tr["platform"] - tr["reference"], axis=1) * 1e3, label=label, lw=0.9)
         ax2.set_yscale("log")
@@ -141,8 +152,13 @@ def plot_file(kind: str, scenario: str) -> str:
 
 def run_files(scenarios) -> tuple:
     """The files a run with ``scenarios`` (names) writes into its folder, besides its checkpoint."""
-    return ("gains.yaml", *ros2.FILES, "report.json", "objective.png",
-            *(plot_file(kind, name) for name in scenarios for kind in ("path", "forces")))
+    return (
+        "gains.yaml",
+        *ros2.FILES,
+        "report.json",
+        "objective.png",
+        *(plot_file(kind, name) for name in scenarios for kind in ("path", "forces")),
+    )
 
 
 def prepare_output(out: Path, files=()) -> Path:
@@ -158,8 +174,10 @@ def prepare_output(out: Path, files=()) -> Path:
         raise ParameterError(f"--out: cannot write in {str(out)!r} ({e.strerror})") from None
     legacy = out / "checkpoint.pkl"
     if legacy.exists():
-        raise ParameterError(f"{legacy}: a pickled checkpoint (an older pusupu_jax's, or someone else's) is never read, "
-                             "since loading a pickle can run code; delete it or choose another --out")
+        raise ParameterError(
+            f"{legacy}: a pickled checkpoint (an older pusupu_jax's, or someone else's) is never read, "
+            "since loading a pickle can run code; delete it or choose another --out"
+        )
     for name in files:
         check_output(out / name)
     return out
@@ -192,8 +210,9 @@ class OutputLock:
             self.file.seek(0)
             holder = self.file.read(200).strip() or "unknown"
             self.file.close()
-            raise ParameterError(f"--out: {out} is in use by another pusupu tune ({holder}); wait for it or choose "
-                                 "another --out") from None
+            raise ParameterError(
+                f"--out: {out} is in use by another pusupu tune ({holder}); wait for it or choose another --out"
+            ) from None
         self.file.seek(0)
         self.file.truncate()
         self.file.write(f"pid {os.getpid()} on {socket.gethostname()}")
@@ -204,8 +223,9 @@ class OutputLock:
         self.file.close()
 
 
-def run_job(cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr, machine: Machine | None = None,
-            start=None) -> tuple[dict, int]:
+def run_job(
+    cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr, machine: Machine | None = None, start=None
+) -> tuple[dict, int]:
     """Run the whole job on ``machine`` (default: the built-in one) from ``start`` (:func:`start_gains`); returns
     ``(report, exit status)`` (1 when the tuned gains fail a check).  The work it implies
     (:func:`pusupu_jax.tune.run.check_work`) and the output folder are checked before anything is built.
@@ -230,43 +250,63 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
         checkpoint.unlink()
     t0 = time.perf_counter()
     servo0, hybrid0, start_report = start_gains(machine, start, stream)
-    digest = hashlib.sha256(json.dumps([cfg.digest(), machine_file.digest(machine),
-                                        {f: np.asarray(v).tolist() for f, v in vars(servo0).items()
-                                         if not isinstance(v, str)}]).encode()).hexdigest()
+    digest = hashlib.sha256(
+        json.dumps(
+            [
+                cfg.digest(),
+                machine_file.digest(machine),
+                {f: np.asarray(v).tolist() for f, v in vars(servo0).items() if not isinstance(v, str)},
+            ]
+        ).encode()
+    ).hexdigest()
     problem = Problem(cfg, servo0, hybrid0, specs, digest=digest, load=machine_file.axis_load(machine))
     extent = "whole path" if cfg.path_s is None else f"path cut to {cfg.path_s:g} s"
-    print(f"tune: {len(problem.scenarios.names)} scenario(s) ({', '.join(problem.scenarios.names)}), "
-          f"{cfg.windows} windows of {cfg.window_s:g} s spread over each {extent}, "
-          f"tuning {', '.join(problem.space.fields)}; compiling the forward pass and the gradient "
-          "(about 1.5 min cold on 2 CPU cores)", file=stream, flush=True)
+    print(
+        f"tune: {len(problem.scenarios.names)} scenario(s) ({', '.join(problem.scenarios.names)}), "
+        f"{cfg.windows} windows of {cfg.window_s:g} s spread over each {extent}, "
+        f"tuning {', '.join(problem.space.fields)}; compiling the forward pass and the gradient "
+        "(about 1.5 min cold on 2 CPU cores)",
+        file=stream,
+        flush=True,
+    )
     result = problem.tune(checkpoint=checkpoint, progress=progress_reporter(cfg.starts, stream))
     servo0 = problem.space.servo0
     servo1, hybrid1 = problem.space.host_values(result["z"])
     t_opt = time.perf_counter() - t0
-    print("tune: evaluating the start and the result on the whole paths"
-          + (f", and the baselines ({', '.join(cfg.baselines)}, start gains)" if cfg.baselines else ""),
-          file=stream, flush=True)
+    print(
+        "tune: evaluating the start and the result on the whole paths"
+        + (f", and the baselines ({', '.join(cfg.baselines)}, start gains)" if cfg.baselines else ""),
+        file=stream,
+        flush=True,
+    )
     before, after = problem.path_metrics(problem.space.z0()), problem.path_metrics(result["z"])
     baselines = evaluate_baselines(cfg, problem.rates, specs, servo0)
     objective_before = float(result["history"][0]["objective"])
     report = {
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
-        "config_hash": cfg.digest(), "machine": machine_file.reference(machine), "start_gains": start_report,
+        "config_hash": cfg.digest(),
+        "machine": machine_file.reference(machine),
+        "start_gains": start_report,
         "tuned_fields": list(problem.space.fields),
         "start": {f: np.asarray(v).tolist() for f, v in problem.space.values(problem.space.z0()).items()},
         "result": {f: np.asarray(v).tolist() for f, v in problem.space.values(result["z"]).items()},
-        "objective_before": objective_before, "objective_after": float(result["objective"]),
-        "iterations": len(result["history"]), "history": [{k: h[k] for k in ("start", "iteration", "objective")}
-                                                           for h in result["history"]],
+        "objective_before": objective_before,
+        "objective_after": float(result["objective"]),
+        "iterations": len(result["history"]),
+        "history": [{k: h[k] for k in ("start", "iteration", "objective")} for h in result["history"]],
         "before": {n: _summary(r) for n, (r, _) in before.items()},
         "after": {n: _summary(r) for n, (r, _) in after.items()},
         "baselines": {mode: {n: _summary(r) for n, (r, _) in runs.items()} for mode, runs in baselines.items()},
         "margins_before": gains.margins_report(servo0, mode=cfg.mode, machine=machine),
         "optimise_wall_s": t_opt,
     }
-    provenance = {"config_hash": cfg.digest(), "objective_before": objective_before,
-                  "objective_after": float(result["objective"]), "floors": [cfg.pm_min, cfg.gm_min],
-                  "metrics_after": report["after"]}
+    provenance = {
+        "config_hash": cfg.digest(),
+        "objective_before": objective_before,
+        "objective_after": float(result["objective"]),
+        "floors": [cfg.pm_min, cfg.gm_min],
+        "metrics_after": report["after"],
+    }
     report |= export(out, cfg, servo1, hybrid1, problem.rates, problem.space.fields, provenance, machine)
     status = 1 if "export_error" in report else 0
     report["plots"] = _plots(out, result["history"], before, after, baselines)
@@ -289,8 +329,9 @@ class TuneReport(dict):
         return f"```\n{self!r}\n```"
 
 
-def export(out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: dict,
-           machine: Machine | None = None) -> dict:
+def export(
+    out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: dict, machine: Machine | None = None
+) -> dict:
     """Write ``gains.yaml`` and the ROS 2 files if the gains pass every check; the report's entries about them.
 
     All or nothing: every file's text is made (the gains checked, the joint names too) and every path checked before
@@ -301,20 +342,44 @@ def export(out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: 
     """
     gains_path = out / "gains.yaml"
     try:
-        margins = stability.check(servo, hybrid, rates, cfg.mode, (cfg.pm_min, cfg.gm_min),
-                                  load=machine_file.axis_load(machine or Machine.default())).margins()
-        texts = {gains_path: gains.document(servo, hybrid, rates, mode=cfg.mode, tuned=tuned, provenance=provenance,
-                                            floors=(cfg.pm_min, cfg.gm_min), machine=machine)}
-        texts |= {out / name: text for name, text in ros2.files(servo, cfg.mode, rates, source=str(gains_path),
-                                                                 joints=cfg.ros_joints).items()}
+        margins = stability.check(
+            servo,
+            hybrid,
+            rates,
+            cfg.mode,
+            (cfg.pm_min, cfg.gm_min),
+            load=machine_file.axis_load(machine or Machine.default()),
+        ).margins()
+        texts = {
+            gains_path: gains.document(
+                servo,
+                hybrid,
+                rates,
+                mode=cfg.mode,
+                tuned=tuned,
+                provenance=provenance,
+                floors=(cfg.pm_min, cfg.gm_min),
+                machine=machine,
+            )
+        }
+        texts |= {
+            out / name: text
+            for name, text in ros2.files(servo, cfg.mode, rates, source=str(gains_path), joints=cfg.ros_joints).items()
+        }
         written = write_files(texts)
-        return {"margins_after": margins, "exported": [str(p) for p in written],
-                "gains_file": {"path": str(gains_path), "sha256": _sha256(gains_path)}}
+        return {
+            "margins_after": margins,
+            "exported": [str(p) for p in written],
+            "gains_file": {"path": str(gains_path), "sha256": _sha256(gains_path)},
+        }
     except ParameterError as e:
         left = {"path": str(gains_path), "sha256": _sha256(gains_path)} if gains_path.is_file() else None
-        return {"margins_after": gains.margins_report(servo, cfg.mode, machine), "exported": [],
-                "export_error": str(e),
-                "gains_file": {"path": None, "not_written": str(e), "left_as_it_was": left}}
+        return {
+            "margins_after": gains.margins_report(servo, cfg.mode, machine),
+            "exported": [],
+            "export_error": str(e),
+            "gains_file": {"path": None, "not_written": str(e), "left_as_it_was": left},
+        }
 
 
 def _sha256(path: Path) -> str:
@@ -324,18 +389,26 @@ def _sha256(path: Path) -> str:
 def table(report: dict) -> str:
     """The before/after table printed at the end of a run, with the baselines beside."""
     modes = list(report.get("baselines", {}))
-    lines = [f"{'scenario':<14} {'metric':<28} {'before':>10} {'after':>10} {'change':>8}"
-             + "".join(f" {m:>10}" for m in modes) + (f" {'vs best':>8}" if modes else "")]
+    lines = [
+        f"{'scenario':<14} {'metric':<28} {'before':>10} {'after':>10} {'change':>8}"
+        + "".join(f" {m:>10}" for m in modes)
+        + (f" {'vs best':>8}" if modes else "")
+    ]
     for name in report["before"]:
         b, a = report["before"][name], report["after"][name]
         for key in (*METRICS, "highest_branch_force_peak_n"):
             change = (a[key] / b[key] - 1) * 100 if b[key] else float("nan")
             base = [report["baselines"][m][name][key] for m in modes]
             versus = f" {(a[key] / min(base) - 1) * 100:>7.1f}%" if base and min(base) else ""
-            lines.append(f"{name:<14} {key:<28} {b[key]:>10.4g} {a[key]:>10.4g} {change:>7.1f}%"
-                         + "".join(f" {v:>10.4g}" for v in base) + versus)
-    lines.append(f"objective {report['objective_before']:.4f} -> {report['objective_after']:.4f} in "
-                 f"{report['iterations']} evaluations, {report['wall_s']:.0f} s")
+            lines.append(
+                f"{name:<14} {key:<28} {b[key]:>10.4g} {a[key]:>10.4g} {change:>7.1f}%"
+                + "".join(f" {v:>10.4g}" for v in base)
+                + versus
+            )
+    lines.append(
+        f"objective {report['objective_before']:.4f} -> {report['objective_after']:.4f} in "
+        f"{report['iterations']} evaluations, {report['wall_s']:.0f} s"
+    )
     for field in report["tuned_fields"]:
         start, result = np.ravel(report["start"][field]), np.ravel(report["result"][field])
         lines.append(f"  {field:<8} {start[0]:.6g} -> {result[0]:.6g}" + (" (axis 1)" if len(result) > 1 else ""))

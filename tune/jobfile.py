@@ -55,8 +55,7 @@ from .run import ScenarioSpec, check_work
 FORMAT = "pusupu-batch-1"
 SCHEMA_FILE = Path(__file__).resolve().parent / "schemas" / "pusupu-batch.schema.json"
 FILE_KEYS = ("format", "problems", "name", "shard_size", "plots", "machine", "tune", "scenarios")
-SCENARIO_KEYS = ("name", "trajectory", "mode", "payload", "kin_error_seed", "geometry", "path_s", "windows",
-                 "window_s")
+SCENARIO_KEYS = ("name", "trajectory", "mode", "payload", "kin_error_seed", "geometry", "path_s", "windows", "window_s")
 SCENARIO_TUNE_KEYS = ("mode", "windows", "window_s")  # per scenario, default from tune:
 NOT_IN_TUNE = ("trajectories", "kin_error_seeds", "payloads", "path_s", "baselines")  # the scenarios say these
 GEOMETRY_FIELDS = tuple(f.name for f in dataclasses.fields(Geometry))
@@ -86,8 +85,11 @@ class Job:
         checkpoint carry it)."""
         files = [paths.source_digest(s.trajectory) for s in self.specs if paths.is_path_file(s.trajectory)]
         machine = [] if self.machine is None else [machine_file.digest(self.machine)]
-        text = json.dumps([self.config.digest(), [spec_dict(s) for s in self.specs]] + ([files] if files else [])
-                          + machine, sort_keys=True, default=str)
+        text = json.dumps(
+            [self.config.digest(), [spec_dict(s) for s in self.specs]] + ([files] if files else []) + machine,
+            sort_keys=True,
+            default=str,
+        )
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -103,18 +105,30 @@ class JobFile:
 
 def spec_dict(spec: ScenarioSpec) -> dict:
     """A scenario as plain data (JSON), the inverse of :func:`spec_from_dict`."""
-    geometry = None if spec.geometry is None else {f: np.asarray(getattr(spec.geometry, f)).tolist()
-                                                   for f in GEOMETRY_FIELDS}
+    geometry = (
+        None if spec.geometry is None else {f: np.asarray(getattr(spec.geometry, f)).tolist() for f in GEOMETRY_FIELDS}
+    )
     o = spec.options
-    return {"name": spec.name, "trajectory": spec.trajectory, "payload": o.payload,
-            "payload_com": list(o.payload_com), "payload_inertia": list(o.payload_inertia),
-            "kin_error_seed": o.kin_error_seed, "geometry": geometry, "path_s": spec.path_s}
+    return {
+        "name": spec.name,
+        "trajectory": spec.trajectory,
+        "payload": o.payload,
+        "payload_com": list(o.payload_com),
+        "payload_inertia": list(o.payload_inertia),
+        "kin_error_seed": o.kin_error_seed,
+        "geometry": geometry,
+        "path_s": spec.path_s,
+    }
 
 
 def spec_from_dict(d: dict) -> ScenarioSpec:
     geometry = None if d["geometry"] is None else Geometry(**{k: np.asarray(v) for k, v in d["geometry"].items()})
-    options = ModelOptions(kin_error_seed=d["kin_error_seed"], payload=float(d["payload"]),
-                           payload_com=tuple(d["payload_com"]), payload_inertia=tuple(d["payload_inertia"]))
+    options = ModelOptions(
+        kin_error_seed=d["kin_error_seed"],
+        payload=float(d["payload"]),
+        payload_com=tuple(d["payload_com"]),
+        payload_inertia=tuple(d["payload_inertia"]),
+    )
     return ScenarioSpec(d["name"], d["trajectory"], options, geometry, d["path_s"])
 
 
@@ -135,8 +149,9 @@ def _geometry(value, where: str, machine: Machine) -> Geometry:
     return geom
 
 
-def _scenario(entry, k: int, base: TuneConfig, folder: Path, machine: Machine,
-              limits: ServoParams) -> tuple[ScenarioSpec, TuneConfig]:
+def _scenario(
+    entry, k: int, base: TuneConfig, folder: Path, machine: Machine, limits: ServoParams
+) -> tuple[ScenarioSpec, TuneConfig]:
     """Scenario ``k``'s spec on ``machine`` and its job's configuration (a path file named relative to ``folder``, the
     job file's; the path checked against the drives' ``limits``); raises :class:`JobFileError` naming it."""
     where = f"scenarios[{k}]"
@@ -149,11 +164,18 @@ def _scenario(entry, k: int, base: TuneConfig, folder: Path, machine: Machine,
     path_s = entry.get("path_s")
     if path_s is not None:
         path_s = inputs.number(path_s, f"{where}.path_s", JobFileError, low=0.0, low_open=True, high=3600.0)
-    default_name = (paths.path_label(trajectory) + (f"/seed{seed}" if seed is not None else "")
-                    + (f"/{payload:g}kg" if payload else ""))
+    default_name = (
+        paths.path_label(trajectory)
+        + (f"/seed{seed}" if seed is not None else "")
+        + (f"/{payload:g}kg" if payload else "")
+    )
     name = entry.get("name", default_name)
-    if not isinstance(name, str) or not name or name.startswith(".") or not all(c.isalnum() or c in "-_./"
-                                                                                 for c in name):
+    if (
+        not isinstance(name, str)
+        or not name
+        or name.startswith(".")
+        or not all(c.isalnum() or c in "-_./" for c in name)
+    ):
         raise JobFileError(f"{where}.name: expected letters, digits and - _ . / (not first: .), got {name!r}")
     try:
         cfg = base.replace(**{key: entry[key] for key in SCENARIO_TUNE_KEYS if key in entry})
@@ -161,8 +183,9 @@ def _scenario(entry, k: int, base: TuneConfig, folder: Path, machine: Machine,
         raise JobFileError(f"{where}: {str(e).replace('tune config ', '')}") from None
     options = machine.options(ModelOptions(kin_error_seed=seed))
     options = dataclasses.replace(options, payload=options.payload + payload)
-    spec = ScenarioSpec(name, trajectory, options, _geometry(entry.get("geometry"), f"{where}.geometry", machine),
-                        path_s)
+    spec = ScenarioSpec(
+        name, trajectory, options, _geometry(entry.get("geometry"), f"{where}.geometry", machine), path_s
+    )
     check_scenario(spec, cfg, where, limits)
     return spec, cfg
 
@@ -173,18 +196,27 @@ def check_scenario(spec: ScenarioSpec, cfg: TuneConfig, where: str, limits: Serv
     rates = machine_rates()
     try:
         path = spec.path(rates)
-        paths.check_path(path, limits, rates.dt_position, spec.geom(), spec.options,
-                         where=f"the {paths.path_label(spec.trajectory)} path")
+        paths.check_path(
+            path,
+            limits,
+            rates.dt_position,
+            spec.geom(),
+            spec.options,
+            where=f"the {paths.path_label(spec.trajectory)} path",
+        )
     except ParameterError as e:
         raise JobFileError(f"{where} ({spec.name}): {e}") from None
     every = -(-len(path) // cfg.windows)
     if round(cfg.window_s / rates.dt_position) > every:
-        raise JobFileError(f"{where} ({spec.name}): window_s expected at most a {cfg.windows}th of the path "
-                           f"({every * rates.dt_position:g} s), got {cfg.window_s:g}")
+        raise JobFileError(
+            f"{where} ({spec.name}): window_s expected at most a {cfg.windows}th of the path "
+            f"({every * rates.dt_position:g} s), got {cfg.window_s:g}"
+        )
 
 
 def bounded(job: Job) -> Job:
-    """``job``, or ``job`` failed when the tuning work it implies is beyond the limits (:func:`pusupu_jax.tune.run.check_work`)."""
+    """``job``, or ``job`` failed when the tuning work it implies is beyond the limits
+    (:func:`pusupu_jax.tune.run.check_work`)."""
     if job.error is None:
         try:
             check_work(job.config, list(job.specs), where="its tuning work")
@@ -204,17 +236,21 @@ def read(path) -> JobFile:
     inputs.check_keys({} if data is None else data, where, FILE_KEYS, JobFileError, required=("scenarios",))
     if data.get("format", FORMAT) != FORMAT:
         raise JobFileError(f"{where}: format: expected {FORMAT!r}, got {data['format']!r}")
-    problems = inputs.choice(data.get("problems", "independent"), f"{where}: problems", ("independent", "robust"),
-                             JobFileError)
+    problems = inputs.choice(
+        data.get("problems", "independent"), f"{where}: problems", ("independent", "robust"), JobFileError
+    )
     shard = data.get("shard_size")
     if shard is not None:
         shard = inputs.integer(shard, f"{where}: shard_size", JobFileError, low=1)
     plots = data.get("plots", True)
     if not isinstance(plots, bool):
         raise JobFileError(f"{where}: plots: expected true or false, got {plots!r}")
-    tune = inputs.check_keys(data.get("tune") or {}, f"{where}: tune", [f.name for f in dataclasses.fields(TuneConfig)
-                                                                        if f.name not in NOT_IN_TUNE],
-                             JobFileError)
+    tune = inputs.check_keys(
+        data.get("tune") or {},
+        f"{where}: tune",
+        [f.name for f in dataclasses.fields(TuneConfig) if f.name not in NOT_IN_TUNE],
+        JobFileError,
+    )
     try:
         base = TuneConfig().replace(baselines=(), **tune)
     except ParameterError as e:
@@ -241,17 +277,21 @@ def read(path) -> JobFile:
             parsed.append((name or f"scenario{k}", str(e)))
     on = None if machine_file.is_builtin(machine) else machine
     if problems == "independent":
-        jobs = [Job(p[0].name, p[1], (p[0],), machine=on) if isinstance(p[0], ScenarioSpec)
-                else Job(p[0], None, (), p[1]) for p in parsed]
+        jobs = [
+            Job(p[0].name, p[1], (p[0],), machine=on) if isinstance(p[0], ScenarioSpec) else Job(p[0], None, (), p[1])
+            for p in parsed
+        ]
     else:
         name = data.get("name", "robust")
         errors = [p[1] for p in parsed if not isinstance(p[0], ScenarioSpec)]
         configs = {(c.mode, c.windows, c.window_s) for s, c in parsed if isinstance(s, ScenarioSpec)}
         if not errors and len(configs) > 1:
-            errors = ["robust problems need one mode, windows and window_s for every scenario; got "
-                      f"{sorted(configs)}"]
-        jobs = [Job(name, None, (), errors[0]) if errors
-                else Job(name, parsed[0][1], tuple(s for s, _ in parsed), machine=on)]
+            errors = [f"robust problems need one mode, windows and window_s for every scenario; got {sorted(configs)}"]
+        jobs = [
+            Job(name, None, (), errors[0])
+            if errors
+            else Job(name, parsed[0][1], tuple(s for s, _ in parsed), machine=on)
+        ]
     jobs = [bounded(job) for job in jobs]
     names = [j.name for j in jobs]
     dup = next((n for n in names if names.count(n) > 1), None)

@@ -76,7 +76,7 @@ class ScenarioSpec:
     def path(self, rates):
         """The platform poses ``(N, 5)`` about the geometry's home, one per position period (checked later)."""
         path = platform_path_from(self.trajectory, self.geom().home, rates)
-        return path if self.path_s is None else path[:max(3, int(round(self.path_s / rates.dt_position)))]
+        return path if self.path_s is None else path[: max(3, int(round(self.path_s / rates.dt_position)))]
 
 
 def scenario_list(cfg: TuneConfig, machine: Machine | None = None) -> list[ScenarioSpec]:
@@ -85,11 +85,18 @@ def scenario_list(cfg: TuneConfig, machine: Machine | None = None) -> list[Scena
     same centre of mass)."""
     machine = Machine.default() if machine is None else machine
     base = machine.options()
-    return [ScenarioSpec(path_label(kind) + (f"/seed{seed}" if seed is not None else "")
-                         + (f"/{payload:g}kg" if payload else ""),
-                         kind, dataclasses.replace(base, kin_error_seed=seed, payload=base.payload + float(payload)),
-                         geometry=machine.geometry, path_s=cfg.path_s)
-            for kind in cfg.trajectories for seed in cfg.kin_error_seeds for payload in cfg.payloads]
+    return [
+        ScenarioSpec(
+            path_label(kind) + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else ""),
+            kind,
+            dataclasses.replace(base, kin_error_seed=seed, payload=base.payload + float(payload)),
+            geometry=machine.geometry,
+            path_s=cfg.path_s,
+        )
+        for kind in cfg.trajectories
+        for seed in cfg.kin_error_seeds
+        for payload in cfg.payloads
+    ]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,7 +113,9 @@ class Scenarios:
     lengths: list  # its unpadded number of periods
     paths: list  # its platform poses (N, 5), unpadded
     plant: object  # the nominal MJXPlant (structure and static fields)
-    groups: dict  # padded length -> (scenario indices, stacked models (S_k, ...), stacked references (S_k, K every, ...))
+    groups: (
+        dict  # padded length -> (scenario indices, stacked models (S_k, ...), stacked references (S_k, K every, ...))
+    )
     group_of: list  # the padded length of each scenario (its key in ``groups``)
     windows: int
     window_models: object  # (S K, ...) in scenario-major order
@@ -125,12 +134,15 @@ class Scenarios:
             path = spec.path(rates)
             every = -(-len(path) // K)
             if W > every:
-                raise ParameterError(f"scenario {spec.name}: window_s expected at most a {K}th of the {spec.trajectory} "
-                                     f"path ({every * rates.dt_position:g} s), got {cfg.window_s}")
+                raise ParameterError(
+                    f"scenario {spec.name}: window_s expected at most a {K}th of the {spec.trajectory} "
+                    f"path ({every * rates.dt_position:g} s), got {cfg.window_s}"
+                )
             padded = np.concatenate([path, np.repeat(path[-1:], K * every - len(path), axis=0)])
             try:
-                refs.append(machine_reference(servo, padded, cfg.mode, options=spec.options, rates=rates,
-                                              geom=spec.geom()))
+                refs.append(
+                    machine_reference(servo, padded, cfg.mode, options=spec.options, rates=rates, geom=spec.geom())
+                )
                 models.append(plant.variant(spec.options, spec.geometry))
             except ParameterError as e:
                 raise type(e)(f"scenario {spec.name}: {e}") from None
@@ -143,10 +155,18 @@ class Scenarios:
             idx = [i for i, g in enumerate(group_of) if g == n]
             groups[n] = (idx, stack([models[i] for i in idx]), stack([refs[i] for i in idx]))
         pick = [(i, k * (group_of[i] // K)) for i in range(len(specs)) for k in range(K)]
-        return cls([s.name for s in specs], lengths, cut, plant, groups, group_of, K,
-                   stack([models[i] for i, _ in pick]),
-                   stack([jax.tree.map(lambda x: np.asarray(x)[a:a + W], refs[i]) for i, a in pick]),
-                   np.stack([padded_paths[i][a:a + W] for i, a in pick]))
+        return cls(
+            [s.name for s in specs],
+            lengths,
+            cut,
+            plant,
+            groups,
+            group_of,
+            K,
+            stack([models[i] for i, _ in pick]),
+            stack([jax.tree.map(lambda x: np.asarray(x)[a : a + W], refs[i]) for i, a in pick]),
+            np.stack([padded_paths[i][a : a + W] for i, a in pick]),
+        )
 
     def whole(self, servo, hybrid, models, references, mode: str, rates, batched: bool = False):
         """The forward pass over whole paths of one group (``models``, ``references`` ``(n, K every, ...)``):
@@ -155,15 +175,23 @@ class Scenarios:
         path length."""
         length = jax.tree.leaves(references)[0].shape[1]
         hybrid_mode = control_mode(mode).hybrid
-        return run_chunked(servo, models, references, plant=self.plant, rates=rates, outer=mode,
-                           hybrid=hybrid if hybrid_mode else None, params_axis=0 if batched else None,
-                           hybrid_axis=0 if batched and hybrid_mode else None,
-                           marks=tuple(range(0, length, length // self.windows)))
+        return run_chunked(
+            servo,
+            models,
+            references,
+            plant=self.plant,
+            rates=rates,
+            outer=mode,
+            hybrid=hybrid if hybrid_mode else None,
+            params_axis=0 if batched else None,
+            hybrid_axis=0 if batched and hybrid_mode else None,
+            marks=tuple(range(0, length, length // self.windows)),
+        )
 
     def reference(self, i: int):
         """Scenario ``i``'s reference over its unpadded path (host arrays)."""
         idx, _, refs = self.groups[self.group_of[i]]
-        return jax.tree.map(lambda x: np.asarray(x)[idx.index(i), :self.lengths[i]], refs)
+        return jax.tree.map(lambda x: np.asarray(x)[idx.index(i), : self.lengths[i]], refs)
 
 
 GRADIENT_COST = 3  # forward passes a reverse-mode gradient costs, about (its forward pass, then the backward one)
@@ -182,8 +210,9 @@ def check_work(cfg: TuneConfig, specs: list[ScenarioSpec] | None = None, where: 
     gradient = len(specs) * cfg.windows * window * per_period
     paths = sum(len(spec.path(rates)) for spec in specs) * per_period
     passes = cfg.starts * (-(-cfg.iterations // cfg.refresh_every) + 1) + 3 + len(cfg.baselines)
-    workload.check_tuning(where, gradient, (cfg.starts * (cfg.iterations + 1) + 1) * GRADIENT_COST * gradient
-                          + passes * paths)
+    workload.check_tuning(
+        where, gradient, (cfg.starts * (cfg.iterations + 1) + 1) * GRADIENT_COST * gradient + passes * paths
+    )
 
 
 def scenario_objective(cfg: TuneConfig, t: dict, baseline: dict):
@@ -195,7 +224,8 @@ def scenario_objective(cfg: TuneConfig, t: dict, baseline: dict):
 
 
 def aggregate(cfg: TuneConfig, per, margins: dict):
-    """The problem's objective: the scenarios' mean (or max) plus the penalties on every loop margin below the floors."""
+    """The problem's objective: the scenarios' mean (or max) plus the penalties on every loop margin below the
+    floors."""
     total = jnp.mean(per, axis=-1) if cfg.aggregate == "mean" else jnp.max(per, axis=-1)
     for loop in margins.values():
         pm = jnp.minimum(loop["phase_margin_deg"], 180.0)
@@ -208,8 +238,15 @@ def aggregate(cfg: TuneConfig, per, margins: dict):
 def whole_path_metrics(cfg: TuneConfig, sc: Scenarios, i: int, trace, servo, hybrid, rates) -> tuple:
     """:func:`~pusupu_jax.machine.machine_metrics` of scenario ``i``'s forward pass over its whole (padded) path."""
     n = sc.lengths[i]
-    return machine_metrics(jax.tree.map(lambda x: np.asarray(x)[:n], trace), servo, sc.paths[i], sc.reference(i),
-                           cfg.mode, rates.dt_position, hybrid if control_mode(cfg.mode).hybrid else None)
+    return machine_metrics(
+        jax.tree.map(lambda x: np.asarray(x)[:n], trace),
+        servo,
+        sc.paths[i],
+        sc.reference(i),
+        cfg.mode,
+        rates.dt_position,
+        hybrid if control_mode(cfg.mode).hybrid else None,
+    )
 
 
 def join_windows(x, S: int, K: int):
@@ -218,7 +255,8 @@ def join_windows(x, S: int, K: int):
 
 
 class WindowStarts:
-    """What :class:`Problem` and :class:`pusupu_jax.tune.batch.BatchProblem` share: the training windows' start states, renewed
+    """What :class:`Problem` and :class:`pusupu_jax.tune.batch.BatchProblem` share: the training windows' start states,
+    renewed
     by ``refresh(z)`` (a forward pass over the whole paths), and the normalisers at the start ``z0()``.
 
     A subclass sets ``cfg``, ``windows``, ``_value_and_grad(z, baseline, starts, windows)`` and ``rows`` (the
@@ -230,8 +268,11 @@ class WindowStarts:
     _starts_z = None
 
     def prepare(self, z, iteration: int) -> None:
-        """Before iteration ``iteration``: renew the start states every ``refresh_every`` iterations (and when missing)."""
-        same = self._starts_z is not None and all(np.array_equal(np.asarray(z[k]), v) for k, v in self._starts_z.items())
+        """Before iteration ``iteration``: renew the start states every ``refresh_every`` iterations (and when
+        missing)."""
+        same = self._starts_z is not None and all(
+            np.array_equal(np.asarray(z[k]), v) for k, v in self._starts_z.items()
+        )
         if self.starts is None or (iteration % self.cfg.refresh_every == 0 and not same):
             self.refresh(z)
 
@@ -258,13 +299,21 @@ class Problem(WindowStarts):
     dependence of the windows' start states on the gains (truncated backpropagation).
     """
 
-    def __init__(self, cfg: TuneConfig, servo0: ServoParams, hybrid0: HybridGains,
-                 specs: list[ScenarioSpec] | None = None, digest: str | None = None, load: AxisLoad | None = None):
+    def __init__(
+        self,
+        cfg: TuneConfig,
+        servo0: ServoParams,
+        hybrid0: HybridGains,
+        specs: list[ScenarioSpec] | None = None,
+        digest: str | None = None,
+        load: AxisLoad | None = None,
+    ):
         self.cfg = cfg
         self.digest = cfg.digest() if digest is None else digest  # what a checkpoint must match to be resumed
         self.rates = machine_rates()
-        self.space = Space.create(cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared,
-                                  bounds=cfg.bounds)
+        self.space = Space.create(
+            cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared, bounds=cfg.bounds
+        )
         self.scenarios = sc = Scenarios.build(cfg, self.space.servo0, self.rates, specs)
         # the windows' models, references and paths enter the gradient as arguments, not as constants folded into
         # the compiled program (constants cost compile time, and change its cache key with their last bits)
@@ -275,7 +324,8 @@ class Problem(WindowStarts):
         self._value_and_grad = _shared_gradient(self)
 
     def run_paths(self, z) -> list:
-        """The forward pass over every scenario's whole path at ``z``: ``[(trace (K every, ...), carries (K, ...))]``."""
+        """The forward pass over every scenario's whole path at ``z``: ``[(trace (K every, ...), carries (K,
+        ...))]``."""
         servo, hybrid = self.space.apply(z)
         out = [None] * len(self.scenarios.names)
         for idx, models, refs in self.scenarios.groups.values():
@@ -300,17 +350,28 @@ class Problem(WindowStarts):
         sc = self.scenarios
 
         def one(model, reference, init):
-            return rollout(servo, model, reference, plant=sc.plant, rates=self.rates, outer=self.cfg.mode,
-                           hybrid=hybrid if control_mode(self.cfg.mode).hybrid else None, init=init,
-                           remat=self.cfg.remat)
+            return rollout(
+                servo,
+                model,
+                reference,
+                plant=sc.plant,
+                rates=self.rates,
+                outer=self.cfg.mode,
+                hybrid=hybrid if control_mode(self.cfg.mode).hybrid else None,
+                init=init,
+                remat=self.cfg.remat,
+            )
 
         models, reference, path = windows
         traces = jax.vmap(one)(models, reference, starts)
         S, K = len(sc.names), sc.windows
         joined = jax.tree.map(lambda x: join_windows(x, S, K), traces)
         path = join_windows(path, S, K)
-        terms = jax.vmap(lambda tr, p: objectives.terms(tr, servo, p, self.rates.dt_position,
-                                                        sharpness_force=self.cfg.sharpness_force))(joined, path)
+        terms = jax.vmap(
+            lambda tr, p: objectives.terms(
+                tr, servo, p, self.rates.dt_position, sharpness_force=self.cfg.sharpness_force
+            )
+        )(joined, path)
         return terms, traces
 
     def margins(self, z) -> dict:
@@ -330,11 +391,23 @@ class Problem(WindowStarts):
         """:func:`optimise` from the start gains with the config's optimiser, starts and seed (what ``pusupu tune``
         runs); ``checkpoint``: its file (saved every ``cfg.checkpoint_every`` iterations, resumed from)."""
         cfg = self.cfg
-        return optimise(self.value_and_grad, self.space.z0(), self.space.project, iterations=cfg.iterations,
-                        learning_rate=cfg.learning_rate, clip_norm=cfg.clip_norm,
-                        final_lr_fraction=cfg.final_lr_fraction, starts=cfg.starts, start_spread=cfg.start_spread,
-                        seed=cfg.seed, checkpoint=checkpoint, checkpoint_every=cfg.checkpoint_every,
-                        digest=self.digest, prepare=self.prepare, progress=progress)
+        return optimise(
+            self.value_and_grad,
+            self.space.z0(),
+            self.space.project,
+            iterations=cfg.iterations,
+            learning_rate=cfg.learning_rate,
+            clip_norm=cfg.clip_norm,
+            final_lr_fraction=cfg.final_lr_fraction,
+            starts=cfg.starts,
+            start_spread=cfg.start_spread,
+            seed=cfg.seed,
+            checkpoint=checkpoint,
+            checkpoint_every=cfg.checkpoint_every,
+            digest=self.digest,
+            prepare=self.prepare,
+            progress=progress,
+        )
 
     def path_metrics(self, z) -> dict:
         """``{scenario: (metrics, plot arrays)}`` on the whole paths at ``z``, from the same compiled forward pass."""
@@ -360,8 +433,21 @@ def structure_key(problem: WindowStarts, *layout) -> str:
     space = problem.space
     start = (space.servo0, space.hybrid0, problem.load)
     # the weights' order too: the objective sums its terms in it, and the digest sorts them
-    return describe((type(problem), problem.cfg.digest(), tuple(problem.cfg.weights), problem.scenarios.plant.options,
-                     problem.rates, problem.rows, space.fields, space.shared, start, jax.tree.structure(start), layout))
+    return describe(
+        (
+            type(problem),
+            problem.cfg.digest(),
+            tuple(problem.cfg.weights),
+            problem.scenarios.plant.options,
+            problem.rates,
+            problem.rows,
+            space.fields,
+            space.shared,
+            start,
+            jax.tree.structure(start),
+            layout,
+        )
+    )
 
 
 def _shared_gradient(problem: Problem) -> Program:
@@ -379,8 +465,9 @@ def _shared_gradient(problem: Problem) -> Program:
             _GRADIENTS.pop(next(iter(_GRADIENTS)))
         # the file's name is taken again when it is traced: a configuration whose dicts (weights, bounds) were edited
         # in place since this Problem was built is traced under its own name, not under this key's
-        _GRADIENTS[key] = Program(value_and_grad(problem.objective, problem.cfg.gradient),
-                                  lambda: structure_key(problem), sources=(HERE,))
+        _GRADIENTS[key] = Program(
+            value_and_grad(problem.objective, problem.cfg.gradient), lambda: structure_key(problem), sources=(HERE,)
+        )
     return _GRADIENTS[key]
 
 
@@ -401,8 +488,16 @@ def save_checkpoint(path: Path, state: dict) -> None:
 NPY_HEADER = 4096  # bytes: at most an array's .npy header in a checkpoint (numpy writes 128)
 ZIP_RECORD = 1024  # bytes: at most a member's records in the zip (local and central headers, name, zip64 fields)
 # what reading a crafted zip, .npy or JSON raises (ValueError covers JSON's and UTF-8's errors; RecursionError: nesting)
-CHECKPOINT_ERRORS = (OSError, ValueError, KeyError, EOFError, NotImplementedError, RecursionError, zipfile.BadZipFile,
-                     zlib.error)
+CHECKPOINT_ERRORS = (
+    OSError,
+    ValueError,
+    KeyError,
+    EOFError,
+    NotImplementedError,
+    RecursionError,
+    zipfile.BadZipFile,
+    zlib.error,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -425,8 +520,9 @@ class CheckpointLayout:
     def arrays(self) -> dict:
         """``{name: (shape, dtype)}`` of every array but ``meta`` that a checkpoint may hold."""
         out = {f"{group}/{k}": (np.shape(v), np.asarray(v).dtype) for group in ("z", "best") for k, v in self.z.items()}
-        return out | {f"opt/{k}": (np.shape(leaf), np.asarray(leaf).dtype)
-                      for k, leaf in enumerate(jax.tree.leaves(self.opt))}
+        return out | {
+            f"opt/{k}": (np.shape(leaf), np.asarray(leaf).dtype) for k, leaf in enumerate(jax.tree.leaves(self.opt))
+        }
 
     def entries(self) -> int:
         """History entries of one history (a member's in a batch) at most."""
@@ -449,8 +545,9 @@ def _array_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int) -> tup
     """``(shape, dtype)`` of the array in member ``info``, from its declared size (at most ``limit`` bytes of data) and
     its .npy header alone: nothing else of it is decompressed."""
     if info.file_size > limit + NPY_HEADER:
-        raise ValueError(f"{shown(info.filename)} declares {info.file_size} bytes, expected at most "
-                         f"{limit + NPY_HEADER}")
+        raise ValueError(
+            f"{shown(info.filename)} declares {info.file_size} bytes, expected at most {limit + NPY_HEADER}"
+        )
     with zf.open(info) as f:
         version = np.lib.format.read_magic(f)
         if version not in ((1, 0), (2, 0)):
@@ -472,13 +569,15 @@ def _check_meta(meta: dict, layout: CheckpointLayout) -> None:
         raise ValueError(f"meta.done: expected true or false, got {shown(meta['done'])}")
     if batch:
         histories, best = meta["history"], meta["best_value"]
-        if not (isinstance(histories, list) and isinstance(best, list)
-                and len(histories) == len(best) == layout.members):
+        if not (
+            isinstance(histories, list) and isinstance(best, list) and len(histories) == len(best) == layout.members
+        ):
             raise ValueError(f"meta: expected a history and a best value for each of {layout.members} members")
         for m, value in enumerate(best):
             inputs.number(value, f"meta.best_value[{m}]", ValueError, finite=False)
-        for m, message in inputs.check_keys(meta["failed"], "meta.failed", [str(m) for m in range(layout.members)],
-                                            ValueError, what="member").items():
+        for m, message in inputs.check_keys(
+            meta["failed"], "meta.failed", [str(m) for m in range(layout.members)], ValueError, what="member"
+        ).items():
             if not isinstance(message, str):
                 raise ValueError(f"meta.failed.{m}: expected a message, got {shown(message)}")
     else:
@@ -490,8 +589,13 @@ def _check_meta(meta: dict, layout: CheckpointLayout) -> None:
         if not isinstance(history, list) or len(history) > layout.entries():
             raise ValueError(f"{where}: expected a list of at most {layout.entries()} entries")
         for k, h in enumerate(history):
-            inputs.check_keys(h, f"{where}[{k}]", ("start", "iteration", "objective", "z"), ValueError,
-                              required=("start", "iteration", "objective", "z"))
+            inputs.check_keys(
+                h,
+                f"{where}[{k}]",
+                ("start", "iteration", "objective", "z"),
+                ValueError,
+                required=("start", "iteration", "objective", "z"),
+            )
             inputs.integer(h["start"], f"{where}[{k}].start", ValueError, low=0, high=layout.starts - 1)
             inputs.integer(h["iteration"], f"{where}[{k}].iteration", ValueError, low=0, high=layout.iterations)
             if isinstance(h["objective"], bool) or not isinstance(h["objective"], (int, float)):
@@ -529,8 +633,10 @@ def load_checkpoint(path: Path, digest: str, layout: CheckpointLayout) -> dict |
                 if not isinstance(meta, dict) or meta.get("format") != CHECKPOINT_FORMAT:
                     raise ValueError(f"not a {CHECKPOINT_FORMAT} file")
                 if meta.get("digest") != digest:
-                    raise ParameterError(f"{path}: checkpoint of another configuration (hash "
-                                         f"{shown(meta.get('digest'))}, this one {digest}); use --fresh or another --out")
+                    raise ParameterError(
+                        f"{path}: checkpoint of another configuration (hash "
+                        f"{shown(meta.get('digest'))}, this one {digest}); use --fresh or another --out"
+                    )
                 expected = layout.arrays()
                 for name, info in infos.items():
                     key = name.removesuffix(".npy")
@@ -541,7 +647,9 @@ def load_checkpoint(path: Path, digest: str, layout: CheckpointLayout) -> dict |
                     want = expected[key]
                     got = _array_header(zf, info, int(np.prod(want[0])) * want[1].itemsize)
                     if got != want:
-                        raise ValueError(f"{key}: expected {want[1]} of shape {want[0]}, got {got[1]} of shape {got[0]}")
+                        raise ValueError(
+                            f"{key}: expected {want[1]} of shape {want[0]}, got {got[1]} of shape {got[0]}"
+                        )
                 _check_meta(meta, layout)
                 groups = {g: sorted(k for k in expected if k.startswith(g + "/")) for g in ("z", "best", "opt")}
                 held = {g: [k for k in names if k + ".npy" in infos] for g, names in groups.items()}
@@ -570,7 +678,9 @@ def start_point(z0: dict, k: int, spread: float, seed: int, project: Callable) -
     if k == 0:
         return dict(z0)
     keys = jax.random.split(jax.random.PRNGKey(seed + 1000 * k), len(z0))
-    return project({n: v + spread * jax.random.normal(key, jnp.shape(v)) for (n, v), key in zip(sorted(z0.items()), keys)})
+    return project(
+        {n: v + spread * jax.random.normal(key, jnp.shape(v)) for (n, v), key in zip(sorted(z0.items()), keys)}
+    )
 
 
 def optimiser(learning_rate: float, iterations: int, clip_norm: float, final_lr_fraction: float):
@@ -579,11 +689,24 @@ def optimiser(learning_rate: float, iterations: int, clip_norm: float, final_lr_
     return optax.chain(optax.clip_by_global_norm(clip_norm), optax.adam(schedule))
 
 
-def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iterations: int, learning_rate: float,
-             clip_norm: float = 1.0, final_lr_fraction: float = 1.0, starts: int = 1, start_spread: float = 0.0,
-             seed: int = 0,
-             checkpoint: Path | None = None, checkpoint_every: int = 5, digest: str = "",
-             progress: Callable | None = None, prepare: Callable | None = None) -> dict:
+def optimise(
+    value_and_grad: Callable,
+    z0: dict,
+    project: Callable,
+    *,
+    iterations: int,
+    learning_rate: float,
+    clip_norm: float = 1.0,
+    final_lr_fraction: float = 1.0,
+    starts: int = 1,
+    start_spread: float = 0.0,
+    seed: int = 0,
+    checkpoint: Path | None = None,
+    checkpoint_every: int = 5,
+    digest: str = "",
+    progress: Callable | None = None,
+    prepare: Callable | None = None,
+) -> dict:
     """Minimise from ``z0`` (and ``starts - 1`` perturbed starts); returns the best ``z`` and the history.
 
     ``value_and_grad(z) -> ((value, aux), grad)``; ``prepare(z, iteration)``, if given, runs before
@@ -596,8 +719,17 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
     layout = CheckpointLayout(z0, opt.init(z0), iterations, starts)
     state = load_checkpoint(checkpoint, digest, layout) if checkpoint else None
     if state is None:
-        state = {"digest": digest, "start": 0, "iteration": 0, "z": None, "opt": None, "history": [],
-                 "best_value": np.inf, "best_z": None, "done": False}
+        state = {
+            "digest": digest,
+            "start": 0,
+            "iteration": 0,
+            "z": None,
+            "opt": None,
+            "history": [],
+            "best_value": np.inf,
+            "best_z": None,
+            "done": False,
+        }
     t_start = time.perf_counter()
     while not state["done"]:
         k = state["start"]
@@ -607,8 +739,14 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
         z, opt_state = jax.tree.map(jnp.asarray, state["z"]), state["opt"]
 
         def note(z, value, iteration):  # history entry, and the best point so far
-            state["history"].append({"start": k, "iteration": iteration, "objective": value,
-                                     "z": {n: np.asarray(v).tolist() for n, v in z.items()}})
+            state["history"].append(
+                {
+                    "start": k,
+                    "iteration": iteration,
+                    "objective": value,
+                    "z": {n: np.asarray(v).tolist() for n, v in z.items()},
+                }
+            )
             if value < state["best_value"]:
                 state["best_value"], state["best_z"] = value, {n: np.asarray(v) for n, v in z.items()}
 
@@ -618,16 +756,19 @@ def optimise(value_and_grad: Callable, z0: dict, project: Callable, *, iteration
             (value, aux), grad = value_and_grad(z)
             value = float(value)
             if not np.isfinite(value) or not all(np.isfinite(np.asarray(g)).all() for g in grad.values()):
-                raise FloatingPointError(f"tune: non-finite objective or gradient at start {k}, "
-                                         f"iteration {state['iteration']} (value {value})")
+                raise FloatingPointError(
+                    f"tune: non-finite objective or gradient at start {k}, "
+                    f"iteration {state['iteration']} (value {value})"
+                )
             note(z, value, state["iteration"])
             updates, opt_state = opt.update(grad, opt_state, z)
             z = project(optax.apply_updates(z, updates))
             state["iteration"] += 1
             state["z"], state["opt"] = z, opt_state
             if progress:
-                progress(k, state["iteration"], iterations, value, state["best_value"], aux,
-                         time.perf_counter() - t_start)
+                progress(
+                    k, state["iteration"], iterations, value, state["best_value"], aux, time.perf_counter() - t_start
+                )
             if checkpoint and state["iteration"] % checkpoint_every == 0:
                 save_checkpoint(checkpoint, state)
         if prepare:
@@ -651,13 +792,19 @@ class OptimiseResult(dict):
         where = f" (start {best['start'] + 1}, iteration {best['iteration']})" if best else ""
         starts = len({h["start"] for h in history})
         z = ", ".join(f"{k} {_values(v)}" for k, v in (self.get("z") or {}).items())
-        return (f"OptimiseResult: objective {first}best {self.get('objective', float('nan')):.4g}{where}; "
-                f"{len(history)} evaluations over {starts} start(s)\n  z: {z}")[:2000]
+        return (
+            f"OptimiseResult: objective {first}best {self.get('objective', float('nan')):.4g}{where}; "
+            f"{len(history)} evaluations over {starts} start(s)\n  z: {z}"
+        )[:2000]
 
 
 def _values(v) -> str:
     flat = np.ravel(np.asarray(v, dtype=float))
-    return " ".join(f"{x:.4g}" for x in flat) if flat.size <= 6 else f"{flat.size} values {flat.min():.4g}..{flat.max():.4g}"
+    return (
+        " ".join(f"{x:.4g}" for x in flat)
+        if flat.size <= 6
+        else f"{flat.size} values {flat.min():.4g}..{flat.max():.4g}"
+    )
 
 
 def progress_line(desc: str, done: int, total: int, summary: str, elapsed: float, first: tuple[int, float]) -> str:
@@ -708,8 +855,15 @@ class ProgressBar:
                 from tqdm.auto import tqdm
 
             self.first = f"first iteration (with the compile) {elapsed:.0f} s"
-            self.bar = tqdm(total=self.total, initial=done, desc=desc, file=self.stream, unit="it",
-                            dynamic_ncols=True, postfix=f"{postfix}, {self.first}")
+            self.bar = tqdm(
+                total=self.total,
+                initial=done,
+                desc=desc,
+                file=self.stream,
+                unit="it",
+                dynamic_ncols=True,
+                postfix=f"{postfix}, {self.first}",
+            )
         else:
             self.bar.set_description_str(desc, refresh=False)
             self.bar.set_postfix_str(f"{postfix}, {self.first}", refresh=False)
@@ -745,7 +899,12 @@ def progress_reporter(starts: int = 1, stream=sys.stderr) -> Callable:
     report = Progress(stream)
 
     def progress(start, iteration, iterations, value, best, aux, elapsed):
-        report(start * iterations + iteration, starts * iterations, elapsed, f"tune [start {start + 1}/{starts}]",
-               f"J={value:.4f} best={best:.4f}")
+        report(
+            start * iterations + iteration,
+            starts * iterations,
+            elapsed,
+            f"tune [start {start + 1}/{starts}]",
+            f"J={value:.4f} best={best:.4f}",
+        )
 
     return progress

@@ -48,8 +48,15 @@ class Space:
     upper: dict
 
     @classmethod
-    def create(cls, groups, servo0: ServoParams, hybrid0: HybridGains, shared: bool = True,
-               bounds: dict | None = None, span: float = 10.0) -> "Space":
+    def create(
+        cls,
+        groups,
+        servo0: ServoParams,
+        hybrid0: HybridGains,
+        shared: bool = True,
+        bounds: dict | None = None,
+        span: float = 10.0,
+    ) -> "Space":
         """Fields of ``groups``; default bounds ``start / span`` to ``start * span`` within the field's own
         (:func:`field_bounds`), overridden by ``bounds``, which must lie within the field's own too."""
         unknown = [g for g in groups if g not in GROUPS]
@@ -67,13 +74,16 @@ class Space:
             v = np.asarray(start[f])
             low, high, why = field_bounds(f)
             if (lo is not None and lo < low) or (hi is not None and hi > high):
-                raise ParameterError(f"tune bounds.{f}: expected within the field's range {low:g} to {high:g} "
-                                     f"({why}), got [{lo}, {hi}]")
+                raise ParameterError(
+                    f"tune bounds.{f}: expected within the field's range {low:g} to {high:g} ({why}), got [{lo}, {hi}]"
+                )
             space.lower[f] = np.full_like(v, np.maximum(v / span, low) if lo is None else lo, dtype=float)
             space.upper[f] = np.full_like(v, np.minimum(v * span, high) if hi is None else hi, dtype=float)
             if not ((0 < space.lower[f]) & (space.lower[f] <= v) & (v <= space.upper[f])).all():
-                raise ParameterError(f"tune bounds.{f}: expected 0 < lower <= start ({v.ravel()[0]:.6g}) <= upper, "
-                                     f"got [{space.lower[f].ravel()[0]:.6g}, {space.upper[f].ravel()[0]:.6g}]")
+                raise ParameterError(
+                    f"tune bounds.{f}: expected 0 < lower <= start ({v.ravel()[0]:.6g}) <= upper, "
+                    f"got [{space.lower[f].ravel()[0]:.6g}, {space.upper[f].ravel()[0]:.6g}]"
+                )
         return space
 
     def _start(self, name):
@@ -105,5 +115,7 @@ class Space:
     def host_values(self, z) -> tuple[ServoParams, HybridGains]:
         """:meth:`apply` as host values: numpy arrays in the servo parameters, floats in the hybrid gains."""
         servo, hybrid = self.apply(z)
-        return (servo.replace(**{k: np.asarray(v) for k, v in arrays(servo).items()}),
-                hybrid.replace(**{f: float(getattr(hybrid, f)) for f in HYBRID_FIELDS}))
+        return (
+            servo.replace(**{k: np.asarray(v) for k, v in arrays(servo).items()}),
+            hybrid.replace(**{f: float(getattr(hybrid, f)) for f in HYBRID_FIELDS}),
+        )

@@ -45,8 +45,13 @@ class AxisPlant:
     n_axes: int = N_AXES
 
     def prepare(self, servo: ServoParams, load: AxisLoad, dt: float) -> AxisAux:
-        return AxisAux(lti.c2d(mechanics(servo, load), dt, "zoh"), screw_ratio(servo),
-                       load.mass * load.g * jnp.sin(load.inclination), Friction.of(servo), servo.eta)
+        return AxisAux(
+            lti.c2d(mechanics(servo, load), dt, "zoh"),
+            screw_ratio(servo),
+            load.mass * load.g * jnp.sin(load.inclination),
+            Friction.of(servo),
+            servo.eta,
+        )
 
     def init(self, aux: AxisAux):
         return jnp.zeros(aux.r.shape + (2,))

@@ -17,7 +17,8 @@ redundant torque" of eq. 13, here a slider force [N].
 
 ``M qacc + c`` is MuJoCo's recursive Newton-Euler (``mj_rne``, gravity and Coriolis
 included; it needs the bodies' positions, inertias and velocities, ``mj_kinematics``,
-``mj_comPos`` and ``mj_comVel``, not the constraint solve of a whole ``mj_forward``) plus the rotor armature ``eta J / r^2`` on the slides; ``qvel`` and ``qacc`` are
+``mj_comPos`` and ``mj_comVel``, not the constraint solve of a whole ``mj_forward``) plus the rotor armature ``eta J /
+r^2`` on the slides; ``qvel`` and ``qacc`` are
 central differences of ``qpos`` along the sampled path (second-order accurate, the path
 being smooth).  The nominal geometry is used: the controller does not know the seeded
 kinematic errors of the real machine.
@@ -45,8 +46,9 @@ def nominal_model(servo, geom: Geometry, options: ModelOptions) -> mujoco.MjMode
     return m
 
 
-def inverse_dynamics_forces(servo, path, dt: float, geom: Geometry | None = None,
-                            options: ModelOptions = ModelOptions()) -> tuple[np.ndarray, np.ndarray]:
+def inverse_dynamics_forces(
+    servo, path, dt: float, geom: Geometry | None = None, options: ModelOptions = ModelOptions()
+) -> tuple[np.ndarray, np.ndarray]:
     """Minimum-norm slider forces along ``path`` and the actuation Jacobians.
 
     ``path``: poses ``(N, 5)`` sampled every ``dt`` [s] (at least 3 samples).  Returns

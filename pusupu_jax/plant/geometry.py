@@ -108,8 +108,16 @@ FIELDS = {  # name: (shape, unit, meaning)
     "upu_mass": ((2,), "kg", "the lower and the upper part of the UPU leg"),
 }
 _SHAPES = {name: shape for name, (shape, _, _) in FIELDS.items()}
-_POSITIVE = ("rod_lengths", "upu_min", "upu_max", "slider_mass", "rod_mass", "platform_mass", "platform_inertia",
-             "upu_mass")
+_POSITIVE = (
+    "rod_lengths",
+    "upu_min",
+    "upu_max",
+    "slider_mass",
+    "rod_mass",
+    "platform_mass",
+    "platform_inertia",
+    "upu_mass",
+)
 
 
 def validate_geometry(g: Geometry) -> None:
@@ -128,8 +136,10 @@ def validate_geometry(g: Geometry) -> None:
         raise GeometryError(f"geometry.rail_dirs: expected unit vectors, branch {k} has length {norms[k]:.6g}")
     bad = np.nonzero(np.asarray(g.stroke_min) >= np.asarray(g.stroke_max))[0]
     if bad.size:
-        raise GeometryError(f"geometry.stroke_min: expected < stroke_max, branch {bad[0]} has "
-                            f"{float(g.stroke_min[bad[0]])} >= {float(g.stroke_max[bad[0]])}")
+        raise GeometryError(
+            f"geometry.stroke_min: expected < stroke_max, branch {bad[0]} has "
+            f"{float(g.stroke_min[bad[0]])} >= {float(g.stroke_max[bad[0]])}"
+        )
     if float(g.upu_min) >= float(g.upu_max):
         raise GeometryError(f"geometry.upu_min: expected < upu_max, got {float(g.upu_min)} >= {float(g.upu_max)}")
 

@@ -160,24 +160,34 @@ def check_poses(geom: Geometry, q, cond_max: float = 30.0, margin: float = 0.0, 
 
     def out_of_stroke(k):
         i = int(np.argmax(out[k]))
-        return (f"{at(k)}: slider {i + 1} out of stroke, s = {s[k, i] * 1e3:.1f} mm, expected {lo[i] * 1e3:.1f} to "
-                f"{hi[i] * 1e3:.1f} mm")
+        return (
+            f"{at(k)}: slider {i + 1} out of stroke, s = {s[k, i] * 1e3:.1f} mm, expected {lo[i] * 1e3:.1f} to "
+            f"{hi[i] * 1e3:.1f} mm"
+        )
 
     checks = [  # (which poses fail, the message for pose k); of two failing at one pose, the first listed is said
         (q[:, 2] <= 0, lambda k: f"{at(k)}: expected the platform above the base (z > 0), got z = {q[k, 2]:.4g} m"),
         ((disc < 0).any(axis=1), unreachable),
         (out.any(axis=1), out_of_stroke),
-        ((leg < float(geom.upu_min)) | (leg > float(geom.upu_max)),
-         lambda k: f"{at(k)}: UPU leg {leg[k] * 1e3:.1f} mm outside {float(geom.upu_min) * 1e3:.0f} to "
-                   f"{float(geom.upu_max) * 1e3:.0f} mm"),
+        (
+            (leg < float(geom.upu_min)) | (leg > float(geom.upu_max)),
+            lambda k: (
+                f"{at(k)}: UPU leg {leg[k] * 1e3:.1f} mm outside {float(geom.upu_min) * 1e3:.0f} to "
+                f"{float(geom.upu_max) * 1e3:.0f} mm"
+            ),
+        ),
         (cond > cond_max, lambda k: f"{at(k)}: near-singular, Jacobian condition number {cond[k]:.3g} > {cond_max:g}"),
     ]
     failing = [(int(np.argmax(bad)), n) for n, (bad, _) in enumerate(checks) if bad.any()]
     if failing:
         k, n = min(failing)
         raise GeometryError(checks[n][1](k))
-    return {"slider_min_m": s.min(axis=0).tolist(), "slider_max_m": s.max(axis=0).tolist(),
-            "cond_max": float(cond.max()), "upu_leg_m": [float(leg.min()), float(leg.max())]}
+    return {
+        "slider_min_m": s.min(axis=0).tolist(),
+        "slider_max_m": s.max(axis=0).tolist(),
+        "cond_max": float(cond.max()),
+        "upu_leg_m": [float(leg.min()), float(leg.max())],
+    }
 
 
 def _fmt(q):

@@ -80,10 +80,15 @@ class MJXPlant:
         other = mjx.put_model(build_model(geom, options))
         sizes = ("nq", "nv", "nbody", "neq", "ngeom")
         if [getattr(other, n) for n in sizes] != [getattr(self.mjx_model, n) for n in sizes]:
-            raise ValueError(f"MJXPlant.variant: expected the sizes {sizes} of this plant's model "
-                             f"{[getattr(self.mjx_model, n) for n in sizes]}, got {[getattr(other, n) for n in sizes]}")
-        arrays = {f.name: getattr(other, f.name) for f in dataclasses.fields(other)
-                  if isinstance(getattr(other, f.name), jax.Array)}
+            raise ValueError(
+                f"MJXPlant.variant: expected the sizes {sizes} of this plant's model "
+                f"{[getattr(self.mjx_model, n) for n in sizes]}, got {[getattr(other, n) for n in sizes]}"
+            )
+        arrays = {
+            f.name: getattr(other, f.name)
+            for f in dataclasses.fields(other)
+            if isinstance(getattr(other, f.name), jax.Array)
+        }
         return self.mjx_model.replace(**arrays)
 
     @property
@@ -133,8 +138,10 @@ class MJXPlant:
 
     def prepare(self, servo, plant_params, dt: float) -> MJXAux:
         if not np.isclose(dt, self.options.timestep, rtol=1e-9):
-            raise ValueError(f"MJXPlant: the mechanical step rates.dt_mech = {dt} s must equal the model "
-                             f"timestep {self.options.timestep} s")
+            raise ValueError(
+                f"MJXPlant: the mechanical step rates.dt_mech = {dt} s must equal the model "
+                f"timestep {self.options.timestep} s"
+            )
         model = self.mjx_model if plant_params is None else plant_params
         r = screw_ratio(servo)
         armature = model.dof_armature.at[self._dofs].set(servo.eta * servo.J / r**2)
@@ -168,8 +175,13 @@ class MJXPlant:
             F = J @ jnp.linalg.solve(J.T @ J, Q)
         else:
             rest = np.array([k for k in range(self.n_axes) if k != force_axis])
-            F = jnp.zeros(self.n_axes).at[force_axis].set(force).at[rest].set(
-                jnp.linalg.solve(J[rest].T, Q - J[force_axis] * force))
+            F = (
+                jnp.zeros(self.n_axes)
+                .at[force_axis]
+                .set(force)
+                .at[rest]
+                .set(jnp.linalg.solve(J[rest].T, Q - J[force_axis] * force))
+            )
         return F / aux.force_gain
 
     def measure(self, aux: MJXAux, data):
@@ -193,8 +205,11 @@ class MJXPlant:
         (:meth:`contact_force`).
         """
         body = self.mj_model.body("platform").id
-        out = {"platform_pos": data.xpos[body], "platform_mat": data.xmat[body].reshape(3, 3),
-               "closure_residual": loop_closure_residual(self.mj_model, data.xpos, data.xmat, aux.model.eq_data)}
+        out = {
+            "platform_pos": data.xpos[body],
+            "platform_mat": data.xmat[body].reshape(3, 3),
+            "closure_residual": loop_closure_residual(self.mj_model, data.xpos, data.xmat, aux.model.eq_data),
+        }
         if self.options.contacts:
             out["contact_force"] = self.contact_force(aux.model, data)
         return out
@@ -212,11 +227,14 @@ class MJXPlant:
         """
         try:  # MJX's own decoding of mj_contactForce, for every contact of one dimension (not public API)
             from mujoco.mjx._src.support import contact_force_dim
+
             contact = data._impl.contact
         except (ImportError, AttributeError) as e:
-            raise RuntimeError(f"MJXPlant.contact_force: needs MJX's JAX implementation with "
-                               f"mujoco.mjx._src.support.contact_force_dim and Data._impl.contact "
-                               f"(tested with mujoco-mjx 3.17): {e}") from None
+            raise RuntimeError(
+                f"MJXPlant.contact_force: needs MJX's JAX implementation with "
+                f"mujoco.mjx._src.support.contact_force_dim and Data._impl.contact "
+                f"(tested with mujoco-mjx 3.17): {e}"
+            ) from None
         tool = self.mj_model.geom("tool").id
         if contact.dim.size == 0:
             return jnp.zeros(3)

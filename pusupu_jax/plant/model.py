@@ -86,7 +86,8 @@ def perturbed(geom: Geometry, seed: int, std: float) -> Geometry:
     return geom.replace(
         rail_points=np.asarray(geom.rail_points) + rng.normal(0.0, std, (6, 3)),
         platform_points=np.asarray(geom.platform_points) + rng.normal(0.0, std, (6, 3)),
-        rod_lengths=np.asarray(geom.rod_lengths) + rng.normal(0.0, std, 6))
+        rod_lengths=np.asarray(geom.rod_lengths) + rng.normal(0.0, std, 6),
+    )
 
 
 def _in_frame(quat, vector) -> np.ndarray:
@@ -108,8 +109,9 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     nominal = Geometry.default() if geom is None else geom
     validate_geometry(nominal)
     _check_options(options)
-    real = nominal if options.kin_error_seed is None else perturbed(nominal, options.kin_error_seed,
-                                                                   options.kin_error_std)
+    real = (
+        nominal if options.kin_error_seed is None else perturbed(nominal, options.kin_error_seed, options.kin_error_std)
+    )
     home = np.asarray(nominal.home, dtype=float)
     s_home = np.asarray(inverse_kinematics(real, home))
     if not np.isfinite(s_home).all():
@@ -139,8 +141,14 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
         b.add_joint(name=name, type=mujoco.mjtJoint.mjJNT_HINGE, axis=list(axis), ref=float(ref))
 
     def visual(b, fromto, radius):
-        b.add_geom(type=mujoco.mjtGeom.mjGEOM_CAPSULE, fromto=list(fromto), size=[radius, 0, 0],
-                   contype=0, conaffinity=0, group=GROUP_VISUAL)
+        b.add_geom(
+            type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+            fromto=list(fromto),
+            size=[radius, 0, 0],
+            contype=0,
+            conaffinity=0,
+            group=GROUP_VISUAL,
+        )
 
     # passive UPU branch: the two hinges of each universal joint sit on one body, applied in order
     m_low, m_up = (float(v) for v in np.asarray(nominal.upu_mass))
@@ -151,8 +159,9 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     upper = body(lower, "upu_upper", [0, 0, leg], [1, 0, 0, 0], m_up, _rod_inertia(m_up, 0.4))
     upper.add_joint(name="upu_leg", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 0, 1], ref=leg)
     visual(upper, [0, 0, -0.4, 0, 0, 0], 0.025)
-    platform = body(upper, "platform", [0, 0, 0], [1, 0, 0, 0], nominal.platform_mass,
-                    np.asarray(nominal.platform_inertia))
+    platform = body(
+        upper, "platform", [0, 0, 0], [1, 0, 0, 0], nominal.platform_mass, np.asarray(nominal.platform_inertia)
+    )
     body(platform, "payload", options.payload_com, [1, 0, 0, 0], options.payload, options.payload_inertia)
     hinge(platform, "upu_alpha", [0, 1, 0], alpha)
     hinge(platform, "upu_beta", [1, 0, 0], beta)
@@ -161,8 +170,12 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     if options.contacts and options.scene == "surface":
         platform.add_geom(name="tool", type=mujoco.mjtGeom.mjGEOM_SPHERE, pos=[0, 0, -0.15], size=[0.01, 0, 0])
     elif options.contacts:
-        platform.add_geom(name="tool", type=mujoco.mjtGeom.mjGEOM_CAPSULE, size=[PEG["radius"], 0, 0],
-                          fromto=[0, 0, -PEG["top"], 0, 0, -PEG["bottom"]])
+        platform.add_geom(
+            name="tool",
+            type=mujoco.mjtGeom.mjGEOM_CAPSULE,
+            size=[PEG["radius"], 0, 0],
+            fromto=[0, 0, -PEG["top"], 0, 0, -PEG["bottom"]],
+        )
 
     for i in range(6):
         u = np.asarray(real.rail_dirs[i], dtype=float)
@@ -174,24 +187,41 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
         rod_dir_local = _in_frame(rail_quat, joints[i] - start)
         length = float(np.asarray(real.rod_lengths)[i])
         rod_m = float(np.asarray(nominal.rod_mass)[i])
-        rod = body(slider, f"rod_{i}", [0, 0, 0], _frame_z_to(rod_dir_local / np.linalg.norm(rod_dir_local)),
-                   rod_m, _rod_inertia(rod_m, length))
+        rod = body(
+            slider,
+            f"rod_{i}",
+            [0, 0, 0],
+            _frame_z_to(rod_dir_local / np.linalg.norm(rod_dir_local)),
+            rod_m,
+            _rod_inertia(rod_m, length),
+        )
         rod.ipos = [0, 0, length / 2]
         hinge(rod, f"rod_{i}_x", [1, 0, 0], 0.0)
         hinge(rod, f"rod_{i}_y", [0, 1, 0], 0.0)
         visual(rod, [0, 0, 0, 0, 0, length], 0.012)
-        eq = spec.add_equality(name=f"sphere_{i}", type=mujoco.mjtEq.mjEQ_CONNECT,
-                               objtype=mujoco.mjtObj.mjOBJ_BODY, name1=f"rod_{i}", name2="platform")
+        eq = spec.add_equality(
+            name=f"sphere_{i}",
+            type=mujoco.mjtEq.mjEQ_CONNECT,
+            objtype=mujoco.mjtObj.mjOBJ_BODY,
+            name1=f"rod_{i}",
+            name2="platform",
+        )
         eq.data[0:3] = [0, 0, length]
         eq.solref = [options.solref_timeconst, 1.0]
         eq.solimp = [0.99, 0.999, 0.001, 0.5, 2.0]
     if options.contacts and options.scene == "surface":
         tilt = float(options.surface_tilt)
-        world.add_geom(name="surface", type=mujoco.mjtGeom.mjGEOM_BOX, pos=[0, 0, float(home[2]) - 0.2],
-                       size=[0.3, 0.3, 0.01], quat=[np.cos(tilt / 2), 0, -np.sin(tilt / 2), 0])
+        world.add_geom(
+            name="surface",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            pos=[0, 0, float(home[2]) - 0.2],
+            size=[0.3, 0.3, 0.01],
+            quat=[np.cos(tilt / 2), 0, -np.sin(tilt / 2), 0],
+        )
     elif options.contacts:
-        _add_hole(world, np.asarray(home[:2]) + np.asarray(options.hole_offset, dtype=float),
-                  float(home[2]) - HOLE["top"])
+        _add_hole(
+            world, np.asarray(home[:2]) + np.asarray(options.hole_offset, dtype=float), float(home[2]) - HOLE["top"]
+        )
     for geom in spec.geoms:
         if geom.contype:
             geom.friction = [float(options.friction), *list(geom.friction)[1:]]
@@ -211,11 +241,19 @@ def _add_hole(world, centre, top: float):
         normal = np.eye(3)[ax] * sign  # from the hole's axis out through this side
         span = np.abs(np.eye(3)[1 - ax]) * (w + 2 * t + c)  # half-length along the side, past the corners
         lower = np.array([*centre, top - c - (d - c) / 2]) + normal * (w + t)
-        world.add_geom(name=f"hole_wall_{k}", type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(lower),
-                       size=list(np.abs(normal) * t + span + np.array([0, 0, (d - c) / 2])))
+        world.add_geom(
+            name=f"hole_wall_{k}",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            pos=list(lower),
+            size=list(np.abs(normal) * t + span + np.array([0, 0, (d - c) / 2])),
+        )
         upper = np.array([*centre, top - c / 2]) + normal * (w + c + (2 * t - c) / 2)
-        world.add_geom(name=f"hole_rim_{k}", type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(upper),
-                       size=list(np.abs(normal) * (2 * t - c) / 2 + span + np.array([0, 0, c / 2])))
+        world.add_geom(
+            name=f"hole_rim_{k}",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            pos=list(upper),
+            size=list(np.abs(normal) * (2 * t - c) / 2 + span + np.array([0, 0, c / 2])),
+        )
         inward_up = (-normal + np.array([0, 0, 1])) / np.sqrt(2)
         quat = np.zeros(4)
         mujoco.mju_quatZ2Vec(quat, inward_up)  # the box's z along the chamfer face's normal
@@ -224,8 +262,13 @@ def _add_hole(world, centre, top: float):
         along_x = abs(frame.reshape(3, 3)[:, 0] @ np.abs(np.eye(3)[1 - ax])) > 0.5  # the box's x lies along the side
         half_across, half_along = c / np.sqrt(2), w + c
         middle = np.array([*centre, top - c / 2]) + normal * (w + c / 2)
-        world.add_geom(name=f"hole_chamfer_{k}", type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(middle - inward_up * e),
-                       quat=list(quat), size=[half_along, half_across, e] if along_x else [half_across, half_along, e])
+        world.add_geom(
+            name=f"hole_chamfer_{k}",
+            type=mujoco.mjtGeom.mjGEOM_BOX,
+            pos=list(middle - inward_up * e),
+            quat=list(quat),
+            size=[half_along, half_across, e] if along_x else [half_across, half_along, e],
+        )
 
 
 def _check_options(options: ModelOptions) -> None:
@@ -238,8 +281,9 @@ def _check_options(options: ModelOptions) -> None:
     if not (np.isfinite(options.friction) and options.friction >= 0):
         raise ValueError(f"ModelOptions.friction: expected a finite number >= 0, got {options.friction!r}")
     if not (np.isfinite(options.surface_tilt) and abs(options.surface_tilt) < 0.5):
-        raise ValueError(f"ModelOptions.surface_tilt: expected a finite angle under 0.5 rad, got "
-                         f"{options.surface_tilt!r}")
+        raise ValueError(
+            f"ModelOptions.surface_tilt: expected a finite angle under 0.5 rad, got {options.surface_tilt!r}"
+        )
     offset = np.asarray(options.hole_offset, dtype=float)
     if offset.shape != (2,) or not np.isfinite(offset).all() or np.abs(offset).max() > 0.02:
         raise ValueError(f"ModelOptions.hole_offset: expected (x, y) within 20 mm [m], got {options.hole_offset!r}")
@@ -254,18 +298,26 @@ def _check_payload(options: ModelOptions) -> None:
         raise ValueError(f"ModelOptions.payload: expected a finite mass >= 0 [kg], got {mass!r}")
     com = np.asarray(options.payload_com, dtype=float)
     if com.shape != (3,) or not np.isfinite(com).all():
-        raise ValueError(f"ModelOptions.payload_com: expected a finite (x, y, z) [m] in the platform frame, got "
-                         f"{options.payload_com!r}")
+        raise ValueError(
+            f"ModelOptions.payload_com: expected a finite (x, y, z) [m] in the platform frame, got "
+            f"{options.payload_com!r}"
+        )
     inertia = np.asarray(options.payload_inertia, dtype=float)
     if inertia.shape != (3,) or not np.isfinite(inertia).all() or (inertia < 0).any():
-        raise ValueError(f"ModelOptions.payload_inertia: expected three finite principal moments >= 0 [kg m^2], got "
-                         f"{options.payload_inertia!r}")
+        raise ValueError(
+            f"ModelOptions.payload_inertia: expected three finite principal moments >= 0 [kg m^2], got "
+            f"{options.payload_inertia!r}"
+        )
     if mass == 0 and inertia.any():
-        raise ValueError(f"ModelOptions.payload_inertia: expected (0, 0, 0) without a payload mass (payload 0 kg), got "
-                         f"{options.payload_inertia!r}")
+        raise ValueError(
+            f"ModelOptions.payload_inertia: expected (0, 0, 0) without a payload mass (payload 0 kg), got "
+            f"{options.payload_inertia!r}"
+        )
     if (2 * inertia > inertia.sum()).any():
-        raise ValueError(f"ModelOptions.payload_inertia: expected principal moments of a rigid body (each at most the "
-                         f"sum of the other two), got {options.payload_inertia!r}")
+        raise ValueError(
+            f"ModelOptions.payload_inertia: expected principal moments of a rigid body (each at most the "
+            f"sum of the other two), got {options.payload_inertia!r}"
+        )
 
 
 def _rod_inertia(mass, length):
@@ -307,16 +359,21 @@ def loop_closure_residual(model: mujoco.MjModel, xpos, xmat, eq_data=None):
 
 
 def pose_to_qpos(model: mujoco.MjModel, real: Geometry):
-    """A JAX function ``q (..., 5) -> qpos (..., nq)`` putting the machine ``real`` at pose ``q``, every constraint closed.
+    """A JAX function ``q (..., 5) -> qpos (..., nq)`` putting the machine ``real`` at pose ``q``, every constraint
+    closed.
 
     Differentiable: its Jacobian ``d qpos / d q`` maps pose rates to joint velocities (every
     joint is a hinge or a slide, so ``qvel`` is the time derivative of ``qpos``).
     """
-    index = {name: int(model.jnt_qposadr[model.joint(name).id]) for name in
-             ("upu_phi1", "upu_phi2", "upu_leg", "upu_alpha", "upu_beta")}
+    index = {
+        name: int(model.jnt_qposadr[model.joint(name).id])
+        for name in ("upu_phi1", "upu_phi2", "upu_leg", "upu_alpha", "upu_beta")
+    }
     upu = jnp.array(list(index.values()))
-    branch = [jnp.array([int(model.jnt_qposadr[model.joint(f"{j}_{i}{k}").id]) for i in range(6)])
-              for j, k in (("slide", ""), ("rod", "_x"), ("rod", "_y"))]
+    branch = [
+        jnp.array([int(model.jnt_qposadr[model.joint(f"{j}_{i}{k}").id]) for i in range(6)])
+        for j, k in (("slide", ""), ("rod", "_x"), ("rod", "_y"))
+    ]
 
     def frames(kind):
         out = np.zeros((6, 9))
@@ -333,8 +390,9 @@ def pose_to_qpos(model: mujoco.MjModel, real: Geometry):
         rod = joint_points(real, q) - (rail_points + s[:, None] * rail_dirs)
         rod = jnp.einsum("kji,kj->ki", rod_rot, jnp.einsum("kji,kj->ki", slider_rot, rod))  # in each rod's frame
         ax, ay = xy_hinge_angles(rod)
-        return (qpos0.at[upu].set(jnp.stack(upu_angles(q))).at[branch[0]].set(s)
-                .at[branch[1]].set(ax).at[branch[2]].set(ay))
+        return (
+            qpos0.at[upu].set(jnp.stack(upu_angles(q))).at[branch[0]].set(s).at[branch[1]].set(ax).at[branch[2]].set(ay)
+        )
 
     return jnp.vectorize(one, signature="(5)->(n)")
 
