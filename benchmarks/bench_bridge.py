@@ -62,7 +62,7 @@ def main() -> None:
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
     apply_xla_workaround(one_thread=True)  # as pusupu bridge does, before any computation
-    setup_jax()
+    setup_jax(synchronous_cpu=True)
     from pusupu_jax.hw_bridge.canopen_link import CanLink, open_bus
     from pusupu_jax.hw_bridge.loop import BridgeLoop, bridge_reference, plan
     from pusupu_jax.hw_bridge.protocol import FEEDBACK

@@ -87,7 +87,7 @@ def main() -> None:
     from pusupu_jax.runtime import apply_xla_workaround, setup_jax
 
     apply_xla_workaround(one_thread=True)  # as pusupu bridge has it
-    setup_jax()
+    setup_jax(synchronous_cpu=True)
     import jax.numpy as jnp
 
     from pusupu_jax.hw_bridge import protocol

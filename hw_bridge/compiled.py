@@ -23,14 +23,15 @@ from jax.flatten_util import ravel_pytree
 
 
 def cpu():
-    """The CPU device (the loops run there even when a GPU is present), executing on the calling thread.
+    """The CPU device (the loops run there even when a GPU is present).
 
-    Asynchronous dispatch may run a step on a pool thread while the cycle's thread waits; with the cycle's
-    thread at SCHED_FIFO on one pinned CPU that thread would wait behind it.  Synchronous dispatch keeps the
-    step on the real-time thread.  (Not measured apart: the 80 ms first steps seen while building this were
-    compiles, of calls made outside the warm-up's ``default_device`` context; see :class:`FlatStep`.)
+    The real-time processes (``pusupu bridge``, ``pusupu sim-robot``) set JAX up with
+    ``setup_jax(synchronous_cpu=True)``: asynchronous dispatch may run a step on a pool thread while the cycle's
+    thread waits, and with the cycle's thread at SCHED_FIFO on one pinned CPU that thread would wait behind it;
+    synchronous dispatch keeps the step on the real-time thread.  (Not measured apart: the 80 ms first steps seen
+    while building this were compiles, of calls made outside the warm-up's ``default_device`` context; see
+    :class:`FlatStep`.)
     """
-    jax.config.update("jax_cpu_enable_async_dispatch", False)
     return jax.devices("cpu")[0]
 
 

@@ -32,6 +32,7 @@ from pusupu_jax import cascade, loops
 from pusupu_jax.gains import GainFile
 from pusupu_jax.hybrid import HybridReference
 from pusupu_jax.params import LoopRates
+from pusupu_jax.runtime import require_x64
 
 from jax.flatten_util import ravel_pytree
 
@@ -133,7 +134,7 @@ class BridgeLoop:
     """
 
     def __init__(self, gains: GainFile, reference: BridgeReference, drive_modes=None, rate: float | None = None):
-        jax.config.update("jax_enable_x64", True)
+        require_x64("the bridge's loops")
         self.mode = cascade.control_mode(gains.mode)
         self.drive_modes, self.rates = plan(gains, drive_modes, rate)
         n = len(self.drive_modes)

@@ -53,6 +53,7 @@ from pusupu_jax.machine import machine_plant, machine_rates
 from pusupu_jax.machine_file import Machine
 from pusupu_jax.plant.friction import Friction, slider_friction
 from pusupu_jax.plant.model import ModelOptions, build_model, slide_dofs, slide_qpos
+from pusupu_jax.runtime import require_x64
 
 from . import cia402, protocol
 from .compiled import FlatStep, cpu
@@ -151,7 +152,7 @@ class RobotModel:
     ):
         from .loop import bridge_rates
 
-        jax.config.update("jax_enable_x64", True)
+        require_x64("the simulated robot's drives")
         self.servo = servo = gains.servo
         self.rates = bridge_rates(gains.rates, cst, rate)  # the bridge's, for its drive-mode pattern
         machine = Machine.default() if machine is None else machine

@@ -190,7 +190,7 @@ def run_bridge(args) -> int:
         if not args.allow_other_machine:
             raise ParameterError(f"{message}; give that machine's file with --machine, or --allow-other-machine")
         print(f"pusupu: warning: {message}; running it as --allow-other-machine asks", file=sys.stderr)
-    setup_jax()
+    setup_jax(synchronous_cpu=True)  # the cycle's thread runs its steps itself (hw_bridge.compiled.cpu)
     from pusupu_jax.hw_bridge.loop import BridgeLoop, bridge_reference, cycle_rate, plan
     from pusupu_jax.hw_bridge.protocol import CST, FEEDBACK
     from pusupu_jax.hw_bridge.safety import Safety, limits_for
@@ -332,7 +332,7 @@ def run_sim_robot(args) -> int:
         raise ParameterError(str(e)) from None
     machine = machine_of(args)
     g = gains.load(args.gains, machine=machine)
-    setup_jax()
+    setup_jax(synchronous_cpu=True)  # the cycle's thread runs its steps itself (hw_bridge.compiled.cpu)
     from pusupu_jax.hw_bridge.loop import plan
     from pusupu_jax.hw_bridge.protocol import CST
 

@@ -82,11 +82,14 @@ def apply_xla_workaround(one_thread: bool = False) -> None:
     os.environ["XLA_FLAGS"] = flags
 
 
-def setup_jax(cache_dir: str | os.PathLike | None = None, x64: bool = True) -> Path:
+def setup_jax(cache_dir: str | os.PathLike | None = None, x64: bool = True, synchronous_cpu: bool = False) -> Path:
     """Enable float64 and JAX's persistent compilation cache (every compiled function is kept).
 
     The cache lives in ``cache_dir``, else ``$PUSUPU_JAX_CACHE``, else JAX's own
     ``$JAX_COMPILATION_CACHE_DIR``, else ``~/.cache/pusupu_jax/jax``.  Returns the cache directory.
+
+    ``synchronous_cpu``: computations on the CPU run on the calling thread (no asynchronous dispatch), for the
+    bridge's and the simulated robot's cycle thread (:func:`pusupu_jax.hw_bridge.compiled.cpu`).
     """
     import jax
 
@@ -101,4 +104,14 @@ def setup_jax(cache_dir: str | os.PathLike | None = None, x64: bool = True) -> P
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    if synchronous_cpu:
+        jax.config.update("jax_cpu_enable_async_dispatch", False)
     return path
+
+
+def require_x64(what: str) -> None:
+    """RuntimeError unless JAX computes in float64 (:func:`setup_jax` turns it on): ``what`` needs it."""
+    import jax
+
+    if not jax.config.jax_enable_x64:
+        raise RuntimeError(f"{what} compute in float64: call pusupu_jax.runtime.setup_jax() first")
