@@ -12,6 +12,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from pusupu_jax import LoopRates, ServoParams
+from pusupu_jax.cascade import Mode
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plots import equal_axes_3d, save_atomic
@@ -20,10 +21,10 @@ from pusupu_jax.trajectories import platform_path
 from . import Result
 
 RUNS = {
-    "PID": ("pid", "full"),
-    "PID + velocity FF": ("pid_ff", "full"),
-    "2-DOF IMC (full C1)": ("imc", "full"),
-    "2-DOF IMC (printed eq. 9)": ("imc", "printed"),
+    "PID": (Mode.PID, "full"),
+    "PID + velocity FF": (Mode.PID_FF, "full"),
+    "2-DOF IMC (full C1)": (Mode.IMC, "full"),
+    "2-DOF IMC (printed eq. 9)": (Mode.IMC, "printed"),
 }
 QUICK_S = 3.0  # s of the arc in quick mode
 

@@ -15,6 +15,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from pusupu_jax import LoopRates, ServoParams
+from pusupu_jax.cascade import Mode
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
@@ -23,7 +24,7 @@ from pusupu_jax.trajectories import platform_path
 
 from . import Result, pct
 
-MODES = {"PID": "pid", "PID + velocity FF": "pid_ff", "IMC, six branches": "imc", "hybrid": "hybrid"}
+MODES = {"PID": Mode.PID, "PID + velocity FF": Mode.PID_FF, "IMC, six branches": Mode.IMC, "hybrid": Mode.HYBRID}
 SEEDS = (1, 2, 3, 4, 5)
 QUICK = dict(seconds=3.0, seeds=(1, 3))
 

@@ -110,7 +110,7 @@ def plan(gains: GainFile, drive_modes=None, rate: float | None = None) -> tuple[
     reference streamed to :class:`BridgeLoop` has one sample per position period of these rates.
     """
     mode = cascade.control_mode(gains.mode)
-    if mode.closed != "position":
+    if mode.closed != cascade.Loop.POSITION:
         raise ValueError(f"gain file mode: expected a position mode, got {gains.mode!r}")
     n = int(np.shape(gains.servo.Kv)[-1])
     names = ["csv"] * n if drive_modes is None else list(drive_modes)

@@ -31,6 +31,7 @@ import warnings
 
 import numpy as np
 
+from pusupu_jax.cascade import AXIS_MODES, GAIN_FILE_MODES, Mode
 from pusupu_jax.inputs import one_line
 from pusupu_jax.params import IMC_FORMS, N_AXES, ParameterError
 
@@ -62,8 +63,8 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--params", metavar="FILE", help="parameter YAML (default: Table 1 and documented choices)")
     a.add_argument(
         "--mode",
-        choices=("imc", "pid", "pid_ff"),
-        default="imc",
+        choices=[str(m) for m in AXIS_MODES],
+        default=str(Mode.IMC),
         help="position controller: 2-DOF IMC, PID, or PID with velocity feedforward (default imc)",
     )
     a.add_argument("--json", action="store_true", help="print JSON instead of a table")
@@ -105,8 +106,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     s.add_argument(
         "--mode",
-        choices=("imc", "pid", "pid_ff", "hybrid"),
-        default="imc",
+        choices=[str(m) for m in GAIN_FILE_MODES],
+        default=str(Mode.IMC),
         help="imc, pid or pid_ff (PID with velocity feedforward) on every branch, or hybrid (mjx only: "
         "branches 1-5 IMC, branch 6 force control, eq. 10-14; gains from the params file's hybrid "
         "section) (default imc)",
@@ -703,11 +704,11 @@ def _check_ros(args, g) -> int:
         "pusupu": simulate_scenarios(
             g.servo, scenarios, mode=g.mode, rates=g.rates, hybrid=g.hybrid if control_mode(g.mode).hybrid else None
         ),
-        "ros": simulate_scenarios(ros_servo, scenarios, mode="ros_pid", rates=g.rates),
+        "ros": simulate_scenarios(ros_servo, scenarios, mode=Mode.ROS_PID, rates=g.rates),
     }
     margins = {
         "pusupu": gains.margins_report(g.servo, g.mode, machine),
-        "ros": gains.margins_report(ros_servo, "ros_pid", machine),
+        "ros": gains.margins_report(ros_servo, Mode.ROS_PID, machine),
     }
     result = {
         "mode": g.mode,

@@ -30,7 +30,7 @@ import control as ct
 import numpy as np
 from scipy.optimize import brentq, minimize_scalar
 
-from .cascade import control_mode
+from .cascade import Law, control_mode
 from .params import N_AXES, AxisLoad, LoopRates, ServoParams, arrays
 
 LOOPS = ("current", "velocity", "position")
@@ -206,11 +206,11 @@ def closed_loops(
     inner = cl_v if rates is None else hold_resample(cl_v, rates.n_position)
     bp = at(2)
     law = control_mode(mode).law
-    if law == "imc":
+    if law == Law.IMC:
         parts = [bp["C1"], bp["C2"], _sum("r1", "theta", "e_p")]
-    elif law == "pid":
+    elif law == Law.PID:
         parts = [bp["PID"], _sum("th_ref", "theta", "e_p")]
-    elif law == "pid_ff":
+    elif law == Law.PID_FF:
         parts = [
             ct.ss(bp["PID"], inputs="e_p", outputs="w_pid"),
             velocity_feedforward(servo, axis, rates),
@@ -240,7 +240,7 @@ def open_loops(
     )
     p_v = ct.interconnect([cl["current"], b["Gw"]], inputs="i_ref", outputs="w_f", check_unused=False)
     p_p = cl["velocity"][2, 0]
-    c_p = b["C2"] if control_mode(mode).law == "imc" else b["PID"]  # pid_ff: the feedforward acts outside the loop
+    c_p = b["C2"] if control_mode(mode).law == Law.IMC else b["PID"]  # pid_ff: the feedforward acts outside the loop
     return {"current": _siso(b["Gi"]) * p_i, "velocity": _siso(b["Gv"]) * p_v, "position": _siso(c_p) * p_p}
 
 

@@ -15,12 +15,16 @@ Plant-free: every tick takes the measurements of its rate and returns its comman
   inverter command [V], with the back-EMF feedforward and the ``+-V_max/Kn`` clamp.
 
 A :class:`ControlMode` is the one static answer to "which loops are closed, and what does
-the reference hold"; :data:`MODES` names every mode the simulator and the bridge run.
+the reference hold"; :data:`MODES` maps every :class:`Mode` to its record, and the lists of modes
+that each part of the product takes (:data:`POSITION_MODES`, :data:`AXIS_MODES`,
+:data:`GAIN_FILE_MODES`, :data:`TUNE_MODES`, :data:`BASELINE_MODES`) are derived from it here,
+nowhere else.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import enum
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -31,18 +35,46 @@ from . import lti, loops
 from .loops import Drive, PIState
 
 
+class Mode(enum.StrEnum):
+    """A control mode's name, as files, reports and the command line spell it."""
+
+    CURRENT = "current"  # the current loop alone
+    VELOCITY = "velocity"  # current and velocity loops
+    IMC = "imc"  # the 2-DOF IMC position loop on every branch (eq. 9)
+    PID = "pid"  # the PID baseline
+    PID_FF = "pid_ff"  # the PID with velocity feedforward
+    ROS_PID = "ros_pid"  # ros2_controllers' PID, as the ROS 2 export configures it
+    HYBRID = "hybrid"  # IMC on branches 1-5, the force law of eq. 13-14 on branch 6
+
+
+class Loop(enum.StrEnum):
+    """A loop of the cascade, innermost first."""
+
+    CURRENT = "current"
+    VELOCITY = "velocity"
+    POSITION = "position"
+
+
+class Law(enum.StrEnum):
+    """The position controller."""
+
+    IMC = "imc"
+    PID = "pid"
+    PID_FF = "pid_ff"
+    ROS_PID = "ros_pid"
+
+
 @dataclass(frozen=True)
 class ControlMode:
     """Which loops the cascade closes and what its reference holds (static).
 
-    ``closed``: the outermost closed loop, 'current', 'velocity' or 'position'; ``law``: the
-    position controller ('imc', 'pid', 'pid_ff', 'ros_pid'; None below position);
+    ``closed``: the outermost closed loop; ``law``: the position controller (None below position);
     ``force_axis``: the branch whose current reference comes from the hybrid force law (None: none).
     """
 
-    name: str
-    closed: str
-    law: str | None = None
+    name: Mode
+    closed: Loop
+    law: Law | None = None
     force_axis: int | None = None
 
     @property
@@ -62,16 +94,25 @@ class ControlMode:
 MODES = {
     m.name: m
     for m in (
-        ControlMode("current", "current"),
-        ControlMode("velocity", "velocity"),
-        ControlMode("imc", "position", "imc"),
-        ControlMode("pid", "position", "pid"),
-        ControlMode("pid_ff", "position", "pid_ff"),
-        ControlMode("ros_pid", "position", "ros_pid"),
-        ControlMode("hybrid", "position", "imc", hybrid_law.FORCE_AXIS),
+        ControlMode(Mode.CURRENT, Loop.CURRENT),
+        ControlMode(Mode.VELOCITY, Loop.VELOCITY),
+        ControlMode(Mode.IMC, Loop.POSITION, Law.IMC),
+        ControlMode(Mode.PID, Loop.POSITION, Law.PID),
+        ControlMode(Mode.PID_FF, Loop.POSITION, Law.PID_FF),
+        ControlMode(Mode.ROS_PID, Loop.POSITION, Law.ROS_PID),
+        ControlMode(Mode.HYBRID, Loop.POSITION, Law.IMC, hybrid_law.FORCE_AXIS),
     )
 }
-POSITION_MODES = tuple(name for name, m in MODES.items() if m.closed == "position")
+# the modes that close the position loop: what the MJX machine runs
+POSITION_MODES = tuple(name for name, m in MODES.items() if m.closed == Loop.POSITION)
+# the single-axis plant's position modes (it has no branch 6 to force-control; ROS's PID is for the export's check)
+AXIS_MODES = (Mode.IMC, Mode.PID, Mode.PID_FF)
+# what a gain file holds and the bridge runs
+GAIN_FILE_MODES = (*AXIS_MODES, Mode.HYBRID)
+# what pusupu tune tunes in (ROS's PID is what the export configures, checked by pusupu gains check-ros, not tuned)
+TUNE_MODES = tuple(m for m in POSITION_MODES if m != Mode.ROS_PID)
+# what a tune runs beside the start and the result as baselines
+BASELINE_MODES = (Mode.PID, Mode.PID_FF, Mode.IMC, Mode.ROS_PID)
 
 
 def control_mode(mode: "str | ControlMode") -> ControlMode:
@@ -79,8 +120,8 @@ def control_mode(mode: "str | ControlMode") -> ControlMode:
     if isinstance(mode, ControlMode):
         return mode
     if mode not in MODES:
-        raise ValueError(f"mode: expected one of {tuple(MODES)}, got {mode!r}")
-    return MODES[mode]
+        raise ValueError(f"mode: expected one of {tuple(map(str, MODES))}, got {mode!r}")
+    return MODES[Mode(mode)]
 
 
 class CascadeState(NamedTuple):
@@ -94,13 +135,13 @@ class CascadeState(NamedTuple):
 
 def _position_init(drive: Drive, mode: ControlMode, theta0):
     """The position controller at rest at ``theta0`` [rad], zero error: IMC's prefilter holds ``theta0``."""
-    if mode.law == "imc":
+    if mode.law == Law.IMC:
         return loops.imc_rest(drive.imc, theta0)
-    if mode.law == "pid":
+    if mode.law == Law.PID:
         return loops.pid_init(drive.pid)
-    if mode.law == "pid_ff":
+    if mode.law == Law.PID_FF:
         return loops.pid_ff_init(drive.pid, theta0)
-    if mode.law == "ros_pid":
+    if mode.law == Law.ROS_PID:
         return loops.ros_pid_init(drive.ros, theta0)
     return None
 
@@ -110,7 +151,7 @@ def init(drive: Drive, mode: ControlMode, theta0=0.0, force0=0.0) -> CascadeStat
     law's last ``F_6`` at ``force0`` [N]."""
     return CascadeState(
         loops.pi_loop_init(drive.current),
-        loops.pi_loop_init(drive.velocity) if mode.closed != "current" else None,
+        loops.pi_loop_init(drive.velocity) if mode.closed != Loop.CURRENT else None,
         _position_init(drive, mode, theta0),
         hybrid_law.init(force0) if mode.hybrid else None,
     )
@@ -128,7 +169,7 @@ def rest(drive: Drive, mode: ControlMode, current, command, theta0=0.0, force0=0
     zero = jnp.zeros_like(current)
     return CascadeState(
         loops.pi_loop_rest(drive.current, i_ref, current, command),
-        loops.pi_loop_rest(drive.velocity, zero, zero, i_ref) if mode.closed != "current" else None,
+        loops.pi_loop_rest(drive.velocity, zero, zero, i_ref) if mode.closed != Loop.CURRENT else None,
         _position_init(drive, mode, theta0),
         hybrid_law.init(force0) if mode.hybrid else None,
     )
@@ -143,11 +184,11 @@ def position_tick(drive: Drive, mode: ControlMode, s: CascadeState, ref, theta, 
     ``mode.force_axis``'s current reference ``F_6 r / (eta Kt)`` (unclamped; :func:`velocity_tick` clamps).
     """
     theta_ref = mode.theta(ref)
-    if mode.law == "imc":
+    if mode.law == Law.IMC:
         sp, w_ref = loops.imc_step(drive.imc, s.position, theta_ref, theta)
-    elif mode.law == "pid":
+    elif mode.law == Law.PID:
         sp, w_ref = loops.pid_step(drive.pid, s.position, theta_ref, theta)
-    elif mode.law == "pid_ff":
+    elif mode.law == Law.PID_FF:
         sp, w_ref = loops.pid_ff_step(drive.pid, drive.velocity_ff, s.position, theta_ref, theta)
     else:
         sp, w_ref = loops.ros_pid_step(drive.ros, s.position, theta_ref, theta, omega)

@@ -57,6 +57,7 @@ from . import __version__, inputs, loops, stability
 from .files import write_atomic
 from .params_file import rates_from_mapping
 from . import machine_file
+from .cascade import GAIN_FILE_MODES
 from .hybrid import HybridGains, gain_fields
 from .machine_file import Machine
 from .params import LoopRates, ParameterError, ServoParams, array_fields, bounds, static_fields
@@ -78,7 +79,7 @@ KEYS = (
 )
 KEYS_V3 = tuple(k for k in KEYS if k != "machine")
 KEYS_V2 = ("schema", "version", "mode", "controller", "plant", "rates", "discrete", "margins", "provenance", "checksum")
-MODES = ("imc", "pid", "pid_ff", "hybrid")
+MODES = GAIN_FILE_MODES
 CONTROLLER_SECTIONS = ("position", "velocity", "current", "limits", "pid", "hybrid")
 PLANT_V2 = ("Kn", "Tn", "R", "L", "J", "Kt", "Ke", "lead", "eta")  # a version 2 file's plant section
 LIMITS_SINCE_V3 = ("following_error", "following_error_time")  # limits a version 2 file lacks: the defaults
@@ -270,7 +271,7 @@ def document(
     raises ParameterError rather than describe gains that :func:`pusupu_jax.stability.check` refuses, or ``servo``
     whose plant fields are not the machine's drives."""
     if mode not in MODES:
-        raise ParameterError(f"gains mode: expected one of {MODES}, got {mode!r}")
+        raise ParameterError(f"gains mode: expected one of {tuple(map(str, MODES))}, got {mode!r}")
     machine = Machine.default() if machine is None else machine
     _check_plant({name: getattr(servo, name) for name in machine.drives}, "servo", machine)
     found = stability.check(servo, hybrid, rates, mode, floors, load=machine_file.axis_load(machine))
@@ -289,7 +290,7 @@ def document(
     doc = {
         "schema": SCHEMA,
         "version": VERSION,
-        "mode": mode,
+        "mode": str(mode),  # a Mode, written as its name
         "machine": machine_file.reference(machine),
         "controller": controller,
         "rates": dataclasses.asdict(rates),
@@ -700,7 +701,7 @@ def json_schema() -> dict:
         "properties": {
             "schema": {"const": SCHEMA},
             "version": {"const": VERSION},
-            "mode": {"enum": list(MODES)},
+            "mode": {"enum": [str(m) for m in MODES]},
             "machine": {
                 "type": "object",
                 "additionalProperties": False,

@@ -192,7 +192,7 @@ def array(value, where: str, shape, error):
 def choice(value, where: str, choices, error) -> str:
     """One of ``choices`` (strings)."""
     if not isinstance(value, str) or value not in choices:
-        raise error(f"{where}: expected one of {tuple(choices)}, got {shown(value)}")
+        raise error(f"{where}: expected one of {tuple(map(str, choices))}, got {shown(value)}")
     return value
 
 

@@ -69,7 +69,7 @@ def machine_reference(
     branch 6's minimum-norm inverse-dynamics force and the coupling row along the path.
     """
     if mode not in MACHINE_MODES:
-        raise ValueError(f"mode: expected one of {MACHINE_MODES}, got {mode!r}")
+        raise ValueError(f"mode: expected one of {tuple(map(str, MACHINE_MODES))}, got {mode!r}")
     geom = Geometry.default() if geom is None else geom
     paths.check_path(path, servo, rates.dt_position, geom, options)
     s_home = kinematics.inverse_kinematics(geom, jnp.asarray(geom.home))
@@ -125,7 +125,7 @@ def simulate_scenarios(
     :func:`simulate_machine`.
     """
     if mode not in MACHINE_MODES:
-        raise ValueError(f"mode: expected one of {MACHINE_MODES}, got {mode!r}")
+        raise ValueError(f"mode: expected one of {tuple(map(str, MACHINE_MODES))}, got {mode!r}")
     scenarios = list(scenarios)
     validate(servo)
     batched = np.ndim(servo.lambda1) == 2
@@ -200,7 +200,7 @@ def simulate_scenarios(
             (
                 {
                     "name": sc.name,
-                    "mode": mode,
+                    "mode": str(mode),
                     "imc_form": servo.imc_form,
                     "start": start,
                     "kin_error_seed": sc.options.kin_error_seed,

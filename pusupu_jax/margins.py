@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .cascade import control_mode
+from .cascade import Law, control_mode
 from .params import arrays
 from .plant.axis import screw_ratio
 
@@ -64,12 +64,12 @@ def loop_gains(servo, load, w, mode: str = "imc") -> dict:
     l_v = g_v * t_i * motion * p["Kw"] / (p["Tw"] * s + 1)
     t_v = g_v * t_i * motion / (p["Tw"] * s + 1) / (1 + l_v)
     law = control_mode(mode).law
-    if law == "imc":
+    if law == Law.IMC:
         l2, T0 = p["lambda2"], p["T0"]
         c = (3 * l2 * s + 1) * (T0 * s + 1) / (3 * l2**2 * s * (l2 / 3 * s + 1))
-    elif law in ("pid", "pid_ff"):  # the velocity feedforward acts outside the loop
+    elif law in (Law.PID, Law.PID_FF):  # the velocity feedforward acts outside the loop
         c = p["Kp_pid"] + p["Ki_pid"] / s + p["Kd_pid"] * s / (p["Tf_pid"] * s + 1)
-    elif law == "ros_pid":  # ROS's PID: no derivative filter (its d acts on the measured velocity error)
+    elif law == Law.ROS_PID:  # ROS's PID: no derivative filter (its d acts on the measured velocity error)
         c = p["Kp_pid"] + p["Ki_pid"] / s + p["Kd_pid"] * s
     else:
         raise ValueError(f"loop_gains: expected a mode with a position loop, got {mode!r}")

@@ -34,7 +34,7 @@ import numpy as np
 import yaml
 
 from . import files as outputs
-from .cascade import MODES, control_mode
+from .cascade import MODES, Law, control_mode
 from .inputs import shown
 from .params import LoopRates, ParameterError, ServoParams
 from .plant.axis import screw_ratio
@@ -48,8 +48,8 @@ FILES = ("ros2_pid_controller.yaml", "ros2_joint_trajectory_controller.yaml")
 def ros_gains(servo: ServoParams, mode: str) -> dict:
     """``{p, i, d, ff}`` per axis (arrays (6,)) of ROS's PID for the position loop of ``mode``."""
     law = control_mode(mode).law if mode in MODES else None
-    if law in ("pid", "pid_ff"):
-        ff = np.asarray(servo.Kff_pid, dtype=float) if law == "pid_ff" else np.zeros(6)
+    if law in (Law.PID, Law.PID_FF):
+        ff = np.asarray(servo.Kff_pid, dtype=float) if law == Law.PID_FF else np.zeros(6)
         return {
             "p": np.asarray(servo.Kp_pid, dtype=float),
             "i": np.asarray(servo.Ki_pid, dtype=float),
@@ -160,7 +160,7 @@ def header(mode: str, source: str) -> str:
     """The comment at the top of an exported file: where it comes from, its units, what ROS carries and drops."""
     dropped = (
         "the derivative filter Tf_pid (ROS uses the velocity error instead)"
-        if control_mode(mode).law in ("pid", "pid_ff")
+        if control_mode(mode).law in (Law.PID, Law.PID_FF)
         else "the IMC prefilter C1 (which sets tracking), C2's output filter 1/((lambda2/3) s + 1)"
         + (", and branch 6's force control (hybrid mode): ROS holds its position" if control_mode(mode).hybrid else "")
     )

@@ -34,7 +34,7 @@ from .plant import AxisPlant
 from .plant.axis import screw_ratio
 from .plant.kinematics import inverse_kinematics
 
-MODES = ("imc", "pid", "pid_ff")
+MODES = cascade_.AXIS_MODES  # the single-axis plant's position modes
 STARTS = ("rest", "zero")
 
 
@@ -298,7 +298,7 @@ def compliant_pieces(
     followed, and the observation adds ``compliance_offset`` [m] at each period's start, before that
     period's admittance step (so ``reference[k]`` follows from ``compliance_offset[k + 1]``).
     """
-    if mode.closed != "position":
+    if mode.closed != cascade_.Loop.POSITION:
         raise ValueError(f"rollout: compliance needs the position loop closed, got mode {mode.name!r}")
     r = screw_ratio(params)
     s_home = inverse_kinematics(geom, jnp.asarray(geom.home))
@@ -603,7 +603,7 @@ def simulate(
     params = ServoParams.table1() if params is None else params
     load = AxisLoad.default() if load is None else load
     if mode not in MODES:
-        raise ParameterError(f"mode: expected one of {MODES}, got {mode!r}")
+        raise ParameterError(f"mode: expected one of {tuple(map(str, MODES))}, got {mode!r}")
     if start not in STARTS:
         raise ParameterError(f"start: expected one of {STARTS}, got {start!r}")
     validate(params)

@@ -49,10 +49,10 @@ LOOPS = ("current", "velocity", "position")
 
 def loop_mode(loop: str, mode: "str | cascade.ControlMode") -> cascade.ControlMode:
     """The :class:`~pusupu_jax.cascade.ControlMode` that closes the cascade up to ``loop`` for a file of ``mode``."""
-    if loop != "position":
+    if loop != cascade.Loop.POSITION:
         return cascade.control_mode(loop)
     m = cascade.control_mode(mode)
-    if m.closed != "position":
+    if m.closed != cascade.Loop.POSITION:
         raise ValueError(f"stability: expected a mode with a position loop, got {m.name!r}")
     return cascade.control_mode(m.law)  # hybrid: its position law, IMC
 

@@ -49,7 +49,7 @@ from pathlib import Path
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.files import read_yaml_mapping
 from pusupu_jax.gradients import GRADIENT_MODES
-from pusupu_jax.machine import MACHINE_MODES
+from pusupu_jax.cascade import BASELINE_MODES, TUNE_MODES, Mode
 from pusupu_jax.objectives import TERMS
 from pusupu_jax import inputs, paths
 from pusupu_jax.params import IMC_FORMS, ParameterError
@@ -150,12 +150,7 @@ class TuneConfig:
                 v,
             )
 
-        need(
-            self.mode in MACHINE_MODES and self.mode != "ros_pid",
-            "mode",
-            f"one of {tuple(m for m in MACHINE_MODES if m != 'ros_pid')}",
-            self.mode,
-        )
+        need(self.mode in TUNE_MODES, "mode", f"one of {tuple(map(str, TUNE_MODES))}", self.mode)
         names("groups", GROUPS)
         need(
             isinstance(self.trajectories, tuple) and self.trajectories,
@@ -233,14 +228,14 @@ class TuneConfig:
         need(self.imc_form in IMC_FORMS, "imc_form", f"one of {IMC_FORMS}", self.imc_form)
         need(
             isinstance(self.baselines, tuple)
-            and set(self.baselines) <= {"pid", "pid_ff", "imc", "ros_pid"}
+            and set(self.baselines) <= set(BASELINE_MODES)
             and len(set(self.baselines)) == len(self.baselines),
             "baselines",
-            "a list of distinct modes from pid, pid_ff, imc, ros_pid",
+            f"a list of distinct modes from {', '.join(BASELINE_MODES)}",
             self.baselines,
         )
         need(
-            self.mode in ("pid", "pid_ff") or not {"pid", "feedforward"} & set(self.groups),
+            self.mode in (Mode.PID, Mode.PID_FF) or not {"pid", "feedforward"} & set(self.groups),
             "groups",
             "the pid and feedforward groups only in the pid and pid_ff modes",
             self.groups,
