@@ -14,6 +14,7 @@ import numpy as np
 from pusupu_jax import LoopRates, ServoParams
 from pusupu_jax.cascade import Mode
 from pusupu_jax.machine import Scenario, simulate_scenarios
+from pusupu_jax.metrics import Metric
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plots import equal_axes_3d, save_atomic
 from pusupu_jax.trajectories import platform_path
@@ -43,18 +44,18 @@ def run(quick: bool = False) -> Result:
             for k in (
                 "mode",
                 "imc_form",
-                "rms_tracking_error_mm",
-                "max_tracking_error_mm",
-                "branch_reversal_error_mm",
-                "branch_force_peak_n",
-                "motor_torque_peak_nm",
-                "loop_closure_residual_max_mm",
+                Metric.RMS_TRACKING_ERROR_MM,
+                Metric.MAX_TRACKING_ERROR_MM,
+                Metric.BRANCH_REVERSAL_ERROR_MM,
+                Metric.BRANCH_FORCE_PEAK_N,
+                Metric.MOTOR_TORQUE_PEAK_NM,
+                Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM,
             )
         }
         series[label] = arrays
     runs = metrics["runs"]
-    imc = runs["2-DOF IMC (full C1)"]["rms_tracking_error_mm"]
-    best = min(runs["PID"]["rms_tracking_error_mm"], runs["PID + velocity FF"]["rms_tracking_error_mm"])
+    imc = runs["2-DOF IMC (full C1)"][Metric.RMS_TRACKING_ERROR_MM]
+    best = min(runs["PID"][Metric.RMS_TRACKING_ERROR_MM], runs["PID + velocity FF"][Metric.RMS_TRACKING_ERROR_MM])
     metrics["imc_vs_best_baseline_pct"] = (imc / best - 1) * 100
     metrics["claim_imc_below_both_baselines"] = bool(imc < best)
     return Result("arc", metrics, series)
@@ -75,7 +76,7 @@ def plot(result: Result, out) -> list:
     ax2 = fig.add_subplot(1, 2, 2)
     for label, arrays in result.series.items():
         err = np.linalg.norm(np.asarray(arrays["platform"]) - np.asarray(arrays["reference"]), axis=1) * 1e3
-        rms = result.metrics["runs"][label]["rms_tracking_error_mm"]
+        rms = result.metrics["runs"][label][Metric.RMS_TRACKING_ERROR_MM]
         ax2.plot(arrays["t"], err, lw=1, label=f"{label}: RMS {rms:.3g} mm")
     ax2.set_yscale("log")
     ax2.set_xlabel("time [s]")
@@ -100,7 +101,7 @@ def table(result: Result) -> str:
         "|---|---|---|---|---|",
     ]
     for label, r in m["runs"].items():
-        glitch = [g for g in r["branch_reversal_error_mm"] if g is not None]
+        glitch = [g for g in r[Metric.BRANCH_REVERSAL_ERROR_MM] if g is not None]
         lines.append(
             f"| {label} | {r['rms_tracking_error_mm']:.3f} | {r['max_tracking_error_mm']:.3f} | "
             f"{max(glitch) if glitch else float('nan'):.3f} | {max(r['branch_force_peak_n']):.1f} |"

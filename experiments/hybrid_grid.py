@@ -25,6 +25,7 @@ from pusupu_jax import AxisLoad, LoopRates, ServoParams
 from pusupu_jax.hybrid import HybridGains, gain_fields
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.margins import loop_margins
+from pusupu_jax.metrics import Metric
 from pusupu_jax.params import stack
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
@@ -79,22 +80,26 @@ def run(quick: bool = False) -> Result:
             scenarios = [Scenario(path, ModelOptions(kin_error_seed=s), f"seed{s}") for _, s in grid]
             out = simulate_scenarios(servo, scenarios, mode="hybrid", hybrid=HybridGains(m6=m6))
             for (l2, s), (r, _) in zip(grid, out):
-                rms, mx, peak = r["rms_tracking_error_mm"], r["max_tracking_error_mm"], max(r["branch_force_peak_n"])
+                rms, mx, peak = (
+                    r[Metric.RMS_TRACKING_ERROR_MM],
+                    r[Metric.MAX_TRACKING_ERROR_MM],
+                    max(r[Metric.BRANCH_FORCE_PEAK_N]),
+                )
                 rows.append(
                     {
                         "m6": m6,
                         "rule": l1_rule,
                         "lambda2": l2,
                         "seed": s,
-                        "rms_tracking_error_mm": rms,
-                        "max_tracking_error_mm": mx,
+                        Metric.RMS_TRACKING_ERROR_MM: rms,
+                        Metric.MAX_TRACKING_ERROR_MM: mx,
                         "highest_force_peak_n": peak,
                         "diverged": bool(not np.isfinite(rms) or mx > DIVERGED_MM or peak > DIVERGED_N),
                     }
                 )
     sweep = [] if quick else gain_sweep(path[:SWEEP_SAMPLES], l2_min)
     default = [r for r in rows if r["m6"] == HybridGains().m6]
-    worst = max(default, key=lambda r: r["max_tracking_error_mm"])
+    worst = max(default, key=lambda r: r[Metric.MAX_TRACKING_ERROR_MM])
     metrics = {
         "duration_s": len(path) * LoopRates().dt_position,
         "lambda2_min": l2_min,
@@ -133,14 +138,18 @@ def gain_sweep(path, l2_min: float) -> list:
     scenarios = [Scenario(path, ModelOptions(kin_error_seed=SWEEP_SEED), f"seed{SWEEP_SEED}") for _ in grid]
     rows = []
     for (name, k, l2), (r, _) in zip(grid, simulate_scenarios(servo, scenarios, mode="hybrid", hybrid=hybrid)):
-        rms, mx, peak = r["rms_tracking_error_mm"], r["max_tracking_error_mm"], max(r["branch_force_peak_n"])
+        rms, mx, peak = (
+            r[Metric.RMS_TRACKING_ERROR_MM],
+            r[Metric.MAX_TRACKING_ERROR_MM],
+            max(r[Metric.BRANCH_FORCE_PEAK_N]),
+        )
         rows.append(
             {
                 "gain": name,
                 "value": float(getattr(base, name) * k),
                 "lambda2": l2,
-                "rms_tracking_error_mm": rms,
-                "max_tracking_error_mm": mx,
+                Metric.RMS_TRACKING_ERROR_MM: rms,
+                Metric.MAX_TRACKING_ERROR_MM: mx,
                 "highest_force_peak_n": peak,
                 "diverged": bool(not np.isfinite(rms) or mx > SWEEP_DIVERGED_MM or peak > DIVERGED_N),
             }
@@ -152,7 +161,7 @@ def plot(result: Result, out) -> list:
     m = result.metrics
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     for ax, key, unit in (
-        (axes[0], "max_tracking_error_mm", "max platform error [mm]"),
+        (axes[0], Metric.MAX_TRACKING_ERROR_MM, "max platform error [mm]"),
         (axes[1], "highest_force_peak_n", "highest branch force peak [N]"),
     ):
         for m6, style in ((m["m6_default"], "-"), (OLD_M6, ":")):

@@ -17,6 +17,7 @@ import numpy as np
 from pusupu_jax import LoopRates, ServoParams
 from pusupu_jax.cascade import Mode
 from pusupu_jax.machine import Scenario, simulate_scenarios
+from pusupu_jax.metrics import Metric
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
 from pusupu_jax.plots import save_atomic
@@ -44,10 +45,11 @@ def run(quick: bool = False, seeds=None) -> Result:
     per_seed = {}
     for name in pid:
         per_seed[name] = {
-            "rms_change_pct": pct(hyb[name]["rms_tracking_error_mm"], pid[name]["rms_tracking_error_mm"]),
+            "rms_change_pct": pct(hyb[name][Metric.RMS_TRACKING_ERROR_MM], pid[name][Metric.RMS_TRACKING_ERROR_MM]),
             "highest_peak_1_5_change_pct": pct(hyb[name]["highest_peak_1_5_n"], pid[name]["highest_peak_1_5_n"]),
             "branch_peak_change_pct": [
-                pct(h, p) for h, p in zip(hyb[name]["branch_force_peak_n"][:5], pid[name]["branch_force_peak_n"][:5])
+                pct(h, p)
+                for h, p in zip(hyb[name][Metric.BRANCH_FORCE_PEAK_N][:5], pid[name][Metric.BRANCH_FORCE_PEAK_N][:5])
             ],
         }
     rms = [v["rms_change_pct"] for v in per_seed.values()]
@@ -73,15 +75,15 @@ def run(quick: bool = False, seeds=None) -> Result:
 
 
 def _keep(r: dict) -> dict:
-    peaks = r["branch_force_peak_n"]
+    peaks = r[Metric.BRANCH_FORCE_PEAK_N]
     return {
-        "rms_tracking_error_mm": r["rms_tracking_error_mm"],
-        "max_tracking_error_mm": r["max_tracking_error_mm"],
-        "branch_force_peak_n": peaks,
-        "motor_torque_peak_nm": r["motor_torque_peak_nm"],
+        Metric.RMS_TRACKING_ERROR_MM: r[Metric.RMS_TRACKING_ERROR_MM],
+        Metric.MAX_TRACKING_ERROR_MM: r[Metric.MAX_TRACKING_ERROR_MM],
+        Metric.BRANCH_FORCE_PEAK_N: peaks,
+        Metric.MOTOR_TORQUE_PEAK_NM: r[Metric.MOTOR_TORQUE_PEAK_NM],
         "highest_peak_1_5_n": max(peaks[:5]),
         "balance_max_over_min_1_5": max(peaks[:5]) / min(peaks[:5]),
-        "loop_closure_residual_max_mm": r["loop_closure_residual_max_mm"],
+        Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM: r[Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM],
     }
 
 
@@ -90,7 +92,7 @@ def plot(result: Result, out) -> list:
     fig, axes = plt.subplots(1, 2, figsize=(13, 4.8))
     width = 0.8 / len(MODES)
     for k, label in enumerate(MODES):
-        peaks = np.array([r["branch_force_peak_n"] for r in m["runs"][label].values()])
+        peaks = np.array([r[Metric.BRANCH_FORCE_PEAK_N] for r in m["runs"][label].values()])
         axes[0].bar(
             np.arange(6) + 1 + (k - len(MODES) / 2 + 0.5) * width,
             peaks.mean(axis=0),
@@ -130,7 +132,7 @@ def table(result: Result) -> str:
         for seed, r in per.items():
             lines.append(
                 f"| {label} | {seed} | {r['rms_tracking_error_mm']:.3f} | {r['max_tracking_error_mm']:.3f} | "
-                + " ".join(f"{x:.1f}" for x in r["branch_force_peak_n"])
+                + " ".join(f"{x:.1f}" for x in r[Metric.BRANCH_FORCE_PEAK_N])
                 + f" | {r['highest_peak_1_5_n']:.1f} | {r['balance_max_over_min_1_5']:.2f} |"
             )
     lines += [
@@ -141,7 +143,7 @@ def table(result: Result) -> str:
         "|---|---|---|---|---|---|",
     ]
     for label in ("PID", "hybrid"):
-        peaks = np.mean([r["branch_force_peak_n"][:5] for r in m["runs"][label].values()], axis=0)
+        peaks = np.mean([r[Metric.BRANCH_FORCE_PEAK_N][:5] for r in m["runs"][label].values()], axis=0)
         lines.append(f"| {label} | " + " | ".join(f"{x:.1f}" for x in peaks) + " |")
     lines.append("| change | " + " | ".join(f"{x:+.1f} %" for x in s["branch_peak_change_pct_mean"]) + " |")
     lines += [

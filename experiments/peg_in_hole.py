@@ -28,6 +28,7 @@ import numpy as np
 
 from pusupu_jax import LoopRates
 from pusupu_jax.compliance import AdmittanceGains
+from pusupu_jax.metrics import Metric
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import HOLE, PEG, ModelOptions
 from pusupu_jax.plots import save_atomic
@@ -91,7 +92,7 @@ def _metrics(result: dict, arrays: dict) -> dict:
         "periods_in_contact_fraction": float(np.mean(np.linalg.norm(force, axis=1) > 1.0)),
         # where the peg's tip ends, x and y, from the hole's axis
         "tip_from_hole_axis_final_mm": ((tip[-1, :2] - hole_axis) * 1e3).tolist(),
-        "highest_branch_force_peak_n": max(result["branch_force_peak_n"]),
+        "highest_branch_force_peak_n": max(result[Metric.BRANCH_FORCE_PEAK_N]),
         "wall_s": result["wall_s"],
     }
 

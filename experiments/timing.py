@@ -14,6 +14,7 @@ import numpy as np
 
 from pusupu_jax import LoopRates, ServoParams
 from pusupu_jax.machine import simulate_machine
+from pusupu_jax.metrics import Metric
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
 from pusupu_jax.trajectories import platform_path
@@ -22,10 +23,10 @@ from . import Result
 
 QUICK_S = 2.0
 KEYS = (
-    "rms_tracking_error_mm",
-    "max_tracking_error_mm",
-    "sync_error_rho",
-    "loop_closure_residual_max_mm",
+    Metric.RMS_TRACKING_ERROR_MM,
+    Metric.MAX_TRACKING_ERROR_MM,
+    Metric.SYNC_ERROR_RHO,
+    Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM,
     "duration_s",
     "wall_s",
 )
@@ -41,7 +42,7 @@ def run(quick: bool = False, trajectory: str = "arc", mode: str = "imc") -> Resu
             path = path[: int(QUICK_S / rates.dt_position)]
         result, _ = simulate_machine(ServoParams.table1(), path, mode=mode, options=options, rates=rates)
         runs[label] = {k: result[k] for k in KEYS}
-    a, b = runs["default"]["rms_tracking_error_mm"], runs["halved"]["rms_tracking_error_mm"]
+    a, b = runs["default"][Metric.RMS_TRACKING_ERROR_MM], runs["halved"][Metric.RMS_TRACKING_ERROR_MM]
     return Result(
         "timing", {"trajectory": trajectory, "mode": mode, "runs": runs, "rms_relative_change": abs(b - a) / a}
     )

@@ -32,6 +32,7 @@ from pusupu_jax import gains as gain_files
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, machine_rates, simulate_scenarios
+from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plots import save_atomic
@@ -44,8 +45,8 @@ from .p2p import MODES
 PATHS = ("arc", "p2p")
 SETS = ("Table 1", "tuned")
 KEYS = {
-    "rms_tracking_error_mm": "RMS error [mm]",
-    "max_tracking_error_mm": "max error [mm]",
+    Metric.RMS_TRACKING_ERROR_MM: "RMS error [mm]",
+    Metric.MAX_TRACKING_ERROR_MM: "max error [mm]",
     "highest_reversal_error_mm": "reversal glitch [mm]",
     "highest_branch_force_peak_n": "highest branch force peak [N]",
 }
@@ -134,14 +135,14 @@ def run(quick: bool = False, gains=None) -> Result:
                 runs.setdefault(sc.name, {}).setdefault(label, {})[set_label] = {
                     k: r[k]
                     for k in (
-                        "rms_tracking_error_mm",
-                        "max_tracking_error_mm",
-                        "branch_force_peak_n",
-                        "loop_closure_residual_max_mm",
+                        Metric.RMS_TRACKING_ERROR_MM,
+                        Metric.MAX_TRACKING_ERROR_MM,
+                        Metric.BRANCH_FORCE_PEAK_N,
+                        Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM,
                     )
                 } | {
-                    "highest_branch_force_peak_n": max(r["branch_force_peak_n"]),
-                    "highest_reversal_error_mm": highest(r["branch_reversal_error_mm"]),
+                    "highest_branch_force_peak_n": max(r[Metric.BRANCH_FORCE_PEAK_N]),
+                    "highest_reversal_error_mm": highest(r[Metric.BRANCH_REVERSAL_ERROR_MM]),
                 }
                 series.setdefault(sc.name, {}).setdefault(label, {})[set_label] = {
                     "t": np.asarray(a["t"]),
@@ -151,7 +152,7 @@ def run(quick: bool = False, gains=None) -> Result:
         for r in per_mode.values():
             r["change_pct"] = {k: pct(r["tuned"][k], r["Table 1"][k]) for k in KEYS}
     tuned_mode = next(label for label, mode in MODES.items() if mode == gains.mode)
-    changes = [r["change_pct"]["rms_tracking_error_mm"] for per_mode in runs.values() for r in per_mode.values()]
+    changes = [r["change_pct"][Metric.RMS_TRACKING_ERROR_MM] for per_mode in runs.values() for r in per_mode.values()]
     metrics = {
         "duration_s": duration,
         "quick": quick,
@@ -168,7 +169,7 @@ def run(quick: bool = False, gains=None) -> Result:
         "runs": runs,
         "summary": {
             "rms_change_pct_in_tuned_mode": {
-                k: runs[k][tuned_mode]["change_pct"]["rms_tracking_error_mm"] for k in PATHS
+                k: runs[k][tuned_mode]["change_pct"][Metric.RMS_TRACKING_ERROR_MM] for k in PATHS
             },
             "runs_with_lower_rms": int(sum(c < 0 for c in changes)),
             "runs": len(changes),

@@ -32,6 +32,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from pusupu_jax.metrics import Metric
 
 from . import cia402, protocol
 from .loop import BridgeLoop
@@ -120,12 +121,12 @@ class BridgeRun:
         }
         if self.position and screw is not None:
             e = (np.asarray(self.position) - np.asarray(self.reference)) * np.asarray(screw) * 1e3
-            out["branch_rms_error_mm"] = np.sqrt(np.mean(e**2, axis=0)).tolist()
+            out[Metric.BRANCH_RMS_ERROR_MM] = np.sqrt(np.mean(e**2, axis=0)).tolist()
             out["branch_max_error_mm"] = np.abs(e).max(axis=0).tolist()
         if self.platform and self.platform_reference and np.isfinite(np.asarray(self.platform)).all():
             e = np.linalg.norm(np.asarray(self.platform) - np.asarray(self.platform_reference), axis=1) * 1e3
-            out["rms_tracking_error_mm"] = float(np.sqrt(np.mean(e**2)))
-            out["max_tracking_error_mm"] = float(e.max())
+            out[Metric.RMS_TRACKING_ERROR_MM] = float(np.sqrt(np.mean(e**2)))
+            out[Metric.MAX_TRACKING_ERROR_MM] = float(e.max())
         return out
 
 

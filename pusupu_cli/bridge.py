@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import sys
 
+from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError
 
 from .common import check_plot_path, machine_of
@@ -259,7 +260,7 @@ def _table(rep: dict) -> str:
             lines.append(
                 f"{key:15s} p50 {p['p50']:8.1f}  p99 {p['p99']:8.1f}  p99.9 {p['p99.9']:8.1f}  max {p['max']:8.1f}"
             )
-    if "rms_tracking_error_mm" in rep:
+    if Metric.RMS_TRACKING_ERROR_MM in rep:
         lines.append(
             f"platform tracking error: RMS {rep['rms_tracking_error_mm']:.4f} mm, "
             f"max {rep['max_tracking_error_mm']:.4f} mm"

@@ -33,6 +33,7 @@ import numpy as np
 
 from pusupu_jax.cascade import AXIS_MODES, GAIN_FILE_MODES, Mode
 from pusupu_jax.inputs import one_line
+from pusupu_jax.metrics import Metric
 from pusupu_jax.params import IMC_FORMS, N_AXES, ParameterError
 
 from . import bridge as bridge_cli
@@ -719,8 +720,8 @@ def _check_ros(args, g) -> int:
     for who in runs:
         for sc, (r, _) in zip(scenarios, runs[who]):
             result["paths"].setdefault(sc.name, {})[who] = {
-                k: r[k] for k in ("rms_tracking_error_mm", "max_tracking_error_mm")
-            } | {"highest_branch_force_peak_n": max(r["branch_force_peak_n"])}
+                k: r[k] for k in (Metric.RMS_TRACKING_ERROR_MM, Metric.MAX_TRACKING_ERROR_MM)
+            } | {"highest_branch_force_peak_n": max(r[Metric.BRANCH_FORCE_PEAK_N])}
         m = margins[who]["position"]
         result["position_margins"][who] = {
             "phase_margin_deg": float(min(m["phase_margin_deg"])),
@@ -731,7 +732,7 @@ def _check_ros(args, g) -> int:
         return 0
     print(f"{'path':<6} {'metric':<28} {'pusupu (' + g.mode + ')':>18} {'ROS PID':>12}")
     for name, per in result["paths"].items():
-        for key in ("rms_tracking_error_mm", "max_tracking_error_mm", "highest_branch_force_peak_n"):
+        for key in (Metric.RMS_TRACKING_ERROR_MM, Metric.MAX_TRACKING_ERROR_MM, "highest_branch_force_peak_n"):
             print(f"{name:<6} {key:<28} {per['pusupu'][key]:>18.4g} {per['ros'][key]:>12.4g}")
     for key in ("phase_margin_deg", "gain_margin_db"):
         print(
@@ -979,11 +980,21 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
         f"{result['duration_s']:.3g} s simulated "
         f"in {result['wall_s']:.2f} s (compile included)"
     )
-    for key in ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho", "loop_closure_residual_max_mm"):
+    for key in (
+        Metric.RMS_TRACKING_ERROR_MM,
+        Metric.MAX_TRACKING_ERROR_MM,
+        Metric.SYNC_ERROR_RHO,
+        Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM,
+    ):
         print(f"  {key:<30} {_num(result[key])}")
     for key, value in result.get("hybrid", {}).items():
         print(f"  hybrid {key:<23} {value if isinstance(value, str) else _num(value)}")
-    keys = ("branch_rms_error_mm", "branch_reversal_error_mm", "motor_torque_peak_nm", "branch_force_peak_n")
+    keys = (
+        Metric.BRANCH_RMS_ERROR_MM,
+        Metric.BRANCH_REVERSAL_ERROR_MM,
+        Metric.MOTOR_TORQUE_PEAK_NM,
+        Metric.BRANCH_FORCE_PEAK_N,
+    )
     print(f"{'branch':>6} " + " ".join(f"{k:>24}" for k in keys))
     for b in range(6):  # a branch whose reference never reverses: no reversal error
         print(f"{b + 1:>6} " + " ".join(f"{_num(result[k][b], none='-'):>24}" for k in keys))

@@ -184,6 +184,18 @@ def builtin_plant() -> dict:
     }
 
 
+def _plain(value):
+    """``value`` as YAML's safe dumper takes it: enum members (a :class:`~pusupu_jax.metrics.Metric` key, a mode) as
+    their names, tuples as lists, in mappings and lists at any depth."""
+    if isinstance(value, dict):
+        return {_plain(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, str):
+        return str(value)
+    return value
+
+
 def _compact(values):
     """A per-axis value written once when the six are equal, else as a list of six (plain floats)."""
     arr = np.asarray(values, dtype=float)
@@ -301,7 +313,7 @@ def document(
             **_versions(),
             "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "tuned_fields": sorted(tuned),
-            **(provenance or {}),
+            **_plain(provenance or {}),
         },
     }
     body = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110)  # innermost mappings on one line

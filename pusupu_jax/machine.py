@@ -29,6 +29,7 @@ from .plant.geometry import Geometry
 from .plant.mjx_plant import MJXPlant
 from .plant.model import ModelOptions
 from .sim import run_chunked
+from .metrics import Metric
 
 MACHINE_MODES = POSITION_MODES
 
@@ -281,14 +282,14 @@ def machine_metrics(
     residual = np.asarray(trace.observation["closure_residual"])
     result = {
         "duration_s": len(path) * dt,
-        "rms_tracking_error_mm": float(np.sqrt(np.mean(e_platform**2)) * 1e3),
-        "max_tracking_error_mm": float(e_platform.max() * 1e3),
-        "branch_rms_error_mm": (np.sqrt(np.mean(e_branch**2, axis=0)) * 1e3).tolist(),
-        "branch_reversal_error_mm": [None if x is None else x * 1e3 for x in reversal_error(e_branch, s_ref, dt)],
-        "motor_torque_peak_nm": np.abs(torque).max(axis=0).tolist(),
-        "branch_force_peak_n": np.abs(force).max(axis=0).tolist(),
-        "sync_error_rho": float(rho[-1]) * 1e3,  # mm s
-        "loop_closure_residual_max_mm": float(residual.max() * 1e3),
+        Metric.RMS_TRACKING_ERROR_MM: float(np.sqrt(np.mean(e_platform**2)) * 1e3),
+        Metric.MAX_TRACKING_ERROR_MM: float(e_platform.max() * 1e3),
+        Metric.BRANCH_RMS_ERROR_MM: (np.sqrt(np.mean(e_branch**2, axis=0)) * 1e3).tolist(),
+        Metric.BRANCH_REVERSAL_ERROR_MM: [None if x is None else x * 1e3 for x in reversal_error(e_branch, s_ref, dt)],
+        Metric.MOTOR_TORQUE_PEAK_NM: np.abs(torque).max(axis=0).tolist(),
+        Metric.BRANCH_FORCE_PEAK_N: np.abs(force).max(axis=0).tolist(),
+        Metric.SYNC_ERROR_RHO: float(rho[-1]) * 1e3,  # mm s
+        Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM: float(residual.max() * 1e3),
     }
     if control_mode(mode).hybrid:
         # the state is recorded at the start of each period, so F_6 of period k shows at k + 1

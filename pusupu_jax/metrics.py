@@ -1,10 +1,26 @@
-"""Tracking metrics of a :class:`~pusupu_jax.sim.Trace` of a position mode (differentiable JAX)."""
+"""Tracking metrics: the single-axis ones of a :class:`~pusupu_jax.sim.Trace` of a position mode (differentiable JAX),
+and the names of a machine run's metrics (:class:`Metric`)."""
 
 from __future__ import annotations
+
+import enum
 
 import jax.numpy as jnp
 
 from .plant.axis import screw_ratio
+
+
+class Metric(enum.StrEnum):
+    """A metric's key in a run's report (JSON and Python dicts alike)."""
+
+    RMS_TRACKING_ERROR_MM = "rms_tracking_error_mm"  # platform position error, RMS over the run [mm]
+    MAX_TRACKING_ERROR_MM = "max_tracking_error_mm"  # platform position error, largest [mm]
+    BRANCH_RMS_ERROR_MM = "branch_rms_error_mm"  # per branch: slider error, RMS [mm]
+    BRANCH_REVERSAL_ERROR_MM = "branch_reversal_error_mm"  # per branch: largest slider error just after a reversal
+    MOTOR_TORQUE_PEAK_NM = "motor_torque_peak_nm"  # per branch: largest motor torque [N m]
+    BRANCH_FORCE_PEAK_N = "branch_force_peak_n"  # per branch: largest force along the rod [N]
+    SYNC_ERROR_RHO = "sync_error_rho"  # the synchronous error of eq. 11 at the end [mm s]
+    LOOP_CLOSURE_RESIDUAL_MAX_MM = "loop_closure_residual_max_mm"  # largest loop-closure residual of the model [mm]
 
 
 def safe_sqrt(x):

@@ -40,6 +40,7 @@ from .plant.friction import slider_friction
 from .plant.geometry import Geometry, GeometryError
 from .plant.model import ModelOptions
 from .trajectories import PLATFORM_TRAJECTORIES
+from .metrics import Metric
 
 FORMAT, VERSION = "pusupu-path", 1
 SUFFIXES = (".yaml", ".yml", ".csv")
@@ -364,5 +365,5 @@ def check_path(
         )
     return report | {
         "motor_speed_peak_rad_s": speed.max(axis=0).tolist(),
-        "motor_torque_peak_nm": torque.max(axis=0).tolist(),
+        Metric.MOTOR_TORQUE_PEAK_NM: torque.max(axis=0).tolist(),
     }

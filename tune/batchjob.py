@@ -30,6 +30,7 @@ from pusupu_jax import inputs, machine_file
 from pusupu_jax.files import write_atomic
 from pusupu_jax.runtime import setup_jax
 from pusupu_jax.machine_file import Machine
+from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError
 
 from . import jobfile
@@ -235,9 +236,9 @@ def summary_row(report: dict) -> dict:
         "scenarios": len(report.get("scenarios") or []),
         "objective_before": report.get("objective_before", float("nan")),
         "objective_after": report.get("objective_after", float("nan")),
-        "rms_before_mm": mean("before", "rms_tracking_error_mm"),
-        "rms_after_mm": mean("after", "rms_tracking_error_mm"),
-        "max_after_mm": mean("after", "max_tracking_error_mm"),
+        "rms_before_mm": mean("before", Metric.RMS_TRACKING_ERROR_MM),
+        "rms_after_mm": mean("after", Metric.RMS_TRACKING_ERROR_MM),
+        "max_after_mm": mean("after", Metric.MAX_TRACKING_ERROR_MM),
         "force_peak_after_n": mean("after", "highest_branch_force_peak_n"),
         "error": report.get("error", ""),
     }

@@ -38,6 +38,7 @@ from pusupu_jax.files import check_output, write_atomic, write_files
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.machine_file import Machine
+from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError, ServoParams
 from pusupu_jax.plots import save_atomic
 from pusupu_jax.start_gains import derive
@@ -45,7 +46,7 @@ from pusupu_jax.start_gains import derive
 from .config import TuneConfig
 from .run import CHECKPOINT, Problem, check_work, progress_reporter, scenario_list
 
-METRICS = ("rms_tracking_error_mm", "max_tracking_error_mm", "sync_error_rho")
+METRICS = (Metric.RMS_TRACKING_ERROR_MM, Metric.MAX_TRACKING_ERROR_MM, Metric.SYNC_ERROR_RHO)
 
 
 def evaluate_baselines(cfg: TuneConfig, rates, specs=None, servo: ServoParams | None = None) -> dict:
@@ -142,7 +143,7 @@ def _plots(out: Path, history, before, after, baselines) -> list[str]:
 
 def _summary(result: dict) -> dict:
     """Every machine metric, and the highest of the six branch force peaks [N]."""
-    return result | {"highest_branch_force_peak_n": max(result["branch_force_peak_n"])}
+    return result | {"highest_branch_force_peak_n": max(result[Metric.BRANCH_FORCE_PEAK_N])}
 
 
 def plot_file(kind: str, scenario: str) -> str:
