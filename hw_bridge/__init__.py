@@ -7,8 +7,10 @@
   safe stop, the report;
 * :mod:`pusupu_jax.hw_bridge.runner`, :mod:`pusupu_jax.hw_bridge.safety`, :mod:`pusupu_jax.hw_bridge.cia402`;
 * transports: :mod:`pusupu_jax.hw_bridge.protocol` + :mod:`pusupu_jax.hw_bridge.udp` (UDP v1),
-  :mod:`pusupu_jax.hw_bridge.canopen_link` (CANopen);
-* :mod:`pusupu_jax.hw_bridge.sim_robot`: the simulated robot (the one module that imports the mechanism).
+  :mod:`pusupu_jax.hw_bridge.canopen_link` (CANopen).
+
+The simulated robot that answers the bridge in tests and demonstrations is a package of its own
+(:mod:`pusupu_jax.sim_robot`), since it imports the mechanism (MuJoCo), which this package never does.
 
 ``pusupu bridge`` and ``pusupu sim-robot`` run them (``docs/bridge.md``).
 """

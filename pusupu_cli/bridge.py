@@ -102,7 +102,7 @@ def add_parsers(sub) -> None:
         default=[],
         metavar="KIND@S[:ARG]",
         help="a fault for the next session (repeat for later sessions): stop, delay, drop, reorder, "
-        "corrupt, nan, range, garbage or none, S seconds after enable (hw_bridge/sim_robot.py)",
+        "corrupt, nan, range, garbage or none, S seconds after enable (sim_robot/robot.py)",
     )
     r.add_argument("--seconds", type=float, metavar="S", help="serve for S seconds, then exit (default: until ^C)")
     r.add_argument(
@@ -325,7 +325,7 @@ def run_sim_robot(args) -> int:
         raise ParameterError(f"--kin-error: expected a non-negative integer seed, got {args.kin_error}")
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise ParameterError(f"--seconds: expected a positive number of seconds, got {args.seconds}")
-    from pusupu_jax.hw_bridge.sim_robot import FaultSpec, RobotModel, main_loop
+    from pusupu_jax.sim_robot.robot import FaultSpec, RobotModel, main_loop
 
     try:
         faults = [FaultSpec.parse(f) for f in args.fault]

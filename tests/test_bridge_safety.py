@@ -3,7 +3,7 @@
 The bridge runs against :class:`WireRobot`, a robot on a real loopback socket that keeps every command reaching it: in
 this process and in lock step (``Bridge(lockstep_s=...)``: the results do not depend on how loaded the machine is), or
 as ``pusupu bridge`` processes for their signals and exit status.  The simulated robot's controller
-(:class:`~pusupu_jax.hw_bridge.sim_robot.SimRobot`) is tested alone, and behind its own UDP server; the command lines'
+(:class:`~pusupu_jax.sim_robot.robot.SimRobot`) is tested alone, and behind its own UDP server; the command lines'
 checks run
 their ``main`` in this process.  Every packet goes through the real protocol.
 """
@@ -240,7 +240,7 @@ def test_feedback_of_another_axis_count_is_refused_and_the_run_stops_safely(setu
 @pytest.fixture(scope="module")
 def robot_model(setup):
     """The simulated robot's machine and drives (C MuJoCo and the compiled drive step) for the gain file, at RATE."""
-    from pusupu_jax.hw_bridge.sim_robot import RobotModel
+    from pusupu_jax.sim_robot.robot import RobotModel
 
     return RobotModel(gains.load(setup.path), RATE)
 
@@ -259,7 +259,7 @@ def _command(sequence, word, target=np.zeros(N), mode=protocol.CSV):
 def test_the_simulated_robot_refuses_a_command_of_another_axis_count_and_serves_on(robot_model):
     """The simulated robot behind its UDP server, enabled: a valid one-axis command (CRC and all) is refused and counted
     ("axes"), and the next six-axis command is answered as any other."""
-    from pusupu_jax.hw_bridge.sim_robot import SimRobot, UdpServer
+    from pusupu_jax.sim_robot.robot import SimRobot, UdpServer
 
     ep = Endpoint(protocol.COMMAND, n_axes=N)
     server = UdpServer(SimRobot(robot_model, watchdog_s=WAIT, log=lambda line: None), ep)
@@ -334,7 +334,7 @@ def test_a_simulated_drive_faults_on_a_target_beyond_its_limits_or_a_mode_it_doe
     """As a CiA 402 drive does: enabled, a drive given a NaN, inf, 1e308 or beyond-the-limit target (CSV: V_max/Ke, CST:
     Kt I_max) or a mode of operation other than CSV and CST faults (statusword), reports no torque, and the brakes hold
     the machine; the other drives stay enabled, and a target at the limit (what the bridge clamps to) is taken."""
-    from pusupu_jax.hw_bridge.sim_robot import SimRobot
+    from pusupu_jax.sim_robot.robot import SimRobot
 
     vmax, tmax = setup.limits.velocity[1], setup.limits.torque[1]
     cases = {

@@ -57,12 +57,13 @@ def test_no_tracked_file_speaks_of_the_development_process():
 
 
 # the layers, lowest first, by folder: each may import those below it, none above it
-LAYERS = (("pusupu_jax",), ("tune", "experiments", "hw_bridge"), ("pusupu_cli",), ("benchmarks",))
+LAYERS = (("pusupu_jax",), ("tune", "experiments", "hw_bridge", "sim_robot"), ("pusupu_cli",), ("benchmarks",))
 # the name each folder is installed under (pyproject.toml): one namespace, no generic top-level names
 INSTALLED = {
     "tune": "pusupu_jax.tune",
     "experiments": "pusupu_jax.experiments",
     "hw_bridge": "pusupu_jax.hw_bridge",
+    "sim_robot": "pusupu_jax.sim_robot",
     "pusupu_cli": "pusupu_jax.cli",
 }
 

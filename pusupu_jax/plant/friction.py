@@ -7,7 +7,7 @@ reversal; MuJoCo's ``frictionloss`` is not used, since it lives in the constrain
 not smooth.
 
 The MJX machine (:meth:`~pusupu_jax.plant.mjx_plant.MJXPlant.step`) and the simulated robot
-(C MuJoCo, :class:`pusupu_jax.hw_bridge.sim_robot.RobotModel`) apply ``-slider_friction`` as a force on each
+(C MuJoCo, :class:`pusupu_jax.sim_robot.robot.RobotModel`) apply ``-slider_friction`` as a force on each
 slide joint, beside the motor's force, evaluated at the slider speeds at the start of each
 mechanical step.  The single-axis plant integrates the viscous part exactly with its linear
 mechanics (``b_eff``) and adds :func:`coulomb_friction`, the same law split where it is linear.

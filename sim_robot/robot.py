@@ -1,8 +1,9 @@
 """A simulated robot behind the bridge's transport: the MJX machine and its drives' inner loops, in step with the
 bridge.
 
-The one module of ``hw_bridge`` that imports the mechanism (MuJoCo MJX); the bridge never
-imports it.  ``pusupu sim-robot --listen udp://127.0.0.1:PORT`` runs it.
+A package of its own (``pusupu_jax.sim_robot``), since it imports the mechanism (MuJoCo MJX),
+which the bridge (``pusupu_jax.hw_bridge``) never does; it speaks the bridge's transports and
+drive state machine.  ``pusupu sim-robot --listen udp://127.0.0.1:PORT`` runs it.
 
 Each valid command from the bridge goes to the six drives' CiA 402 state machines, and a drive
 faults, as a CiA 402 drive does, on a mode of operation it does not have (it has CSV and CST) or a
@@ -55,11 +56,11 @@ from pusupu_jax.plant.friction import Friction, slider_friction
 from pusupu_jax.plant.model import ModelOptions, build_model, slide_dofs, slide_qpos
 from pusupu_jax.runtime import require_x64
 
-from . import cia402, protocol
-from .compiled import FlatStep, cpu
-from .runner import realtime_setup, steal_seconds
-from .safety import command_limits
-from .udp import Endpoint
+from pusupu_jax.hw_bridge import cia402, protocol
+from pusupu_jax.hw_bridge.compiled import FlatStep, cpu
+from pusupu_jax.hw_bridge.runner import realtime_setup, steal_seconds
+from pusupu_jax.hw_bridge.safety import command_limits
+from pusupu_jax.hw_bridge.udp import Endpoint
 
 
 class Injected(enum.StrEnum):
@@ -150,7 +151,7 @@ class RobotModel:
         cst: bool = False,
         machine: Machine | None = None,
     ):
-        from .loop import bridge_rates
+        from pusupu_jax.hw_bridge.loop import bridge_rates
 
         require_x64("the simulated robot's drives")
         self.servo = servo = gains.servo
@@ -471,7 +472,7 @@ class CanServer:
     def __init__(self, robot: SimRobot, bus, seed: int = 0):
         import canopen
 
-        from .canopen_link import COUNTS_PER_RAD, N_AXES, node_dictionary
+        from pusupu_jax.hw_bridge.canopen_link import COUNTS_PER_RAD, N_AXES, node_dictionary
 
         self.robot, self.scale = robot, COUNTS_PER_RAD
         self.rng = np.random.default_rng(seed)
@@ -563,12 +564,12 @@ def main_loop(
     "The real-time figures")."""
     robot = SimRobot(model, faults, watchdog_s, log=lambda m: print(m, file=sys.stderr, flush=True))
     if listen.startswith("can://"):
-        from .canopen_link import open_bus
+        from pusupu_jax.hw_bridge.canopen_link import open_bus
 
         server = CanServer(robot, open_bus(listen))
         where = listen
     else:
-        from .udp import parse_url
+        from pusupu_jax.hw_bridge.udp import parse_url
 
         ep = Endpoint(protocol.COMMAND, n_axes=len(model.Kt), bind=parse_url(listen))
         server = UdpServer(robot, ep)
