@@ -78,6 +78,8 @@ def plot(result: Result, out) -> list:
         err = np.linalg.norm(np.asarray(arrays["platform"]) - np.asarray(arrays["reference"]), axis=1) * 1e3
         rms = result.metrics["runs"][label][Metric.RMS_TRACKING_ERROR_MM]
         ax2.plot(arrays["t"], err, lw=1, label=f"{label}: RMS {rms:.3g} mm")
+    for k, t_rev in enumerate(first["reversal_t"]):  # where a slider's Coulomb friction changes sign: the glitches
+        ax2.axvline(t_rev, color="0.6", lw=0.6, ls=":", label="a slider's reference speed reverses" if k == 0 else None)
     ax2.set_yscale("log")
     ax2.set_xlabel("time [s]")
     ax2.set_ylabel("platform position error [mm]")

@@ -245,21 +245,26 @@ def simulate_machine(
 REVERSAL_WINDOW_S = 0.1  # s after a reversal of a slider's reference speed in which its error counts as the glitch
 
 
-def reversal_error(e_branch, s_ref, dt: float, window_s: float = REVERSAL_WINDOW_S) -> list:
-    """Per branch, the largest slider error |e| [m] within ``window_s`` after any reversal of its reference speed
-    (the sign of ``diff(s_ref)`` changes, stretches at rest skipped), where the drive train's Coulomb friction
-    changes sign and the classic glitch of a reversal shows; None for a branch whose reference never reverses.
-    ``e_branch``, ``s_ref``: ``(N, 6)`` [m], one row per position period of ``dt`` [s]."""
+def reversals(s_ref) -> list[np.ndarray]:
+    """Per branch, the samples where its reference speed reverses: the first sample moving the other way (the sign
+    of ``diff(s_ref)`` changes; stretches at rest skipped).  ``s_ref``: ``(N, 6)`` [m]."""
     v = np.diff(np.asarray(s_ref), axis=0)
-    e = np.abs(np.asarray(e_branch))
-    n = max(int(round(window_s / dt)), 1)
     out = []
     for b in range(v.shape[1]):
         moving = np.flatnonzero(np.abs(v[:, b]) > 1e-12)
         sign = np.sign(v[moving, b])
-        at = moving[1:][sign[1:] != sign[:-1]] + 1  # the first sample moving the other way
-        out.append(max(float(e[k : k + n, b].max()) for k in at) if len(at) else None)
+        out.append(moving[1:][sign[1:] != sign[:-1]] + 1)
     return out
+
+
+def reversal_error(e_branch, s_ref, dt: float, window_s: float = REVERSAL_WINDOW_S) -> list:
+    """Per branch, the largest slider error |e| [m] within ``window_s`` after any reversal of its reference speed
+    (:func:`reversals`), where the drive train's Coulomb friction changes sign and the classic glitch of a reversal
+    shows; None for a branch whose reference never reverses.  ``e_branch``, ``s_ref``: ``(N, 6)`` [m], one row per
+    position period of ``dt`` [s]."""
+    e = np.abs(np.asarray(e_branch))
+    n = max(int(round(window_s / dt)), 1)
+    return [max(float(e[k : k + n, b].max()) for k in at) if len(at) else None for b, at in enumerate(reversals(s_ref))]
 
 
 def machine_metrics(
@@ -311,4 +316,5 @@ def machine_metrics(
         "reference": np.asarray(path)[:, :3],
         "platform": platform,
         "branch_force": force,
+        "reversal_t": np.asarray(trace.t)[np.unique(np.concatenate(reversals(s_ref)))],  # s, any branch's
     } | observed

@@ -164,8 +164,8 @@ def test_importing_the_packages_makes_no_jax_array():
 import importlib, json, pkgutil
 import jax
 names = []
-for package in ("pusupu_jax", "pusupu_jax.tune", "pusupu_jax.hw_bridge", "pusupu_jax.sim_robot", "pusupu_jax.experiments",
-                "pusupu_jax.cli"):
+for package in ("pusupu_jax", "pusupu_jax.tune", "pusupu_jax.hw_bridge", "pusupu_jax.sim_robot",
+                "pusupu_jax.experiments", "pusupu_jax.cli"):
     root = importlib.import_module(package)
     names += [package] + [m.name for m in pkgutil.walk_packages(root.__path__, package + ".")
                           if not m.name.endswith("__main__")]
