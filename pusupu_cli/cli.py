@@ -1,4 +1,6 @@
-"""The ``pusupu`` command (host-side; an application of the core, like ``tune``, ``experiments`` and ``hw_bridge``).
+"""The ``pusupu`` command's parser and ``main`` (host-side; an application of the core).  Each command's handler is
+in its own module: ``analyze``, ``sim``, ``tuning`` (tune, batch), ``experiment``, ``gain_files`` (gains),
+``machine``, ``bridge`` (bridge, sim-robot); ``common`` holds what they share.
 
     pusupu analyze [--params FILE] [--mode imc|pid|pid_ff] [--json] [--plot PNG]
     pusupu analyze --identify-T0 [--params FILE] [--kin-error SEED] [--json] [--plot PNG]
@@ -13,7 +15,7 @@
     take --imc-form full|printed, sim takes --start rest|zero)
 
 Errors in the input print one line ``pusupu: error: ...`` and exit with status 2: a ParameterError, and a ValueError,
-OverflowError or FloatingPointError raised while the inputs are read and checked (:func:`_checking`).  Any other
+OverflowError or FloatingPointError raised while the inputs are read and checked (:func:`.common.checking`).  Any other
 exception, or one raised in the work, is a bug and keeps its traceback.
 """
 
@@ -22,22 +24,21 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
-import json
 import signal
 import sys
 import threading
-import time
-import warnings
-
-import numpy as np
 
 from pusupu_jax.cascade import AXIS_MODES, GAIN_FILE_MODES, Mode
-from pusupu_jax.inputs import one_line
-from pusupu_jax.metrics import Metric
-from pusupu_jax.params import IMC_FORMS, N_AXES, ParameterError
+from pusupu_jax.params import IMC_FORMS, ParameterError
 
 from . import bridge as bridge_cli
-from .common import check_plot_path, checking, machine_of
+from .analyze import cmd_analyze
+from .common import say
+from .experiment import cmd_experiment
+from .gain_files import cmd_gains
+from .machine import cmd_machine
+from .sim import cmd_sim
+from .tuning import cmd_batch, cmd_tune
 
 
 class _Parser(argparse.ArgumentParser):
@@ -45,14 +46,8 @@ class _Parser(argparse.ArgumentParser):
         _fail(message)
 
 
-def _say(message: str) -> None:
-    """Print ``message`` on stderr as one line (:func:`pusupu_jax.inputs.one_line`: escaped, cut): every error line
-    of the command goes through here, so that no input is echoed raw or whole."""
-    print(one_line(message), file=sys.stderr)
-
-
 def _fail(message: str):
-    _say(f"pusupu: error: {message}")
+    say(f"pusupu: error: {message}")
     sys.exit(2)
 
 
@@ -313,13 +308,13 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     _file_backend()
     commands = {
-        "analyze": _analyze,
-        "sim": _sim,
-        "tune": _tune,
-        "batch": _batch,
-        "experiment": _experiment,
-        "gains": _gains,
-        "machine": _machine_command,
+        "analyze": cmd_analyze,
+        "sim": cmd_sim,
+        "tune": cmd_tune,
+        "batch": cmd_batch,
+        "experiment": cmd_experiment,
+        "gains": cmd_gains,
+        "machine": cmd_machine,
         "bridge": bridge_cli.run_bridge,
         "sim-robot": bridge_cli.run_sim_robot,
     }
@@ -337,7 +332,7 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         kept = {"tune": "the checkpoint in {} keeps", "batch": "the checkpoints in {} keep"}.get(args.command)
         where = f" ({kept.format(args.out)} the run: the same command resumes it)" if kept else ""
-        _say(f"pusupu: interrupted{where}")
+        say(f"pusupu: interrupted{where}")
         return 130
 
 
@@ -383,624 +378,6 @@ def _file_backend() -> None:
     import matplotlib
 
     matplotlib.use("Agg")
-
-
-def _tune(args) -> int:
-    from pathlib import Path
-
-    from pusupu_jax.runtime import setup_jax
-
-    setup_jax()
-    from pusupu_jax.tune.config import TuneConfig
-    from pusupu_jax.tune.job import run_job, table
-
-    if not args.out:
-        raise ParameterError("--out: expected a folder, got an empty name")
-    cfg = TuneConfig.quick() if args.quick else TuneConfig()
-    if args.config:
-        with checking(f"--config {args.config}"):
-            cfg = TuneConfig.load(args.config, base=cfg)
-    if args.imc_form:
-        cfg = cfg.replace(imc_form=args.imc_form)
-    out = Path(args.out)
-    machine = machine_of(args)
-    start = args.start_gains
-    if start not in (None, "table1", "derived"):
-        from pusupu_jax import gains
-
-        with checking(f"--start-gains {start}"):
-            start = gains.load(start, machine=machine)
-    report, status = run_job(cfg, out, fresh=args.fresh, machine=machine, start=start)
-    if args.json:
-        print(json.dumps({k: v for k, v in report.items() if k != "history"}, indent=2))
-    else:
-        print(table(report))
-        print(f"wrote: {', '.join(report['exported'] + report['plots'] + [str(out / 'report.json')])}")
-    if status:
-        _say(f"pusupu: error: {report['export_error']}")
-    return status
-
-
-def _batch(args) -> int:
-    from pathlib import Path
-
-    from pusupu_jax.runtime import setup_jax
-
-    setup_jax()
-    from pusupu_jax.tune.batchjob import run_batch
-
-    if (args.address or args.workers) and not args.ray:
-        raise ParameterError("--address and --workers need --ray")
-    if args.workers is not None and args.workers < 1:
-        raise ParameterError(f"--workers: expected a positive number of CPUs, got {args.workers}")
-    summary, status = run_batch(
-        args.job, args.out, ray=args.ray, address=args.address, workers=args.workers, fresh=args.fresh
-    )
-    if args.json:
-        print(json.dumps(summary, indent=2))
-    else:
-        print(Path(args.out, "summary.md").read_text(), end="")
-        print(
-            f"{summary['ok']} of {summary['jobs']} job(s) exported gains; wrote {args.out}/summary.csv, "
-            f"summary.md, summary.json, summary.png and jobs/<job>/"
-        )
-    for name in summary["failed"]:
-        row = next(r for r in summary["rows"] if r["job"] == name)
-        _say(f"pusupu: job {name}: {row['status']}: {row['error']}")
-    return status
-
-
-def _experiment(args) -> int:
-    from pathlib import Path
-
-    from pusupu_jax.runtime import setup_jax
-
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ParameterError(f"--out: expected a folder, got the file {args.out!r}")
-    setup_jax()
-    from pusupu_jax import experiments
-
-    experiments.get(args.name)  # an unknown name fails before any work
-    with checking(f"--gains {args.gains}"):  # refused for another experiment, or a bad file: before any work
-        g = experiments.gain_file(args.name, args.gains)
-    machine = machine_of(args) if args.machine else None
-    experiments.check_machine(args.name, machine)
-    print(
-        f"experiment {args.name}{' (quick)' if args.quick else ''}: running (the first runs compile for about "
-        "20 s per control mode)",
-        file=sys.stderr,
-        flush=True,
-    )
-    t0 = time.perf_counter()
-    result, files = experiments.run_experiment(args.name, out, quick=args.quick, gains=g, machine=machine)
-    if args.json:
-        print(json.dumps(result.metrics, indent=2))
-    else:
-        print(experiments.get(args.name).table(result))
-        print(f"wrote: {', '.join(str(f) for f in files)} ({time.perf_counter() - t0:.0f} s)")
-    return 0
-
-
-def _load(args, check: bool = True):
-    """The params file (or defaults) with a gain file's gains and rates in place, on the machine of ``--machine``,
-    checked by :func:`pusupu_jax.stability.check` for ``args.mode`` (``check=False``: bounds only, for a diagnosis).
-    With ``--machine``, the params file may set controller fields only: the drives are the machine's."""
-    from pathlib import Path
-
-    from pusupu_jax import machine_file, stability
-    from pusupu_jax.files import read_yaml_mapping
-    from pusupu_jax.params_file import SECTIONS, load_params_file
-    from pusupu_jax.runtime import setup_jax
-
-    setup_jax()  # the checks' compiled programs come from the persistent cache after the first run
-    machine = machine_of(args)
-    with checking(f"--params {args.params}" if args.params else "the default parameters"):
-        loaded = load_params_file(args.params)
-        sections = read_yaml_mapping(Path(args.params), "section", SECTIONS) if args.params else {}
-        # the linear model's load: a params file's load section, else the machine's (machine_file.axis_load)
-        args.linear_load = loaded.load if sections.get("load") else machine_file.axis_load(machine)
-        if args.machine:
-            servo = sections.get("servo") or {}
-            clash = [name for name in servo if name in machine.drives]
-            if clash:
-                raise ParameterError(
-                    f"--params {args.params}: servo.{clash[0]}: expected controller fields only with "
-                    f"--machine (the drives are the machine file's), got the drive field {clash[0]}"
-                )
-    if getattr(args, "gains", None):
-        from pusupu_jax import gains
-
-        with checking(f"--gains {args.gains}"):
-            g = gains.load(args.gains, args.floors, check_stability=False, machine=machine)
-        loaded = loaded._replace(servo=g.servo, hybrid=g.hybrid, rates=g.rates)
-    elif args.machine and not args.params and not machine_file.is_builtin(machine):
-        from pusupu_jax.start_gains import derive
-
-        print(
-            f"pusupu: no --gains: the start gains derived for machine {machine.name!r} (docs/machine.md; T0 "
-            "identified on the MJX machine, about 30 s)",
-            file=sys.stderr,
-            flush=True,
-        )
-        with checking(f"--machine {args.machine}"):
-            loaded = loaded._replace(servo=derive(machine, loaded.rates)[0])
-    with checking(f"--machine {args.machine}" if args.machine else "the built-in machine"):
-        loaded = loaded._replace(servo=machine.servo(loaded.servo))
-    if args.imc_form:
-        loaded = loaded._replace(servo=loaded.servo.replace(imc_form=args.imc_form))
-    if check:
-        try:
-            stability.check(loaded.servo, loaded.hybrid, loaded.rates, args.mode, args.floors, load=args.linear_load)
-        except ParameterError as e:
-            raise ParameterError(f"{args.gains or args.params or 'the defaults'}: {e}") from None
-    else:
-        stability.check_values(loaded.servo, loaded.hybrid, loaded.rates)
-    return loaded
-
-
-def _machine_command(args) -> int:
-    from pathlib import Path
-
-    from pusupu_jax import machine_file
-
-    if args.action == "schema":
-        print(machine_file.schema_text(), end="")
-        return 0
-    if args.action == "init":
-        from pusupu_jax.files import write_atomic
-
-        out = Path(args.out)
-        if out.exists() or out.is_symlink():
-            raise ParameterError(f"--out {args.out}: expected a new file, found one there (left as it is)")
-        write_atomic(out, machine_file.template())
-        print(f"wrote {out}: the built-in machine, every field commented; edit it, then pusupu machine check {out}")
-        return 0
-    from pusupu_jax.runtime import setup_jax
-
-    setup_jax()
-    args.machine = args.file
-    machine = machine_of(args)
-    from pusupu_jax.params import LoopRates
-    from pusupu_jax.paths import check_path, platform_path_from
-
-    paths = []
-    for name in args.trajectory or ["arc", "p2p"]:
-        with checking(f"--trajectory {name}"):
-            paths.append((name, platform_path_from(name, machine.geometry.home, LoopRates())))
-    from pusupu_jax.start_gains import derive
-
-    with checking(args.file):
-        found = machine_file.check(machine, paths)
-        servo, report = derive(machine, identify=False)  # the drives' limits: speed_max, Kt I_peak
-        for name, poses in paths:
-            check_path(
-                poses,
-                servo,
-                LoopRates().dt_position,
-                geom=machine.geometry,
-                options=machine.options(),
-                where=f"--trajectory {name}",
-            )
-    mass = np.asarray(report["carried_mass_kg"])
-    result = {
-        "file": args.file,
-        "name": machine.name,
-        "digest": machine_file.digest(machine),
-        "carried_mass_kg": mass.tolist(),
-        "workspace": found,
-    }
-    if args.json:
-        print(json.dumps(result, indent=2))
-        return 0
-    print(
-        f"{args.file}: valid {machine_file.FORMAT} v{machine_file.VERSION}, machine {machine.name!r} "
-        f"(digest {result['digest'][:12]})"
-    )
-    for name, extremes in found.items():
-        lo, hi = min(extremes["slider_min_m"]), max(extremes["slider_max_m"])
-        print(
-            f"  {name:<12} sliders {lo * 1e3:.1f} to {hi * 1e3:.1f} mm, Jacobian condition number at most "
-            f"{extremes['cond_max']:.3g} (limit {machine_file.COND_MAX:g}), "
-            f"UPU leg {extremes['upu_leg_m'][0] * 1e3:.0f} to {extremes['upu_leg_m'][1] * 1e3:.0f} mm"
-        )
-    print(f"  mass each slider carries at home: {', '.join(f'{m:.1f}' for m in mass)} kg")
-    return 0
-
-
-def _gains(args) -> int:
-    from pathlib import Path
-
-    from pusupu_jax import gains
-    from pusupu_jax.runtime import setup_jax
-
-    setup_jax()  # the checks' compiled programs come from the persistent cache after the first run
-    floors = args.floors
-    machine = machine_of(args) if hasattr(args, "machine") else None
-    if args.action == "sign":  # the checks of load() less the checksum, then the derived blocks written anew
-        with checking(args.file):
-            gains.sign(args.file, floors, machine)
-        print(f"{args.file}: its gains pass every check on machine {machine.name!r}; re-signed")
-        return 0
-    if args.action == "migrate":
-        with checking(args.file):
-            path = gains.migrate(args.file, args.out, floors)
-        print(f"{path}: {gains.SCHEMA} v{gains.VERSION}, migrated (tuned on the built-in machine)")
-        return 0
-    with checking(args.file):
-        g = gains.load(args.file, floors, machine=machine)
-    if args.action == "show":
-        print(json.dumps(g.document, indent=2) if args.json else gains.show(g.document))
-    elif args.action == "diff":
-        with checking(args.other):
-            other = gains.load(args.other, floors)
-        lines = gains.diff(g.document, other.document)
-        print("\n".join(lines) if lines else "no difference in gains, rates or mode")
-    elif args.action == "check":
-        from pusupu_jax import machine_file
-
-        print(
-            f"{args.file}: valid {gains.SCHEMA} v{g.document['version']}, mode {g.mode}, tuned on machine "
-            f"{g.machine['name']!r} (digest {g.machine['digest'][:12]}); on machine {machine.name!r} (digest "
-            f"{machine_file.digest(machine)[:12]}) every loop is stable at the file's rates and has at least "
-            f"{floors[0]:g} deg and {floors[1]:g} dB"
-        )
-        if not g.tuned_on(machine):
-            _say(
-                f"pusupu: warning: {args.file} was tuned on another machine ({g.machine['name']!r}) than "
-                f"{machine.name!r}"
-            )
-    elif args.action == "export-ros":
-        from pusupu_jax import ros2
-
-        joints = ros2.JOINTS if not args.joints else tuple(args.joints.split(","))
-        out = Path(args.out)
-        if not out.is_dir():
-            raise ParameterError(f"--out: expected an existing folder, got {args.out!r}")
-        for path in ros2.write_files(out, g.servo, g.mode, g.rates, source=args.file, joints=joints):
-            print(f"wrote {path}")
-    else:
-        return _check_ros(args, g)
-    return 0
-
-
-def _check_ros(args, g) -> int:
-    from pusupu_jax.runtime import setup_jax
-
-    setup_jax()
-    from pusupu_jax import gains, inputs, paths, ros2, workload
-    from pusupu_jax.cascade import control_mode
-    from pusupu_jax.machine import Scenario, machine_rates, simulate_scenarios
-
-    kinds = ("arc", "p2p") if args.trajectory == "both" else (paths.check_spec(args.trajectory, "--trajectory"),)
-    if args.seconds is not None:
-        inputs.number(args.seconds, "--seconds", ParameterError, low=0.0, low_open=True)
-    seconds = sum(
-        paths.path_seconds(k) if args.seconds is None else min(args.seconds, paths.path_seconds(k)) for k in kinds
-    )
-    workload.check_run(
-        f"gains check-ros ({' and '.join(kinds)}, two controllers)",
-        2 * seconds,
-        machine_rates(rates=g.rates),
-        machine=True,
-    )
-    machine = machine_of(args)
-    poses = {k: paths.platform_path_from(k, machine.geometry.home, g.rates) for k in kinds}
-    if args.seconds is not None:
-        poses = {k: p[: max(3, int(args.seconds / g.rates.dt_position))] for k, p in poses.items()}
-    for k, p in poses.items():
-        paths.check_path(
-            p, g.servo, g.rates.dt_position, geom=machine.geometry, options=machine.options(), where=f"--trajectory {k}"
-        )
-    scenarios = [
-        Scenario(p, machine.options(), name=paths.path_label(k), geometry=machine.geometry) for k, p in poses.items()
-    ]
-    print(
-        f"simulating {', '.join(kinds)} with the full pusupu controller ({g.mode}) and with what ROS's PID runs "
-        "(two compiles of about 20 s)",
-        file=sys.stderr,
-    )
-    ros_servo = ros2.as_ros_servo(g.servo, g.mode)
-    runs = {
-        "pusupu": simulate_scenarios(
-            g.servo, scenarios, mode=g.mode, rates=g.rates, hybrid=g.hybrid if control_mode(g.mode).hybrid else None
-        ),
-        "ros": simulate_scenarios(ros_servo, scenarios, mode=Mode.ROS_PID, rates=g.rates),
-    }
-    margins = {
-        "pusupu": gains.margins_report(g.servo, g.mode, machine),
-        "ros": gains.margins_report(ros_servo, Mode.ROS_PID, machine),
-    }
-    result = {
-        "mode": g.mode,
-        "ros_gains": {k: v.tolist() for k, v in ros2.ros_gains(g.servo, g.mode).items()},
-        "paths": {},
-        "position_margins": {},
-    }
-    for who in runs:
-        for sc, (r, _) in zip(scenarios, runs[who]):
-            result["paths"].setdefault(sc.name, {})[who] = {
-                k: r[k] for k in (Metric.RMS_TRACKING_ERROR_MM, Metric.MAX_TRACKING_ERROR_MM)
-            } | {"highest_branch_force_peak_n": max(r[Metric.BRANCH_FORCE_PEAK_N])}
-        m = margins[who]["position"]
-        result["position_margins"][who] = {
-            "phase_margin_deg": float(min(m["phase_margin_deg"])),
-            "gain_margin_db": float(min(m["gain_margin_db"])),
-        }
-    if args.json:
-        print(json.dumps(result, indent=2))
-        return 0
-    print(f"{'path':<6} {'metric':<28} {'pusupu (' + g.mode + ')':>18} {'ROS PID':>12}")
-    for name, per in result["paths"].items():
-        for key in (Metric.RMS_TRACKING_ERROR_MM, Metric.MAX_TRACKING_ERROR_MM, "highest_branch_force_peak_n"):
-            print(f"{name:<6} {key:<28} {per['pusupu'][key]:>18.4g} {per['ros'][key]:>12.4g}")
-    for key in ("phase_margin_deg", "gain_margin_db"):
-        print(
-            f"{'':<6} {'position loop ' + key:<28} {result['position_margins']['pusupu'][key]:>18.4g} "
-            f"{result['position_margins']['ros'][key]:>12.4g}"
-        )
-    return 0
-
-
-def _analyze(args) -> int:
-    from pusupu_jax import analysis
-
-    servo, _, rates, hybrid = _load(args, check=False)  # analysed as a diagnosis, then checked
-    load = args.linear_load  # the machine's (or the params file's load section)
-    if args.plot:
-        check_plot_path(args.plot)
-    if args.identify_T0:
-        return _identify(args, servo, load, rates)
-    if args.kin_error is not None:
-        raise ParameterError("--kin-error: only with --identify-T0 (the loop analysis uses the single-axis load)")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        # the check of the values: every axis's closed loops can be built (0.1 s), with numpy's overflow, invalid and
-        # divide-by-zero raising; what python-control or numpy cannot use ends in one line here, not in the analysis
-        with (
-            checking(
-                " and ".join(f"--{k} {getattr(args, k)}" for k in ("params", "gains") if getattr(args, k)) or "Table 1"
-            ),
-            np.errstate(over="raise", invalid="raise", divide="raise"),
-        ):
-            for axis in range(N_AXES):
-                analysis.closed_loops(servo, load, axis, mode=args.mode)
-        result = analysis.loop_metrics(servo, load, args.mode)
-        if args.plot:
-            from pusupu_jax.plots import plot_loops
-
-            plot_loops(servo, load, args.plot, mode=args.mode)
-    if args.json:
-        print(json.dumps(result, indent=2))
-        return _refuse_unstable(args, servo, hybrid, rates, load)
-    print(f"position mode: {args.mode}")
-    cols = [
-        ("crossover_hz", "crossover Hz", 13),
-        ("phase_margin_deg", "PM deg", 8),
-        ("gain_margin_db", "GM dB", 8),
-        ("bandwidth_hz", "bandwidth Hz", 13),
-        ("rise_time_s", "rise s", 9),
-        ("settling_time_s", "settle s", 9),
-        ("overshoot_pct", "overshoot %", 12),
-    ]
-    print(f"{'axis':>4} {'loop':<9} " + " ".join(f"{title:>{w}}" for _, title, w in cols))
-    for k, row in enumerate(result["axes"]):
-        for name, m in row.items():
-            print(f"{k:>4} {name:<9} " + " ".join(f"{_num(m[key]):>{w}}" for key, _, w in cols))
-    if args.plot:
-        print(f"plot: {args.plot}")
-    return _refuse_unstable(args, servo, hybrid, rates, load)
-
-
-def _refuse_unstable(args, servo, hybrid, rates, load) -> int:
-    """After ``analyze`` printed its diagnosis: 0 if the gains pass :func:`pusupu_jax.stability.check`, else its
-    reason on stderr and 2."""
-    from pusupu_jax import stability
-
-    problem = stability.check(servo, hybrid, rates, args.mode, args.floors, raise_error=False, load=load).problem()
-    if problem is None:
-        return 0
-    print(f"pusupu: error: gains: {problem}", file=sys.stderr)
-    return 2
-
-
-def _identify(args, servo, load, rates) -> int:
-    import numpy as np
-
-    from pusupu_jax.runtime import setup_jax
-
-    setup_jax()
-    from pusupu_jax.analysis import identify_T0
-    from pusupu_jax.identify import identify_T0_machine
-    from pusupu_jax.plant.model import ModelOptions
-
-    print(
-        "identifying T0 on the MJX machine (velocity steps along x and y from home); the first run compiles "
-        "for about 20 s",
-        file=sys.stderr,
-    )
-    machine = machine_of(args)
-    result = identify_T0_machine(
-        servo, machine.options(ModelOptions(kin_error_seed=args.kin_error)), rates=rates, geom=machine.geometry
-    )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        axis_model = identify_T0(servo, load)
-    out = {
-        "T0_s": result["T0"],
-        "fit_rms_rad_s": result["fit_rms"],
-        "directions": result["directions"],
-        "T0_servo_s": np.asarray(servo.T0).tolist(),
-        "T0_axis_model_s": axis_model,
-        "kin_error_seed": args.kin_error,
-    }
-    if args.plot:
-        from pusupu_jax.plots import plot_identification
-
-        plot_identification(
-            result,
-            args.plot,
-            title="velocity steps of the machine"
-            + (f", kinematic errors seed {args.kin_error}" if args.kin_error is not None else ""),
-        )
-    if args.json:
-        print(json.dumps(out, indent=2))
-        return 0
-    print(
-        f"T0 identified on the machine (velocity steps along {', '.join(result['directions'])} from home); "
-        f"single-axis model: {axis_model * 1e3:.2f} ms"
-    )
-    print(f"{'branch':>6} {'T0 ms':>8} {'servo T0 ms':>12} {'fit rms rad/s':>14}")
-    for b in range(6):
-        print(
-            f"{b + 1:>6} {result['T0'][b] * 1e3:>8.2f} {out['T0_servo_s'][b] * 1e3:>12.2f} "
-            f"{result['fit_rms'][b]:>14.3g}"
-        )
-    if args.plot:
-        print(f"plot: {args.plot}")
-    return 0
-
-
-def _num(x, none="inf"):
-    """A table cell: 4 significant digits; ``none`` where the value is None (infinite margin, unsettled step)."""
-    return none if x is None else f"{x:.4g}"
-
-
-def _sim(args) -> int:
-    from pusupu_jax.runtime import setup_jax
-
-    axis_kinds = ("step", "ramp", "sine")
-    args.trajectory = args.trajectory or ("step" if args.plant == "axis" else "arc")
-    if args.plant == "axis" and args.trajectory not in axis_kinds:
-        raise ParameterError(f"--trajectory: expected one of {axis_kinds} with --plant axis, got {args.trajectory!r}")
-    if args.plant == "axis" and args.kin_error is not None:
-        raise ParameterError("--kin-error: only the mjx plant has kinematic errors")
-    servo, load, rates, hybrid = _load(args)
-    if args.plot:
-        check_plot_path(args.plot)
-    setup_jax()
-    if args.plant == "mjx":
-        return _sim_machine(args, servo, rates, hybrid)
-    from pusupu_jax.cascade import control_mode
-
-    if control_mode(args.mode).hybrid:
-        raise ParameterError("--mode hybrid: needs the mechanism (--plant mjx); the axis plant has no redundant branch")
-    import jax
-
-    from pusupu_jax import metrics
-    from pusupu_jax.sim import simulate
-    from pusupu_jax.trajectories import axis_reference
-
-    ref = axis_reference(args.trajectory, rates, args.duration)
-    t0 = time.perf_counter()
-    trace = jax.block_until_ready(simulate(servo, ref, load=load, rates=rates, mode=args.mode, start=args.start))
-    wall = time.perf_counter() - t0
-    result = {
-        "plant": args.plant,
-        "trajectory": args.trajectory,
-        "mode": args.mode,
-        "imc_form": servo.imc_form,
-        "start": args.start,
-        "duration_s": float(trace.t[-1] + rates.dt_position),
-        "wall_s": wall,
-        **metrics.summary(trace, servo),
-    }
-    if args.trajectory == "step":
-        result |= metrics.step_summary(trace, servo)
-    if args.plot:
-        from pusupu_jax.plots import plot_trace
-
-        plot_trace(trace, servo, args.plot, title=f"{args.trajectory}, {args.mode} mode, axis 0")
-    if args.json:
-        print(json.dumps(result, indent=2))
-        return 0
-    print(
-        f"{args.trajectory} on the {args.plant} plant, {args.mode} mode (IMC form {servo.imc_form}, start "
-        f"{args.start}), {result['duration_s']:.3g} s "
-        f"simulated in {wall:.2f} s (compile included)"
-    )
-    keys = [k for k in result if isinstance(result[k], list)]
-    print(f"{'axis':>4} " + " ".join(f"{k:>16}" for k in keys))
-    for a in range(len(result[keys[0]])):
-        print(f"{a:>4} " + " ".join(f"{_num(result[k][a], 'not settled'):>16}" for k in keys))
-    if args.plot:
-        print(f"plot: {args.plot}")
-    return 0
-
-
-def _sim_machine(args, servo, rates, hybrid) -> int:
-    from pusupu_jax import workload
-    from pusupu_jax.machine import machine_rates, simulate_machine
-    from pusupu_jax.paths import check_path, check_spec, path_seconds, platform_path_from
-    from pusupu_jax.plant.model import ModelOptions
-
-    check_spec(args.trajectory, "--trajectory with --plant mjx")
-    if args.duration is not None:
-        raise ParameterError("--duration: the mjx paths have their own timing (velocity and acceleration limits)")
-    machine = machine_of(args)
-    options = machine.options(ModelOptions(kin_error_seed=args.kin_error))
-    workload.check_run(
-        f"--trajectory {args.trajectory}", path_seconds(args.trajectory), machine_rates(options, rates), machine=True
-    )
-    path = platform_path_from(args.trajectory, machine.geometry.home, rates)
-    check_path(
-        path, servo, rates.dt_position, geom=machine.geometry, options=options, where=f"--trajectory {args.trajectory}"
-    )
-    print(
-        f"simulating {len(path) * rates.dt_position:.1f} s of the {args.trajectory} path on the MJX machine "
-        f"({args.mode} mode); the first run compiles for about 15 s",
-        file=sys.stderr,
-    )
-    result, trace = simulate_machine(
-        servo,
-        path,
-        mode=args.mode,
-        options=options,
-        rates=rates,
-        hybrid=hybrid,
-        start=args.start,
-        geom=machine.geometry,
-    )
-    result = {"plant": "mjx", "trajectory": args.trajectory} | result
-    if args.plot:
-        from pusupu_jax.plots import plot_platform_path
-
-        plot_platform_path(
-            trace,
-            args.plot,
-            title=f"{args.trajectory}, {args.mode} mode"
-            + (f", kinematic errors seed {args.kin_error}" if args.kin_error is not None else ""),
-        )
-    if args.json:
-        print(json.dumps(result, indent=2))
-        return 0
-    print(
-        f"{args.trajectory} on the MJX machine {machine_of(args).name!r}, {args.mode} mode "
-        f"(IMC form {servo.imc_form}, start {args.start}), "
-        f"{result['duration_s']:.3g} s simulated "
-        f"in {result['wall_s']:.2f} s (compile included)"
-    )
-    for key in (
-        Metric.RMS_TRACKING_ERROR_MM,
-        Metric.MAX_TRACKING_ERROR_MM,
-        Metric.SYNC_ERROR_RHO,
-        Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM,
-    ):
-        print(f"  {key:<30} {_num(result[key])}")
-    for key, value in result.get("hybrid", {}).items():
-        print(f"  hybrid {key:<23} {value if isinstance(value, str) else _num(value)}")
-    keys = (
-        Metric.BRANCH_RMS_ERROR_MM,
-        Metric.BRANCH_REVERSAL_ERROR_MM,
-        Metric.MOTOR_TORQUE_PEAK_NM,
-        Metric.BRANCH_FORCE_PEAK_N,
-    )
-    print(f"{'branch':>6} " + " ".join(f"{k:>24}" for k in keys))
-    for b in range(6):  # a branch whose reference never reverses: no reversal error
-        print(f"{b + 1:>6} " + " ".join(f"{_num(result[k][b], none='-'):>24}" for k in keys))
-    if args.plot:
-        print(f"plot: {args.plot}")
-    return 0
 
 
 if __name__ == "__main__":

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import sys
 
+from pusupu_jax.inputs import one_line
 from pusupu_jax.params import ParameterError
 
 
@@ -50,3 +52,71 @@ def machine_of(args):
         else:
             args.machine_loaded = machine_file.Machine.default()
     return args.machine_loaded
+
+
+def say(message: str) -> None:
+    """Print ``message`` on stderr as one line (:func:`pusupu_jax.inputs.one_line`: escaped, cut): every error line
+    of the command goes through here, so that no input is echoed raw or whole."""
+    print(one_line(message), file=sys.stderr)
+
+
+def num(x, none="inf"):
+    """A table cell: 4 significant digits; ``none`` where the value is None (infinite margin, unsettled step)."""
+    return none if x is None else f"{x:.4g}"
+
+
+def load_gains(args, check: bool = True):
+    """The params file (or defaults) with a gain file's gains and rates in place, on the machine of ``--machine``,
+    checked by :func:`pusupu_jax.stability.check` for ``args.mode`` (``check=False``: bounds only, for a diagnosis).
+    With ``--machine``, the params file may set controller fields only: the drives are the machine's."""
+    from pathlib import Path
+
+    from pusupu_jax import machine_file, stability
+    from pusupu_jax.files import read_yaml_mapping
+    from pusupu_jax.params_file import SECTIONS, load_params_file
+    from pusupu_jax.runtime import setup_jax
+
+    setup_jax()  # the checks' compiled programs come from the persistent cache after the first run
+    machine = machine_of(args)
+    with checking(f"--params {args.params}" if args.params else "the default parameters"):
+        loaded = load_params_file(args.params)
+        sections = read_yaml_mapping(Path(args.params), "section", SECTIONS) if args.params else {}
+        # the linear model's load: a params file's load section, else the machine's (machine_file.axis_load)
+        args.linear_load = loaded.load if sections.get("load") else machine_file.axis_load(machine)
+        if args.machine:
+            servo = sections.get("servo") or {}
+            clash = [name for name in servo if name in machine.drives]
+            if clash:
+                raise ParameterError(
+                    f"--params {args.params}: servo.{clash[0]}: expected controller fields only with "
+                    f"--machine (the drives are the machine file's), got the drive field {clash[0]}"
+                )
+    if getattr(args, "gains", None):
+        from pusupu_jax import gains
+
+        with checking(f"--gains {args.gains}"):
+            g = gains.load(args.gains, args.floors, check_stability=False, machine=machine)
+        loaded = loaded._replace(servo=g.servo, hybrid=g.hybrid, rates=g.rates)
+    elif args.machine and not args.params and not machine_file.is_builtin(machine):
+        from pusupu_jax.start_gains import derive
+
+        print(
+            f"pusupu: no --gains: the start gains derived for machine {machine.name!r} (docs/machine.md; T0 "
+            "identified on the MJX machine, about 30 s)",
+            file=sys.stderr,
+            flush=True,
+        )
+        with checking(f"--machine {args.machine}"):
+            loaded = loaded._replace(servo=derive(machine, loaded.rates)[0])
+    with checking(f"--machine {args.machine}" if args.machine else "the built-in machine"):
+        loaded = loaded._replace(servo=machine.servo(loaded.servo))
+    if args.imc_form:
+        loaded = loaded._replace(servo=loaded.servo.replace(imc_form=args.imc_form))
+    if check:
+        try:
+            stability.check(loaded.servo, loaded.hybrid, loaded.rates, args.mode, args.floors, load=args.linear_load)
+        except ParameterError as e:
+            raise ParameterError(f"{args.gains or args.params or 'the defaults'}: {e}") from None
+    else:
+        stability.check_values(loaded.servo, loaded.hybrid, loaded.rates)
+    return loaded

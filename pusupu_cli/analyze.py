@@ -1,0 +1,132 @@
+"""``pusupu analyze``: every loop's crossover, margins and bandwidth, and the identification of T0."""
+
+from __future__ import annotations
+
+import json
+import sys
+import warnings
+
+import numpy as np
+
+from pusupu_jax.params import N_AXES, ParameterError
+
+from .common import check_plot_path, checking, load_gains, machine_of, num
+
+
+def cmd_analyze(args) -> int:
+    from pusupu_jax import analysis
+
+    servo, _, rates, hybrid = load_gains(args, check=False)  # analysed as a diagnosis, then checked
+    load = args.linear_load  # the machine's (or the params file's load section)
+    if args.plot:
+        check_plot_path(args.plot)
+    if args.identify_T0:
+        return _identify(args, servo, load, rates)
+    if args.kin_error is not None:
+        raise ParameterError("--kin-error: only with --identify-T0 (the loop analysis uses the single-axis load)")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        # the check of the values: every axis's closed loops can be built (0.1 s), with numpy's overflow, invalid and
+        # divide-by-zero raising; what python-control or numpy cannot use ends in one line here, not in the analysis
+        with (
+            checking(
+                " and ".join(f"--{k} {getattr(args, k)}" for k in ("params", "gains") if getattr(args, k)) or "Table 1"
+            ),
+            np.errstate(over="raise", invalid="raise", divide="raise"),
+        ):
+            for axis in range(N_AXES):
+                analysis.closed_loops(servo, load, axis, mode=args.mode)
+        result = analysis.loop_metrics(servo, load, args.mode)
+        if args.plot:
+            from pusupu_jax.plots import plot_loops
+
+            plot_loops(servo, load, args.plot, mode=args.mode)
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return _refuse_unstable(args, servo, hybrid, rates, load)
+    print(f"position mode: {args.mode}")
+    cols = [
+        ("crossover_hz", "crossover Hz", 13),
+        ("phase_margin_deg", "PM deg", 8),
+        ("gain_margin_db", "GM dB", 8),
+        ("bandwidth_hz", "bandwidth Hz", 13),
+        ("rise_time_s", "rise s", 9),
+        ("settling_time_s", "settle s", 9),
+        ("overshoot_pct", "overshoot %", 12),
+    ]
+    print(f"{'axis':>4} {'loop':<9} " + " ".join(f"{title:>{w}}" for _, title, w in cols))
+    for k, row in enumerate(result["axes"]):
+        for name, m in row.items():
+            print(f"{k:>4} {name:<9} " + " ".join(f"{num(m[key]):>{w}}" for key, _, w in cols))
+    if args.plot:
+        print(f"plot: {args.plot}")
+    return _refuse_unstable(args, servo, hybrid, rates, load)
+
+
+def _refuse_unstable(args, servo, hybrid, rates, load) -> int:
+    """After ``analyze`` printed its diagnosis: 0 if the gains pass :func:`pusupu_jax.stability.check`, else its
+    reason on stderr and 2."""
+    from pusupu_jax import stability
+
+    problem = stability.check(servo, hybrid, rates, args.mode, args.floors, raise_error=False, load=load).problem()
+    if problem is None:
+        return 0
+    print(f"pusupu: error: gains: {problem}", file=sys.stderr)
+    return 2
+
+
+def _identify(args, servo, load, rates) -> int:
+    import numpy as np
+
+    from pusupu_jax.runtime import setup_jax
+
+    setup_jax()
+    from pusupu_jax.analysis import identify_T0
+    from pusupu_jax.identify import identify_T0_machine
+    from pusupu_jax.plant.model import ModelOptions
+
+    print(
+        "identifying T0 on the MJX machine (velocity steps along x and y from home); the first run compiles "
+        "for about 20 s",
+        file=sys.stderr,
+    )
+    machine = machine_of(args)
+    result = identify_T0_machine(
+        servo, machine.options(ModelOptions(kin_error_seed=args.kin_error)), rates=rates, geom=machine.geometry
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        axis_model = identify_T0(servo, load)
+    out = {
+        "T0_s": result["T0"],
+        "fit_rms_rad_s": result["fit_rms"],
+        "directions": result["directions"],
+        "T0_servo_s": np.asarray(servo.T0).tolist(),
+        "T0_axis_model_s": axis_model,
+        "kin_error_seed": args.kin_error,
+    }
+    if args.plot:
+        from pusupu_jax.plots import plot_identification
+
+        plot_identification(
+            result,
+            args.plot,
+            title="velocity steps of the machine"
+            + (f", kinematic errors seed {args.kin_error}" if args.kin_error is not None else ""),
+        )
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    print(
+        f"T0 identified on the machine (velocity steps along {', '.join(result['directions'])} from home); "
+        f"single-axis model: {axis_model * 1e3:.2f} ms"
+    )
+    print(f"{'branch':>6} {'T0 ms':>8} {'servo T0 ms':>12} {'fit rms rad/s':>14}")
+    for b in range(6):
+        print(
+            f"{b + 1:>6} {result['T0'][b] * 1e3:>8.2f} {out['T0_servo_s'][b] * 1e3:>12.2f} "
+            f"{result['fit_rms'][b]:>14.3g}"
+        )
+    if args.plot:
+        print(f"plot: {args.plot}")
+    return 0

@@ -1,0 +1,44 @@
+"""``pusupu experiment``."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+
+
+from pusupu_jax.params import ParameterError
+
+from .common import checking, machine_of
+
+
+def cmd_experiment(args) -> int:
+    from pathlib import Path
+
+    from pusupu_jax.runtime import setup_jax
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ParameterError(f"--out: expected a folder, got the file {args.out!r}")
+    setup_jax()
+    from pusupu_jax import experiments
+
+    experiments.get(args.name)  # an unknown name fails before any work
+    with checking(f"--gains {args.gains}"):  # refused for another experiment, or a bad file: before any work
+        g = experiments.gain_file(args.name, args.gains)
+    machine = machine_of(args) if args.machine else None
+    experiments.check_machine(args.name, machine)
+    print(
+        f"experiment {args.name}{' (quick)' if args.quick else ''}: running (the first runs compile for about "
+        "20 s per control mode)",
+        file=sys.stderr,
+        flush=True,
+    )
+    t0 = time.perf_counter()
+    result, files = experiments.run_experiment(args.name, out, quick=args.quick, gains=g, machine=machine)
+    if args.json:
+        print(json.dumps(result.metrics, indent=2))
+    else:
+        print(experiments.get(args.name).table(result))
+        print(f"wrote: {', '.join(str(f) for f in files)} ({time.perf_counter() - t0:.0f} s)")
+    return 0

@@ -1,0 +1,75 @@
+"""``pusupu tune`` and ``pusupu batch``."""
+
+from __future__ import annotations
+
+import json
+
+
+from pusupu_jax.params import ParameterError
+
+from .common import checking, machine_of, say
+
+
+def cmd_tune(args) -> int:
+    from pathlib import Path
+
+    from pusupu_jax.runtime import setup_jax
+
+    setup_jax()
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.job import run_job, table
+
+    if not args.out:
+        raise ParameterError("--out: expected a folder, got an empty name")
+    cfg = TuneConfig.quick() if args.quick else TuneConfig()
+    if args.config:
+        with checking(f"--config {args.config}"):
+            cfg = TuneConfig.load(args.config, base=cfg)
+    if args.imc_form:
+        cfg = cfg.replace(imc_form=args.imc_form)
+    out = Path(args.out)
+    machine = machine_of(args)
+    start = args.start_gains
+    if start not in (None, "table1", "derived"):
+        from pusupu_jax import gains
+
+        with checking(f"--start-gains {start}"):
+            start = gains.load(start, machine=machine)
+    report, status = run_job(cfg, out, fresh=args.fresh, machine=machine, start=start)
+    if args.json:
+        print(json.dumps({k: v for k, v in report.items() if k != "history"}, indent=2))
+    else:
+        print(table(report))
+        print(f"wrote: {', '.join(report['exported'] + report['plots'] + [str(out / 'report.json')])}")
+    if status:
+        say(f"pusupu: error: {report['export_error']}")
+    return status
+
+
+def cmd_batch(args) -> int:
+    from pathlib import Path
+
+    from pusupu_jax.runtime import setup_jax
+
+    setup_jax()
+    from pusupu_jax.tune.batchjob import run_batch
+
+    if (args.address or args.workers) and not args.ray:
+        raise ParameterError("--address and --workers need --ray")
+    if args.workers is not None and args.workers < 1:
+        raise ParameterError(f"--workers: expected a positive number of CPUs, got {args.workers}")
+    summary, status = run_batch(
+        args.job, args.out, ray=args.ray, address=args.address, workers=args.workers, fresh=args.fresh
+    )
+    if args.json:
+        print(json.dumps(summary, indent=2))
+    else:
+        print(Path(args.out, "summary.md").read_text(), end="")
+        print(
+            f"{summary['ok']} of {summary['jobs']} job(s) exported gains; wrote {args.out}/summary.csv, "
+            f"summary.md, summary.json, summary.png and jobs/<job>/"
+        )
+    for name in summary["failed"]:
+        row = next(r for r in summary["rows"] if r["job"] == name)
+        say(f"pusupu: job {name}: {row['status']}: {row['error']}")
+    return status
