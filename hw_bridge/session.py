@@ -32,7 +32,9 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from pusupu_jax.metrics import Metric
+from pusupu_jax.run_log import Channel
 
 from . import cia402, protocol
 from .loop import BridgeLoop
@@ -102,6 +104,7 @@ class BridgeRun:
     realtime: list = field(default_factory=list)
     completed: bool = False
     ended: End | None = None
+    run_start: int | None = None  # the cycle at which the path began (None: it never did)
 
     def report(self, screw=None) -> dict:
         """The run's figures: cycles, missed deadlines, latency percentiles [us], faults, tracking error [mm]."""
@@ -277,6 +280,7 @@ class Bridge:
                         float(fb.torque[k6] * loop.force_per_torque[k6]) if loop.mode.hybrid else None,
                     )
                     st["phase"], st["run_start"] = "run", k
+                    rec.run_start = k
                     total = loop.cycles + self.hold_cycles
                     st["run_cycles"] = total if duration is None else min(total, int(round(duration * loop.rate)))
                 elif k - st["since"] > self.connect_cycles:
@@ -373,3 +377,92 @@ class Bridge:
         rec.faults = list(safety.faults)
         rec.rejected = dict(ep.rejected)
         return rec
+
+
+def run_log(rec: BridgeRun) -> list[Channel]:
+    """The run's record as MCAP channels (:mod:`pusupu_jax.run_log`), timed from the bridge's first cycle:
+    ``/bridge/command`` (every command sent: cycle, controlword, targets, and in the run its latency),
+    ``/bridge/feedback`` (every fresh sample of the run: the reference the machine was following, the measured angles,
+    the platform where the robot reports it) and ``/bridge/fault`` (each fault with its cycle)."""
+    period = 1.0 / rec.rate
+    command = Channel(
+        "/bridge/command",
+        "pusupu.BridgeCommand",
+        {
+            "cycle": {"type": "integer", "description": "the bridge's cycle, from its first"},
+            "controlword": {"type": "integer", "description": "CiA 402 controlword (0x6040) sent to every drive"},
+            "target": {
+                "type": "array",
+                "items": {"type": "number"},
+                "description": "per axis: speed target [rad/s] (CSV) or torque target [N m] (CST)",
+            },
+            "latency_us": {
+                "type": ["number", "null"],
+                "description": "from the cycle's wake-up to its command sent [us] "
+                "(run phase; null before and after it)",
+            },
+        },
+    )
+    latency = iter(rec.latency_us)
+    start = rec.run_start if rec.run_start is not None else np.inf
+    for k, word, target in rec.commands:
+        # the run's commands are those with a latency: from the run's start until its stop (ENABLE_OPERATION words)
+        timed = start <= k and word == cia402.ENABLE_OPERATION
+        command.messages.append(
+            (
+                k * period,
+                {
+                    "cycle": k,
+                    "controlword": int(word),
+                    "target": target,
+                    "latency_us": next(latency, None) if timed else None,
+                },
+            )
+        )
+    feedback = Channel(
+        "/bridge/feedback",
+        "pusupu.BridgeFeedback",
+        {
+            "reference_rad": {
+                "type": "array",
+                "items": {"type": "number"},
+                "description": "per axis: the motor angle the machine was following [rad]",
+            },
+            "position_rad": {"type": "array", "items": {"type": "number"}, "description": "per axis: measured [rad]"},
+            "platform_m": {
+                "type": "array",
+                "items": {"type": ["number", "null"]},
+                "description": "the platform's position where the robot reports it [m] (null: not reported)",
+            },
+            "platform_reference_m": {
+                "type": "array",
+                "items": {"type": "number"},
+                "description": "the platform's reference position [m] (empty: none)",
+            },
+        },
+    )
+    offset = 0.0 if rec.run_start is None else rec.run_start * period
+    for i, t in enumerate(rec.t):
+        feedback.messages.append(
+            (
+                offset + t,
+                {
+                    "reference_rad": rec.reference[i],
+                    "position_rad": rec.position[i],
+                    "platform_m": rec.platform[i],
+                    "platform_reference_m": rec.platform_reference[i] if i < len(rec.platform_reference) else [],
+                },
+            )
+        )
+    fault = Channel(
+        "/bridge/fault",
+        "pusupu.BridgeFault",
+        {
+            "cycle": {"type": "integer", "description": "the cycle it came in"},
+            "kind": {"type": "string", "enum": [str(k) for k in FaultKind]},
+            "detail": {"type": "string"},
+        },
+    )
+    for f in rec.faults:
+        fault.messages.append((f.cycle * period, {"cycle": f.cycle, "kind": str(f.kind), "detail": f.detail}))
+    return [command, feedback, fault]

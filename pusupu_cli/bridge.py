@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import json
 import sys
+import time
 
 from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError
 
-from .common import check_plot_path, machine_of
+from .common import check_output_path, check_plot_path, machine_of
 
 
 def add_parsers(sub) -> None:
@@ -75,6 +76,11 @@ def add_parsers(sub) -> None:
     b.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO, mlockall or CPU affinity")
     b.add_argument("--json", action="store_true", help="print the report as JSON")
     b.add_argument("--plot", metavar="PNG", help="write the latency histogram and the tracking trace")
+    b.add_argument(
+        "--log",
+        metavar="MCAP",
+        help="write the run as an MCAP log after it (commands, feedback, faults; Foxglove, PlotJuggler; docs/logs.md)",
+    )
     r = sub.add_parser("sim-robot", help="a simulated robot behind the bridge's protocol: the machine and its drives")
     r.add_argument("--gains", metavar="FILE", required=True, help="the gain file of the drives' inner loops")
     r.add_argument(
@@ -179,6 +185,8 @@ def run_bridge(args) -> int:
         raise ParameterError(f"--watchdog: expected at least 1 cycle, got {args.watchdog}")
     if args.plot:
         check_plot_path(args.plot)
+    if args.log:
+        check_output_path(args.log, "--log", "MCAP")
     from pusupu_jax import machine_file
 
     machine = machine_of(args)
@@ -228,6 +236,7 @@ def run_bridge(args) -> int:
         f"{','.join('cst' if m == CST else 'csv' for m in loop.drive_modes)}, robot {args.robot}",
         file=sys.stderr,
     )
+    started_ns = time.time_ns()
     try:
         run = Bridge(loop, endpoint, Safety(limits_for(g.servo, machine.geometry), args.watchdog)).run(
             args.duration, not args.no_realtime
@@ -235,6 +244,22 @@ def run_bridge(args) -> int:
     finally:
         endpoint.close()
     report = run.report(screw=loop.drive.screw)
+    if args.log:  # after the run, from its record: nothing is written inside a cycle
+        from pusupu_jax import __version__, run_log
+        from pusupu_jax.hw_bridge.session import run_log as bridge_channels
+
+        metadata = {
+            "package_version": __version__,
+            "source": "pusupu bridge",
+            "mode": str(g.mode),
+            "gain_file_checksum": g.document["checksum"],
+            "machine": machine_file.reference(machine),
+            "trajectory": args.trajectory,
+            "robot": args.robot,
+            "rate_hz": loop.rate,
+            "ended": str(run.ended),
+        }
+        run_log.write(args.log, bridge_channels(run), metadata, started_ns)
     if args.json:
         print(json.dumps(report, indent=2))
     else:

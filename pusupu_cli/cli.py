@@ -119,6 +119,11 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--duration", type=float, metavar="S", help="seconds (default per trajectory)")
     s.add_argument("--json", action="store_true", help="print JSON instead of a table")
     s.add_argument("--plot", metavar="PNG", help="write reference, error and current plots of axis 0")
+    s.add_argument(
+        "--log",
+        metavar="MCAP",
+        help="mjx: write the run as an MCAP log (Foxglove, PlotJuggler; docs/logs.md), as pusupu bridge --log does",
+    )
     t = sub.add_parser("tune", help="the main job: tune the gains on the machine, export gains.yaml and a report")
     t.add_argument(
         "--config",

@@ -24,21 +24,27 @@ def checking(source: str):
         raise ParameterError(f"{source}: cannot use these values ({type(e).__name__}: {e})") from None
 
 
-def check_plot_path(path):
-    """``--plot PATH``: a PNG file to write in an existing, writable folder (a regular file or nothing there now)."""
+def check_output_path(path, option: str = "--plot", kind: str = "PNG"):
+    """``OPTION PATH``: a file of ``kind`` to write in an existing, writable folder (a regular file or nothing there
+    now), checked before any work."""
     from pusupu_jax.files import check_output
 
     folder = os.path.dirname(os.path.abspath(path))
     if not path or os.path.isdir(path):
-        raise ParameterError(f"--plot: expected the path of a PNG file, got the folder {path!r}")
+        raise ParameterError(f"{option}: expected the path of a {kind} file, got the folder {path!r}")
     if not os.path.isdir(folder):
-        raise ParameterError(f"--plot: expected a PNG path in an existing folder, got {path!r}")
+        raise ParameterError(f"{option}: expected a {kind} path in an existing folder, got {path!r}")
     if not os.access(folder, os.W_OK):
-        raise ParameterError(f"--plot: cannot write in the folder {folder!r}")
+        raise ParameterError(f"{option}: cannot write in the folder {folder!r}")
     try:
         check_output(path)
     except ParameterError as e:
-        raise ParameterError(f"--plot: {e}") from None
+        raise ParameterError(f"{option}: {e}") from None
+
+
+def check_plot_path(path):
+    """``--plot PATH``: :func:`check_output_path` for a PNG file."""
+    check_output_path(path)
 
 
 def machine_of(args):

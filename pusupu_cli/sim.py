@@ -10,7 +10,7 @@ import time
 from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError
 
-from .common import check_plot_path, load_gains, machine_of, num
+from .common import check_output_path, check_plot_path, load_gains, machine_of, num
 
 
 def cmd_sim(args) -> int:
@@ -25,6 +25,10 @@ def cmd_sim(args) -> int:
     servo, load, rates, hybrid = load_gains(args)
     if args.plot:
         check_plot_path(args.plot)
+    if args.log:
+        if args.plant != "mjx":
+            raise ParameterError("--log: the log is of the MJX machine's run; give --plant mjx")
+        check_output_path(args.log, "--log", "MCAP")
     setup_jax()
     if args.plant == "mjx":
         return _sim_machine(args, servo, rates, hybrid)
@@ -98,6 +102,7 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
         f"({args.mode} mode); the first run compiles for about 15 s",
         file=sys.stderr,
     )
+    started_ns = time.time_ns()
     result, trace = simulate_machine(
         servo,
         path,
@@ -109,6 +114,19 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
         geom=machine.geometry,
     )
     result = {"plant": "mjx", "trajectory": args.trajectory} | result
+    if args.log:
+        from pusupu_jax import __version__, machine_file, run_log
+
+        metadata = {
+            "package_version": __version__,
+            "source": "pusupu sim --plant mjx",
+            "mode": str(args.mode),
+            "trajectory": args.trajectory,
+            "machine": machine_file.reference(machine),
+            "gains": args.gains or "params",
+            "rate_hz": 1.0 / rates.dt_position,
+        }
+        run_log.write(args.log, run_log.machine_channels(trace), metadata, started_ns)
     if args.plot:
         from pusupu_jax.plots import plot_platform_path
 

@@ -9,6 +9,7 @@ their ``main`` in this process.  Every packet goes through the real protocol.
 """
 
 import contextlib
+import dataclasses
 import json
 import os
 import signal
@@ -461,6 +462,34 @@ def _signal_at(enabled: int, sig):
         return [(protocol.encode_feedback(fb), robot.sock)]
 
     return act
+
+
+def test_a_runs_log_reads_back_as_its_record(setup, tmp_path):
+    """A lock-step run that a fault stops (the robot's feedback goes NaN after 40 enabled commands), written to MCAP
+    and read back with the mcap package's reader: every command with its cycle and controlword, a latency for each
+    command of the run and none outside it, every fresh sample, the fault, each channel with its JSON Schema, log
+    times in order, and the metadata."""
+    from pusupu_jax import run_log
+    from pusupu_jax.hw_bridge.session import run_log as bridge_channels
+
+    def nan_feedback(robot, fb):
+        return [(protocol.encode_feedback(dataclasses.replace(fb, position=fb.position * np.nan)), robot.sock)]
+
+    robot = WireRobot(_from(40, nan_feedback))
+    run = _bridge_run(setup, robot)
+    assert [f.kind for f in run.faults] == ["feedback invalid"]
+    path = run_log.write(tmp_path / "run.mcap", bridge_channels(run), {"mode": "imc", "rate_hz": RATE}, 10**18)
+    topics, metadata = run_log.read(path)
+    assert metadata == {"mode": "imc", "rate_hz": json.dumps(RATE)}
+    commands, feedback, faults = (topics[t][1] for t in ("/bridge/command", "/bridge/feedback", "/bridge/fault"))
+    assert [(m["cycle"], m["controlword"]) for _, m in commands] == [(k, w) for k, w, _ in run.commands]
+    assert [m["latency_us"] for _, m in commands if m["latency_us"] is not None] == pytest.approx(run.latency_us)
+    assert len(feedback) == len(run.t) and [m["cycle"] for _, m in faults] == [run.faults[0].cycle]
+    assert faults[0][1]["kind"] == "feedback invalid"
+    for topic, (schema, messages) in topics.items():
+        assert set(schema["required"]) <= set(messages[0][1]), topic
+        times = [t for t, _ in messages]
+        assert times == sorted(times) and times[0] >= 10**18, topic
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=lambda s: s.name)

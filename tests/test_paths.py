@@ -367,7 +367,8 @@ def test_the_sim_command_refuses_a_path_the_drives_cannot_follow_in_one_line(tmp
 
 def test_the_sim_command_runs_a_pose_table_on_the_machine(tmp_path):
     """A second of a table with tilts, end to end in PID mode (the compiled program of every PID run on the machine,
-    from the persistent cache when test_cli ran before)."""
+    from the persistent cache when test_cli ran before), logged to MCAP: read back with the mcap package's reader,
+    one message per position period on each channel, with its schema, whose error is the run's RMS error."""
     spec = _table(
         tmp_path,
         [(0, 0, 0, 0, 0, 0), (0.2, 0, 0, 0, 0, 0), (0.7, 0.005, 0, -0.002, 0.01, 0), (1.0, 0.005, 0, -0.002, 0.01, 0)],
@@ -386,6 +387,8 @@ def test_the_sim_command_runs_a_pose_table_on_the_machine(tmp_path):
             "--mode",
             "pid",
             "--json",
+            "--log",
+            tmp_path / "sim.mcap",
         ],
         capture_output=True,
         text=True,
@@ -396,3 +399,14 @@ def test_the_sim_command_runs_a_pose_table_on_the_machine(tmp_path):
     assert out["trajectory"] == spec and out["duration_s"] == pytest.approx(1.0 + DT)
     assert 0 < out["rms_tracking_error_mm"] <= out["max_tracking_error_mm"] < 5
     assert all(0 < v < 13.22 for v in out["motor_torque_peak_nm"])
+    from pusupu_jax import run_log
+
+    topics, metadata = run_log.read(tmp_path / "sim.mcap")
+    assert set(topics) == {"/sim/platform", "/sim/branch"} and metadata["mode"] == "pid"
+    schema, messages = topics["/sim/platform"]
+    assert set(schema["required"]) == {"reference_m", "platform_m", "error_mm"}
+    assert len(messages) == len(topics["/sim/branch"][1]) == round(out["duration_s"] / DT)
+    times = [t for t, _ in messages]
+    assert times == sorted(times) and (times[1] - times[0]) == pytest.approx(DT * 1e9, abs=1)
+    rms = np.sqrt(np.mean([m["error_mm"] ** 2 for _, m in messages]))
+    assert rms == pytest.approx(out["rms_tracking_error_mm"], rel=1e-9)

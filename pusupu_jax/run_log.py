@@ -1,0 +1,133 @@
+"""Run logs in MCAP, the container of ROS 2 bags, which Foxglove and PlotJuggler open (host-side).
+
+A log holds channels of JSON messages, each channel with the JSON Schema of its messages (schema encoding
+``jsonschema``, message encoding ``json``: what both viewers read without a plug-in), and a metadata record
+``pusupu`` naming what ran: the package version, the gain file's checksum and mode, the machine's name and digest, the
+path, the rate.  ``pusupu bridge --log FILE`` writes the bridge's run (:func:`pusupu_jax.hw_bridge.session.run_log`),
+``pusupu sim --plant mjx --log FILE`` the simulated machine's (:func:`machine_channels`), so that a run and its
+simulation open side by side; ``docs/logs.md`` lists every channel and field.
+
+The file is written once, after the run, from the record the run keeps in memory: nothing is written inside a
+cycle.  It is written atomically (:func:`pusupu_jax.files.write_atomic`), with the user's umask.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .files import write_atomic
+
+PROFILE = "pusupu"
+METADATA = "pusupu"  # the name of the metadata record
+
+
+def _array(n: int, unit: str, what: str) -> dict:
+    return {
+        "type": "array",
+        "items": {"type": "number"},
+        "minItems": n,
+        "maxItems": n,
+        "description": f"{what} [{unit}]",
+    }
+
+
+def _number(unit: str, what: str) -> dict:
+    return {"type": "number", "description": f"{what} [{unit}]"}
+
+
+@dataclass
+class Channel:
+    """One topic: its JSON Schema's title and properties, and its messages as ``(time [s], message)``."""
+
+    topic: str
+    title: str
+    properties: dict
+    messages: list = field(default_factory=list)
+
+    def schema(self) -> dict:
+        return {"type": "object", "title": self.title, "properties": self.properties, "required": list(self.properties)}
+
+
+def plain(value):
+    """``value`` as JSON takes it: arrays as lists, numpy scalars as numbers, NaN and inf as None."""
+    if isinstance(value, dict):
+        return {str(k): plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return (
+            [plain(v) for v in np.asarray(value).tolist()]
+            if isinstance(value, np.ndarray)
+            else [plain(v) for v in value]
+        )
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    return value
+
+
+def write(path, channels: list[Channel], metadata: dict, start_ns: int) -> Path:
+    """Write ``channels`` to the MCAP file ``path`` (atomically); a message at time ``t`` [s] is logged at
+    ``start_ns + t`` [ns since the Unix epoch].  ``metadata``: the ``pusupu`` record (values written as text)."""
+    from mcap.writer import Writer
+
+    buffer = io.BytesIO()
+    writer = Writer(buffer)
+    writer.start(profile=PROFILE, library=f"pusupu_jax {metadata.get('package_version', '')}".strip())
+    for channel in channels:
+        schema = writer.register_schema(channel.title, "jsonschema", json.dumps(channel.schema()).encode())
+        cid = writer.register_channel(channel.topic, "json", schema)
+        for sequence, (t, message) in enumerate(channel.messages):
+            stamp = start_ns + int(round(float(t) * 1e9))
+            writer.add_message(cid, stamp, json.dumps(plain(message)).encode(), stamp, sequence)
+    writer.add_metadata(
+        METADATA, {str(k): v if isinstance(v, str) else json.dumps(plain(v)) for k, v in metadata.items()}
+    )
+    writer.finish()
+    return write_atomic(path, buffer.getvalue())
+
+
+def read(path) -> tuple[dict, dict]:
+    """``({topic: (schema, [(log time [ns], message)])}, metadata)`` of an MCAP file written by :func:`write` (the
+    ``mcap`` package's reader; for tests and notebooks)."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as f:
+        reader = make_reader(f)
+        topics = {}
+        for schema, channel, message in reader.iter_messages():
+            entry = topics.setdefault(channel.topic, (json.loads(schema.data), []))
+            entry[1].append((message.log_time, json.loads(message.data)))
+        metadata = {}
+        for record in reader.iter_metadata():
+            if record.name == METADATA:
+                metadata = dict(record.metadata)
+    return topics, metadata
+
+
+def machine_channels(arrays: dict) -> list[Channel]:
+    """The simulated machine's run (the arrays of :func:`pusupu_jax.machine.simulate_scenarios`, one sample per position
+    period): ``/sim/platform`` (the platform's reference and position) and ``/sim/branch`` (each branch's force)."""
+    platform = Channel(
+        "/sim/platform",
+        "pusupu.SimPlatform",
+        {
+            "reference_m": _array(3, "m", "the platform's reference position"),
+            "platform_m": _array(3, "m", "the platform's position"),
+            "error_mm": _number("mm", "the platform's position error"),
+        },
+    )
+    branch = Channel(
+        "/sim/branch", "pusupu.SimBranch", {"force_n": _array(6, "N", "each branch's force along its rod")}
+    )
+    ref, pos = np.asarray(arrays["reference"]), np.asarray(arrays["platform"])
+    for k, t in enumerate(np.asarray(arrays["t"])):
+        platform.messages.append(
+            (t, {"reference_m": ref[k], "platform_m": pos[k], "error_mm": float(np.linalg.norm(pos[k] - ref[k]) * 1e3)})
+        )
+        branch.messages.append((t, {"force_n": np.asarray(arrays["branch_force"])[k]}))
+    return [platform, branch]
