@@ -29,6 +29,8 @@ from pusupu_jax.tune import jobfile, run
 from pusupu_jax.tune.batchjob import run_batch
 from pusupu_jax.tune.run import Problem
 
+pytestmark = pytest.mark.slow  # integration: every test here runs commands end to end
+
 TUNE = {"iterations": 3, "refresh_every": 1, "checkpoint_every": 1, "windows": 2, "window_s": 0.1, "starts": 2}
 SCENARIOS = [
     {"name": "arc-s1", "trajectory": "arc", "kin_error_seed": 1, "path_s": 0.3},

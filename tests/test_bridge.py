@@ -463,6 +463,7 @@ def _session(robot, duration, watchdog=5):
     return run
 
 
+@pytest.mark.slow
 def test_loopback_tracks_the_arc_as_the_simulation_does(robot):
     """Bridge + simulated robot (C MuJoCo) over UDP track the arc's first second as the pure simulation (MJX) of the
     same setup (rates, timestep) does: in lock step, platform RMS error within 1 % of it, every cycle on fresh
@@ -491,6 +492,7 @@ def _stopped_at_onset(run, fault: str, late: int = 0, log: str = ""):
     return f
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", FAULTS[1:])
 def test_faults_reach_the_safe_state_within_the_watchdog(robot, fault):
     """Each fault of the robot stops the bridge (quick stop, then disable voltage) within the watchdog window
@@ -554,6 +556,7 @@ def test_a_bad_gain_file_is_refused_before_anything_is_sent(tmp_path):
 CAN_FAULTS = ["none", "garbage@0.3", "stop@0.3:2", "delay@0.3:3", "reorder@0.3:12", "corrupt@0.3:1"]
 
 
+@pytest.mark.slow
 def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_path):
     """Six simulated CiA 402 drive nodes (canopen LocalNode) in a subprocess, the bridge as the master: SDO set-up
     of the modes of operation and the rated torque, the state machine over controlwords, RPDO + SYNC, two TPDOs

@@ -506,6 +506,7 @@ def test_a_signal_mid_run_ends_in_the_stop_and_the_run_puts_the_handlers_back(se
     _ended_safe(robot, setup.limits)
 
 
+@pytest.mark.slow
 def test_pusupu_bridge_on_sigint_or_sigterm_prints_its_report_and_exits_130_or_143(setup):
     """``pusupu bridge`` processes against wire robots, one sent SIGINT and one SIGTERM once their robot saw ten enabled
     commands: each ends with quick stop then disable voltage on the wire, prints the report a completed run prints

@@ -24,6 +24,7 @@ def pusupu(*args, check=True):
     return r
 
 
+@pytest.mark.slow
 def test_analyze_json_has_every_loop_of_every_axis(tmp_path):
     png = tmp_path / "loops.png"
     out = json.loads(pusupu("analyze", "--json", "--plot", str(png)).stdout)
@@ -79,6 +80,7 @@ def test_bad_input_exits_2_with_one_line(tmp_path, args, message):
     assert "Traceback" not in r.stderr and r.stdout == ""
 
 
+@pytest.mark.slow
 def test_sim_mjx_reports_the_machine_metrics(tmp_path):
     png = tmp_path / "p2p.png"
     out = json.loads(
@@ -109,6 +111,7 @@ def test_bad_machine_arguments_exit_2_with_one_line(args):
     assert r.stderr.startswith("pusupu: error: ")
 
 
+@pytest.mark.slow
 def test_sim_mjx_hybrid_takes_its_gains_from_the_params_file(tmp_path):
     """Hybrid mode on the p2p path with kinematic errors; the eq. 14 gains come from the file's hybrid section."""
     params = tmp_path / "params.yaml"
@@ -168,6 +171,7 @@ def tuned(tmp_path_factory):
     return folder, json.loads(r.stdout)
 
 
+@pytest.mark.slow
 def test_tune_writes_gains_ros_files_report_and_plots(tuned):
     import yaml
 
@@ -209,6 +213,7 @@ def test_tune_writes_gains_ros_files_report_and_plots(tuned):
     assert "valid pusupu-gains v4" in pusupu("gains", "check", str(out / "gains.yaml")).stdout
 
 
+@pytest.mark.slow
 def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
     """SIGKILL after the first checkpoint, run the same command again: the result equals the uninterrupted run's."""
     folder, report = tuned
@@ -272,6 +277,7 @@ def test_ctrl_c_during_a_tune_ends_with_one_line(tuned, tmp_path):
     assert "Traceback" not in err
 
 
+@pytest.mark.slow
 def test_a_ctrl_c_that_python_drops_in_a_gc_callback_still_ends_with_130():
     """A Ctrl-C landing in a garbage-collector callback (JAX registers one): Python drops its KeyboardInterrupt
     ('Exception ignored in ...'), and the command used to run on to exit 0 (seen once in this suite's Ctrl-C test).
@@ -317,6 +323,7 @@ def test_a_bad_gain_file_exits_2_with_one_line(tuned, tmp_path):
         assert "version: expected 4" in r.stderr
 
 
+@pytest.mark.slow
 def test_gains_check_ros_prints_both_controllers(tuned):
     folder, _ = tuned
     out = json.loads(

@@ -14,6 +14,8 @@ from pusupu_jax import LoopRates, ServoParams
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.plant.geometry import Geometry
 
+pytestmark = pytest.mark.slow  # integration: every test here runs commands end to end
+
 TIMEOUT_S = 1800  # s: each run compiles two contact rollouts; 3 min here, allow a machine 2.5x slower and loaded
 
 

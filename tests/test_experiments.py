@@ -10,6 +10,7 @@ from pusupu_jax.experiments import hybrid_grid
 from pusupu_jax.params import ParameterError
 
 
+@pytest.mark.slow
 def test_p2p_quick_writes_its_files_and_hybrid_beats_pid(tmp_path):
     """Section 4 on the first 3 s, seeds 1 and 3: hybrid tracks closer than PID on both seeds (observed -40 % and
     -38 %), and the figure, JSON and table are written."""
@@ -22,6 +23,7 @@ def test_p2p_quick_writes_its_files_and_hybrid_beats_pid(tmp_path):
     assert "| PID | seed1 |" in (tmp_path / "p2p.md").read_text()
 
 
+@pytest.mark.slow
 def test_hybrid_grid_quick_is_stable_at_the_smallest_admissible_lambda2(tmp_path):
     """lambda2 at the smallest value with 45 deg and 6 dB (0.0273 s) and at 0.3 s, seed 3, 3 s of p2p: no run diverges
     with the default m6.  With m6 = 0.1 N s/m the oscillation that diverges over the whole path (39 mm RMS, 2.4 kN
@@ -40,6 +42,7 @@ def test_hybrid_grid_quick_is_stable_at_the_smallest_admissible_lambda2(tmp_path
         assert old["highest_force_peak_n"] > 1.4 * new["highest_force_peak_n"], (rule, old, new)
 
 
+@pytest.mark.slow
 def test_arc_quick_imc_tracks_closer_than_both_pids(tmp_path):
     """Fig. 7 on the arc's first 3 s: the 2-DOF IMC (full C1) below PID and PID + velocity feedforward, and the
     printed eq. 9 far above it (the full run's figures are in REPRODUCTION.md)."""
@@ -79,6 +82,7 @@ def tweaked_gains(tmp_path_factory):
     )
 
 
+@pytest.mark.slow
 def test_servo_quick_margins_agree_with_the_jax_margins_and_the_gain_file(tmp_path, tweaked_gains):
     """Table 1 and the gain file, every loop and axis: python-control's phase and gain margins equal those of
     ``pusupu_jax.margins`` (the tuner's constraint and the gain file's check; a separate implementation on a
@@ -128,6 +132,7 @@ def test_servo_quick_margins_agree_with_the_jax_margins_and_the_gain_file(tmp_pa
     assert "| position | tuned | 1-6 |" in (tmp_path / "servo.md").read_text()
 
 
+@pytest.mark.slow
 def test_tuned_quick_with_a_gain_file_compares_every_mode_on_both_paths(tmp_path, tweaked_gains):
     """The first 3 s of arc and p2p, four modes, Table 1 and the gain file (the batch shape of p2p --quick, so
     the rollouts compiled by the p2p test above are reused: about 20 s here).  The changed fields are named; the

@@ -63,6 +63,7 @@ def test_injection_measures_the_single_axis_loop_gain_of_python_control(
         assert abs(measured / model - 1.0) < 1e-5, (loop, f, measured, model)
 
 
+@pytest.mark.slow
 def test_loop_match_quick_the_velocity_crossover_is_that_of_the_carried_mass(tmp_path):
     """On the MJX machine at home, the measured velocity loop crosses over where the carried mass puts it (within the
     experiment's tolerance), far from the 20 kg load's, and the measurement is linear and settled."""

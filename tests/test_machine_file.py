@@ -79,6 +79,7 @@ def test_a_file_over_1_mib_is_refused(tmp_path):
         machine_file.load(path)
 
 
+@pytest.mark.slow
 def test_machine_commands_init_check_and_refusal(tmp_path):
     out = tmp_path / "m.yaml"
     r = pusupu("machine", "init", "--out", out)
@@ -112,6 +113,7 @@ def test_a_gain_file_names_its_machine_and_is_checked_on_the_one_given(tmp_path)
         gains.document(ServoParams.table1(), HybridGains(), LoopRates(n_mech=5), mode="imc", machine=user)
 
 
+@pytest.mark.slow
 def test_the_bridge_refuses_gains_tuned_on_another_machine(tmp_path):
     """The built-in machine renamed: the same drives, so only the digest tells the machines apart."""
     other = Machine("twin", Machine.default().geometry, Machine.default().drives)

@@ -84,6 +84,7 @@ print(json.dumps({f: np.asarray(v, dtype=float).tolist() for f, v in g.items()})
 """
 
 
+@pytest.mark.slow
 def test_margin_gradients_are_finite_in_float32():
     """With float64 off, every margin's gradient is finite and float64's within 1e-4 of its largest (observed 6e-6).
 

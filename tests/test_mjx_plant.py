@@ -276,6 +276,7 @@ def test_contacts_stop_the_platform_on_the_work_surface_as_in_c_mujoco():
     assert np.max(np.abs(c_qpos - c_mujoco_run(CONTACT_PLANT, aux, off, q0, model=converged)[0])) < 1e-12
 
 
+@pytest.mark.slow
 def test_gradient_through_contact_matches_central_differences():
     """d(mean platform height over the last 25 ms of 100 ms) / d(motor torque, the same on every axis) with the
     tool pressed on the surface (C MuJoCo: in contact at 75 ms and at 100 ms): reverse mode against
@@ -328,6 +329,7 @@ def _short_move(outer):
 # Hybrid mode is left to test_every_objective_term_has_the_gradient_of_central_differences below (lambda1, lambda2,
 # T0, m6, c6, g, every term, both gradient modes, the default signed form); the rms form differs from it only in rho',
 # whose gradient tests/test_hybrid.py checks in the force law itself.  A hybrid case here cost a compile (100 s).
+@pytest.mark.slow
 def test_gradient_through_the_cosimulation_matches_central_differences():
     """Reverse mode through cascade + MJX in IMC mode (50 ms: 200 MJX steps, 1000 current ticks, float64), servo
     gains and the drive train's friction perturbed on axis 0 (by 1e-4 of their value): relative error <= 1e-3.
@@ -348,6 +350,7 @@ def test_gradient_through_the_cosimulation_matches_central_differences():
         assert abs(ad - fd) <= 1e-3 * abs(fd), (name, ad, float(fd))
 
 
+@pytest.mark.slow
 def test_every_objective_term_has_the_gradient_of_central_differences():
     """Each term of pusupu_jax.objectives through hybrid mode on the machine (50 ms), d/d(log gain) for the
     tuner's default fields (shared lambda1, lambda2, T0 and m6, c6, g), in reverse and in forward mode: relative

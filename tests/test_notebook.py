@@ -50,6 +50,7 @@ def test_importing_the_packages_leaves_the_matplotlib_backend_alone():
     assert out.stdout.strip() == backend, out.stderr[-2000:]
 
 
+@pytest.mark.slow
 def test_the_command_selects_agg_itself(tmp_path):
     """The ``pusupu`` command writes its figures with Agg whatever MPLBACKEND says (here a backend it must not keep)."""
     code = (
@@ -173,6 +174,7 @@ def test_the_tuners_results_show_as_summaries():
     assert repr(TuneReport(a=1)) == "TuneReport(keys ['a'])"
 
 
+@pytest.mark.slow
 def test_the_notebook_runs_in_a_fresh_kernel_with_its_figures_inline():
     """experiments/explore.ipynb, stored without outputs, runs without an error in a kernel that inherits this
     process's environment (PUSUPU_JAX_CACHE: the suite's compile cache), and shows its figures inline (PNG)."""

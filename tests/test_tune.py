@@ -30,6 +30,7 @@ def _synthetic():
     return space, jax.jit(jax.value_and_grad(loss, has_aux=True))
 
 
+@pytest.mark.slow
 def test_tuner_recovers_known_gains_from_a_perturbed_start():
     """lambda1 0.018 -> 0.03 and lambda2 0.15 -> 0.08 recovered to 1 % (observed 0.1 %) by clipped Adam on log-gains."""
     space, vg = _synthetic()

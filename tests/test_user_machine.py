@@ -9,6 +9,10 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.slow  # integration: every test here runs commands end to end
+
 EXAMPLES = Path(__file__).parent.parent / "docs" / "examples"
 MACHINE, PATH = EXAMPLES / "machine_user.yaml", EXAMPLES / "pose_table.csv"
 
