@@ -57,13 +57,11 @@ def plain(value):
     """``value`` as JSON takes it: arrays as lists, numpy scalars as numbers, NaN and inf as None."""
     if isinstance(value, dict):
         return {str(k): plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return (
-            [plain(v) for v in np.asarray(value).tolist()]
-            if isinstance(value, np.ndarray)
-            else [plain(v) for v in value]
-        )
-    if isinstance(value, (np.integer,)):
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    if isinstance(value, (list, tuple)):
+        return [plain(v) for v in value]
+    if isinstance(value, np.integer):
         return int(value)
     if isinstance(value, (float, np.floating)):
         return float(value) if np.isfinite(value) else None
