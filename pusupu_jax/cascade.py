@@ -184,16 +184,19 @@ def position_tick(drive: Drive, mode: ControlMode, s: CascadeState, ref, theta, 
     ``mode.force_axis``'s current reference ``F_6 r / (eta Kt)`` (unclamped; :func:`velocity_tick` clamps).
     """
     theta_ref = mode.theta(ref)
+    position = s.position
+    assert position is not None  # a mode that closes the position loop carries its controller's state
     if mode.law == Law.IMC:
-        sp, w_ref = loops.imc_step(drive.imc, s.position, theta_ref, theta)
+        sp, w_ref = loops.imc_step(drive.imc, position, theta_ref, theta)
     elif mode.law == Law.PID:
-        sp, w_ref = loops.pid_step(drive.pid, s.position, theta_ref, theta)
+        sp, w_ref = loops.pid_step(drive.pid, position, theta_ref, theta)
     elif mode.law == Law.PID_FF:
-        sp, w_ref = loops.pid_ff_step(drive.pid, drive.velocity_ff, s.position, theta_ref, theta)
+        sp, w_ref = loops.pid_ff_step(drive.pid, drive.velocity_ff, position, theta_ref, theta)
     else:
-        sp, w_ref = loops.ros_pid_step(drive.ros, s.position, theta_ref, theta, omega)
+        sp, w_ref = loops.ros_pid_step(drive.ros, position, theta_ref, theta, omega)
     if not mode.hybrid:
         return s._replace(position=sp), w_ref, None
+    assert s.force is not None  # and hybrid mode its force law's
     sf, force = hybrid_law.step(
         hybrid, s.force, (theta_ref - theta) * drive.screw, ref.coupling, ref.force_ff, drive.dt_position
     )
@@ -203,6 +206,7 @@ def position_tick(drive: Drive, mode: ControlMode, s: CascadeState, ref, theta, 
 
 def velocity_tick(drive: Drive, mode: ControlMode, s: CascadeState, w_ref, omega, i_force=None):
     """One velocity period: ``(state, i_ref [A])``, clamped to ``+-I_max``; ``i_force`` replaces the force axis's."""
+    assert s.velocity is not None  # a mode that closes the velocity loop carries its state
     sv, i_ref = loops.pi_loop_step(drive.velocity, s.velocity, w_ref, omega)
     if i_force is not None:
         k = mode.force_axis

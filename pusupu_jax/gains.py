@@ -287,7 +287,7 @@ def document(
     machine = Machine.default() if machine is None else machine
     _check_plant({name: getattr(servo, name) for name in machine.drives}, "servo", machine)
     found = stability.check(servo, hybrid, rates, mode, floors, load=machine_file.axis_load(machine))
-    controller = {name: {} for name in CONTROLLER_SECTIONS}
+    controller: dict[str, dict] = {name: {} for name in CONTROLLER_SECTIONS}
     for f in static_fields(ServoParams):
         controller[f.metadata["section"]][f.name] = getattr(servo, f.name)
     for f in array_fields(ServoParams):
@@ -416,7 +416,7 @@ def _same_block(stored, fresh) -> bool:
 
 def _controller_fields(version: int) -> dict:
     """``{section: [field names]}`` that a file of ``version`` holds (its controller sections; version 2's plant)."""
-    expected = {name: [] for name in CONTROLLER_SECTIONS}
+    expected: dict[str, list] = {name: [] for name in CONTROLLER_SECTIONS}
     for f in dataclasses.fields(ServoParams):
         section = f.metadata["section"]
         if section != "plant" and not (version == 2 and f.name in LIMITS_SINCE_V3):
@@ -606,10 +606,8 @@ def diff(a: dict, b: dict) -> list[str]:
     out = []
     for key in sorted(set(left) | set(right)):
         if left.get(key) != right.get(key):
-            out.append(
-                f"{key[0]}.{key[1]}: {left.get(key, ('-', ''))[0]} -> {right.get(key, ('-', ''))[0]} "
-                f"{(left.get(key) or right.get(key))[1]}"
-            )
+            unit = left[key][1] if key in left else right[key][1]
+            out.append(f"{key[0]}.{key[1]}: {left.get(key, ('-', ''))[0]} -> {right.get(key, ('-', ''))[0]} {unit}")
     for k in sorted(set(a["rates"]) | set(b["rates"])):
         if a["rates"].get(k) != b["rates"].get(k):
             out.append(f"rates.{k}: {a['rates'].get(k)} -> {b['rates'].get(k)}")
@@ -651,7 +649,7 @@ def json_schema() -> dict:
         }
         return out
 
-    sections = {
+    sections: dict[str, dict] = {
         name: {"type": "object", "additionalProperties": False, "properties": {}, "required": []}
         for name in CONTROLLER_SECTIONS
     }

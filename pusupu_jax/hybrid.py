@@ -83,7 +83,7 @@ class HybridGains:
     def from_mapping(cls, values: Mapping[str, Any], base: "HybridGains | None" = None) -> "HybridGains":
         """``base`` (default gains) with ``values`` replaced; validates (one number per gain, machine-wide)."""
         inputs.check_keys(values, "HybridGains", [f.name for f in dataclasses.fields(cls)], ParameterError)
-        changes = {
+        changes: dict[str, Any] = {
             k: v if k == "form" else inputs.number(v, f"HybridGains.{k}", ParameterError, finite=False)
             for k, v in values.items()
         }

@@ -157,7 +157,7 @@ def simulate_scenarios(
         return jax.tree.map(lambda x: np.asarray(x)[k], tree)
 
     servos = [pick(servo, k) if batched else servo for k in range(len(scenarios))]
-    hybrid_axis = 0 if control_mode(mode).hybrid and np.ndim(hybrid.m6) == 1 else None
+    hybrid_axis = 0 if hybrid is not None and control_mode(mode).hybrid and np.ndim(hybrid.m6) == 1 else None
     hybrids = [pick(hybrid, k) if hybrid_axis == 0 else hybrid for k in range(len(scenarios))]
     models, references = [], []
     for sc, sv in zip(scenarios, servos):
@@ -297,6 +297,7 @@ def machine_metrics(
         Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM: float(residual.max() * 1e3),
     }
     if control_mode(mode).hybrid:
+        assert hybrid is not None  # a hybrid run has its gains
         # the state is recorded at the start of each period, so F_6 of period k shows at k + 1
         f_rho = np.asarray(trace.state.force.force)[1:] - np.asarray(reference.force_ff)[:-1]
         result["hybrid"] = {

@@ -53,6 +53,13 @@ PAYLOAD_FIELDS = {
 COND_MAX = 30.0  # the Jacobian condition number a pose may reach (kinematics.check_poses)
 
 
+def _bounds(f) -> tuple:
+    """A drive field's ``(low, high, why)`` (:func:`pusupu_jax.params.bounds`; every drive field is bounded)."""
+    found = bounds(f)
+    assert found is not None, f.name
+    return found
+
+
 def drive_fields() -> list:
     """The fields of :class:`~pusupu_jax.params.ServoParams` a machine file holds: its ``plant`` section."""
     return [f for f in array_fields(ServoParams) if f.metadata["section"] == "plant"]
@@ -231,7 +238,7 @@ def _drives(values) -> dict:
             arr = np.array([inputs.number(x, f"{where}[{k}]", ParameterError) for k, x in enumerate(v)])
         else:
             arr = np.full(N_AXES, inputs.number(v, where, ParameterError))
-        low, high, why = bounds(f)
+        low, high, why = _bounds(f)
         top = np.asarray(values[high], dtype=float) if isinstance(high, str) else high
         bad = (arr < low) | (arr > top)
         if bad.any():
@@ -326,7 +333,7 @@ def json_schema() -> dict:
 
     drives = {}
     for f in drive_fields():
-        low, high, why = bounds(f)
+        low, high, why = _bounds(f)
         one = {"type": "number", "minimum": low} | ({} if isinstance(high, str) else {"maximum": high})
         drives[f.name] = {
             "description": f"{f.metadata['doc']} [{f.metadata['unit']}]; range: {why}",

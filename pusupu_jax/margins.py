@@ -140,7 +140,8 @@ def margins(gain_fn, w=W_GRID) -> dict:
     L = jax.lax.stop_gradient(gain_fn(w))
     wrapped = jnp.angle(L)
     unwrapped = unwrapped_phase(wrapped)
-    mask_g, x_g = candidates(*_crossings(jnp.log(jnp.abs(L)), log_w), 180.0 + jnp.degrees(unwrapped[..., :-1]))
+    crossing_g, x_grid_g = _crossings(jnp.log(jnp.abs(L)), log_w)
+    mask_g, x_g = candidates(crossing_g, x_grid_g, 180.0 + jnp.degrees(unwrapped[..., :-1]))
     x_g = refine(lambda x: jnp.log(jnp.abs(gain_fn(jnp.exp(x)))), x_g, mask_g)
     # the exact response's phase at each refined crossing, continued from the nearest grid point's unwrapped phase
     near = jnp.clip(jnp.searchsorted(log_w, x_g), 0, len(w) - 1)

@@ -591,7 +591,7 @@ def describe(p, markdown: bool = False) -> str:
     return axis_table(f"**{title}**" if markdown else title, rows, n, markdown)
 
 
-def field_docs(cls) -> list[tuple[str, float, str, str]]:
+def field_docs(cls) -> list[tuple[str, Any, str, str]]:
     """(name, default, unit, doc) for every field of a parameter class."""
     return [(f.name, f.default, f.metadata["unit"], f.metadata["doc"]) for f in fields(cls)]
 

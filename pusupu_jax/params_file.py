@@ -40,17 +40,13 @@ def load_params_file(path=None) -> ParamsFile:
         return ParamsFile(ServoParams.table1(), AxisLoad.default(), LoopRates(), HybridGains())
     path = Path(path)
     data = read_yaml_mapping(path, "section", SECTIONS)
+    section = {name: {} if data.get(name) is None else data[name] for name in SECTIONS}
     try:
         return ParamsFile(
-            *(
-                parse({} if data.get(name) is None else data[name])
-                for name, parse in (
-                    ("servo", ServoParams.from_mapping),
-                    ("load", AxisLoad.from_mapping),
-                    ("rates", rates_from_mapping),
-                    ("hybrid", HybridGains.from_mapping),
-                )
-            )
+            ServoParams.from_mapping(section["servo"]),
+            AxisLoad.from_mapping(section["load"]),
+            rates_from_mapping(section["rates"]),
+            HybridGains.from_mapping(section["hybrid"]),
         )
     except ParameterError as e:
         raise ParameterError(f"{path}: {e}") from None

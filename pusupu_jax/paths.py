@@ -218,7 +218,8 @@ def _read_waypoints(spec: str) -> _Waypoints:
         raise ParameterError(
             f"{spec}: waypoints: expected a non-empty list of waypoints, got {inputs.shown(waypoints, 40)}"
         )
-    points, limits = [np.zeros(5)], {k: [] for k in DEFAULTS}
+    points: list = [np.zeros(5)]
+    limits: dict[str, list] = {k: [] for k in DEFAULTS}
     for i, entry in enumerate(waypoints):
         where = f"{spec}: waypoints[{i}]"
         inputs.check_keys(entry, where, ("pose",) + tuple(DEFAULTS), ParameterError, required=("pose",))

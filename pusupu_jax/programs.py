@@ -108,7 +108,7 @@ def _versions() -> str:
 
 def cache_folder() -> Path | None:
     """``programs/`` in JAX's compilation cache folder (set by :func:`pusupu_jax.runtime.setup_jax`), or None."""
-    folder = jax.config.jax_compilation_cache_dir
+    folder = jax.config.jax_compilation_cache_dir  # type: ignore[attr-defined]  # JAX defines its flags at run time
     return None if not folder else Path(folder) / "programs"
 
 

@@ -96,9 +96,9 @@ def read(path) -> tuple[dict, dict]:
 
     with open(path, "rb") as f:
         reader = make_reader(f)
-        topics = {}
+        topics: dict[str, tuple] = {}
         for schema, channel, message in reader.iter_messages():
-            entry = topics.setdefault(channel.topic, (json.loads(schema.data), []))
+            entry = topics.setdefault(channel.topic, (None if schema is None else json.loads(schema.data), []))
             entry[1].append((message.log_time, json.loads(message.data)))
         metadata = {}
         for record in reader.iter_metadata():

@@ -113,5 +113,5 @@ def require_x64(what: str) -> None:
     """RuntimeError unless JAX computes in float64 (:func:`setup_jax` turns it on): ``what`` needs it."""
     import jax
 
-    if not jax.config.jax_enable_x64:
+    if not jax.config.jax_enable_x64:  # type: ignore[attr-defined]  # JAX defines its flags at run time
         raise RuntimeError(f"{what} compute in float64: call pusupu_jax.runtime.setup_jax() first")

@@ -54,6 +54,7 @@ def loop_mode(loop: str, mode: "str | cascade.ControlMode") -> cascade.ControlMo
     m = cascade.control_mode(mode)
     if m.closed != cascade.Loop.POSITION:
         raise ValueError(f"stability: expected a mode with a position loop, got {m.name!r}")
+    assert m.law is not None  # every position mode has a law
     return cascade.control_mode(m.law)  # hybrid: its position law, IMC
 
 
@@ -269,7 +270,8 @@ def check(
         loop: LoopCheck(
             radii[loop],
             loop_period(rates, loop),
-            *(np.asarray(m[loop][k], dtype=float) for k in ("phase_margin_deg", "gain_margin_db")),
+            np.asarray(m[loop]["phase_margin_deg"], dtype=float),
+            np.asarray(m[loop]["gain_margin_db"], dtype=float),
             np.asarray(band[loop]),
         )
         for loop in LOOPS
@@ -295,10 +297,10 @@ def bounds_table() -> str:
             if b is not None:
                 high = b[1] if isinstance(b[1], str) else f"{b[1]:g}"
                 rows.append(f"| `{cls.__name__}.{f.name}` | {b[0]:g} to {high} | {f.metadata['unit']} | {b[2]} |")
-    for name, (low, high, why) in (
+    for name, (f_low, f_high, why) in (
         ("current loop rate", F_CURRENT),
         ("velocity loop rate", F_VELOCITY),
         ("position loop rate", F_POSITION),
     ):
-        rows.append(f"| {name} | {low:g} to {high:g} | Hz | {why} |")
+        rows.append(f"| {name} | {f_low:g} to {f_high:g} | Hz | {why} |")
     return "\n".join(rows)

@@ -222,9 +222,9 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
         _add_hole(
             world, np.asarray(home[:2]) + np.asarray(options.hole_offset, dtype=float), float(home[2]) - HOLE["top"]
         )
-    for geom in spec.geoms:
-        if geom.contype:
-            geom.friction = [float(options.friction), *list(geom.friction)[1:]]
+    for body_geom in spec.geoms:
+        if body_geom.contype:
+            body_geom.friction = [float(options.friction), *list(body_geom.friction)[1:]]
     return spec.compile()
 
 
