@@ -4,7 +4,7 @@ The problem is ``pusupu tune``'s (hybrid mode, the default groups in log space, 
 penalties) on a short stretch of one path (``--path`` seconds, ``--windows`` training windows
 of ``--window`` s, start states from one forward pass at the start gains) so that the
 derivative-free side finishes.  The
-gradient tuner (clipped Adam, :func:`pusupu_jax.tune.run.optimise`) runs ``--iterations``; scipy's
+gradient tuner (clipped Adam, :func:`pusupu_jax.tune.optimise.optimise`) runs ``--iterations``; scipy's
 Nelder-Mead then minimises the same objective (forward rollouts only, the same box bounds)
 until it reaches the gradient tuner's best value or ``--max-evals``.  Counted: rollouts
 (a gradient evaluation counts as one rollout, its cost is reported separately as the

@@ -289,7 +289,7 @@ import jax.numpy as jnp
 from pusupu_jax import ServoParams
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import ParameterError
-from pusupu_jax.tune.run import optimise
+from pusupu_jax.tune.optimise import optimise
 from pusupu_jax.tune.space import Space
 
 space = Space.create(("imc",), ServoParams.table1(), HybridGains())

@@ -137,7 +137,7 @@ def test_the_tuners_results_show_as_summaries():
     import jax.numpy as jnp
 
     from pusupu_jax.tune.job import TuneReport
-    from pusupu_jax.tune.run import optimise
+    from pusupu_jax.tune.optimise import optimise
 
     def vg(z):
         return jax.value_and_grad(lambda z: (jnp.sum((z["lambda1"] - 1.0) ** 2), None), has_aux=True)(z)

@@ -7,7 +7,7 @@ import pytest
 
 from pusupu_jax import AxisLoad, LoopRates, ParameterError, ServoParams, rollout
 from pusupu_jax.hybrid import HybridGains
-from pusupu_jax.tune.run import optimise
+from pusupu_jax.tune.optimise import optimise
 from pusupu_jax.tune.space import Space
 
 SERVO = ServoParams.table1()
@@ -160,7 +160,7 @@ def _slow_first():
 def test_progress_keeps_the_first_iteration_apart_from_the_rate(tty):
     """At a terminal (or in a notebook) a tqdm bar, in logs a line per iteration; both give the first iteration's
     time, which includes the compile, apart, and a rate and an ETA from the iterations after it."""
-    from pusupu_jax.tune.run import progress_reporter
+    from pusupu_jax.tune.progress import progress_reporter
 
     stream = _Stream(tty)
     optimise(

@@ -3,8 +3,11 @@
 * :mod:`pusupu_jax.tune.config`: :class:`~pusupu_jax.tune.config.TuneConfig`, the job's settings (embedded defaults,
   YAML);
 * :mod:`pusupu_jax.tune.space`: parameter groups, log parametrisation, box bounds;
-* :mod:`pusupu_jax.tune.run`: the objective over scenarios and :func:`~pusupu_jax.tune.run.optimise` (checkpoints,
-  resume);
-* :mod:`tune.export`: the ``pusupu-gains`` YAML schema (write, load, validate) and ros2_control PID export;
-* :mod:`pusupu_jax.tune.job`: ``pusupu tune``, from configuration to gain file, report and plots.
+* :mod:`pusupu_jax.tune.run`: the problem, its scenarios, windows and objective, and the shared compiled gradient;
+* :mod:`pusupu_jax.tune.optimise`: the optimiser loop (clipped Adam, projection, multi-start);
+* :mod:`pusupu_jax.tune.checkpoint`: checkpoints, written atomically, read back only when they fit the run;
+* :mod:`pusupu_jax.tune.progress`: the progress lines;
+* :mod:`pusupu_jax.tune.job`: ``pusupu tune``, from configuration to gain file, report and plots;
+* :mod:`pusupu_jax.tune.jobfile`, :mod:`pusupu_jax.tune.batch`, :mod:`pusupu_jax.tune.batchjob`,
+  :mod:`pusupu_jax.tune.cluster`: ``pusupu batch``.
 """

@@ -10,7 +10,7 @@ batch as ``(Q K, W, ...)``: one ``rollout`` vmapped over all of them, as
 :func:`pusupu_jax.tune.run.aggregate`); the batch minimises their sum, whose gradient with respect to
 member ``m``'s row is member ``m``'s own gradient, since no term couples two members.
 
-:func:`optimise_batch` runs :func:`pusupu_jax.tune.run.optimise`'s iteration on every member at once
+:func:`optimise_batch` runs :func:`pusupu_jax.tune.optimise.optimise`'s iteration on every member at once
 (the optax update vmapped, so clipping stays per member); a member whose objective or gradient
 turns non-finite is frozen and reported, and the others go on.  With more than one device the
 batch axis is sharded over all of them (``jax.sharding``), padded to a multiple of their number
@@ -40,19 +40,16 @@ from pusupu_jax.programs import Program
 from pusupu_jax.sim import rollout
 
 from .config import TuneConfig
+from .checkpoint import CheckpointLayout, load_checkpoint, save_checkpoint
+from .optimise import optimiser, start_point
 from .run import (
     HERE,
-    CheckpointLayout,
     Scenarios,
     ScenarioSpec,
     WindowStarts,
     aggregate,
     join_windows,
-    load_checkpoint,
-    optimiser,
-    save_checkpoint,
     scenario_objective,
-    start_point,
     structure_key,
     whole_path_metrics,
 )
@@ -221,10 +218,12 @@ class BatchProblem(WindowStarts):
 def optimise_batch(
     problem: BatchProblem, *, checkpoint: Path | None = None, digest: str = "", progress: Callable | None = None
 ) -> dict:
-    """:func:`pusupu_jax.tune.run.optimise` for every member of ``problem`` at once, with its configuration's settings.
+    """:func:`pusupu_jax.tune.optimise.optimise` for every member of ``problem`` at once, with its configuration's
+    settings.
 
     Returns per real member ``best_value`` ``(P,)``, ``best_z``, ``history`` (per member, entries as
-    :func:`~pusupu_jax.tune.run.optimise`'s) and ``failed`` (``{member: message}``).  With ``checkpoint`` the state is
+    :func:`~pusupu_jax.tune.optimise.optimise`'s) and ``failed`` (``{member: message}``).  With ``checkpoint`` the state
+    is
     saved every ``checkpoint_every`` iterations and at the end, and a run that finds one continues from it.
     """
     cfg = problem.cfg

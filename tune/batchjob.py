@@ -248,9 +248,10 @@ def summary_row(report: dict) -> dict:
 
 
 def progress_printer(shard: str, stream=sys.stderr) -> Callable:
-    """The progress callback of a shard (:class:`pusupu_jax.tune.run.Progress`): the median and best objective over its
+    """The progress callback of a shard (:class:`pusupu_jax.tune.progress.Progress`): the median and best objective over
+    its
     members."""
-    from .run import Progress
+    from .progress import Progress
 
     report = Progress(stream)
 

@@ -3,7 +3,8 @@
 1. Build the problem (:class:`pusupu_jax.tune.run.Problem`) from the configuration on the machine (a machine
    file, or the built-in machine); the start (:func:`start_gains`) is Table 1 with the default hybrid
    gains on the built-in machine, gains derived for the machine otherwise, or a gain file.
-2. Optimise (:meth:`pusupu_jax.tune.run.Problem.tune`: :func:`pusupu_jax.tune.run.optimise` with the config's settings)
+2. Optimise (:meth:`pusupu_jax.tune.run.Problem.tune`: :func:`pusupu_jax.tune.optimise.optimise` with the config's
+   settings)
    on
    training windows spread over the whole paths, checkpointing to ``DIR/checkpoint.npz`` (arrays and
    JSON, never a pickle); a run that finds a checkpoint of the same configuration continues from it.
@@ -44,7 +45,9 @@ from pusupu_jax.plots import save_atomic
 from pusupu_jax.start_gains import derive
 
 from .config import TuneConfig
-from .run import CHECKPOINT, Problem, check_work, progress_reporter, scenario_list
+from .checkpoint import CHECKPOINT
+from .progress import progress_reporter
+from .run import Problem, check_work, scenario_list
 
 METRICS = (Metric.RMS_TRACKING_ERROR_MM, Metric.MAX_TRACKING_ERROR_MM, Metric.SYNC_ERROR_RHO)
 
