@@ -4,9 +4,7 @@
    file, or the built-in machine); the start (:func:`start_gains`) is Table 1 with the default hybrid
    gains on the built-in machine, gains derived for the machine otherwise, or a gain file.
 2. Optimise (:meth:`pusupu_jax.tune.run.Problem.tune`: :func:`pusupu_jax.tune.optimise.optimise` with the config's
-   settings)
-   on
-   training windows spread over the whole paths, checkpointing to ``DIR/checkpoint.npz`` (arrays and
+   settings) on training windows spread over the whole paths, checkpointing to ``DIR/checkpoint.npz`` (arrays and
    JSON, never a pickle); a run that finds a checkpoint of the same configuration continues from it.
    ``DIR`` is locked while a run uses it.
 3. Evaluate the start and the result on the whole paths with the problem's own forward pass
