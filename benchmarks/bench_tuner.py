@@ -46,7 +46,8 @@ def main() -> None:
     from pusupu_jax import ServoParams
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.tune.config import TuneConfig
-    from pusupu_jax.tune.run import Problem, optimise
+    from pusupu_jax.tune.optimise import optimise
+    from pusupu_jax.tune.run import Problem
 
     cfg = TuneConfig(
         trajectories=(args.trajectory,),
