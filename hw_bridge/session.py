@@ -266,6 +266,8 @@ class Bridge:
                     word = st["word"] or cia402.SHUTDOWN
                 elif cia402.FAULT in states() and st["word"] != cia402.FAULT_RESET:  # a rising edge of bit 7
                     word = cia402.FAULT_RESET
+                elif cia402.QUICK_STOP_ACTIVE in states():  # left in quick stop: only disable voltage leaves it
+                    word = cia402.DISABLE_VOLTAGE
                 else:
                     word = cia402.SHUTDOWN
                 bring_up(k, word, t_wake)
