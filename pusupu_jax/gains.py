@@ -202,9 +202,14 @@ def _compact(values):
     return float(arr.flat[0]) if np.all(arr == arr.flat[0]) else arr.tolist()
 
 
+# one compiled program rather than some forty operations dispatched one by one (each looked up in the compilation
+# cache): seconds of every command that reads or writes a gain file
+_discretize = jax.jit(loops.discretize, static_argnums=1)
+
+
 def _discrete(servo: ServoParams, rates: LoopRates) -> dict:
     with jax.enable_x64(True):  # the file holds float64 coefficients, whatever the caller's JAX precision
-        drive = jax.tree.map(np.asarray, loops.discretize(servo, rates))
+        drive = jax.tree.map(np.asarray, _discretize(servo, rates))
     out = {}
     for name, (get, period, signal_in, signal_out, clamp) in BLOCKS.items():
         block = get(drive)

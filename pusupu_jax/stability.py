@@ -43,6 +43,7 @@ from .hybrid import validate_gains
 from .margins import W_GRID, in_band, loop_margins
 from .params import N_AXES, AxisLoad, LoopRates, ParameterError, ServoParams, bounds, validate
 from .plant.axis import AxisPlant
+from .programs import Program, describe
 
 LOOPS = ("current", "velocity", "position")
 
@@ -78,13 +79,15 @@ def _monodromy_program(rates: LoopRates, mode: cascade.ControlMode):
         rest = jnp.zeros(N_AXES, flat.dtype)
         return jax.jacfwd(lambda x: ravel_pytree(p.period(unravel(x), rest)[0])[0])(flat), axis_of
 
-    return jax.jit(program)
+    # kept on disk (pusupu_jax.programs): every command that reads a gain file checks it, and tracing these programs
+    # again in each process cost seconds of every `pusupu gains check`
+    return Program(program, describe((rates, mode)))
 
 
 @functools.lru_cache(maxsize=8)
 def _margins_program(mode: str):
     """A jitted ``(servo, load) -> (loop_margins, in_band)`` for one position law."""
-    return jax.jit(lambda servo, load: (loop_margins(servo, load, mode), in_band(servo, load, mode)))
+    return Program(lambda servo, load: (loop_margins(servo, load, mode), in_band(servo, load, mode)), describe(mode))
 
 
 def margins(servo: ServoParams, mode="imc", load: AxisLoad | None = None) -> tuple[dict, dict]:

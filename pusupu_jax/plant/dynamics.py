@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
+from ..programs import Program, describe
 from .axis import screw_ratio
 from .geometry import Geometry
 from .model import ModelOptions, build_model, pose_to_qpos, slide_dofs, slide_qpos
@@ -98,9 +99,13 @@ def reflected_mass(geom: Geometry, poses, options: ModelOptions = ModelOptions()
     when the others hold their share.  The payload of ``options`` is included; seeded errors are not.
     """
     poses = np.atleast_2d(np.asarray(poses, dtype=float))
-    m = build_model(geom, dataclasses.replace(options, kin_error_seed=None))
+    options = dataclasses.replace(options, kin_error_seed=None)
+    m = build_model(geom, options)
     phi = pose_to_qpos(m, geom)
-    with_jacobian = jax.jit(lambda q: (phi(q), jnp.vectorize(jax.jacfwd(phi), signature="(5)->(n,5)")(q)))
+    # kept on disk: every command that reads a machine file asks this for the linear model's load
+    with_jacobian = Program(
+        lambda q: (phi(q), jnp.vectorize(jax.jacfwd(phi), signature="(5)->(n,5)")(q)), describe((geom, options))
+    )
     qpos, T = (np.asarray(a) for a in with_jacobian(jnp.asarray(poses)))
     d = mujoco.MjData(m)
     M = np.zeros((m.nv, m.nv))
