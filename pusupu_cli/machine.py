@@ -61,6 +61,7 @@ def cmd_machine(args) -> int:
         "digest": machine_file.digest(machine),
         "carried_mass_kg": mass.tolist(),
         "workspace": found,
+        "encoders": machine_file.encoder_quanta(machine, LoopRates().dt_velocity),
     }
     if args.json:
         print(json.dumps(result, indent=2))
@@ -77,4 +78,19 @@ def cmd_machine(args) -> int:
             f"UPU leg {extremes['upu_leg_m'][0] * 1e3:.0f} to {extremes['upu_leg_m'][1] * 1e3:.0f} mm"
         )
     print(f"  mass each slider carries at home: {', '.join(f'{m:.1f}' for m in mass)} kg")
+    encoders = result["encoders"]
+    if encoders is None:
+        print("  encoders: ideal (no encoder_counts given)")
+    else:
+        print(
+            f"  encoders: {_span(encoders['counts_per_rev'], '{:.0f}')} counts a revolution, one count "
+            f"{_span(np.multiply(encoders['slider_count_m'], 1e9), '{:.3g}')} nm at the slider; a speed counted over "
+            f"one velocity period ({LoopRates().dt_velocity * 1e3:g} ms) moves in steps of "
+            f"{_span(encoders['speed_step_rad_s'], '{:.3g}')} rad/s"
+        )
     return 0
+
+
+def _span(values, fmt: str) -> str:
+    lo, hi = min(values), max(values)
+    return fmt.format(lo) if lo == hi else f"{fmt.format(lo)} to {fmt.format(hi)}"

@@ -11,6 +11,7 @@ machine as a commented template; ``docs/machine.md`` documents each field)::
     name: my-robot                 # a label for reports and gain files
     geometry: {rail_points: [[x, y, z] x 6], ...}   # every Geometry field, SI units
     drives: {R: 1.3, L: 0.0027, ...}                # every plant field of ServoParams: a number, or six
+                                                    # (encoder_counts, optional: the encoders' resolution)
     payload: {mass: 0.0, com: [0, 0, 0], inertia: [0, 0, 0]}
 
 :func:`load` reads and checks one: size, keys, shapes, signs, each drive value's range
@@ -51,6 +52,10 @@ PAYLOAD_FIELDS = {
     ),
 }
 COND_MAX = 30.0  # the Jacobian condition number a pose may reach (kinematics.check_poses)
+# the motor encoders' resolution: optional (left out, an ideal encoder: what the paper's machine is modelled with)
+ENCODER = "encoder_counts"
+ENCODER_RANGE = (256, 2**32)  # counts per motor revolution: an 8-bit encoder to a 32-bit one
+ENCODER_DOC = "encoder counts per motor revolution (optional; left out: an ideal encoder)"
 
 
 def _bounds(f) -> tuple:
@@ -77,12 +82,14 @@ class Payload:
 @dataclass(frozen=True)
 class Machine:
     """One robot: ``geometry``, ``drives`` (``{field: (6,) array}`` of the plant fields of
-    :class:`~pusupu_jax.params.ServoParams`) and ``payload``; ``name`` labels it."""
+    :class:`~pusupu_jax.params.ServoParams`), ``payload`` and ``encoder_counts`` (counts per motor revolution,
+    ``(6,)`` integers; None: ideal encoders); ``name`` labels it."""
 
     name: str
     geometry: Geometry
     drives: dict
     payload: Payload = field(default_factory=Payload)
+    encoder_counts: np.ndarray | None = None
 
     @classmethod
     def default(cls) -> "Machine":
@@ -120,13 +127,15 @@ class Machine:
         )
 
     def content(self) -> dict:
-        """The machine as plain data (lists and floats), every field: what :func:`digest` hashes."""
+        """The machine as plain data (lists and floats), every field: what :func:`digest` hashes (the encoders only
+        where given, so that a file without them keeps its digest)."""
+        encoder = {} if self.encoder_counts is None else {ENCODER: _compact(self.encoder_counts, int)}
         return {
             "format": FORMAT,
             "version": VERSION,
             "name": self.name,
             "geometry": {k: np.asarray(getattr(self.geometry, k), dtype=float).tolist() for k in GEOMETRY_FIELDS},
-            "drives": {k: _compact(v) for k, v in self.drives.items()},
+            "drives": {k: _compact(v) for k, v in self.drives.items()} | encoder,
             "payload": {
                 "mass": float(self.payload.mass),
                 "com": [float(x) for x in self.payload.com],
@@ -176,9 +185,9 @@ def reference(machine: Machine) -> dict:
     return {"name": machine.name, "digest": digest(machine)}
 
 
-def _compact(values):
-    arr = np.asarray(values, dtype=float)
-    return float(arr.flat[0]) if np.all(arr == arr.flat[0]) else arr.tolist()
+def _compact(values, kind=float):
+    arr = np.asarray(values, dtype=kind)
+    return kind(arr.flat[0]) if np.all(arr == arr.flat[0]) else arr.tolist()
 
 
 def load(path) -> Machine:
@@ -204,7 +213,8 @@ def parse(doc) -> Machine:
     geometry = _geometry(doc["geometry"])
     drives = _drives(doc["drives"])
     payload = _payload(doc["payload"])
-    machine = Machine(name, geometry, drives, payload)
+    encoder = _encoder(doc["drives"][ENCODER]) if ENCODER in doc["drives"] else None
+    machine = Machine(name, geometry, drives, payload, encoder)
     check(machine)
     return machine
 
@@ -226,7 +236,7 @@ def _geometry(values) -> Geometry:
 
 def _drives(values) -> dict:
     names = [f.name for f in drive_fields()]
-    inputs.check_keys(values, "drives", names, ParameterError, required=names, what="field")
+    inputs.check_keys(values, "drives", [*names, ENCODER], ParameterError, required=names, what="field")
     out = {}
     for f in drive_fields():
         v, where = values[f.name], f"drives.{f.name}"
@@ -249,6 +259,37 @@ def _drives(values) -> dict:
             )
         out[f.name] = arr
     return out
+
+
+def _encoder(value) -> np.ndarray:
+    where, (low, high) = f"drives.{ENCODER}", ENCODER_RANGE
+    values = value if isinstance(value, list) else [value] * N_AXES
+    if len(values) != N_AXES:
+        raise ParameterError(
+            f"{where}: expected an integer or a list of {N_AXES} (one per axis), got a list of {len(values)}"
+        )
+    return np.array(
+        [
+            inputs.integer(
+                v, f"{where}" if not isinstance(value, list) else f"{where}[{k}]", ParameterError, low=low, high=high
+            )
+            for k, v in enumerate(values)
+        ],
+        dtype=np.int64,
+    )
+
+
+def encoder_quanta(machine: Machine, dt_velocity: float) -> dict | None:
+    """What ``machine``'s encoders resolve, per axis (None for ideal encoders): one count at the slider [m] and the
+    speed step [rad/s] of a speed measured from counts over one velocity period ``dt_velocity`` [s]."""
+    if machine.encoder_counts is None:
+        return None
+    count = 2 * np.pi / machine.encoder_counts  # rad at the motor
+    return {
+        "counts_per_rev": machine.encoder_counts.tolist(),
+        "slider_count_m": (count * machine.drives["lead"] / (2 * np.pi)).tolist(),
+        "speed_step_rad_s": (count / dt_velocity).tolist(),
+    }
 
 
 def _payload(values) -> Payload:
@@ -305,9 +346,12 @@ def template(machine: Machine | None = None) -> str:
         lines.append(f"  {k}: {_flow(content['geometry'][k])}")
     lines.append("drives:  # each axis: motor, inverter, ball screw, ratings and drive-train friction")
     for k, v in content["drives"].items():
-        unit, doc = units[k]
+        unit, doc = units[k] if k != ENCODER else ("1", ENCODER_DOC)
         lines.append(f"  # {doc} [{unit}]")
         lines.append(f"  {k}: {_flow(v)}")
+    if ENCODER not in content["drives"]:
+        lines.append(f"  # {ENCODER_DOC}; a 20-bit encoder: {2**20}")
+        lines.append(f"  # {ENCODER}: {2**20}")
     lines.append("payload:")
     for k, (_, unit, doc) in PAYLOAD_FIELDS.items():
         lines.append(f"  # {doc} [{unit}]")
@@ -339,6 +383,11 @@ def json_schema() -> dict:
             "description": f"{f.metadata['doc']} [{f.metadata['unit']}]; range: {why}",
             "oneOf": [one, {"type": "array", "items": one, "minItems": N_AXES, "maxItems": N_AXES}],
         }
+    count = {"type": "integer", "minimum": ENCODER_RANGE[0], "maximum": ENCODER_RANGE[1]}
+    encoder = {
+        "description": f"{ENCODER_DOC}; range: an 8-bit encoder to a 32-bit one",
+        "oneOf": [count, {"type": "array", "items": count, "minItems": N_AXES, "maxItems": N_AXES}],
+    }
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": f"{FORMAT} version {VERSION}",
@@ -357,7 +406,12 @@ def json_schema() -> dict:
                     k: shaped(s) | {"description": f"{doc} [{unit}]"} for k, (s, unit, doc) in GEOMETRY_FIELDS.items()
                 },
             },
-            "drives": {"type": "object", "additionalProperties": False, "required": list(drives), "properties": drives},
+            "drives": {
+                "type": "object",
+                "additionalProperties": False,
+                "required": list(drives),
+                "properties": drives | {ENCODER: encoder},
+            },
             "payload": {
                 "type": "object",
                 "additionalProperties": False,

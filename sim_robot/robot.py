@@ -138,6 +138,8 @@ class RobotModel:
     kinematic errors included) stepped by C MuJoCo with the MJX plant's armature, torque mapping and
     drive-train friction (:func:`pusupu_jax.plant.friction.slider_friction`, in numpy, at the slider
     speeds at each step's start), one step per velocity period (the timestep is ``rates.dt_velocity``);
+    with the machine's ``encoder_counts``, the drives and the feedback see whole encoder counts, and each
+    drive's speed is the counts it saw over the last velocity period;
     the drives at rest start from the MJX plant's static equilibrium, as the simulator's runs do.  Why C
     MuJoCo: on this 2-core CPU an MJX step through JAX's dispatch took about 300 us, more than a 250 us
     cycle; C MuJoCo takes tens (and the friction law in numpy 2 us).
@@ -174,6 +176,12 @@ class RobotModel:
         self.Kt = np.asarray(servo.Kt, dtype=float)
         self.velocity_limit, self.torque_limit = command_limits(servo)  # rad/s, N m: a drive faults on more
         self.platform = self.m.body("platform").id
+        # the encoders: one count [rad at the motor], or None (ideal); a drive measures its speed as the counts it
+        # saw over one velocity period, as a drive without a speed observer does
+        counts = machine.encoder_counts
+        self.count = None if counts is None else 2 * np.pi / np.asarray(counts, dtype=float)
+        self._last_angle = np.zeros(len(self.Kt))
+        self._measured = np.zeros(len(self.Kt))
 
         def velocity_period(d, state, target, cst_mask, omega):
             electrical, sc = state
@@ -201,18 +209,38 @@ class RobotModel:
         bridge's watchdog stopped the session."""
         mujoco.mj_resetData(self.m, d)
         mujoco.mj_forward(self.m, d)
+        self._last_angle[:] = self._encoder(d)
+        self._measured[:] = 0.0
         return self.drive0
 
+    def _encoder(self, d):
+        """The motor angles [rad] the encoders read in ``d``: the true ones, or whole counts of them."""
+        theta = (d.qpos[self.qpos] - self.m.qpos0[self.qpos]) / self.r
+        return theta if self.count is None else np.floor(theta / self.count) * self.count
+
+    def _speed(self, d):
+        """The motor speeds [rad/s] the drives measure in ``d``, one velocity period after the last reading: the
+        true ones, or the counts seen since then over that period."""
+        if self.count is None:
+            return d.qvel[self.dofs] / self.r
+        angle = self._encoder(d)
+        speed = (angle - self._last_angle) / self.rates.dt_velocity
+        self._last_angle[:] = angle
+        return speed
+
     def actual(self, d):
-        """``(theta [rad], omega [rad/s], platform [m])`` of the machine in ``d``."""
-        s = d.qpos[self.qpos] - self.m.qpos0[self.qpos]
-        return s / self.r, d.qvel[self.dofs] / self.r, d.xpos[self.platform].copy()
+        """``(theta [rad], omega [rad/s], platform [m])`` of the machine in ``d`` as its drives measure them: the
+        encoders' angles, the speeds of the last velocity period (:meth:`_speed`), and the platform's true
+        position."""
+        omega = d.qvel[self.dofs] / self.r if self.count is None else self._measured
+        return self._encoder(d), omega, d.xpos[self.platform].copy()
 
     def advance(self, d, state, target, cst_mask):
         """One bridge period under ``target`` (CSV: rad/s; CST: N m): the drive state and the motor torque [N m]."""
         torque = np.zeros(len(self.Kt))
         for _ in range(1 if np.any(cst_mask) else self.rates.n_position):  # velocity periods in a bridge period
-            state, torque = self._drive(state, target, cst_mask, d.qvel[self.dofs] / self.r)
+            self._measured = self._speed(d)
+            state, torque = self._drive(state, target, cst_mask, self._measured)
             d.qfrc_applied[self.dofs] = self.force_gain * torque - slider_friction(self.friction, d.qvel[self.dofs])
             mujoco.mj_step(self.m, d)
         return state, torque

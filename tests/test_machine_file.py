@@ -36,6 +36,27 @@ def test_the_template_is_the_built_in_machine_and_the_digest_ignores_layout():
     assert machine_file.digest(machine_file.parse(doc)) != machine_file.digest(Machine.default())
 
 
+def test_encoders_are_optional_and_a_file_without_them_keeps_its_digest():
+    """``drives.encoder_counts`` left out is an ideal encoder, and the machine's digest (which gain files record) is
+    that of a file written before the key existed; given, it is one integer or six, and enters the digest."""
+    doc = yaml.safe_load(machine_file.template())
+    assert "encoder_counts" not in doc["drives"] and machine_file.parse(doc).encoder_counts is None
+    assert machine_file.digest(Machine.default()) == BUILT_IN_DIGEST
+    doc["drives"]["encoder_counts"] = 2**20
+    twenty_bit = machine_file.parse(doc)
+    assert twenty_bit.encoder_counts.tolist() == [2**20] * 6
+    assert machine_file.digest(twenty_bit) != BUILT_IN_DIGEST
+    doc["drives"]["encoder_counts"] = [2**20] * 6
+    assert machine_file.digest(machine_file.parse(doc)) == machine_file.digest(twenty_bit)
+    quanta = machine_file.encoder_quanta(twenty_bit, 2.5e-4)
+    assert quanta["slider_count_m"][0] == pytest.approx(0.01 / 2**20)  # the 10 mm lead over 2^20 counts
+    assert quanta["speed_step_rad_s"][0] == pytest.approx(2 * np.pi / 2**20 / 2.5e-4)
+
+
+# the built-in machine's digest as gain files tuned on it record it: it changes only with the machine
+BUILT_IN_DIGEST = "203637fd0b107eff7383196032cbe91085c6bd85070b754fbbe25f4b6b0fa4de"
+
+
 def test_the_schema_file_is_generated_from_the_fields():
     shipped = Path(machine_file.__file__).parent / "schemas" / "pusupu-machine.schema.json"
     assert shipped.read_text() == machine_file.schema_text()
@@ -61,6 +82,9 @@ BAD = {
     "a missing section": (lambda d: d.pop("payload"), "missing key 'payload'"),
     "a payload no body can have": (lambda d: d["payload"].update(mass=1.0, inertia=[1.0, 0.1, 0.1]), "payload.inertia"),
     "a drive list of five": (lambda d: d["drives"].update(Kt=[1.0] * 5), "drives.Kt"),
+    "an encoder of 100 counts": (lambda d: d["drives"].update(encoder_counts=100), "drives.encoder_counts: expected"),
+    "fractional encoder counts": (lambda d: d["drives"].update(encoder_counts=4096.5), "drives.encoder_counts"),
+    "an encoder list of five": (lambda d: d["drives"].update(encoder_counts=[4096] * 5), "drives.encoder_counts"),
 }
 
 
