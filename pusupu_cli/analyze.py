@@ -24,6 +24,7 @@ def cmd_analyze(args) -> int:
         return _identify(args, servo, load, rates)
     if args.kin_error is not None:
         raise ParameterError("--kin-error: only with --identify-T0 (the loop analysis uses the single-axis load)")
+    loads = {"home": load} | _along_path(args, servo)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         # the check of the values: every axis's closed loops can be built (0.1 s), with numpy's overflow, invalid and
@@ -37,13 +38,18 @@ def cmd_analyze(args) -> int:
             for axis in range(N_AXES):
                 analysis.closed_loops(servo, load, axis, mode=args.mode)
         result = analysis.loop_metrics(servo, load, args.mode)
+        if len(loads) > 1:
+            result["along_path"] = {
+                "trajectory": args.trajectory,
+                "carried_mass_kg": {k: np.asarray(v.mass).tolist() for k, v in loads.items() if k != "home"},
+            } | {k: _margins(servo, v, args.mode) for k, v in loads.items() if k != "home"}
         if args.plot:
             from pusupu_jax.plots import plot_loops
 
             plot_loops(servo, load, args.plot, mode=args.mode)
     if args.json:
         print(json.dumps(result, indent=2))
-        return _refuse_unstable(args, servo, hybrid, rates, load)
+        return _refuse_unstable(args, servo, hybrid, rates, loads)
     print(f"position mode: {args.mode}")
     cols = [
         ("crossover_hz", "crossover Hz", 13),
@@ -58,21 +64,95 @@ def cmd_analyze(args) -> int:
     for k, row in enumerate(result["axes"]):
         for name, m in row.items():
             print(f"{k:>4} {name:<9} " + " ".join(f"{num(m[key]):>{w}}" for key, _, w in cols))
+    if "along_path" in result:
+        along = result["along_path"]
+        light, heavy = (np.asarray(along["carried_mass_kg"][k]) for k in ("lightest", "heaviest"))
+        print(
+            f"along {args.trajectory}: each slider carries {light.min():.1f} to {heavy.max():.1f} kg "
+            f"(at home {np.min(load.mass):.1f} to {np.max(load.mass):.1f} kg); over home and those extremes:"
+        )
+        for name in result["axes"][0]:
+            rows = [
+                axes[k][name] for axes in (result["axes"], along["lightest"], along["heaviest"]) for k in range(N_AXES)
+            ]
+            hz = [r["crossover_hz"] for r in rows if r["crossover_hz"] is not None]
+            worst = {
+                key: min((r[key] for r in rows if r[key] is not None), default=None)
+                for key in ("phase_margin_deg", "gain_margin_db")
+            }
+            print(
+                f"  {name:<9} crossover {num(min(hz, default=None))} to {num(max(hz, default=None))} Hz, "
+                f"PM at least {num(worst['phase_margin_deg'])} deg, GM at least {num(worst['gain_margin_db'])} dB"
+            )
     if args.plot:
         print(f"plot: {args.plot}")
-    return _refuse_unstable(args, servo, hybrid, rates, load)
+    return _refuse_unstable(args, servo, hybrid, rates, loads)
 
 
-def _refuse_unstable(args, servo, hybrid, rates, load) -> int:
-    """After ``analyze`` printed its diagnosis: 0 if the gains pass :func:`pusupu_jax.stability.check`, else its
-    reason on stderr and 2."""
+def _margins(servo, load, mode) -> list:
+    """Per axis ``{loop: {crossover_hz, phase_margin_deg, gain_margin_db}}`` (None: no crossing) from the JAX margins
+    (:func:`pusupu_jax.stability.margins`, which the gain check reads; agreeing with python-control's to 0.5 deg and
+    0.1 dB, tests/test_margins.py)."""
     from pusupu_jax import stability
 
-    problem = stability.check(servo, hybrid, rates, args.mode, args.floors, raise_error=False, load=load).problem()
-    if problem is None:
-        return 0
-    print(f"pusupu: error: gains: {problem}", file=sys.stderr)
-    return 2
+    found, _ = stability.margins(servo, mode, load)
+
+    def cell(x, scale=1.0):
+        return None if not np.isfinite(x) else float(x) * scale
+
+    return [
+        {
+            loop: {
+                "crossover_hz": cell(m["crossover_rad_s"][k], 1 / (2 * np.pi)),
+                "phase_margin_deg": cell(m["phase_margin_deg"][k]),
+                "gain_margin_db": cell(m["gain_margin_db"][k]),
+            }
+            for loop, m in found.items()
+        }
+        for k in range(N_AXES)
+    ]
+
+
+def _along_path(args, servo) -> dict:
+    """``--trajectory``: the linear model's load at the lightest and the heaviest pose of the path on the machine
+    (:func:`pusupu_jax.machine_file.carried_mass_range`), the path checked against the machine first; else none."""
+    if not args.trajectory:
+        return {}
+    from pusupu_jax import machine_file
+    from pusupu_jax.params import LoopRates
+    from pusupu_jax.paths import check_path, platform_path_from
+
+    if args.load_from_params:
+        raise ParameterError(
+            f"--trajectory: expected the machine's load, got the load section of --params {args.params}"
+        )
+    machine = machine_of(args)
+    with checking(f"--trajectory {args.trajectory}"):
+        poses = platform_path_from(args.trajectory, machine.geometry.home, LoopRates())
+        check_path(
+            poses,
+            servo,
+            LoopRates().dt_position,
+            geom=machine.geometry,
+            options=machine.options(),
+            where=f"--trajectory {args.trajectory}",
+        )
+    lightest, heaviest = machine_file.carried_mass_range(machine, poses)
+    return {"lightest": args.linear_load.replace(mass=lightest), "heaviest": args.linear_load.replace(mass=heaviest)}
+
+
+def _refuse_unstable(args, servo, hybrid, rates, loads: dict) -> int:
+    """After ``analyze`` printed its diagnosis: 0 if the gains pass :func:`pusupu_jax.stability.check` with each of
+    ``loads`` (home, and with ``--trajectory`` the path's lightest and heaviest), else its reason on stderr and 2."""
+    from pusupu_jax import stability
+
+    for where, load in loads.items():
+        problem = stability.check(servo, hybrid, rates, args.mode, args.floors, raise_error=False, load=load).problem()
+        if problem is not None:
+            at = "" if where == "home" else f" (with the load at the {where} pose along {args.trajectory})"
+            print(f"pusupu: error: gains: {problem}{at}", file=sys.stderr)
+            return 2
+    return 0
 
 
 def _identify(args, servo, load, rates) -> int:

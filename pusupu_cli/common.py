@@ -89,6 +89,7 @@ def load_gains(args, check: bool = True):
         sections = read_yaml_mapping(Path(args.params), "section", SECTIONS) if args.params else {}
         # the linear model's load: a params file's load section, else the machine's (machine_file.axis_load)
         args.linear_load = loaded.load if sections.get("load") else machine_file.axis_load(machine)
+        args.load_from_params = bool(sections.get("load"))
         if args.machine:
             servo = sections.get("servo") or {}
             clash = [name for name in servo if name in machine.drives]

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 
 
@@ -26,8 +27,12 @@ def pusupu(*args, check=True):
 
 @pytest.mark.slow
 def test_analyze_json_has_every_loop_of_every_axis(tmp_path):
+    """Also along the arc (``--trajectory``): each slider's carried mass at the arc's poses spans home's, and the
+    velocity loop crosses over later with the lighter load on every axis (the same gains push less mass)."""
+    from pusupu_jax import machine_file
+
     png = tmp_path / "loops.png"
-    out = json.loads(pusupu("analyze", "--json", "--plot", str(png)).stdout)
+    out = json.loads(pusupu("analyze", "--json", "--plot", str(png), "--trajectory", "arc").stdout)
     assert len(out["axes"]) == 6
     for axis in out["axes"]:
         for loop in ("current", "velocity", "position"):
@@ -42,6 +47,12 @@ def test_analyze_json_has_every_loop_of_every_axis(tmp_path):
             }
     assert out["axes"][0]["current"]["crossover_hz"] == pytest.approx(245.6, rel=0.005)  # the machine's 71.2 kg
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    along = out["along_path"]
+    light, heavy = (np.asarray(along["carried_mass_kg"][k]) for k in ("lightest", "heaviest"))
+    home = machine_file.carried_mass(machine_file.Machine.default())
+    assert np.all(light <= home) and np.all(home <= heavy) and np.all(heavy - light > 1.0)
+    for k in range(6):
+        assert along["lightest"][k]["velocity"]["crossover_hz"] > along["heaviest"][k]["velocity"]["crossover_hz"]
 
 
 def test_sim_step_prints_metrics_and_plots(tmp_path):
