@@ -10,7 +10,7 @@ import numpy as np
 
 from pusupu_jax.params import N_AXES, ParameterError
 
-from .common import check_plot_path, checking, load_gains, machine_of, num
+from .common import check_path_on, check_plot_path, checking, load_gains, machine_of, num
 
 
 def cmd_analyze(args) -> int:
@@ -120,7 +120,7 @@ def _along_path(args, servo) -> dict:
         return {}
     from pusupu_jax import machine_file
     from pusupu_jax.params import LoopRates
-    from pusupu_jax.paths import check_path, platform_path_from
+    from pusupu_jax.paths import platform_path_from
 
     if args.load_from_params:
         raise ParameterError(
@@ -129,14 +129,7 @@ def _along_path(args, servo) -> dict:
     machine = machine_of(args)
     with checking(f"--trajectory {args.trajectory}"):
         poses = platform_path_from(args.trajectory, machine.geometry.home, LoopRates())
-        check_path(
-            poses,
-            servo,
-            LoopRates().dt_position,
-            geom=machine.geometry,
-            options=machine.options(),
-            where=f"--trajectory {args.trajectory}",
-        )
+        check_path_on(machine, poses, servo, f"--trajectory {args.trajectory}")
     lightest, heaviest = machine_file.carried_mass_range(machine, poses)
     return {"lightest": args.linear_load.replace(mass=lightest), "heaviest": args.linear_load.replace(mass=heaviest)}
 

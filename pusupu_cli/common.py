@@ -60,6 +60,23 @@ def machine_of(args):
     return args.machine_loaded
 
 
+def check_path_on(machine, poses, servo, where: str, dt_position: float | None = None, options=None) -> None:
+    """:func:`pusupu_jax.paths.check_path` of ``poses`` on ``machine`` (its geometry, and its payload unless
+    ``options`` are given) at ``dt_position`` [s] (default the default position period); ``where`` names the path in
+    the error."""
+    from pusupu_jax.params import LoopRates
+    from pusupu_jax.paths import check_path
+
+    check_path(
+        poses,
+        servo,
+        LoopRates().dt_position if dt_position is None else dt_position,
+        geom=machine.geometry,
+        options=machine.options() if options is None else options,
+        where=where,
+    )
+
+
 def say(message: str) -> None:
     """Print ``message`` on stderr as one line (:func:`pusupu_jax.inputs.one_line`: escaped, cut): every error line
     of the command goes through here, so that no input is echoed raw or whole."""

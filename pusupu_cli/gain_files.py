@@ -10,7 +10,7 @@ from pusupu_jax.cascade import Mode
 from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError
 
-from .common import checking, machine_of, say
+from .common import check_path_on, checking, machine_of, say
 
 
 def cmd_gains(args) -> int:
@@ -94,9 +94,7 @@ def _check_ros(args, g) -> int:
     if args.seconds is not None:
         poses = {k: p[: max(3, int(args.seconds / g.rates.dt_position))] for k, p in poses.items()}
     for k, p in poses.items():
-        paths.check_path(
-            p, g.servo, g.rates.dt_position, geom=machine.geometry, options=machine.options(), where=f"--trajectory {k}"
-        )
+        check_path_on(machine, p, g.servo, f"--trajectory {k}", g.rates.dt_position)
     scenarios = [
         Scenario(p, machine.options(), name=paths.path_label(k), geometry=machine.geometry) for k, p in poses.items()
     ]

@@ -8,7 +8,7 @@ import numpy as np
 
 from pusupu_jax.params import ParameterError
 
-from .common import checking, machine_of
+from .common import check_path_on, checking, machine_of
 
 
 def cmd_machine(args) -> int:
@@ -34,7 +34,7 @@ def cmd_machine(args) -> int:
     args.machine = args.file
     machine = machine_of(args)
     from pusupu_jax.params import LoopRates
-    from pusupu_jax.paths import check_path, platform_path_from
+    from pusupu_jax.paths import platform_path_from
 
     paths = []
     for name in args.trajectory or ["arc", "p2p"]:
@@ -46,14 +46,7 @@ def cmd_machine(args) -> int:
         found = machine_file.check(machine, paths)
         servo, report = derive(machine, identify=False)  # the drives' limits: speed_max, Kt I_peak
         for name, poses in paths:
-            check_path(
-                poses,
-                servo,
-                LoopRates().dt_position,
-                geom=machine.geometry,
-                options=machine.options(),
-                where=f"--trajectory {name}",
-            )
+            check_path_on(machine, poses, servo, f"--trajectory {name}")
     mass = np.asarray(report["carried_mass_kg"])
     result = {
         "file": args.file,

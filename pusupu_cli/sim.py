@@ -10,7 +10,7 @@ import time
 from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError
 
-from .common import check_output_path, check_plot_path, load_gains, machine_of, num
+from .common import check_output_path, check_path_on, check_plot_path, load_gains, machine_of, num
 
 
 def cmd_sim(args) -> int:
@@ -82,7 +82,7 @@ def cmd_sim(args) -> int:
 def _sim_machine(args, servo, rates, hybrid) -> int:
     from pusupu_jax import workload
     from pusupu_jax.machine import machine_rates, simulate_machine
-    from pusupu_jax.paths import check_path, check_spec, path_seconds, platform_path_from
+    from pusupu_jax.paths import check_spec, path_seconds, platform_path_from
     from pusupu_jax.plant.model import ModelOptions
 
     check_spec(args.trajectory, "--trajectory with --plant mjx")
@@ -94,9 +94,7 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
         f"--trajectory {args.trajectory}", path_seconds(args.trajectory), machine_rates(options, rates), machine=True
     )
     path = platform_path_from(args.trajectory, machine.geometry.home, rates)
-    check_path(
-        path, servo, rates.dt_position, geom=machine.geometry, options=options, where=f"--trajectory {args.trajectory}"
-    )
+    check_path_on(machine, path, servo, f"--trajectory {args.trajectory}", rates.dt_position, options)
     print(
         f"simulating {len(path) * rates.dt_position:.1f} s of the {args.trajectory} path on the MJX machine "
         f"({args.mode} mode); the first run compiles for about 15 s",
