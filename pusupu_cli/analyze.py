@@ -21,6 +21,10 @@ def cmd_analyze(args) -> int:
     if args.plot:
         check_plot_path(args.plot)
     if args.identify_T0:
+        if args.trajectory:
+            raise ParameterError(
+                "--trajectory: not with --identify-T0 (T0 is identified from velocity steps about home)"
+            )
         return _identify(args, servo, load, rates)
     if args.kin_error is not None:
         raise ParameterError("--kin-error: only with --identify-T0 (the loop analysis uses the single-axis load)")

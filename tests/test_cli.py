@@ -114,6 +114,7 @@ def test_sim_mjx_reports_the_machine_metrics(tmp_path):
         ["sim", "--plant", "axis", "--kin-error", "3"],
         ["sim", "--plant", "mjx", "--duration", "2"],
         ["sim", "--plant", "axis", "--mode", "hybrid"],
+        ["analyze", "--identify-T0", "--trajectory", "arc"],
     ],
 )
 def test_bad_machine_arguments_exit_2_with_one_line(args):
