@@ -29,6 +29,7 @@ import sys
 import threading
 
 from pusupu_jax.cascade import AXIS_MODES, GAIN_FILE_MODES, Mode
+from pusupu_jax.devices import DeviceChoice
 from pusupu_jax.params import IMC_FORMS, ParameterError
 
 from . import bridge as bridge_cli
@@ -265,6 +266,14 @@ def _parser() -> argparse.ArgumentParser:
             help="form of the IMC prefilter C1: full (reference response (3 l1 s+1)/(l1 s+1)^3, what "
             "section 2.2 describes) or printed (eq. 9 as printed); default: the params or gain "
             "file's servo.imc_form, else full (docs/imc.md)",
+        )
+    for sp in (s, t, b, e):
+        sp.add_argument(
+            "--device",
+            choices=[str(d) for d in DeviceChoice],
+            default=str(DeviceChoice.AUTO),
+            help="where to compute: auto (the GPU only for work wide enough to run faster there, measured; "
+            "docs/benchmarks.md), cpu (every core) or gpu (default auto)",
         )
     bridge_cli.add_parsers(sub)
     return p

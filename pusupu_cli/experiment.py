@@ -9,7 +9,12 @@ import time
 
 from pusupu_jax.params import ParameterError
 
+from pusupu_jax import devices
+
 from .common import checking, machine_of
+
+# the widest batch an experiment simulates at once (hybrid_grid's sweep of one gain over a path)
+EXPERIMENT_ROWS = 64
 
 
 def cmd_experiment(args) -> int:
@@ -20,6 +25,7 @@ def cmd_experiment(args) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ParameterError(f"--out: expected a folder, got the file {args.out!r}")
+    devices.choose(args.device, EXPERIMENT_ROWS, f"at most {EXPERIMENT_ROWS} simulated scenarios")
     setup_jax()
     from pusupu_jax import experiments
 
@@ -28,6 +34,7 @@ def cmd_experiment(args) -> int:
         g = experiments.gain_file(args.name, args.gains)
     machine = machine_of(args) if args.machine else None
     experiments.check_machine(args.name, machine)
+    devices.announce()
     print(
         f"experiment {args.name}{' (quick)' if args.quick else ''}: running (the first runs compile for about "
         "20 s per control mode)",

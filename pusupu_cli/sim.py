@@ -10,6 +10,8 @@ import time
 from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError
 
+from pusupu_jax import devices
+
 from .common import check_output_path, check_path_on, check_plot_path, load_gains, machine_of, num
 
 
@@ -22,6 +24,7 @@ def cmd_sim(args) -> int:
         raise ParameterError(f"--trajectory: expected one of {axis_kinds} with --plant axis, got {args.trajectory!r}")
     if args.plant == "axis" and args.kin_error is not None:
         raise ParameterError("--kin-error: only the mjx plant has kinematic errors")
+    devices.choose(args.device, 1, "one run")
     servo, load, rates, hybrid = load_gains(args)
     if args.plot:
         check_plot_path(args.plot)
@@ -43,6 +46,7 @@ def cmd_sim(args) -> int:
     from pusupu_jax.trajectories import axis_reference
 
     ref = axis_reference(args.trajectory, rates, args.duration)
+    devices.announce()
     t0 = time.perf_counter()
     trace = jax.block_until_ready(simulate(servo, ref, load=load, rates=rates, mode=args.mode, start=args.start))
     wall = time.perf_counter() - t0
@@ -95,6 +99,7 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
     )
     path = platform_path_from(args.trajectory, machine.geometry.home, rates)
     check_path_on(machine, path, servo, f"--trajectory {args.trajectory}", rates.dt_position, options)
+    devices.announce()
     print(
         f"simulating {len(path) * rates.dt_position:.1f} s of the {args.trajectory} path on the MJX machine "
         f"({args.mode} mode); the first run compiles for about 15 s",

@@ -7,6 +7,8 @@ import json
 
 from pusupu_jax.params import ParameterError
 
+from pusupu_jax import devices
+
 from .common import checking, machine_of, say
 
 
@@ -27,6 +29,9 @@ def cmd_tune(args) -> int:
             cfg = TuneConfig.load(args.config, base=cfg)
     if args.imc_form:
         cfg = cfg.replace(imc_form=args.imc_form)
+    # the rows of one gradient: every window of every scenario (starts run one after another)
+    scenarios = len(cfg.trajectories) * len(cfg.kin_error_seeds) * len(cfg.payloads)
+    devices.choose(args.device, scenarios * cfg.windows, f"{scenarios} scenario(s) x {cfg.windows} windows")
     out = Path(args.out)
     machine = machine_of(args)
     start = args.start_gains
@@ -59,7 +64,13 @@ def cmd_batch(args) -> int:
     if args.workers is not None and args.workers < 1:
         raise ParameterError(f"--workers: expected a positive number of CPUs, got {args.workers}")
     summary, status = run_batch(
-        args.job, args.out, ray=args.ray, address=args.address, workers=args.workers, fresh=args.fresh
+        args.job,
+        args.out,
+        ray=args.ray,
+        address=args.address,
+        workers=args.workers,
+        fresh=args.fresh,
+        device=None if args.ray else args.device,
     )
     if args.json:
         print(json.dumps(summary, indent=2))

@@ -121,12 +121,20 @@ class Program:
     traced from, besides this package.  ``folder``: where the programs are kept (default :func:`cache_folder`).
     ``loaded`` counts the signatures read from disk.  The outputs come back as host copies (uncommitted arrays, as
     a plain jit returns them): this is for programs with small outputs, such as a value and its gradient.
+
+    ``mesh``: the devices a program that lays its work over several (:func:`pusupu_jax.devices.spread_rows`) runs
+    on; its arguments and outputs are whole on each of them (replicated), and its file is for that many devices.
     """
 
     def __init__(
-        self, fun: Callable, key: str | Callable[[], str], sources: tuple[Path, ...] = (), folder: Path | None = None
+        self,
+        fun: Callable,
+        key: str | Callable[[], str],
+        sources: tuple[Path, ...] = (),
+        folder: Path | None = None,
+        mesh=None,
     ):
-        self.fun, self.key, self.folder = fun, key, folder
+        self.fun, self.key, self.folder, self.mesh = fun, key, folder, mesh
         self.sources = tuple(Path(s) for s in sources)
         self.loaded = 0
         self._calls: dict = {}
@@ -161,6 +169,7 @@ class Program:
             self.key() if callable(self.key) else self.key,
             _versions(),
             jax.default_backend(),
+            f"devices={1 if self.mesh is None else self.mesh.size}",
             settings,
             describe(tree),
             ";".join(avals),
@@ -173,17 +182,18 @@ class Program:
         def flat(*xs):
             return self.fun(*jax.tree.unflatten(tree, xs))
 
+        jit = self._jit
         folder = self.folder or cache_folder()
         if folder is None:
-            return jax.jit(flat)
+            return jit(flat)
         try:
             path = folder / (self.digest(tree, avals) + SUFFIX)
         except UnstableKey as e:
             warnings.warn(f"pusupu_jax.programs: not kept on disk ({e})", stacklevel=4)
-            return jax.jit(flat)
+            return jit(flat)
         if path.exists():
             try:
-                call = self._load(path, leaves)
+                call = self._load(path, leaves, jit)
                 self.loaded += 1
                 return call
             except Exception as e:  # damaged, foreign, or for other arguments: trace again and replace it
@@ -191,23 +201,32 @@ class Program:
                     f"pusupu_jax.programs: {path} did not load ({type(e).__name__}: {e}); tracing again", stacklevel=4
                 )
         try:
-            exported = export.export(jax.jit(flat))(*leaves)
+            exported = export.export(jit(flat))(*leaves)
         except Exception as e:  # what jax.export refuses (host callbacks, some custom calls): jit it as it is
             warnings.warn(
                 f"pusupu_jax.programs: not exported, traced in this process only ({type(e).__name__}: {e})",
                 stacklevel=4,
             )
-            return jax.jit(flat)
+            return jit(flat)
         try:
             blob = bytes(exported.serialize())
             folder.mkdir(parents=True, exist_ok=True)
             write_atomic(path, hashlib.sha256(blob).digest() + blob)
         except Exception as e:  # a full or read-only disk, an output jax.export cannot write, no flatbuffers
             warnings.warn(f"pusupu_jax.programs: could not keep {path} ({type(e).__name__}: {e})", stacklevel=4)
-        return jax.jit(exported.call)
+        return jit(exported.call)
+
+    def _jit(self, fun: Callable):
+        """``jax.jit(fun)``; over :attr:`mesh`, with every argument and output whole on each of its devices."""
+        if self.mesh is None:
+            return jax.jit(fun)
+        from jax.sharding import NamedSharding, PartitionSpec
+
+        whole = NamedSharding(self.mesh, PartitionSpec())
+        return jax.jit(fun, in_shardings=whole, out_shardings=whole)
 
     @staticmethod
-    def _load(path: Path, leaves):
+    def _load(path: Path, leaves, jit: Callable):
         """The jitted call of the program in ``path``, checked: its checksum, its arguments' types, and a lowering."""
         data = path.read_bytes()
         blob = data[32:]
@@ -217,6 +236,6 @@ class Program:
         want = [jax.typeof(x) for x in leaves]
         if [(a.shape, a.dtype) for a in exported.in_avals] != [(a.shape, a.dtype) for a in want]:
             raise ValueError("made for other argument types")
-        call = jax.jit(exported.call)
+        call = jit(exported.call)
         call.lower(*leaves)  # parses the module (cached: the first call does not lower again)
         return call

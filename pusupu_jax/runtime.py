@@ -37,9 +37,21 @@ XLA_COMPILE_MEASURED_ON = ("0.10.",)
 # -> 305 us, max 3.3 -> 0.56 ms.  Added for those processes only (apply_xla_workaround(one_thread=True)), and, as the
 # compile flags, only with a jaxlib of the series it was measured with.
 XLA_CPU_ONE_THREAD = ("--xla_cpu_multi_thread_eigen=false",)
+# One XLA host device per CPU the process may run on: independent rows of a batch (the tuner's windows, a batch's
+# members) are laid over them (pusupu_jax.devices.row_mesh) and run on every core at once; one device computes a
+# scan of small steps on one core.  Every jaxlib knows the flag.  Not for the real-time processes (one_thread).
+XLA_HOST_DEVICES = "--xla_force_host_platform_device_count"
 
 
-def _gpu_plugin_installed() -> bool:
+def cpu_count() -> int:
+    """The CPUs this process may run on (its affinity, as ``taskset`` sets it), at least 1."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # no affinity on this OS
+        return max(1, os.cpu_count() or 1)
+
+
+def gpu_plugin_installed() -> bool:
     """Whether a GPU plugin for jax (``jax_plugins.xla_cuda12`` and the like) is installed; nothing is imported."""
     import importlib.util
     import pkgutil
@@ -58,24 +70,35 @@ def _jaxlib_version() -> str:
         return ""
 
 
+_host_devices_added = False  # whether apply_xla_workaround put XLA_HOST_DEVICES into XLA_FLAGS (not the user)
+
+
 def apply_xla_workaround(one_thread: bool = False) -> None:
-    """Add :data:`XLA_CPU_WORKAROUND` and, with a jaxlib of :data:`XLA_COMPILE_MEASURED_ON`, the compile-time flags
+    """Add :data:`XLA_CPU_WORKAROUND`, one host device per CPU (:data:`XLA_HOST_DEVICES`; ``one_thread`` takes it
+    out again where this function put it in)
+    and, with a jaxlib of :data:`XLA_COMPILE_MEASURED_ON`, the compile-time flags
     (:data:`XLA_CPU_COMPILE`; :data:`XLA_LLVM_CPU_ONLY` where no GPU plugin is installed) to ``XLA_FLAGS``, each
     unless the user set that flag themselves.  ``one_thread``: :data:`XLA_CPU_ONE_THREAD` too, for a real-time
     process; it takes effect only when called before JAX's CPU backend starts (the process's first computation).
 
     ``PUSUPU_XLA_WORKAROUND=0`` leaves ``XLA_FLAGS`` alone (for a jaxlib that no longer knows the flags).
     """
+    global _host_devices_added
     if os.environ.get("PUSUPU_XLA_WORKAROUND") == "0":
         return
-    wanted = (XLA_CPU_WORKAROUND,)
+    flags = os.environ.get("XLA_FLAGS", "")
+    if one_thread and _host_devices_added:  # the package's import added it: a real-time process runs on one CPU
+        flags = " ".join(f for f in flags.split() if not f.startswith(XLA_HOST_DEVICES + "="))
+    elif not one_thread and XLA_HOST_DEVICES not in flags:
+        flags = f"{flags} {XLA_HOST_DEVICES}={cpu_count()}".strip()
+        _host_devices_added = True
+    wanted: tuple[str, ...] = (XLA_CPU_WORKAROUND,)
     if _jaxlib_version().startswith(XLA_COMPILE_MEASURED_ON):
         wanted += (
             *XLA_CPU_COMPILE,
-            *(() if _gpu_plugin_installed() else XLA_LLVM_CPU_ONLY),
+            *(() if gpu_plugin_installed() else XLA_LLVM_CPU_ONLY),
             *(XLA_CPU_ONE_THREAD if one_thread else ()),
         )
-    flags = os.environ.get("XLA_FLAGS", "")
     for flag in wanted:
         if flag.split("=")[0] not in flags:
             flags = f"{flags} {flag}".strip()

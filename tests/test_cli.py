@@ -115,6 +115,8 @@ def test_sim_mjx_reports_the_machine_metrics(tmp_path):
         ["sim", "--plant", "mjx", "--duration", "2"],
         ["sim", "--plant", "axis", "--mode", "hybrid"],
         ["analyze", "--identify-T0", "--trajectory", "arc"],
+        ["sim", "--plant", "mjx", "--device", "gpu"],  # no GPU for JAX where the suite runs
+        ["tune", "--device", "tpu"],
     ],
 )
 def test_bad_machine_arguments_exit_2_with_one_line(args):

@@ -114,7 +114,8 @@ def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
     ``jax_plugins`` namespace, made here as an empty one); ``PUSUPU_XLA_WORKAROUND=0`` leaves XLA_FLAGS alone; with
     a jaxlib of a series the compile flags were not measured on, only the workaround is added (the compile flags'
     checks run where the installed jaxlib is of the measured series, as CI's is); the single-threaded CPU flag only
-    when asked for (pusupu bridge, pusupu sim-robot)."""
+    when asked for (pusupu bridge, pusupu sim-robot), which also take out the one host device per CPU the import added
+    (a count the user set stays)."""
     import os
     import subprocess
     import sys
@@ -135,6 +136,12 @@ def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
     assert plain.count("--xla_cpu_use_fusion_emitters=true") == 1 and "--xla_cpu_use_fusion_emitters=false" not in plain
     assert runtime.XLA_CPU_WORKAROUND in plain
     assert not set(runtime.XLA_CPU_ONE_THREAD) & set(plain)  # for the real-time processes only
+    host_devices = f"{runtime.XLA_HOST_DEVICES}={runtime.cpu_count()}"
+    assert host_devices in plain
+    one_cpu = flags({}, then="pusupu_jax.runtime.apply_xla_workaround(one_thread=True)")
+    assert not [f for f in one_cpu if f.startswith(runtime.XLA_HOST_DEVICES)]
+    users = flags({"XLA_FLAGS": f"{runtime.XLA_HOST_DEVICES}=3"}, then="pusupu_jax.runtime.apply_xla_workaround(True)")
+    assert [f for f in users if f.startswith(runtime.XLA_HOST_DEVICES)] == [f"{runtime.XLA_HOST_DEVICES}=3"]
     if runtime._jaxlib_version().startswith(runtime.XLA_COMPILE_MEASURED_ON):  # the jaxlib installed here (CI's: 0.10)
         assert set(runtime.XLA_LLVM_CPU_ONLY) <= set(plain)
         real_time = flags({}, then="pusupu_jax.runtime.apply_xla_workaround(one_thread=True)")
@@ -148,7 +155,7 @@ def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
     other = tmp_path / "other" / "jaxlib-0.11.2.dist-info"
     other.mkdir(parents=True)
     (other / "METADATA").write_text("Metadata-Version: 2.1\nName: jaxlib\nVersion: 0.11.2\n")
-    assert flags({}, other.parent) == ["--xla_cpu_use_fusion_emitters=true", runtime.XLA_CPU_WORKAROUND]
+    assert flags({}, other.parent) == ["--xla_cpu_use_fusion_emitters=true", host_devices, runtime.XLA_CPU_WORKAROUND]
 
 
 def test_importing_the_packages_makes_no_jax_array():

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from pusupu_jax import machine_file, objectives
+from pusupu_jax import devices as placement, machine_file, objectives
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.gradients import value_and_grad
 from pusupu_jax.hybrid import HybridGains
@@ -63,7 +63,8 @@ def _take(tree, index):
 class BatchProblem(WindowStarts):
     """``problems`` (scenario index lists into ``specs``, all of one length) x ``starts`` members, one objective.
 
-    ``devices``: the devices to shard the batch over (default every visible one).  ``machine``: the machine that
+    ``devices``: the devices to shard the batch over (default every one of the chosen platform,
+    :func:`pusupu_jax.devices.chosen_devices`).  ``machine``: the machine that
     ``servo0`` and ``specs`` are on (default the built-in one), whose load the margin constraints take.
     """
 
@@ -88,7 +89,7 @@ class BatchProblem(WindowStarts):
         # the margin constraints' load (the machine's, as the export's): ``servo0`` and ``specs`` are on ``machine``
         self.load = machine_file.axis_load(Machine.default() if machine is None else machine)
         self.problems = problems
-        self.devices = list(devices if devices is not None else jax.devices())
+        self.devices = list(devices if devices is not None else placement.chosen_devices())
         members = [(j, k) for j in range(len(problems)) for k in range(cfg.starts)]
         self.n_real = len(members)
         members += [members[-1]] * (-len(members) % len(self.devices))  # padding: results discarded

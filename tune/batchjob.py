@@ -26,7 +26,7 @@ from typing import Callable
 
 import numpy as np
 
-from pusupu_jax import inputs, machine_file
+from pusupu_jax import devices as placement, inputs, machine_file
 from pusupu_jax.files import write_atomic
 from pusupu_jax.runtime import setup_jax
 from pusupu_jax.machine_file import Machine
@@ -272,11 +272,19 @@ def run_batch(
     workers: int | None = None,
     fresh: bool = False,
     stream=sys.stderr,
+    device: str | None = None,
 ) -> tuple[dict, int]:
-    """Run a job file; returns ``(summary, exit status)``: 0 when every job exported gains, 1 otherwise."""
+    """Run a job file; returns ``(summary, exit status)``: 0 when every job exported gains, 1 otherwise.  ``device``:
+    where this process computes (:func:`pusupu_jax.devices.choose`: ``auto`` by the widest shard's rows), or None for
+    JAX's default (Ray's tasks take a GPU where the cluster has one)."""
     from .job import OutputLock, prepare_output
 
     jf = jobfile.read(path)
+    if device is not None:
+        ok = [j for j in jf.jobs if j.error is None]
+        rows = max((j.config.starts * len(j.specs) * j.config.windows for j in ok), default=1)
+        members = max(1, min(jf.shard_size or len(ok), len(ok)))
+        placement.choose(device, rows * members, f"{members} job(s) x {rows} windows")
     out = prepare_output(Path(out), SUMMARY_FILES)
     lock = OutputLock(out)
     try:
@@ -299,6 +307,7 @@ def run_batch(
                     rows[j.name] = report["row"]
             if pending:
                 tasks += shards(pending, jf.shard_size)
+        placement.announce(stream)
         print(
             f"batch: {len(jf.jobs)} job(s) ({jf.problems}), {unreadable} failed to read, {len(rows) - unreadable} done "
             f"before, {len(tasks)} shard(s) to run" + (" as Ray tasks" if ray else ""),

@@ -32,7 +32,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from pusupu_jax import gains, inputs, machine_file, ros2, stability
+from pusupu_jax import devices, gains, inputs, machine_file, ros2, stability
 from pusupu_jax.files import check_output, write_atomic, write_files
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, simulate_scenarios
@@ -56,10 +56,10 @@ def evaluate_baselines(cfg: TuneConfig, rates, specs=None, servo: ServoParams | 
     specs = scenario_list(cfg) if specs is None else specs
     servo = ServoParams.table1() if servo is None else servo
     scenarios = [Scenario(spec.path(rates), spec.options, spec.name, spec.geometry) for spec in specs]
-    return {
-        mode: {sc.name: out for sc, out in zip(scenarios, simulate_scenarios(servo, scenarios, mode=mode, rates=rates))}
-        for mode in cfg.baselines
-    }
+    runs = devices.map_on_devices(  # the modes at once, each on a device of its own
+        lambda mode: simulate_scenarios(servo, scenarios, mode=mode, rates=rates), list(cfg.baselines)
+    )
+    return {mode: {sc.name: out for sc, out in zip(scenarios, outs)} for mode, outs in zip(cfg.baselines, runs)}
 
 
 def start_gains(machine: Machine, start=None, stream=None) -> tuple[ServoParams, HybridGains, dict]:
@@ -262,6 +262,7 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
         ).encode()
     ).hexdigest()
     problem = Problem(cfg, servo0, hybrid0, specs, digest=digest, load=machine_file.axis_load(machine))
+    devices.announce(stream)
     extent = "whole path" if cfg.path_s is None else f"path cut to {cfg.path_s:g} s"
     print(
         f"tune: {len(problem.scenarios.names)} scenario(s) ({', '.join(problem.scenarios.names)}), "

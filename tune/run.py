@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from pusupu_jax import machine_file, objectives, workload
+from pusupu_jax import devices, machine_file, objectives, workload
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.gradients import value_and_grad
 from pusupu_jax.hybrid import HybridGains
@@ -254,6 +254,7 @@ class WindowStarts:
     baseline = None
     starts = None  # window start carries (rows K, ...)
     _starts_z = None
+    mesh = None  # the devices the gradient's windows are laid over (pusupu_jax.devices.row_mesh), or None: one
 
     def prepare(self, z, iteration: int) -> None:
         """Before iteration ``iteration``: renew the start states every ``refresh_every`` iterations (and when
@@ -309,15 +310,23 @@ class Problem(WindowStarts):
         # the margin constraints' single-axis load: the machine's (machine_file.axis_load; default the built-in one's)
         self.load = machine_file.axis_load(Machine.default()) if load is None else load
         self.rows = len(sc.names)
+        # every window of every scenario is independent: they are laid over the devices (one per CPU core)
+        self.mesh = devices.row_mesh(self.rows * sc.windows)
         self._value_and_grad = _shared_gradient(self)
 
     def run_paths(self, z) -> list:
         """The forward pass over every scenario's whole path at ``z``: ``[(trace (K every, ...), carries (K,
-        ...))]``."""
+        ...))]`` (host arrays).  The groups of equal path length run at once, each on its own device."""
         servo, hybrid = self.space.apply(z)
-        out = [None] * len(self.scenarios.names)
-        for idx, models, refs in self.scenarios.groups.values():
+
+        def run(group):  # the groups run at once, each on a device of its own
+            idx, models, refs = group
             traces, carries = self.scenarios.whole(servo, hybrid, models, refs, self.cfg.mode, self.rates)
+            return idx, traces, jax.tree.map(np.asarray, carries)
+
+        runs = devices.map_on_devices(run, list(self.scenarios.groups.values()))
+        out = [None] * len(self.scenarios.names)
+        for idx, traces, carries in runs:
             for j, i in enumerate(idx):
                 out[i] = jax.tree.map(lambda x: x[j], (traces, carries))
         return out
@@ -350,8 +359,9 @@ class Problem(WindowStarts):
                 remat=self.cfg.remat,
             )
 
-        models, reference, path = windows
+        models, reference, starts = devices.spread_rows((windows[0], windows[1], starts), self.mesh)
         traces = jax.vmap(one)(models, reference, starts)
+        path = windows[2]
         S, K = len(sc.names), sc.windows
         joined = jax.tree.map(lambda x: join_windows(x, S, K), traces)
         path = join_windows(path, S, K)
@@ -426,6 +436,7 @@ def structure_key(problem: WindowStarts, *layout) -> str:
             problem.scenarios.plant.options,
             problem.rates,
             problem.rows,
+            1 if problem.mesh is None else problem.mesh.size,
             space.fields,
             space.shared,
             start,
@@ -451,6 +462,9 @@ def _shared_gradient(problem: Problem) -> Program:
         # the file's name is taken again when it is traced: a configuration whose dicts (weights, bounds) were edited
         # in place since this Problem was built is traced under its own name, not under this key's
         _GRADIENTS[key] = Program(
-            value_and_grad(problem.objective, problem.cfg.gradient), lambda: structure_key(problem), sources=(HERE,)
+            value_and_grad(problem.objective, problem.cfg.gradient),
+            lambda: structure_key(problem),
+            sources=(HERE,),
+            mesh=problem.mesh,
         )
     return _GRADIENTS[key]

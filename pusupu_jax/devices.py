@@ -1,0 +1,163 @@
+"""Which device computes a command's work (``--device auto|cpu|gpu``), and how a batch of independent rows (the
+training windows of one tuning problem) is spread over the devices (host-side).
+
+A rollout of the machine is a scan of small steps: on a GPU each step is a few dozen kernel launches whatever the
+batch width, on a CPU core its cost grows with the width.  So a GPU pays only for wide batches, and ``auto`` chooses
+it only when the work's width (the rows one gradient computes: members x scenarios x windows) reaches
+:data:`GPU_CROSSOVER_ROWS` (docs/benchmarks.md); otherwise the CPU.
+
+On the CPU, :func:`pusupu_jax.runtime.apply_xla_workaround` makes one XLA host device per core the process may run
+on (``--xla_force_host_platform_device_count``), and :func:`row_mesh` lays a batch's rows over them, so that the
+independent windows run on every core at once instead of one scan on one core.
+"""
+
+from __future__ import annotations
+
+import enum
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from typing import Callable, Sequence
+
+from . import runtime
+from .params import ParameterError
+
+# The rows of one batch from which ``auto`` takes the GPU.  Measured on a 16-core Xeon host with one H100 (jax 0.11.2):
+# ``pusupu tune``'s 12 rows (6 windows of 0.5 s on each of the arc and p2p) ran 20-30 s an iteration on the GPU against
+# 4.7 on two of its cores; 1024 rows of one 0.5 s window on a 3 s path (benchmarks/bench_batch.py --batches 1024
+# --path 3 --window 0.5) ran 150 row-iterations a second on the GPU against 2.6 for the default tune on two cores.
+# Between 12 and 1024 rows the crossover is not measured: the GPU is taken from the smallest width at which it was
+# measured faster.
+GPU_CROSSOVER_ROWS = 1024
+
+
+class DeviceChoice(enum.StrEnum):
+    """``--device``: ``auto`` (the measured crossover), ``cpu`` or ``gpu``."""
+
+    AUTO = "auto"
+    CPU = "cpu"
+    GPU = "gpu"
+
+
+def gpu_available() -> bool:
+    """Whether JAX has a GPU backend (initialises JAX's backends)."""
+    import jax
+
+    try:
+        return bool(jax.devices("gpu"))
+    except RuntimeError:
+        return False
+
+
+_chosen: str | None = None  # the platform select() chose for this process (None: JAX's default backend's)
+_why: str | None = None  # and why (choose())
+
+
+def select(requested: DeviceChoice | str, rows: int, what: str = "") -> tuple[str, str]:
+    """``(platform, why)`` for work whose widest batch has ``rows`` independent rows (``what``: those rows in words):
+    ``cpu`` or ``gpu``, and a few words on why; the process computes there from now on (:func:`chosen_devices`).
+
+    Best called before JAX's backends start (the first computation): a CPU choice then keeps the GPU's backend from
+    starting, so that it takes no GPU memory.  :class:`ParameterError` when a GPU is asked for and none is found.
+    """
+    global _chosen
+    import jax
+
+    requested = DeviceChoice(requested)
+    if requested is DeviceChoice.GPU:
+        if not (runtime.gpu_plugin_installed() and gpu_available()):
+            raise ParameterError("--device gpu: expected a GPU that JAX can use, found none (jax.devices('gpu'))")
+        platform, why = "gpu", "asked for (--device gpu)"
+    elif requested is DeviceChoice.CPU:
+        platform, why = "cpu", "asked for (--device cpu)"
+    elif not runtime.gpu_plugin_installed():
+        platform, why = "cpu", "auto: no GPU plugin for JAX is installed"
+    elif rows < GPU_CROSSOVER_ROWS:
+        platform, why = (
+            "cpu",
+            f"auto: {what or rows} in one batch, below the {GPU_CROSSOVER_ROWS} rows from which a GPU was faster",
+        )
+    elif not gpu_available():
+        platform, why = "cpu", "auto: no GPU found"
+    else:
+        platform, why = (
+            "gpu",
+            f"auto: {what or rows} in one batch, from the {GPU_CROSSOVER_ROWS} rows at which a GPU was faster",
+        )
+    if platform == "cpu":
+        jax.config.update("jax_platforms", "cpu")  # no GPU backend, if none has started yet
+        jax.config.update("jax_default_device", jax.devices("cpu")[0])
+    _chosen = platform
+    return platform, why
+
+
+def choose(requested: DeviceChoice | str, rows: int, what: str) -> str:
+    """:func:`select`, kept for :func:`announce` (a command chooses before its checks and says so once they pass);
+    returns the platform."""
+    global _why
+    platform, _why = select(requested, rows, what)
+    return platform
+
+
+def announce(stream=None) -> None:
+    """One line on ``stream`` (default stderr) before a command's work: ``pusupu: computing on cpu (2 device(s) on 2
+    core(s)): auto: ...``, or on JAX's default backend when nothing was chosen (a notebook)."""
+    import jax
+
+    platform = _chosen or jax.default_backend()
+    print(f"pusupu: computing on {describe(platform)}: {_why or 'JAX default'}", file=stream or sys.stderr, flush=True)
+
+
+def chosen_devices() -> list:
+    """The devices of the platform :func:`select` chose, else those of JAX's default backend."""
+    import jax
+
+    return list(jax.devices(_chosen))
+
+
+def describe(platform: str) -> str:
+    """``cpu (N devices on N cores)`` or ``gpu (NAME)``, for a progress line."""
+    import jax
+
+    devices = jax.devices(platform)
+    if platform == "cpu":
+        return f"cpu ({len(devices)} device(s) on {runtime.cpu_count()} core(s))"
+    return f"gpu ({devices[0].device_kind})"
+
+
+def row_mesh(rows: int, devices=None):
+    """A one-axis mesh (axis ``rows``) over the largest number of ``devices`` (default :func:`chosen_devices`)
+    that divides ``rows``, or None when that is one device."""
+    import numpy as np
+    from jax.sharding import Mesh
+
+    devices = chosen_devices() if devices is None else devices
+    n = max(d for d in range(1, len(devices) + 1) if rows % d == 0)
+    return None if n == 1 else Mesh(np.array(list(devices)[:n]), ("rows",))
+
+
+def spread_rows(tree, mesh):
+    """``tree`` with its leading axis laid over ``mesh``'s devices, inside a traced function (no-op without one)."""
+    import jax
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    if mesh is None:
+        return tree
+    return jax.lax.with_sharding_constraint(tree, NamedSharding(mesh, PartitionSpec("rows")))
+
+
+def map_on_devices(fn: Callable, items: Sequence) -> list:
+    """``[fn(item) for item in items]``, each in a host thread of its own under ``jax.default_device`` of one of JAX's
+    devices in turn, so that independent runs (paths of different lengths, baseline modes) compute at once; ``fn``
+    returns host arrays (NumPy), since its outputs stay on the devices they were computed on."""
+    import jax
+
+    placed = chosen_devices()
+    if len(placed) == 1 or len(items) < 2:
+        return [fn(item) for item in items]
+
+    def run(i):
+        with jax.default_device(placed[i % len(placed)]):
+            return fn(items[i])
+
+    with ThreadPoolExecutor(min(len(items), len(placed))) as pool:
+        return list(pool.map(run, range(len(items))))
