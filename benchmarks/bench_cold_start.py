@@ -23,9 +23,16 @@ import sys
 import tempfile
 from pathlib import Path
 
-CHILD = r"""
-import json, sys, time
+from timing import MOUNT_TREE  # beside this script
+
+CHILD = (
+    r"""
+import time
 t0 = time.perf_counter()
+"""
+    + MOUNT_TREE
+    + r"""
+import json
 import jax, jax.numpy as jnp
 import numpy as np
 from pusupu_jax.runtime import setup_jax
@@ -94,6 +101,7 @@ out["trace_and_compile_s"] = sum(out[k] for k in ("forward_trace_s", "forward_co
                                                   "gradient_compile_s"))
 print(json.dumps(out))
 """
+)
 
 
 def measure(tree: Path, config: str, xla_flags: str = "") -> dict:
@@ -103,7 +111,7 @@ def measure(tree: Path, config: str, xla_flags: str = "") -> dict:
         env = dict(os.environ, PYTHONPATH=str(tree), XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} {xla_flags}".strip())
         env.pop("PUSUPU_JAX_CACHE", None)
         done = subprocess.run(
-            [sys.executable, "-c", CHILD, config, cache],
+            [sys.executable, "-c", CHILD, config, cache, str(tree)],
             env=env,
             cwd=tree,
             capture_output=True,

@@ -134,3 +134,17 @@ class PauseProbe:
                 "spans": [(a, 1e3 * (b - a)) for a, b in sorted(together)][:50],
             },
         }
+
+
+# The first lines of a benchmark's child interpreter that measures a source tree (its folder is the child's last
+# argument and first on PYTHONPATH): the tree's tune/ is mounted as pusupu_jax.tune, since an installed copy of the
+# package (an editable install of another tree) would otherwise supply it.
+MOUNT_TREE = r"""
+import importlib.util, os, sys
+import pusupu_jax
+_tune = os.path.join(sys.argv[-1], "tune")
+_spec = importlib.util.spec_from_file_location("pusupu_jax.tune", os.path.join(_tune, "__init__.py"),
+                                               submodule_search_locations=[_tune])
+sys.modules["pusupu_jax.tune"] = _module = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_module)
+"""

@@ -15,8 +15,6 @@ from __future__ import annotations
 
 import enum
 import sys
-from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, Sequence
 
 from . import runtime
 from .params import ParameterError
@@ -143,21 +141,3 @@ def spread_rows(tree, mesh):
     if mesh is None:
         return tree
     return jax.lax.with_sharding_constraint(tree, NamedSharding(mesh, PartitionSpec("rows")))
-
-
-def map_on_devices(fn: Callable, items: Sequence) -> list:
-    """``[fn(item) for item in items]``, each in a host thread of its own under ``jax.default_device`` of one of JAX's
-    devices in turn, so that independent runs (paths of different lengths, baseline modes) compute at once; ``fn``
-    returns host arrays (NumPy), since its outputs stay on the devices they were computed on."""
-    import jax
-
-    placed = chosen_devices()
-    if len(placed) == 1 or len(items) < 2:
-        return [fn(item) for item in items]
-
-    def run(i):
-        with jax.default_device(placed[i % len(placed)]):
-            return fn(items[i])
-
-    with ThreadPoolExecutor(min(len(items), len(placed))) as pool:
-        return list(pool.map(run, range(len(items))))

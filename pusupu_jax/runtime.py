@@ -38,7 +38,7 @@ XLA_COMPILE_MEASURED_ON = ("0.10.",)
 # compile flags, only with a jaxlib of the series it was measured with.
 XLA_CPU_ONE_THREAD = ("--xla_cpu_multi_thread_eigen=false",)
 # One XLA host device per CPU the process may run on: independent rows of a batch (the tuner's windows, a batch's
-# members) are laid over them (pusupu_jax.devices.row_mesh) and run on every core at once; one device computes a
+# members) are laid over them (pusupu_jax.devices.row_mesh) and run on every core together; one device computes a
 # scan of small steps on one core.  Every jaxlib knows the flag.  Not for the real-time processes (one_thread).
 XLA_HOST_DEVICES = "--xla_force_host_platform_device_count"
 

@@ -1,8 +1,7 @@
-"""Where the work runs: one host device per CPU core, a batch's rows laid over them, independent runs at once, and
-the tuner's gradient the same to rounding whether its windows are laid over one device or several."""
+"""Where the work runs: one host device per CPU core, a batch's rows laid over them, and the tuner's gradient the same
+to rounding whether its windows are laid over one device or several."""
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -25,19 +24,6 @@ def test_rows_are_laid_over_the_most_devices_that_divide_them():
     assert devices.row_mesh(12, two).size == 2
     assert devices.row_mesh(7, two) is None  # 7 rows do not split over two devices: one runs them all
     assert devices.row_mesh(12, two[:1]) is None
-
-
-@several
-def test_independent_runs_go_to_different_devices_and_give_what_they_give_alone():
-    def run_one(x):
-        y = jnp.cumsum(jnp.sin(jnp.arange(1000.0) * x))
-        return np.asarray(y), next(iter(y.devices()))
-
-    inputs = [0.1, 0.2, 0.3]
-    spread = devices.map_on_devices(run_one, inputs)
-    assert len({d for _, d in spread}) == 2  # three runs over two devices
-    for (y, _), x in zip(spread, inputs):
-        np.testing.assert_array_equal(y, run_one(x)[0])
 
 
 def test_asking_for_a_gpu_where_there_is_none_is_refused():

@@ -56,10 +56,10 @@ def evaluate_baselines(cfg: TuneConfig, rates, specs=None, servo: ServoParams | 
     specs = scenario_list(cfg) if specs is None else specs
     servo = ServoParams.table1() if servo is None else servo
     scenarios = [Scenario(spec.path(rates), spec.options, spec.name, spec.geometry) for spec in specs]
-    runs = devices.map_on_devices(  # the modes at once, each on a device of its own
-        lambda mode: simulate_scenarios(servo, scenarios, mode=mode, rates=rates), list(cfg.baselines)
-    )
-    return {mode: {sc.name: out for sc, out in zip(scenarios, outs)} for mode, outs in zip(cfg.baselines, runs)}
+    return {
+        mode: {sc.name: out for sc, out in zip(scenarios, simulate_scenarios(servo, scenarios, mode=mode, rates=rates))}
+        for mode in cfg.baselines
+    }
 
 
 def start_gains(machine: Machine, start=None, stream=None) -> tuple[ServoParams, HybridGains, dict]:

@@ -22,6 +22,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec
 
 from pusupu_jax import devices, machine_file, objectives, workload
 from pusupu_jax.cascade import control_mode
@@ -156,11 +157,11 @@ class Scenarios:
             np.stack([padded_paths[i][a : a + W] for i, a in pick]),
         )
 
-    def whole(self, servo, hybrid, models, references, mode: str, rates, batched: bool = False):
+    def whole(self, servo, hybrid, models, references, mode: str, rates, batched: bool = False, marks=None):
         """The forward pass over whole paths of one group (``models``, ``references`` ``(n, K every, ...)``):
         ``(traces (n, K every, ...), carries at the window starts (n, K, ...))``.  ``servo`` and ``hybrid`` are shared,
         or one set per path when ``batched``.  One compiled chunk of :func:`~pusupu_jax.sim.run_chunked` serves every
-        path length."""
+        path length.  ``marks``: the periods to keep the carries at, if not the window starts."""
         length = jax.tree.leaves(references)[0].shape[1]
         hybrid_mode = control_mode(mode).hybrid
         return run_chunked(
@@ -173,7 +174,7 @@ class Scenarios:
             hybrid=hybrid if hybrid_mode else None,
             params_axis=0 if batched else None,
             hybrid_axis=0 if batched and hybrid_mode else None,
-            marks=tuple(range(0, length, length // self.windows)),
+            marks=tuple(range(0, length, length // self.windows)) if marks is None else marks,
         )
 
     def reference(self, i: int):
@@ -316,19 +317,40 @@ class Problem(WindowStarts):
 
     def run_paths(self, z) -> list:
         """The forward pass over every scenario's whole path at ``z``: ``[(trace (K every, ...), carries (K,
-        ...))]`` (host arrays).  The groups of equal path length run at once, each on its own device."""
+        ...))]``.  On one device, each group of equal path length in its own batch; where the scenarios can be laid
+        over several devices (:func:`pusupu_jax.devices.row_mesh`), every path in one batch laid over them, held at
+        its last pose to the longest path's length (each device then runs the longest path's length, but all at
+        once)."""
         servo, hybrid = self.space.apply(z)
+        sc = self.scenarios
+        out = [None] * len(sc.names)
+        mesh = devices.row_mesh(len(sc.names)) if len(sc.groups) > 1 else None
+        if mesh is None:
+            for idx, models, refs in sc.groups.values():
+                traces, carries = sc.whole(servo, hybrid, models, refs, self.cfg.mode, self.rates)
+                for j, i in enumerate(idx):
+                    out[i] = jax.tree.map(lambda x: x[j], (traces, carries))
+            return out
+        longest = max(sc.groups)
+        marks = sorted({m for n in sc.groups for m in range(0, n, n // sc.windows)})
+        rows = [(i, n) for n, (idx, _, _) in sc.groups.items() for i in idx]
 
-        def run(group):  # the groups run at once, each on a device of its own
-            idx, models, refs = group
-            traces, carries = self.scenarios.whole(servo, hybrid, models, refs, self.cfg.mode, self.rates)
-            return idx, traces, jax.tree.map(np.asarray, carries)
+        def held(x, n):  # a group's references, holding their last sample to the longest length
+            x = np.asarray(x)
+            return np.pad(x, [(0, 0), (0, longest - n)] + [(0, 0)] * (x.ndim - 2), mode="edge")
 
-        runs = devices.map_on_devices(run, list(self.scenarios.groups.values()))
-        out = [None] * len(self.scenarios.names)
-        for idx, traces, carries in runs:
-            for j, i in enumerate(idx):
-                out[i] = jax.tree.map(lambda x: x[j], (traces, carries))
+        models = jax.tree.map(
+            lambda *x: np.concatenate([np.asarray(a) for a in x]), *[m for _, m, _ in sc.groups.values()]
+        )
+        refs = jax.tree.map(
+            lambda *x: np.concatenate(x), *[jax.tree.map(lambda a: held(a, n), r) for n, (_, _, r) in sc.groups.items()]
+        )
+        models = jax.device_put(models, NamedSharding(mesh, PartitionSpec("rows")))
+        traces, carries = sc.whole(servo, hybrid, models, refs, self.cfg.mode, self.rates, marks=tuple(marks))
+        carries = jax.tree.map(np.asarray, carries)  # fetched from the devices they were laid over
+        for j, (i, n) in enumerate(rows):
+            own = [marks.index(m) for m in range(0, n, n // sc.windows)]
+            out[i] = (jax.tree.map(lambda x: x[j, :n], traces), jax.tree.map(lambda x: x[j, own], carries))
         return out
 
     def refresh(self, z) -> None:

@@ -1,0 +1,171 @@
+"""The main job, ``pusupu tune`` with the embedded configuration: its first iteration cold and warm, and its steady
+iterations, on each device and CPU set given, one run after another (JSON on stdout).
+
+The job is frozen: ``TuneConfig()`` (its digest is in the output), cut to ``--iterations`` iterations (default 6,
+so the steady iterations 2..6 include one renewal of the windows' start states, every ``refresh_every`` = 5, as the
+whole job's do).  Each run is a fresh interpreter that builds the problem and runs the optimiser as ``pusupu tune``
+does; it reports the time from its start (imports included) to the end of the first iteration, and the mean of the
+later ones.  A *cold* run has an empty compilation cache (and so no stored traced programs); the *warm* run after it
+uses the cache the cold one filled.
+
+A configuration is ``LABEL=PLATFORM[@CPUS]``: ``cpu2=cpu@0-1`` runs on the CPU pinned to CPUs 0-1 (``taskset``),
+``gpu=gpu`` on the GPU.  ``--against DIR`` runs each configuration also with another source tree (``git archive``
+of another commit unpacked there), alternating, so that both see the same machine::
+
+    python benchmarks/bench_main_job.py --configs cpu2=cpu@0-1,cpu14=cpu@2-15,gpu=gpu [--against DIR] [--repeat 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from timing import MOUNT_TREE  # beside this script
+
+CHILD = (
+    r"""
+import time
+t0 = time.perf_counter()
+"""
+    + MOUNT_TREE
+    + r"""
+import json
+from pusupu_jax.runtime import setup_jax
+setup_jax(sys.argv[1])
+import jax
+from pusupu_jax.hybrid import HybridGains
+from pusupu_jax.params import ServoParams
+from pusupu_jax.tune.config import TuneConfig
+from pusupu_jax.tune.run import Problem
+
+cfg = TuneConfig()
+digest = cfg.digest()
+cfg = cfg.replace(iterations=int(sys.argv[2]), checkpoint_every=int(sys.argv[2]) * 5)
+ends = []
+cpu0 = os.times()
+
+
+def progress(k, iteration, iterations, value, best, aux, elapsed):
+    ends.append((time.perf_counter() - t0, value))
+
+
+p = Problem(cfg, ServoParams.table1(), HybridGains())
+result = p.tune(progress=progress)
+cpu1 = os.times()
+steady = [b[0] - a[0] for a, b in zip(ends, ends[1:])]
+print(json.dumps({
+    "config_digest": digest,
+    "first_iteration_s": ends[0][0],
+    "steady_iteration_s": sum(steady) / len(steady),
+    "steady_iterations": steady,
+    "objective": [v for _, v in ends],
+    "cpu_s": (cpu1.user - cpu0.user) + (cpu1.system - cpu0.system),
+    "wall_s": time.perf_counter() - t0,
+    "devices": [str(d) for d in jax.devices()],
+    "default_backend": jax.default_backend(),
+    "windows_over_devices": 1 if getattr(p, "mesh", None) is None else p.mesh.size,
+    "sources": [pusupu_jax.__file__, sys.modules["pusupu_jax.tune.run"].__file__],
+    "jax": jax.__version__,
+    "jaxlib": __import__("jaxlib").__version__,
+}))
+"""
+)
+
+
+def run(tree: Path, cache: str, platform_name: str, cpus: str | None, iterations: int) -> dict:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, (str(tree), os.environ.get("PYTHONPATH")))))
+    env.pop("PUSUPU_JAX_CACHE", None)
+    env.pop("JAX_PLATFORMS", None)
+    if platform_name == "cpu":
+        env["JAX_PLATFORMS"] = "cpu"
+    cmd = [sys.executable, "-c", CHILD, cache, str(iterations), str(tree)]
+    if cpus:
+        cmd = ["taskset", "-c", cpus] + cmd
+    done = subprocess.run(cmd, env=env, cwd=tree, capture_output=True, text=True, timeout=3600)
+    if done.returncode:
+        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+        raise SystemExit(f"bench_main_job: the run in {tree} ({platform_name} {cpus or ''}) failed: {last}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--configs", default="cpu=cpu", help="comma-separated LABEL=PLATFORM[@CPUS] (default cpu=cpu)")
+    ap.add_argument("--against", type=Path, help="another source tree to measure the same way, alternating")
+    ap.add_argument("--iterations", type=int, default=6, help="iterations of each run (at least 2)")
+    ap.add_argument("--repeat", type=int, default=1, help="cold + warm pairs of each configuration and tree")
+    ap.add_argument("--no-warm", action="store_true", help="cold runs only")
+    ap.add_argument("--out", type=Path, help="write the JSON here, after every run, instead of on stdout at the end")
+    args = ap.parse_args()
+    if args.iterations < 2:
+        ap.error(f"--iterations: expected at least 2, got {args.iterations}")
+    configs = {}
+    for item in args.configs.split(","):
+        label, _, spec = item.partition("=")
+        name, _, cpus = spec.partition("@")
+        if name not in ("cpu", "gpu") or not label:
+            ap.error(f"--configs: expected LABEL=cpu[@CPUS] or LABEL=gpu, got {item!r}")
+        configs[label] = (name, cpus or None)
+    here = Path(__file__).resolve().parent.parent
+    trees = {"this": here} | ({"against": args.against.resolve()} if args.against else {})
+    runs: dict = {f"{t} {c}": [] for c in configs for t in trees}
+    for r in range(args.repeat):
+        for label, (name, cpus) in configs.items():
+            for tree_name, tree in trees.items():
+                with tempfile.TemporaryDirectory(prefix="pusupu-main-job-") as cache:
+                    cold = run(tree, cache, name, cpus, args.iterations)
+                    warm = None if args.no_warm else run(tree, cache, name, cpus, args.iterations)
+                runs[f"{tree_name} {label}"].append({"cold": cold, "warm": warm})
+                if args.out:
+                    write(args, configs, trees, runs)
+                print(
+                    f"bench_main_job: {tree_name} {label} round {r + 1}: first iteration cold "
+                    f"{cold['first_iteration_s']:.1f} s"
+                    + ("" if warm is None else f", warm {warm['first_iteration_s']:.1f} s")
+                    + f", steady {cold['steady_iteration_s']:.2f} s/it",
+                    file=sys.stderr,
+                    flush=True,
+                )
+    write(args, configs, trees, runs)
+
+
+def write(args, configs, trees, runs) -> None:
+    """The JSON so far: on stdout at the end, and into ``--out`` after every run (a partial campaign keeps what ran)."""
+    text = json.dumps(
+        {
+            "benchmark": "main_job",
+            "job": "TuneConfig() (pusupu tune's embedded configuration), cut to --iterations",
+            "iterations": args.iterations,
+            "configs": {k: {"platform": v[0], "cpus": v[1]} for k, v in configs.items()},
+            "machine": platform.machine(),
+            "cpus": os.cpu_count(),
+            "processor": _processor(),
+            "trees": {k: str(v) for k, v in trees.items()},
+            "runs": runs,
+        },
+        indent=1,
+    )
+    if args.out:
+        args.out.write_text(text)
+    else:
+        print(text)
+
+
+def _processor() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
+
+
+if __name__ == "__main__":
+    main()
