@@ -97,12 +97,12 @@ def choose(requested: DeviceChoice | str, rows: int, what: str) -> str:
 
 
 def announce(stream=None) -> None:
-    """One line on ``stream`` (default stderr) before a command's work: ``pusupu: computing on cpu (2 device(s) on 2
-    core(s)): auto: ...``, or on JAX's default backend when nothing was chosen (a notebook)."""
+    """One line on ``stream`` (default stderr) before a command's work: ``computing on cpu (2 device(s) on 2 core(s)):
+    auto: ...``, or on JAX's default backend when nothing was chosen (a notebook)."""
     import jax
 
     platform = _chosen or jax.default_backend()
-    print(f"pusupu: computing on {describe(platform)}: {_why or 'JAX default'}", file=stream or sys.stderr, flush=True)
+    print(f"computing on {describe(platform)}: {_why or 'JAX default'}", file=stream or sys.stderr, flush=True)
 
 
 def chosen_devices() -> list:

@@ -37,9 +37,10 @@ XLA_COMPILE_MEASURED_ON = ("0.10.",)
 # -> 305 us, max 3.3 -> 0.56 ms.  Added for those processes only (apply_xla_workaround(one_thread=True)), and, as the
 # compile flags, only with a jaxlib of the series it was measured with.
 XLA_CPU_ONE_THREAD = ("--xla_cpu_multi_thread_eigen=false",)
-# One XLA host device per CPU the process may run on: independent rows of a batch (the tuner's windows, a batch's
-# members) are laid over them (pusupu_jax.devices.row_mesh) and run on every core together; one device computes a
-# scan of small steps on one core.  Every jaxlib knows the flag.  Not for the real-time processes (one_thread).
+# One XLA host device per CPU the process may run on: independent rows of a batch (the tuner's windows, the paths of
+# its forward pass) are laid over them (pusupu_jax.devices.row_mesh) and run on every core together; one device
+# computes a scan of small steps on one core.  Every jaxlib knows the flag.  Not for the real-time processes
+# (one_thread).
 XLA_HOST_DEVICES = "--xla_force_host_platform_device_count"
 
 
@@ -103,6 +104,16 @@ def apply_xla_workaround(one_thread: bool = False) -> None:
         if flag.split("=")[0] not in flags:
             flags = f"{flags} {flag}".strip()
     os.environ["XLA_FLAGS"] = flags
+
+
+def xla_flags_for(cpus: int) -> str:
+    """``XLA_FLAGS`` for a worker process that computes on ``cpus`` CPUs (a Ray task): the one host device per CPU
+    that :func:`apply_xla_workaround` added replaced by ``cpus`` of them (a count the user set stays)."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    if not _host_devices_added:
+        return flags
+    kept = [f for f in flags.split() if not f.startswith(XLA_HOST_DEVICES + "=")]
+    return " ".join(kept + [f"{XLA_HOST_DEVICES}={cpus}"])
 
 
 def setup_jax(cache_dir: str | os.PathLike | None = None, x64: bool = True, synchronous_cpu: bool = False) -> Path:

@@ -124,7 +124,7 @@ def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
 
     def flags(extra_env, path=None, then=""):
         env = {k: v for k, v in os.environ.items() if k != "PUSUPU_XLA_WORKAROUND"}
-        env.update(XLA_FLAGS="--xla_cpu_use_fusion_emitters=true", **extra_env)
+        env.update({"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true", **extra_env})
         if path:
             env["PYTHONPATH"] = os.pathsep.join([str(path), env.get("PYTHONPATH", "")])
         code = f"import os, pusupu_jax; {then or 'pass'}; print(os.environ['XLA_FLAGS'])"

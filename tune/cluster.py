@@ -16,6 +16,7 @@ import os
 import sys
 import time
 
+from pusupu_jax import runtime
 from pusupu_jax.params import ParameterError
 
 MAX_RETRIES = 3
@@ -49,6 +50,7 @@ def _run(ray, run_shard, tasks, out, plots, address, workers, cpus_per_task, str
         if k in ("PUSUPU_JAX_CACHE", "JAX_COMPILATION_CACHE_DIR", "XLA_FLAGS", "JAX_PLATFORMS")
     }
     env["MPLBACKEND"] = "Agg"  # the workers' figures are files (importing the packages leaves the backend alone)
+    env["XLA_FLAGS"] = runtime.xla_flags_for(cpus_per_task)  # a task computes on the CPUs it asks for, one device each
     if address is None:
         ray.init(
             num_cpus=workers or os.cpu_count(),
