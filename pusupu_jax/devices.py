@@ -2,13 +2,13 @@
 training windows of one tuning problem) is spread over the devices (host-side).
 
 A rollout of the machine is a scan of small steps: on a GPU each step is a few dozen kernel launches whatever the
-batch width, on a CPU core its cost grows with the width.  So a GPU pays only for wide batches, and ``auto`` chooses
-it only when the work's width (the rows one gradient computes: members x scenarios x windows) reaches
-:data:`GPU_CROSSOVER_ROWS` (docs/benchmarks.md); otherwise the CPU.
+batch width; on a CPU core its cost grows with the width, from a fixed cost that a few rows already pay.  So a GPU
+pays only for wide batches, and ``auto`` chooses it only when the work's width (the rows one gradient computes:
+members x scenarios x windows) reaches :data:`GPU_CROSSOVER_ROWS` (docs/benchmarks.md); otherwise the CPU.
 
 On the CPU, :func:`pusupu_jax.runtime.apply_xla_workaround` makes one XLA host device per core the process may run
 on (``--xla_force_host_platform_device_count``), and :func:`row_mesh` lays a batch's rows over them, so that the
-independent windows run on every core at once instead of one scan on one core.
+independent windows (and the paths of the forward pass) run on every core together instead of on one.
 """
 
 from __future__ import annotations
