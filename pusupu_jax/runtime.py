@@ -89,7 +89,7 @@ def apply_xla_workaround(one_thread: bool = False) -> None:
         return
     flags = os.environ.get("XLA_FLAGS", "")
     if one_thread and _host_devices_added:  # the package's import added it: a real-time process runs on one CPU
-        flags = " ".join(f for f in flags.split() if not f.startswith(XLA_HOST_DEVICES + "="))
+        flags = _without_host_devices(flags)
     elif not one_thread and XLA_HOST_DEVICES not in flags:
         flags = f"{flags} {XLA_HOST_DEVICES}={cpu_count()}".strip()
         _host_devices_added = True
@@ -112,8 +112,12 @@ def xla_flags_for(cpus: int) -> str:
     flags = os.environ.get("XLA_FLAGS", "")
     if not _host_devices_added:
         return flags
-    kept = [f for f in flags.split() if not f.startswith(XLA_HOST_DEVICES + "=")]
-    return " ".join(kept + [f"{XLA_HOST_DEVICES}={cpus}"])
+    return f"{_without_host_devices(flags)} {XLA_HOST_DEVICES}={cpus}".strip()
+
+
+def _without_host_devices(flags: str) -> str:
+    """``flags`` without :data:`XLA_HOST_DEVICES`."""
+    return " ".join(f for f in flags.split() if not f.startswith(XLA_HOST_DEVICES + "="))
 
 
 def setup_jax(cache_dir: str | os.PathLike | None = None, x64: bool = True, synchronous_cpu: bool = False) -> Path:
