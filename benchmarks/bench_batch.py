@@ -8,10 +8,12 @@ distinct MuJoCo models would only time the host), so every member computes its o
 and gradient.  The first iteration (trace, compile, first run) is reported apart; the
 iteration time is the median of the others, and the mean, which spreads the refreshes.
 
-    python benchmarks/bench_batch.py [--batches 1,2,64] [--iterations 6] [--path 0.2] [--window 0.05]
-                                     [--devices N] [--remat] [--label NAME] [--parts N]
+    python benchmarks/bench_batch.py [--batches 1,2,64] [--iterations 6] [--path 0.2] [--window 0.05] [--windows 1]
+                                     [--devices N] [--remat] [--label NAME] [--parts N] [--out FILE]
 
-``scenario_iterations_per_s`` = B / iteration time.  With ``--devices N`` the batch is sharded
+``scenario_iterations_per_s`` = B / iteration time; ``rows`` = B x ``--windows``, the rollouts of one gradient (the
+width ``--device auto`` compares with :data:`pusupu_jax.devices.GPU_CROSSOVER_ROWS`).  The default tune's windows are
+``--path 3 --window 0.5 --windows 6``.  With ``--devices N`` the batch is sharded
 over the first N devices (``jax.sharding``), as ``pusupu batch`` does over all of them; ``--remat`` sets the
 configuration's ``remat`` (reverse mode keeps one carry per position period and runs each period again; on an
 H200 it did not bring batch 4096 into memory before the margins' fix, and is not needed for it since).
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import sys
@@ -48,11 +51,13 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=6)
     ap.add_argument("--refresh-every", type=int, default=5)
     ap.add_argument("--path", type=float, default=0.2, help="the first seconds of each path [s]")
-    ap.add_argument("--window", type=float, default=0.05, help="one training window of this length [s]")
+    ap.add_argument("--window", type=float, default=0.05, help="the training windows' length [s]")
+    ap.add_argument("--windows", type=int, default=1, help="training windows per scenario")
     ap.add_argument("--distinct", type=int, default=8, help="distinct scenarios the batch cycles over")
     ap.add_argument("--devices", type=int, help="shard over the first N devices (default: all)")
     ap.add_argument("--remat", action="store_true", help="the tune configuration's remat: true")
     ap.add_argument("--label", default="", help="a name for the run in the JSON")
+    ap.add_argument("--out", help="also write the JSON here, after every batch size (a run cut short keeps its rows)")
     ap.add_argument(
         "--parts",
         type=int,
@@ -68,6 +73,7 @@ def main() -> None:
     import jax
 
     from pusupu_jax import ServoParams
+    from pusupu_jax.files import write_atomic
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.plant.model import ModelOptions
     from pusupu_jax.tune.batch import BatchProblem, optimise_batch
@@ -76,7 +82,7 @@ def main() -> None:
 
     devices = jax.devices()[: args.devices] if args.devices else jax.devices()
     cfg = TuneConfig(
-        windows=1,
+        windows=args.windows,
         window_s=args.window,
         iterations=args.iterations,
         refresh_every=args.refresh_every,
@@ -90,6 +96,27 @@ def main() -> None:
         for kind in ("arc", "p2p")
     ]
     results = []
+
+    def report() -> dict:
+        return {
+            "benchmark": "bench_batch",
+            "label": args.label,
+            "backend": jax.default_backend(),
+            "devices": [str(d) for d in devices],
+            "device_kind": devices[0].device_kind,
+            "jax": jax.__version__,
+            "x64": bool(jax.config.jax_enable_x64),
+            "remat": args.remat,
+            "host": platform.node(),
+            "cpus": len(os.sched_getaffinity(0)),
+            "window_s": args.window,
+            "windows": args.windows,
+            "path_s": args.path,
+            "iterations": args.iterations,
+            "refresh_every": args.refresh_every,
+            "results": results,
+        }
+
     for B in [int(b) for b in args.batches.split(",")]:
         t0 = time.perf_counter()
         problem = BatchProblem(
@@ -103,6 +130,7 @@ def main() -> None:
         med, mean = statistics.median(steps), statistics.mean(steps)
         row = {
             "batch": B,
+            "rows": B * args.windows,
             "members": len(problem.members),
             "build_s": t_build,
             "first_iteration_s": stamps[0] - t1,
@@ -115,27 +143,9 @@ def main() -> None:
             row.update(parts(problem, args.parts))
         results.append(row)
         print(json.dumps(row), file=sys.stderr, flush=True)
-    print(
-        json.dumps(
-            {
-                "benchmark": "bench_batch",
-                "label": args.label,
-                "backend": jax.default_backend(),
-                "devices": [str(d) for d in devices],
-                "device_kind": devices[0].device_kind,
-                "jax": jax.__version__,
-                "x64": bool(jax.config.jax_enable_x64),
-                "remat": args.remat,
-                "host": platform.node(),
-                "window_s": args.window,
-                "path_s": args.path,
-                "iterations": args.iterations,
-                "refresh_every": args.refresh_every,
-                "results": results,
-            },
-            indent=2,
-        )
-    )
+        if args.out:
+            write_atomic(args.out, json.dumps(report(), indent=2) + "\n")
+    print(json.dumps(report(), indent=2))
 
 
 if __name__ == "__main__":

@@ -19,13 +19,13 @@ import sys
 from . import runtime
 from .params import ParameterError
 
-# The rows of one batch from which ``auto`` takes the GPU.  Measured on a 16-core Xeon host with one H100 (jax 0.11.2):
-# ``pusupu tune``'s 12 rows (6 windows of 0.5 s on each of the arc and p2p) ran 20-30 s an iteration on the GPU against
-# 4.7 on two of its cores; 1024 rows of one 0.5 s window on a 3 s path (benchmarks/bench_batch.py --batches 1024
-# --path 3 --window 0.5) ran 150 row-iterations a second on the GPU against 2.6 for the default tune on two cores.
-# Between 12 and 1024 rows the crossover is not measured: the GPU is taken from the smallest width at which it was
-# measured faster.
-GPU_CROSSOVER_ROWS = 1024
+# The rows of one batch from which ``auto`` takes the GPU.  Measured on a 16-core Xeon host with one H200 (jax 0.11.2,
+# benchmarks/bench_batch.py --path 3 --window 0.5 --windows 6, the default tune's windows; docs/benchmarks.md): 96 rows
+# ran 4.23 s an iteration on the GPU against 9.17 s on all 16 cores (16 XLA host devices); 12 rows ran 3.86 s on the
+# GPU, about what two cores of the 2-core CPU take for the default tune's 12 (4.1 s a gradient iteration), and on the
+# same host's H100 the default tune itself (12 rows) ran 20-30 s an iteration against 4.7 s on two cores.  The GPU is
+# taken from the smallest width at which it was measured faster than the host's whole CPU; below it, the CPU.
+GPU_CROSSOVER_ROWS = 96
 
 
 class DeviceChoice(enum.StrEnum):
