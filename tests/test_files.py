@@ -400,7 +400,10 @@ def test_crafted_checkpoints_end_in_one_line_without_loading_them(tmp_path, fini
         ),
         "a missing key": (rezip(finished, meta={"history": None}), "meta: missing key 'history'"),
         "a key's kind": (rezip(finished, meta={"iteration": "4"}), "meta.iteration: expected an integer, got str"),
-        "an entry": (rezip(finished, meta={"history": [{"start": 0}]}), "meta.history[0]: missing key 'iteration'"),
+        "an entry": (
+            rezip(finished, meta={"history": [[{"start": 0}]]}),
+            "meta.history[0][0]: missing key 'iteration'",
+        ),
         "nesting": (
             rezip(finished, add={"meta.npy": npy(np.frombuffer(b"[" * 5000, np.uint8))}),
             "not a pusupu checkpoint (maximum recursion depth exceeded",

@@ -10,16 +10,15 @@ batch as ``(Q K, W, ...)``: one ``rollout`` vmapped over all of them, as
 :func:`pusupu_jax.tune.run.aggregate`); the batch minimises their sum, whose gradient with respect to
 member ``m``'s row is member ``m``'s own gradient, since no term couples two members.
 
-:func:`optimise_batch` runs :func:`pusupu_jax.tune.optimise.optimise`'s iteration on every member at once
-(the optax update vmapped, so clipping stays per member); a member whose objective or gradient
-turns non-finite is frozen and reported, and the others go on.  With more than one device the
+:func:`optimise_batch` runs every member at once through the tuner's one engine
+(:func:`pusupu_jax.tune.optimise.iterate`: the optax update vmapped, so clipping stays per member); a member whose
+objective or gradient turns non-finite is frozen and reported, and the others go on.  With more than one device the
 batch axis is sharded over all of them (``jax.sharding``), padded to a multiple of their number
 with copies of the last member.
 """
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Callable
 
@@ -41,7 +40,8 @@ from pusupu_jax.sim import rollout
 
 from .config import TuneConfig
 from .checkpoint import CheckpointLayout, load_checkpoint, save_checkpoint
-from .optimise import optimiser, start_point
+from .optimise import iterate, optimiser, start_point, train_step
+from .state import TunerState
 from .run import (
     HERE,
     Scenarios,
@@ -225,99 +225,53 @@ class BatchProblem(WindowStarts):
 def optimise_batch(
     problem: BatchProblem, *, checkpoint: Path | None = None, digest: str = "", progress: Callable | None = None
 ) -> dict:
-    """:func:`pusupu_jax.tune.optimise.optimise` for every member of ``problem`` at once, with its configuration's
-    settings.
+    """Every member of ``problem`` at once through the tuner's engine (:func:`pusupu_jax.tune.optimise.iterate`), with
+    its configuration's settings; ``progress(iteration, iterations, values, elapsed)`` after each iteration.
 
     Returns per real member ``best_value`` ``(P,)``, ``best_z``, ``history`` (per member, entries as
     :func:`~pusupu_jax.tune.optimise.optimise`'s) and ``failed`` (``{member: message}``).  With ``checkpoint`` the state
-    is
-    saved every ``checkpoint_every`` iterations and at the end, and a run that finds one continues from it.
+    is saved every ``checkpoint_every`` iterations and at the end, and a run that finds one continues from it.
     """
     cfg = problem.cfg
     P = len(problem.members)
     opt = optimiser(cfg.learning_rate, cfg.iterations, cfg.clip_norm, cfg.final_lr_fraction)
     z0 = problem.space.z0()
-    starts = [start_point(z0, k, cfg.start_spread, cfg.seed, problem.space.project) for _, k in problem.members]
-    zb = jax.tree.map(lambda *v: jnp.stack(v), *starts)
-    opt_template = jax.vmap(opt.init)(zb)
-    layout = CheckpointLayout(zb, opt_template, cfg.iterations, cfg.starts, members=P)
-    state = load_checkpoint(checkpoint, digest, layout) if checkpoint else None
-    if state is None:
-        state = {
-            "digest": digest,
-            "iteration": 0,
-            "z": zb,
-            "opt": opt_template,
-            "history": [[] for _ in range(P)],
-            "best_value": np.full(P, np.inf),
-            "best_z": {k: np.asarray(v) for k, v in zb.items()},
-            "failed": {},
-            "done": False,
-        }
-    zb, opt_state = problem.shard(state["z"]), problem.shard(state["opt"])  # placed once: no recompiles later
-    best_value = np.asarray(state["best_value"], dtype=float)
-    best_z = {k: np.array(v) for k, v in state["best_z"].items()}
-    failed = {int(m): msg for m, msg in state["failed"].items()}
-    project = jax.vmap(problem.space.project)
-
-    @jax.jit
-    def step(grad, opt_state, zb, ok):  # the optax update of every member; a failed member stays where it failed
-        def keep(new, old):
-            return jnp.where(ok.reshape((P,) + (1,) * (new.ndim - 1)), new, old)
-
-        grad = jax.tree.map(lambda g: keep(g, jnp.zeros_like(g)), grad)
-        updates, new_opt = jax.vmap(opt.update)(grad, opt_state, zb)
-        new_z = project(jax.tree.map(lambda z, u: z + u, zb, updates))
-        return jax.tree.map(keep, new_z, zb), jax.tree.map(keep, new_opt, opt_state)
-
-    t_start = time.perf_counter()
+    starts = [k for _, k in problem.members]
+    zb = jax.tree.map(
+        lambda *v: jnp.stack(v),
+        *[start_point(z0, k, cfg.start_spread, cfg.seed, problem.space.project) for k in starts],
+    )
+    template = TunerState.fresh(digest, zb, jax.vmap(opt.init)(zb))
+    layout = CheckpointLayout(zb, template.opt, cfg.iterations, cfg.starts, members=P, sequential=False)
+    state = (load_checkpoint(checkpoint, digest, layout) if checkpoint else None) or template
 
     def evaluate(zb, iteration):
         problem.prepare(zb, iteration)
         (_, aux), grad = problem.value_and_grad(zb)
-        values = np.asarray(aux["value"], dtype=float)
-        zh = {n: np.asarray(v) for n, v in zb.items()}  # host copies: per-member indexing without device calls
-        finite = np.isfinite(values) & np.all(
-            [np.isfinite(np.asarray(g)).reshape(P, -1).all(axis=1) for g in grad.values()], axis=0
-        )
-        for m in np.flatnonzero(~finite):
-            failed.setdefault(int(m), f"non-finite objective or gradient at iteration {iteration} (value {values[m]})")
-        for m in range(P):
-            if int(m) in failed:
-                continue
-            state["history"][m].append(
-                {
-                    "start": problem.members[m][1],
-                    "iteration": iteration,
-                    "objective": float(values[m]),
-                    "z": {n: v[m].tolist() for n, v in zh.items()},
-                }
-            )
-            if values[m] < best_value[m]:
-                best_value[m] = values[m]
-                for n, v in zh.items():
-                    best_z[n][m] = v[m]
-        ok = jnp.asarray([m not in failed for m in range(P)])
-        return values, grad, ok
+        return aux["value"], grad, aux
 
-    while not state["done"]:
-        while state["iteration"] < cfg.iterations:
-            values, grad, ok = evaluate(zb, state["iteration"])
-            zb, opt_state = step(grad, opt_state, zb, ok)
-            state["iteration"] += 1
-            state.update(z=zb, opt=opt_state, best_value=best_value, best_z=best_z, failed=failed)
-            if progress:
-                progress(state["iteration"], cfg.iterations, values[: problem.n_real], time.perf_counter() - t_start)
-            if checkpoint and state["iteration"] % cfg.checkpoint_every == 0:
-                save_checkpoint(checkpoint, state)
-        evaluate(zb, cfg.iterations)  # the last step's result is evaluated too: it may be the best
-        state.update(done=True, best_value=best_value, best_z=best_z, failed=failed)
+    def reported(state, values, aux, elapsed):
+        progress(state.iteration, cfg.iterations, values[: problem.n_real], elapsed)
+
+    if not state.done:
+        iterate(
+            state,
+            evaluate,
+            train_step(opt, problem.space.project, P),
+            iterations=cfg.iterations,
+            starts=starts,
+            place=problem.shard,
+            checkpoint=checkpoint,
+            checkpoint_every=cfg.checkpoint_every,
+            progress=reported if progress else None,
+        )
+        state.done = True
         if checkpoint:
             save_checkpoint(checkpoint, state)
     n = problem.n_real
     return {
-        "best_value": best_value[:n],
-        "best_z": {k: v[:n] for k, v in best_z.items()},
-        "history": state["history"][:n],
-        "failed": {m: msg for m, msg in failed.items() if m < n},
+        "best_value": state.best_value[:n],
+        "best_z": {k: v[:n] for k, v in state.best_z.items()},
+        "history": state.history[:n],
+        "failed": {m: msg for m, msg in state.failed.items() if m < n},
     }

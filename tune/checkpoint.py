@@ -19,18 +19,30 @@ from pusupu_jax.files import write_atomic
 from pusupu_jax.inputs import shown
 from pusupu_jax.params import ParameterError
 
-CHECKPOINT, CHECKPOINT_FORMAT = "checkpoint.npz", "pusupu-checkpoint-1"
+from .state import TunerState
+
+CHECKPOINT, CHECKPOINT_FORMAT = "checkpoint.npz", "pusupu-checkpoint-2"
+META = ("format", "digest", "start", "iteration", "history", "best_value", "failed", "done")  # meta's keys
 
 
-def save_checkpoint(path: Path, state: dict) -> None:
-    """The optimiser state as one ``.npz`` of arrays (``z/<field>``, ``best/<field>``, ``opt/<k>``: the optax state's
-    leaves in order) plus its JSON ``meta`` (digest, counters, history), written atomically."""
-    arrays = {f"z/{k}": np.asarray(v) for k, v in (state["z"] or {}).items()}
-    arrays |= {f"best/{k}": np.asarray(v) for k, v in (state["best_z"] or {}).items()}
-    if state["opt"] is not None:
-        arrays |= {f"opt/{k}": np.asarray(leaf) for k, leaf in enumerate(jax.tree.leaves(state["opt"]))}
-    meta = {k: v for k, v in state.items() if k not in ("z", "best_z", "opt")}
-    meta = {"format": CHECKPOINT_FORMAT, **meta, "best_value": np.asarray(meta["best_value"], dtype=float).tolist()}
+def save_checkpoint(path: Path, state: TunerState) -> None:
+    """The optimiser state (:class:`pusupu_jax.tune.state.TunerState`) as one ``.npz`` of arrays (``z/<field>``,
+    ``best/<field>``, ``opt/<k>``: the optax state's leaves in order) plus its JSON ``meta`` (digest, counters,
+    histories, best values, failed members), written atomically."""
+    arrays = {f"z/{k}": np.asarray(v) for k, v in (state.z or {}).items()}
+    arrays |= {f"best/{k}": np.asarray(v) for k, v in state.best_z.items()}
+    if state.opt is not None:
+        arrays |= {f"opt/{k}": np.asarray(leaf) for k, leaf in enumerate(jax.tree.leaves(state.opt))}
+    meta = {
+        "format": CHECKPOINT_FORMAT,
+        "digest": state.digest,
+        "start": state.start,
+        "iteration": state.iteration,
+        "history": state.history,
+        "best_value": np.asarray(state.best_value, dtype=float).tolist(),
+        "failed": {str(m): message for m, message in state.failed.items()},
+        "done": state.done,
+    }
     buffer = io.BytesIO()
     np.savez(buffer, meta=np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8), **arrays)
     write_atomic(path, buffer.getvalue())
@@ -56,17 +68,19 @@ class CheckpointLayout:
     """What a checkpoint of one optimisation may hold, from its settings: :func:`load_checkpoint` checks a file against
     it before it loads any array.
 
-    ``z``: the log-parameters ``{field: array}``, whose shapes and dtypes ``z/<field>`` and ``best/<field>`` have;
-    ``opt``: an optax state of the right structure, whose leaves ``opt/<k>`` are; ``iterations``, ``starts``: each
-    start evaluates ``iterations + 1`` points, one history entry each; ``members``: a batch's number of members (a
-    history per member, of one start each, a best value per member, and the failed members), None for one problem.
+    ``z``: the members' log-parameters ``{field: array}`` (a leading member axis), whose shapes and dtypes
+    ``z/<field>`` and ``best/<field>`` have; ``opt``: an optax state of the right structure, whose leaves ``opt/<k>``
+    are; ``iterations``, ``starts``: each start evaluates ``iterations + 1`` points, one history entry each;
+    ``members``: the number of members (a history, a best value and perhaps a failure each); ``sequential``: the
+    starts run one after another in each member (a single problem), not as members of their own (a batch).
     """
 
     z: dict
     opt: object
     iterations: int
     starts: int = 1
-    members: int | None = None
+    members: int = 1
+    sequential: bool = True
 
     def arrays(self) -> dict:
         """``{name: (shape, dtype)}`` of every array but ``meta`` that a checkpoint may hold."""
@@ -77,14 +91,13 @@ class CheckpointLayout:
 
     def entries(self) -> int:
         """History entries of one history (a member's in a batch) at most."""
-        return (self.iterations + 1) * (1 if self.members else self.starts)
+        return (self.iterations + 1) * (self.starts if self.sequential else 1)
 
     def meta_bytes(self) -> int:
         """At most the JSON ``meta`` [bytes]: every history entry with its ``z`` (32 characters a number), a best value
         and a failure message per member."""
-        members = self.members or 1
-        values = sum(np.size(v) for v in self.z.values()) // members
-        return 4096 + members * (self.entries() * (256 + 32 * (values + len(self.z))) + 256)
+        values = sum(np.size(v) for v in self.z.values()) // self.members
+        return 4096 + self.members * (self.entries() * (256 + 32 * (values + len(self.z))) + 256)
 
     def file_bytes(self) -> int:
         """At most the whole file [bytes]: ``meta`` and every array, with their headers and records in the zip."""
@@ -112,31 +125,23 @@ def _array_header(zf: zipfile.ZipFile, info: zipfile.ZipInfo, limit: int) -> tup
 
 def _check_meta(meta: dict, layout: CheckpointLayout) -> None:
     """The JSON ``meta`` of a checkpoint of ``layout``'s settings: its keys, counters and history entries."""
-    batch = layout.members is not None
-    keys = ("format", "digest", "iteration", "history", "best_value", "done") + (("failed",) if batch else ("start",))
-    inputs.check_keys(meta, "meta", keys, ValueError, required=keys)
+    inputs.check_keys(meta, "meta", META, ValueError, required=META)
+    inputs.integer(meta["start"], "meta.start", ValueError, low=0, high=layout.starts)
     inputs.integer(meta["iteration"], "meta.iteration", ValueError, low=0, high=layout.iterations)
     if not isinstance(meta["done"], bool):
         raise ValueError(f"meta.done: expected true or false, got {shown(meta['done'])}")
-    if batch:
-        histories, best = meta["history"], meta["best_value"]
-        if not (
-            isinstance(histories, list) and isinstance(best, list) and len(histories) == len(best) == layout.members
-        ):
-            raise ValueError(f"meta: expected a history and a best value for each of {layout.members} members")
-        for m, value in enumerate(best):
-            inputs.number(value, f"meta.best_value[{m}]", ValueError, finite=False)
-        for m, message in inputs.check_keys(
-            meta["failed"], "meta.failed", [str(m) for m in range(layout.members)], ValueError, what="member"
-        ).items():
-            if not isinstance(message, str):
-                raise ValueError(f"meta.failed.{m}: expected a message, got {shown(message)}")
-    else:
-        histories = [meta["history"]]
-        inputs.integer(meta["start"], "meta.start", ValueError, low=0, high=layout.starts)
-        inputs.number(meta["best_value"], "meta.best_value", ValueError, finite=False)
+    histories, best = meta["history"], meta["best_value"]
+    if not (isinstance(histories, list) and isinstance(best, list) and len(histories) == len(best) == layout.members):
+        raise ValueError(f"meta: expected a history and a best value for each of {layout.members} member(s)")
+    for m, value in enumerate(best):
+        inputs.number(value, f"meta.best_value[{m}]", ValueError, finite=False)
+    for m, message in inputs.check_keys(
+        meta["failed"], "meta.failed", [str(m) for m in range(layout.members)], ValueError, what="member"
+    ).items():
+        if not isinstance(message, str):
+            raise ValueError(f"meta.failed.{m}: expected a message, got {shown(message)}")
     for m, history in enumerate(histories):
-        where = f"meta.history[{m}]" if batch else "meta.history"
+        where = f"meta.history[{m}]"
         if not isinstance(history, list) or len(history) > layout.entries():
             raise ValueError(f"{where}: expected a list of at most {layout.entries()} entries")
         for k, h in enumerate(history):
@@ -154,15 +159,15 @@ def _check_meta(meta: dict, layout: CheckpointLayout) -> None:
             inputs.check_keys(h["z"], f"{where}[{k}].z", layout.z, ValueError, required=layout.z, what="field")
 
 
-def load_checkpoint(path: Path, digest: str, layout: CheckpointLayout) -> dict | None:
+def load_checkpoint(path: Path, digest: str, layout: CheckpointLayout) -> TunerState | None:
     """The checkpoint at ``path`` if there is one (None otherwise), checked against ``layout`` (the run's settings).
 
     A regular file no larger than ``layout`` implies, read as plain arrays (``allow_pickle=False``: nothing in it
     runs).  Its ``meta`` is read first, and a checkpoint of another configuration (``digest``) refused; then every
     member's declared size, shape and dtype are checked from the zip's directory and the arrays' headers before any
     array is loaded (a zip bomb or a crafted header is refused, not decompressed), and its JSON; each group of arrays
-    (``z``, ``best``, ``opt``) is whole or absent, and a run that evaluated anything has its best point.  Anything else
-    is refused with one line (:class:`ParameterError`), never a traceback.
+    (``z``, ``best``, ``opt``) is whole or absent, ``best`` is there, and ``z`` and ``opt`` come together.  Anything
+    else is refused with one line (:class:`ParameterError`), never a traceback.
     """
     if not os.path.lexists(path):
         return None
@@ -207,8 +212,8 @@ def load_checkpoint(path: Path, digest: str, layout: CheckpointLayout) -> dict |
                 for g, names in held.items():
                     if names and names != groups[g]:
                         raise ValueError(f"{next(k for k in groups[g] if k not in names)} missing")
-                needed = {"z": held["opt"], "best": meta["history"], "opt": held["z"]}  # or every group in a batch
-                missing = [g for g, need in needed.items() if (need or layout.members) and not held[g]]
+                needed = {"z": held["opt"], "best": True, "opt": held["z"]}  # z and opt: both or neither
+                missing = [g for g, need in needed.items() if need and not held[g]]
                 if missing:
                     raise ValueError(f"missing arrays: {', '.join(missing)}")
                 arrays = {k: np.asarray(f[k]) for k in f.files if k != "meta"}
@@ -220,4 +225,15 @@ def load_checkpoint(path: Path, digest: str, layout: CheckpointLayout) -> dict |
     best = {k[5:]: v for k, v in arrays.items() if k.startswith("best/")} or None
     leaves = [arrays[f"opt/{k}"] for k in range(len(held["opt"]))]
     opt = jax.tree.unflatten(jax.tree.structure(layout.opt), leaves) if leaves else None
-    return {**{k: v for k, v in meta.items() if k != "format"}, "z": z, "best_z": best, "opt": opt}
+    return TunerState(
+        digest=meta["digest"],
+        z=z,
+        opt=opt,
+        history=meta["history"],
+        best_value=np.asarray(meta["best_value"], dtype=float),
+        best_z={k: np.array(v) for k, v in (best or {}).items()},
+        failed={int(m): message for m, message in meta["failed"].items()},
+        start=meta["start"],
+        iteration=meta["iteration"],
+        done=meta["done"],
+    )
