@@ -1,10 +1,10 @@
-"""The bridge's UDP protocol, version 1: fixed-layout little-endian packets with sequence numbers and a CRC.
+"""The bridge's UDP protocol, versions 1 and 2: fixed-layout little-endian packets with sequence numbers and a CRC.
 
 Every packet::
 
     offset size  field
     0      4     magic b"PSPU"
-    4      1     version (1)
+    4      1     version (1 or 2)
     5      1     kind: 1 command (bridge -> robot), 2 feedback (robot -> bridge)
     6      1     n_axes (1..16)
     7      1     flags (0; reserved)
@@ -22,13 +22,16 @@ target (f64: motor speed [rad/s] in CSV, motor torque [N m] in CST).
 Feedback payload: per axis (28 bytes) statusword (u16, 0x6041), mode display (i8, 0x6061), pad
 (u8), position (f64, motor angle from home [rad]), velocity (f64, [rad/s]), torque (f64, actual
 motor torque [N m]); then the platform position (3 f64, [m]; NaN when the robot does not know it).
+Version 2's feedback appends to each axis (36 bytes) the measured motor current (f64, [A]): what a
+drive's torque constant is identified from, since the torque it reports is that current times the
+constant it was told.  Its command is version 1's; a bridge takes feedback of either version, so a
+robot of version 1 needs no change.
 
 :data:`LAYOUTS` holds these layouts per version, and a packet is decoded only when its length is
 its version's for its kind and axis count, to the byte, and its axis count is the session's (the
-receiver's ``n_axes``): a later version that carries more signals (measured currents, say) gets
-its own row and leaves version 1's checks as they are.  :func:`decode` refuses anything else with
-a :class:`ProtocolError` whose ``reason`` names the check that failed; the receiver counts
-refusals by reason and drops the packet.
+receiver's ``n_axes``): each version has its own row and leaves the others' checks as they are.
+:func:`decode` refuses anything else with a :class:`ProtocolError` whose ``reason`` names the check
+that failed; the receiver counts refusals by reason and drops the packet.
 """
 
 from __future__ import annotations
@@ -41,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 MAGIC = b"PSPU"
-VERSION = 1
+VERSION = 1  # of the commands; feedback is version 1, or 2 where it carries the measured currents
 COMMAND, FEEDBACK = 1, 2
 MAX_AXES = 16
 MAX_PACKET = 1024  # bytes: larger datagrams are refused before decoding
@@ -55,9 +58,13 @@ _CRC = struct.Struct("<I")
 LAYOUTS = {
     1: {
         COMMAND: ("HbBd", ""),  # controlword, mode, pad, target
-        FEEDBACK: ("HbBddd", "3d"),
-    }
-}  # statusword, mode, pad, position, velocity, torque; the platform
+        FEEDBACK: ("HbBddd", "3d"),  # statusword, mode, pad, position, velocity, torque; the platform
+    },
+    2: {
+        COMMAND: ("HbBd", ""),
+        FEEDBACK: ("HbBdddd", "3d"),  # version 1's, then the measured current
+    },
+}
 REASONS = ("size", "magic", "version", "kind", "axes", "length", "crc")
 
 
@@ -94,11 +101,14 @@ class Feedback:
     velocity: np.ndarray  # rad/s
     torque: np.ndarray  # N m
     platform: np.ndarray  # (3,) m, NaN when unknown
+    current: np.ndarray | None = None  # measured motor current, A (version 2; None: not reported)
 
 
-def _pack(kind: int, sequence: int, timestamp_ns: int, ack: int, n_axes: int, payload: bytes) -> bytes:
+def _pack(
+    kind: int, sequence: int, timestamp_ns: int, ack: int, n_axes: int, payload: bytes, version: int = VERSION
+) -> bytes:
     head = _HEADER.pack(
-        MAGIC, VERSION, kind, n_axes, 0, sequence & 0xFFFFFFFF, timestamp_ns, ack & 0xFFFFFFFF, len(payload)
+        MAGIC, version, kind, n_axes, 0, sequence & 0xFFFFFFFF, timestamp_ns, ack & 0xFFFFFFFF, len(payload)
     )
     body = head + payload
     return body + _CRC.pack(zlib.crc32(body))
@@ -124,12 +134,14 @@ def encode_command(c: Command) -> bytes:
 
 
 def encode_feedback(f: Feedback) -> bytes:
+    """Version 2 where ``f`` carries the measured currents, else version 1."""
     n = len(f.position)
-    payload = _payload(VERSION, FEEDBACK, n).pack(
-        *_interleave(f.statusword, f.mode, np.zeros(n, int), f.position, f.velocity, f.torque),
-        *np.asarray(f.platform).tolist(),
+    columns = [f.statusword, f.mode, np.zeros(n, int), f.position, f.velocity, f.torque]
+    version = 1 if f.current is None else 2
+    payload = _payload(version, FEEDBACK, n).pack(
+        *_interleave(*columns, *([] if f.current is None else [f.current])), *np.asarray(f.platform).tolist()
     )
-    return _pack(FEEDBACK, f.sequence, f.timestamp_ns, f.ack, n, payload)
+    return _pack(FEEDBACK, f.sequence, f.timestamp_ns, f.ack, n, payload, version)
 
 
 def decode(data: bytes, kind: int | None = None, n_axes: int | None = None) -> Command | Feedback:
@@ -175,6 +187,7 @@ def decode(data: bytes, kind: int | None = None, n_axes: int | None = None) -> C
         np.array(v[4:end:step], float),
         np.array(v[5:end:step], float),
         np.array(v[end : end + 3], float),
+        np.array(v[6:end:step], float) if version >= 2 else None,
     )
 
 

@@ -54,7 +54,8 @@ class End(enum.StrEnum):
 
 SIGNALS = {signal.SIGINT: End.SIGINT, signal.SIGTERM: End.SIGTERM}
 # bytes per cycle of a run, at most, that its record keeps (BridgeRun's lists, the runner's timings, the cycle of each
-# command sent): measured with six axes in lock step, 0.9 kB kept and 1.2 kB at the peak
+# command sent): with six axes in lock step the record's lists hold 1.2 kB a cycle (their deep size; 0.27 kB of it the
+# drives' speeds, torques and currents), and the rest is room for the lists' growth
 RECORD_BYTES = 2048
 
 
@@ -96,6 +97,7 @@ class BridgeRun:
     t: list = field(default_factory=list)
     reference: list = field(default_factory=list)
     position: list = field(default_factory=list)
+    drive: list = field(default_factory=list)  # per sample (3, n_axes): velocity [rad/s], torque [N m], current [A]
     platform: list = field(default_factory=list)
     platform_reference: list = field(default_factory=list)
     commands: list = field(default_factory=list)  # every command sent: (cycle, modes, controlword, target)
@@ -327,6 +329,8 @@ class Bridge:
                 rec.t.append((ja + 1) / loop.rate)
                 rec.reference.append(loop.reference_at(ja + 1))
                 rec.position.append(fb.position)
+                current = fb.current if fb.current is not None else np.full(len(fb.torque), np.nan)
+                rec.drive.append(np.stack([fb.velocity, fb.torque, current]))
                 rec.platform.append(fb.platform)
                 if loop.reference.platform is not None:
                     p = min(
@@ -385,7 +389,8 @@ def run_log(rec: BridgeRun) -> list[Channel]:
     """The run's record as MCAP channels (:mod:`pusupu_jax.run_log`), timed from the bridge's first cycle:
     ``/bridge/command`` (every command sent: cycle, controlword, targets, and in the run its latency),
     ``/bridge/feedback`` (every fresh sample of the run: the reference the machine was following, the measured angles,
-    the platform where the robot reports it) and ``/bridge/fault`` (each fault with its cycle)."""
+    speeds, torques and currents, the platform where the robot reports it) and ``/bridge/fault`` (each fault with its
+    cycle)."""
     period = 1.0 / rec.rate
     command = Channel(
         "/bridge/command",
@@ -431,6 +436,22 @@ def run_log(rec: BridgeRun) -> list[Channel]:
                 "description": "per axis: the motor angle the machine was following [rad]",
             },
             "position_rad": {"type": "array", "items": {"type": "number"}, "description": "per axis: measured [rad]"},
+            "velocity_rad_s": {
+                "type": "array",
+                "items": {"type": "number"},
+                "description": "per axis: the motor speed the drive measured [rad/s]",
+            },
+            "torque_nm": {
+                "type": "array",
+                "items": {"type": "number"},
+                "description": "per axis: the motor torque the drive reported [N m]",
+            },
+            "current_a": {
+                "type": "array",
+                "items": {"type": ["number", "null"]},
+                "description": "per axis: the motor current the drive measured [A] (null: not reported, protocol "
+                "version 1 or CANopen)",
+            },
             "platform_m": {
                 "type": "array",
                 "items": {"type": ["number", "null"]},
@@ -451,6 +472,9 @@ def run_log(rec: BridgeRun) -> list[Channel]:
                 {
                     "reference_rad": rec.reference[i],
                     "position_rad": rec.position[i],
+                    "velocity_rad_s": rec.drive[i][0],
+                    "torque_nm": rec.drive[i][1],
+                    "current_a": rec.drive[i][2],
                     "platform_m": rec.platform[i],
                     "platform_reference_m": rec.platform_reference[i] if i < len(rec.platform_reference) else [],
                 },

@@ -317,5 +317,12 @@ def machine_metrics(
         "reference": np.asarray(path)[:, :3],
         "platform": platform,
         "branch_force": force,
+        "drive": {  # per axis, as the bridge's feedback logs them (pusupu_jax.run_log)
+            "reference_rad": np.asarray(trace.reference),
+            "position_rad": np.asarray(trace.theta),
+            "velocity_rad_s": np.asarray(trace.omega),
+            "torque_nm": torque,
+            "current_a": np.asarray(trace.current),
+        },
         "reversal_t": np.asarray(trace.t)[np.unique(np.concatenate(reversals(s_ref)))],  # s, any branch's
     } | observed

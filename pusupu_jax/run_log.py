@@ -109,7 +109,9 @@ def read(path) -> tuple[dict, dict]:
 
 def machine_channels(arrays: dict) -> list[Channel]:
     """The simulated machine's run (the arrays of :func:`pusupu_jax.machine.simulate_scenarios`, one sample per position
-    period): ``/sim/platform`` (the platform's reference and position) and ``/sim/branch`` (each branch's force)."""
+    period): ``/sim/platform`` (the platform's reference and position), ``/sim/branch`` (each branch's force) and
+    ``/sim/drive`` (per axis the motor's reference, angle, speed, torque and current: the fields of the bridge's
+    ``/bridge/feedback`` of the same names)."""
     platform = Channel(
         "/sim/platform",
         "pusupu.SimPlatform",
@@ -128,4 +130,19 @@ def machine_channels(arrays: dict) -> list[Channel]:
             (t, {"reference_m": ref[k], "platform_m": pos[k], "error_mm": float(np.linalg.norm(pos[k] - ref[k]) * 1e3)})
         )
         branch.messages.append((t, {"force_n": np.asarray(arrays["branch_force"])[k]}))
-    return [platform, branch]
+    drive = {name: np.asarray(v) for name, v in arrays["drive"].items()}
+    n = drive["position_rad"].shape[-1]
+    motor = Channel(
+        "/sim/drive",
+        "pusupu.SimDrive",
+        {
+            "reference_rad": _array(n, "rad", "per axis: the motor angle followed"),
+            "position_rad": _array(n, "rad", "per axis: the motor angle"),
+            "velocity_rad_s": _array(n, "rad/s", "per axis: the motor speed"),
+            "torque_nm": _array(n, "N m", "per axis: the motor torque"),
+            "current_a": _array(n, "A", "per axis: the motor current"),
+        },
+    )
+    for k, t in enumerate(np.asarray(arrays["t"])):
+        motor.messages.append((t, {name: v[k] for name, v in drive.items()}))
+    return [platform, branch, motor]

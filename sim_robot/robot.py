@@ -333,6 +333,7 @@ class SimRobot:
         if self.active(Injected.RANGE, now):
             theta = theta + self.fault.arg
         faulted = np.array([d.state == cia402.FAULT for d in self.drives])
+        torque = np.where(faulted, 0.0, self.torque)  # a faulted drive's power stage is off
         fb = protocol.Feedback(
             self.sequence,
             time.monotonic_ns(),
@@ -341,9 +342,10 @@ class SimRobot:
             self.mode,
             theta,
             omega,
-            np.where(faulted, 0.0, self.torque),
+            torque,
             platform,
-        )  # a faulted drive's power stage is off
+            torque / self.model.Kt,  # the current loop's current [A] (protocol version 2): its torque is Kt times it
+        )
         self.sequence += 1
         return fb
 
@@ -460,7 +462,7 @@ class UdpServer:
             for bad in (
                 data[:17],
                 data + bytes(protocol.MAX_PACKET),
-                data[:4] + b"\x02" + data[5:],
+                data[:4] + b"\x09" + data[5:],
                 b"\x00" * len(data),
                 self._last or data,
             ):

@@ -225,7 +225,7 @@ def test_packets_round_trip_and_every_check_refuses_its_corruption():
     cases = {
         "size": data[:20],
         "magic": b"XXXX" + data[4:],
-        "version": data[:4] + b"\x02" + data[5:],
+        "version": data[:4] + b"\x09" + data[5:],
         "kind": data[:5] + b"\x01" + data[6:],
         "length": data + b"\x00",
         "crc": data[:-1] + bytes([data[-1] ^ 1]),

@@ -225,6 +225,28 @@ def test_packets_are_decoded_only_at_their_versions_length_and_the_sessions_axis
         assert e.value.reason == "length"
 
 
+def test_feedback_of_version_2_carries_the_measured_currents_and_has_its_own_length():
+    """Version 2's feedback appends the measured current to each axis (36 bytes an axis): it round-trips, version 1's
+    decodes as before with no current, and each is refused at the other's length."""
+    import zlib
+
+    fb = protocol.Feedback(
+        3, 0, 2, np.full(N, 0x27, np.uint16), np.full(N, 9, np.int8), np.ones(N), np.ones(N), np.ones(N), np.zeros(3)
+    )
+    two = dataclasses.replace(fb, current=np.linspace(-2.0, 3.0, N))
+    data = protocol.encode_feedback(two)
+    assert len(data) == 26 + 36 * N + 24 + 4 and data[4] == 2
+    back = protocol.decode(data, protocol.FEEDBACK, N)
+    np.testing.assert_array_equal(back.current, two.current)
+    np.testing.assert_array_equal(back.torque, two.torque)
+    assert protocol.decode(protocol.encode_feedback(fb), protocol.FEEDBACK, N).current is None
+    for version, body in ((1, data[:-4]), (2, protocol.encode_feedback(fb)[:-4])):
+        relabelled = body[:4] + bytes([version]) + body[5:]
+        with pytest.raises(protocol.ProtocolError) as e:
+            protocol.decode(relabelled + zlib.crc32(relabelled).to_bytes(4, "little"), protocol.FEEDBACK, N)
+        assert e.value.reason == "length"
+
+
 @pytest.mark.parametrize("n", [1, N + 1])
 def test_feedback_of_another_axis_count_is_refused_and_the_run_stops_safely(setup, n):
     """A robot whose replies turn into valid packets of 1 or 7 axes (short and long feedback) mid-run: each is refused
@@ -496,15 +518,20 @@ def _signal_at(enabled: int, sig):
 def test_a_runs_log_reads_back_as_its_record(setup, tmp_path):
     """A lock-step run that a fault stops (the robot's feedback goes NaN after 40 enabled commands), written to MCAP
     and read back with the mcap package's reader: every command with its cycle and controlword, a latency for each
-    command of the run and none outside it, every fresh sample, the fault, each channel with its JSON Schema, log
-    times in order, and the metadata."""
+    command of the run and none outside it, every fresh sample with the measured speeds, torques and currents (the
+    robot answers in protocol version 2 from its 20th enabled command), the fault, each channel with its JSON Schema,
+    log times in order, and the metadata."""
     from pusupu_jax import run_log
     from pusupu_jax.hw_bridge.session import run_log as bridge_channels
 
-    def nan_feedback(robot, fb):
-        return [(protocol.encode_feedback(dataclasses.replace(fb, position=fb.position * np.nan)), robot.sock)]
+    def with_current(robot, fb):
+        fb = dataclasses.replace(fb, torque=0.1 * fb.velocity, current=0.2 * fb.velocity)
+        return [(protocol.encode_feedback(fb), robot.sock)]
 
-    robot = WireRobot(_from(40, nan_feedback))
+    def nan_feedback(robot, fb):
+        return with_current(robot, dataclasses.replace(fb, position=fb.position * np.nan))
+
+    robot = WireRobot(_from(20, lambda robot, fb: (nan_feedback if robot.enabled >= 40 else with_current)(robot, fb)))
     run = _bridge_run(setup, robot)
     assert [f.kind for f in run.faults] == ["feedback invalid"]
     path = run_log.write(tmp_path / "run.mcap", bridge_channels(run), {"mode": "imc", "rate_hz": RATE}, 10**18)
@@ -515,6 +542,13 @@ def test_a_runs_log_reads_back_as_its_record(setup, tmp_path):
     assert [m["latency_us"] for _, m in commands if m["latency_us"] is not None] == pytest.approx(run.latency_us)
     assert len(feedback) == len(run.t) and [m["cycle"] for _, m in faults] == [run.faults[0].cycle]
     assert faults[0][1]["kind"] == "feedback invalid"
+    samples = [m for _, m in feedback]
+    two = [m for m in samples if m["current_a"][0] is not None]
+    assert two and all(all(c is None for c in m["current_a"]) for m in samples[: len(samples) - len(two)])
+    for m in two:
+        assert m["current_a"] == pytest.approx([0.2 * v for v in m["velocity_rad_s"]], abs=1e-15)
+        assert m["torque_nm"] == pytest.approx([0.1 * v for v in m["velocity_rad_s"]], abs=1e-15)
+    assert any(v != 0 for m in two for v in m["velocity_rad_s"])
     for topic, (schema, messages) in topics.items():
         assert set(schema["required"]) <= set(messages[0][1]), topic
         times = [t for t, _ in messages]

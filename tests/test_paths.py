@@ -402,7 +402,11 @@ def test_the_sim_command_runs_a_pose_table_on_the_machine(tmp_path):
     from pusupu_jax import run_log
 
     topics, metadata = run_log.read(tmp_path / "sim.mcap")
-    assert set(topics) == {"/sim/platform", "/sim/branch"} and metadata["mode"] == "pid"
+    assert set(topics) == {"/sim/platform", "/sim/branch", "/sim/drive"} and metadata["mode"] == "pid"
+    drive = [m for _, m in topics["/sim/drive"][1]]
+    assert np.abs([m["torque_nm"] for m in drive]).max(axis=0) == pytest.approx(out["motor_torque_peak_nm"], rel=1e-12)
+    kt = np.array([m["torque_nm"] for m in drive]) / np.array([m["current_a"] for m in drive])
+    assert np.nanmax(np.abs(kt - np.nanmedian(kt, axis=0))) < 1e-9  # torque = Kt x current, the same Kt throughout
     schema, messages = topics["/sim/platform"]
     assert set(schema["required"]) == {"reference_m", "platform_m", "error_mm"}
     assert len(messages) == len(topics["/sim/branch"][1]) == round(out["duration_s"] / DT)
