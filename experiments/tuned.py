@@ -28,7 +28,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from pusupu_jax import LoopRates, ServoParams, workload
-from pusupu_jax import gains as gain_files
+from pusupu_jax import gain_view, gains as gain_files
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, machine_rates, simulate_scenarios
@@ -82,7 +82,7 @@ def changed_fields(g) -> dict:
     """``{field: {table1, tuned, unit}}`` of every gain or plant value of ``g`` that differs from Table 1."""
     base = {"hybrid": HybridGains()}
     out = {}
-    for section, name, value, unit, _ in gain_files.rows(g.document):
+    for section, name, value, unit, _ in gain_view.rows(g.document):
         ref = getattr(base.get(section, ServoParams.table1()), name)
         same = (
             value == ref

@@ -16,7 +16,7 @@ from .common import check_path_on, checking, machine_of, say
 def cmd_gains(args) -> int:
     from pathlib import Path
 
-    from pusupu_jax import gains
+    from pusupu_jax import gain_view, gains
     from pusupu_jax.runtime import setup_jax
 
     setup_jax()  # the checks' compiled programs come from the persistent cache after the first run
@@ -35,11 +35,11 @@ def cmd_gains(args) -> int:
     with checking(args.file):
         g = gains.load(args.file, floors, machine=machine)
     if args.action == "show":
-        print(json.dumps(g.document, indent=2) if args.json else gains.show(g.document))
+        print(json.dumps(g.document, indent=2) if args.json else gain_view.show(g.document))
     elif args.action == "diff":
         with checking(args.other):
             other = gains.load(args.other, floors)
-        lines = gains.diff(g.document, other.document)
+        lines = gain_view.diff(g.document, other.document)
         print("\n".join(lines) if lines else "no difference in gains, rates or mode")
     elif args.action == "check":
         from pusupu_jax import machine_file

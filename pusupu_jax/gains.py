@@ -1,7 +1,8 @@
 """Gain files: the tuned servo gains for people as well as programs, validated on load (host-side).
 
 Schema ``pusupu-gains`` version 4, every key required, in this order (``docs/gains.md`` shows a
-whole file; ``pusupu_jax/schemas/pusupu-gains.schema.json`` is its JSON Schema)::
+whole file; ``pusupu_jax/schemas/pusupu-gains.schema.json`` is its JSON Schema, :mod:`pusupu_jax.gain_schema`; a
+table of it for people is :mod:`pusupu_jax.gain_view`'s)::
 
     schema: pusupu-gains
     version: 4
@@ -45,7 +46,6 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import hashlib
-import json
 import subprocess
 from pathlib import Path
 
@@ -58,9 +58,10 @@ from .files import write_atomic
 from .params_file import rates_from_mapping
 from . import machine_file
 from .cascade import GAIN_FILE_MODES
+from .gain_view import show
 from .hybrid import HybridGains, gain_fields
 from .machine_file import Machine
-from .params import LoopRates, ParameterError, ServoParams, array_fields, bounds, static_fields
+from .params import LoopRates, ParameterError, ServoParams, array_fields, static_fields
 from .stability import FLOORS
 
 SCHEMA, VERSION = "pusupu-gains", 4
@@ -558,217 +559,3 @@ def _rewrite(path: Path, g: GainFile, floors, action: str, machine: Machine) -> 
         floors=floors,
         machine=machine,
     )
-
-
-def rows(doc: dict) -> list[tuple[str, str, object, str, bool]]:
-    """``(section, field, value, unit, tuned)`` of every gain (and a version 2 file's plant value), in file order."""
-    out = []
-    for section, fields in list(doc["controller"].items()) + [("plant", doc.get("plant", {}))]:
-        for name, v in fields.items():
-            if isinstance(v, dict):
-                out.append((section, name, v["value"], v["unit"], bool(v.get("tuned"))))
-            else:
-                out.append((section, name, v, "", False))
-    return out
-
-
-def show(doc: dict) -> str:
-    """A gain file as a table for people: sections, values (six when they differ), units, what was tuned."""
-    machine = doc.get("machine", {"name": "built-in (version 3 or older)", "digest": ""})
-    lines = [
-        f"{SCHEMA} v{doc['version']}, mode {doc['mode']}, rates {doc['rates']['f_current']:g} Hz current / "
-        f"{doc['rates']['n_velocity']} / {doc['rates']['n_position']} ({doc['rates']['method']})",
-        f"tuned on machine {machine['name']!r}" + (f" (digest {machine['digest'][:12]})" if machine["digest"] else ""),
-        f"{'section':<9} {'field':<10} {'value':<44} {'unit':<12} tuned",
-    ]
-    for section, name, value, unit, tuned in rows(doc):
-        text = (
-            " ".join(f"{x:.6g}" for x in value)
-            if isinstance(value, list)
-            else f"{value:.6g}"
-            if isinstance(value, float)
-            else str(value)
-        )
-        lines.append(f"{section:<9} {name:<10} {text:<44} {unit:<12} {'yes' if tuned else ''}")
-    for loop, m in doc["margins"].items():
-        pm, gm = np.min(m["phase_margin_deg"]), np.min(m["gain_margin_db"])
-        lines.append(f"margins   {loop:<10} {pm:.1f} deg, {gm:.1f} dB (smallest over the axes)")
-    for loop, st in doc.get("stability", {}).items():
-        lines.append(
-            f"poles     {loop:<10} largest modulus {np.max(st['spectral_radius']):.6f} over one period (stable below 1)"
-        )
-    p = doc["provenance"]
-    lines.append(
-        f"made by {p.get('package')} {p.get('package_version')} (jax {p.get('jax_version')}, mujoco "
-        f"{p.get('mujoco_version')}, commit {p.get('git_commit')}) at {p.get('created_utc')}"
-    )
-    return "\n".join(lines)
-
-
-def diff(a: dict, b: dict) -> list[str]:
-    """The values two gain documents disagree on, one line each (empty when their gains and rates are equal)."""
-    left, right = ({(s, n): (v, u) for s, n, v, u, _ in rows(d)} for d in (a, b))
-    out = []
-    for key in sorted(set(left) | set(right)):
-        if left.get(key) != right.get(key):
-            unit = left[key][1] if key in left else right[key][1]
-            out.append(f"{key[0]}.{key[1]}: {left.get(key, ('-', ''))[0]} -> {right.get(key, ('-', ''))[0]} {unit}")
-    for k in sorted(set(a["rates"]) | set(b["rates"])):
-        if a["rates"].get(k) != b["rates"].get(k):
-            out.append(f"rates.{k}: {a['rates'].get(k)} -> {b['rates'].get(k)}")
-    if a["mode"] != b["mode"]:
-        out.append(f"mode: {a['mode']} -> {b['mode']}")
-    return out
-
-
-def json_schema() -> dict:
-    """The JSON Schema of a gain file, built from the parameter classes' metadata (shipped as a file; a test keeps the
-    two equal).  Each bounded value carries its range and the reason for it."""
-    number = {"type": "number"}
-
-    def per_axis(low=None, high=None):
-        item = (
-            dict(number)
-            | ({"minimum": low} if low is not None else {})
-            | ({"maximum": high} if isinstance(high, (int, float)) else {})
-        )
-        return {"oneOf": [item, {"type": "array", "items": item, "minItems": 6, "maxItems": 6}]}
-
-    def field_schema(f):
-        b = bounds(f)
-        value = per_axis(*b[:2]) if b else per_axis()
-        out = {
-            "type": "object",
-            "required": ["value", "unit"],
-            "additionalProperties": False,
-            "description": f.metadata["doc"]
-            + (
-                f" Range {b[0]:g} to {b[1]:g}"
-                if b and not isinstance(b[1], str)
-                else f" Range {b[0]:g} to the plant's {b[1]}"
-                if b
-                else ""
-            )
-            + (f": {b[2]}." if b else ""),
-            "properties": {"value": value, "unit": {"const": f.metadata["unit"]}, "tuned": {"type": "boolean"}},
-        }
-        return out
-
-    sections: dict[str, dict] = {
-        name: {"type": "object", "additionalProperties": False, "properties": {}, "required": []}
-        for name in CONTROLLER_SECTIONS
-    }
-    for f in dataclasses.fields(ServoParams):
-        if f.metadata["section"] == "plant":
-            continue
-        sec = sections[f.metadata["section"]]
-        sec["properties"][f.name] = (
-            {"enum": list(f.metadata["choices"])} if f.metadata.get("static") else field_schema(f)
-        )
-        sec["required"].append(f.name)
-    sections["hybrid"]["properties"]["form"] = {"enum": ["rms", "signed"]}
-    for f in gain_fields():
-        sections["hybrid"]["properties"][f.name] = field_schema(f)
-    sections["hybrid"]["required"] = ["form"] + [f.name for f in gain_fields()]
-    matrix = {"type": "array", "items": {"type": "array", "items": number}}
-    coefficients = {k: matrix for k in "ABCD"}
-    block = {
-        "type": "object",
-        "required": ["sample_period_s", "input", "output", "clamp"],
-        "properties": {
-            "sample_period_s": number,
-            "input": {"type": "string"},
-            "output": {"type": "string"},
-            "clamp": {"type": "string"},
-            **coefficients,
-            "per_axis": {
-                "type": "array",
-                "minItems": 6,
-                "maxItems": 6,
-                "items": {"type": "object", "properties": coefficients, "required": list("ABCD")},
-            },
-        },
-    }
-    loop = {"type": "object", "properties": {"phase_margin_deg": per_axis(), "gain_margin_db": per_axis()}}
-    radius = {
-        "type": "object",
-        "required": ["spectral_radius"],
-        "properties": {"spectral_radius": per_axis(0, 1)},
-        "description": "the largest eigenvalue modulus of the loop's closed-loop map over one period, at the "
-        "file's rates on the machine named (pusupu_jax.stability): stable below 1",
-    }
-    rates = {
-        name: (low, high, why)
-        for name, (low, high, why) in (
-            ("current", stability.F_CURRENT),
-            ("velocity", stability.F_VELOCITY),
-            ("position", stability.F_POSITION),
-        )
-    }
-    return {
-        "$schema": "https://json-schema.org/draft/2020-12/schema",
-        "$id": "https://pusupu-jax/schemas/pusupu-gains.schema.json",
-        "title": "pusupu gain file",
-        "description": __doc__.split("\n\n")[0],
-        "type": "object",
-        "required": list(KEYS),
-        "additionalProperties": False,
-        "properties": {
-            "schema": {"const": SCHEMA},
-            "version": {"const": VERSION},
-            "mode": {"enum": [str(m) for m in MODES]},
-            "machine": {
-                "type": "object",
-                "additionalProperties": False,
-                "required": ["name", "digest"],
-                "description": "the machine file the gains were tuned on (pusupu_jax.machine_file.digest)",
-                "properties": {
-                    "name": {"type": "string", "minLength": 1},
-                    "digest": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
-                },
-            },
-            "controller": {
-                "type": "object",
-                "additionalProperties": False,
-                "required": list(CONTROLLER_SECTIONS),
-                "properties": {name: sections[name] for name in CONTROLLER_SECTIONS},
-            },
-            "rates": {
-                "type": "object",
-                "additionalProperties": False,
-                "required": [f.name for f in dataclasses.fields(LoopRates)],
-                "description": "; ".join(
-                    f"the {k} loop's rate {lo:g} to {hi:g} Hz ({why})" for k, (lo, hi, why) in rates.items()
-                ),
-                "properties": {
-                    "f_current": number | {"minimum": stability.F_CURRENT[0], "maximum": stability.F_CURRENT[1]},
-                    "n_velocity": {"type": "integer", "minimum": 1},
-                    "n_position": {"type": "integer", "minimum": 1},
-                    "n_mech": {"type": "integer", "minimum": 1},
-                    "method": {"enum": ["tustin", "zoh"]},
-                },
-            },
-            "discrete": {
-                "type": "object",
-                "additionalProperties": False,
-                "required": list(BLOCKS),
-                "properties": {name: block for name in BLOCKS},
-            },
-            "margins": {"type": "object", "properties": {k: loop for k in ("current", "velocity", "position")}},
-            "stability": {
-                "type": "object",
-                "required": list(stability.LOOPS),
-                "properties": {k: radius for k in stability.LOOPS},
-            },
-            "provenance": {"type": "object"},
-            "checksum": {"type": "string", "pattern": "^[0-9a-f]{64}$"},
-        },
-    }
-
-
-SCHEMA_FILE = Path(__file__).parent / "schemas" / "pusupu-gains.schema.json"
-
-
-def schema_text() -> str:
-    """:func:`json_schema` as the shipped file's text."""
-    return json.dumps(json_schema(), indent=2) + "\n"

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pusupu_jax import LoopRates, ParameterError, ServoParams, gains
+from pusupu_jax import LoopRates, ParameterError, ServoParams, gain_schema, gain_view, gains
 from pusupu_jax.hybrid import HybridGains
 
 RATES = LoopRates(n_mech=5)
@@ -56,9 +56,9 @@ def test_a_gain_file_reads_back_exactly(tmp_path):
 
 
 def test_the_shipped_json_schema_is_current_and_describes_written_files(tmp_path):
-    assert gains.SCHEMA_FILE.read_text() == gains.schema_text()
+    assert gain_schema.SCHEMA_FILE.read_text() == gain_schema.schema_text()
     path = _write(tmp_path / "gains.yaml")
-    jsonschema.validate(yaml.safe_load(path.read_text()), json.loads(gains.SCHEMA_FILE.read_text()))
+    jsonschema.validate(yaml.safe_load(path.read_text()), json.loads(gain_schema.SCHEMA_FILE.read_text()))
 
 
 def _rewrite(path, change):
@@ -216,11 +216,11 @@ def test_files_get_the_mode_the_umask_gives(tmp_path, mask, mode):
 def test_show_and_diff_read_for_people(tmp_path):
     a = gains.load(_write(tmp_path / "a.yaml")).document
     b = gains.load(_write(tmp_path / "b.yaml", hybrid=HYBRID.replace(c6=999.0))).document
-    text = gains.show(a)
+    text = gain_view.show(a)
     assert "lambda1" in text and "0.02 0.026 0.032 0.038 0.044 0.05" in text and "yes" in text
     assert "margins   position" in text
-    assert gains.diff(a, b) == ["hybrid.c6: 1234.5 -> 999.0 N/m"]
-    assert gains.diff(a, a) == []
+    assert gain_view.diff(a, b) == ["hybrid.c6: 1234.5 -> 999.0 N/m"]
+    assert gain_view.diff(a, a) == []
 
 
 BAD_BYTES = {
