@@ -246,6 +246,10 @@ class BridgeLoop:
             return self.takeover[p]
         return self.path_rows[min(p - self.takeover_periods, len(self.path_rows) - 1)]
 
+    def path_time(self, cycle: int) -> float:
+        """The time along the path [s] of the reference row in force at ``cycle`` (negative on the takeover ramp)."""
+        return (cycle // self.n_position - self.takeover_periods) * self.rates.dt_position
+
     def reference_at(self, cycle: int) -> np.ndarray:
         """The motor-angle reference [rad] in force at ``cycle`` (for the tracking error)."""
         return self._row(cycle)[: len(self.drive_modes)]

@@ -95,6 +95,7 @@ class BridgeRun:
     latency_us: list = field(default_factory=list)
     feedback_age_us: list = field(default_factory=list)
     t: list = field(default_factory=list)
+    path_time: list = field(default_factory=list)  # per sample, the time along the path of its reference [s]
     reference: list = field(default_factory=list)
     position: list = field(default_factory=list)
     drive: list = field(default_factory=list)  # per sample (3, n_axes): velocity [rad/s], torque [N m], current [A]
@@ -328,6 +329,7 @@ class Bridge:
             if st["fresh"] and ja >= 0:
                 rec.t.append((ja + 1) / loop.rate)
                 rec.reference.append(loop.reference_at(ja + 1))
+                rec.path_time.append(loop.path_time(ja + 1))
                 rec.position.append(fb.position)
                 current = fb.current if fb.current is not None else np.full(len(fb.torque), np.nan)
                 rec.drive.append(np.stack([fb.velocity, fb.torque, current]))
@@ -430,6 +432,10 @@ def run_log(rec: BridgeRun) -> list[Channel]:
         "/bridge/feedback",
         "pusupu.BridgeFeedback",
         {
+            "path_time_s": {
+                "type": "number",
+                "description": "the time along the path of the sample's reference [s] (negative on the takeover ramp)",
+            },
             "reference_rad": {
                 "type": "array",
                 "items": {"type": "number"},
@@ -470,6 +476,7 @@ def run_log(rec: BridgeRun) -> list[Channel]:
             (
                 offset + t,
                 {
+                    "path_time_s": rec.path_time[i],
                     "reference_rad": rec.reference[i],
                     "position_rad": rec.position[i],
                     "velocity_rad_s": rec.drive[i][0],

@@ -37,6 +37,7 @@ from .analyze import cmd_analyze
 from .common import say
 from .experiment import cmd_experiment
 from .gain_files import cmd_gains
+from .identify import add_parser as add_identify_parser, cmd_identify
 from .machine import cmd_machine
 from .sim import cmd_sim
 from .tuning import cmd_batch, cmd_tune
@@ -218,6 +219,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     m_check.add_argument("--json", action="store_true", help="print the findings as JSON")
     m_actions.add_parser("schema", help="print the machine file's JSON Schema (for editors)")
+    add_identify_parser(sub)
     e = sub.add_parser("experiment", help="reproduce one of the paper's claims: runs, figures, JSON and a table")
     e.add_argument(
         "name",
@@ -335,6 +337,7 @@ def main(argv=None) -> int:
         "experiment": cmd_experiment,
         "gains": cmd_gains,
         "machine": cmd_machine,
+        "identify": cmd_identify,
         "bridge": bridge_cli.run_bridge,
         "sim-robot": bridge_cli.run_sim_robot,
     }

@@ -151,3 +151,23 @@ def plot_identification(result: dict, path=None, title: str = "") -> Figure:
     fig.suptitle(title or "velocity steps of the machine")
     fig.tight_layout()
     return _output(fig, path)
+
+
+def plot_friction_fit(replays: list, path=None, title: str = "") -> Figure:
+    """Per axis, the logged motor torque against the replay's with the machine file's friction and with the fitted
+    one (:func:`pusupu_jax.machine_fit.fit`'s plot arrays; the first log's)."""
+    r = replays[0]
+    t = np.asarray(r["t"])
+    fig, axes = plt.subplots(3, 2, figsize=(11, 8), sharex=True, squeeze=False)
+    for b, ax in enumerate(axes.ravel()):
+        ax.plot(t, np.asarray(r["logged"])[:, b], "k", lw=1.4, label="logged")
+        ax.plot(t, np.asarray(r["before"])[:, b], "--", lw=1.0, label="replay, machine file's friction")
+        ax.plot(t, np.asarray(r["after"])[:, b], lw=1.0, label="replay, fitted friction")
+        ax.set_ylabel(f"axis {b + 1} torque [N m]")
+        ax.grid(True, alpha=0.3)
+    axes[0, 0].legend(fontsize=7)
+    for ax in axes[-1]:
+        ax.set_xlabel("time along the path [s]")
+    fig.suptitle(title or "motor torques: logged against the closed-loop replay")
+    fig.tight_layout()
+    return _output(fig, path)

@@ -136,6 +136,7 @@ def machine_channels(arrays: dict) -> list[Channel]:
         "/sim/drive",
         "pusupu.SimDrive",
         {
+            "path_time_s": _number("s", "the time along the path of the sample's reference"),
             "reference_rad": _array(n, "rad", "per axis: the motor angle followed"),
             "position_rad": _array(n, "rad", "per axis: the motor angle"),
             "velocity_rad_s": _array(n, "rad/s", "per axis: the motor speed"),
@@ -144,5 +145,96 @@ def machine_channels(arrays: dict) -> list[Channel]:
         },
     )
     for k, t in enumerate(np.asarray(arrays["t"])):
-        motor.messages.append((t, {name: v[k] for name, v in drive.items()}))
+        motor.messages.append((t, {"path_time_s": t} | {name: v[k] for name, v in drive.items()}))
     return [platform, branch, motor]
+
+
+LOG_LIMIT = 1 << 30  # bytes: the largest log read (an hour at 1 kHz of six axes is about 0.5 GiB of JSON messages)
+DRIVE_TOPICS = ("/sim/drive", "/bridge/feedback")  # the channels that carry each axis's drive samples
+
+
+@dataclass(frozen=True)
+class DriveLog:
+    """The drive samples of one run log (:func:`drive_log`): what a log holds for identification.
+
+    ``path_time`` ``(N,)`` [s] along the path; per sample and axis ``(N, n_axes)``: ``reference`` [rad] (the motor
+    angle followed), ``position`` [rad], ``velocity`` [rad/s], ``torque`` [N m] and ``current`` [A] (None where the
+    log has none: protocol version 1, CANopen).  ``mode``, ``trajectory`` (the path's name or file) and ``rate_hz``
+    come from the log's metadata, with ``gain_checksum`` (the gain file's, where the log names it: the bridge's);
+    ``digest`` is the file's SHA-256."""
+
+    path: str
+    digest: str
+    source: str
+    gain_checksum: str | None
+    mode: str
+    trajectory: str
+    rate_hz: float
+    path_time: np.ndarray
+    reference: np.ndarray
+    position: np.ndarray
+    velocity: np.ndarray
+    torque: np.ndarray
+    current: np.ndarray | None
+
+
+def drive_log(path) -> DriveLog:
+    """The drive samples of the MCAP log ``path`` written by ``pusupu sim --plant mjx --log`` (``/sim/drive``) or
+    ``pusupu bridge --log`` (``/bridge/feedback``); :class:`~pusupu_jax.params.ParameterError` with one line for a file
+    that is not such a log."""
+    import hashlib
+
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    from .inputs import read_bytes
+    from .params import ParameterError
+
+    data = read_bytes(path, "MCAP run log", ParameterError, limit=LOG_LIMIT)
+    try:
+        reader = make_reader(io.BytesIO(data))
+        metadata = next((dict(r.metadata) for r in reader.iter_metadata() if r.name == METADATA), None)
+        samples = [json.loads(m.data) for _, _, m in reader.iter_messages(topics=list(DRIVE_TOPICS))]
+    except (McapError, ValueError, KeyError, EOFError) as e:
+        raise ParameterError(f"{path}: expected an MCAP run log, got a file that does not read as one ({e})") from None
+    if metadata is None or not {"mode", "trajectory", "rate_hz"} <= set(metadata):
+        raise ParameterError(
+            f"{path}: expected a log of pusupu sim or pusupu bridge (a '{METADATA}' metadata record with mode, "
+            "trajectory and rate_hz), found none"
+        )
+    if not samples:
+        raise ParameterError(f"{path}: expected drive samples on {' or '.join(DRIVE_TOPICS)}, found none")
+
+    def column(name, optional=False):
+        values = [m.get(name) for m in samples]
+        if optional and all(v is None or (isinstance(v, list) and None in v) for v in values):
+            return None
+        try:
+            out = np.asarray(values, dtype=float)
+        except (TypeError, ValueError):
+            raise ParameterError(f"{path}: {name}: expected numbers in every sample") from None
+        if not np.isfinite(out).all():
+            raise ParameterError(f"{path}: {name}: expected finite numbers in every sample, found NaN or inf")
+        return out
+
+    try:
+        rate = float(json.loads(metadata["rate_hz"]))
+    except ValueError:
+        rate = float("nan")
+    if not (np.isfinite(rate) and rate > 0):
+        raise ParameterError(f"{path}: metadata rate_hz: expected a positive number, got {metadata['rate_hz']!r}")
+    return DriveLog(
+        path=str(path),
+        digest=hashlib.sha256(data).hexdigest(),
+        source=metadata.get("source", ""),
+        gain_checksum=metadata.get("gain_file_checksum"),
+        mode=metadata["mode"],
+        trajectory=metadata["trajectory"],
+        rate_hz=rate,
+        path_time=column("path_time_s"),
+        reference=column("reference_rad"),
+        position=column("position_rad"),
+        velocity=column("velocity_rad_s"),
+        torque=column("torque_nm"),
+        current=column("current_a", optional=True),
+    )

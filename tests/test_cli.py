@@ -117,6 +117,8 @@ def test_sim_mjx_reports_the_machine_metrics(tmp_path):
         ["analyze", "--identify-T0", "--trajectory", "arc"],
         ["sim", "--plant", "mjx", "--device", "gpu"],  # no GPU for JAX where the suite runs
         ["tune", "--device", "tpu"],
+        ["identify", "run.mcap", "--fit", "mass", "--out", "x.yaml"],
+        ["identify", "/no/such/run.mcap", "--out", "x.yaml"],
     ],
 )
 def test_bad_machine_arguments_exit_2_with_one_line(args):

@@ -1,0 +1,120 @@
+"""``pusupu identify``: the machine file's drive-train friction fitted to run logs."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from pusupu_jax.params import ParameterError
+
+from .common import check_output_path, check_plot_path, checking, machine_of
+
+
+def add_parser(sub) -> None:
+    i = sub.add_parser(
+        "identify",
+        help="fit the machine file's drive-train friction to run logs (MCAP of pusupu sim --log or bridge --log)",
+    )
+    i.add_argument("logs", nargs="+", metavar="LOG", help="MCAP run logs (docs/logs.md)")
+    i.add_argument("--machine", metavar="FILE", help="the machine file to start from (default the built-in machine)")
+    i.add_argument(
+        "--gains", metavar="FILE", help="the gain file the logged runs used (default the built-in start gains)"
+    )
+    i.add_argument(
+        "--fit",
+        default="friction",
+        metavar="NAMES",
+        help="comma-separated fields to fit, per axis: coulomb, viscous, or friction for both (default friction)",
+    )
+    i.add_argument(
+        "--window",
+        type=float,
+        default=2.0,
+        metavar="S",
+        help="replay each log's first S seconds from rest at the path's start (default 2)",
+    )
+    i.add_argument("--trajectory", metavar="NAME|FILE", help="the path the logs ran, where not the one they name")
+    i.add_argument("--out", required=True, metavar="FILE", help="the identified machine file to write")
+    i.add_argument("--plot", metavar="PNG", help="write the logged torques against the replay's, before and after")
+    i.add_argument("--json", action="store_true", help="print the report as JSON")
+
+
+def cmd_identify(args) -> int:
+    import numpy as np
+
+    from pusupu_jax import machine_file, machine_fit, run_log
+    from pusupu_jax.files import write_atomic
+    from pusupu_jax.params import LoopRates, ServoParams
+    from pusupu_jax.runtime import setup_jax
+
+    fields = machine_fit.fit_fields(args.fit)
+    if not (np.isfinite(args.window) and args.window > 0):
+        raise ParameterError(f"--window: expected a positive number of seconds, got {args.window}")
+    check_output_path(args.out, "--out", "machine")
+    if args.plot:
+        check_plot_path(args.plot)
+    setup_jax()
+    machine = machine_of(args)
+    logs = []
+    for path in args.logs:
+        with checking(path):
+            logs.append(run_log.drive_log(path))
+    gains, hybrid, rates = ServoParams.table1(), None, LoopRates()
+    if args.gains:
+        from pusupu_jax import gains as gain_files
+
+        with checking(f"--gains {args.gains}"):
+            g = gain_files.load(args.gains, check_stability=False, machine=machine)
+        gains, hybrid, rates = g.servo, g.hybrid, g.rates
+        for log in logs:
+            if log.gain_checksum and log.gain_checksum != g.document["checksum"]:
+                raise ParameterError(
+                    f"{log.path}: ran with the gain file of checksum {log.gain_checksum[:12]}, expected --gains "
+                    f"{args.gains}'s {g.document['checksum'][:12]}"
+                )
+    with checking(f"--machine {args.machine}" if args.machine else "the built-in machine"):
+        report, identified, plots = machine_fit.fit(
+            logs,
+            machine,
+            gains,
+            hybrid,
+            rates,
+            fields,
+            args.window,
+            args.trajectory,
+            progress=lambda line: print(line, file=sys.stderr, flush=True),
+        )
+    header = [
+        f"# identified by pusupu identify from {machine.name!r}: {', '.join(map(str, fields))} fitted to "
+        f"{len(logs)} log(s), the first {args.window:g} s of each",
+        *(f"#   log {d['path']} sha256 {d['sha256']}" for d in report.logs),
+        f"#   residual RMS {report.residual_rms_before:.4g} -> {report.residual_rms_after:.4g} over "
+        f"{report.samples} samples",
+        *(
+            f"#   {v.field}[{v.axis}] not excited by the logs: kept at {v.start:g} {machine_fit.UNITS[v.field]}"
+            for v in report.unexcited()
+        ),
+    ]
+    write_atomic(args.out, "\n".join(header) + "\n" + machine_file.template(identified))
+    if args.plot:
+        from pusupu_jax.plots import plot_friction_fit
+
+        plot_friction_fit(plots, args.plot)
+    if args.json:
+        print(json.dumps(report.as_dict() | {"out": args.out}, indent=2))
+        return 0
+    print(
+        f"identify: residual RMS {report.residual_rms_before:.4g} -> {report.residual_rms_after:.4g} over "
+        f"{report.samples} samples of {len(logs)} log(s) ({report.evaluations} evaluations, {report.wall_s:.0f} s)"
+    )
+    print(f"{'field':<9} {'axis':>4} {'start':>10} {'fitted':>10} {'std error':>10}  unit")
+    for v in report.values:
+        note = "" if v.excited else "  not excited: kept"
+        print(
+            f"{v.field:<9} {v.axis:>4} {v.start:>10.4g} {v.value:>10.4g} {v.std_error:>10.2g}  "
+            f"{machine_fit.UNITS[v.field]}{note}"
+        )
+    for v in report.unexcited():
+        print(f"pusupu: warning: {v.field}[{v.axis}] was not excited by the logs; kept at {v.start:g}", file=sys.stderr)
+    print(f"wrote {args.out}" + (f", {args.plot}" if args.plot else ""))
+    return 0

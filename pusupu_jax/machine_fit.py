@@ -1,0 +1,316 @@
+"""Fitting the machine's drive-train friction to run logs (host-side driver of a differentiable replay).
+
+A log (:func:`pusupu_jax.run_log.drive_log`: ``pusupu sim --plant mjx --log`` or ``pusupu bridge --log``) holds, per
+sample, the motor angle each axis followed, and the angle, speed and torque its drive measured.  :func:`fit` replays
+the logged path through the simulated closed loop (the cascade with the gains the log ran with, on the MJX machine of
+the machine file), from rest at the path's start, and fits chosen drive-train fields of the machine file
+(:class:`FitField`) so that the replay's motor torques and angles match the logged ones: a nonlinear least-squares
+problem whose residual is
+
+    r = [(tau_sim - tau_log) / s_tau, (theta_sim - theta_log) / s_theta]   over every logged sample and axis,
+
+``s_tau`` the RMS of the logged torques and ``s_theta`` the RMS of the logged tracking error (so both count alike).
+
+*Closed-loop replay, not open-loop.*  The logged run was closed loop: replaying the logged torques into the open-loop
+machine drifts away from the logged motion within a fraction of a second (an unstable double integrator per axis), so
+its residual stops measuring the parameters.  The replayed closed loop stays on the path, and the torque its
+controller needs to get there carries the friction (Coulomb and viscous) the log's controller paid.
+
+*Solver.*  scipy's Levenberg-Marquardt (``scipy.optimize.least_squares(method='lm')``, MINPACK) over two jitted
+programs, the residual and its Jacobian (``jax.jacfwd``: forward mode, one tangent per fitted value, exact).  An
+optimistix Levenberg-Marquardt traces the whole solve, both programs inside its loop, into one program: on the
+2-core CPU (beside another job) its compile for a 1 s window had not ended after 8 minutes, where the two programs
+here compile in about 35 s.
+
+*Standard errors* come from the Jacobian at the optimum, ``s^2 (J^T J)^-1`` with ``s^2`` the residual's variance
+per degree of freedom.  A value the logs do not excite (its Jacobian column below ``1e-8`` of the largest, or a
+standard error above half its size) is not invented: it keeps the machine file's value, is reported as not excited,
+and the others are fitted again without it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .cascade import control_mode
+from .hybrid import HybridGains
+from .machine import MACHINE_MODES, machine_plant, machine_rates, machine_reference
+from .machine_file import Machine
+from .params import N_AXES, LoopRates, ParameterError, ServoParams
+from .paths import platform_path_from
+from .run_log import DriveLog
+from .sim import rollout
+
+
+class FitField(enum.StrEnum):
+    """A drive-train field of the machine file that :func:`fit` can fit, per axis."""
+
+    COULOMB = "coulomb"  # Coulomb friction at the slider [N]
+    VISCOUS = "viscous"  # viscous friction at the slider [N s/m]
+
+
+FIT_GROUPS = {"friction": (FitField.COULOMB, FitField.VISCOUS)}  # names of several fields at once (``--fit``)
+UNITS = {FitField.COULOMB: "N", FitField.VISCOUS: "N*s/m"}
+SCALES = {FitField.COULOMB: 10.0, FitField.VISCOUS: 50.0}  # a fitted value's scale where its start is 0
+UNEXCITED_COLUMN = 1e-8  # a Jacobian column this small against the largest: the logs do not excite the value
+UNEXCITED_ERROR = 0.5  # a standard error above this fraction of the value (or of its scale): not identified
+
+
+def fit_fields(text: str) -> tuple[FitField, ...]:
+    """``--fit``'s comma-separated names (fields, or a group of :data:`FIT_GROUPS`) as fields, in order, once each."""
+    out: list[FitField] = []
+    for name in (n.strip() for n in text.split(",")):
+        try:
+            group = FIT_GROUPS.get(name) or (FitField(name),)
+        except ValueError:
+            known = ", ".join([*FIT_GROUPS, *(str(f) for f in FitField)])
+            raise ParameterError(f"--fit: expected names among {known}, got {name!r}") from None
+        out += [f for f in group if f not in out]
+    return tuple(out)
+
+
+@dataclasses.dataclass(frozen=True)
+class FittedValue:
+    """One axis's value of one field: where the fit started, where it ended, its standard error (in the field's
+    unit), and whether the logs excited it (if not, ``value`` is ``start``)."""
+
+    field: FitField
+    axis: int
+    start: float
+    value: float
+    std_error: float
+    excited: bool
+
+    def as_dict(self) -> dict:
+        return {
+            "field": str(self.field),
+            "axis": self.axis,
+            "unit": UNITS[self.field],
+            "start": self.start,
+            "value": self.value,
+            "std_error": self.std_error,
+            "excited": self.excited,
+        }
+
+
+@dataclasses.dataclass(frozen=True)
+class FitReport:
+    """What :func:`fit` found: every fitted value, the residual's RMS before and after, the samples and the window,
+    the solver's work, and the logs (path, SHA-256, what wrote them)."""
+
+    values: tuple[FittedValue, ...]
+    residual_rms_before: float
+    residual_rms_after: float
+    samples: int
+    window_s: float
+    evaluations: int
+    jacobians: int
+    solver_message: str
+    wall_s: float
+    logs: tuple[dict, ...]
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self) | {"values": [v.as_dict() for v in self.values]}
+
+    def unexcited(self) -> list[FittedValue]:
+        return [v for v in self.values if not v.excited]
+
+
+@dataclasses.dataclass(frozen=True)
+class Replay:
+    """One log's replay: the jitted ``run(values) -> (torque, theta)`` at the logged samples ``(n, n_axes)``, and the
+    logged ``torque`` and ``position`` there; ``t`` [s] along the path."""
+
+    run: Callable
+    torque: np.ndarray
+    position: np.ndarray
+    reference: np.ndarray
+    t: np.ndarray
+
+
+def _replay(
+    log: DriveLog,
+    machine: Machine,
+    gains: ServoParams,
+    hybrid: HybridGains | None,
+    rates: LoopRates,
+    window_s: float,
+    fields: tuple[FitField, ...],
+    trajectory: str | None,
+) -> Replay:
+    """The closed-loop replay of ``log``'s first ``window_s`` seconds on ``machine`` under ``gains``, checked against
+    the log: its mode, rate and reference."""
+    if log.mode not in MACHINE_MODES:
+        raise ParameterError(f"{log.path}: mode: expected one of {tuple(map(str, MACHINE_MODES))}, got {log.mode!r}")
+    options = machine.options()
+    rates = machine_rates(options, rates)
+    spec = trajectory or log.trajectory
+    path = platform_path_from(spec, machine.geometry.home, rates)
+    n = min(int(round(window_s / rates.dt_position)), len(path))
+    index = np.rint(log.path_time / rates.dt_position).astype(int)  # the position period of each sample's reference
+    keep = (index >= 0) & (index < n)
+    if keep.sum() < 2:
+        raise ParameterError(
+            f"{log.path}: expected samples in the first {window_s:g} s of the path, found fewer than 2"
+        )
+    index = index[keep]
+    servo = machine.servo(gains)
+    reference = machine_reference(servo, path[:n], log.mode, options=options, rates=rates, geom=machine.geometry)
+    theta_ref = np.asarray(reference.theta if control_mode(log.mode).hybrid else reference)[index]
+    off = float(np.abs(theta_ref - log.reference[keep]).max())
+    if off > 1e-6:
+        raise ParameterError(
+            f"{log.path}: expected the reference of the path {spec!r} on this machine, found one {off:.3g} rad "
+            "away (another path, geometry or rate: give --trajectory or --machine)"
+        )
+    nominal = dataclasses.replace(
+        options, kin_error_seed=None, payload=0.0, payload_com=(0.0, 0.0, 0.0), payload_inertia=(0.0, 0.0, 0.0)
+    )
+    plant = machine_plant(nominal)
+    model = plant.variant(options, machine.geometry)
+    mode, hybrid = log.mode, hybrid if control_mode(log.mode).hybrid else None
+
+    @jax.jit
+    def run(values):
+        trace = rollout(
+            servo.replace(**dict(zip(fields, values))),
+            model,
+            reference,
+            plant=plant,
+            rates=rates,
+            outer=mode,
+            hybrid=hybrid,
+        )
+        return trace.torque[index], trace.theta[index]
+
+    return Replay(run, log.torque[keep], log.position[keep], log.reference[keep], index * rates.dt_position)
+
+
+def fit(
+    logs: list[DriveLog],
+    machine: Machine,
+    gains: ServoParams,
+    hybrid: HybridGains | None = None,
+    rates: LoopRates = LoopRates(),
+    fields: tuple[FitField, ...] = FIT_GROUPS["friction"],
+    window_s: float = 2.0,
+    trajectory: str | None = None,
+    progress=None,
+) -> tuple[FitReport, Machine, list[dict]]:
+    """Fit ``fields`` of ``machine`` (its values are the start) to ``logs``, each replayed over its first
+    ``window_s`` [s] with ``gains`` (``hybrid``: a hybrid log's gains; ``rates``: the gains' rates; ``trajectory``:
+    the path, where not the logs' own).  Returns the report, the machine with the fitted values (the unexcited ones
+    as they were), and per log the arrays of the plot (``t``, logged and replayed torques before and after).
+    ``progress(line)`` is told what runs (compiles take about half a minute each on 2 CPU cores)."""
+    from scipy.optimize import least_squares
+
+    say = progress or (lambda line: None)
+    t0 = time.perf_counter()
+    starts = np.stack([np.broadcast_to(np.asarray(machine.drives[f], float), (N_AXES,)) for f in fields])
+    scale = np.where(starts != 0, np.abs(starts), np.array([[SCALES[f]] for f in fields]))
+    replays = [_replay(log, machine, gains, hybrid, rates, window_s, fields, trajectory) for log in logs]
+    s_tau = max(float(np.sqrt(np.mean(np.concatenate([r.torque.ravel() for r in replays]) ** 2))), 1e-12)
+    tracking = np.concatenate([(r.position - r.reference).ravel() for r in replays])
+    s_theta = max(float(np.sqrt(np.mean(tracking**2))), 1e-12)
+
+    programs: dict = {}
+
+    def residual_of(free: np.ndarray):
+        """The residual as a function of the free values (scaled), the others held at their start, and its Jacobian:
+        jitted once per set of free values."""
+        if tuple(free) in programs:
+            return programs[tuple(free)]
+
+        def residual(p):
+            x = jnp.asarray(starts / scale).ravel().at[free].set(p)
+            values = list(x.reshape(starts.shape) * scale)
+            parts = []
+            for r in replays:
+                torque, theta = r.run(values)
+                parts += [((torque - r.torque) / s_tau).ravel(), ((theta - r.position) / s_theta).ravel()]
+            return jnp.concatenate(parts)
+
+        programs[tuple(free)] = jax.jit(residual), jax.jit(jax.jacfwd(residual))
+        return programs[tuple(free)]
+
+    def solve(free: np.ndarray):
+        f, jac = residual_of(free)
+        p0 = (starts / scale).ravel()[free]
+        say(f"identify: compiling the replay and its Jacobian ({len(free)} values, {len(replays)} log(s))")
+        r0 = np.asarray(f(jnp.asarray(p0)))
+        jac(jnp.asarray(p0))
+        say("identify: fitting (Levenberg-Marquardt)")
+        sol = least_squares(
+            lambda p: np.asarray(f(jnp.asarray(p))),
+            p0,
+            jac=lambda p: np.asarray(jac(jnp.asarray(p))),
+            method="lm",
+            xtol=1e-10,
+            ftol=1e-10,
+        )
+        J = np.asarray(jac(jnp.asarray(sol.x)))
+        dof = max(J.shape[0] - J.shape[1], 1)
+        variance = 2 * sol.cost / dof
+        std = np.sqrt(np.maximum(np.diag(variance * np.linalg.pinv(J.T @ J)), 0.0))
+        return sol, r0, J, std
+
+    free = np.arange(starts.size)
+    sol, r0, J, std = solve(free)
+    norms = np.linalg.norm(J, axis=0)
+    x = sol.x
+    excited = (norms > UNEXCITED_COLUMN * norms.max()) & (std < UNEXCITED_ERROR * np.maximum(np.abs(x), 1.0))
+    evaluations, jacobians = sol.nfev, sol.njev
+    if not excited.all() and excited.any():
+        say(f"identify: {int((~excited).sum())} value(s) not excited by the logs: fitting the others again")
+        kept = free[excited]
+        again, _, _, std_kept = solve(kept)
+        x = (starts / scale).ravel()
+        x[kept] = again.x
+        std[kept] = std_kept
+        sol, evaluations, jacobians = again, evaluations + again.nfev, jacobians + again.njev
+    elif not excited.any():
+        x = (starts / scale).ravel()
+    fitted = x.reshape(starts.shape) * scale
+    errors = std.reshape(starts.shape) * scale
+    flags = excited.reshape(starts.shape)
+    values = tuple(
+        FittedValue(f, a, float(starts[i, a]), float(fitted[i, a]), float(errors[i, a]), bool(flags[i, a]))
+        for i, f in enumerate(fields)
+        for a in range(N_AXES)
+    )
+    f_all, _ = residual_of(np.arange(starts.size))
+    r1 = np.asarray(f_all(jnp.asarray(fitted.ravel() / scale.ravel())))
+    report = FitReport(
+        values=values,
+        residual_rms_before=float(np.sqrt(np.mean(r0**2))),
+        residual_rms_after=float(np.sqrt(np.mean(r1**2))),
+        samples=int(sum(len(r.t) for r in replays)),
+        window_s=window_s,
+        evaluations=int(evaluations),
+        jacobians=int(jacobians or 0),
+        solver_message=str(sol.message),
+        wall_s=time.perf_counter() - t0,
+        logs=tuple({"path": log.path, "sha256": log.digest, "source": log.source} for log in logs),
+    )
+    identified = dataclasses.replace(
+        machine,
+        name=f"{machine.name} identified",
+        drives=machine.drives | {str(f): np.asarray(fitted[i], float) for i, f in enumerate(fields)},
+    )
+    plots = [
+        {
+            "t": r.t,
+            "logged": r.torque,
+            "before": np.asarray(r.run(list(starts))[0]),
+            "after": np.asarray(r.run(list(fitted))[0]),
+        }
+        for r in replays
+    ]
+    return report, identified, plots
