@@ -41,6 +41,7 @@ def add_parser(sub) -> None:
 
 def cmd_identify(args) -> int:
     import numpy as np
+    import yaml
 
     from pusupu_jax import machine_file, machine_fit, run_log
     from pusupu_jax.files import write_atomic
@@ -95,7 +96,10 @@ def cmd_identify(args) -> int:
             for v in report.unexcited()
         ),
     ]
-    write_atomic(args.out, "\n".join(header) + "\n" + machine_file.template(identified))
+    text = "\n".join(header) + "\n" + machine_file.template(identified)
+    with checking(f"the identified machine for --out {args.out}"):  # what is written loads: never a refused file
+        machine_file.parse(yaml.safe_load(text))
+    write_atomic(args.out, text)
     if args.plot:
         from pusupu_jax.plots import plot_friction_fit
 

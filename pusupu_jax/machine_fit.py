@@ -16,7 +16,8 @@ machine drifts away from the logged motion within a fraction of a second (an uns
 its residual stops measuring the parameters.  The replayed closed loop stays on the path, and the torque its
 controller needs to get there carries the friction (Coulomb and viscous) the log's controller paid.
 
-*Solver.*  scipy's Levenberg-Marquardt (``scipy.optimize.least_squares(method='lm')``, MINPACK) over two jitted
+*Solver.*  scipy's trust-region reflective least squares (``scipy.optimize.least_squares(method='trf')``), each
+value held inside its field's range (:func:`pusupu_jax.params.bounds`: no negative friction), over two jitted
 programs, the residual and its Jacobian (``jax.jacfwd``: forward mode, one tangent per fitted value, exact).  An
 optimistix Levenberg-Marquardt traces the whole solve, both programs inside its loop, into one program: on the
 2-core CPU (beside another job) its compile for a 1 s window had not ended after 8 minutes, where the two programs
@@ -43,7 +44,7 @@ from .cascade import control_mode
 from .hybrid import HybridGains
 from .machine import MACHINE_MODES, machine_plant, machine_rates, machine_reference
 from .machine_file import Machine
-from .params import N_AXES, LoopRates, ParameterError, ServoParams
+from .params import N_AXES, LoopRates, ParameterError, ServoParams, bounds
 from .paths import platform_path_from
 from .run_log import DriveLog
 from .sim import rollout
@@ -215,6 +216,14 @@ def fit(
     t0 = time.perf_counter()
     starts = np.stack([np.broadcast_to(np.asarray(machine.drives[f], float), (N_AXES,)) for f in fields])
     scale = np.where(starts != 0, np.abs(starts), np.array([[SCALES[f]] for f in fields]))
+    ranges = {f.name: bounds(f) for f in dataclasses.fields(ServoParams) if f.name in fields}
+
+    def limit(field, end, beyond):  # an end of the field's range (params.bounds), or no limit
+        b = ranges[field]
+        return b[end] if b is not None and isinstance(b[end], (int, float)) else beyond
+
+    low = np.stack([np.full(N_AXES, limit(f, 0, -np.inf)) for f in fields]) / scale
+    high = np.stack([np.full(N_AXES, limit(f, 1, np.inf)) for f in fields]) / scale
     replays = [_replay(log, machine, gains, hybrid, rates, window_s, fields, trajectory) for log in logs]
     s_tau = max(float(np.sqrt(np.mean(np.concatenate([r.torque.ravel() for r in replays]) ** 2))), 1e-12)
     tracking = np.concatenate([(r.position - r.reference).ravel() for r in replays])
@@ -246,12 +255,14 @@ def fit(
         say(f"identify: compiling the replay and its Jacobian ({len(free)} values, {len(replays)} log(s))")
         r0 = np.asarray(f(jnp.asarray(p0)))
         jac(jnp.asarray(p0))
-        say("identify: fitting (Levenberg-Marquardt)")
+        say("identify: fitting (trust-region least squares, each value inside its field's range)")
         sol = least_squares(
             lambda p: np.asarray(f(jnp.asarray(p))),
             p0,
             jac=lambda p: np.asarray(jac(jnp.asarray(p))),
-            method="lm",
+            bounds=(low.ravel()[free], high.ravel()[free]),
+            method="trf",
+            x_scale="jac",
             xtol=1e-10,
             ftol=1e-10,
         )
