@@ -262,9 +262,8 @@ def fit(
             jac=lambda p: np.asarray(jac(jnp.asarray(p))),
             bounds=(low.ravel()[free], high.ravel()[free]),
             method="trf",
-            x_scale="jac",
-            xtol=1e-10,
-            ftol=1e-10,
+            xtol=1e-9,
+            ftol=1e-9,
         )
         J = np.asarray(jac(jnp.asarray(sol.x)))
         dof = max(J.shape[0] - J.shape[1], 1)
@@ -315,13 +314,16 @@ def fit(
         name=f"{machine.name} identified",
         drives=machine.drives | {str(f): np.asarray(fitted[i], float) for i, f in enumerate(fields)},
     )
-    plots = [
-        {
-            "t": r.t,
-            "logged": r.torque,
-            "before": np.asarray(r.run(list(starts))[0]),
-            "after": np.asarray(r.run(list(fitted))[0]),
-        }
-        for r in replays
-    ]
+    plots, at = [], 0  # the replayed torques, from the residual's first part for each log (no other program)
+    for r in replays:
+        n = r.torque.size
+        plots.append(
+            {
+                "t": r.t,
+                "logged": r.torque,
+                "before": r.torque + s_tau * r0[at : at + n].reshape(r.torque.shape),
+                "after": r.torque + s_tau * r1[at : at + n].reshape(r.torque.shape),
+            }
+        )
+        at += 2 * n
     return report, identified, plots

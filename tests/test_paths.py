@@ -365,10 +365,10 @@ def test_the_sim_command_refuses_a_path_the_drives_cannot_follow_in_one_line(tmp
     ), line
 
 
-def test_the_sim_command_runs_a_pose_table_on_the_machine(tmp_path):
-    """A second of a table with tilts, end to end in PID mode (the compiled program of every PID run on the machine,
-    from the persistent cache when test_cli ran before), logged to MCAP: read back with the mcap package's reader,
-    one message per position period on each channel, with its schema, whose error is the run's RMS error."""
+@pytest.fixture(scope="module")
+def pose_table_run(tmp_path_factory):
+    """``(spec, log, result)`` of ``pusupu sim`` on a second of a table with tilts, in PID mode, logged to MCAP."""
+    tmp_path = tmp_path_factory.mktemp("pose_table")
     spec = _table(
         tmp_path,
         [(0, 0, 0, 0, 0, 0), (0.2, 0, 0, 0, 0, 0), (0.7, 0.005, 0, -0.002, 0.01, 0), (1.0, 0.005, 0, -0.002, 0.01, 0)],
@@ -395,13 +395,20 @@ def test_the_sim_command_runs_a_pose_table_on_the_machine(tmp_path):
         timeout=600,
     )
     assert r.returncode == 0, r.stderr
-    out = json.loads(r.stdout)
+    return spec, tmp_path / "sim.mcap", json.loads(r.stdout)
+
+
+def test_the_sim_command_runs_a_pose_table_on_the_machine(pose_table_run):
+    """A second of a table with tilts, end to end in PID mode (the compiled program of every PID run on the machine,
+    from the persistent cache when test_cli ran before), logged to MCAP: read back with the mcap package's reader,
+    one message per position period on each channel, with its schema, whose error is the run's RMS error."""
+    spec, log, out = pose_table_run
     assert out["trajectory"] == spec and out["duration_s"] == pytest.approx(1.0 + DT)
     assert 0 < out["rms_tracking_error_mm"] <= out["max_tracking_error_mm"] < 5
     assert all(0 < v < 13.22 for v in out["motor_torque_peak_nm"])
     from pusupu_jax import run_log
 
-    topics, metadata = run_log.read(tmp_path / "sim.mcap")
+    topics, metadata = run_log.read(log)
     assert set(topics) == {"/sim/platform", "/sim/branch", "/sim/drive"} and metadata["mode"] == "pid"
     drive = [m for _, m in topics["/sim/drive"][1]]
     assert np.abs([m["torque_nm"] for m in drive]).max(axis=0) == pytest.approx(out["motor_torque_peak_nm"], rel=1e-12)
@@ -414,3 +421,55 @@ def test_the_sim_command_runs_a_pose_table_on_the_machine(tmp_path):
     assert times == sorted(times) and (times[1] - times[0]) == pytest.approx(DT * 1e9, abs=1)
     rms = np.sqrt(np.mean([m["error_mm"] ** 2 for _, m in messages]))
     assert rms == pytest.approx(out["rms_tracking_error_mm"], rel=1e-9)
+
+
+COULOMB = [12.0, 16.0, 20.0, 24.0, 28.0, 14.0]  # N: a start machine's, against the built-in machine's 20 on every axis
+
+
+@pytest.mark.slow
+def test_identify_finds_the_friction_of_the_machine_that_ran(pose_table_run, tmp_path):
+    """``pusupu identify --fit coulomb`` on that log (the built-in machine), from a machine file whose Coulomb friction
+    differs on every axis: each axis's value of the built-in machine to 1e-6, the residual down by six orders, the
+    machine file written with the log's digest and the viscous friction left as it was, and the plot.  (Coulomb alone
+    keeps the Jacobian to six tangents, for the suite's time; both fields are fitted in docs/identify.md.)  The
+    simulator that wrote the log (the chunked forward pass) and the replay (one rollout) are the same model, with no
+    noise: this checks the fit, not the model (docs/identify.md has a bridge run against the simulated robot)."""
+    import hashlib
+
+    from pusupu_jax import machine_file
+
+    _, log, _ = pose_table_run
+    (tmp_path / "start.yaml").write_text(machine_file.template().replace("  coulomb: 20.0", f"  coulomb: {COULOMB}"))
+    out, png = tmp_path / "identified.yaml", tmp_path / "fit.png"
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pusupu_jax.cli",
+            "identify",
+            str(log),
+            "--machine",
+            str(tmp_path / "start.yaml"),
+            "--out",
+            str(out),
+            "--plot",
+            str(png),
+            "--json",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    assert r.returncode == 0, r.stderr
+    report = json.loads(r.stdout)
+    assert [(v["field"], v["axis"], v["start"]) for v in report["values"]] == [
+        ("coulomb", axis, c) for axis, c in enumerate(COULOMB)
+    ]
+    for v in report["values"]:
+        assert v["excited"] and v["value"] == pytest.approx(20.0, rel=1e-6), v
+    assert report["residual_rms_after"] < 1e-6 * report["residual_rms_before"]
+    identified = machine_file.load(out)
+    np.testing.assert_allclose(identified.drives["coulomb"], 20.0, rtol=1e-6)
+    np.testing.assert_array_equal(identified.drives["viscous"], 50.0)  # not fitted: the start machine's
+    assert hashlib.sha256(Path(log).read_bytes()).hexdigest() in out.read_text()
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
