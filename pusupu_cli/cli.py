@@ -219,7 +219,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     m_check.add_argument("--json", action="store_true", help="print the findings as JSON")
     m_actions.add_parser("schema", help="print the machine file's JSON Schema (for editors)")
-    add_identify_parser(sub)
+    idn = add_identify_parser(sub)
     e = sub.add_parser("experiment", help="reproduce one of the paper's claims: runs, figures, JSON and a table")
     e.add_argument(
         "name",
@@ -269,7 +269,7 @@ def _parser() -> argparse.ArgumentParser:
             "section 2.2 describes) or printed (eq. 9 as printed); default: the params or gain "
             "file's servo.imc_form, else full (docs/imc.md)",
         )
-    for sp in (s, t, b, e):
+    for sp in (s, t, b, e, idn):
         sp.add_argument(
             "--device",
             choices=[str(d) for d in DeviceChoice],

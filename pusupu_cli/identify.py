@@ -10,7 +10,8 @@ from pusupu_jax.params import ParameterError
 from .common import check_output_path, check_plot_path, checking, machine_of
 
 
-def add_parser(sub) -> None:
+def add_parser(sub):
+    """The ``identify`` subcommand's parser (``--device`` is added with the other computing commands')."""
     i = sub.add_parser(
         "identify",
         help="fit the machine file's drive-train friction to run logs (MCAP of pusupu sim --log or bridge --log)",
@@ -37,6 +38,7 @@ def add_parser(sub) -> None:
     i.add_argument("--out", required=True, metavar="FILE", help="the identified machine file to write")
     i.add_argument("--plot", metavar="PNG", help="write the logged torques against the replay's, before and after")
     i.add_argument("--json", action="store_true", help="print the report as JSON")
+    return i
 
 
 def cmd_identify(args) -> int:
@@ -48,6 +50,9 @@ def cmd_identify(args) -> int:
     from pusupu_jax.params import LoopRates, ServoParams
     from pusupu_jax.runtime import setup_jax
 
+    from pusupu_jax import devices
+
+    devices.choose(args.device, len(args.logs), "log replay(s), one after another")
     fields = machine_fit.fit_fields(args.fit)
     if not (np.isfinite(args.window) and args.window > 0):
         raise ParameterError(f"--window: expected a positive number of seconds, got {args.window}")
@@ -73,6 +78,7 @@ def cmd_identify(args) -> int:
                     f"{log.path}: ran with the gain file of checksum {log.gain_checksum[:12]}, expected --gains "
                     f"{args.gains}'s {g.document['checksum'][:12]}"
                 )
+    devices.announce()
     with checking(f"--machine {args.machine}" if args.machine else "the built-in machine"):
         report, identified, plots = machine_fit.fit(
             logs,

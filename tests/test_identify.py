@@ -1,6 +1,6 @@
-"""``pusupu identify``'s inputs: the names of the fields to fit, and a file that is not a run log.  The fit itself
-runs on the log of ``tests/test_paths.py``'s pose table (``test_identify_finds_the_friction_of_the_machine_that_ran``:
-it shares that run)."""
+"""``pusupu identify``'s inputs: the names of the fields to fit, and a file that is not a run log.  The fit itself is
+not run by the suite: from an empty compile cache, its replay and Jacobian compile for minutes on 2 cores
+(docs/identify.md has the measured fits)."""
 
 import pytest
 
