@@ -10,7 +10,7 @@ in its own module: ``analyze``, ``sim``, ``tuning`` (tune, batch), ``experiment`
                [--kin-error SEED] [--json] [--plot PNG]
 
     pusupu tune [--config FILE] [--out DIR] [--quick] [--fresh] [--json]
-    pusupu batch JOB.yaml [--out DIR] [--ray [--address ADDR] [--workers N]] [--fresh] [--json]
+    pusupu batch JOB.yaml [--out DIR] [--ray [--address ADDR] [--workers N] [--cpus-per-task N]] [--fresh] [--json]
     (analyze and sim also take --gains FILE, a gain file written by tune; analyze, sim and tune
     take --imc-form full|printed, sim takes --start rest|zero)
 
@@ -154,6 +154,12 @@ def _parser() -> argparse.ArgumentParser:
     b.add_argument("--ray", action="store_true", help="run the shards as Ray tasks (the cluster extra)")
     b.add_argument("--address", metavar="ADDR", help="join this Ray cluster instead of starting a local one")
     b.add_argument("--workers", type=int, metavar="N", help="CPUs of the local Ray instance (default: all)")
+    b.add_argument(
+        "--cpus-per-task",
+        type=int,
+        metavar="N",
+        help="CPUs (and XLA host devices) each Ray task asks for where the cluster has no GPU (default 1)",
+    )
     b.add_argument("--fresh", action="store_true", help="delete DIR's checkpoints and job results instead of resuming")
     b.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
     g = sub.add_parser(

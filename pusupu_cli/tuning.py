@@ -59,16 +59,22 @@ def cmd_batch(args) -> int:
     setup_jax()
     from pusupu_jax.tune.batchjob import run_batch
 
-    if (args.address or args.workers) and not args.ray:
-        raise ParameterError("--address and --workers need --ray")
-    if args.workers is not None and args.workers < 1:
-        raise ParameterError(f"--workers: expected a positive number of CPUs, got {args.workers}")
+    if (args.address or args.workers or args.cpus_per_task) and not args.ray:
+        raise ParameterError("--address, --workers and --cpus-per-task need --ray")
+    for flag, value in (("--workers", args.workers), ("--cpus-per-task", args.cpus_per_task)):
+        if value is not None and value < 1:
+            raise ParameterError(f"{flag}: expected a positive number of CPUs, got {value}")
+    if args.workers and args.cpus_per_task and args.cpus_per_task > args.workers:
+        raise ParameterError(
+            f"--cpus-per-task: expected at most --workers = {args.workers} CPUs, got {args.cpus_per_task}"
+        )
     summary, status = run_batch(
         args.job,
         args.out,
         ray=args.ray,
         address=args.address,
         workers=args.workers,
+        cpus_per_task=args.cpus_per_task or 1,
         fresh=args.fresh,
         device=None if args.ray else args.device,
     )

@@ -78,6 +78,7 @@ def test_sim_step_prints_metrics_and_plots(tmp_path):
         (["sim", "--trajectory", "bogus"], None),
         (["sim", "--plot", "/no/such/folder/x.png"], None),
         (["analyze", "--params", "/no/such/file.yaml"], None),
+        (["batch", "job.yaml", "--ray", "--workers", "1", "--cpus-per-task", "2"], None),
     ],
 )
 def test_bad_input_exits_2_with_one_line(tmp_path, args, message):

@@ -270,13 +270,15 @@ def run_batch(
     ray: bool = False,
     address: str | None = None,
     workers: int | None = None,
+    cpus_per_task: int = 1,
     fresh: bool = False,
     stream=sys.stderr,
     device: str | None = None,
 ) -> tuple[dict, int]:
     """Run a job file; returns ``(summary, exit status)``: 0 when every job exported gains, 1 otherwise.  ``device``:
     where this process computes (:func:`pusupu_jax.devices.choose`: ``auto`` by the widest shard's rows), or None for
-    JAX's default (Ray's tasks take a GPU where the cluster has one)."""
+    JAX's default (Ray's tasks take a GPU where the cluster has one).  ``cpus_per_task``: the CPUs (and XLA host
+    devices) a Ray task asks for where the cluster has no GPU."""
     from .job import OutputLock, prepare_output
 
     jf = jobfile.read(path)
@@ -317,7 +319,16 @@ def run_batch(
         if ray:
             from .cluster import run_tasks
 
-            results = run_tasks(run_shard, tasks, out, plots=jf.plots, address=address, workers=workers, stream=stream)
+            results = run_tasks(
+                run_shard,
+                tasks,
+                out,
+                plots=jf.plots,
+                address=address,
+                workers=workers,
+                cpus_per_task=cpus_per_task,
+                stream=stream,
+            )
         else:
             results = []
             for k, task in enumerate(tasks):

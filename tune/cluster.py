@@ -68,7 +68,8 @@ def _run(ray, run_shard, tasks, out, plots, address, workers, cpus_per_task, str
         results, pending, t0 = [None] * len(refs), list(refs), time.perf_counter()
         print(
             f"batch: {len(refs)} Ray task(s) on {ray.cluster_resources().get('CPU', 0):g} CPU(s), "
-            f"{gpus and ray.cluster_resources().get('GPU', 0):g} GPU(s)",
+            f"{gpus and ray.cluster_resources().get('GPU', 0):g} GPU(s); each task "
+            + ("one GPU" if gpus else f"{cpus_per_task} CPU(s)"),
             file=stream,
             flush=True,
         )
