@@ -14,9 +14,10 @@ def add_parser(sub):
     """The ``identify`` subcommand's parser (``--device`` is added with the other computing commands')."""
     i = sub.add_parser(
         "identify",
-        help="fit the machine file's drive-train friction to run logs (MCAP of pusupu sim --log or bridge --log)",
+        help="fit the machine file's drive-train friction to run logs (MCAP of pusupu sim --log or bridge --log, "
+        "or CSV drive tables)",
     )
-    i.add_argument("logs", nargs="+", metavar="LOG", help="MCAP run logs (docs/logs.md)")
+    i.add_argument("logs", nargs="+", metavar="LOG", help="MCAP run logs, or CSV drive tables (.csv; docs/logs.md)")
     i.add_argument("--machine", metavar="FILE", help="the machine file to start from (default the built-in machine)")
     i.add_argument(
         "--gains", metavar="FILE", help="the gain file the logged runs used (default the built-in start gains)"
@@ -45,7 +46,7 @@ def cmd_identify(args) -> int:
     import numpy as np
     import yaml
 
-    from pusupu_jax import machine_file, machine_fit, run_log
+    from pusupu_jax import drive_table, machine_file, machine_fit, run_log
     from pusupu_jax.files import write_atomic
     from pusupu_jax.params import LoopRates, ServoParams
     from pusupu_jax.runtime import setup_jax
@@ -64,7 +65,7 @@ def cmd_identify(args) -> int:
     logs = []
     for path in args.logs:
         with checking(path):
-            logs.append(run_log.drive_log(path))
+            logs.append((drive_table.read if path.lower().endswith(".csv") else run_log.drive_log)(path))
     gains, hybrid, rates = ServoParams.table1(), None, LoopRates()
     if args.gains:
         from pusupu_jax import gains as gain_files

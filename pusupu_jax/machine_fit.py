@@ -153,6 +153,10 @@ def _replay(
     options = machine.options()
     rates = machine_rates(options, rates)
     spec = trajectory or log.trajectory
+    if not spec:
+        raise ParameterError(
+            f"{log.path}: expected the path it ran (a '# trajectory:' line or --trajectory), found none"
+        )
     path = platform_path_from(spec, machine.geometry.home, rates)
     n = min(int(round(window_s / rates.dt_position)), len(path))
     index = np.rint(log.path_time / rates.dt_position).astype(int)  # the position period of each sample's reference
