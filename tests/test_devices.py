@@ -36,10 +36,10 @@ def test_asking_for_a_gpu_where_there_is_none_is_refused():
 @several
 @pytest.mark.slow
 def test_the_gradient_over_windows_laid_over_devices_is_the_gradient_on_one(monkeypatch):
-    """The quick configuration's two windows, laid over two devices and run on one: value and gradient agree to 1e-12
-    relative.  Not bit for bit: the gradient's sum over the windows is then an all-reduce across devices, in another
-    order than one device's sum."""
-    cfg = TuneConfig.quick().replace(path_s=0.4, window_s=0.1)
+    """The quick configuration's two windows (in IMC mode, whose program is smaller than hybrid's), laid over two
+    devices and run on one: value and gradient agree to 1e-12 relative.  Not bit for bit: the gradient's sum over
+    the windows is then an all-reduce across devices, in another order than one device's sum."""
+    cfg = TuneConfig.quick().replace(path_s=0.4, window_s=0.1, mode="imc", groups=("imc", "velocity"))
     spread = run.Problem(cfg, ServoParams.table1(), HybridGains())
     assert spread.mesh is not None and spread.mesh.size == 2
     monkeypatch.setattr(run.devices, "row_mesh", lambda rows: None)
