@@ -25,8 +25,6 @@ import dataclasses
 import enum
 import hashlib
 import importlib.metadata
-import json
-import sys
 import warnings
 from pathlib import Path
 from typing import Callable
@@ -42,63 +40,6 @@ SUFFIX = ".jaxexport"
 HERE = Path(__file__).parent
 _VERSIONED = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")
 _SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion")
-
-
-def serializable(*classes: type) -> None:
-    """Let :mod:`jax.export` write and read pytrees with nodes of these NamedTuple ``classes`` (a program's carries), by
-    their module and name; a class registered before is left alone."""
-    for cls in classes:
-        name = _name(cls)
-        if name not in _SERIALIZABLE:
-            export.register_namedtuple_serialization(cls, serialized_name=name)
-            _SERIALIZABLE.add(name)
-
-
-def serializable_static(*classes: type, wrapper_modules: tuple[str, ...] = ()) -> None:
-    """Let :mod:`jax.export` write and read pytrees with nodes of these registered dataclass ``classes`` (MJX's
-    state), whose static data are a tuple of numbers, strings, None, NumPy scalars and NumPy arrays wrapped in an
-    object's ``.array``: as JSON, never pickled.  A wrapper is rebuilt from its class, named in the file and looked
-    up only in ``wrapper_modules`` (modules already imported)."""
-    for cls in classes:
-        name = _name(cls)
-        if name not in _SERIALIZABLE:
-            export.register_pytree_node_serialization(
-                cls,
-                serialized_name=name,
-                serialize_auxdata=lambda aux: json.dumps(_static_json(aux)).encode(),
-                deserialize_auxdata=lambda data: _static_value(json.loads(data), wrapper_modules),
-            )
-            _SERIALIZABLE.add(name)
-
-
-def _static_json(x):
-    if x is None or isinstance(x, (bool, int, float, str)):
-        return {"v": x}
-    if isinstance(x, np.generic):
-        return {"np": x.dtype.str, "v": x.item()}
-    if isinstance(x, tuple):
-        return {"t": [_static_json(v) for v in x]}
-    if isinstance(getattr(x, "array", None), np.ndarray) and not x.array.dtype.hasobject:
-        a = x.array
-        return {"wrap": _name(type(x)), "dtype": a.dtype.str, "shape": list(a.shape), "data": a.ravel().tolist()}
-    raise TypeError(f"no JSON form of the static data {_name(type(x))}")
-
-
-def _static_value(j, wrapper_modules: tuple[str, ...]):
-    if "t" in j:
-        return tuple(_static_value(v, wrapper_modules) for v in j["t"])
-    if "np" in j:
-        return np.dtype(j["np"]).type(j["v"])
-    if "wrap" in j:
-        module, _, qualname = j["wrap"].rpartition(".")
-        if module not in wrapper_modules or module not in sys.modules:
-            raise ValueError(f"static data wrapped in {j['wrap']}, a class of no module expected")
-        array = np.asarray(j["data"], dtype=np.dtype(j["dtype"])).reshape(j["shape"])
-        return getattr(sys.modules[module], qualname)(array)
-    return j["v"]
-
-
-_SERIALIZABLE: set[str] = set()
 
 
 class UnstableKey(ValueError):
@@ -197,11 +138,6 @@ class Program:
         self.sources = tuple(Path(s) for s in sources)
         self.loaded = 0
         self._calls: dict = {}
-
-    @property
-    def signatures(self) -> int:
-        """The argument signatures traced or loaded in this process (one compiled program each)."""
-        return len(self._calls)
 
     def __call__(self, *args):
         leaves, tree = jax.tree.flatten(args)

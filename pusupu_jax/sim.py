@@ -33,7 +33,6 @@ from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate
 from .plant import AxisPlant
 from .plant.axis import screw_ratio
 from .plant.kinematics import inverse_kinematics
-from .programs import Program, UnstableKey, describe, serializable
 
 MODES = cascade_.AXIS_MODES  # the single-axis plant's position modes
 STARTS = ("rest", "zero")
@@ -509,50 +508,6 @@ def _chunk_program(plant, rates, outer, params_axis, hybrid_axis, masked: bool):
     return jax.jit(jax.vmap(chunk, in_axes=(params_axis, 0, 0, hybrid_axis, None, 0, None)))
 
 
-def chunk_programs(plant, rates, outer, start, params_axis, hybrid_axis, masked: bool, laid_out: bool = False):
-    """:func:`run_chunked`'s two programs, ``(start, chunk)``: kept on disk as traced programs
-    (:class:`~pusupu_jax.programs.Program`: a later process loads them instead of tracing, about 10 s of a ``pusupu
-    tune`` or ``sim`` on a 2-core CPU), unless ``laid_out`` (the batch lies over several devices, which the programs
-    on disk are not made for) or the plant has no stable description; then jitted in this process only."""
-    init = _init_program(plant, rates, outer, start, params_axis, hybrid_axis)
-    step = _chunk_program(plant, rates, outer, params_axis, hybrid_axis, masked)
-    if laid_out:
-        return init, step
-    return (
-        _kept(init, "start", plant, rates, outer, start, params_axis, hybrid_axis),
-        _kept(step, "chunk", plant, rates, outer, params_axis, hybrid_axis, masked),
-    )
-
-
-@functools.lru_cache(maxsize=None)
-def _kept(jitted, *static):
-    """``jitted`` as a :class:`~pusupu_jax.programs.Program` named by ``static`` (its name, then the plant and the
-    static arguments it was made with), or ``jitted`` itself where the plant has no stable description."""
-    name, plant, *rest = static
-    serializable(
-        Carry,
-        cascade_.CascadeState,
-        compliance_law.AdmittanceState,
-        hybrid_law.ForceState,
-        loops.PIState,
-        loops.IMCState,
-        loops.PIDFFState,
-        loops.RosPIDState,
-    )  # the carry's nodes
-    if hasattr(plant, "serializable_state"):
-        plant.serializable_state()
-    try:  # an MJX plant by its compiled model's arrays (its geometry and options are in them), the others by value
-        key = describe((name, type(plant), plant.mjx_model if hasattr(plant, "mjx_model") else plant, *rest))
-    except UnstableKey:
-        return jitted
-    return Program(jitted, key)
-
-
-def _laid_out(tree) -> bool:
-    """Whether an array of ``tree`` lies over more than one device."""
-    return any(isinstance(x, jax.Array) and len(x.sharding.device_set) > 1 for x in jax.tree.leaves(tree))
-
-
 def run_chunked(
     params: ServoParams,
     models,
@@ -584,7 +539,8 @@ def run_chunked(
     costs run time); without, every chunk runs whole.  Different programs round differently: a run agrees with
     :func:`rollout`'s to float64 rounding, not bit for bit (``tests/test_windows.py``).
     """
-    init, step = chunk_programs(plant, rates, outer, start, params_axis, hybrid_axis, bool(marks), _laid_out(models))
+    init = _init_program(plant, rates, outer, start, params_axis, hybrid_axis)
+    step = _chunk_program(plant, rates, outer, params_axis, hybrid_axis, bool(marks))
     host = jax.tree.map(np.asarray, reference)
     n = jax.tree.leaves(host)[0].shape[1]
     if any(not 0 <= m < n for m in marks):

@@ -140,31 +140,3 @@ def test_descriptions_are_equal_for_equal_values_only():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         describe(jnp.ones(2))  # a jax array by its values
-
-
-def test_the_mjx_machines_state_is_kept_with_its_static_data_as_json(tmp_path):
-    """A program that returns the MJX machine's state (``mjx.Data``, whose parts carry ints and NumPy arrays as static
-    data): written, loaded by a second Program without tracing, and the same structure and values; a file naming a
-    wrapper class of another module is refused on reading (nothing is imported or unpickled from it)."""
-    from mujoco import mjx
-
-    from pusupu_jax.machine import machine_plant
-    from pusupu_jax.plant.model import ModelOptions
-
-    plant = machine_plant(ModelOptions())
-    plant.serializable_state()
-    traces = []
-
-    def state(qpos):
-        traces.append(1)
-        return mjx.make_data(plant.mjx_model).replace(qpos=qpos)
-
-    qpos = jnp.asarray(plant.mj_model.qpos0) + 0.001
-    want = Program(state, "mjx state", folder=tmp_path)(qpos)
-    again = Program(state, "mjx state", folder=tmp_path)
-    _same(again(qpos), want)
-    assert again.loaded == 1 and traces == [1]
-    with pytest.raises(TypeError, match="no JSON form"):
-        programs._static_json((np.int64(3), programs.describe))
-    with pytest.raises(ValueError, match="a class of no module expected"):
-        programs._static_value({"wrap": "os.system", "dtype": "<f8", "shape": [0], "data": []}, ("mujoco.mjx",))

@@ -68,20 +68,17 @@ def test_a_change_of_gains_mid_run_moves_the_command_in_proportion(field):
 
 
 def test_paths_of_any_length_run_one_compiled_chunk():
-    """Two path lengths, with and without marks: one program of the chunk that runs whole and one of the chunk that
+    """Two path lengths, with and without marks: one compile of the chunk that runs whole and one of the chunk that
     stops at marks (and of the start): what lets every horizon of the experiments and the CLI share one program per
-    mode and batch size, and the tuner's forward passes another.  The programs are kept on disk (traced programs,
-    pusupu_jax.programs): a later process loads them instead of tracing."""
-    from pusupu_jax.programs import Program
-    from pusupu_jax.sim import chunk_programs
+    mode and batch size, and the tuner's forward passes another."""
+    from pusupu_jax.sim import _chunk_program, _init_program
 
-    programs = [*chunk_programs(AxisPlant(), LoopRates(), "pid_ff", "rest", None, None, False)]
-    programs += [chunk_programs(AxisPlant(), LoopRates(), "pid_ff", "rest", None, None, True)[1]]
-    assert all(isinstance(p, Program) for p in programs)
-    before = [p.signatures for p in programs]
+    programs = [_init_program(AxisPlant(), LoopRates(), "pid_ff", "rest", None, None)]
+    programs += [_chunk_program(AxisPlant(), LoopRates(), "pid_ff", None, None, masked) for masked in (False, True)]
+    before = [p._cache_size() for p in programs]
     for n in (130, 700):
         for marks in ((), (0, 101, n - 1)):
             trace, carries = run_chunked(SERVO, stack([LOAD]), np.asarray(REF)[None, :n], outer="pid_ff", marks=marks)
             assert trace.theta.shape == (1, n, 6) and np.isfinite(trace.theta).all()
             assert carries is None if not marks else jax.tree.leaves(carries)[0].shape[:2] == (1, len(marks))
-    assert [p.signatures for p in programs] == [b + 1 for b in before]
+    assert [p._cache_size() for p in programs] == [b + 1 for b in before]

@@ -150,23 +150,6 @@ class MJXPlant:
     def init(self, aux: MJXAux):
         return mjx.forward(aux.model, mjx.make_data(aux.model))
 
-    def serializable_state(self) -> None:
-        """Let traced programs whose carries hold this plant's state (``mjx.Data`` and its parts) be kept on disk
-        (:func:`pusupu_jax.programs.serializable_static`)."""
-        from ..programs import serializable_static
-
-        classes: list[type] = []
-
-        def walk(tree):
-            node = tree.node_data()
-            if node is not None and node[0] not in classes:
-                classes.append(node[0])
-            for child in tree.children():
-                walk(child)
-
-        walk(jax.tree.structure(mjx.make_data(self.mjx_model)))
-        serializable_static(*classes, wrapper_modules=("mujoco.mjx._src.dataclasses",))
-
     def holding_torque(self, aux: MJXAux, data, force_axis: int | None = None, force=None):
         """Motor torques [N m] that hold the machine still in ``data`` (at rest: gravity only), ``(6,)``.
 
