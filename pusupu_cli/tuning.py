@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 
 from pusupu_jax.params import ParameterError
@@ -64,9 +65,10 @@ def cmd_batch(args) -> int:
     for flag, value in (("--workers", args.workers), ("--cpus-per-task", args.cpus_per_task)):
         if value is not None and value < 1:
             raise ParameterError(f"{flag}: expected a positive number of CPUs, got {value}")
-    if args.workers and args.cpus_per_task and args.cpus_per_task > args.workers:
+    local = None if args.address else (args.workers or os.cpu_count() or 1)  # a task asking more would never start
+    if local is not None and args.cpus_per_task and args.cpus_per_task > local:
         raise ParameterError(
-            f"--cpus-per-task: expected at most --workers = {args.workers} CPUs, got {args.cpus_per_task}"
+            f"--cpus-per-task: expected at most the local Ray instance's {local} CPUs, got {args.cpus_per_task}"
         )
     summary, status = run_batch(
         args.job,
