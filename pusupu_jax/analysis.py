@@ -25,9 +25,11 @@ the drive really has; :func:`current_open_loop_locked` is the paper's R-L form.
 from __future__ import annotations
 
 import math
+from typing import Any, cast
 
 import control as ct
 import numpy as np
+import numpy.typing as npt
 from scipy.optimize import brentq, minimize_scalar
 
 from .cascade import Law, control_mode
@@ -36,16 +38,16 @@ from .params import N_AXES, AxisLoad, LoopRates, ServoParams, arrays
 LOOPS = ("current", "velocity", "position")
 
 
-def axis_values(p, axis: int) -> dict:
+def axis_values(p: ServoParams | AxisLoad, axis: int) -> dict[str, float]:
     """Plain floats of one axis of a parameter set."""
     return {k: float(np.asarray(v)[..., axis]) for k, v in arrays(p).items()}
 
 
-def _sys(tf, inputs, outputs):
+def _sys(tf: ct.TransferFunction, inputs: str, outputs: str) -> ct.StateSpace:
     return ct.ss(tf, inputs=inputs, outputs=outputs)
 
 
-def blocks(servo: ServoParams, load: AxisLoad, axis: int = 0) -> dict:
+def blocks(servo: ServoParams, load: AxisLoad, axis: int = 0) -> dict[str, ct.StateSpace]:
     """Continuous blocks of one axis as named python-control state-space systems."""
     p, q = axis_values(servo, axis), axis_values(load, axis)
     r = p["lead"] / (2 * math.pi)
@@ -95,7 +97,7 @@ def blocks(servo: ServoParams, load: AxisLoad, axis: int = 0) -> dict:
 FF_LAG_S = 0.5e-3  # s: half the default position period, the lag of the pid_ff backward difference
 
 
-def velocity_feedforward(servo: ServoParams, axis: int, rates: LoopRates | None = None):
+def velocity_feedforward(servo: ServoParams, axis: int, rates: LoopRates | None = None) -> ct.StateSpace:
     """The pid_ff feedforward ``th_ref -> w_ff``: exactly ``Kff (1 - z^-1)/dt`` at the position rate when ``rates``
     is given, else its continuous stand-in ``Kff s/(FF_LAG_S s + 1)`` (the backward difference lags by half a
     period)."""
@@ -106,7 +108,7 @@ def velocity_feedforward(servo: ServoParams, axis: int, rates: LoopRates | None 
     return _sys(ct.tf([k, -k], [dt, 0], dt), "th_ref", "w_ff")
 
 
-def imc_c1(l1: float, l2: float, form: str):
+def imc_c1(l1: float, l2: float, form: str) -> ct.TransferFunction:
     """The prefilter C1 (eq. 9) as a python-control transfer function, in the ``form`` of
     :func:`pusupu_jax.loops.imc_c1`."""
     if form == "printed":
@@ -120,9 +122,9 @@ _PHYSICAL = ("electrical", "mechanics")
 _CONTROLLERS = ("Gxi", "Gcf", "Gi", "Gxv", "Gw", "Gv", "C1", "C2", "PID")
 
 
-def sampled_blocks(b: dict, dt: float, method: str) -> dict:
+def sampled_blocks(b: dict[str, ct.StateSpace], dt: float, method: str) -> dict[str, ct.StateSpace]:
     """Blocks sampled at ``dt``: controllers with ``method``, physical parts with ZOH, static gains as they are."""
-    out = {}
+    out: dict[str, ct.StateSpace] = {}
     for name, sys in b.items():
         if name in _CONTROLLERS:
             out[name] = ct.sample_system(sys, dt, method, name=sys.name, copy_names=True)
@@ -147,7 +149,7 @@ def hold_resample(sysd: ct.StateSpace, n: int) -> ct.StateSpace:
     return ct.ss(An, Bn, C, D, sysd.dt * n, inputs=sysd.input_labels, outputs=sysd.output_labels)
 
 
-def _sum(a, b, out):
+def _sum(a: str, b: str, out: str) -> ct.StateSpace:
     return ct.summing_junction(inputs=[a, "-" + b], output=out)
 
 
@@ -158,7 +160,7 @@ def closed_loops(
     rates: LoopRates | None = None,
     mode: str = "imc",
     load_torque: bool = False,
-) -> dict:
+) -> dict[str, ct.StateSpace]:
     """Closed current, velocity and position loops of one axis (continuous, or discrete at ``rates``).
 
     Each maps its reference to the outputs ``(i, w, theta)``: ``current`` from ``i_ref``
@@ -167,16 +169,16 @@ def closed_loops(
     shaft against the motor's (``tau = Kt i - tau_l``), for disturbance responses.
     """
     b = blocks(servo, load, axis)
-    disturbance = []
+    disturbance: list[str] = []
     if load_torque:
         b["Kt"] = ct.ss([], [], [], [[axis_values(servo, axis)["Kt"], -1.0]], inputs=["i", "tau_l"], outputs="tau")
         disturbance = ["tau_l"]
     levels = [None, None, None] if rates is None else [rates.dt_current, rates.dt_velocity, rates.dt_position]
     out = ["i", "w", "theta"]
 
-    def at(level):
+    def at(level: int) -> dict[str, ct.StateSpace]:
         dt = levels[level]
-        return b if dt is None else sampled_blocks(b, dt, rates.method)
+        return b if dt is None else sampled_blocks(b, dt, cast(LoopRates, rates).method)  # dt is set from rates
 
     bi = at(0)
     cl_i = ct.interconnect(
@@ -224,8 +226,12 @@ def closed_loops(
 
 
 def open_loops(
-    servo: ServoParams, load: AxisLoad, axis: int = 0, mode: str = "imc", closed: dict | None = None
-) -> dict:
+    servo: ServoParams,
+    load: AxisLoad,
+    axis: int = 0,
+    mode: str = "imc",
+    closed: dict[str, ct.StateSpace] | None = None,
+) -> dict[str, ct.StateSpace]:
     """Continuous loop gains ``L`` (closed loop = ``L/(1+L)`` at that point) of each loop, broken at the controller.
 
     ``closed``: the continuous :func:`closed_loops` of the same axis and mode, when the caller has them.
@@ -244,11 +250,11 @@ def open_loops(
     return {"current": _siso(b["Gi"]) * p_i, "velocity": _siso(b["Gv"]) * p_v, "position": _siso(c_p) * p_p}
 
 
-def _siso(sys):
+def _siso(sys: ct.StateSpace) -> ct.StateSpace:
     return ct.ss(*ct.ssdata(sys))
 
 
-def current_open_loop_locked(servo: ServoParams, axis: int = 0):
+def current_open_loop_locked(servo: ServoParams, axis: int = 0) -> ct.TransferFunction:
     """The paper's current loop gain (locked rotor): ``Gi Ginv Grl Gcf`` (eq. 1-4)."""
     p = axis_values(servo, axis)
     return (
@@ -259,7 +265,7 @@ def current_open_loop_locked(servo: ServoParams, axis: int = 0):
     )
 
 
-def nominal_position_open_loop(servo: ServoParams, axis: int = 0):
+def nominal_position_open_loop(servo: ServoParams, axis: int = 0) -> ct.TransferFunction:
     """C2 times the position model it was designed for, ``1/(s (T0 s + 1))``."""
     p = axis_values(servo, axis)
     l2, T0 = p["lambda2"], p["T0"]
@@ -267,7 +273,7 @@ def nominal_position_open_loop(servo: ServoParams, axis: int = 0):
     return c2 * ct.tf([1], [T0, 1, 0])
 
 
-def margins(L, phase_crossover: bool = False) -> dict:
+def margins(L: ct.LTI, phase_crossover: bool = False) -> dict[str, float | None]:
     """Gain crossover [Hz], phase margin [deg], gain margin [dB] (None when infinite) of a loop gain.
 
     ``phase_crossover``: also ``phase_crossover_hz``, where the phase crosses -180 deg and the gain margin is read.
@@ -284,15 +290,15 @@ def margins(L, phase_crossover: bool = False) -> dict:
     return out
 
 
-def bandwidth_hz(sys, w_low: float = 1e-3, w_high: float = 1e6) -> float | None:
+def bandwidth_hz(sys: ct.LTI, w_low: float = 1e-3, w_high: float = 1e6) -> float | None:
     """First frequency [Hz] where the gain falls 3 dB below its low-frequency value (at ``w_low`` rad/s).
 
     Computed from the frequency response, so that states the output does not see (the
     motor angle in the current and velocity loops) do not spoil a DC-gain computation.
     """
 
-    def excess(log_w):
-        return abs(sys(1j * 10**log_w)) - ref / math.sqrt(2)
+    def excess(log_w: float) -> float:
+        return cast(float, abs(sys(1j * 10**log_w)) - ref / math.sqrt(2))  # python-control: untyped
 
     ref = abs(sys(1j * w_low))
     grid = np.linspace(math.log10(w_low), math.log10(w_high), 2000)
@@ -300,13 +306,13 @@ def bandwidth_hz(sys, w_low: float = 1e-3, w_high: float = 1e6) -> float | None:
     if not below.size:
         return None
     k = below[0]
-    return 10 ** brentq(excess, grid[k - 1], grid[k], xtol=1e-12) / (2 * math.pi)
+    return cast(float, 10 ** brentq(excess, grid[k - 1], grid[k], xtol=1e-12) / (2 * math.pi))  # scipy: untyped
 
 
 STEP_SPAN_S = {"current": 0.02, "velocity": 0.5, "position": 6.0}
 
 
-def step_metrics(sys, span: float, w_low: float = 1e-4) -> dict:
+def step_metrics(sys: ct.LTI, span: float, w_low: float = 1e-4) -> dict[str, float | None]:
     """Rise time (10-90 %) [s], 2 % settling time [s] and overshoot [%] of a closed loop's step response.
 
     The final value is the gain at ``w_low`` rad/s (the motor-angle state that the current
@@ -322,7 +328,7 @@ def step_metrics(sys, span: float, w_low: float = 1e-4) -> dict:
     }
 
 
-def loop_metrics(servo: ServoParams, load: AxisLoad, mode: str = "imc") -> dict:
+def loop_metrics(servo: ServoParams, load: AxisLoad, mode: str = "imc") -> dict[str, Any]:
     """Per axis and loop: crossover_hz, phase_margin_deg, gain_margin_db, bandwidth_hz and :func:`step_metrics`."""
     return {"mode": mode, "axes": [axis_metrics(servo, load, k, mode) for k in range(N_AXES)]}
 
@@ -332,9 +338,9 @@ def axis_metrics(
     load: AxisLoad,
     axis: int = 0,
     mode: str = "imc",
-    closed: dict | None = None,
+    closed: dict[str, ct.StateSpace] | None = None,
     phase_crossover: bool = False,
-) -> dict:
+) -> dict[str, dict[str, float | None]]:
     """One axis of :func:`loop_metrics`: ``{loop: metrics}``; ``closed`` and ``phase_crossover`` as in
     :func:`open_loops` and :func:`margins`."""
     cl = closed_loops(servo, load, axis, mode=mode) if closed is None else closed
@@ -362,7 +368,7 @@ def identify_T0(servo: ServoParams, load: AxisLoad, axis: int = 0, window: float
     return fit_first_order(t, ct.step_response(closed_loops(servo, load, axis)["velocity"][1, 0], t).outputs)
 
 
-def fit_first_order(t, y, step=1.0) -> float:
+def fit_first_order(t: npt.ArrayLike, y: npt.ArrayLike, step: npt.ArrayLike = 1.0) -> float:
     """The time constant ``T0`` [s] minimising ``sum (y - step (1 - exp(-t/T0)))^2`` (least squares, bounded by ``t``).
 
     ``y`` may have a leading axis of several step tests of the same loop, with ``step`` their step sizes.
@@ -381,7 +387,7 @@ def kt_for_T0(servo: ServoParams, load: AxisLoad, T0: float | None = None, axis:
     """The torque constant [N m/A] (with ``Ke = Kt``) for which :func:`identify_T0` gives ``T0``."""
     target = axis_values(servo, axis)["T0"] if T0 is None else T0
 
-    def gap(kt):
+    def gap(kt: float) -> float:
         return identify_T0(servo.replace(Kt=np.full(N_AXES, kt), Ke=np.full(N_AXES, kt)), load, axis) - target
 
-    return brentq(gap, 0.3, 5.0, xtol=1e-9)
+    return cast(float, brentq(gap, 0.3, 5.0, xtol=1e-9))  # scipy: untyped

@@ -26,13 +26,17 @@ from __future__ import annotations
 import dataclasses
 import enum
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple, cast
 
+import jax
 import jax.numpy as jnp
 
 from . import hybrid as hybrid_law
 from . import lti, loops
 from .loops import Drive, PIState
+
+if TYPE_CHECKING:
+    from jax.typing import ArrayLike
 
 
 class Mode(enum.StrEnum):
@@ -82,11 +86,11 @@ class ControlMode:
         """Branch ``force_axis`` force-controlled; the reference is a :class:`~pusupu_jax.hybrid.HybridReference`."""
         return self.force_axis is not None
 
-    def theta(self, ref):
+    def theta(self, ref: Any) -> Any:
         """The motor-angle reference [rad] of a reference sample (or sequence)."""
         return ref.theta if self.hybrid else ref
 
-    def with_theta(self, ref, theta):
+    def with_theta(self, ref: Any, theta: jax.Array) -> Any:
         """The reference sample ``ref`` with its motor-angle reference [rad] replaced by ``theta``."""
         return dataclasses.replace(ref, theta=theta) if self.hybrid else theta
 
@@ -133,7 +137,9 @@ class CascadeState(NamedTuple):
     force: hybrid_law.ForceState | None
 
 
-def _position_init(drive: Drive, mode: ControlMode, theta0):
+def _position_init(
+    drive: Drive, mode: ControlMode, theta0: ArrayLike
+) -> loops.IMCState | jax.Array | loops.PIDFFState | loops.RosPIDState | None:
     """The position controller at rest at ``theta0`` [rad], zero error: IMC's prefilter holds ``theta0``."""
     if mode.law == Law.IMC:
         return loops.imc_rest(drive.imc, theta0)
@@ -146,7 +152,7 @@ def _position_init(drive: Drive, mode: ControlMode, theta0):
     return None
 
 
-def init(drive: Drive, mode: ControlMode, theta0=0.0, force0=0.0) -> CascadeState:
+def init(drive: Drive, mode: ControlMode, theta0: ArrayLike = 0.0, force0: ArrayLike = 0.0) -> CascadeState:
     """Every loop state zero but the position controller's, at rest at ``theta0`` [rad] (:func:`rest`); the force
     law's last ``F_6`` at ``force0`` [N]."""
     return CascadeState(
@@ -157,7 +163,14 @@ def init(drive: Drive, mode: ControlMode, theta0=0.0, force0=0.0) -> CascadeStat
     )
 
 
-def rest(drive: Drive, mode: ControlMode, current, command, theta0=0.0, force0=0.0) -> CascadeState:
+def rest(
+    drive: Drive,
+    mode: ControlMode,
+    current: jax.Array,
+    command: jax.Array,
+    theta0: ArrayLike = 0.0,
+    force0: ArrayLike = 0.0,
+) -> CascadeState:
     """The cascade that has held the machine still at ``theta0`` [rad] for a long time.
 
     ``current`` [A]: the armature currents that hold it; ``command`` [V]: the inverter commands
@@ -175,7 +188,15 @@ def rest(drive: Drive, mode: ControlMode, current, command, theta0=0.0, force0=0
     )
 
 
-def position_tick(drive: Drive, mode: ControlMode, s: CascadeState, ref, theta, omega, hybrid=None):
+def position_tick(
+    drive: Drive,
+    mode: ControlMode,
+    s: CascadeState,
+    ref: Any,
+    theta: jax.Array,
+    omega: jax.Array,
+    hybrid: hybrid_law.HybridGains | None = None,
+) -> tuple[CascadeState, jax.Array, jax.Array | None]:
     """One position period: ``(state, w_ref [rad/s], i_force [A] or None)``.
 
     ``ref``: motor-angle references [rad] ``(n_axes,)``, or in hybrid mode one
@@ -186,6 +207,7 @@ def position_tick(drive: Drive, mode: ControlMode, s: CascadeState, ref, theta, 
     theta_ref = mode.theta(ref)
     position = s.position
     assert position is not None  # a mode that closes the position loop carries its controller's state
+    sp: loops.IMCState | jax.Array | loops.PIDFFState | loops.RosPIDState
     if mode.law == Law.IMC:
         sp, w_ref = loops.imc_step(drive.imc, position, theta_ref, theta)
     elif mode.law == Law.PID:
@@ -198,13 +220,25 @@ def position_tick(drive: Drive, mode: ControlMode, s: CascadeState, ref, theta, 
         return s._replace(position=sp), w_ref, None
     assert s.force is not None  # and hybrid mode its force law's
     sf, force = hybrid_law.step(
-        hybrid, s.force, (theta_ref - theta) * drive.screw, ref.coupling, ref.force_ff, drive.dt_position
+        cast(hybrid_law.HybridGains, hybrid),  # hybrid mode passes its gains
+        s.force,
+        (theta_ref - theta) * drive.screw,
+        ref.coupling,
+        ref.force_ff,
+        drive.dt_position,
     )
     k = mode.force_axis
     return s._replace(position=sp, force=sf), w_ref, force * drive.force_current[..., k]
 
 
-def velocity_tick(drive: Drive, mode: ControlMode, s: CascadeState, w_ref, omega, i_force=None):
+def velocity_tick(
+    drive: Drive,
+    mode: ControlMode,
+    s: CascadeState,
+    w_ref: jax.Array,
+    omega: jax.Array,
+    i_force: jax.Array | None = None,
+) -> tuple[CascadeState, jax.Array]:
     """One velocity period: ``(state, i_ref [A])``, clamped to ``+-I_max``; ``i_force`` replaces the force axis's."""
     assert s.velocity is not None  # a mode that closes the velocity loop carries its state
     sv, i_ref = loops.pi_loop_step(drive.velocity, s.velocity, w_ref, omega)
@@ -215,7 +249,9 @@ def velocity_tick(drive: Drive, mode: ControlMode, s: CascadeState, w_ref, omega
     return s._replace(velocity=sv), i_ref
 
 
-def current_tick(drive: Drive, s: CascadeState, i_ref, current, omega):
+def current_tick(
+    drive: Drive, s: CascadeState, i_ref: jax.Array, current: jax.Array, omega: jax.Array
+) -> tuple[CascadeState, jax.Array]:
     """One current period: ``(state, u [V])`` from the reference and the measured current [A] and speed [rad/s]."""
     sc, u = loops.pi_loop_step(drive.current, s.current, i_ref, current, drive.emf_gain * omega)
     return s._replace(current=sc), u

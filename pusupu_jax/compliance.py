@@ -50,7 +50,7 @@ class AdmittanceGains:
     selection: Any = (1.0, 1.0, 1.0)  # 1: the axis yields to the contact force; 0: it stays in position control
     max_offset: Any = 0.02  # m, |x_c| is clamped to this on every axis
 
-    def replace(self, **changes) -> "AdmittanceGains":
+    def replace(self, **changes: Any) -> "AdmittanceGains":
         return dataclasses.replace(self, **changes)
 
 
@@ -99,7 +99,9 @@ def init() -> AdmittanceState:
     return AdmittanceState(jnp.zeros(3), jnp.zeros(3))
 
 
-def step(gains: AdmittanceGains, state: AdmittanceState, force, force_setpoint, dt: float) -> AdmittanceState:
+def step(
+    gains: AdmittanceGains, state: AdmittanceState, force: jax.Array, force_setpoint: jax.Array, dt: float
+) -> AdmittanceState:
     """One position period of the admittance (semi-implicit Euler) for the measured contact force ``force`` and
     the setpoint ``force_setpoint`` [N] (world axes): the new offset [m] and its rate [m/s]."""
     acceleration = (

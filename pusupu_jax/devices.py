@@ -15,9 +15,15 @@ from __future__ import annotations
 
 import enum
 import sys
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, TextIO
 
 from . import runtime
 from .params import ParameterError
+
+if TYPE_CHECKING:
+    import jax
+    from jax.sharding import Mesh
 
 # The rows of one batch from which ``auto`` takes the GPU.  Measured on a 16-core Xeon host with one H200 (jax 0.11.2,
 # benchmarks/bench_batch.py --path 3 --window 0.5 --windows 6, the default tune's windows; docs/benchmarks.md): 96 rows
@@ -82,8 +88,9 @@ def select(requested: DeviceChoice | str, rows: int, what: str = "") -> tuple[st
             f"auto: {what or rows} in one batch, from the {GPU_CROSSOVER_ROWS} rows at which a GPU was faster",
         )
     if platform == "cpu":
-        jax.config.update("jax_platforms", "cpu")  # no GPU backend, if none has started yet
-        jax.config.update("jax_default_device", jax.devices("cpu")[0])
+        # jax leaves Config.update unannotated
+        jax.config.update("jax_platforms", "cpu")  # type: ignore[no-untyped-call]  # no GPU backend, if none has started yet
+        jax.config.update("jax_default_device", jax.devices("cpu")[0])  # type: ignore[no-untyped-call]
     _chosen = platform
     return platform, why
 
@@ -96,7 +103,7 @@ def choose(requested: DeviceChoice | str, rows: int, what: str) -> str:
     return platform
 
 
-def announce(stream=None) -> None:
+def announce(stream: TextIO | None = None) -> None:
     """One line on ``stream`` (default stderr) before a command's work: ``computing on cpu (2 device(s) on 2 core(s)):
     auto: ...``, or on JAX's default backend when nothing was chosen (a notebook)."""
     import jax
@@ -105,7 +112,7 @@ def announce(stream=None) -> None:
     print(f"computing on {describe(platform)}: {_why or 'JAX default'}", file=stream or sys.stderr, flush=True)
 
 
-def chosen_devices() -> list:
+def chosen_devices() -> list[jax.Device]:
     """The devices of the platform :func:`select` chose, else those of JAX's default backend."""
     import jax
 
@@ -122,7 +129,7 @@ def describe(platform: str) -> str:
     return f"gpu ({devices[0].device_kind})"
 
 
-def row_mesh(rows: int, devices=None):
+def row_mesh(rows: int, devices: Sequence[jax.Device] | None = None) -> Mesh | None:
     """A one-axis mesh (axis ``rows``) over the largest number of ``devices`` (default :func:`chosen_devices`)
     that divides ``rows``, or None when that is one device."""
     import numpy as np
@@ -133,11 +140,12 @@ def row_mesh(rows: int, devices=None):
     return None if n == 1 else Mesh(np.array(list(devices)[:n]), ("rows",))
 
 
-def spread_rows(tree, mesh):
+def spread_rows(tree: Any, mesh: Mesh | None) -> Any:
     """``tree`` with its leading axis laid over ``mesh``'s devices, inside a traced function (no-op without one)."""
     import jax
     from jax.sharding import NamedSharding, PartitionSpec
 
     if mesh is None:
         return tree
-    return jax.lax.with_sharding_constraint(tree, NamedSharding(mesh, PartitionSpec("rows")))
+    # jax leaves with_sharding_constraint and PartitionSpec's constructor unannotated
+    return jax.lax.with_sharding_constraint(tree, NamedSharding(mesh, PartitionSpec("rows")))  # type: ignore[no-untyped-call]

@@ -20,6 +20,7 @@ The layout (``docs/logs.md``)::
 from __future__ import annotations
 
 import hashlib
+import os
 
 import numpy as np
 
@@ -44,7 +45,7 @@ def columns(current: bool = True) -> list[str]:
     return [TIME] + [f"{g}_{k}" for g in groups for k in range(1, AXES + 1)]
 
 
-def read(path) -> DriveLog:
+def read(path: str | os.PathLike[str]) -> DriveLog:
     """The drive samples of the CSV drive table ``path``; :class:`~pusupu_jax.params.ParameterError` with one line
     naming the row or column for a file that is not one."""
     data = inputs.read_bytes(path, "CSV drive log", ParameterError, limit=LOG_LIMIT)
@@ -106,7 +107,7 @@ def read(path) -> DriveLog:
             f"got {time[k]:g} s"
         )
 
-    def group(name):
+    def group(name: str) -> np.ndarray:
         return table[:, [names.index(f"{name}_{k}") for k in range(1, AXES + 1)]]
 
     steps = np.diff(time)[np.diff(time) > 0]

@@ -7,13 +7,19 @@ import contextlib
 import os
 import stat
 import tempfile
+from collections.abc import Collection, Mapping
 from pathlib import Path
+from typing import Any, TypeVar
 
 from . import inputs
 from .params import ParameterError
 
+_PathT = TypeVar("_PathT", bound="str | os.PathLike[str]")  # a path of a caller's {path: data}
 
-def read_yaml_mapping(path: Path, what: str, keys, error=ParameterError) -> dict:
+
+def read_yaml_mapping(
+    path: Path, what: str, keys: Collection[str], error: type[Exception] = ParameterError
+) -> dict[str, Any]:
     """A YAML file holding a mapping whose keys are among ``keys`` (empty file: ``{}``).
 
     Read with :func:`pusupu_jax.inputs.read_yaml` (size limit, UTF-8, no aliases, no duplicate
@@ -31,7 +37,7 @@ def umask() -> int:
     return mask
 
 
-def check_output(path) -> os.stat_result | None:
+def check_output(path: str | os.PathLike[str]) -> os.stat_result | None:
     """What stands at ``path``, an output about to be written: nothing (None) or a regular file (its ``lstat``).
 
     Anything else (a symlink, folder, FIFO, socket or device node) raises :class:`ParameterError` in one line and is
@@ -50,7 +56,7 @@ def check_output(path) -> os.stat_result | None:
     return st
 
 
-def write_files(files: dict) -> list[Path]:
+def write_files(files: Mapping[_PathT, str | bytes]) -> list[Path]:
     """Write ``{path: data}`` (str or bytes) atomically, every file or none as far as the file system allows.
 
     Every path is checked first (:func:`check_output`); then each file's data goes to a temporary file in its
@@ -61,7 +67,7 @@ def write_files(files: dict) -> list[Path]:
     where the process may give it away (root), its owner and group.
     """
     items = [(Path(path), data.encode() if isinstance(data, str) else data) for path, data in files.items()]
-    temps = []
+    temps: list[str] = []
     try:
         for path, data in items:
             old = check_output(path)
@@ -86,7 +92,7 @@ def write_files(files: dict) -> list[Path]:
     return [path for path, _ in items]
 
 
-def write_atomic(path, data: str | bytes) -> Path:
+def write_atomic(path: str | os.PathLike[str], data: str | bytes) -> Path:
     """Write ``data`` to ``path`` atomically (:func:`write_files`: a regular file or nothing at ``path``, its mode
     kept)."""
     return write_files({path: data})[0]

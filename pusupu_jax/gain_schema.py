@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from typing import Any
 
 from . import gains, stability
 from .gains import BLOCKS, CONTROLLER_SECTIONS, KEYS, MODES, SCHEMA, VERSION
@@ -13,12 +14,12 @@ from .hybrid import gain_fields
 from .params import LoopRates, ServoParams, bounds
 
 
-def json_schema() -> dict:
+def json_schema() -> dict[str, Any]:
     """The JSON Schema of a gain file, built from the parameter classes' metadata (shipped as a file; a test keeps the
     two equal).  Each bounded value carries its range and the reason for it."""
     number = {"type": "number"}
 
-    def per_axis(low=None, high=None):
+    def per_axis(low: float | None = None, high: float | str | None = None) -> dict[str, Any]:
         item = (
             dict(number)
             | ({"minimum": low} if low is not None else {})
@@ -26,7 +27,7 @@ def json_schema() -> dict:
         )
         return {"oneOf": [item, {"type": "array", "items": item, "minItems": 6, "maxItems": 6}]}
 
-    def field_schema(f):
+    def field_schema(f: dataclasses.Field[Any]) -> dict[str, Any]:
         b = bounds(f)
         value = per_axis(*b[:2]) if b else per_axis()
         out = {
@@ -46,7 +47,7 @@ def json_schema() -> dict:
         }
         return out
 
-    sections: dict[str, dict] = {
+    sections: dict[str, dict[str, Any]] = {
         name: {"type": "object", "additionalProperties": False, "properties": {}, "required": []}
         for name in CONTROLLER_SECTIONS
     }

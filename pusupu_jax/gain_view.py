@@ -3,10 +3,12 @@ on (:func:`diff`: ``pusupu gains diff``), from a gain document (:attr:`pusupu_ja
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 
-def rows(doc: dict) -> list[tuple[str, str, object, str, bool]]:
+def rows(doc: dict[str, Any]) -> list[tuple[str, str, object, str, bool]]:
     """``(section, field, value, unit, tuned)`` of every gain (and a version 2 file's plant value), in file order."""
     out = []
     for section, fields in list(doc["controller"].items()) + [("plant", doc.get("plant", {}))]:
@@ -18,7 +20,7 @@ def rows(doc: dict) -> list[tuple[str, str, object, str, bool]]:
     return out
 
 
-def show(doc: dict) -> str:
+def show(doc: dict[str, Any]) -> str:
     """A gain file as a table for people: sections, values (six when they differ), units, what was tuned."""
     machine = doc.get("machine", {"name": "built-in (version 3 or older)", "digest": ""})
     lines = [
@@ -51,7 +53,7 @@ def show(doc: dict) -> str:
     return "\n".join(lines)
 
 
-def diff(a: dict, b: dict) -> list[str]:
+def diff(a: dict[str, Any], b: dict[str, Any]) -> list[str]:
     """The values two gain documents disagree on, one line each (empty when their gains and rates are equal)."""
     left, right = ({(s, n): (v, u) for s, n, v, u, _ in rows(d)} for d in (a, b))
     out = []

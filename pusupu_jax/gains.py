@@ -46,11 +46,15 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import hashlib
+import os
 import subprocess
+from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
+from typing import Any
 
 import jax
 import numpy as np
+import numpy.typing as npt
 import yaml
 
 from . import __version__, inputs, loops, stability
@@ -60,6 +64,7 @@ from . import machine_file
 from .cascade import GAIN_FILE_MODES
 from .gain_view import show
 from .hybrid import HybridGains, gain_fields
+from .lti import LTI
 from .machine_file import Machine
 from .params import LoopRates, ParameterError, ServoParams, array_fields, static_fields
 from .stability import FLOORS
@@ -87,7 +92,7 @@ LIMITS_SINCE_V3 = ("following_error", "following_error_time")  # limits a versio
 
 # each discrete block: where it sits in loops.Drive, its sample period (a LoopRates property), what flows
 # in and out, and what clamps it
-BLOCKS = {
+BLOCKS: dict[str, tuple[Callable[[loops.Drive], LTI], str, str, str, str]] = {
     "current_ref_filter": (
         lambda d: d.current.ref_filter,
         "dt_current",
@@ -156,8 +161,8 @@ class GainFile:
     hybrid: HybridGains
     rates: LoopRates
     mode: str
-    document: dict
-    machine: dict  # {name, digest} of the machine the gains were tuned on
+    document: dict[str, Any]
+    machine: dict[str, str]  # {name, digest} of the machine the gains were tuned on
 
     def tuned_on(self, machine: Machine) -> bool:
         """Whether the gains were tuned on ``machine`` (same digest)."""
@@ -168,7 +173,9 @@ class GainFile:
         return "GainFile: " + show(self.document)
 
 
-def margins_report(servo: ServoParams, mode: str = "imc", machine: Machine | None = None) -> dict:
+def margins_report(
+    servo: ServoParams, mode: str = "imc", machine: Machine | None = None
+) -> dict[str, dict[str, list[float]]]:
     """Phase [deg] and gain [dB] margins of every loop of every axis as lists (:func:`pusupu_jax.stability.margins`,
     single-axis model with ``machine``'s load, :func:`pusupu_jax.machine_file.axis_load`; default the built-in
     machine)."""
@@ -176,7 +183,7 @@ def margins_report(servo: ServoParams, mode: str = "imc", machine: Machine | Non
     return {loop: {k: v[k].tolist() for k in ("phase_margin_deg", "gain_margin_db")} for loop, v in m.items()}
 
 
-def builtin_plant() -> dict:
+def builtin_plant() -> dict[str, np.ndarray]:
     """``{field: (6,) array}`` of the plant a gain file's gains run on: the ``plant`` fields of Table 1's
     :class:`~pusupu_jax.params.ServoParams`."""
     base = ServoParams.table1()
@@ -185,7 +192,7 @@ def builtin_plant() -> dict:
     }
 
 
-def _plain(value):
+def _plain(value: Any) -> Any:
     """``value`` as YAML's safe dumper takes it: enum members (a :class:`~pusupu_jax.metrics.Metric` key, a mode) as
     their names, tuples as lists, in mappings and lists at any depth."""
     if isinstance(value, dict):
@@ -197,7 +204,7 @@ def _plain(value):
     return value
 
 
-def _compact(values):
+def _compact(values: npt.ArrayLike) -> float | list[Any]:
     """A per-axis value written once when the six are equal, else as a list of six (plain floats)."""
     arr = np.asarray(values, dtype=float)
     return float(arr.flat[0]) if np.all(arr == arr.flat[0]) else arr.tolist()
@@ -208,10 +215,10 @@ def _compact(values):
 _discretize = jax.jit(loops.discretize, static_argnums=1)
 
 
-def _discrete(servo: ServoParams, rates: LoopRates) -> dict:
+def _discrete(servo: ServoParams, rates: LoopRates) -> dict[str, dict[str, Any]]:
     with jax.enable_x64(True):  # the file holds float64 coefficients, whatever the caller's JAX precision
         drive = jax.tree.map(np.asarray, _discretize(servo, rates))
-    out = {}
+    out: dict[str, dict[str, Any]] = {}
     for name, (get, period, signal_in, signal_out, clamp) in BLOCKS.items():
         block = get(drive)
         mats = {k: np.asarray(getattr(block, k)) for k in ("A", "B", "C", "D")}
@@ -248,10 +255,10 @@ def _git_commit() -> str | None:
     return (r.stdout.strip() + ("-dirty" if dirty else "")) if r.returncode == 0 else None
 
 
-def _versions() -> dict:
+def _versions() -> dict[str, str | None]:
     import importlib.metadata as md
 
-    def version(name):
+    def version(name: str) -> str | None:
         try:
             return md.version(name)
         except md.PackageNotFoundError:
@@ -270,7 +277,7 @@ def _checksum(text: str) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def _field(value, unit: str, tuned: bool) -> dict:
+def _field(value: npt.ArrayLike, unit: str, tuned: bool) -> dict[str, Any]:
     return {"value": _compact(value), "unit": unit} | ({"tuned": True} if tuned else {})
 
 
@@ -280,9 +287,9 @@ def document(
     rates: LoopRates,
     *,
     mode: str,
-    tuned=(),
-    provenance: dict | None = None,
-    floors=FLOORS,
+    tuned: Collection[str] = (),
+    provenance: dict[str, Any] | None = None,
+    floors: Sequence[float] = FLOORS,
     machine: Machine | None = None,
 ) -> str:
     """The YAML text of a gain file for gains tuned on ``machine`` (default: the built-in one); checked first:
@@ -293,7 +300,7 @@ def document(
     machine = Machine.default() if machine is None else machine
     _check_plant({name: getattr(servo, name) for name in machine.drives}, "servo", machine)
     found = stability.check(servo, hybrid, rates, mode, floors, load=machine_file.axis_load(machine))
-    controller: dict[str, dict] = {name: {} for name in CONTROLLER_SECTIONS}
+    controller: dict[str, dict[str, Any]] = {name: {} for name in CONTROLLER_SECTIONS}
     for f in static_fields(ServoParams):
         controller[f.metadata["section"]][f.name] = getattr(servo, f.name)
     for f in array_fields(ServoParams):
@@ -322,16 +329,23 @@ def document(
             **_plain(provenance or {}),
         },
     }
-    body = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110)  # innermost mappings on one line
-    return body + yaml.safe_dump({"checksum": _checksum(body)})
+    # innermost mappings on one line
+    body: str = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=110)
+    checksum: str = yaml.safe_dump({"checksum": _checksum(body)})
+    return body + checksum
 
 
-def write(path, servo: ServoParams, hybrid: HybridGains, rates: LoopRates, **kw) -> Path:
+def write(path: str | os.PathLike[str], servo: ServoParams, hybrid: HybridGains, rates: LoopRates, **kw: Any) -> Path:
     """:func:`document` written atomically (a crash leaves the old file)."""
     return write_atomic(path, document(servo, hybrid, rates, **kw))
 
 
-def load(path, floors=FLOORS, check_stability: bool = True, machine: Machine | None = None) -> GainFile:
+def load(
+    path: str | os.PathLike[str],
+    floors: Sequence[float] = FLOORS,
+    check_stability: bool = True,
+    machine: Machine | None = None,
+) -> GainFile:
     """Read and check a gain file (see the module docstring) on ``machine`` (default: the built-in one); stability
     is checked against ``floors``.
 
@@ -346,7 +360,11 @@ def load(path, floors=FLOORS, check_stability: bool = True, machine: Machine | N
 
 
 def parse(
-    text: str, floors=FLOORS, checksum: bool = True, check_stability: bool = True, machine: Machine | None = None
+    text: str,
+    floors: Sequence[float] = FLOORS,
+    checksum: bool = True,
+    check_stability: bool = True,
+    machine: Machine | None = None,
 ) -> GainFile:
     """:func:`load` on text; ``checksum=False`` skips the checksum and the derived blocks (for :func:`sign`)."""
     machine = Machine.default() if machine is None else machine
@@ -393,7 +411,7 @@ def parse(
     return GainFile(servo, hybrid, rates, mode, doc, tuned_on)
 
 
-def _machine_reference(value) -> dict:
+def _machine_reference(value: Any) -> dict[str, str]:
     """A gain file's ``machine``: ``{name, digest}`` (a sha256 in hex)."""
     inputs.check_keys(value, "machine", ("name", "digest"), ParameterError, required=("name", "digest"))
     if not isinstance(value["name"], str) or not value["name"]:
@@ -404,7 +422,7 @@ def _machine_reference(value) -> dict:
     return {"name": value["name"], "digest": digest}
 
 
-def _same_block(stored, fresh) -> bool:
+def _same_block(stored: Any, fresh: dict[str, Any]) -> bool:
     if not isinstance(stored, dict) or any(stored.get(k) != fresh[k] for k in ("sample_period_s",)):
         return False
     try:
@@ -420,9 +438,9 @@ def _same_block(stored, fresh) -> bool:
         return False
 
 
-def _controller_fields(version: int) -> dict:
+def _controller_fields(version: int) -> dict[str, list[str]]:
     """``{section: [field names]}`` that a file of ``version`` holds (its controller sections; version 2's plant)."""
-    expected: dict[str, list] = {name: [] for name in CONTROLLER_SECTIONS}
+    expected: dict[str, list[str]] = {name: [] for name in CONTROLLER_SECTIONS}
     for f in dataclasses.fields(ServoParams):
         section = f.metadata["section"]
         if section != "plant" and not (version == 2 and f.name in LIMITS_SINCE_V3):
@@ -433,7 +451,7 @@ def _controller_fields(version: int) -> dict:
     return expected
 
 
-def _check_plant(values: dict, where: str, machine: Machine | None = None) -> None:
+def _check_plant(values: dict[str, Any], where: str, machine: Machine | None = None) -> None:
     """Refuse plant values other than ``machine``'s drives (default: the built-in plant, :func:`builtin_plant`), to
     1e-12 relative."""
     plant = builtin_plant() if machine is None else machine.drives
@@ -447,7 +465,7 @@ def _check_plant(values: dict, where: str, machine: Machine | None = None) -> No
             )
 
 
-def _parameters(doc, version: int, machine: Machine) -> tuple[ServoParams, HybridGains]:
+def _parameters(doc: dict[str, Any], version: int, machine: Machine) -> tuple[ServoParams, HybridGains]:
     """The file's gains on ``machine``'s drives (the controller's values checked against the machine's ratings)."""
     expected = _controller_fields(version)
     controller = inputs.check_keys(
@@ -490,7 +508,7 @@ def _parameters(doc, version: int, machine: Machine) -> tuple[ServoParams, Hybri
     return ServoParams.from_mapping(values, base=ServoParams.table1().replace(**machine.drives)), hybrid
 
 
-def sign(path, floors=FLOORS, machine: Machine | None = None) -> Path:
+def sign(path: str | os.PathLike[str], floors: Sequence[float] = FLOORS, machine: Machine | None = None) -> Path:
     """Re-sign a deliberately edited gain file: its gains must pass every check on ``machine`` (default: the built-in
     one), which must be the machine the file names; the derived blocks (discrete coefficients, margins, stability)
     are recomputed and the checksum written anew (atomically, same mode and tuned marks).  A version 2 or 3 file is
@@ -511,7 +529,7 @@ def sign(path, floors=FLOORS, machine: Machine | None = None) -> Path:
     return _rewrite(path, g, floors, "signed", machine)
 
 
-def _check_machine(path, g: GainFile, machine: Machine) -> None:
+def _check_machine(path: Path, g: GainFile, machine: Machine) -> None:
     """Refuse ``g`` unless it was tuned on ``machine``."""
     if not g.tuned_on(machine):
         raise ParameterError(
@@ -521,7 +539,9 @@ def _check_machine(path, g: GainFile, machine: Machine) -> None:
         )
 
 
-def migrate(path, out=None, floors=FLOORS) -> Path:
+def migrate(
+    path: str | os.PathLike[str], out: str | os.PathLike[str] | None = None, floors: Sequence[float] = FLOORS
+) -> Path:
     """Rewrite a version 2 or 3 gain file as version 4 at ``out`` (default: in its place, atomically), naming the
     built-in machine it was tuned on.
 
@@ -534,7 +554,7 @@ def migrate(path, out=None, floors=FLOORS) -> Path:
     return _rewrite(Path(out) if out is not None else path, g, floors, "migrated", Machine.default())
 
 
-def _rewrite(path: Path, g: GainFile, floors, action: str, machine: Machine) -> Path:
+def _rewrite(path: Path, g: GainFile, floors: Sequence[float], action: str, machine: Machine) -> Path:
     """``g`` written anew at ``path``: its gains, mode and tuned marks, and its provenance less what :func:`document`
     writes itself; ``action`` ('signed' or 'migrated') stamps when (``<action>_utc``), beside the creation time the
     file had (``created_utc_before``) and, for 'migrated', the version it came from."""

@@ -19,7 +19,7 @@ their cost against the forward run.
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Any, Callable
 
 import jax
 from jax.flatten_util import ravel_pytree
@@ -27,17 +27,19 @@ from jax.flatten_util import ravel_pytree
 GRADIENT_MODES = ("reverse", "forward")
 
 
-def value_and_grad(fun: Callable, mode: str = "reverse") -> Callable:
+def value_and_grad(
+    fun: Callable[..., tuple[Any, Any]], mode: str = "reverse"
+) -> Callable[..., tuple[tuple[Any, Any], Any]]:
     """``(x, *args) -> ((value, aux), d value / d x)`` for ``fun(x, *args) -> (value, aux)``; not jitted."""
     if mode == "reverse":
         return jax.value_and_grad(fun, has_aux=True)
     if mode != "forward":
         raise ValueError(f"gradient mode: expected one of {GRADIENT_MODES}, got {mode!r}")
 
-    def forward(x, *args):
+    def forward(x: Any, *args: Any) -> tuple[tuple[Any, Any], Any]:
         flat, unravel = ravel_pytree(x)
 
-        def flat_fun(v):
+        def flat_fun(v: jax.Array) -> tuple[Any, tuple[Any, Any]]:
             value, aux = fun(unravel(v), *args)
             return value, (value, aux)
 

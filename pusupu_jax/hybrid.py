@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass, field
-from typing import Any, Mapping, NamedTuple
+from typing import TYPE_CHECKING, Any, Mapping, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -41,6 +41,9 @@ import numpy as np
 from . import inputs
 from .metrics import safe_sqrt
 from .params import ParameterError
+
+if TYPE_CHECKING:
+    from jax.typing import ArrayLike
 
 FORCE_AXIS = 5  # branch 6, zero-based
 RHO_FORMS = ("rms", "signed")
@@ -58,7 +61,7 @@ HYBRID_BOUNDS_WHY = (
 )
 
 
-def _gain(default: float, unit: str, doc: str, high: float):
+def _gain(default: float, unit: str, doc: str, high: float) -> float:
     return field(default=default, metadata={"unit": unit, "doc": doc, "bounds": (0.0, high, HYBRID_BOUNDS_WHY)})
 
 
@@ -91,11 +94,11 @@ class HybridGains:
         validate_gains(out)
         return out
 
-    def replace(self, **changes) -> "HybridGains":
+    def replace(self, **changes: Any) -> "HybridGains":
         return dataclasses.replace(self, **changes)
 
 
-def gain_fields() -> list[dataclasses.Field]:
+def gain_fields() -> list[dataclasses.Field[Any]]:
     """The numeric (traced) fields of :class:`HybridGains`."""
     return [f for f in dataclasses.fields(HybridGains) if not f.metadata.get("static")]
 
@@ -133,14 +136,14 @@ class HybridReference:
     coupling: Any  # (N, 5) w = J_6 J_15^-1 at the reference pose, 1
 
 
-def rms_rate(e):
+def rms_rate(e: jax.Array) -> jax.Array:
     """``rho'`` of eq. 12 read as RMS: ``sqrt(mean xi^2)`` of the 10 pairwise differences of ``e[..., :5]`` [m]."""
     n, m = np.triu_indices(5, k=1)
     xi = e[..., n] - e[..., m]
     return safe_sqrt(jnp.mean(xi**2, axis=-1))  # every branch error equal: rho' = 0, derivative 0
 
 
-def synchronous_error(branch_errors, dt):
+def synchronous_error(branch_errors: jax.Array, dt: float) -> jax.Array:
     """Eq. 10-12: ``rho(t)`` [m s], shape ``(..., N)``, from branch errors ``(..., N, 6)`` [m] every ``dt`` [s]."""
     return jnp.cumsum(rms_rate(branch_errors), axis=-1) * dt
 
@@ -153,12 +156,14 @@ class ForceState(NamedTuple):
     force: Any  # N: the last F_6
 
 
-def init(force=0.0) -> ForceState:
+def init(force: ArrayLike = 0.0) -> ForceState:
     """The force law at rest, its last ``F_6`` at ``force`` [N]."""
     return ForceState(jnp.zeros(()), jnp.zeros(()), jnp.zeros(()) + force)
 
 
-def step(gains: HybridGains, state: ForceState, e, coupling, force_ff, dt):
+def step(
+    gains: HybridGains, state: ForceState, e: jax.Array, coupling: ArrayLike, force_ff: ArrayLike, dt: float
+) -> tuple[ForceState, jax.Array]:
     """One position period (eq. 13-14): branch errors ``e`` (6,) [m] -> ``(state, F_6 [N])``.
 
     ``coupling`` (5,): the row ``w`` of the signed form [1]; ``force_ff``: ``F_q`` [N]; ``dt``: the period [s].

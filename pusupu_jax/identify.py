@@ -25,6 +25,8 @@ that the first-order fit runs to its bound (0.2 s on the built-in machine with 2
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -36,14 +38,15 @@ from .params import LoopRates, ServoParams, validate
 from .plant import kinematics
 from .plant.axis import screw_ratio
 from .plant.geometry import Geometry
+from .plant.mjx_plant import MJXPlant
 from .plant.model import ModelOptions
-from .sim import rollout
+from .sim import Trace, rollout
 
 DIRECTIONS = {"x": (1.0, 0, 0, 0, 0), "y": (0, 1.0, 0, 0, 0), "z": (0, 0, 1.0, 0, 0)}
 
 
 @functools.lru_cache(maxsize=None)
-def _step_tests(plant, rates):
+def _step_tests(plant: MJXPlant, rates: LoopRates) -> Callable[..., Trace]:
     return jax.jit(
         jax.vmap(functools.partial(rollout, plant=plant, rates=rates, outer="velocity"), in_axes=(None, None, 0))
     )
@@ -52,12 +55,12 @@ def _step_tests(plant, rates):
 def identify_T0_machine(
     servo: ServoParams,
     options: ModelOptions = ModelOptions(),
-    directions=("x", "y"),
+    directions: Sequence[str] = ("x", "y"),
     speed: float = 0.01,
     window: float = 0.2,
     rates: LoopRates = LoopRates(),
     geom: Geometry | None = None,
-) -> dict:
+) -> dict[str, Any]:
     """Per-branch ``T0`` [s] from velocity steps of the machine (nominal geometry ``geom``, default
     :meth:`Geometry.default`) at its home pose.
 

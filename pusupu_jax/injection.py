@@ -31,9 +31,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 
 from .params import LoopRates
-from .sim import Injected
+from .sim import Injected, Trace
 
 BREAKS = {
     "velocity": "the velocity controller's output, the current reference [A]",
@@ -50,7 +51,7 @@ def grid(f_low: float, f_high: float, count: int, rates: LoopRates = LoopRates()
     return f_p / n[::-1]
 
 
-def _samples(loop: str, n_outer: int, rates: LoopRates, m: int):
+def _samples(loop: str, n_outer: int, rates: LoopRates, m: int) -> np.ndarray:
     """The break's sample times [s] ``(n_outer * m,)``: ``m`` inner periods per outer period for 'velocity'."""
     if loop not in BREAKS:
         raise ValueError(f"loop: expected one of {tuple(BREAKS)}, got {loop!r}")
@@ -59,7 +60,7 @@ def _samples(loop: str, n_outer: int, rates: LoopRates, m: int):
     return (np.arange(n_outer)[:, None] * (m * rates.dt_velocity) + np.arange(m) * rates.dt_velocity).ravel()
 
 
-def sine(t, f_hz: float, amplitude: float):
+def sine(t: npt.ArrayLike, f_hz: float, amplitude: float) -> np.ndarray:
     """The injected signal at times ``t`` [s]: ``amplitude sin(2 pi f t)`` faded in over :data:`FADE_PERIODS`."""
     phase = 2 * np.pi * f_hz * np.asarray(t)
     fade = np.where(phase < 2 * np.pi * FADE_PERIODS, 0.5 - 0.5 * np.cos(phase / (2 * FADE_PERIODS)), 1.0)
@@ -67,7 +68,7 @@ def sine(t, f_hz: float, amplitude: float):
 
 
 def injected(
-    reference,
+    reference: npt.ArrayLike,
     loop: str,
     axis: int,
     f_hz: float,
@@ -95,7 +96,7 @@ def injected(
     return Injected(reference, velocity, current)
 
 
-def _break_signals(trace, injection: Injected, loop: str, axis: int):
+def _break_signals(trace: Trace, injection: Injected, loop: str, axis: int) -> tuple[np.ndarray, np.ndarray]:
     """``(x, d)`` at the break, flattened along time: what entered the plant side, and what was injected."""
     if loop == "position":
         return np.asarray(trace.command)[..., axis], np.asarray(injection.velocity)[..., axis]
@@ -104,7 +105,7 @@ def _break_signals(trace, injection: Injected, loop: str, axis: int):
     return x.reshape(x.shape[:-2] + (-1,)), d.reshape(d.shape[:-2] + (-1,))
 
 
-def fourier(x, t, f_hz: float, settle_s: float) -> complex:
+def fourier(x: npt.ArrayLike, t: np.ndarray, f_hz: float, settle_s: float) -> complex:
     """The Fourier coefficient of samples ``x`` at times ``t`` (uniform) at ``f_hz``, over the last whole periods
     after ``settle_s`` [s]: ``(2/K) sum x_k exp(-j w t_k)`` over ``K`` samples (ValueError when no whole period
     fits, or a period is not a whole number of samples)."""
@@ -121,7 +122,13 @@ def fourier(x, t, f_hz: float, settle_s: float) -> complex:
 
 
 def loop_gain(
-    trace, injection: Injected, loop: str, axis: int, f_hz: float, rates: LoopRates = LoopRates(), settle_s: float = 0.0
+    trace: Trace,
+    injection: Injected,
+    loop: str,
+    axis: int,
+    f_hz: float,
+    rates: LoopRates = LoopRates(),
+    settle_s: float = 0.0,
 ) -> complex:
     """``L(j 2 pi f) = -Y/X`` of one injection run (``trace`` and ``injection`` unbatched), over the whole periods
     after ``settle_s`` [s]."""
@@ -132,13 +139,14 @@ def loop_gain(
     return -fourier(x - d, t, f_hz, settle_s) / X
 
 
-def unwrapped_deg(L) -> np.ndarray:
+def unwrapped_deg(L: npt.ArrayLike) -> np.ndarray:
     """The phase [deg] of loop gains along increasing frequency, continuous, the first in (-360, 0]."""
     u = np.degrees(np.unwrap(np.angle(np.asarray(L))))
-    return u - 360.0 * np.ceil(u[0] / 360.0)
+    phase: np.ndarray = u - 360.0 * np.ceil(u[0] / 360.0)
+    return phase
 
 
-def crossover(f_hz, L) -> dict:
+def crossover(f_hz: npt.ArrayLike, L: npt.ArrayLike) -> dict[str, float | None]:
     """Gain crossover [Hz] and phase margin [deg] from loop gains measured at increasing ``f_hz``.
 
     The first crossing of ``|L| = 1`` from above, interpolated linearly in ``log |L|`` against ``log f``; the

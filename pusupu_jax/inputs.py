@@ -26,19 +26,25 @@ from __future__ import annotations
 import math
 import os
 import stat
+from collections.abc import Collection, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import yaml
+
+if TYPE_CHECKING:
+    import numpy as np
+    import numpy.typing as npt
 
 MAX_FILE_BYTES = 1 << 20  # 1 MiB: a parameter, gain, configuration or job file is a few kB
 MAX_SHOWN = 200  # characters of a value echoed in an error (a 500 kB value is not printed back)
 MAX_LINE = 1000  # characters of a whole error line
 
 
-class _Strict(yaml.SafeLoader):
+class _Strict(yaml.SafeLoader):  # type: ignore[misc]  # PyYAML ships no type stubs: its classes are Any
     """SafeLoader without aliases or anchors, without duplicate keys, with string keys only."""
 
-    def compose_node(self, parent, index):
+    def compose_node(self, parent: yaml.Node | None, index: object) -> yaml.Node | None:
         if self.check_event(yaml.AliasEvent):
             raise yaml.YAMLError(f"aliases are not accepted (line {self.peek_event().start_mark.line + 1})")
         event = self.peek_event()
@@ -46,8 +52,8 @@ class _Strict(yaml.SafeLoader):
             raise yaml.YAMLError(f"anchors are not accepted (line {event.start_mark.line + 1})")
         return super().compose_node(parent, index)
 
-    def construct_mapping(self, node, deep=False):
-        seen = set()
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[str] = set()
         for key_node, _ in node.value:
             key = self.construct_object(key_node, deep=True)
             if not isinstance(key, str):
@@ -55,10 +61,10 @@ class _Strict(yaml.SafeLoader):
             if key in seen:
                 raise yaml.YAMLError(f"duplicate key {shown(key)} (line {key_node.start_mark.line + 1})")
             seen.add(key)
-        return super().construct_mapping(node, deep=deep)
+        return super().construct_mapping(node, deep=deep)  # type: ignore[no-any-return]  # PyYAML ships no type stubs
 
 
-def parse_yaml(text: str, where: str, error):
+def parse_yaml(text: str, where: str, error: type[Exception]) -> Any:
     """``text`` parsed with the strict loader; ``error(f"{where}: ...")`` when it is not such YAML."""
     try:
         return yaml.load(text, Loader=_Strict)  # noqa: S506 - a SafeLoader subclass
@@ -86,7 +92,7 @@ def file_kind(mode: int) -> str:
     return "a special file"
 
 
-def read_bytes(path, what: str, error, limit: int = MAX_FILE_BYTES) -> bytes:
+def read_bytes(path: str | os.PathLike[str], what: str, error: type[Exception], limit: int = MAX_FILE_BYTES) -> bytes:
     """The bytes of the regular file ``path`` (a symlink to one is followed), at most ``limit`` bytes.
 
     Anything else is refused before it is opened; the file is then opened without blocking and
@@ -95,7 +101,7 @@ def read_bytes(path, what: str, error, limit: int = MAX_FILE_BYTES) -> bytes:
     """
     path = Path(path)
 
-    def regular(mode):
+    def regular(mode: int) -> None:
         if not stat.S_ISREG(mode):
             raise error(f"{path}: expected a {what}, got {file_kind(mode)}")
 
@@ -113,7 +119,7 @@ def read_bytes(path, what: str, error, limit: int = MAX_FILE_BYTES) -> bytes:
     return data
 
 
-def read_text(path, what: str, error) -> str:
+def read_text(path: str | os.PathLike[str], what: str, error: type[Exception]) -> str:
     """The UTF-8 text of a regular file of at most :data:`MAX_FILE_BYTES` (:func:`read_bytes`; ``what`` names it in
     errors)."""
     data = read_bytes(path, what, error)
@@ -126,12 +132,19 @@ def read_text(path, what: str, error) -> str:
         ) from None
 
 
-def read_yaml(path, what: str, error):
+def read_yaml(path: str | os.PathLike[str], what: str, error: type[Exception]) -> Any:
     """A YAML file, read with :func:`read_text` and parsed with :func:`parse_yaml`."""
     return parse_yaml(read_text(path, what, error), str(path), error)
 
 
-def check_keys(value, where: str, known, error, required=(), what: str = "key") -> dict:
+def check_keys(
+    value: object,
+    where: str,
+    known: Collection[str],
+    error: type[Exception],
+    required: Collection[str] = (),
+    what: str = "key",
+) -> dict[str, Any]:
     """``value`` as a mapping whose keys are among ``known`` and include ``required``."""
     if not isinstance(value, dict):
         raise error(f"{where}: expected a mapping of {what}s, got {_kind(value)}")
@@ -147,7 +160,16 @@ def check_keys(value, where: str, known, error, required=(), what: str = "key") 
     return value
 
 
-def number(value, where: str, error, *, low=None, high=None, low_open=False, finite=True) -> float:
+def number(
+    value: object,
+    where: str,
+    error: type[Exception],
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    finite: bool = True,
+) -> float:
     """A real number (an int or a float; not a bool, not a string) within ``[low, high]`` (``(low, ...`` if
     ``low_open``)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -164,7 +186,9 @@ def number(value, where: str, error, *, low=None, high=None, low_open=False, fin
     return v
 
 
-def integer(value, where: str, error, *, low=None, high=None) -> int:
+def integer(
+    value: object, where: str, error: type[Exception], *, low: int | None = None, high: int | None = None
+) -> int:
     """An integer (not a bool, not a float) within ``[low, high]``."""
     if isinstance(value, bool) or not isinstance(value, int):
         raise error(f"{where}: expected an integer, got {_kind(value)}")
@@ -174,7 +198,7 @@ def integer(value, where: str, error, *, low=None, high=None) -> int:
     return value
 
 
-def array(value, where: str, shape, error):
+def array(value: object, where: str, shape: Sequence[int], error: type[Exception]) -> npt.NDArray[np.float64]:
     """``value`` as a float64 numpy array of ``shape``, every element finite."""
     import numpy as np
 
@@ -189,20 +213,20 @@ def array(value, where: str, shape, error):
     return arr
 
 
-def choice(value, where: str, choices, error) -> str:
+def choice(value: object, where: str, choices: Collection[str], error: type[Exception]) -> str:
     """One of ``choices`` (strings)."""
     if not isinstance(value, str) or value not in choices:
         raise error(f"{where}: expected one of {tuple(map(str, choices))}, got {shown(value)}")
     return value
 
 
-def _kind(value) -> str:
+def _kind(value: object) -> str:
     """How an unexpected value is named in errors: its repr when short, else its type."""
     text = repr(value)
     return f"{type(value).__name__} {text}" if len(text) <= 40 else f"a {type(value).__name__}"
 
 
-def shown(value, limit: int = MAX_SHOWN) -> str:
+def shown(value: object, limit: int = MAX_SHOWN) -> str:
     """``value`` as an error echoes it: its repr (quoted, newlines and control characters escaped), cut to ``limit``
     characters."""
     text = repr(value)

@@ -38,6 +38,9 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+import numpy.typing as npt
+from jax.typing import ArrayLike
 
 from . import lti
 from .lti import LTI
@@ -108,22 +111,22 @@ class IMCState(NamedTuple):
     c2: Any
 
 
-def first_order(gain, tau) -> LTI:
+def first_order(gain: ArrayLike, tau: ArrayLike) -> LTI:
     """``gain / (tau s + 1)``; state: the filtered input ``x' = (u - x)/tau``, output ``gain x``."""
     return lti.ss([[-1.0 / tau]], [[1.0 / tau]], [[gain]], [[0.0 * tau]])
 
 
-def lead_lag(a, b) -> LTI:
+def lead_lag(a: ArrayLike, b: ArrayLike) -> LTI:
     """``(a s + 1)/(b s + 1)``; state: the input low-passed with ``b``, output ``(a/b) u + (1 - a/b) x``."""
     return lti.ss([[-1.0 / b]], [[1.0 / b]], [[1.0 - a / b]], [[a / b]])
 
 
-def pi_controller(k, ti) -> LTI:
+def pi_controller(k: ArrayLike, ti: ArrayLike) -> LTI:
     """``k (ti s + 1) / (ti s)``; state: the integral term ``x' = (k/ti) e`` (in output units), output ``k e + x``."""
     return lti.ss([[0.0 * k]], [[k / ti]], [[1.0 + 0.0 * k]], [[k]])
 
 
-def imc_c1(lambda1, lambda2, form: str = "full") -> LTI:
+def imc_c1(lambda1: ArrayLike, lambda2: ArrayLike, form: str = "full") -> LTI:
     """The 2-DOF IMC prefilter, in one of two forms (``docs/imc.md`` derives both).
 
     * ``'printed'``: eq. 9 as printed, ``C1 = (3 l1 s + 1)/(3 l2 s + 1)``.  With the loop's
@@ -145,7 +148,7 @@ def imc_c1(lambda1, lambda2, form: str = "full") -> LTI:
     return lti.series(section, section, section, printed)
 
 
-def filtered_pid(kp, ki, kd, tau) -> LTI:
+def filtered_pid(kp: ArrayLike, ki: ArrayLike, kd: ArrayLike, tau: ArrayLike) -> LTI:
     """``(kp + ki/s + kd s) / (tau s + 1)``; states: the integral term ``I' = ki e`` and the filtered output ``v``.
 
     ``v' = ((kp - kd/tau) e + I - v)/tau``, output ``(kd/tau) e + v``: both states in output units.
@@ -154,7 +157,7 @@ def filtered_pid(kp, ki, kd, tau) -> LTI:
     return lti.ss([[z, z], [1.0 / tau, -1.0 / tau]], [[ki], [(kp - kd / tau) / tau]], [[z, 1.0 + z]], [[kd / tau]])
 
 
-def imc_c2(lambda2, T0) -> LTI:
+def imc_c2(lambda2: ArrayLike, T0: ArrayLike) -> LTI:
     """Eq. 9, ``C2 = (3 l2 s+1)(T0 s+1) / (3 l2^2 s (l2/3 s + 1))``: the PID ``Kp = (3 l2 + T0)/(3 l2^2)``,
     ``Ki = 1/(3 l2^2)``, ``Kd = T0/l2`` behind the filter ``1/((l2/3) s + 1)`` (:func:`filtered_pid`)."""
     return filtered_pid(
@@ -162,7 +165,9 @@ def imc_c2(lambda2, T0) -> LTI:
     )
 
 
-def pid_controller(kp, ki, kd, tf_) -> LTI:
+def pid_controller(
+    kp: ArrayLike, ki: ArrayLike, kd: jax.Array | npt.NDArray[np.floating[Any]] | float, tf_: ArrayLike
+) -> LTI:
     """``kp + ki/s + kd s/(tf s + 1)``; states: the integral term ``I' = ki e`` and the input low-passed ``e_f``.
 
     Output ``kp e + I + (kd/tf)(e - e_f)``.
@@ -185,7 +190,7 @@ def discretize(p: ServoParams, rates: LoopRates) -> Drive:
     """All loops at their rates: controllers and filters with ``rates.method``, the electrical part with ZOH."""
     m = rates.method
 
-    def pi_loop(k, ti, k_fb, tau, limit, dt):
+    def pi_loop(k: ArrayLike, ti: ArrayLike, k_fb: ArrayLike, tau: ArrayLike, limit: ArrayLike, dt: float) -> PILoop:
         return PILoop(
             lti.c2d(first_order(jnp.ones_like(tau), tau), dt, m),
             lti.c2d(first_order(k_fb, tau), dt, m),
@@ -217,7 +222,9 @@ def pi_loop_init(c: PILoop) -> PIState:
     return PIState(lti.zeros_state(c.ref_filter), lti.zeros_state(c.fb_filter), lti.zeros_state(c.pi))
 
 
-def pi_loop_step(c: PILoop, s: PIState, ref, meas, feedforward=0.0):
+def pi_loop_step(
+    c: PILoop, s: PIState, ref: jax.Array, meas: jax.Array, feedforward: ArrayLike = 0.0
+) -> tuple[PIState, jax.Array]:
     """One sample of a filtered PI loop (current: A -> V; velocity: rad/s -> A).
 
     ``feedforward`` is added to the PI output; the sum is clamped to ``+-c.limit``; while clamped, the PI state is
@@ -235,7 +242,7 @@ def pi_loop_step(c: PILoop, s: PIState, ref, meas, feedforward=0.0):
     return PIState(x_ref, x_fb, x_pi), clamped
 
 
-def pi_loop_rest(c: PILoop, ref, meas, out) -> PIState:
+def pi_loop_rest(c: PILoop, ref: jax.Array, meas: jax.Array, out: ArrayLike) -> PIState:
     """The state of a PI loop that has held ``out`` for a long time with constant ``ref`` and ``meas``.
 
     Both filters sit at their steady values and the PI's integrator holds ``out`` (its error
@@ -248,24 +255,24 @@ def pi_loop_rest(c: PILoop, ref, meas, out) -> PIState:
     )
 
 
-def imc_rest(c: IMC, theta0) -> IMCState:
+def imc_rest(c: IMC, theta0: ArrayLike) -> IMCState:
     """The IMC at rest with the reference held at ``theta0`` [rad] and zero error (``theta0 = 0``: all zero)."""
     theta0 = jnp.broadcast_to(jnp.asarray(theta0, c.c1.A.dtype), c.c1.A.shape[:-2])
     return IMCState(lti.dc_state(c.c1, theta0[..., None]), lti.zeros_state(c.c2))
 
 
-def imc_step(c: IMC, s: IMCState, theta_ref, theta):
+def imc_step(c: IMC, s: IMCState, theta_ref: jax.Array, theta: jax.Array) -> tuple[IMCState, jax.Array]:
     """2-DOF IMC (eq. 9): ``w_r = C2 (C1 theta_ref - theta)``; angles [rad], output [rad/s]."""
     x1, r1 = lti.step_siso(c.c1, s.c1, theta_ref)
     x2, w_ref = lti.step_siso(c.c2, s.c2, r1 - theta)
     return IMCState(x1, x2), w_ref
 
 
-def pid_init(c: LTI):
+def pid_init(c: LTI) -> jax.Array:
     return lti.zeros_state(c)
 
 
-def pid_step(c: LTI, s, theta_ref, theta):
+def pid_step(c: LTI, s: jax.Array, theta_ref: jax.Array, theta: jax.Array) -> tuple[jax.Array, jax.Array]:
     """PID baseline on the position error [rad] -> velocity reference [rad/s]."""
     return lti.step_siso(c, s, theta_ref - theta)
 
@@ -275,13 +282,15 @@ class PIDFFState(NamedTuple):
     previous_ref: Any  # the last motor-angle reference, rad
 
 
-def pid_ff_init(c: LTI, theta_ref0=0.0) -> PIDFFState:
+def pid_ff_init(c: LTI, theta_ref0: ArrayLike = 0.0) -> PIDFFState:
     """The PID at rest, the reference held at ``theta_ref0`` [rad] before the first sample."""
     x = lti.zeros_state(c)
     return PIDFFState(x, jnp.broadcast_to(jnp.asarray(theta_ref0, x.dtype), x.shape[:-1]))
 
 
-def pid_ff_step(c: LTI, velocity_ff, s: PIDFFState, theta_ref, theta):
+def pid_ff_step(
+    c: LTI, velocity_ff: ArrayLike, s: PIDFFState, theta_ref: jax.Array, theta: jax.Array
+) -> tuple[PIDFFState, jax.Array]:
     """PID plus velocity feedforward: ``w_r = PID(theta_ref - theta) + Kff (theta_ref - previous)/dt`` [rad/s]."""
     x, w_pid = lti.step_siso(c, s.pid, theta_ref - theta)
     return PIDFFState(x, theta_ref), w_pid + velocity_ff * (theta_ref - s.previous_ref)
@@ -292,12 +301,14 @@ class RosPIDState(NamedTuple):
     previous_ref: Any  # the last motor-angle reference, rad
 
 
-def ros_pid_init(c: RosPID, theta_ref0=0.0) -> RosPIDState:
+def ros_pid_init(c: RosPID, theta_ref0: ArrayLike = 0.0) -> RosPIDState:
     z = jnp.zeros_like(c.p)
     return RosPIDState(z, z + theta_ref0)
 
 
-def ros_pid_step(c: RosPID, s: RosPIDState, theta_ref, theta, omega):
+def ros_pid_step(
+    c: RosPID, s: RosPIDState, theta_ref: jax.Array, theta: jax.Array, omega: jax.Array
+) -> tuple[RosPIDState, jax.Array]:
     """control_toolbox's PID as ``pid_controller`` runs it with position and velocity interfaces [rad, rad/s].
 
     ``u = clamp(p e + I + d (w_ref - w))``, command ``ff w_ref + u`` with ``w_ref`` the reference's
@@ -313,22 +324,22 @@ def ros_pid_step(c: RosPID, s: RosPIDState, theta_ref, theta, omega):
     return RosPIDState(integral, theta_ref), c.ff * w_ref + u
 
 
-def electrical_init(c: LTI):
+def electrical_init(c: LTI) -> jax.Array:
     return lti.zeros_state(c)
 
 
-def electrical_rest(c: LTI, current):
+def electrical_rest(c: LTI, current: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Inverter and armature at rest (motor still) carrying ``current`` [A]; returns ``(state, command u [V])``."""
     unit = lti.dc_state(c, jnp.stack([jnp.ones_like(current), jnp.zeros_like(current)], axis=-1))
     u = current / electrical_current(unit)
     return unit * u[..., None], u
 
 
-def electrical_current(x):
+def electrical_current(x: jax.Array) -> jax.Array:
     """Armature current [A] of an electrical state."""
     return x[..., 1]
 
 
-def electrical_step(c: LTI, x, u, omega):
+def electrical_step(c: LTI, x: jax.Array, u: jax.Array, omega: jax.Array) -> jax.Array:
     """Advance the inverter and armature one tick with command ``u`` [V] and speed ``omega`` [rad/s] held."""
     return lti.update(c, x, jnp.stack([u, omega], axis=-1))

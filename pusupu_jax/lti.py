@@ -14,12 +14,14 @@ The discretisations are those of python-control's ``sample`` (scipy's
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 from jax.scipy.linalg import expm
+from jax.typing import ArrayLike
 
 
 @jax.tree_util.register_dataclass
@@ -33,12 +35,17 @@ class LTI:
     D: Any
 
 
-def _stack2(rows):
+def _stack2(rows: Sequence[Sequence[jax.Array]]) -> jax.Array:
     """A ``(..., r, c)`` matrix from nested lists of arrays of one batch shape."""
     return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
 
 
-def ss(A, B, C, D) -> LTI:
+def ss(
+    A: Sequence[Sequence[ArrayLike]],
+    B: Sequence[Sequence[ArrayLike]],
+    C: Sequence[Sequence[ArrayLike]],
+    D: Sequence[Sequence[ArrayLike]],
+) -> LTI:
     """A SISO block from nested lists of per-axis coefficient arrays (``A`` n x n, ``B`` n x 1, ``C`` 1 x n, ``D`` 1 x
     1).
 
@@ -50,7 +57,7 @@ def ss(A, B, C, D) -> LTI:
     """
     batch = jnp.broadcast_shapes(*[jnp.shape(x) for row in (*A, *B, *C, *D) for x in row])
 
-    def mat(rows):
+    def mat(rows: Sequence[Sequence[ArrayLike]]) -> jax.Array:
         return _stack2([[jnp.broadcast_to(jnp.asarray(x, dtype=float), batch) for x in row] for row in rows])
 
     return LTI(mat(A), mat(B), mat(C), mat(D))
@@ -94,49 +101,51 @@ def c2d(sys: LTI, dt: float, method: str) -> LTI:
     raise ValueError(f"c2d: expected method 'zoh' or 'tustin', got {method!r}")
 
 
-def _batched(fn, M):
+def _batched(fn: Callable[[jax.Array], jax.Array], M: jax.Array) -> jax.Array:
     batch = M.shape[:-2]
     flat = M.reshape((-1,) + M.shape[-2:])
     return jax.vmap(fn)(flat).reshape(batch + M.shape[-2:])
 
 
-def zeros_state(sys: LTI):
+def zeros_state(sys: LTI) -> jax.Array:
     """The zero state of a block, shape ``(..., n)``."""
     return jnp.zeros(sys.A.shape[:-1])
 
 
-def dc_state(sys: LTI, u):
+def dc_state(sys: LTI, u: ArrayLike) -> jax.Array:
     """The fixed point ``x = A x + B u`` of a discrete block without an integrator, for a constant input ``u (...,
     m)``."""
     n = sys.A.shape[-1]
-    return jnp.linalg.solve(jnp.eye(n) - sys.A, jnp.einsum("...ij,...j->...i", sys.B, u)[..., None])[..., 0]
+    x: jax.Array = jnp.linalg.solve(jnp.eye(n) - sys.A, jnp.einsum("...ij,...j->...i", sys.B, u)[..., None])[..., 0]
+    return x
 
 
-def dc_gain(sys: LTI):
+def dc_gain(sys: LTI) -> jax.Array:
     """Steady output per unit constant input of a discrete SISO block without an integrator, shape ``(...)``."""
     one = jnp.ones(sys.A.shape[:-2] + (1,))
     return output(sys, dc_state(sys, one), one[..., 0])
 
 
-def integrator_state(sys: LTI, y):
+def integrator_state(sys: LTI, y: ArrayLike) -> jax.Array:
     """A state of a discrete SISO block with an integrator (``A = 1``) that outputs ``y`` with a zero input.
 
     With a zero input every state is a fixed point; this is the one of least norm.
     """
-    c = sys.C[..., 0, :]
+    c: jax.Array = sys.C[..., 0, :]
     return c * (y / jnp.sum(c * c, axis=-1))[..., None]
 
 
-def output(sys: LTI, x, u):
+def output(sys: LTI, x: ArrayLike, u: ArrayLike) -> jax.Array:
     """``y = C x + D u`` for SISO-per-axis blocks: ``x (..., n)``, ``u (...)`` -> ``y (...)``."""
-    return jnp.einsum("...n,...n->...", sys.C[..., 0, :], x) + sys.D[..., 0, 0] * u
+    y: jax.Array = jnp.einsum("...n,...n->...", sys.C[..., 0, :], x) + sys.D[..., 0, 0] * u
+    return y
 
 
-def update(sys: LTI, x, u):
+def update(sys: LTI, x: ArrayLike, u: ArrayLike) -> jax.Array:
     """``x+ = A x + B u`` for an input ``u`` of shape ``(..., m)``."""
     return jnp.einsum("...ij,...j->...i", sys.A, x) + jnp.einsum("...ij,...j->...i", sys.B, u)
 
 
-def step_siso(sys: LTI, x, u):
+def step_siso(sys: LTI, x: ArrayLike, u: jax.Array) -> tuple[jax.Array, jax.Array]:
     """One step of a SISO block: returns ``(x+, y)``; ``u`` has the batch shape."""
     return update(sys, x, u[..., None]), output(sys, x, u)

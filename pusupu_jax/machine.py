@@ -12,10 +12,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+from collections.abc import Iterable
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import numpy.typing as npt
 
 from . import compliance as compliance_law
 from . import hybrid as hybrid_law
@@ -30,6 +33,9 @@ from .plant.mjx_plant import MJXPlant
 from .plant.model import ModelOptions
 from .sim import run_chunked
 from .metrics import Metric
+
+if TYPE_CHECKING:
+    from .sim import Trace
 
 MACHINE_MODES = POSITION_MODES
 
@@ -55,13 +61,13 @@ def machine_plant(options: ModelOptions = ModelOptions()) -> MJXPlant:
 
 def machine_reference(
     servo: ServoParams,
-    path,
+    path: npt.ArrayLike,
     mode: str,
     *,
     options: ModelOptions = ModelOptions(),
     rates: LoopRates = LoopRates(),
     geom: Geometry | None = None,
-):
+) -> jax.Array | hybrid_law.HybridReference:
     """The rollout reference for platform poses ``path`` (``(N, 5)``, one per position period), checked first against
     the machine (:func:`pusupu_jax.paths.check_path`: workspace, motor speeds and torques).
 
@@ -98,15 +104,15 @@ class Scenario:
 
 def simulate_scenarios(
     servo: ServoParams,
-    scenarios,
+    scenarios: Iterable[Scenario],
     *,
     mode: str = "imc",
     rates: LoopRates = LoopRates(),
     hybrid: hybrid_law.HybridGains | None = None,
     start: str = "rest",
     compliance: compliance_law.AdmittanceGains | None = None,
-    force_setpoint=None,
-) -> list[tuple[dict, dict]]:
+    force_setpoint: npt.ArrayLike | None = None,
+) -> list[tuple[dict[str, Any], dict[str, Any]]]:
     """Run several :class:`Scenario` on the machine as one vmapped batch.
 
     The batch runs in calls of :func:`~pusupu_jax.sim.run_chunked`'s compiled program of
@@ -153,7 +159,7 @@ def simulate_scenarios(
     plant = machine_plant(nominal)
     length = max(len(sc.path) for sc in scenarios)
 
-    def pick(tree, k):
+    def pick(tree: Any, k: int) -> Any:
         return jax.tree.map(lambda x: np.asarray(x)[k], tree)
 
     servos = [pick(servo, k) if batched else servo for k in range(len(scenarios))]
@@ -162,7 +168,8 @@ def simulate_scenarios(
     models, references = [], []
     for sc, sv in zip(scenarios, servos):
         padded = np.concatenate([sc.path, np.repeat(sc.path[-1:], length - len(sc.path), axis=0)])
-        reference = machine_reference(sv, padded, mode, options=sc.options, rates=rates, geom=sc.geometry)
+        # the rollout reference's pytree: angles, a HybridReference or a ComplianceReference (and below their slices)
+        reference: Any = machine_reference(sv, padded, mode, options=sc.options, rates=rates, geom=sc.geometry)
         if compliance is not None:
             setpoint = np.zeros(3) if force_setpoint is None else np.asarray(force_setpoint, dtype=float)
             if setpoint.shape not in ((3,), (length, 3)) or not np.isfinite(setpoint).all():
@@ -217,7 +224,7 @@ def simulate_scenarios(
 
 def simulate_machine(
     servo: ServoParams,
-    path,
+    path: npt.ArrayLike,
     *,
     mode: str = "imc",
     options: ModelOptions = ModelOptions(),
@@ -225,7 +232,7 @@ def simulate_machine(
     hybrid: hybrid_law.HybridGains | None = None,
     start: str = "rest",
     geom: Geometry | None = None,
-) -> tuple[dict, dict]:
+) -> tuple[dict[str, Any], dict[str, Any]]:
     """Run platform poses ``path`` (``(N, 5)``, one per position period) on the machine of nominal geometry ``geom``
     (None: the default).
 
@@ -245,7 +252,7 @@ def simulate_machine(
 REVERSAL_WINDOW_S = 0.1  # s after a reversal of a slider's reference speed in which its error counts as the glitch
 
 
-def reversals(s_ref) -> list[np.ndarray]:
+def reversals(s_ref: npt.ArrayLike) -> list[np.ndarray]:
     """Per branch, the samples where its reference speed reverses: the first sample moving the other way (the sign
     of ``diff(s_ref)`` changes; stretches at rest skipped).  ``s_ref``: ``(N, 6)`` [m]."""
     v = np.diff(np.asarray(s_ref), axis=0)
@@ -257,7 +264,9 @@ def reversals(s_ref) -> list[np.ndarray]:
     return out
 
 
-def reversal_error(e_branch, s_ref, dt: float, window_s: float = REVERSAL_WINDOW_S) -> list:
+def reversal_error(
+    e_branch: npt.ArrayLike, s_ref: npt.ArrayLike, dt: float, window_s: float = REVERSAL_WINDOW_S
+) -> list[float | None]:
     """Per branch, the largest slider error |e| [m] within ``window_s`` after any reversal of its reference speed
     (:func:`reversals`), where the drive train's Coulomb friction changes sign and the classic glitch of a reversal
     shows; None for a branch whose reference never reverses.  ``e_branch``, ``s_ref``: ``(N, 6)`` [m], one row per
@@ -268,8 +277,14 @@ def reversal_error(e_branch, s_ref, dt: float, window_s: float = REVERSAL_WINDOW
 
 
 def machine_metrics(
-    trace, servo: ServoParams, path, reference, mode: str, dt: float, hybrid: hybrid_law.HybridGains | None = None
-) -> tuple[dict, dict]:
+    trace: Trace,
+    servo: ServoParams,
+    path: np.ndarray,
+    reference: Any,
+    mode: str,
+    dt: float,
+    hybrid: hybrid_law.HybridGains | None = None,
+) -> tuple[dict[str, Any], dict[str, Any]]:
     """The metrics of ``pusupu sim --plant mjx`` from a machine trace (host-side), and arrays for plots.
 
     ``reference``: the rollout reference of the run (see :func:`machine_reference`); branch errors are taken

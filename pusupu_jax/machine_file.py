@@ -28,10 +28,14 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import numpy.typing as npt
 import yaml
 
 from . import inputs
@@ -39,6 +43,9 @@ from .params import N_AXES, AxisLoad, ParameterError, ServoParams, array_fields,
 from .plant import kinematics
 from .plant.geometry import FIELDS as GEOMETRY_FIELDS
 from .plant.geometry import Geometry, GeometryError, validate_geometry
+
+if TYPE_CHECKING:
+    from .plant.model import ModelOptions
 
 FORMAT, VERSION = "pusupu-machine", 1
 KEYS = ("format", "version", "name", "geometry", "drives", "payload")
@@ -58,14 +65,14 @@ ENCODER_RANGE = (256, 2**32)  # counts per motor revolution: an 8-bit encoder to
 ENCODER_DOC = "encoder counts per motor revolution (optional; left out: an ideal encoder)"
 
 
-def _bounds(f) -> tuple:
+def _bounds(f: dataclasses.Field[Any]) -> tuple[float, float | str, str]:
     """A drive field's ``(low, high, why)`` (:func:`pusupu_jax.params.bounds`; every drive field is bounded)."""
     found = bounds(f)
     assert found is not None, f.name
     return found
 
 
-def drive_fields() -> list:
+def drive_fields() -> list[dataclasses.Field[Any]]:
     """The fields of :class:`~pusupu_jax.params.ServoParams` a machine file holds: its ``plant`` section."""
     return [f for f in array_fields(ServoParams) if f.metadata["section"] == "plant"]
 
@@ -75,8 +82,8 @@ class Payload:
     """The payload on the platform: mass [kg], centre of mass [m] (platform frame), principal inertia [kg m^2]."""
 
     mass: float = 0.0
-    com: tuple = (0.0, 0.0, 0.0)
-    inertia: tuple = (0.0, 0.0, 0.0)
+    com: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    inertia: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -87,7 +94,7 @@ class Machine:
 
     name: str
     geometry: Geometry
-    drives: dict
+    drives: dict[str, np.ndarray]
     payload: Payload = field(default_factory=Payload)
     encoder_counts: np.ndarray | None = None
 
@@ -114,7 +121,7 @@ class Machine:
             raise ParameterError(f"on machine {self.name!r}: {e}") from None
         return out
 
-    def options(self, base=None):
+    def options(self, base: ModelOptions | None = None) -> ModelOptions:
         """``base`` (a :class:`~pusupu_jax.plant.model.ModelOptions`; default its defaults) with this machine's
         payload.  (MuJoCo is imported here, not with the module: a gain file is read on the robot side without it.)"""
         from .plant.model import ModelOptions
@@ -126,7 +133,7 @@ class Machine:
             payload_inertia=tuple(self.payload.inertia),
         )
 
-    def content(self) -> dict:
+    def content(self) -> dict[str, Any]:
         """The machine as plain data (lists and floats), every field: what :func:`digest` hashes (the encoders only
         where given, so that a file without them keeps its digest)."""
         encoder = {} if self.encoder_counts is None else {ENCODER: _compact(self.encoder_counts, int)}
@@ -167,13 +174,13 @@ def carried_mass(machine: Machine) -> np.ndarray:
     return _CARRIED[key].copy()
 
 
-_CARRIED: dict = {}  # digest -> carried_mass: a machine's model is built once per process
+_CARRIED: dict[str, np.ndarray] = {}  # digest -> carried_mass: a machine's model is built once per process
 
 
 PATH_SAMPLES = 64  # poses of a path at which the carried mass is taken (evenly spaced, its ends included)
 
 
-def carried_mass_range(machine: Machine, poses) -> tuple[np.ndarray, np.ndarray]:
+def carried_mass_range(machine: Machine, poses: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """The lightest and the heaviest mass [kg] each slider carries over ``poses`` ``(N, 5)`` and home, ``((6,),
     (6,))``: :func:`carried_mass`'s diagonal at :data:`PATH_SAMPLES` poses evenly spaced along the path (the
     reflected mass changes slowly with the pose: the built-in machine's varies by 8 % over 0.14 m of travel)."""
@@ -196,17 +203,17 @@ def axis_load(machine: Machine) -> AxisLoad:
     return AxisLoad.default().replace(mass=carried_mass(machine))
 
 
-def reference(machine: Machine) -> dict:
+def reference(machine: Machine) -> dict[str, str]:
     """What a gain file records of the machine it was tuned on: ``{name, digest}``."""
     return {"name": machine.name, "digest": digest(machine)}
 
 
-def _compact(values, kind=float):
+def _compact(values: npt.ArrayLike, kind: type[float] | type[int] = float) -> float | list[Any]:
     arr = np.asarray(values, dtype=kind)
     return kind(arr.flat[0]) if np.all(arr == arr.flat[0]) else arr.tolist()
 
 
-def load(path) -> Machine:
+def load(path: str | os.PathLike[str]) -> Machine:
     """Read and check a machine file (see the module docstring); raises ParameterError in one line."""
     path = Path(path)
     doc = inputs.read_yaml(path, "machine file", ParameterError)
@@ -216,7 +223,7 @@ def load(path) -> Machine:
         raise ParameterError(f"{path}: {e}") from None
 
 
-def parse(doc) -> Machine:
+def parse(doc: Any) -> Machine:
     """:func:`load` on a parsed document."""
     inputs.check_keys(doc, "machine file", KEYS, ParameterError, required=KEYS)
     if doc["format"] != FORMAT:
@@ -235,11 +242,11 @@ def parse(doc) -> Machine:
     return machine
 
 
-def _array(value, where: str, shape) -> np.ndarray:
+def _array(value: object, where: str, shape: tuple[int, ...]) -> np.ndarray:
     return inputs.array(value, where, shape, ParameterError)
 
 
-def _geometry(values) -> Geometry:
+def _geometry(values: Any) -> Geometry:
     names = list(GEOMETRY_FIELDS)
     inputs.check_keys(values, "geometry", names, ParameterError, required=names, what="field")
     g = Geometry(**{k: _array(values[k], f"geometry.{k}", GEOMETRY_FIELDS[k][0]) for k in names})
@@ -250,10 +257,10 @@ def _geometry(values) -> Geometry:
     return g
 
 
-def _drives(values) -> dict:
+def _drives(values: Any) -> dict[str, np.ndarray]:
     names = [f.name for f in drive_fields()]
     inputs.check_keys(values, "drives", [*names, ENCODER], ParameterError, required=names, what="field")
-    out = {}
+    out: dict[str, np.ndarray] = {}
     for f in drive_fields():
         v, where = values[f.name], f"drives.{f.name}"
         if isinstance(v, list):
@@ -277,7 +284,7 @@ def _drives(values) -> dict:
     return out
 
 
-def _encoder(value) -> np.ndarray:
+def _encoder(value: Any) -> np.ndarray:
     where, (low, high) = f"drives.{ENCODER}", ENCODER_RANGE
     values = value if isinstance(value, list) else [value] * N_AXES
     if len(values) != N_AXES:
@@ -295,7 +302,7 @@ def _encoder(value) -> np.ndarray:
     )
 
 
-def encoder_quanta(machine: Machine, dt_velocity: float) -> dict | None:
+def encoder_quanta(machine: Machine, dt_velocity: float) -> dict[str, list[float]] | None:
     """What ``machine``'s encoders resolve, per axis (None for ideal encoders): one count at the slider [m] and the
     speed step [rad/s] of a speed measured from counts over one velocity period ``dt_velocity`` [s]."""
     if machine.encoder_counts is None:
@@ -308,7 +315,7 @@ def encoder_quanta(machine: Machine, dt_velocity: float) -> dict | None:
     }
 
 
-def _payload(values) -> Payload:
+def _payload(values: Any) -> Payload:
     names = list(PAYLOAD_FIELDS)
     inputs.check_keys(values, "payload", names, ParameterError, required=names, what="field")
     mass = inputs.number(values["mass"], "payload.mass", ParameterError, low=0.0, high=10000.0)
@@ -327,14 +334,14 @@ def _payload(values) -> Payload:
     return Payload(mass, tuple(com.tolist()), tuple(inertia.tolist()))
 
 
-def check(machine: Machine, paths=()) -> dict:
+def check(machine: Machine, paths: Iterable[tuple[str, npt.ArrayLike]] = ()) -> dict[str, dict[str, Any]]:
     """Check that the machine is whole and its home pose (and each of ``paths``, ``(N, 5)`` poses) lies in its
     workspace: every branch reachable, every slider inside its stroke, the UPU leg within its limits, the Jacobian's
     condition number at most :data:`COND_MAX`.  Returns the extremes found (``kinematics.check_poses``) per path,
     ``home`` first."""
     geometry = machine.geometry
     home = np.asarray(geometry.home, dtype=float)[None]
-    out = {}
+    out: dict[str, dict[str, Any]] = {}
     for name, poses in (("home", home), *paths):
         try:
             out[name] = kinematics.check_poses(geometry, poses, cond_max=COND_MAX)
@@ -375,17 +382,18 @@ def template(machine: Machine | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _flow(value) -> str:
-    return yaml.safe_dump(value, default_flow_style=True, width=1000).strip().removesuffix("\n...")
+def _flow(value: Any) -> str:
+    text: str = yaml.safe_dump(value, default_flow_style=True, width=1000).strip().removesuffix("\n...")
+    return text
 
 
-def json_schema() -> dict:
+def json_schema() -> dict[str, Any]:
     """The JSON Schema of a machine file (for editors), generated from the field metadata."""
 
-    def number():
+    def number() -> dict[str, Any]:
         return {"type": "number"}
 
-    def shaped(shape):
+    def shaped(shape: tuple[int, ...]) -> dict[str, Any]:
         schema = number()
         for n in reversed(shape):
             schema = {"type": "array", "items": schema, "minItems": n, "maxItems": n}

@@ -34,14 +34,14 @@ from __future__ import annotations
 import dataclasses
 import enum
 import time
-from typing import Callable
+from typing import Any, Callable, cast
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .cascade import control_mode
-from .hybrid import HybridGains
+from .hybrid import HybridGains, HybridReference
 from .machine import MACHINE_MODES, machine_plant, machine_rates, machine_reference
 from .machine_file import Machine
 from .params import N_AXES, LoopRates, ParameterError, ServoParams, bounds
@@ -89,7 +89,7 @@ class FittedValue:
     std_error: float
     excited: bool
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return {
             "field": str(self.field),
             "axis": self.axis,
@@ -115,9 +115,9 @@ class FitReport:
     jacobians: int
     solver_message: str
     wall_s: float
-    logs: tuple[dict, ...]
+    logs: tuple[dict[str, str], ...]
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self) | {"values": [v.as_dict() for v in self.values]}
 
     def unexcited(self) -> list[FittedValue]:
@@ -129,7 +129,7 @@ class Replay:
     """One log's replay: the jitted ``run(values) -> (torque, theta)`` at the logged samples ``(n, n_axes)``, and the
     logged ``torque`` and ``position`` there; ``t`` [s] along the path."""
 
-    run: Callable
+    run: Callable[[list[jax.Array]], tuple[jax.Array, jax.Array]]
     torque: np.ndarray
     position: np.ndarray
     reference: np.ndarray
@@ -168,7 +168,9 @@ def _replay(
     index = index[keep]
     servo = machine.servo(gains)
     reference = machine_reference(servo, path[:n], log.mode, options=options, rates=rates, geom=machine.geometry)
-    theta_ref = np.asarray(reference.theta if control_mode(log.mode).hybrid else reference)[index]
+    theta_ref = np.asarray(
+        cast(HybridReference, reference).theta if control_mode(log.mode).hybrid else reference,
+    )[index]
     off = float(np.abs(theta_ref - log.reference[keep]).max())
     if off > 1e-6:
         raise ParameterError(
@@ -183,7 +185,7 @@ def _replay(
     mode, hybrid = log.mode, hybrid if control_mode(log.mode).hybrid else None
 
     @jax.jit
-    def run(values):
+    def run(values: list[jax.Array]) -> tuple[jax.Array, jax.Array]:
         trace = rollout(
             servo.replace(**dict(zip(fields, values))),
             model,
@@ -207,8 +209,8 @@ def fit(
     fields: tuple[FitField, ...] = FIT_GROUPS["friction"],
     window_s: float = 2.0,
     trajectory: str | None = None,
-    progress=None,
-) -> tuple[FitReport, Machine, list[dict]]:
+    progress: Callable[[str], object] | None = None,
+) -> tuple[FitReport, Machine, list[dict[str, np.ndarray]]]:
     """Fit ``fields`` of ``machine`` (its values are the start) to ``logs``, each replayed over its first
     ``window_s`` [s] with ``gains`` (``hybrid``: a hybrid log's gains; ``rates``: the gains' rates; ``trajectory``:
     the path, where not the logs' own).  Returns the report, the machine with the fitted values (the unexcited ones
@@ -222,7 +224,8 @@ def fit(
     scale = np.where(starts != 0, np.abs(starts), np.array([[SCALES[f]] for f in fields]))
     ranges = {f.name: bounds(f) for f in dataclasses.fields(ServoParams) if f.name in fields}
 
-    def limit(field, end, beyond):  # an end of the field's range (params.bounds), or no limit
+    # an end of the field's range (params.bounds), or no limit
+    def limit(field: str, end: int, beyond: float) -> float | str:
         b = ranges[field]
         return b[end] if b is not None and isinstance(b[end], (int, float)) else beyond
 
@@ -233,15 +236,15 @@ def fit(
     tracking = np.concatenate([(r.position - r.reference).ravel() for r in replays])
     s_theta = max(float(np.sqrt(np.mean(tracking**2))), 1e-12)
 
-    programs: dict = {}
+    programs: dict[tuple[Any, ...], tuple[Callable[[jax.Array], jax.Array], Callable[[jax.Array], jax.Array]]] = {}
 
-    def residual_of(free: np.ndarray):
+    def residual_of(free: np.ndarray) -> tuple[Callable[[jax.Array], jax.Array], Callable[[jax.Array], jax.Array]]:
         """The residual as a function of the free values (scaled), the others held at their start, and its Jacobian:
         jitted once per set of free values."""
         if tuple(free) in programs:
             return programs[tuple(free)]
 
-        def residual(p):
+        def residual(p: jax.Array) -> jax.Array:
             x = jnp.asarray(starts / scale).ravel().at[free].set(p)
             values = list(x.reshape(starts.shape) * scale)
             parts = []
@@ -253,7 +256,7 @@ def fit(
         programs[tuple(free)] = jax.jit(residual), jax.jit(jax.jacfwd(residual))
         return programs[tuple(free)]
 
-    def solve(free: np.ndarray):
+    def solve(free: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
         f, jac = residual_of(free)
         p0 = (starts / scale).ravel()[free]
         say(f"identify: compiling the replay and its Jacobian ({len(free)} values, {len(replays)} log(s))")

@@ -25,12 +25,16 @@ Agreement with python-control is a test (0.5 deg, 0.1 dB).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+import numpy.typing as npt
+from jax.typing import ArrayLike
 
 from .cascade import Law, control_mode
-from .params import arrays
+from .params import AxisLoad, ServoParams, arrays
 from .plant.axis import screw_ratio
 
 # rad/s; numpy, so that it is float64 whenever it is made: a jnp array made on import, before
@@ -38,12 +42,12 @@ from .plant.axis import screw_ratio
 W_GRID = np.logspace(-4, 7, 5501)
 
 
-def _tf(num, den, s):
+def _tf(num: Sequence[jax.Array], den: Sequence[jax.Array], s: jax.Array) -> jax.Array:
     """``polyval(num, s) / polyval(den, s)`` with coefficient lists (highest power first)."""
     return jnp.polyval(jnp.stack(num), s) / jnp.polyval(jnp.stack(den), s)
 
 
-def loop_gains(servo, load, w, mode: str = "imc") -> dict:
+def loop_gains(servo: ServoParams, load: AxisLoad, w: ArrayLike, mode: str = "imc") -> dict[str, jax.Array]:
     """``L(jw)`` of the current, velocity and position loops; parameters ``(..., 6)``, result ``(..., 6, len(w))``."""
     p = {k: jnp.asarray(v)[..., None] for k, v in arrays(servo).items()}
     q = {k: jnp.asarray(v)[..., None] for k, v in arrays(load).items()}
@@ -76,7 +80,7 @@ def loop_gains(servo, load, w, mode: str = "imc") -> dict:
     return {"current": l_i, "velocity": l_v, "position": c * t_v / s}
 
 
-def _crossings(f, log_w):
+def _crossings(f: jax.Array, log_w: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Interpolated roots of the real sequence ``f`` along the last axis: (mask, log w) per grid interval."""
     a, b = f[..., :-1], f[..., 1:]
     mask = (a > 0) & (b <= 0) | (a < 0) & (b >= 0)
@@ -84,7 +88,7 @@ def _crossings(f, log_w):
     return mask, log_w[:-1] + frac * (log_w[1:] - log_w[:-1])
 
 
-def unwrapped_phase(angle):
+def unwrapped_phase(angle: ArrayLike) -> jax.Array:
     """The phase [rad] of a frequency response along the grid (last axis), continuous, its first sample in (-2 pi, 0].
 
     A loop gain's phase at the grid's lowest frequency is ``-90 deg`` per integrator (and a lag or lead); anchored
@@ -98,7 +102,7 @@ def unwrapped_phase(angle):
 CANDIDATES = 4  # crossings refined per loop and kind: those of the smallest margins on the grid
 
 
-def margins(gain_fn, w=W_GRID) -> dict:
+def margins(gain_fn: Callable[[ArrayLike], jax.Array], w: npt.NDArray[np.float64] = W_GRID) -> dict[str, jax.Array]:
     """Smallest phase margin [deg] and gain margin [dB] of ``gain_fn(w) -> L(jw)`` (``inf`` where none).
 
     Also the gain crossover [rad/s] of the smallest phase margin.  Differentiable
@@ -113,7 +117,7 @@ def margins(gain_fn, w=W_GRID) -> dict:
     """
     log_w = jnp.log(w)
 
-    def refine(g, x, mask):
+    def refine(g: Callable[[jax.Array], jax.Array], x: jax.Array, mask: jax.Array) -> jax.Array:
         """Two secant steps on g(log w) = 0 from the interpolated roots, kept on the grid's span.
 
         Only where ``mask`` holds a root: elsewhere x stays, and its step is not formed at all. Its
@@ -130,10 +134,12 @@ def margins(gain_fn, w=W_GRID) -> dict:
             x0, x1, g0 = x1, jnp.clip(x1 - step, log_w[0], log_w[-1]), g1
         return x1
 
-    def at_roots(x, mask):  # L at the roots, 1 elsewhere: there the angle's and the log's gradients would be NaN
+    # L at the roots, 1 elsewhere: there the angle's and the log's gradients would be NaN
+    def at_roots(x: jax.Array, mask: jax.Array) -> jax.Array:
         return jnp.where(mask, gain_fn(jnp.exp(x)), 1.0)
 
-    def candidates(mask, x, margin_on_grid):  # the crossings of the smallest margins: (mask, log w), K per loop
+    # the crossings of the smallest margins: (mask, log w), K per loop
+    def candidates(mask: jax.Array, x: jax.Array, margin_on_grid: jax.Array) -> tuple[jax.Array, jax.Array]:
         k = jnp.argsort(jnp.where(mask, margin_on_grid, jnp.inf), axis=-1)[..., :CANDIDATES]
         return jnp.take_along_axis(mask, k, axis=-1), jnp.take_along_axis(x, k, axis=-1)
 
@@ -164,14 +170,15 @@ def margins(gain_fn, w=W_GRID) -> dict:
 LOOPS = ("current", "velocity", "position")
 
 
-def loop_margins(servo, load, mode: str = "imc") -> dict:
+def loop_margins(servo: ServoParams, load: AxisLoad, mode: str = "imc") -> dict[str, dict[str, jax.Array]]:
     """:func:`margins` of each loop of each axis: ``{loop: {phase_margin_deg, gain_margin_db, crossover_rad_s}}``.
 
     The three loops go through :func:`margins` as one stack (leading axis), so that each evaluation of
     :func:`loop_gains` serves all three: a third of the program that tracing them apart made (the tuner's gradient
     compiles that much less)."""
 
-    def stack(w):  # w: the grid (n,), or points per loop (3, ..., 6, k) where each loop refines its own
+    # w: the grid (n,), or points per loop (3, ..., 6, k) where each loop refines its own
+    def stack(w: ArrayLike) -> jax.Array:
         gains = loop_gains(servo, load, w, mode)
         return jnp.stack([gains[name] if jnp.ndim(w) == 1 else gains[name][i] for i, name in enumerate(LOOPS)])
 
@@ -179,7 +186,7 @@ def loop_margins(servo, load, mode: str = "imc") -> dict:
     return {name: {k: v[i] for k, v in stacked.items()} for i, name in enumerate(LOOPS)}
 
 
-def in_band(servo, load, mode: str = "imc") -> dict:
+def in_band(servo: ServoParams, load: AxisLoad, mode: str = "imc") -> dict[str, jax.Array]:
     """``{loop: (..., 6) bool}``: ``|L|`` above 1 at the grid's lowest frequency and below 1 at its highest, so that
     every gain crossover of the loop lies on :data:`W_GRID` and :func:`loop_margins` has seen it."""
     ends = loop_gains(servo, load, W_GRID[[0, -1]], mode)

@@ -4,10 +4,16 @@ and the names of a machine run's metrics (:class:`Metric`)."""
 from __future__ import annotations
 
 import enum
+from typing import TYPE_CHECKING
 
+import jax
 import jax.numpy as jnp
 
 from .plant.axis import screw_ratio
+
+if TYPE_CHECKING:
+    from .params import ServoParams
+    from .sim import Trace
 
 
 class Metric(enum.StrEnum):
@@ -23,18 +29,19 @@ class Metric(enum.StrEnum):
     LOOP_CLOSURE_RESIDUAL_MAX_MM = "loop_closure_residual_max_mm"  # largest loop-closure residual of the model [mm]
 
 
-def safe_sqrt(x):
+def safe_sqrt(x: jax.Array) -> jax.Array:
     """``sqrt`` with a zero (not NaN) derivative at 0, in forward and reverse mode (an error exactly 0 at rest)."""
     positive = x > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
 
 
-def tracking_error(trace, params):
+def tracking_error(trace: Trace, params: ServoParams) -> jax.Array:
     """Slider position error ``x - x_ref`` [m], shape ``(..., N, n_axes)``."""
-    return (trace.theta - trace.reference) * screw_ratio(params)[..., None, :]
+    error: jax.Array = (trace.theta - trace.reference) * screw_ratio(params)[..., None, :]
+    return error
 
 
-def summary(trace, params) -> dict:
+def summary(trace: Trace, params: ServoParams) -> dict[str, list[float]]:
     """Per-axis tracking metrics (host-side floats): RMS and max error [mm], peak current [A] and torque [N m]."""
     e = tracking_error(trace, params)
     per_axis = {
@@ -46,7 +53,7 @@ def summary(trace, params) -> dict:
     return {k: [float(x) for x in jnp.ravel(v)] for k, v in per_axis.items()}
 
 
-def step_summary(trace, params, tolerance: float = 0.02) -> dict:
+def step_summary(trace: Trace, params: ServoParams, tolerance: float = 0.02) -> dict[str, list[float | None]]:
     """Per-axis step metrics against the final reference: overshoot [%] and settling time [s].
 
     The settling time is when the error last leaves ``tolerance`` times the step; None if

@@ -19,6 +19,8 @@ grows (a parameter: too sharp and its gradient reaches only the single largest s
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import jax
 import jax.numpy as jnp
 
@@ -26,28 +28,33 @@ from .hybrid import synchronous_error
 from .metrics import safe_sqrt, tracking_error
 from .plant.axis import screw_ratio
 
+if TYPE_CHECKING:
+    from .params import ServoParams
+    from .sim import Trace
+
 TERMS = ("track_rms", "track_max", "branch_rms", "branch_max", "force_peak", "balance", "rho", "effort", "saturation")
 
 
-def smooth_max(x, sharpness, axis=None):
+def smooth_max(x: jax.Array, sharpness: float, axis: int | tuple[int, ...] | None = None) -> jax.Array:
     """``logsumexp(sharpness * x) / sharpness`` over ``axis`` (all axes by default); units of ``x``."""
     return jax.nn.logsumexp(sharpness * x, axis=axis) / sharpness
 
 
-def branch_force(trace, servo):
+def branch_force(trace: Trace, servo: ServoParams) -> jax.Array:
     """Slider force of each branch ``eta Kt i / r`` [N], shape ``(..., N, 6)``."""
-    return trace.torque * servo.eta / screw_ratio(servo)
+    force: jax.Array = trace.torque * servo.eta / screw_ratio(servo)
+    return force
 
 
 def terms(
-    trace,
-    servo,
-    path,
+    trace: Trace,
+    servo: ServoParams,
+    path: jax.Array,
     dt: float,
     sharpness_force: float = 1.0,
     sharpness_error: float = 2000.0,
     sat_fraction: float = 0.95,
-) -> dict:
+) -> dict[str, jax.Array]:
     """Every objective term of a machine trace (see the module docstring).
 
     ``path``: the platform poses ``(N, 5)`` the machine was asked to follow (one per

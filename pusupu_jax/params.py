@@ -20,12 +20,17 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field, fields
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, ClassVar, Mapping, Sequence, TypeVar, cast
 
 import jax
 import numpy as np
+import numpy.typing as npt
 
 from . import inputs
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+    from typing_extensions import Self
 
 N_AXES = 6
 IMC_FORMS = ("full", "printed")
@@ -35,7 +40,14 @@ class ParameterError(ValueError):
     """A parameter, parameter file or loop-rate setting is invalid."""
 
 
-def _f(default: float, unit: str, doc: str, kind: str = "positive", section: str = "", bounds=None):
+def _f(
+    default: float,
+    unit: str,
+    doc: str,
+    kind: str = "positive",
+    section: str = "",
+    bounds: tuple[float, float | str, str] | None = None,
+) -> float:
     """A per-axis field: ``kind`` is 'positive', 'nonnegative' or 'any' (finite); ``section``: where a gain file puts
     it;
     ``bounds``: ``(low, high, why)``, the physically meaningful range and the reason for it (``high`` may name another
@@ -45,7 +57,7 @@ def _f(default: float, unit: str, doc: str, kind: str = "positive", section: str
     )
 
 
-def _choice(default: str, choices: tuple, doc: str, section: str = ""):
+def _choice(default: str, choices: tuple[str, ...], doc: str, section: str = "") -> str:
     """A static, machine-wide field: one of ``choices`` (a jit-static pytree field: changing it recompiles)."""
     return field(
         default=default,
@@ -53,22 +65,27 @@ def _choice(default: str, choices: tuple, doc: str, section: str = ""):
     )
 
 
-def array_fields(cls) -> list:
+def array_fields(cls: type[DataclassInstance]) -> list[dataclasses.Field[Any]]:
     """The per-axis (traced) fields of a parameter class."""
     return [f for f in fields(cls) if not f.metadata.get("static")]
 
 
-def static_fields(cls) -> list:
+def static_fields(cls: type[DataclassInstance]) -> list[dataclasses.Field[Any]]:
     """The static (choice) fields of a parameter class."""
     return [f for f in fields(cls) if f.metadata.get("static")]
 
 
-def arrays(p) -> dict:
+def arrays(p: DataclassInstance) -> dict[str, Any]:
     """``{name: value}`` of the per-axis fields of a parameter set (its static choices left out)."""
     return {f.name: getattr(p, f.name) for f in array_fields(type(p))}
 
 
-def _pytree(cls):
+_D = TypeVar("_D", bound="DataclassInstance")
+_P = TypeVar("_P", bound="_PerAxis")
+_T = TypeVar("_T")
+
+
+def _pytree(cls: type[_D]) -> type[_D]:
     return jax.tree_util.register_dataclass(
         cls, data_fields=[f.name for f in array_fields(cls)], meta_fields=[f.name for f in static_fields(cls)]
     )
@@ -77,17 +94,21 @@ def _pytree(cls):
 class _PerAxis:
     """Constructors shared by the per-axis parameter classes."""
 
-    @classmethod
-    def default(cls):
-        """Every per-axis field at its default, as float arrays of shape (6,); the static choices at theirs."""
-        return cls(**{f.name: np.full((N_AXES,), float(f.default)) for f in array_fields(cls)})
+    if TYPE_CHECKING:  # every subclass is a dataclass
+        __dataclass_fields__: ClassVar[dict[str, dataclasses.Field[Any]]]
 
     @classmethod
-    def from_mapping(cls, values: Mapping[str, Any], base=None):
+    def default(cls) -> Self:
+        """Every per-axis field at its default, as float arrays of shape (6,); the static choices at theirs."""
+        # every per-axis field has a default (never dataclasses.MISSING)
+        return cls(**{f.name: np.full((N_AXES,), float(cast(float, f.default))) for f in array_fields(cls)})
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], base: Self | None = None) -> Self:
         """The defaults (or ``base``) with ``values`` replaced; scalars apply to every axis. Validates."""
         return _from_mapping(cls, values, base)
 
-    def replace(self, **changes):
+    def replace(self, **changes: Any) -> Self:
         return dataclasses.replace(self, **changes)
 
     def __repr__(self) -> str:
@@ -489,7 +510,7 @@ class LoopRates:
     n_mech: int = 1
     method: str = "tustin"
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         if not (isinstance(self.f_current, (int, float)) and math.isfinite(self.f_current) and self.f_current > 0):
             raise ParameterError(f"rates.f_current: expected a positive number of Hz, got {self.f_current!r}")
         for name in ("n_velocity", "n_position", "n_mech"):
@@ -530,7 +551,7 @@ def _fmt(x: float) -> str:
     return f"{x:.4g}"
 
 
-def axis_cells(value) -> list[str]:
+def axis_cells(value: npt.ArrayLike) -> list[str]:
     """One cell per axis of ``value`` ``(..., n_axes)``: the value, or ``lo..hi`` over the leading (batch)
     dimensions."""
     arr = np.asarray(value, dtype=float)
@@ -542,7 +563,9 @@ def axis_cells(value) -> list[str]:
     ]
 
 
-def axis_table(title: str, rows, n_axes: int = N_AXES, markdown: bool = False) -> str:
+def axis_table(
+    title: str, rows: Sequence[tuple[str, str, list[str]]], n_axes: int = N_AXES, markdown: bool = False
+) -> str:
     """``title`` and a table of ``rows`` ``[(name, unit, cells)]``, one column per axis.
 
     As text, a row whose cells are all equal shows its value once ("every axis"); as markdown (a notebook's
@@ -567,7 +590,7 @@ def axis_table(title: str, rows, n_axes: int = N_AXES, markdown: bool = False) -
     return "\n".join(lines)
 
 
-def describe(p, markdown: bool = False) -> str:
+def describe(p: DataclassInstance, markdown: bool = False) -> str:
     """A per-axis parameter set as a table of its fields with their units (its ``repr``; ``markdown`` for notebooks).
 
     A batch of parameter sets shows ``lo..hi`` over the batch; traced values (inside ``jit``) only their shapes.
@@ -591,16 +614,16 @@ def describe(p, markdown: bool = False) -> str:
     return axis_table(f"**{title}**" if markdown else title, rows, n, markdown)
 
 
-def field_docs(cls) -> list[tuple[str, Any, str, str]]:
+def field_docs(cls: type[DataclassInstance]) -> list[tuple[str, Any, str, str]]:
     """(name, default, unit, doc) for every field of a parameter class."""
     return [(f.name, f.default, f.metadata["unit"], f.metadata["doc"]) for f in fields(cls)]
 
 
-def _from_mapping(cls, values, base):
+def _from_mapping(cls: type[_P], values: Mapping[str, Any], base: _P | None) -> _P:
     inputs.check_keys(values, cls.__name__, [f.name for f in fields(cls)], ParameterError, what="field")
     base = base if base is not None else cls.default()
     static = {f.name: f for f in static_fields(cls)}
-    changes = {}
+    changes: dict[str, Any] = {}
     for name, v in values.items():
         where = f"{cls.__name__}.{name}"
         if name in static:
@@ -620,11 +643,11 @@ def _from_mapping(cls, values, base):
     return out
 
 
-def _is_concrete(x) -> bool:
+def _is_concrete(x: object) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
-def validate(p) -> None:
+def validate(p: DataclassInstance) -> None:
     """Check shapes, finiteness and signs of every field (host-side, concrete values only).
 
     Raises :class:`ParameterError` with the field name, what was expected and what was
@@ -665,13 +688,14 @@ def validate(p) -> None:
         _check_bounds(p, f, arr)
 
 
-def bounds(f) -> tuple[float, float | str, str] | None:
+def bounds(f: dataclasses.Field[Any]) -> tuple[float, float | str, str] | None:
     """``(low, high, why)`` of a field: its physically meaningful range, ``high`` a number or the name of the rating
     field the value may not exceed; None for a field without bounds."""
-    return f.metadata.get("bounds")
+    found: tuple[float, float | str, str] | None = f.metadata.get("bounds")
+    return found
 
 
-def _check_bounds(p, f, arr) -> None:
+def _check_bounds(p: DataclassInstance, f: dataclasses.Field[Any], arr: npt.NDArray[Any]) -> None:
     b = bounds(f)
     if b is None:
         return
@@ -686,11 +710,12 @@ def _check_bounds(p, f, arr) -> None:
         )
 
 
-def _index(mask) -> str:
+def _index(mask: npt.NDArray[np.bool_]) -> str:
     idx = np.argwhere(mask)[0]
     return f"axis {idx[-1]}" if len(idx) == 1 else f"index {tuple(int(i) for i in idx)}"
 
 
-def stack(params_list):
+def stack(params_list: Sequence[_T]) -> _T:
     """Stack parameter sets along a new leading batch axis (for vmapped runs)."""
-    return jax.tree.map(lambda *xs: np.stack(xs), *params_list)
+    out: _T = jax.tree.map(lambda *xs: np.stack(xs), *params_list)
+    return out

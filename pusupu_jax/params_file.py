@@ -13,8 +13,10 @@ scalar applies to every axis, a list gives one value per axis; SI units as docum
 from __future__ import annotations
 
 import dataclasses
+import os
+from collections.abc import Mapping
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 from . import inputs
 from .files import read_yaml_mapping
@@ -34,7 +36,7 @@ class ParamsFile(NamedTuple):
     hybrid: HybridGains
 
 
-def load_params_file(path=None) -> ParamsFile:
+def load_params_file(path: str | os.PathLike[str] | None = None) -> ParamsFile:
     """Read and validate a parameter file (None: every default); raises :class:`ParameterError` naming the problem."""
     if path is None:
         return ParamsFile(ServoParams.table1(), AxisLoad.default(), LoopRates(), HybridGains())
@@ -52,7 +54,7 @@ def load_params_file(path=None) -> ParamsFile:
         raise ParameterError(f"{path}: {e}") from None
 
 
-def rates_from_mapping(values) -> LoopRates:
+def rates_from_mapping(values: Mapping[str, Any]) -> LoopRates:
     """A :class:`LoopRates` from a mapping of its fields (a params file's or gain file's ``rates``), checked: each
     field of its kind, and each loop's rate in its range (:func:`pusupu_jax.stability.check_rates`)."""
 

@@ -26,10 +26,13 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import os
 from pathlib import Path
+from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
+import numpy.typing as npt
 from scipy.interpolate import PchipInterpolator
 
 from . import inputs, trajectories, workload
@@ -69,12 +72,12 @@ POSE_BOUNDS = (10.0, 10.0, 10.0, np.pi / 2, np.pi / 2)
 HOME_TOLERANCE = 1e-6  # m or rad: how near home a pose table's first row must be
 
 
-def is_path_file(spec) -> bool:
+def is_path_file(spec: object) -> bool:
     """Whether ``spec`` names a path file (by its suffix, :data:`SUFFIXES`) rather than a named path."""
     return isinstance(spec, str) and spec not in PLATFORM_TRAJECTORIES and Path(spec).suffix.lower() in SUFFIXES
 
 
-def check_spec(spec, where: str, error=ParameterError) -> str:
+def check_spec(spec: object, where: str, error: type[Exception] = ParameterError) -> str:
     """``spec`` if it is a path spec (a name, or the name of a ``.yaml``, ``.yml`` or ``.csv`` file, not read here);
     ``error`` naming ``where`` otherwise."""
     if isinstance(spec, str) and (spec in PLATFORM_TRAJECTORIES or is_path_file(spec)):
@@ -85,7 +88,7 @@ def check_spec(spec, where: str, error=ParameterError) -> str:
     )
 
 
-def resolve(spec: str, folder) -> str:
+def resolve(spec: str, folder: str | os.PathLike[str]) -> str:
     """``spec`` with a relative file name taken from ``folder`` (the folder of the file that names it)."""
     return str(Path(folder) / spec) if is_path_file(spec) and not Path(spec).is_absolute() else spec
 
@@ -102,7 +105,7 @@ def source_digest(spec: str) -> str:
     return hashlib.sha256(inputs.read_bytes(spec, "path file", ParameterError)).hexdigest()
 
 
-def platform_path_from(spec: str, home, rates: LoopRates = LoopRates()) -> np.ndarray:
+def platform_path_from(spec: str, home: npt.ArrayLike, rates: LoopRates = LoopRates()) -> np.ndarray:
     """Platform poses ``(N, 5)`` (x, y, z [m], a, b [rad]) about ``home`` at the position-loop rate
     (``rates.dt_position``) for the path spec ``spec``: a name, a waypoint file or a pose table (module docstring).
 
@@ -130,7 +133,7 @@ class _Waypoints:
     the ``K`` segments (``{key of DEFAULTS: (K,)}``)."""
 
     points: np.ndarray
-    limits: dict
+    limits: dict[str, np.ndarray]
 
     @property
     def seconds(self) -> float:
@@ -140,7 +143,7 @@ class _Waypoints:
         )
         return float(np.sum(moves) + np.sum(lim["dwell"]))
 
-    def poses(self, home, rates):
+    def poses(self, home: npt.NDArray[np.float64], rates: LoopRates) -> np.ndarray:
         lim = self.limits
         return trajectories.platform_waypoints(
             home,
@@ -167,7 +170,7 @@ class _PoseTable:
     def seconds(self) -> float:
         return float(self.t[-1])
 
-    def poses(self, home, rates):
+    def poses(self, home: npt.NDArray[np.float64], rates: LoopRates) -> np.ndarray:
         """The table sampled every ``rates.dt_position`` from 0 to its last time (the last sample at that time) by
         piecewise cubic Hermite interpolation with monotone slopes (PCHIP, Fritsch-Carlson), each coordinate alone.
 
@@ -181,17 +184,18 @@ class _PoseTable:
         """
         dt = rates.dt_position
         times = np.minimum(np.arange(int(np.ceil(self.seconds / dt - 1e-9)) + 1) * dt, self.seconds)
-        return home + PchipInterpolator(self.t, self.offsets, axis=0)(times)
+        # scipy ships no type stubs: the interpolant's values are Any
+        return home + PchipInterpolator(self.t, self.offsets, axis=0)(times)  # type: ignore[no-any-return]
 
 
-def _read(spec: str):
+def _read(spec: str) -> _Waypoints | _PoseTable:
     """The waypoint file or pose table ``spec``, read and checked (one-line ParameterError naming the row or field)."""
     if Path(spec).suffix.lower() == ".csv":
         return _read_table(spec)
     return _read_waypoints(spec)
 
 
-def _pose_value(value, where: str, j: int) -> float:
+def _pose_value(value: object, where: str, j: int) -> float:
     bound = POSE_BOUNDS[j]
     return inputs.number(value, where, ParameterError, low=-bound, high=bound)
 
@@ -218,8 +222,8 @@ def _read_waypoints(spec: str) -> _Waypoints:
         raise ParameterError(
             f"{spec}: waypoints: expected a non-empty list of waypoints, got {inputs.shown(waypoints, 40)}"
         )
-    points: list = [np.zeros(5)]
-    limits: dict[str, list] = {k: [] for k in DEFAULTS}
+    points: list[np.ndarray | list[float]] = [np.zeros(5)]
+    limits: dict[str, list[float]] = {k: [] for k in DEFAULTS}
     for i, entry in enumerate(waypoints):
         where = f"{spec}: waypoints[{i}]"
         inputs.check_keys(entry, where, ("pose",) + tuple(DEFAULTS), ParameterError, required=("pose",))
@@ -235,7 +239,7 @@ def _read_waypoints(spec: str) -> _Waypoints:
     return _Waypoints(np.array(points, dtype=float), {k: np.array(v) for k, v in limits.items()})
 
 
-def _limit(value, where: str, key: str) -> float:
+def _limit(value: object, where: str, key: str) -> float:
     """A segment's limit: a positive number (a dwell: non-negative) in :data:`LIMIT_UNITS` ``[key]``."""
     return inputs.number(value, f"{where} [{LIMIT_UNITS[key]}]", ParameterError, low=0.0, low_open=key != "dwell")
 
@@ -299,13 +303,13 @@ def _read_table(spec: str) -> _PoseTable:
 
 
 def check_path(
-    path,
+    path: npt.ArrayLike,
     servo: ServoParams,
     dt: float,
     geom: Geometry | None = None,
     options: ModelOptions = ModelOptions(),
     where: str = "path",
-) -> dict:
+) -> dict[str, Any]:
     """Check platform poses ``path`` ``(N, 5)`` (one every ``dt`` [s]) against the machine before anything runs.
 
     1. The workspace (:func:`pusupu_jax.plant.kinematics.check_poses`): every branch reachable,

@@ -8,11 +8,14 @@ command selects Agg itself before it plots.
 from __future__ import annotations
 
 import io
+import os
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import control as ct
 import matplotlib.pyplot as plt
 import numpy as np
+import numpy.typing as npt
 from matplotlib.figure import Figure
 
 from . import analysis
@@ -20,8 +23,14 @@ from .files import write_atomic
 from .metrics import tracking_error
 from .plant.axis import screw_ratio
 
+if TYPE_CHECKING:
+    from mpl_toolkits.mplot3d.axes3d import Axes3D
 
-def save_atomic(fig, path) -> Path:
+    from .params import AxisLoad, ServoParams
+    from .sim import Trace
+
+
+def save_atomic(fig: Figure, path: str | os.PathLike[str]) -> Path:
     """Save ``fig`` as PNG to ``path`` atomically (:func:`~pusupu_jax.files.write_atomic`), then close it."""
     png = io.BytesIO()
     try:
@@ -31,14 +40,16 @@ def save_atomic(fig, path) -> Path:
     return write_atomic(path, png.getvalue())
 
 
-def _output(fig: Figure, path) -> Figure:
+def _output(fig: Figure, path: str | os.PathLike[str] | None) -> Figure:
     """``fig``, first written to ``path`` (:func:`save_atomic`) unless ``path`` is None."""
     if path is not None:
         save_atomic(fig, path)
     return fig
 
 
-def plot_trace(trace, params, path=None, axis: int = 0, title: str = "") -> Figure:
+def plot_trace(
+    trace: Trace, params: ServoParams, path: str | os.PathLike[str] | None = None, axis: int = 0, title: str = ""
+) -> Figure:
     """Reference vs slider position, tracking error, and motor current/torque of one axis."""
     t = np.asarray(trace.t)
     ref = np.asarray(trace.reference)[:, axis] * float(np.asarray(screw_ratio(params))[axis]) * 1e3
@@ -62,7 +73,9 @@ def plot_trace(trace, params, path=None, axis: int = 0, title: str = "") -> Figu
     return _output(fig, path)
 
 
-def plot_loops(servo, load, path=None, axis: int = 0, mode: str = "imc") -> Figure:
+def plot_loops(
+    servo: ServoParams, load: AxisLoad, path: str | os.PathLike[str] | None = None, axis: int = 0, mode: str = "imc"
+) -> Figure:
     """Bode plots of the three open loops (with margins) and step responses of the closed loops."""
     cl = analysis.closed_loops(servo, load, axis, mode=mode)
     ol = analysis.open_loops(servo, load, axis, mode, closed=cl)
@@ -96,11 +109,11 @@ def plot_loops(servo, load, path=None, axis: int = 0, mode: str = "imc") -> Figu
     return _output(fig, path)
 
 
-def _fmt(x):
+def _fmt(x: float | None) -> str:
     return "inf" if x is None else f"{x:.3g}"
 
 
-def equal_axes_3d(ax, points) -> None:
+def equal_axes_3d(ax: Axes3D, points: npt.ArrayLike) -> None:
     """Give a 3D axis the same scale on x, y and z around ``points`` ``(N, 3)`` (matplotlib stretches each to fit)."""
     points = np.asarray(points)
     mid = (points.max(axis=0) + points.min(axis=0)) / 2
@@ -110,7 +123,7 @@ def equal_axes_3d(ax, points) -> None:
     ax.set_zlim(mid[2] - half, mid[2] + half)
 
 
-def plot_platform_path(trace: dict, path=None, title: str = "") -> Figure:
+def plot_platform_path(trace: dict[str, Any], path: str | os.PathLike[str] | None = None, title: str = "") -> Figure:
     """3D reference vs actual platform path [mm] (``trace`` from :func:`pusupu_jax.machine.simulate_machine`)."""
     ref, act = np.asarray(trace["reference"]) * 1e3, np.asarray(trace["platform"]) * 1e3
     fig = plt.figure(figsize=(11, 5))
@@ -133,7 +146,7 @@ def plot_platform_path(trace: dict, path=None, title: str = "") -> Figure:
     return _output(fig, path)
 
 
-def plot_identification(result: dict, path=None, title: str = "") -> Figure:
+def plot_identification(result: dict[str, Any], path: str | os.PathLike[str] | None = None, title: str = "") -> Figure:
     """The machine's velocity-step responses (:func:`pusupu_jax.identify.identify_T0_machine`) and their first-order
     fits."""
     t = np.asarray(result["t"])
@@ -153,7 +166,9 @@ def plot_identification(result: dict, path=None, title: str = "") -> Figure:
     return _output(fig, path)
 
 
-def plot_friction_fit(replays: list, path=None, title: str = "") -> Figure:
+def plot_friction_fit(
+    replays: list[dict[str, np.ndarray]], path: str | os.PathLike[str] | None = None, title: str = ""
+) -> Figure:
     """Per axis, the logged motor torque against the replay's with the machine file's friction and with the fitted
     one (:func:`pusupu_jax.machine_fit.fit`'s plot arrays; the first log's)."""
     r = replays[0]

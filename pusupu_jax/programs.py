@@ -26,8 +26,9 @@ import enum
 import hashlib
 import importlib.metadata
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -35,6 +36,11 @@ import numpy as np
 from jax import export
 
 from .files import write_atomic
+
+if TYPE_CHECKING:
+    from jax.sharding import Mesh
+    from jax.stages import Lowered, Wrapped
+    from jax.tree_util import PyTreeDef
 
 SUFFIX = ".jaxexport"
 HERE = Path(__file__).parent
@@ -50,7 +56,7 @@ def _name(t: type) -> str:
     return f"{t.__module__}.{t.__qualname__}"
 
 
-def describe(x) -> str:
+def describe(x: Any) -> str:
     """A description of ``x`` that is the same in every process for equal values: containers, scalars, strings,
     arrays (dtype, shape and a hash of the bytes), enums, dataclasses and NamedTuples by their class and fields,
     pytree definitions node by node (their static data included), and objects that wrap one array as ``.array``
@@ -82,7 +88,7 @@ def describe(x) -> str:
     raise UnstableKey(f"no stable description of a {_name(type(x))}")
 
 
-def _describe_treedef(treedef) -> str:
+def _describe_treedef(treedef: PyTreeDef) -> str:
     node = treedef.node_data()
     head = "*" if node is None else f"{describe(node[0])}{describe(node[1])}"
     return head + "(" + ",".join(_describe_treedef(c) for c in treedef.children()) + ")"
@@ -128,18 +134,18 @@ class Program:
 
     def __init__(
         self,
-        fun: Callable,
+        fun: Callable[..., Any],
         key: str | Callable[[], str],
         sources: tuple[Path, ...] = (),
         folder: Path | None = None,
-        mesh=None,
-    ):
+        mesh: Mesh | None = None,
+    ) -> None:
         self.fun, self.key, self.folder, self.mesh = fun, key, folder, mesh
         self.sources = tuple(Path(s) for s in sources)
         self.loaded = 0
-        self._calls: dict = {}
+        self._calls: dict[tuple[PyTreeDef, tuple[str, ...]], Wrapped] = {}
 
-    def __call__(self, *args):
+    def __call__(self, *args: Any) -> Any:
         leaves, tree = jax.tree.flatten(args)
         call = self._call(leaves, tree)
         # an exported call's outputs are committed to their device, a plain jit's (of uncommitted arguments) are not;
@@ -148,20 +154,20 @@ class Program:
         # (a value and its gradient) come back as plain jit's would
         return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), call(*leaves))
 
-    def lower(self, *args):
+    def lower(self, *args: Any) -> Lowered:
         """The lowered program for ``args`` (traced and exported, or loaded), to time or inspect; its ``compile()``
         takes the arguments' leaves (``jax.tree.leaves(args)``) and returns the outputs as placed by the device."""
         leaves, tree = jax.tree.flatten(args)
         return self._call(leaves, tree).lower(*leaves)
 
-    def _call(self, leaves, tree):
+    def _call(self, leaves: list[Any], tree: PyTreeDef) -> Wrapped:
         signature = (tree, tuple(str(jax.typeof(x)) for x in leaves))
         call = self._calls.get(signature)
         if call is None:
             call = self._calls[signature] = self._program(leaves, tree, signature[1])
         return call
 
-    def digest(self, tree, avals) -> str:
+    def digest(self, tree: PyTreeDef, avals: Sequence[str]) -> str:
         """The file name's hash for arguments of structure ``tree`` and types ``avals``."""
         h = hashlib.sha256()
         settings = ",".join(f"{name}={getattr(jax.config, name)}" for name in _SETTINGS)
@@ -178,8 +184,8 @@ class Program:
             h.update(part.encode() + b"\0")
         return h.hexdigest()
 
-    def _program(self, leaves, tree, avals):
-        def flat(*xs):
+    def _program(self, leaves: list[Any], tree: PyTreeDef, avals: Sequence[str]) -> Wrapped:
+        def flat(*xs: Any) -> Any:
             return self.fun(*jax.tree.unflatten(tree, xs))
 
         jit = self._jit
@@ -216,17 +222,17 @@ class Program:
             warnings.warn(f"pusupu_jax.programs: could not keep {path} ({type(e).__name__}: {e})", stacklevel=4)
         return jit(exported.call)
 
-    def _jit(self, fun: Callable):
+    def _jit(self, fun: Callable[..., Any]) -> Wrapped:
         """``jax.jit(fun)``; over :attr:`mesh`, with every argument and output whole on each of its devices."""
         if self.mesh is None:
             return jax.jit(fun)
         from jax.sharding import NamedSharding, PartitionSpec
 
-        whole = NamedSharding(self.mesh, PartitionSpec())
+        whole = NamedSharding(self.mesh, PartitionSpec())  # type: ignore[no-untyped-call]  # jax leaves P() unannotated
         return jax.jit(fun, in_shardings=whole, out_shardings=whole)
 
     @staticmethod
-    def _load(path: Path, leaves, jit: Callable):
+    def _load(path: Path, leaves: list[Any], jit: Callable[[Callable[..., Any]], Wrapped]) -> Wrapped:
         """The jitted call of the program in ``path``, checked: its checksum, its arguments' types, and a lowering."""
         data = path.read_bytes()
         blob = data[32:]

@@ -28,7 +28,10 @@ machine, beside the full controller, so that the price of running on ROS shows b
 
 from __future__ import annotations
 
+import os
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -45,7 +48,7 @@ PID_CONTROLLER, TRAJECTORY_CONTROLLER = "pusupu_pid_controller", "pusupu_traject
 FILES = ("ros2_pid_controller.yaml", "ros2_joint_trajectory_controller.yaml")
 
 
-def ros_gains(servo: ServoParams, mode: str) -> dict:
+def ros_gains(servo: ServoParams, mode: str) -> dict[str, np.ndarray]:
     """``{p, i, d, ff}`` per axis (arrays (6,)) of ROS's PID for the position loop of ``mode``."""
     law = control_mode(mode).law if mode in MODES else None
     if law in (Law.PID, Law.PID_FF):
@@ -56,7 +59,7 @@ def ros_gains(servo: ServoParams, mode: str) -> dict:
             "d": np.asarray(servo.Kd_pid, dtype=float),
             "ff": ff,
         }
-    if law != "imc":
+    if law != Law.IMC:
         raise ParameterError(f"ROS export: expected a mode of imc, pid, pid_ff or hybrid, got {mode!r}")
     l2, T0 = np.asarray(servo.lambda2, dtype=float), np.asarray(servo.T0, dtype=float)
     return {"p": (3 * l2 + T0) / (3 * l2**2), "i": 1 / (3 * l2**2), "d": T0 / l2, "ff": np.zeros(6)}
@@ -68,7 +71,7 @@ def as_ros_servo(servo: ServoParams, mode: str) -> ServoParams:
     return servo.replace(Kp_pid=g["p"], Ki_pid=g["i"], Kd_pid=g["d"], Kff_pid=g["ff"])
 
 
-def speed_clamp(servo: ServoParams):
+def speed_clamp(servo: ServoParams) -> np.ndarray:
     """Slider speed [m/s] at which the back-EMF reaches ``V_max``: ROS's output and integral clamps, per axis."""
     return np.asarray(screw_ratio(servo) * servo.V_max / servo.Ke, dtype=float)
 
@@ -83,7 +86,9 @@ def update_rate(rates: LoopRates) -> int:
     return int(round(hz))
 
 
-def _gains_block(servo, mode, joints, ff_key):
+def _gains_block(
+    servo: ServoParams, mode: str, joints: Sequence[str], ff_key: str
+) -> dict[str, dict[str, float | str]]:
     g, clamp = ros_gains(servo, mode), speed_clamp(servo)
     return {
         j: {
@@ -102,8 +107,8 @@ def _gains_block(servo, mode, joints, ff_key):
 
 
 def pid_controller_params(
-    servo: ServoParams, mode: str, rates: LoopRates, joints=JOINTS, name: str = PID_CONTROLLER
-) -> dict:
+    servo: ServoParams, mode: str, rates: LoopRates, joints: Sequence[str] = JOINTS, name: str = PID_CONTROLLER
+) -> dict[str, Any]:
     """A ``pid_controller/PidController`` on the six slider joints, commanding velocity, with its controller_manager."""
     check_joints(joints)
     return {
@@ -122,8 +127,12 @@ def pid_controller_params(
 
 
 def trajectory_controller_params(
-    servo: ServoParams, mode: str, rates: LoopRates, joints=JOINTS, name: str = TRAJECTORY_CONTROLLER
-) -> dict:
+    servo: ServoParams,
+    mode: str,
+    rates: LoopRates,
+    joints: Sequence[str] = JOINTS,
+    name: str = TRAJECTORY_CONTROLLER,
+) -> dict[str, Any]:
     """A ``joint_trajectory_controller/JointTrajectoryController`` commanding velocity, with the same PIDs."""
     check_joints(joints)
     return {
@@ -144,7 +153,7 @@ def trajectory_controller_params(
     }
 
 
-def check_joints(joints, where: str = "ROS joints") -> None:
+def check_joints(joints: object, where: str = "ROS joints") -> None:
     """The exporter's rule for joint names: 6 distinct names of letters, digits and ``_`` (ParameterError naming
     ``where`` otherwise)."""
     if (
@@ -174,7 +183,9 @@ def header(mode: str, source: str) -> str:
     )
 
 
-def files(servo: ServoParams, mode: str, rates: LoopRates, source: str, joints=JOINTS) -> dict:
+def files(
+    servo: ServoParams, mode: str, rates: LoopRates, source: str, joints: Sequence[str] = JOINTS
+) -> dict[str, str]:
     """``{file name: text}`` of the two parameter files (:data:`FILES`), each with its :func:`header`."""
     params = (
         pid_controller_params(servo, mode, rates, joints),
@@ -183,7 +194,14 @@ def files(servo: ServoParams, mode: str, rates: LoopRates, source: str, joints=J
     return {name: header(mode, source) + yaml.safe_dump(p, sort_keys=False) for name, p in zip(FILES, params)}
 
 
-def write_files(folder, servo: ServoParams, mode: str, rates: LoopRates, source: str, joints=JOINTS) -> list:
+def write_files(
+    folder: str | os.PathLike[str],
+    servo: ServoParams,
+    mode: str,
+    rates: LoopRates,
+    source: str,
+    joints: Sequence[str] = JOINTS,
+) -> list[Path]:
     """Write the two parameter files (:func:`files`) into ``folder`` (atomically, both or neither)."""
     return outputs.write_files(
         {Path(folder) / name: text for name, text in files(servo, mode, rates, source, joints).items()}

@@ -15,10 +15,13 @@ from __future__ import annotations
 
 import io
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, Literal, overload
 
 import numpy as np
+import numpy.typing as npt
 
 from .files import write_atomic
 
@@ -26,7 +29,7 @@ PROFILE = "pusupu"
 METADATA = "pusupu"  # the name of the metadata record
 
 
-def _array(n: int, unit: str, what: str) -> dict:
+def _array(n: int, unit: str, what: str) -> dict[str, Any]:
     return {
         "type": "array",
         "items": {"type": "number"},
@@ -36,7 +39,7 @@ def _array(n: int, unit: str, what: str) -> dict:
     }
 
 
-def _number(unit: str, what: str) -> dict:
+def _number(unit: str, what: str) -> dict[str, Any]:
     return {"type": "number", "description": f"{what} [{unit}]"}
 
 
@@ -46,14 +49,14 @@ class Channel:
 
     topic: str
     title: str
-    properties: dict
-    messages: list = field(default_factory=list)
+    properties: dict[str, Any]
+    messages: list[tuple[float, dict[str, Any]]] = field(default_factory=list)
 
-    def schema(self) -> dict:
+    def schema(self) -> dict[str, Any]:
         return {"type": "object", "title": self.title, "properties": self.properties, "required": list(self.properties)}
 
 
-def plain(value):
+def plain(value: Any) -> Any:
     """``value`` as JSON takes it: arrays as lists, numpy scalars as numbers, NaN and inf as None."""
     if isinstance(value, dict):
         return {str(k): plain(v) for k, v in value.items()}
@@ -68,7 +71,7 @@ def plain(value):
     return value
 
 
-def write(path, channels: list[Channel], metadata: dict, start_ns: int) -> Path:
+def write(path: str | os.PathLike[str], channels: list[Channel], metadata: dict[str, Any], start_ns: int) -> Path:
     """Write ``channels`` to the MCAP file ``path`` (atomically); a message at time ``t`` [s] is logged at
     ``start_ns + t`` [ns since the Unix epoch].  ``metadata``: the ``pusupu`` record (values written as text)."""
     from mcap.writer import Writer
@@ -85,29 +88,29 @@ def write(path, channels: list[Channel], metadata: dict, start_ns: int) -> Path:
     writer.add_metadata(
         METADATA, {str(k): v if isinstance(v, str) else json.dumps(plain(v)) for k, v in metadata.items()}
     )
-    writer.finish()
+    writer.finish()  # type: ignore[no-untyped-call]  # mcap leaves Writer.finish unannotated
     return write_atomic(path, buffer.getvalue())
 
 
-def read(path) -> tuple[dict, dict]:
+def read(path: str | os.PathLike[str]) -> tuple[dict[str, tuple[Any, list[tuple[int, Any]]]], dict[str, str]]:
     """``({topic: (schema, [(log time [ns], message)])}, metadata)`` of an MCAP file written by :func:`write` (the
     ``mcap`` package's reader; for tests and notebooks)."""
     from mcap.reader import make_reader
 
     with open(path, "rb") as f:
         reader = make_reader(f)
-        topics: dict[str, tuple] = {}
+        topics: dict[str, tuple[Any, list[tuple[int, Any]]]] = {}
         for schema, channel, message in reader.iter_messages():
             entry = topics.setdefault(channel.topic, (None if schema is None else json.loads(schema.data), []))
             entry[1].append((message.log_time, json.loads(message.data)))
-        metadata = {}
+        metadata: dict[str, str] = {}
         for record in reader.iter_metadata():
             if record.name == METADATA:
                 metadata = dict(record.metadata)
     return topics, metadata
 
 
-def machine_channels(arrays: dict) -> list[Channel]:
+def machine_channels(arrays: dict[str, Any]) -> list[Channel]:
     """The simulated machine's run (the arrays of :func:`pusupu_jax.machine.simulate_scenarios`, one sample per position
     period): ``/sim/platform`` (the platform's reference and position), ``/sim/branch`` (each branch's force) and
     ``/sim/drive`` (per axis the motor's reference, angle, speed, torque and current: the fields of the bridge's
@@ -178,7 +181,7 @@ class DriveLog:
     current: np.ndarray | None
 
 
-def drive_log(path) -> DriveLog:
+def drive_log(path: str | os.PathLike[str]) -> DriveLog:
     """The drive samples of the MCAP log ``path`` written by ``pusupu sim --plant mjx --log`` (``/sim/drive``) or
     ``pusupu bridge --log`` (``/bridge/feedback``); :class:`~pusupu_jax.params.ParameterError` with one line for a file
     that is not such a log."""
@@ -205,7 +208,13 @@ def drive_log(path) -> DriveLog:
     if not samples:
         raise ParameterError(f"{path}: expected drive samples on {' or '.join(DRIVE_TOPICS)}, found none")
 
-    def column(name, optional=False):
+    @overload
+    def column(name: str, optional: Literal[False] = False) -> npt.NDArray[np.float64]: ...
+
+    @overload
+    def column(name: str, optional: bool) -> npt.NDArray[np.float64] | None: ...
+
+    def column(name: str, optional: bool = False) -> npt.NDArray[np.float64] | None:
         values = [m.get(name) for m in samples]
         if optional and all(v is None or (isinstance(v, list) and None in v) for v in values):
             return None

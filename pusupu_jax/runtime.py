@@ -120,7 +120,7 @@ def _without_host_devices(flags: str) -> str:
     return " ".join(f for f in flags.split() if not f.startswith(XLA_HOST_DEVICES + "="))
 
 
-def setup_jax(cache_dir: str | os.PathLike | None = None, x64: bool = True, synchronous_cpu: bool = False) -> Path:
+def setup_jax(cache_dir: str | os.PathLike[str] | None = None, x64: bool = True, synchronous_cpu: bool = False) -> Path:
     """Enable float64 and JAX's persistent compilation cache (every compiled function is kept).
 
     The cache lives in ``cache_dir``, else ``$PUSUPU_JAX_CACHE``, else JAX's own
@@ -138,12 +138,13 @@ def setup_jax(cache_dir: str | os.PathLike | None = None, x64: bool = True, sync
         or Path.home() / ".cache" / "pusupu_jax" / "jax"
     )
     path.mkdir(parents=True, exist_ok=True)
-    jax.config.update("jax_enable_x64", x64)
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    # jax leaves Config.update unannotated
+    jax.config.update("jax_enable_x64", x64)  # type: ignore[no-untyped-call]
+    jax.config.update("jax_compilation_cache_dir", str(path))  # type: ignore[no-untyped-call]
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)  # type: ignore[no-untyped-call]
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)  # type: ignore[no-untyped-call]
     if synchronous_cpu:
-        jax.config.update("jax_cpu_enable_async_dispatch", False)
+        jax.config.update("jax_cpu_enable_async_dispatch", False)  # type: ignore[no-untyped-call]
     return path
 
 

@@ -19,11 +19,12 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, Callable, NamedTuple, Sequence, cast
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import numpy.typing as npt
 
 from . import cascade as cascade_
 from . import compliance as compliance_law
@@ -33,6 +34,12 @@ from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate
 from .plant import AxisPlant
 from .plant.axis import screw_ratio
 from .plant.kinematics import inverse_kinematics
+
+if TYPE_CHECKING:
+    from jax.typing import ArrayLike
+
+    from .plant import Plant
+    from .plant.geometry import Geometry
 
 MODES = cascade_.AXIS_MODES  # the single-axis plant's position modes
 STARTS = ("rest", "zero")
@@ -80,7 +87,7 @@ def _describe_trace(tr: Trace, markdown: bool = False) -> str:
         return f"Trace(shapes {shapes})"
 
 
-def _trace_table(tr: Trace, shapes: dict, markdown: bool) -> str:
+def _trace_table(tr: Trace, shapes: dict[str, tuple[int, ...]], markdown: bool) -> str:
     from .params import axis_cells, axis_table
 
     n, axes = shapes["position"][-2:]
@@ -95,7 +102,7 @@ def _trace_table(tr: Trace, shapes: dict, markdown: bool) -> str:
     )
     if not n:
         return title
-    peak = lambda x: np.abs(np.asarray(x)).max(axis=-2)  # noqa: E731
+    peak: Callable[[npt.ArrayLike], npt.NDArray[Any]] = lambda x: np.abs(np.asarray(x)).max(axis=-2)  # noqa: E731
     position = np.asarray(tr.position) * 1e3
     rows = [
         ("slider min", "mm", axis_cells(position.min(axis=-2))),
@@ -125,7 +132,7 @@ class Injected:
     current: Any
 
 
-def _injected(ref):
+def _injected(ref: Any) -> tuple[Any, Injected | None]:
     """``(the mode's sample, the Injected or None)`` of a reference sample."""
     return (ref.reference, ref) if isinstance(ref, Injected) else (ref, None)
 
@@ -140,7 +147,12 @@ class Carry(NamedTuple):
 
 
 def initial_state(
-    drive: loops.Drive, plant, aux, mode: cascade_.ControlMode, start: str = "rest", force_ff0=None
+    drive: loops.Drive,
+    plant: Plant,
+    aux: Any,
+    mode: cascade_.ControlMode,
+    start: str = "rest",
+    force_ff0: ArrayLike | None = None,
 ) -> Carry:
     """The plant at rest in its initial state, and the cascade as ``start`` says.
 
@@ -164,14 +176,18 @@ def initial_state(
     return Carry(plant_state, electrical, cascade_.rest(drive, mode, i, u, theta0, force0))
 
 
-def current_ticks(drive: loops.Drive, electrical, s: cascade_.CascadeState, i_ref, omega, n: int):
+def current_ticks(
+    drive: loops.Drive, electrical: jax.Array, s: cascade_.CascadeState, i_ref: jax.Array, omega: jax.Array, n: int
+) -> tuple[jax.Array, cascade_.CascadeState, jax.Array, jax.Array]:
     """``n`` current periods of the drives and their motors' electrics with the motor speed ``omega`` [rad/s] held.
 
     Returns ``(electrical, state, mean motor torque [N m], the first period's inverter command [V])``:
     the mechanics then advances one step with that torque (``n = rates.n_mech``).
     """
 
-    def tick(ce, _):
+    def tick(
+        ce: tuple[jax.Array, cascade_.CascadeState], _: None
+    ) -> tuple[tuple[jax.Array, cascade_.CascadeState], tuple[jax.Array, jax.Array]]:
         xe, sc = ce
         sc, u = cascade_.current_tick(drive, sc, i_ref, loops.electrical_current(xe), omega)
         torque = drive.Kt * loops.electrical_current(xe)
@@ -184,12 +200,14 @@ def current_ticks(drive: loops.Drive, electrical, s: cascade_.CascadeState, i_re
 class Pieces(NamedTuple):
     """The pieces of a rollout: one outer period, the trace record of it, the period [s] and the initial carry."""
 
-    period: Any  # (carry, reference sample) -> (carry, (command, current references (m, n_axes)))
-    record: Any  # (carry at the period's start, reference sample, (command, current references)[, observation])
-    #              -> trace entries; the observation when the period already made it
+    # (carry, reference sample) -> (carry, (command, current references (m, n_axes)))
+    period: Callable[[Carry, Any], tuple[Carry, Any]]
+    # (carry at the period's start, reference sample, (command, current references)[, observation])
+    # -> trace entries; the observation when the period already made it
+    record: Callable[..., dict[str, Any]]
     dt: float
-    init: Any  # (start, force_ff0) -> carry
-    observe: Any  # carry -> what the plant's observe() returns (for a law outside the cascade)
+    init: Callable[[str, Any], Carry]  # (start, force_ff0) -> carry
+    observe: Callable[[Carry], Any]  # carry -> what the plant's observe() returns (for a law outside the cascade)
 
 
 def period_dt(rates: LoopRates, mode: cascade_.ControlMode) -> float:
@@ -197,7 +215,15 @@ def period_dt(rates: LoopRates, mode: cascade_.ControlMode) -> float:
     return {"current": rates.dt_mech, "velocity": rates.dt_velocity, "position": rates.dt_position}[mode.closed]
 
 
-def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.ControlMode, hybrid) -> Pieces:
+def pieces(
+    params: ServoParams,
+    plant_params: Any,
+    *,
+    plant: Plant,
+    rates: LoopRates,
+    mode: cascade_.ControlMode,
+    hybrid: hybrid_law.HybridGains | None,
+) -> Pieces:
     """The closures of one rollout (traced: call inside a jitted function) for ``mode`` against ``plant``."""
     if mode.hybrid != (hybrid is not None):
         raise ValueError("rollout: hybrid gains are needed exactly when outer='hybrid'")
@@ -205,7 +231,7 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
     aux = plant.prepare(params, plant_params, rates.dt_mech)
     n_mech_steps = rates.n_velocity // rates.n_mech
 
-    def record(c: Carry, ref, out, observation=None):
+    def record(c: Carry, ref: Any, out: tuple[jax.Array, jax.Array], observation: Any = None) -> dict[str, Any]:
         ref, _ = _injected(ref)
         command, i_refs = out
         theta, omega = plant.measure(aux, c.plant)
@@ -225,7 +251,7 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
             observation=plant.observe(aux, c.plant) if observation is None else observation,
         )
 
-    def mech_step(c: Carry, i_ref):
+    def mech_step(c: Carry, i_ref: jax.Array) -> tuple[Carry, jax.Array]:
         _, omega = plant.measure(aux, c.plant)
         xe, sc, torque, u = current_ticks(drive, c.electrical, c.cascade, i_ref, omega, rates.n_mech)
         return c._replace(plant=plant.step(aux, c.plant, torque), electrical=xe, cascade=sc), u
@@ -237,7 +263,9 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
     # 4.9 s.  prevent_cse=False: the scans that call it already keep XLA from merging the recomputation back into
     # the forward pass, so the barriers that would prevent it are not needed (jax.checkpoint's documentation).
     @functools.partial(jax.checkpoint, prevent_cse=False)
-    def velocity_period(c: Carry, w_ref, i_force=None, injected_current=None):
+    def velocity_period(
+        c: Carry, w_ref: jax.Array, i_force: jax.Array | None = None, injected_current: jax.Array | None = None
+    ) -> tuple[Carry, jax.Array]:
         _, omega = plant.measure(aux, c.plant)
         sc, i_ref = cascade_.velocity_tick(drive, mode, c.cascade, w_ref, omega, i_force)
         if injected_current is not None:
@@ -248,7 +276,7 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
         c, _ = jax.lax.scan(lambda cc, _: mech_step(cc, i_ref), c, None, length=n_mech_steps)
         return c, i_ref
 
-    def position_period(c: Carry, ref):
+    def position_period(c: Carry, ref: Any) -> tuple[Carry, tuple[jax.Array, jax.Array]]:
         ref, injected = _injected(ref)
         theta, omega = plant.measure(aux, c.plant)
         sc, w_ref, i_force = cascade_.position_tick(drive, mode, c.cascade, ref, theta, omega, hybrid)
@@ -262,13 +290,13 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
         )
         return c, (w_ref, i_refs)
 
-    def current_period(c: Carry, i_ref):
+    def current_period(c: Carry, i_ref: jax.Array | Injected) -> tuple[Carry, tuple[jax.Array, jax.Array]]:
         if isinstance(i_ref, Injected):
             raise ValueError("rollout: injection needs the velocity loop closed, got mode 'current'")
         c, u = mech_step(c, i_ref)
         return c, (u, i_ref[None])
 
-    def inner_velocity_period(c: Carry, w_ref):
+    def inner_velocity_period(c: Carry, w_ref: Any) -> tuple[Carry, tuple[jax.Array, jax.Array]]:
         w_ref, injected = _injected(w_ref)
         if injected is not None:
             w_ref = w_ref + injected.velocity
@@ -286,7 +314,12 @@ def pieces(params, plant_params, *, plant, rates: LoopRates, mode: cascade_.Cont
 
 
 def compliant_pieces(
-    base: Pieces, params, gains: compliance_law.AdmittanceGains, geom, *, mode: cascade_.ControlMode
+    base: Pieces,
+    params: ServoParams,
+    gains: compliance_law.AdmittanceGains,
+    geom: Geometry,
+    *,
+    mode: cascade_.ControlMode,
 ) -> Pieces:
     """``base`` (closed up to the position loop) under the admittance of :mod:`pusupu_jax.compliance`.
 
@@ -303,11 +336,11 @@ def compliant_pieces(
     r = screw_ratio(params)
     s_home = inverse_kinematics(geom, jnp.asarray(geom.home))
 
-    def inner(c: Carry, ref: compliance_law.ComplianceReference):
+    def inner(c: Carry, ref: compliance_law.ComplianceReference) -> Any:
         pose = ref.pose.at[:3].add(c.outer.offset)
         return mode.with_theta(ref.inner, (inverse_kinematics(geom, pose) - s_home) / r)
 
-    def period(c: Carry, ref):
+    def period(c: Carry, ref: compliance_law.ComplianceReference) -> tuple[Carry, tuple[Any, Any, Any]]:
         observation = base.observe(c)
         state = compliance_law.step(gains, c.outer, observation["contact_force"], ref.force_setpoint, base.dt)
         c = c._replace(outer=state)
@@ -315,7 +348,7 @@ def compliant_pieces(
         c, out = base.period(c, inner_ref)
         return c, (out, inner_ref, observation)
 
-    def record(c: Carry, ref, out):
+    def record(c: Carry, ref: compliance_law.ComplianceReference, out: tuple[Any, Any, Any]) -> dict[str, Any]:
         command, inner_ref, observation = out
         rec = base.record(c, inner_ref, command, observation)
         return rec | {"observation": rec["observation"] | {"compliance_offset": c.outer.offset}}
@@ -331,17 +364,17 @@ def compliant_pieces(
 
 def rollout(
     params: ServoParams,
-    plant_params,
-    reference,
+    plant_params: Any,
+    reference: Any,
     *,
-    plant=AxisPlant(),
+    plant: Plant = AxisPlant(),
     rates: LoopRates = LoopRates(),
     outer: str = "imc",
     remat: bool = False,
     hybrid: hybrid_law.HybridGains | None = None,
     start: str = "rest",
-    init=None,
-    compliance=None,
+    init: Carry | None = None,
+    compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None = None,
 ) -> Trace:
     """Run the cascade closed up to ``outer`` against ``plant`` (pure; jit with plant, rates, outer, remat, start
     static).
@@ -382,12 +415,26 @@ def rollout(
     return _trace(rec, cascade.dt)
 
 
-def _cascade(params, plant_params, plant, rates, mode, hybrid, compliance) -> Pieces:
+def _cascade(
+    params: ServoParams,
+    plant_params: Any,
+    plant: Plant,
+    rates: LoopRates,
+    mode: cascade_.ControlMode,
+    hybrid: hybrid_law.HybridGains | None,
+    compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None,
+) -> Pieces:
     cascade = pieces(params, plant_params, plant=plant, rates=rates, mode=mode, hybrid=hybrid)
     return cascade if compliance is None else compliant_pieces(cascade, params, *compliance, mode=mode)
 
 
-def _start(cascade: Pieces, mode, first, start: str, compliance):
+def _start(
+    cascade: Pieces,
+    mode: cascade_.ControlMode,
+    first: Any,
+    start: str,
+    compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None,
+) -> Carry:
     """The carry at ``start`` for a reference whose first sample is ``first``."""
     first, _ = _injected(first)
     first = first.inner if compliance is not None else first
@@ -396,15 +443,15 @@ def _start(cascade: Pieces, mode, first, start: str, compliance):
 
 def initial_carry(
     params: ServoParams,
-    plant_params,
-    first,
+    plant_params: Any,
+    first: Any,
     *,
-    plant=AxisPlant(),
+    plant: Plant = AxisPlant(),
     rates: LoopRates = LoopRates(),
     outer: str = "imc",
     hybrid: hybrid_law.HybridGains | None = None,
     start: str = "rest",
-    compliance=None,
+    compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None = None,
 ) -> Carry:
     """The carry :func:`rollout` starts from, for a reference whose first sample is ``first`` (pure; arguments as
     :func:`rollout`'s).  With :func:`rollout_chunk`, a run cut into calls of one fixed length."""
@@ -416,17 +463,17 @@ def initial_carry(
 
 def rollout_chunk(
     params: ServoParams,
-    plant_params,
-    reference,
+    plant_params: Any,
+    reference: Any,
     carry: Carry,
-    n_valid=None,
+    n_valid: ArrayLike | None = None,
     *,
-    plant=AxisPlant(),
+    plant: Plant = AxisPlant(),
     rates: LoopRates = LoopRates(),
     outer: str = "imc",
     hybrid: hybrid_law.HybridGains | None = None,
-    compliance=None,
-) -> tuple[dict, Carry]:
+    compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None = None,
+) -> tuple[dict[str, Any], Carry]:
     """``reference`` ``(C, ...)`` from ``carry``: ``(records, the carry after them)`` (pure; arguments as
     :func:`rollout`'s).  The records are :class:`Trace`'s fields but ``t``.
 
@@ -441,7 +488,7 @@ def rollout_chunk(
         carry, rec = jax.lax.scan(body, carry, reference)
         return rec, carry
 
-    def step(c, x):
+    def step(c: Carry, x: tuple[Any, jax.Array]) -> tuple[Carry, dict[str, Any]]:
         ref, valid = x
         c_next, rec = body(c, ref)
         return jax.tree.map(lambda new, old: jnp.where(valid, new, old), c_next, c), rec
@@ -451,15 +498,15 @@ def rollout_chunk(
     return rec, carry
 
 
-def _body(cascade: Pieces, remat: bool):
-    def body(c, ref):
+def _body(cascade: Pieces, remat: bool) -> Callable[[Carry, Any], tuple[Carry, dict[str, Any]]]:
+    def body(c: Carry, ref: Any) -> tuple[Carry, dict[str, Any]]:
         c_next, command = cascade.period(c, ref)
         return c_next, cascade.record(c, ref, command)
 
     return jax.checkpoint(body) if remat else body
 
 
-def _trace(rec: dict, dt: float) -> Trace:
+def _trace(rec: dict[str, Any], dt: float) -> Trace:
     return Trace(t=jnp.arange(rec["reference"].shape[0]) * dt, **rec)
 
 
@@ -467,10 +514,18 @@ CHUNK = 250  # periods per call of run_chunked's compiled program
 
 
 @functools.lru_cache(maxsize=None)
-def _init_program(plant, rates, outer, start, params_axis, hybrid_axis):
+def _init_program(
+    plant: Plant, rates: LoopRates, outer: str, start: str, params_axis: int | None, hybrid_axis: int | None
+) -> jax.stages.Wrapped:
     """:func:`initial_carry` vmapped over a batch, jitted (cached per static arguments)."""
 
-    def init(params, model, first, hybrid, compliance):
+    def init(
+        params: ServoParams,
+        model: Any,
+        first: Any,
+        hybrid: hybrid_law.HybridGains | None,
+        compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None,
+    ) -> Carry:
         return initial_carry(
             params,
             model,
@@ -487,11 +542,21 @@ def _init_program(plant, rates, outer, start, params_axis, hybrid_axis):
 
 
 @functools.lru_cache(maxsize=None)
-def _chunk_program(plant, rates, outer, params_axis, hybrid_axis, masked: bool):
+def _chunk_program(
+    plant: Plant, rates: LoopRates, outer: str, params_axis: int | None, hybrid_axis: int | None, masked: bool
+) -> jax.stages.Wrapped:
     """:func:`rollout_chunk` (with ``n_valid`` when ``masked``) vmapped over a batch, jitted (cached per static
     arguments: one compile serves every path length)."""
 
-    def chunk(params, model, reference, hybrid, compliance, carry, n_valid):
+    def chunk(
+        params: ServoParams,
+        model: Any,
+        reference: Any,
+        hybrid: hybrid_law.HybridGains | None,
+        compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None,
+        carry: Carry,
+        n_valid: jax.Array,
+    ) -> tuple[dict[str, Any], Carry]:
         return rollout_chunk(
             params,
             model,
@@ -510,20 +575,20 @@ def _chunk_program(plant, rates, outer, params_axis, hybrid_axis, masked: bool):
 
 def run_chunked(
     params: ServoParams,
-    models,
-    reference,
+    models: Any,
+    reference: Any,
     *,
-    plant=AxisPlant(),
+    plant: Plant = AxisPlant(),
     rates: LoopRates = LoopRates(),
     outer: str = "imc",
     hybrid: hybrid_law.HybridGains | None = None,
     start: str = "rest",
-    compliance=None,
-    params_axis=None,
-    hybrid_axis=None,
-    marks=(),
+    compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None = None,
+    params_axis: int | None = None,
+    hybrid_axis: int | None = None,
+    marks: Sequence[int] = (),
     chunk: int = CHUNK,
-):
+) -> tuple[Trace, Carry | None]:
     """A batch of runs, each :func:`rollout` of its ``models[b]`` over ``reference[b]`` ``(B, N, ...)``, cut into
     calls of one compiled program of ``chunk`` periods (host-side): ``(trace (B, N, ...), carries (B, len(marks),
     ...))``.
@@ -546,6 +611,8 @@ def run_chunked(
     if any(not 0 <= m < n for m in marks):
         raise ValueError(f"run_chunked: expected marks in [0, {n}), got {list(marks)}")
     carry = init(params, models, jax.tree.map(lambda x: x[:, 0], host), hybrid, compliance)
+    kept: dict[int, Carry]
+    records: list[tuple[dict[str, Any], int]]
     kept, records, done = {}, [], 0
     for stop in sorted(set(marks) | {n}):
         while done < stop:
@@ -572,7 +639,9 @@ _rollout_jit = jax.jit(rollout, static_argnames=("plant", "rates", "outer", "rem
 
 
 @functools.lru_cache(maxsize=None)
-def _batched_rollout(plant, rates, outer, load_axis, start):
+def _batched_rollout(
+    plant: Plant, rates: LoopRates, outer: str, load_axis: int | None, start: str
+) -> jax.stages.Wrapped:
     return jax.jit(
         jax.vmap(
             functools.partial(rollout, plant=plant, rates=rates, outer=outer, start=start), in_axes=(0, load_axis, 0)
@@ -582,10 +651,10 @@ def _batched_rollout(plant, rates, outer, load_axis, start):
 
 def simulate(
     params: ServoParams | None = None,
-    reference=None,
+    reference: npt.ArrayLike | None = None,
     *,
-    load=None,
-    plant=AxisPlant(),
+    load: AxisLoad | None = None,
+    plant: Plant = AxisPlant(),
     rates: LoopRates = LoopRates(),
     mode: str = "imc",
     start: str = "rest",
@@ -620,6 +689,7 @@ def simulate(
         ref = np.repeat(ref[:, None], plant.n_axes, axis=1)
     theta_ref = jnp.asarray(ref) / screw_ratio(params)[..., None, :]
     if np.ndim(params.lambda1) == 1:
-        return _rollout_jit(params, load, theta_ref, plant=plant, rates=rates, outer=mode, start=start)
+        # jax.jit's wrapper returns Any
+        return cast(Trace, _rollout_jit(params, load, theta_ref, plant=plant, rates=rates, outer=mode, start=start))
     load_axis = 0 if np.ndim(load.mass) == 2 else None
-    return _batched_rollout(plant, rates, mode, load_axis, start)(params, load, theta_ref)
+    return cast(Trace, _batched_rollout(plant, rates, mode, load_axis, start)(params, load, theta_ref))

@@ -31,6 +31,7 @@ connected by ``interconnect`` (:func:`pusupu_jax.analysis.closed_loops` with rat
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import jax
@@ -39,7 +40,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from . import cascade
-from .hybrid import validate_gains
+from .hybrid import HybridGains, validate_gains
 from .margins import W_GRID, in_band, loop_margins
 from .params import N_AXES, AxisLoad, LoopRates, ParameterError, ServoParams, bounds, validate
 from .plant.axis import AxisPlant
@@ -60,11 +61,11 @@ def loop_mode(loop: str, mode: "str | cascade.ControlMode") -> cascade.ControlMo
 
 
 @functools.lru_cache(maxsize=32)
-def _monodromy_program(rates: LoopRates, mode: cascade.ControlMode):
+def _monodromy_program(rates: LoopRates, mode: cascade.ControlMode) -> Program:
     """A jitted ``(servo, load) -> (monodromy matrix (n, n), axis of each state (n,))`` for one rate set and mode."""
     from .sim import pieces  # sim imports much of the package; only this needs it
 
-    def program(servo, load):
+    def program(servo: ServoParams, load: AxisLoad) -> tuple[jax.Array, jax.Array]:
         p = pieces(servo, load, plant=AxisPlant(), rates=rates, mode=mode, hybrid=None)
         carry = p.init("zero", None)
         flat, unravel = ravel_pytree(carry)
@@ -85,32 +86,42 @@ def _monodromy_program(rates: LoopRates, mode: cascade.ControlMode):
 
 
 @functools.lru_cache(maxsize=8)
-def _margins_program(mode: str):
+def _margins_program(mode: str) -> Program:
     """A jitted ``(servo, load) -> (loop_margins, in_band)`` for one position law."""
     return Program(lambda servo, load: (loop_margins(servo, load, mode), in_band(servo, load, mode)), describe(mode))
 
 
-def margins(servo: ServoParams, mode="imc", load: AxisLoad | None = None) -> tuple[dict, dict]:
+def margins(
+    servo: ServoParams, mode: str | cascade.ControlMode = "imc", load: AxisLoad | None = None
+) -> tuple[dict[str, dict[str, np.ndarray]], dict[str, np.ndarray]]:
     """``(margins, in_band)`` of every loop of every axis, as numpy float64: :func:`pusupu_jax.margins.loop_margins`
     and :func:`pusupu_jax.margins.in_band` in one jitted program per position law (``mode``'s: IMC for hybrid; ROS's
     PID for ``ros_pid``); ``load`` default :meth:`AxisLoad.default`."""
     load = AxisLoad.default() if load is None else load
     law = cascade.control_mode(mode).law
     with jax.enable_x64(True):
-        return jax.tree.map(
+        found: tuple[dict[str, dict[str, np.ndarray]], dict[str, np.ndarray]] = jax.tree.map(
             np.asarray,
             _margins_program(law)(*(jax.tree.map(lambda x: np.asarray(x, dtype=np.float64), p) for p in (servo, load))),
         )
+        return found
 
 
 def _in_loop(m: np.ndarray) -> np.ndarray:
     """Mask of the states that take part in the loop: not those whose column is a unit vector (pure integrators that
     nothing reads, as the motor angle below the position loop)."""
     eye = np.eye(len(m))
-    return ~np.all(m == eye, axis=0)
+    mask: np.ndarray = ~np.all(m == eye, axis=0)
+    return mask
 
 
-def monodromy(servo: ServoParams, rates: LoopRates, loop: str, mode="imc", load: AxisLoad | None = None):
+def monodromy(
+    servo: ServoParams,
+    rates: LoopRates,
+    loop: str,
+    mode: str | cascade.ControlMode = "imc",
+    load: AxisLoad | None = None,
+) -> list[np.ndarray]:
     """Per axis, the monodromy matrix of ``loop`` over one of its periods (float64, numpy), pure integrators left out.
 
     ``servo``: one parameter set ``(6,)`` per field; ``load``: the single-axis load (default
@@ -131,24 +142,27 @@ def monodromy(servo: ServoParams, rates: LoopRates, loop: str, mode="imc", load:
     return out
 
 
-def spectral_radii(servo: ServoParams, rates: LoopRates, mode="imc", load: AxisLoad | None = None) -> dict:
+def spectral_radii(
+    servo: ServoParams, rates: LoopRates, mode: str | cascade.ControlMode = "imc", load: AxisLoad | None = None
+) -> dict[str, np.ndarray]:
     """``{loop: (6,) array}``: the largest eigenvalue modulus of each loop's monodromy matrix, per axis.
 
     Below 1: asymptotically stable.  A non-finite matrix (gains that overflow the discretisation) gives ``inf``.
     """
-    out = {}
+    out: dict[str, np.ndarray] = {}
     for loop in LOOPS:
-        radii = []
+        radii: list[float] = []
         for block in monodromy(servo, rates, loop, mode, load):
             radii.append(float(np.max(np.abs(np.linalg.eigvals(block)))) if np.isfinite(block).all() else np.inf)
         out[loop] = np.asarray(radii)
     return out
 
 
-def poles_per_second(radius, period: float):
+def poles_per_second(radius: np.ndarray, period: float) -> np.ndarray:
     """A discrete eigenvalue modulus as the real part of the continuous pole it stands for [1/s]: ``ln|z| / T``."""
     with np.errstate(divide="ignore"):
-        return np.log(radius) / period
+        growth: np.ndarray = np.log(radius) / period
+        return growth
 
 
 def loop_period(rates: LoopRates, loop: str) -> float:
@@ -194,17 +208,17 @@ class LoopCheck:
 class GainCheck:
     """What :func:`check` found for a gain set: one :class:`LoopCheck` per loop and the floors it was held to."""
 
-    loops: dict  # {loop: LoopCheck}
-    floors: tuple  # (deg, dB)
+    loops: dict[str, LoopCheck]  # {loop: LoopCheck}
+    floors: tuple[float, ...]  # (deg, dB)
 
-    def margins(self) -> dict:
+    def margins(self) -> dict[str, dict[str, list[float]]]:
         """``{loop: {phase_margin_deg, gain_margin_db}}`` as lists of six floats (a gain file's ``margins``)."""
         return {
             loop: {"phase_margin_deg": c.phase_margin_deg.tolist(), "gain_margin_db": c.gain_margin_db.tolist()}
             for loop, c in self.loops.items()
         }
 
-    def radii(self) -> dict:
+    def radii(self) -> dict[str, list[float]]:
         """``{loop: [six spectral radii]}`` (a gain file's ``stability``)."""
         return {loop: c.spectral_radius.tolist() for loop, c in self.loops.items()}
 
@@ -237,7 +251,7 @@ class GainCheck:
         return None
 
 
-def check_values(servo: ServoParams, hybrid, rates: LoopRates) -> None:
+def check_values(servo: ServoParams, hybrid: HybridGains | None, rates: LoopRates) -> None:
     """The part of :func:`check` that needs no model: every field and rate inside its documented bounds."""
     validate(servo)
     if hybrid is not None:
@@ -247,10 +261,10 @@ def check_values(servo: ServoParams, hybrid, rates: LoopRates) -> None:
 
 def check(
     servo: ServoParams,
-    hybrid,
+    hybrid: HybridGains | None,
     rates: LoopRates,
-    mode="imc",
-    floors=FLOORS,
+    mode: str | cascade.ControlMode = "imc",
+    floors: Sequence[float] = FLOORS,
     raise_error: bool = True,
     load: AxisLoad | None = None,
 ) -> GainCheck:

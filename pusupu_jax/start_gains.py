@@ -31,7 +31,10 @@ margin); the following-error window and time stay Table 1's.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
+import numpy.typing as npt
 
 from .identify import identify_T0_machine
 from .machine_file import Machine, carried_mass
@@ -41,7 +44,7 @@ from .plant.axis import screw_ratio
 T0_TABLE1 = 0.01475  # s
 
 
-def _crossovers(servo: ServoParams, mass) -> tuple[np.ndarray, np.ndarray]:
+def _crossovers(servo: ServoParams, mass: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
     """The current and velocity loops' crossovers [rad/s] in the design model of the module docstring."""
     r = np.asarray(screw_ratio(servo))
     j_eff = np.asarray(servo.J) + np.asarray(mass) * r**2 / np.asarray(servo.eta)
@@ -52,7 +55,7 @@ def _crossovers(servo: ServoParams, mass) -> tuple[np.ndarray, np.ndarray]:
 
 def derive(
     machine: Machine, rates: LoopRates = LoopRates(), identify: bool = True, shared: bool = True
-) -> tuple[ServoParams, dict]:
+) -> tuple[ServoParams, dict[str, Any]]:
     """Start gains for ``machine`` (the module docstring's steps) and a report of what was derived (per axis).
 
     ``identify=False`` leaves ``T0`` (and so the IMC and PID time scales) at Table 1's, skipping the MJX identification.
@@ -76,7 +79,7 @@ def derive(
     _, wv_unit = _crossovers(servo.replace(Kv=np.ones(6)), mass)
     w_v = wv_ref / wi_ref * w_i
     servo = servo.replace(Kv=w_v / wv_unit, Tv=table1.Tv * wv_ref / w_v, Tw=table1.Tw * wv_ref / w_v)
-    report = {
+    report: dict[str, Any] = {
         "carried_mass_kg": mass.tolist(),
         "current_crossover_rad_s": w_i.tolist(),
         "velocity_crossover_rad_s": w_v.tolist(),

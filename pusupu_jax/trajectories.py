@@ -6,6 +6,7 @@ Every trajectory starts at rest at zero, where the simulated machine starts.
 from __future__ import annotations
 
 import numpy as np
+import numpy.typing as npt
 
 from . import workload
 from .params import N_AXES, LoopRates, ParameterError
@@ -46,44 +47,53 @@ TILT_AMPLITUDE = 0.1  # rad, the tilt sweep's
 TILT_SPEED, TILT_ACCELERATION = 0.15, 0.6
 
 
-def _quintic_time(length, v_max, a_max) -> float:
+def _quintic_time(length: float, v_max: float, a_max: float) -> float:
     """The shortest duration [s] of a quintic move over ``length`` whose peak speed (1.875 L/T) and acceleration
     (5.77 L/T^2) stay within ``v_max`` and ``a_max`` (lengths in m with m/s and m/s^2, or in rad with rad/s and
     rad/s^2)."""
-    return max(1.875 * length / v_max, (5.7735 * length / a_max) ** 0.5)
+    by_acceleration: float = (5.7735 * length / a_max) ** 0.5
+    return max(1.875 * length / v_max, by_acceleration)
 
 
-def _quintic(dt, T):
+def _quintic(dt: float, T: float) -> npt.NDArray[np.float64]:
     """Quintic time scaling ``10 u^3 - 15 u^4 + 6 u^5``, ``u = t / T``: 0 -> 1 over ``T`` [s] (at least one period
     ``dt``), sampled every ``dt``, at rest at both ends."""
     T = max(T, dt)
     n = max(2, int(np.ceil(T / dt)) + 1)
-    tau = np.clip(np.arange(n) * dt / T, 0.0, 1.0)
+    tau: npt.NDArray[np.float64] = np.clip(np.arange(n) * dt / T, 0.0, 1.0)
     return 10 * tau**3 - 15 * tau**4 + 6 * tau**5
 
 
-def _line(a, b, dt, T):
+def _line(a: npt.ArrayLike, b: npt.ArrayLike, dt: float, T: float) -> npt.NDArray[np.float64]:
     """Points from ``a`` to ``b`` (offsets) in ``T`` [s] with :func:`_quintic` timing."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    return a + _quintic(dt, T)[:, None] * (b - a)
+    points: npt.NDArray[np.float64] = a + _quintic(dt, T)[:, None] * (b - a)
+    return points
 
 
-def _cruise(dt, length, v, a_max):
+def _cruise(dt: float, length: float, v: float, a_max: float) -> npt.NDArray[np.float64]:
     """Distance [m] ``(n,)`` along a move sampled every ``dt``: the speed rises from rest to ``v`` [m/s] along
     :func:`_quintic`'s polynomial (peak acceleration ``a_max`` [m/s^2], over ``Ta = 1.875 v / a_max``), covers
     ``length`` [m] at ``v``, and falls back to rest the same way; each ramp adds ``v Ta / 2`` to ``length``."""
     ramp_time = 1.875 * v / a_max
     T = 2 * ramp_time + length / v
 
-    def ramped(time):  # the distance from rest after ``time``: v Ta (2.5 u^4 - 3 u^5 + u^6) on the ramp, then at v
-        u = np.clip(time / ramp_time, 0.0, 1.0)
+    # the distance from rest after ``time``: v Ta (2.5 u^4 - 3 u^5 + u^6) on the ramp, then at v
+    def ramped(time: npt.NDArray[np.float64] | float) -> npt.NDArray[np.float64] | np.float64:
+        u: npt.NDArray[np.float64] | np.float64 = np.clip(time / ramp_time, 0.0, 1.0)
         return v * ramp_time * (2.5 * u**4 - 3 * u**5 + u**6) + v * np.maximum(time - ramp_time, 0.0)
 
     t = np.minimum(np.arange(int(np.ceil(T / dt)) + 1) * dt, T)
     return np.where(t < T / 2, ramped(t), 2 * ramped(T / 2) - ramped(T - t))  # the second half mirrors the first
 
 
-def segment_seconds(waypoints, v_max, a_max, w_max=TILT_SPEED, alpha_max=TILT_ACCELERATION) -> np.ndarray:
+def segment_seconds(
+    waypoints: npt.ArrayLike,
+    v_max: npt.ArrayLike,
+    a_max: npt.ArrayLike,
+    w_max: npt.ArrayLike = TILT_SPEED,
+    alpha_max: npt.ArrayLike = TILT_ACCELERATION,
+) -> np.ndarray:
     """The durations [s] ``(K - 1,)`` of the straight segments through ``waypoints`` ``(K, 3)`` or ``(K, 5)`` (x, y,
     z [m], then a, b [rad]) with quintic timing: each the longest of what its translation needs under ``v_max``
     [m/s] and ``a_max`` [m/s^2] and what its tilts need under ``w_max`` [rad/s] and ``alpha_max`` [rad/s^2] (each
@@ -102,7 +112,7 @@ def segment_seconds(waypoints, v_max, a_max, w_max=TILT_SPEED, alpha_max=TILT_AC
     )
 
 
-def _check_limits(positive: dict, nonnegative: dict):
+def _check_limits(positive: dict[str, float], nonnegative: dict[str, float]) -> None:
     for name, v in positive.items():
         if not (np.isfinite(v) and v > 0):
             raise ParameterError(f"trajectory {name}: expected a positive number, got {v!r}")
@@ -111,7 +121,7 @@ def _check_limits(positive: dict, nonnegative: dict):
             raise ParameterError(f"trajectory {name}: expected a non-negative number of seconds, got {v!r}")
 
 
-def _poses(home, offsets, dt, hold):
+def _poses(home: npt.ArrayLike, offsets: npt.NDArray[np.float64], dt: float, hold: float) -> npt.NDArray[np.float64]:
     """Platform poses ``(N, 5)``: ``home`` plus ``offsets`` ``(N, k)`` (the first ``k`` of x, y, z [m], a, b
     [rad]; the others stay at home), then ``hold`` [s] at rest."""
     offsets = np.concatenate([offsets, np.repeat(offsets[-1:], int(round(hold / dt)), axis=0)])
@@ -122,7 +132,7 @@ def _poses(home, offsets, dt, hold):
 
 def platform_path(
     kind: str,
-    home,
+    home: npt.ArrayLike,
     rates: LoopRates = LoopRates(),
     v_max: float = SPEED,
     a_max: float = ACCELERATION,
@@ -162,7 +172,7 @@ def platform_path(
 
 
 def iso_circle(
-    home,
+    home: npt.ArrayLike,
     rates: LoopRates = LoopRates(),
     radius: float = CIRCLE_RADIUS,
     feed: float = SPEED,
@@ -193,7 +203,7 @@ def iso_circle(
 
 
 def tilt_sweep(
-    home,
+    home: npt.ArrayLike,
     rates: LoopRates = LoopRates(),
     amplitude: float = TILT_AMPLITUDE,
     w_max: float = TILT_SPEED,
@@ -217,16 +227,16 @@ def path_seconds(kind: str) -> float:
 
 
 def platform_waypoints(
-    home,
-    waypoints,
+    home: npt.ArrayLike,
+    waypoints: npt.ArrayLike,
     rates: LoopRates = LoopRates(),
-    v_max=SPEED,
-    a_max=ACCELERATION,
-    hold=0.5,
+    v_max: npt.ArrayLike = SPEED,
+    a_max: npt.ArrayLike = ACCELERATION,
+    hold: float = 0.5,
     *,
-    w_max=TILT_SPEED,
-    alpha_max=TILT_ACCELERATION,
-    dwell=0.0,
+    w_max: npt.ArrayLike = TILT_SPEED,
+    alpha_max: npt.ArrayLike = TILT_ACCELERATION,
+    dwell: npt.ArrayLike = 0.0,
 ) -> np.ndarray:
     """Platform poses ``(N, 5)`` through ``waypoints``, offsets from ``home``: ``(K, 3)`` (x, y, z [m], the platform
     level) or ``(K, 5)`` (x, y, z [m], a, b [rad]).  Straight segments in pose space with quintic timing, at rest

@@ -28,7 +28,9 @@ MAX_GRADIENT_STEPS = 1_000_000  # mechanical steps in one tuning gradient: 40 ti
 MAX_TUNE_STEPS = 500_000_000  # mechanical steps of one tuning problem: about 100 times the default tune's 4.6 million
 
 
-def check_run(where: str, seconds: float, rates: LoopRates, *, machine: bool = False, error=ParameterError) -> None:
+def check_run(
+    where: str, seconds: float, rates: LoopRates, *, machine: bool = False, error: type[Exception] = ParameterError
+) -> None:
     """``seconds`` [s] simulated in all by one command at ``rates`` (``machine``: on the MJX machine, whose mechanism
     steps every ``rates.dt_mech`` s): at most :data:`MAX_TICKS` current-loop ticks, :data:`MAX_PERIODS` position
     periods and (``machine``) :data:`MAX_MACHINE_STEPS` mechanical steps; ``error`` naming ``where`` and the limit in
@@ -46,7 +48,9 @@ def check_run(where: str, seconds: float, rates: LoopRates, *, machine: bool = F
             )
 
 
-def check_tuning(where: str, gradient_steps: float, total_steps: float, error=ParameterError) -> None:
+def check_tuning(
+    where: str, gradient_steps: float, total_steps: float, error: type[Exception] = ParameterError
+) -> None:
     """A tuning problem of ``gradient_steps`` mechanical steps in one gradient and ``total_steps`` in all: at most
     :data:`MAX_GRADIENT_STEPS` and :data:`MAX_TUNE_STEPS`; ``error`` naming ``where`` and the limit otherwise."""
     for steps, most, what in (

@@ -19,6 +19,40 @@ A plant is a hashable object (a static argument of the jitted rollout) with:
   step (the full state of a large plant would not fit in memory over long runs).
 """
 
+from typing import TYPE_CHECKING
+
 from .axis import AxisPlant
+
+if TYPE_CHECKING:
+    from typing import Any, Protocol
+
+    import jax
+
+    from ..params import ServoParams
+
+    class Plant(Protocol):
+        """The interface above, for type checkers; ``aux`` and the state are each plant's own."""
+
+        def __hash__(self) -> int: ...
+
+        @property
+        def n_axes(self) -> int: ...
+
+        def prepare(self, servo: ServoParams, plant_params: Any, dt: float) -> Any: ...
+
+        def init(self, aux: Any) -> Any: ...
+
+        def holding_torque(
+            self, aux: Any, state: Any, force_axis: int | None = None, force: Any = None
+        ) -> jax.Array: ...
+
+        def measure(self, aux: Any, state: Any) -> tuple[jax.Array, jax.Array]: ...
+
+        def step(self, aux: Any, state: Any, torque: jax.Array) -> Any: ...
+
+        def slider(self, aux: Any, state: Any) -> tuple[jax.Array, jax.Array]: ...
+
+        def observe(self, aux: Any, state: Any) -> Any: ...
+
 
 __all__ = ["AxisPlant"]

@@ -53,36 +53,38 @@ class AxisPlant:
             servo.eta,
         )
 
-    def init(self, aux: AxisAux):
+    def init(self, aux: AxisAux) -> jax.Array:
         return jnp.zeros(aux.r.shape + (2,))
 
-    def holding_torque(self, aux: AxisAux, state, force_axis: int | None = None, force=None):
+    def holding_torque(
+        self, aux: AxisAux, state: jax.Array, force_axis: int | None = None, force: Any = None
+    ) -> jax.Array:
         """Motor torques [N m] that hold each axis still: gravity along the rail (friction is 0 at rest).
 
         The axes are independent: ``force_axis`` (pushing a slider force ``force`` [N]) leaves the others as they are.
         """
-        torque = aux.r / aux.eta * aux.load_force * jnp.ones_like(state[..., 0])
+        torque: jax.Array = aux.r / aux.eta * aux.load_force * jnp.ones_like(state[..., 0])
         if force_axis is None:
             return torque
         return torque.at[..., force_axis].set(force * aux.r[..., force_axis] / aux.eta[..., force_axis])
 
-    def measure(self, aux: AxisAux, state):
+    def measure(self, aux: AxisAux, state: jax.Array) -> tuple[jax.Array, jax.Array]:
         return state[..., 0], state[..., 1]
 
-    def step(self, aux: AxisAux, state, torque):
+    def step(self, aux: AxisAux, state: jax.Array, torque: jax.Array) -> jax.Array:
         v = aux.r * state[..., 1]
         tau_ext = aux.r / aux.eta * (aux.load_force + coulomb_friction(aux.friction, v))
         return lti.update(aux.step, state, jnp.stack([torque, tau_ext], axis=-1))
 
-    def slider(self, aux: AxisAux, state):
+    def slider(self, aux: AxisAux, state: jax.Array) -> tuple[jax.Array, jax.Array]:
         return aux.r * state[..., 0], aux.r * state[..., 1]
 
-    def observe(self, aux: AxisAux, state):
+    def observe(self, aux: AxisAux, state: jax.Array) -> tuple[()]:
         """Nothing: the state is the motor angle and speed, which the trace already holds."""
         return ()
 
 
-def screw_ratio(servo: ServoParams):
+def screw_ratio(servo: ServoParams) -> Any:
     """Slider travel per motor radian ``lead / 2 pi`` [m/rad]."""
     return servo.lead / (2.0 * jnp.pi)
 

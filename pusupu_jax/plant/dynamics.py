@@ -27,19 +27,24 @@ kinematic errors of the real machine.
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+import numpy.typing as npt
 
 from ..programs import Program, describe
 from .axis import screw_ratio
 from .geometry import Geometry
 from .model import ModelOptions, build_model, pose_to_qpos, slide_dofs, slide_qpos
 
+if TYPE_CHECKING:
+    from ..params import ServoParams
 
-def nominal_model(servo, geom: Geometry, options: ModelOptions) -> mujoco.MjModel:
+
+def nominal_model(servo: ServoParams, geom: Geometry, options: ModelOptions) -> mujoco.MjModel:
     """The model without kinematic errors, with the rotor armature of ``servo`` on the slides."""
     m = build_model(geom, dataclasses.replace(options, kin_error_seed=None))
     r = np.asarray(screw_ratio(servo))
@@ -48,7 +53,11 @@ def nominal_model(servo, geom: Geometry, options: ModelOptions) -> mujoco.MjMode
 
 
 def inverse_dynamics_forces(
-    servo, path, dt: float, geom: Geometry | None = None, options: ModelOptions = ModelOptions()
+    servo: ServoParams,
+    path: npt.ArrayLike,
+    dt: float,
+    geom: Geometry | None = None,
+    options: ModelOptions = ModelOptions(),
 ) -> tuple[np.ndarray, np.ndarray]:
     """Minimum-norm slider forces along ``path`` and the actuation Jacobians.
 
@@ -82,13 +91,13 @@ def inverse_dynamics_forces(
     return F, J
 
 
-def coupling_row(J) -> np.ndarray:
+def coupling_row(J: npt.ArrayLike) -> np.ndarray:
     """``w = J_6 J_15^-1``, shape ``(..., 5)``: when branches 1-5 move by ``ds_15``, branch 6 moves by ``w . ds_15``."""
     J = np.asarray(J)
     return np.linalg.solve(np.swapaxes(J[..., :5, :], -1, -2), J[..., 5, :][..., None])[..., 0]
 
 
-def reflected_mass(geom: Geometry, poses, options: ModelOptions = ModelOptions()) -> np.ndarray:
+def reflected_mass(geom: Geometry, poses: npt.ArrayLike, options: ModelOptions = ModelOptions()) -> np.ndarray:
     """The mechanism's mass [kg] each slider carries at each of ``poses`` ``(N, 5)``: the diagonal of the
     actuator-space inertia ``J+^T M_q J+``, ``(N, 6)``.
 

@@ -20,11 +20,17 @@ velocity period, 4 kHz by default) pays no JAX dispatch: 2 us a call on the 2-co
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+if TYPE_CHECKING:
+    from jax.typing import ArrayLike
+
+    from ..params import ServoParams
 
 
 @jax.tree_util.register_dataclass
@@ -37,17 +43,17 @@ class Friction:
     v_coulomb: Any
 
     @classmethod
-    def of(cls, servo) -> "Friction":
+    def of(cls, servo: ServoParams) -> "Friction":
         """The friction fields of ``servo`` (a :class:`~pusupu_jax.params.ServoParams`), as they are (traced or not)."""
         return cls(servo.coulomb, servo.viscous, servo.v_coulomb)
 
 
-def _array_module(*arrays):
+def _array_module(*arrays: object) -> ModuleType:
     """numpy when every input is a numpy array or a number, jax.numpy otherwise (JAX or traced arrays)."""
     return np if all(isinstance(a, (np.ndarray, np.generic, float, int)) for a in arrays) else jnp
 
 
-def coulomb_friction(friction, v):
+def coulomb_friction(friction: Friction | ServoParams, v: ArrayLike) -> Any:
     """The Coulomb part ``coulomb tanh(v / v_coulomb)`` [N] at slider speeds ``v`` [m/s] ``(..., 6)``.
 
     ``friction``: a :class:`Friction` or anything with its fields (a ``ServoParams``)."""
@@ -55,6 +61,6 @@ def coulomb_friction(friction, v):
     return friction.coulomb * xp.tanh(v / friction.v_coulomb)
 
 
-def slider_friction(friction, v):
+def slider_friction(friction: Friction | ServoParams, v: ArrayLike) -> Any:
     """The whole friction force [N] opposing slider speeds ``v`` [m/s] ``(..., 6)``: Coulomb plus viscous."""
     return coulomb_friction(friction, v) + friction.viscous * v

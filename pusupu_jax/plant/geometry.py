@@ -20,14 +20,18 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Sequence
 
 import jax
 import numpy as np
+import numpy.typing as npt
 import yaml
 
 from ..files import read_yaml_mapping
 from ..params import ParameterError
+
+if TYPE_CHECKING:
+    import os
 
 N_BRANCHES = 6
 
@@ -36,7 +40,9 @@ class GeometryError(ParameterError):
     """A geometry, pose or path is invalid (inconsistent, unreachable, out of stroke or singular)."""
 
 
-def _ring(radius, centre_deg, half_spread_deg, z=0.0):
+def _ring(
+    radius: float, centre_deg: Sequence[float], half_spread_deg: float, z: float = 0.0
+) -> npt.NDArray[np.float64]:
     """Six points on a circle, in three pairs at ``centre_deg +- half_spread_deg`` (120 deg apart)."""
     ang = np.radians([c + s * half_spread_deg for c in centre_deg for s in (-1, 1)])
     return np.stack([radius * np.cos(ang), radius * np.sin(ang), np.full(6, z)], axis=1)
@@ -87,7 +93,7 @@ class Geometry:
             upu_mass=np.array([2.0, 1.5]),
         )
 
-    def replace(self, **changes) -> "Geometry":
+    def replace(self, **changes: Any) -> "Geometry":
         return dataclasses.replace(self, **changes)
 
 
@@ -144,7 +150,7 @@ def validate_geometry(g: Geometry) -> None:
         raise GeometryError(f"geometry.upu_min: expected < upu_max, got {float(g.upu_min)} >= {float(g.upu_max)}")
 
 
-def load_geometry(path) -> Geometry:
+def load_geometry(path: str | os.PathLike[str]) -> Geometry:
     """Read a geometry YAML: any subset of the fields of :class:`Geometry`, the rest default."""
     path = Path(path)
     data = read_yaml_mapping(path, "geometry field", _SHAPES, GeometryError)
@@ -161,4 +167,5 @@ def load_geometry(path) -> Geometry:
 
 def dump_geometry(g: Geometry) -> str:
     """The geometry as YAML text (every field, plain lists)."""
-    return yaml.safe_dump({k: np.asarray(getattr(g, k)).tolist() for k in _SHAPES}, sort_keys=False)
+    text: str = yaml.safe_dump({k: np.asarray(getattr(g, k)).tolist() for k in _SHAPES}, sort_keys=False)
+    return text

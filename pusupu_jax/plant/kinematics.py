@@ -25,33 +25,41 @@ coordinates, a fixed number of iterations (a ``lax.scan``, so it is differentiab
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any, Callable, cast
+
 import jax
 import jax.numpy as jnp
 import numpy as np
+import numpy.typing as npt
 
 from .geometry import Geometry, GeometryError
 
+if TYPE_CHECKING:
+    from jax.typing import ArrayLike
 
-def rot_x(t):
+
+def rot_x(t: ArrayLike) -> jax.Array:
     c, s = jnp.cos(t), jnp.sin(t)
     z, o = jnp.zeros_like(t), jnp.ones_like(t)
     return jnp.stack([jnp.stack([o, z, z], -1), jnp.stack([z, c, -s], -1), jnp.stack([z, s, c], -1)], -2)
 
 
-def rot_y(t):
+def rot_y(t: ArrayLike) -> jax.Array:
     c, s = jnp.cos(t), jnp.sin(t)
     z, o = jnp.zeros_like(t), jnp.ones_like(t)
     return jnp.stack([jnp.stack([c, z, s], -1), jnp.stack([z, o, z], -1), jnp.stack([-s, z, c], -1)], -2)
 
 
-def xy_hinge_angles(direction):
+def xy_hinge_angles(direction: ArrayLike) -> tuple[jax.Array, jax.Array]:
     """Angles of a hinge about x then a hinge about y that turn the z axis onto ``direction`` (any length)."""
     direction = jnp.asarray(direction)
     length = jnp.linalg.norm(direction, axis=-1)
     return jnp.arctan2(-direction[..., 1], direction[..., 2]), jnp.arcsin(direction[..., 0] / length)
 
 
-def upu_angles(q):
+def upu_angles(
+    q: jax.Array | npt.NDArray[np.float64],
+) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array, jax.Array]:
     """Joint coordinates of the UPU branch for pose ``q``: (phi1, phi2, leg length [m], alpha, beta)."""
     p = q[..., :3]
     length = jnp.linalg.norm(p, axis=-1)
@@ -63,23 +71,24 @@ def upu_angles(q):
     return phi1, phi2, length, gamma - phi2, beta
 
 
-def platform_rotation(q):
+def platform_rotation(q: jax.Array | npt.NDArray[np.float64]) -> jax.Array:
     """Platform orientation ``R`` (3x3) imposed by the UPU branch for pose ``q``."""
     phi1, phi2, _, alpha, beta = upu_angles(q)
     return rot_x(phi1) @ rot_y(phi2 + alpha) @ rot_x(beta)
 
 
-def joint_points(geom: Geometry, q):
+def joint_points(geom: Geometry, q: jax.Array | npt.NDArray[np.float64]) -> jax.Array:
     """Spherical-joint centres ``P_i`` in the base frame, shape ``(..., 6, 3)`` [m]."""
     R = platform_rotation(q)
-    return q[..., None, :3] + jnp.einsum("...ij,kj->...ki", R, jnp.asarray(geom.platform_points))
+    # a JAX array: with a numpy ``q``, numpy's ``+`` defers to the JAX array (numpy's stubs say ndarray)
+    return cast(jax.Array, q[..., None, :3] + jnp.einsum("...ij,kj->...ki", R, jnp.asarray(geom.platform_points)))
 
 
 # The functions that host-side code calls on whole paths (the path checks, the references) are jitted: run op by
 # op, each of their operations compiled alone on a cold cache (227 compiles: the default tune's problem build took
 # 15.5 s, now 10.4 s).  Inside a traced function a jit is inlined.
 @jax.jit
-def _branch_terms(geom: Geometry, q):
+def _branch_terms(geom: Geometry, q: jax.Array) -> tuple[jax.Array, jax.Array]:
     d = joint_points(geom, q) - jnp.asarray(geom.rail_points)
     ud = jnp.sum(d * jnp.asarray(geom.rail_dirs), axis=-1)
     disc = ud**2 - jnp.sum(d**2, axis=-1) + jnp.asarray(geom.rod_lengths) ** 2
@@ -87,19 +96,22 @@ def _branch_terms(geom: Geometry, q):
 
 
 @jax.jit
-def inverse_kinematics(geom: Geometry, q):
+def inverse_kinematics(geom: Geometry, q: jax.Array) -> jax.Array:
     """Slider positions ``s`` (``(..., 6)`` [m]) for poses ``q`` (``(..., 5)``); NaN where unreachable."""
     ud, disc = _branch_terms(geom, q)
-    return ud - jnp.sqrt(disc)
+    return cast(jax.Array, ud - jnp.sqrt(disc))  # jax.jit's wrapper returns Any
 
 
 @jax.jit
-def jacobian(geom: Geometry, q):
+def jacobian(geom: Geometry, q: jax.Array) -> jax.Array:
     """``ds/dq``, shape ``(..., 6, 5)`` (forward-mode derivative of the closed-form IK)."""
-    return jnp.vectorize(jax.jacfwd(lambda qq: inverse_kinematics(geom, qq)), signature="(5)->(6,5)")(q)
+    jac = jnp.vectorize(jax.jacfwd(lambda qq: inverse_kinematics(geom, qq)), signature="(5)->(6,5)")
+    return cast(jax.Array, jac(q))  # jnp.vectorize returns an untyped callable
 
 
-def forward_kinematics(geom: Geometry, s, q0=None, iterations: int = 12):
+def forward_kinematics(
+    geom: Geometry, s: jax.Array, q0: ArrayLike | None = None, iterations: int = 12
+) -> tuple[jax.Array, jax.Array]:
     """Pose ``q`` whose IK is ``s`` (Gauss-Newton from ``q0``, default home); returns ``(q, residual [m])``.
 
     ``residual`` is the max |IK(q) - s| after the last iteration: near zero when ``s``
@@ -107,8 +119,8 @@ def forward_kinematics(geom: Geometry, s, q0=None, iterations: int = 12):
     """
     q0 = jnp.asarray(geom.home if q0 is None else q0, dtype=s.dtype)
 
-    def solve(s1, q1):
-        def step(q, _):
+    def solve(s1: jax.Array, q1: jax.Array) -> tuple[jax.Array, jax.Array]:
+        def step(q: jax.Array, _: None) -> tuple[jax.Array, None]:
             r = inverse_kinematics(geom, q) - s1
             J = jax.jacfwd(lambda qq: inverse_kinematics(geom, qq))(q)
             return q - jnp.linalg.solve(J.T @ J, J.T @ r), None
@@ -116,11 +128,11 @@ def forward_kinematics(geom: Geometry, s, q0=None, iterations: int = 12):
         q, _ = jax.lax.scan(step, q1, None, length=iterations)
         return q, jnp.max(jnp.abs(inverse_kinematics(geom, q) - s1))
 
-    return jnp.vectorize(solve, signature="(6),(5)->(5),()")(s, q0)
+    return cast(tuple[jax.Array, jax.Array], jnp.vectorize(solve, signature="(6),(5)->(5),()")(s, q0))
 
 
 @jax.jit
-def condition_number(geom: Geometry, q):
+def condition_number(geom: Geometry, q: jax.Array) -> jax.Array:
     """Condition number of the Jacobian at poses ``q``, its tilt columns scaled by the platform's radius.
 
     A tilt [rad] times the characteristic length (mean distance of the spherical joints
@@ -132,7 +144,9 @@ def condition_number(geom: Geometry, q):
     return sv[..., 0] / sv[..., -1]
 
 
-def check_poses(geom: Geometry, q, cond_max: float = 30.0, margin: float = 0.0, dt: float | None = None) -> dict:
+def check_poses(
+    geom: Geometry, q: npt.ArrayLike, cond_max: float = 30.0, margin: float = 0.0, dt: float | None = None
+) -> dict[str, Any]:
     """Check poses ``q`` (``(N, 5)``) host-side before any simulation; raise :class:`GeometryError` if bad.
 
     Every branch must be reachable, every slider within its stroke (shrunk by ``margin``
@@ -152,20 +166,21 @@ def check_poses(geom: Geometry, q, cond_max: float = 30.0, margin: float = 0.0, 
     cond = np.nan_to_num(np.asarray(condition_number(geom, jnp.asarray(q))), nan=np.inf)
     out = (s < lo) | (s > hi)
 
-    def at(k):
+    def at(k: int) -> str:
         return f"pose {k}" + ("" if dt is None else f" (t = {k * dt:.6g} s)") + f" {_fmt(q[k])}"
 
-    def unreachable(k):
+    def unreachable(k: int) -> str:
         return f"{at(k)}: branch {int(np.argmax(disc[k] < 0)) + 1} unreachable (its rod is too short for the joint)"
 
-    def out_of_stroke(k):
+    def out_of_stroke(k: int) -> str:
         i = int(np.argmax(out[k]))
         return (
             f"{at(k)}: slider {i + 1} out of stroke, s = {s[k, i] * 1e3:.1f} mm, expected {lo[i] * 1e3:.1f} to "
             f"{hi[i] * 1e3:.1f} mm"
         )
 
-    checks = [  # (which poses fail, the message for pose k); of two failing at one pose, the first listed is said
+    # (which poses fail, the message for pose k); of two failing at one pose, the first listed is said
+    checks: list[tuple[np.bool_ | npt.NDArray[np.bool_], Callable[[int], str]]] = [
         (q[:, 2] <= 0, lambda k: f"{at(k)}: expected the platform above the base (z > 0), got z = {q[k, 2]:.4g} m"),
         ((disc < 0).any(axis=1), unreachable),
         (out.any(axis=1), out_of_stroke),
@@ -190,5 +205,5 @@ def check_poses(geom: Geometry, q, cond_max: float = 30.0, margin: float = 0.0, 
     }
 
 
-def _fmt(q):
+def _fmt(q: npt.NDArray[np.float64]) -> str:
     return f"(x={q[0] * 1e3:.1f} mm, y={q[1] * 1e3:.1f} mm, z={q[2] * 1e3:.1f} mm, a={q[3]:.3g}, b={q[4]:.3g})"

@@ -28,7 +28,7 @@ import contextlib
 import dataclasses
 import io
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import jax
 import jax.numpy as jnp
@@ -42,6 +42,9 @@ from .axis import screw_ratio
 from .friction import Friction, slider_friction
 from .geometry import Geometry
 from .model import ModelOptions, build_model, loop_closure_residual, slide_dofs, slide_qpos
+
+if TYPE_CHECKING:
+    from ..params import ServoParams
 
 
 @jax.tree_util.register_dataclass
@@ -67,7 +70,7 @@ class MJXPlant:
         m = build_model(geom, options)
         return cls(m, mjx.put_model(m), options)
 
-    def variant(self, options: ModelOptions, geom: Geometry | None = None):
+    def variant(self, options: ModelOptions, geom: Geometry | None = None) -> mjx.Model:
         """The ``mjx.Model`` of the machine built with ``options``, as array fields on this plant's structure.
 
         Only array fields are taken from the variant (body poses, masses, inertias, geoms,
@@ -92,10 +95,10 @@ class MJXPlant:
         return self.mjx_model.replace(**arrays)
 
     @property
-    def _dofs(self):
+    def _dofs(self) -> np.ndarray:
         return slide_dofs(self.mj_model)
 
-    def _connect_jacobian(self, model, data):
+    def _connect_jacobian(self, model: mjx.Model, data: mjx.Data) -> jax.Array:
         """``(18, nv)``: d(anchor on the rod - anchor on the platform)/d(qvel) of the six spherical joints.
 
         MuJoCo's point Jacobian (``mj_jac``; ``mjx.jac`` with its body-tree mask built here once
@@ -126,17 +129,17 @@ class MJXPlant:
         return np.isin(m.dof_bodyid, sorted(chain))
 
     @property
-    def _upu_and_branch_dofs(self):
+    def _upu_and_branch_dofs(self) -> tuple[np.ndarray, np.ndarray]:
         """DOF indices of the UPU leg's five joints (the platform's coordinates) and of the branches' 18."""
         m = self.mj_model
         upu = [m.jnt_dofadr[m.joint(name).id] for name in ("upu_phi1", "upu_phi2", "upu_leg", "upu_alpha", "upu_beta")]
         return np.array(upu), np.array(sorted(set(range(m.nv)) - set(upu)))
 
     @property
-    def _qpos(self):
+    def _qpos(self) -> np.ndarray:
         return slide_qpos(self.mj_model)
 
-    def prepare(self, servo, plant_params, dt: float) -> MJXAux:
+    def prepare(self, servo: ServoParams, plant_params: mjx.Model | None, dt: float) -> MJXAux:
         if not np.isclose(dt, self.options.timestep, rtol=1e-9):
             raise ValueError(
                 f"MJXPlant: the mechanical step rates.dt_mech = {dt} s must equal the model "
@@ -147,10 +150,12 @@ class MJXPlant:
         armature = model.dof_armature.at[self._dofs].set(servo.eta * servo.J / r**2)
         return MJXAux(model.replace(dof_armature=armature), servo.eta / r, r, Friction.of(servo))
 
-    def init(self, aux: MJXAux):
+    def init(self, aux: MJXAux) -> mjx.Data:
         return mjx.forward(aux.model, mjx.make_data(aux.model))
 
-    def holding_torque(self, aux: MJXAux, data, force_axis: int | None = None, force=None):
+    def holding_torque(
+        self, aux: MJXAux, data: mjx.Data, force_axis: int | None = None, force: Any = None
+    ) -> jax.Array:
         """Motor torques [N m] that hold the machine still in ``data`` (at rest: gravity only), ``(6,)``.
 
         The five equations of static equilibrium along the motions the closed chain allows,
@@ -182,22 +187,22 @@ class MJXPlant:
                 .at[rest]
                 .set(jnp.linalg.solve(J[rest].T, Q - J[force_axis] * force))
             )
-        return F / aux.force_gain
+        return cast(jax.Array, F / aux.force_gain)  # a JAX array; the aux's fields are typed Any
 
-    def measure(self, aux: MJXAux, data):
+    def measure(self, aux: MJXAux, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
         s, v = self.slider(aux, data)
         return s / aux.r, v / aux.r
 
-    def step(self, aux: MJXAux, data, torque):
+    def step(self, aux: MJXAux, data: mjx.Data, torque: jax.Array) -> mjx.Data:
         """One mechanical step under motor torques ``torque`` [N m] ``(6,)``, held, with the drive train's friction."""
         force = aux.force_gain * torque - slider_friction(aux.friction, data.qvel[self._dofs])
         qfrc = jnp.zeros_like(data.qfrc_applied).at[self._dofs].set(force)
         return mjx.step(aux.model, data.replace(qfrc_applied=qfrc))
 
-    def slider(self, aux: MJXAux, data):
+    def slider(self, aux: MJXAux, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
         return data.qpos[self._qpos] - aux.model.qpos0[self._qpos], data.qvel[self._dofs]
 
-    def observe(self, aux: MJXAux, data):
+    def observe(self, aux: MJXAux, data: mjx.Data) -> dict[str, jax.Array]:
         """Platform position [m] and orientation (3x3), and the loop-closure residual [m].
 
         With contacts, also ``contact_force``: the force [N] (world axes) that the scene
@@ -214,7 +219,7 @@ class MJXPlant:
             out["contact_force"] = self.contact_force(aux.model, data)
         return out
 
-    def contact_force(self, model, data):
+    def contact_force(self, model: mjx.Model, data: mjx.Data) -> jax.Array:
         """Force [N] (world axes) on the tool from every contact, ``(3,)``; zero where none is active.
 
         Each contact's force in its frame (normal, two tangents) comes from MJX's decoding of

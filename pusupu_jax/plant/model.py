@@ -43,13 +43,19 @@ pyramidal cone) except the sliding friction, ``friction`` (default MuJoCo's 1).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Callable, Iterable, cast
 
+import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+import numpy.typing as npt
 
 from .geometry import Geometry, GeometryError, validate_geometry
 from .kinematics import inverse_kinematics, joint_points, upu_angles, xy_hinge_angles
+
+if TYPE_CHECKING:
+    from jax.typing import ArrayLike
 
 GROUP_VISUAL = 1
 SCENES = ("surface", "peg_in_hole")
@@ -66,14 +72,15 @@ class ModelOptions:
 
     timestep: float = 0.00025  # s, mechanical step (rates.dt_mech: n_mech = 5 at 20 kHz)
     payload: float = 0.0  # kg, the payload body welded to the platform
-    payload_com: tuple = (0.0, 0.0, 0.0)  # m, the payload's centre of mass in the platform frame
-    payload_inertia: tuple = (0.0, 0.0, 0.0)  # kg m^2, its principal moments about its centre of mass (platform axes)
+    payload_com: tuple[float, ...] = (0.0, 0.0, 0.0)  # m, the payload's centre of mass in the platform frame
+    # kg m^2, its principal moments about its centre of mass (platform axes)
+    payload_inertia: tuple[float, ...] = (0.0, 0.0, 0.0)
     kin_error_seed: int | None = None
     kin_error_std: float = 0.0005  # m
     contacts: bool = False
     scene: str = "surface"  # the contact scene when contacts=True: 'surface' or 'peg_in_hole'
     surface_tilt: float = 0.0  # rad, the work surface's tilt about the world y axis ('surface')
-    hole_offset: tuple = (0.0, 0.0)  # m, the hole's axis from the peg's at home, x and y ('peg_in_hole')
+    hole_offset: tuple[float, ...] = (0.0, 0.0)  # m, the hole's axis from the peg's at home, x and y ('peg_in_hole')
     friction: float = 1.0  # sliding friction coefficient of the tool and the scene (MuJoCo takes the larger)
     cone: str = "pyramidal"  # MuJoCo's friction cone: 'pyramidal' or 'elliptic'
     solver_iterations: int = 1  # Newton iterations; 1 keeps reverse-mode gradients through MJX possible
@@ -90,14 +97,15 @@ def perturbed(geom: Geometry, seed: int, std: float) -> Geometry:
     )
 
 
-def _in_frame(quat, vector) -> np.ndarray:
+def _in_frame(quat: npt.ArrayLike, vector: npt.ArrayLike) -> npt.NDArray[np.float64]:
     """``vector`` (world or parent axes) expressed in the frame rotated by ``quat``."""
     rot = np.zeros(9)
     mujoco.mju_quat2Mat(rot, np.asarray(quat, dtype=float))
-    return rot.reshape(3, 3).T @ np.asarray(vector, dtype=float)
+    # numpy's stubs type this product as Any
+    return cast(npt.NDArray[np.float64], rot.reshape(3, 3).T @ np.asarray(vector, dtype=float))
 
 
-def _frame_z_to(direction) -> np.ndarray:
+def _frame_z_to(direction: npt.ArrayLike) -> npt.NDArray[np.float64]:
     """A quaternion (w, x, y, z) turning the local z axis onto ``direction``."""
     quat = np.zeros(4)
     mujoco.mju_quatZ2Vec(quat, np.asarray(direction, dtype=float))
@@ -132,15 +140,22 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     spec.compiler.inertiafromgeom = False
     world = spec.worldbody
 
-    def body(parent, name, pos, quat, mass, inertia):
+    def body(
+        parent: mujoco.MjsBody,
+        name: str,
+        pos: Iterable[float],
+        quat: Iterable[float],
+        mass: float,
+        inertia: Iterable[float],
+    ) -> mujoco.MjsBody:
         b = parent.add_body(name=name, pos=list(pos), quat=list(quat))
         b.mass, b.inertia, b.explicitinertial = float(mass), list(inertia), True
         return b
 
-    def hinge(b, name, axis, ref):
+    def hinge(b: mujoco.MjsBody, name: str, axis: Iterable[float], ref: float) -> None:
         b.add_joint(name=name, type=mujoco.mjtJoint.mjJNT_HINGE, axis=list(axis), ref=float(ref))
 
-    def visual(b, fromto, radius):
+    def visual(b: mujoco.MjsBody, fromto: Iterable[float], radius: float) -> None:
         b.add_geom(
             type=mujoco.mjtGeom.mjGEOM_CAPSULE,
             fromto=list(fromto),
@@ -228,7 +243,7 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     return spec.compile()
 
 
-def _add_hole(world, centre, top: float):
+def _add_hole(world: mujoco.MjsBody, centre: npt.NDArray[np.float64], top: float) -> None:
     """The square hole of :data:`HOLE` around ``centre`` (x, y) [m], its top at height ``top`` [m].
 
     Each side is three boxes: a 40 mm-thick wall up to the chamfer's foot (``chamfer`` below the top),
@@ -320,7 +335,7 @@ def _check_payload(options: ModelOptions) -> None:
         )
 
 
-def _rod_inertia(mass, length):
+def _rod_inertia(mass: float, length: float) -> list[float]:
     """Principal inertia [kg m^2] of a slender rod about its centre, axis along z."""
     transverse = mass * length**2 / 12.0
     return [transverse, transverse, 1e-3 * mass]
@@ -336,7 +351,7 @@ def slide_qpos(model: mujoco.MjModel) -> np.ndarray:
     return np.array([model.jnt_qposadr[model.joint(f"slide_{i}").id] for i in range(6)])
 
 
-def connect_gap(model: mujoco.MjModel, xpos, xmat, eq_data=None):
+def connect_gap(model: mujoco.MjModel, xpos: ArrayLike, xmat: ArrayLike, eq_data: ArrayLike | None = None) -> jax.Array:
     """Anchor on the rod minus anchor on the platform [m] of the six spherical-joint ``connect`` constraints.
 
     ``xpos (..., nbody, 3)`` and ``xmat (..., nbody, 9 or 3x3)`` are body poses from
@@ -353,12 +368,14 @@ def connect_gap(model: mujoco.MjModel, xpos, xmat, eq_data=None):
     return p1 - p2
 
 
-def loop_closure_residual(model: mujoco.MjModel, xpos, xmat, eq_data=None):
+def loop_closure_residual(
+    model: mujoco.MjModel, xpos: ArrayLike, xmat: ArrayLike, eq_data: ArrayLike | None = None
+) -> jax.Array:
     """Largest distance [m] between the two anchors of the six spherical-joint constraints (:func:`connect_gap`)."""
     return jnp.max(jnp.linalg.norm(connect_gap(model, xpos, xmat, eq_data), axis=-1), axis=-1)
 
 
-def pose_to_qpos(model: mujoco.MjModel, real: Geometry):
+def pose_to_qpos(model: mujoco.MjModel, real: Geometry) -> Callable[[ArrayLike], jax.Array]:
     """A JAX function ``q (..., 5) -> qpos (..., nq)`` putting the machine ``real`` at pose ``q``, every constraint
     closed.
 
@@ -375,7 +392,7 @@ def pose_to_qpos(model: mujoco.MjModel, real: Geometry):
         for j, k in (("slide", ""), ("rod", "_x"), ("rod", "_y"))
     ]
 
-    def frames(kind):
+    def frames(kind: str) -> jax.Array:
         out = np.zeros((6, 9))
         for i in range(6):
             mujoco.mju_quat2Mat(out[i], model.body_quat[model.body(f"{kind}_{i}").id])
@@ -385,7 +402,7 @@ def pose_to_qpos(model: mujoco.MjModel, real: Geometry):
     qpos0 = jnp.asarray(model.qpos0)
     rail_points, rail_dirs = jnp.asarray(real.rail_points), jnp.asarray(real.rail_dirs)
 
-    def one(q):
+    def one(q: jax.Array) -> jax.Array:
         s = inverse_kinematics(real, q)
         rod = joint_points(real, q) - (rail_points + s[:, None] * rail_dirs)
         rod = jnp.einsum("kji,kj->ki", rod_rot, jnp.einsum("kji,kj->ki", slider_rot, rod))  # in each rod's frame
@@ -397,6 +414,6 @@ def pose_to_qpos(model: mujoco.MjModel, real: Geometry):
     return jnp.vectorize(one, signature="(5)->(n)")
 
 
-def assembled_qpos(model: mujoco.MjModel, real: Geometry, q) -> np.ndarray:
+def assembled_qpos(model: mujoco.MjModel, real: Geometry, q: npt.ArrayLike) -> np.ndarray:
     """``qpos`` that puts the machine described by ``real`` at pose ``q`` with every constraint closed."""
     return np.asarray(pose_to_qpos(model, real)(jnp.asarray(q, dtype=float)))
