@@ -67,14 +67,14 @@ def tune(quick: bool = False):
     with tempfile.TemporaryDirectory(prefix="pusupu-tuned-") as folder:
         report, status = run_job(cfg, Path(folder))
         if status:
-            raise ParameterError(f"tune: no gains exported: {report['export_error']}")
+            raise ParameterError(f"tune: no gains exported: {report.export.error}")
         g = gain_files.load(Path(folder) / "gains.yaml", floors=(cfg.pm_min, cfg.gm_min))
     return g, {
         "source": f"pusupu tune{' --quick' if quick else ''}, run by this experiment",
         "config_hash": cfg.digest(),
-        "objective_before": report["objective_before"],
-        "objective_after": report["objective_after"],
-        "tune_wall_s": report["wall_s"],
+        "objective_before": report.objective_before,
+        "objective_after": report.objective_after,
+        "tune_wall_s": report.wall_s,
     }
 
 

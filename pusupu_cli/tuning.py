@@ -20,7 +20,8 @@ def cmd_tune(args) -> int:
 
     setup_jax()
     from pusupu_jax.tune.config import TuneConfig
-    from pusupu_jax.tune.job import run_job, table
+    from pusupu_jax.tune.job import run_job
+    from pusupu_jax.tune.report import table
 
     if not args.out:
         raise ParameterError("--out: expected a folder, got an empty name")
@@ -43,12 +44,12 @@ def cmd_tune(args) -> int:
             start = gains.load(start, machine=machine)
     report, status = run_job(cfg, out, fresh=args.fresh, machine=machine, start=start)
     if args.json:
-        print(json.dumps({k: v for k, v in report.items() if k != "history"}, indent=2))
+        print(json.dumps(report.to_json(history=False), indent=2))
     else:
         print(table(report))
-        print(f"wrote: {', '.join(report['exported'] + report['plots'] + [str(out / 'report.json')])}")
+        print(f"wrote: {', '.join(report.export.exported + report.plots + [str(out / 'report.json')])}")
     if status:
-        say(f"pusupu: error: {report['export_error']}")
+        say(f"pusupu: error: {report.export.error}")
     return status
 
 

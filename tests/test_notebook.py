@@ -136,7 +136,7 @@ def test_the_tuners_results_show_as_summaries():
     import jax
     import jax.numpy as jnp
 
-    from pusupu_jax.tune.job import TuneReport
+    from pusupu_jax.tune.report import Evaluation, Export, GainFileRef, TuneReport
     from pusupu_jax.tune.optimise import optimise
 
     def vg(z):
@@ -156,22 +156,32 @@ def test_the_tuners_results_show_as_summaries():
         }
     }
     report = TuneReport(
-        before=run,
-        after=run,
-        baselines={},
-        objective_before=1.1,
-        objective_after=0.79,
-        iterations=3,
-        wall_s=57.0,
+        config={},
+        config_hash="0" * 16,
+        machine={"name": "built-in"},
+        start_gains={"source": "table1"},
         tuned_fields=["lambda1"],
         start={"lambda1": [0.018] * 6},
         result={"lambda1": [0.0147] * 6},
-        history=[{"start": 0, "iteration": k} for k in range(999)],
+        objective_before=1.1,
+        objective_after=0.79,
+        history=[Evaluation(0, k, 1.0) for k in range(3)],
+        before=run,
+        after=run,
+        baselines={},
+        margins_before={},
+        optimise_wall_s=50.0,
+        export=Export(
+            {}, [], GainFileRef(None, not_written="a phase margin below 45 deg"), "a phase margin below 45 deg"
+        ),
+        plots=[],
+        wall_s=57.0,
     )
     text = repr(report)
     assert len(text) < MAX_REPR and "objective 1.1000 -> 0.7900 in 3 evaluations" in text
-    assert "lambda1  0.018 -> 0.0147" in text and json.loads(json.dumps(report)) == dict(report)
-    assert repr(TuneReport(a=1)) == "TuneReport(keys ['a'])"
+    assert "lambda1  0.018 -> 0.0147" in text and "NOT EXPORTED: a phase margin below 45 deg" in text
+    # report.json's content reads back as the same record
+    assert TuneReport.from_json(json.loads(json.dumps(report.to_json()))) == report
 
 
 @pytest.mark.slow

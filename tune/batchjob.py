@@ -30,26 +30,14 @@ from pusupu_jax import devices as placement, inputs, machine_file
 from pusupu_jax.files import write_atomic
 from pusupu_jax.runtime import setup_jax
 from pusupu_jax.machine_file import Machine
-from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError
 
 from . import jobfile
 from .config import TuneConfig
+from .report import Evaluation, JobReport, JobStatus, SummaryRow, scenario_metrics
 
 SUMMARY_FILES = ("summary.csv", "summary.md", "summary.json", "summary.png")
 MAX_REPORT_BYTES = 64 << 20  # a job's report.json: its history, a few hundred bytes an iteration
-SUMMARY_COLUMNS = (
-    "job",
-    "status",
-    "scenarios",
-    "objective_before",
-    "objective_after",
-    "rms_before_mm",
-    "rms_after_mm",
-    "max_after_mm",
-    "force_peak_after_n",
-    "error",
-)
 
 
 def job_dir(out: Path, name: str) -> Path:
@@ -57,7 +45,8 @@ def job_dir(out: Path, name: str) -> Path:
 
 
 def done_report(out: Path, job: jobfile.Job) -> dict | None:
-    """The job's report if a finished run of these very settings wrote it, else None."""
+    """The job's ``report.json`` (:class:`~pusupu_jax.tune.report.JobReport`'s JSON) if a finished run of these very
+    settings wrote it, else None."""
     path = job_dir(out, job.name) / "report.json"
     try:
         report = json.loads(inputs.read_bytes(path, "job report", ParameterError, limit=MAX_REPORT_BYTES))
@@ -70,7 +59,7 @@ def shards(jobs: list, shard_size: int | None) -> list[dict]:
     """The tasks of one group's pending ``jobs``: shards of at most ``shard_size`` jobs, padded to one size."""
     size = len(jobs) if shard_size is None else min(shard_size, len(jobs))
     cfg = jobs[0].config
-    config = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()}
+    config = cfg.to_json()
     tasks = []
     for a in range(0, len(jobs), size):
         part = jobs[a : a + size]
@@ -173,36 +162,31 @@ def write_job(
 ) -> dict:
     """One job's outputs on ``machine`` from the start gains ``start`` (what the report says of them): gains and ROS 2
     files if they pass every check, plots, report.json last; its summary row."""
-    from .job import _plots, _summary, export
+    from .job import _plots, export
 
     folder = job_dir(out, entry["name"])
     folder.mkdir(parents=True, exist_ok=True)
     first = [h for h in history if h["iteration"] == 0 and h["start"] == 0]
     objective_before = first[0]["objective"] if first else float("nan")
-    report = {
-        "job": entry["name"],
-        "job_digest": entry["digest"],
-        "scenarios": entry["specs"],
-        "machine": machine_file.reference(machine),
-        "start_gains": start,
-        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
-        "tuned_fields": list(problem.space.fields),
-        "failed_starts": {str(k): v for k, v in failed.items()},
-        "history": [{k: h[k] for k in ("start", "iteration", "objective")} for h in history],
-        "objective_before": objective_before,
-        "before": {n: _summary(r) for n, (r, _) in before.items()},
-    }
+    common = dict(
+        job=entry["name"],
+        job_digest=entry["digest"],
+        scenarios=entry["specs"],
+        machine=machine_file.reference(machine),
+        start_gains=start,
+        config=cfg.to_json(),
+        tuned_fields=list(problem.space.fields),
+        failed_starts={str(k): v for k, v in failed.items()},
+        history=[Evaluation.of(h) for h in history],
+        objective_before=objective_before,
+        before={n: scenario_metrics(r) for n, (r, _) in before.items()},
+    )
     if z is None:
-        report |= {"status": "failed", "error": "every start failed: " + "; ".join(failed.values())}
+        report = JobReport(**common, status=JobStatus.FAILED, error="every start failed: " + "; ".join(failed.values()))
     else:
         servo, hybrid = problem.space.host_values(z)
         best = min(h["objective"] for h in history)
-        report |= {
-            "objective_after": best,
-            "after": {n: _summary(r) for n, (r, _) in after.items()},
-            "start": {f: np.asarray(v).tolist() for f, v in problem.space.values(problem.space.z0()).items()},
-            "result": {f: np.asarray(v).tolist() for f, v in problem.space.values(z).items()},
-        }
+        metrics_after = {n: scenario_metrics(r) for n, (r, _) in after.items()}
         provenance = {
             "config_hash": cfg.digest(),
             "job": entry["name"],
@@ -210,41 +194,23 @@ def write_job(
             "objective_before": objective_before,
             "objective_after": best,
             "floors": [cfg.pm_min, cfg.gm_min],
-            "metrics_after": report["after"],
+            "metrics_after": metrics_after,
         }
-        report |= export(folder, cfg, servo, hybrid, problem.rates, problem.space.fields, provenance, machine)
-        report |= (
-            {"status": "not exported", "error": report["export_error"]}
-            if "export_error" in report
-            else {"status": "ok", "error": ""}
+        outcome = export(folder, cfg, servo, hybrid, problem.rates, problem.space.fields, provenance, machine)
+        report = JobReport(
+            **common,
+            status=JobStatus.OK if outcome.error is None else JobStatus.NOT_EXPORTED,
+            error=outcome.error or "",
+            objective_after=best,
+            after=metrics_after,
+            start=problem.space.json_values(problem.space.z0()),
+            result=problem.space.json_values(z),
+            export=outcome,
+            plots=_plots(folder, history, before, after, {}) if plots else None,
         )
-        if plots:
-            report["plots"] = _plots(folder, history, before, after, {})
-    report["row"] = summary_row(report)
-    write_atomic(folder / "report.json", json.dumps(report, indent=2))
-    return report["row"]
-
-
-def summary_row(report: dict) -> dict:
-    def mean(side, key):
-        runs = report.get(side) or {}
-        return float(np.mean([r[key] for r in runs.values()])) if runs else float("nan")
-
-    row = {
-        "job": report["job"],
-        "status": report["status"],
-        "scenarios": len(report.get("scenarios") or []),
-        "objective_before": report.get("objective_before", float("nan")),
-        "objective_after": report.get("objective_after", float("nan")),
-        "rms_before_mm": mean("before", Metric.RMS_TRACKING_ERROR_MM),
-        "rms_after_mm": mean("after", Metric.RMS_TRACKING_ERROR_MM),
-        "max_after_mm": mean("after", Metric.MAX_TRACKING_ERROR_MM),
-        "force_peak_after_n": mean("after", "highest_branch_force_peak_n"),
-        "error": report.get("error", ""),
-    }
-    for field, value in (report.get("result") or {}).items():
-        row[field] = float(np.ravel(value)[0])
-    return row
+    text = report.to_json()
+    write_atomic(folder / "report.json", json.dumps(text, indent=2))
+    return text["row"]
 
 
 def progress_printer(shard: str, stream=sys.stderr) -> Callable:
@@ -293,11 +259,7 @@ def run_batch(
         if fresh:
             for sub in ("shards", "jobs"):
                 shutil.rmtree(out / sub, ignore_errors=True)
-        rows = {
-            j.name: {"job": j.name, "status": "failed", "scenarios": 0, "error": j.error}
-            for j in jf.jobs
-            if j.error is not None
-        }
+        rows = {j.name: SummaryRow.unread(j.name, j.error) for j in jf.jobs if j.error is not None}
         unreadable, tasks = len(rows), []
         for jobs in jobfile.groups(jf.jobs).values():
             pending = []
@@ -306,7 +268,7 @@ def run_batch(
                 if report is None:
                     pending.append(j)
                 else:
-                    rows[j.name] = report["row"]
+                    rows[j.name] = SummaryRow.from_json(report["row"])
             if pending:
                 tasks += shards(pending, jf.shard_size)
         placement.announce(stream)
@@ -335,31 +297,33 @@ def run_batch(
                 results.append(run_shard(task, str(out), jf.plots, stream))
                 print(f"batch: {k + 1}/{len(tasks)} shard(s) done", file=stream, flush=True)
         for task_rows in results:
-            for row in task_rows:
-                rows[row["job"]] = row
+            for row in map(SummaryRow.from_json, task_rows):
+                rows[row.job] = row
         ordered = [rows[j.name] for j in jf.jobs]
         summary = write_summary(out, ordered)
-        return summary, 0 if all(r["status"] == "ok" for r in ordered) else 1
+        return summary, 0 if all(r.status is JobStatus.OK for r in ordered) else 1
     finally:
         lock.release()
 
 
-def write_summary(out: Path, rows: list[dict]) -> dict:
-    """``summary.csv``, ``summary.md``, ``summary.json`` and ``summary.png`` over every job."""
-    fields = sorted({k for r in rows for k in r} - set(SUMMARY_COLUMNS))
-    columns = list(SUMMARY_COLUMNS[:-1]) + fields + ["error"]
+def write_summary(out: Path, rows: list[SummaryRow]) -> dict:
+    """``summary.csv``, ``summary.md``, ``summary.json`` and ``summary.png`` over every job; returns
+    ``summary.json``'s content."""
+    fields = sorted({k for r in rows for k in r.gains})
+    columns = list(SummaryRow.COLUMNS[:-1]) + fields + ["error"]
+    plain = [r.to_json() for r in rows]
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, columns, extrasaction="ignore", lineterminator="\n")
     writer.writeheader()
-    for r in rows:
+    for r in plain:
         writer.writerow({c: _fmt(r.get(c, "")) for c in columns})
     write_atomic(out / "summary.csv", buffer.getvalue())
-    write_atomic(out / "summary.md", markdown(rows, columns))
+    write_atomic(out / "summary.md", markdown(plain, columns))
     summary = {
         "jobs": len(rows),
-        "ok": sum(r["status"] == "ok" for r in rows),
-        "failed": [r["job"] for r in rows if r["status"] != "ok"],
-        "rows": rows,
+        "ok": sum(r.status is JobStatus.OK for r in rows),
+        "failed": [r.job for r in rows if r.status is not JobStatus.OK],
+        "rows": plain,
     }
     write_atomic(out / "summary.json", json.dumps(summary, indent=2))
     summary_plot(out / "summary.png", rows, fields)
@@ -377,13 +341,13 @@ def markdown(rows: list[dict], columns) -> str:
     return "\n".join(lines) + "\n"
 
 
-def summary_plot(path: Path, rows: list[dict], fields: list[str]) -> None:
+def summary_plot(path: Path, rows: list[SummaryRow], fields: list[str]) -> None:
     """The spread over jobs of each tuned gain and of the RMS tracking error before and after."""
     import matplotlib.pyplot as plt
 
     from pusupu_jax.plots import save_atomic
 
-    ok = [r for r in rows if r["status"] == "ok"]
+    ok = [r.to_json() for r in rows if r.status is JobStatus.OK]
     panels = fields + ["rms_before_mm", "rms_after_mm"]
     fig, axes = plt.subplots(1, len(panels), figsize=(2.2 * len(panels) + 1, 4), squeeze=False)
     rng = np.random.default_rng(0)

@@ -242,6 +242,10 @@ class TuneConfig:
         )
         check_joints(self.ros_joints, "tune config ros_joints")  # the exporter's own rule, before any work
 
+    def to_json(self) -> dict:
+        """Every setting as JSON types (a report's ``config``; :meth:`load` reads it back)."""
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(self).items()}
+
     def digest(self) -> str:
         """A hash of every setting and of the path files' contents (the checkpoint and the gain file's provenance
         carry it)."""

@@ -37,7 +37,6 @@ from pusupu_jax.files import check_output, write_atomic, write_files
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.machine_file import Machine
-from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError, ServoParams
 from pusupu_jax.plots import save_atomic
 from pusupu_jax.start_gains import derive
@@ -45,9 +44,8 @@ from pusupu_jax.start_gains import derive
 from .config import TuneConfig
 from .checkpoint import CHECKPOINT
 from .progress import progress_reporter
+from .report import Evaluation, Export, GainFileRef, TuneReport, scenario_metrics
 from .run import Problem, check_work, scenario_list
-
-METRICS = (Metric.RMS_TRACKING_ERROR_MM, Metric.MAX_TRACKING_ERROR_MM, Metric.SYNC_ERROR_RHO)
 
 
 def evaluate_baselines(cfg: TuneConfig, rates, specs=None, servo: ServoParams | None = None) -> dict:
@@ -142,11 +140,6 @@ def _plots(out: Path, history, before, after, baselines) -> list[str]:
     return files
 
 
-def _summary(result: dict) -> dict:
-    """Every machine metric, and the highest of the six branch force peaks [N]."""
-    return result | {"highest_branch_force_peak_n": max(result[Metric.BRANCH_FORCE_PEAK_N])}
-
-
 def plot_file(kind: str, scenario: str) -> str:
     """The name of a run's ``kind`` plot (path, forces) of ``scenario``."""
     return f"{kind}_{scenario.replace('/', '_')}.png"
@@ -227,7 +220,7 @@ class OutputLock:
 
 def run_job(
     cfg: TuneConfig, out: Path, fresh: bool = False, stream=sys.stderr, machine: Machine | None = None, start=None
-) -> tuple[dict, int]:
+) -> tuple[TuneReport, int]:
     """Run the whole job on ``machine`` (default: the built-in one) from ``start`` (:func:`start_gains`); returns
     ``(report, exit status)`` (1 when the tuned gains fail a check).  The work it implies
     (:func:`pusupu_jax.tune.run.check_work`) and the output folder are checked before anything is built.
@@ -246,7 +239,7 @@ def run_job(
         lock.release()
 
 
-def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, specs, start) -> tuple[dict, int]:
+def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, specs, start) -> tuple[TuneReport, int]:
     checkpoint = out / CHECKPOINT
     if fresh and checkpoint.exists():
         checkpoint.unlink()
@@ -285,56 +278,42 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
     before, after = problem.path_metrics(problem.space.z0()), problem.path_metrics(result["z"])
     baselines = evaluate_baselines(cfg, problem.rates, specs, servo0)
     objective_before = float(result["history"][0]["objective"])
-    report = {
-        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(cfg).items()},
-        "config_hash": cfg.digest(),
-        "machine": machine_file.reference(machine),
-        "start_gains": start_report,
-        "tuned_fields": list(problem.space.fields),
-        "start": {f: np.asarray(v).tolist() for f, v in problem.space.values(problem.space.z0()).items()},
-        "result": {f: np.asarray(v).tolist() for f, v in problem.space.values(result["z"]).items()},
-        "objective_before": objective_before,
-        "objective_after": float(result["objective"]),
-        "iterations": len(result["history"]),
-        "history": [{k: h[k] for k in ("start", "iteration", "objective")} for h in result["history"]],
-        "before": {n: _summary(r) for n, (r, _) in before.items()},
-        "after": {n: _summary(r) for n, (r, _) in after.items()},
-        "baselines": {mode: {n: _summary(r) for n, (r, _) in runs.items()} for mode, runs in baselines.items()},
-        "margins_before": gains.margins_report(servo0, mode=cfg.mode, machine=machine),
-        "optimise_wall_s": t_opt,
-    }
+    metrics_after = {n: scenario_metrics(r) for n, (r, _) in after.items()}
     provenance = {
         "config_hash": cfg.digest(),
         "objective_before": objective_before,
         "objective_after": float(result["objective"]),
         "floors": [cfg.pm_min, cfg.gm_min],
-        "metrics_after": report["after"],
+        "metrics_after": metrics_after,
     }
-    report |= export(out, cfg, servo1, hybrid1, problem.rates, problem.space.fields, provenance, machine)
-    status = 1 if "export_error" in report else 0
-    report["plots"] = _plots(out, result["history"], before, after, baselines)
-    report["wall_s"] = time.perf_counter() - t0
-    write_atomic(out / "report.json", json.dumps(report, indent=2))
-    return TuneReport(report), status
-
-
-class TuneReport(dict):
-    """What :func:`run_job` returns (``report.json``'s content, a dict), shown as the table ``pusupu tune`` prints
-    (:func:`table`) rather than the whole history."""
-
-    def __repr__(self) -> str:
-        try:
-            return "TuneReport\n" + table(self)
-        except (KeyError, TypeError, ValueError):  # not a whole report: its keys
-            return f"TuneReport(keys {sorted(self)})"
-
-    def _repr_markdown_(self) -> str:
-        return f"```\n{self!r}\n```"
+    outcome = export(out, cfg, servo1, hybrid1, problem.rates, problem.space.fields, provenance, machine)
+    report = TuneReport(
+        config=cfg.to_json(),
+        config_hash=cfg.digest(),
+        machine=machine_file.reference(machine),
+        start_gains=start_report,
+        tuned_fields=list(problem.space.fields),
+        start=problem.space.json_values(problem.space.z0()),
+        result=problem.space.json_values(result["z"]),
+        objective_before=objective_before,
+        objective_after=float(result["objective"]),
+        history=[Evaluation.of(h) for h in result["history"]],
+        before={n: scenario_metrics(r) for n, (r, _) in before.items()},
+        after=metrics_after,
+        baselines={mode: {n: scenario_metrics(r) for n, (r, _) in runs.items()} for mode, runs in baselines.items()},
+        margins_before=gains.margins_report(servo0, mode=cfg.mode, machine=machine),
+        optimise_wall_s=t_opt,
+        export=outcome,
+        plots=_plots(out, result["history"], before, after, baselines),
+        wall_s=time.perf_counter() - t0,
+    )
+    write_atomic(out / "report.json", json.dumps(report.to_json(), indent=2))
+    return report, 0 if outcome.error is None else 1
 
 
 def export(
     out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: dict, machine: Machine | None = None
-) -> dict:
+) -> Export:
     """Write ``gains.yaml`` and the ROS 2 files if the gains pass every check; the report's entries about them.
 
     All or nothing: every file's text is made (the gains checked, the joint names too) and every path checked before
@@ -370,51 +349,16 @@ def export(
             for name, text in ros2.files(servo, cfg.mode, rates, source=str(gains_path), joints=cfg.ros_joints).items()
         }
         written = write_files(texts)
-        return {
-            "margins_after": margins,
-            "exported": [str(p) for p in written],
-            "gains_file": {"path": str(gains_path), "sha256": _sha256(gains_path)},
-        }
+        return Export(margins, [str(p) for p in written], GainFileRef(str(gains_path), _sha256(gains_path)))
     except ParameterError as e:
         left = {"path": str(gains_path), "sha256": _sha256(gains_path)} if gains_path.is_file() else None
-        return {
-            "margins_after": gains.margins_report(servo, cfg.mode, machine),
-            "exported": [],
-            "export_error": str(e),
-            "gains_file": {"path": None, "not_written": str(e), "left_as_it_was": left},
-        }
+        return Export(
+            gains.margins_report(servo, cfg.mode, machine),
+            [],
+            GainFileRef(None, not_written=str(e), left_as_it_was=left),
+            error=str(e),
+        )
 
 
 def _sha256(path: Path) -> str:
     return hashlib.sha256(inputs.read_bytes(path, "gain file", ParameterError)).hexdigest()
-
-
-def table(report: dict) -> str:
-    """The before/after table printed at the end of a run, with the baselines beside."""
-    modes = list(report.get("baselines", {}))
-    lines = [
-        f"{'scenario':<14} {'metric':<28} {'before':>10} {'after':>10} {'change':>8}"
-        + "".join(f" {m:>10}" for m in modes)
-        + (f" {'vs best':>8}" if modes else "")
-    ]
-    for name in report["before"]:
-        b, a = report["before"][name], report["after"][name]
-        for key in (*METRICS, "highest_branch_force_peak_n"):
-            change = (a[key] / b[key] - 1) * 100 if b[key] else float("nan")
-            base = [report["baselines"][m][name][key] for m in modes]
-            versus = f" {(a[key] / min(base) - 1) * 100:>7.1f}%" if base and min(base) else ""
-            lines.append(
-                f"{name:<14} {key:<28} {b[key]:>10.4g} {a[key]:>10.4g} {change:>7.1f}%"
-                + "".join(f" {v:>10.4g}" for v in base)
-                + versus
-            )
-    lines.append(
-        f"objective {report['objective_before']:.4f} -> {report['objective_after']:.4f} in "
-        f"{report['iterations']} evaluations, {report['wall_s']:.0f} s"
-    )
-    for field in report["tuned_fields"]:
-        start, result = np.ravel(report["start"][field]), np.ravel(report["result"][field])
-        lines.append(f"  {field:<8} {start[0]:.6g} -> {result[0]:.6g}" + (" (axis 1)" if len(result) > 1 else ""))
-    if report.get("export_error"):
-        lines.append(f"NOT EXPORTED: {report['export_error']}")
-    return "\n".join(lines)

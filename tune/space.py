@@ -102,6 +102,10 @@ class Space:
     def values(self, z) -> dict:
         return {f: jnp.exp(v) for f, v in z.items()}
 
+    def json_values(self, z) -> dict:
+        """:meth:`values` as JSON types (lists of floats): a report's ``start`` and ``result``."""
+        return {f: np.asarray(v).tolist() for f, v in self.values(z).items()}
+
     def project(self, z) -> dict:
         return {f: jnp.clip(v, np.log(self.lower[f]), np.log(self.upper[f])) for f, v in z.items()}
 
