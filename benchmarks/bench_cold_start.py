@@ -1,7 +1,7 @@
 """The tuner's cold start: trace and compile time of its programs, with an empty compile cache (JSON on stdout).
 
 ``pusupu tune`` compiles its programs before its first iteration: the forward pass over the whole paths (which
-renews the training windows' start states: the start at rest and one chunk of :func:`pusupu_jax.sim.run_chunked`,
+renews the training windows' start states: the start at rest and one chunk of :func:`pusupu_jax.chunked.run_chunked`,
 once per batch size of a group of paths) and the gradient over the windows.  Each is measured apart, as
 ``jit(...).lower()`` (the trace, to a jaxpr and then StableHLO) and ``.compile()`` (XLA), then the gradient is run
 once.  Every measurement runs in a fresh interpreter with an empty persistent compile cache, so nothing is reused.
@@ -37,7 +37,7 @@ import jax, jax.numpy as jnp
 import numpy as np
 from pusupu_jax.runtime import setup_jax
 setup_jax(sys.argv[2])
-from pusupu_jax import objectives, sim
+from pusupu_jax import chunked, objectives
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import ServoParams
@@ -68,8 +68,8 @@ if hasattr(p, "_whole"):  # a tree before the chunked forward pass: one program 
     for idx, models, refs in p.scenarios.groups.values():
         timed(lambda: p._whole.lower(servo, hybrid, models, refs))
 else:
-    init = sim._init_program(p.scenarios.plant, p.rates, cfg.mode, "rest", None, None)
-    chunk = sim._chunk_program(p.scenarios.plant, p.rates, cfg.mode, None, None, True)
+    init = chunked._init_program(p.scenarios.plant, p.rates, cfg.mode, "rest", None, None)
+    chunk = chunked._chunk_program(p.scenarios.plant, p.rates, cfg.mode, None, None, True)
     hybrid_arg = hybrid if control_mode(cfg.mode).hybrid else None
     batches = set()
     for idx, models, refs in p.scenarios.groups.values():
@@ -77,7 +77,7 @@ else:
             continue
         batches.add(len(idx))
         refs = jax.tree.map(np.asarray, refs)
-        piece = jax.tree.map(lambda x: np.pad(x[:, :sim.CHUNK], [(0, 0), (0, max(sim.CHUNK - x.shape[1], 0))]
+        piece = jax.tree.map(lambda x: np.pad(x[:, :chunked.CHUNK], [(0, 0), (0, max(chunked.CHUNK - x.shape[1], 0))]
                                               + [(0, 0)] * (x.ndim - 2), mode="edge"), refs)
         first = (servo, models, jax.tree.map(lambda x: x[:, 0], refs), hybrid_arg, None)
         carry = timed(lambda: init.lower(*first))(*first)

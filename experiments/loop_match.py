@@ -58,7 +58,8 @@ from pusupu_jax.plant import AxisPlant
 from pusupu_jax.plant.dynamics import reflected_mass
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plots import save_atomic
-from pusupu_jax.sim import rollout, run_chunked
+from pusupu_jax.chunked import run_chunked
+from pusupu_jax.sim import rollout
 from pusupu_jax.start_gains import derive
 
 from . import Result

@@ -11,7 +11,8 @@ from .runtime import apply_xla_workaround
 apply_xla_workaround()  # before JAX's CPU backend starts: see runtime.XLA_CPU_WORKAROUND
 
 from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate  # noqa: E402
-from .sim import Trace, rollout, simulate  # noqa: E402
+from .sim import rollout, simulate  # noqa: E402
+from .trace import Trace  # noqa: E402
 
 __version__ = "0.1.0"
 

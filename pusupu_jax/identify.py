@@ -40,7 +40,8 @@ from .plant.axis import screw_ratio
 from .plant.geometry import Geometry
 from .plant.mjx_plant import MJXPlant
 from .plant.model import ModelOptions
-from .sim import Trace, rollout
+from .sim import rollout
+from .trace import Trace
 
 DIRECTIONS = {"x": (1.0, 0, 0, 0, 0), "y": (0, 1.0, 0, 0, 0), "z": (0, 0, 1.0, 0, 0)}
 

@@ -34,7 +34,8 @@ import numpy as np
 import numpy.typing as npt
 
 from .params import LoopRates
-from .sim import Injected, Trace
+from .sim import Injected
+from .trace import Trace
 
 BREAKS = {
     "velocity": "the velocity controller's output, the current reference [A]",

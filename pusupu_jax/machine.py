@@ -31,11 +31,11 @@ from .plant.axis import screw_ratio
 from .plant.geometry import Geometry
 from .plant.mjx_plant import MJXPlant
 from .plant.model import ModelOptions
-from .sim import run_chunked
+from .chunked import run_chunked
 from .metrics import Metric
 
 if TYPE_CHECKING:
-    from .sim import Trace
+    from .trace import Trace
 
 MACHINE_MODES = POSITION_MODES
 
@@ -115,7 +115,7 @@ def simulate_scenarios(
 ) -> list[tuple[dict[str, Any], dict[str, Any]]]:
     """Run several :class:`Scenario` on the machine as one vmapped batch.
 
-    The batch runs in calls of :func:`~pusupu_jax.sim.run_chunked`'s compiled program of
+    The batch runs in calls of :func:`~pusupu_jax.chunked.run_chunked`'s compiled program of
     ``CHUNK`` periods: one compile per mode and batch size, whatever the paths' length.
 
     The scenarios differ in their model's arrays (:meth:`MJXPlant.variant`: seeded errors,

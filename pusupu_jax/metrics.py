@@ -1,4 +1,4 @@
-"""Tracking metrics: the single-axis ones of a :class:`~pusupu_jax.sim.Trace` of a position mode (differentiable JAX),
+"""Tracking metrics: the single-axis ones of a :class:`~pusupu_jax.trace.Trace` of a position mode (differentiable JAX),
 and the names of a machine run's metrics (:class:`Metric`)."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from .plant.axis import screw_ratio
 
 if TYPE_CHECKING:
     from .params import ServoParams
-    from .sim import Trace
+    from .trace import Trace
 
 
 class Metric(enum.StrEnum):

@@ -1,7 +1,7 @@
 """Differentiable objective terms over a machine rollout (JAX), for the tuner.
 
 Every term is a scalar in physical units, smooth almost everywhere, computed from a
-:class:`~pusupu_jax.sim.Trace` of the MJX machine and the platform path it followed:
+:class:`~pusupu_jax.trace.Trace` of the MJX machine and the platform path it followed:
 
 * ``track_rms`` [m]: RMS platform position error; ``track_max`` [m]: its smooth maximum;
 * ``branch_rms`` [m]: RMS slider error over all branches; ``branch_max`` [m]: its smooth maximum;
@@ -30,7 +30,7 @@ from .plant.axis import screw_ratio
 
 if TYPE_CHECKING:
     from .params import ServoParams
-    from .sim import Trace
+    from .trace import Trace
 
 TERMS = ("track_rms", "track_max", "branch_rms", "branch_max", "force_peak", "balance", "rho", "effort", "saturation")
 

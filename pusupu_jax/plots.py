@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     from mpl_toolkits.mplot3d.axes3d import Axes3D
 
     from .params import AxisLoad, ServoParams
-    from .sim import Trace
+    from .trace import Trace
 
 
 def save_atomic(fig: Figure, path: str | os.PathLike[str]) -> Path:

@@ -13,13 +13,15 @@ each loop sees the plant through a zero-order hold, as a digital drive does.
 :func:`rollout` is the pure function (jit-, vmap- and grad-able); :func:`simulate` is
 the host-side entry point that validates inputs, converts slider references to motor
 angles and dispatches to a cached jitted (and, for batched parameters, vmapped) rollout.
+The record is a :class:`~pusupu_jax.trace.Trace`; long runs on the host are cut into chunks by
+:mod:`pusupu_jax.chunked`.
 """
 
 from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, NamedTuple, Sequence, cast
+from typing import TYPE_CHECKING, Any, Callable, NamedTuple, cast
 
 import jax
 import jax.numpy as jnp
@@ -34,6 +36,7 @@ from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate
 from .plant import AxisPlant
 from .plant.axis import screw_ratio
 from .plant.kinematics import inverse_kinematics
+from .trace import Trace
 
 if TYPE_CHECKING:
     from jax.typing import ArrayLike
@@ -43,74 +46,6 @@ if TYPE_CHECKING:
 
 MODES = cascade_.AXIS_MODES  # the single-axis plant's position modes
 STARTS = ("rest", "zero")
-
-
-@jax.tree_util.register_dataclass
-@dataclass(frozen=True)
-class Trace:
-    """A rollout sampled at the start of every outer-loop period; arrays are ``(..., N, n_axes)``.
-
-    ``reference`` and ``command`` are in the outer loop's units: position loops take a
-    motor angle [rad] and command a speed [rad/s]; the velocity loop takes [rad/s] and
-    commands a current [A]; the current loop takes [A] and commands a voltage [V].
-    """
-
-    t: Any  # s, (N,)
-    reference: Any
-    command: Any
-    theta: Any  # motor angle, rad
-    omega: Any  # motor speed, rad/s
-    position: Any  # slider position, m
-    velocity: Any  # slider velocity, m/s
-    current: Any  # armature current, A
-    torque: Any  # motor torque Kt*I, N m
-    current_reference: Any  # A, (..., N, m, n_axes): the current references of the period's m inner periods
-    state: Any  # every controller state (a cascade.CascadeState)
-    observation: Any  # what the plant's observe() keeps (pytree)
-
-    def __repr__(self) -> str:
-        """Duration, shapes, and per axis the slider's range and the peak current and torque (not the arrays)."""
-        return _describe_trace(self)
-
-    def _repr_markdown_(self) -> str:
-        return _describe_trace(self, markdown=True)
-
-
-def _describe_trace(tr: Trace, markdown: bool = False) -> str:
-    arrays = {k: getattr(tr, k) for k in ("t", "position", "current", "torque")}
-    shapes = {k: np.shape(v) for k, v in arrays.items()}
-    if any(isinstance(v, jax.core.Tracer) for v in arrays.values()) or len(shapes["position"]) < 2:
-        return f"Trace(shapes {shapes})"
-    try:
-        return _trace_table(tr, shapes, markdown)
-    except (TypeError, ValueError, IndexError):  # not arrays of a rollout (a tree_map's product): the shapes only
-        return f"Trace(shapes {shapes})"
-
-
-def _trace_table(tr: Trace, shapes: dict[str, tuple[int, ...]], markdown: bool) -> str:
-    from .params import axis_cells, axis_table
-
-    n, axes = shapes["position"][-2:]
-    batch = shapes["position"][:-2]
-    t = np.asarray(tr.t).reshape(-1, n)[0] if n else np.zeros(0)
-    dt = float(t[1] - t[0]) if n > 1 else float("nan")
-    title = (
-        f"Trace: {n * dt:.4g} s, {n} periods of {dt * 1e3:.4g} ms, {axes} axes"
-        + (f", a batch of shape {batch} (lo..hi over the batch)" if batch else "")
-        + f"; arrays (..., N, axes) {shapes['position']}, current_reference {np.shape(tr.current_reference)}, "
-        "state and observation pytrees"
-    )
-    if not n:
-        return title
-    peak: Callable[[npt.ArrayLike], npt.NDArray[Any]] = lambda x: np.abs(np.asarray(x)).max(axis=-2)  # noqa: E731
-    position = np.asarray(tr.position) * 1e3
-    rows = [
-        ("slider min", "mm", axis_cells(position.min(axis=-2))),
-        ("slider max", "mm", axis_cells(position.max(axis=-2))),
-        ("peak current", "A", axis_cells(peak(tr.current))),
-        ("peak torque", "N m", axis_cells(peak(tr.torque))),
-    ]
-    return axis_table(f"**{title}**" if markdown else title, rows, axes, markdown)
 
 
 @jax.tree_util.register_dataclass
@@ -383,7 +318,8 @@ def rollout(
     (PID with velocity feedforward), 'ros_pid' (the PID fields run as ROS's PID does:
     :func:`pusupu_jax.loops.ros_pid_step`) or 'hybrid'.  ``start``: 'rest' (the static equilibrium,
     :func:`initial_state`) or 'zero'.  ``init``: a carry to start from instead (one that
-    :func:`run_chunked` kept at a mark, for a window of a longer run); its trace's ``t`` starts at 0.
+    :func:`~pusupu_jax.chunked.run_chunked` kept at a mark, for a window of a longer run); its trace's ``t`` starts
+    at 0.
 
     ``reference`` has shape ``(N, n_axes)`` in the outer loop's units, one sample per
     outer period: motor angle [rad] for 'imc' and 'pid', motor speed [rad/s] for
@@ -480,7 +416,7 @@ def rollout_chunk(
     ``n_valid`` (traced): the carry advances through the first ``n_valid`` periods only; the periods after them are
     computed and recorded, but leave the carry as it was (a select per period: a run that needs the carry at any
     period, at some 40 % more run time).  So one compiled program of length ``C`` runs a path of any length, in
-    calls that stop wherever one wants the carry (:func:`run_chunked`).
+    calls that stop wherever one wants the carry (:func:`~pusupu_jax.chunked.run_chunked`).
     """
     mode = cascade_.control_mode(outer)
     body = _body(_cascade(params, plant_params, plant, rates, mode, hybrid, compliance), False)
@@ -508,131 +444,6 @@ def _body(cascade: Pieces, remat: bool) -> Callable[[Carry, Any], tuple[Carry, d
 
 def _trace(rec: dict[str, Any], dt: float) -> Trace:
     return Trace(t=jnp.arange(rec["reference"].shape[0]) * dt, **rec)
-
-
-CHUNK = 250  # periods per call of run_chunked's compiled program
-
-
-@functools.lru_cache(maxsize=None)
-def _init_program(
-    plant: Plant, rates: LoopRates, outer: str, start: str, params_axis: int | None, hybrid_axis: int | None
-) -> jax.stages.Wrapped:
-    """:func:`initial_carry` vmapped over a batch, jitted (cached per static arguments)."""
-
-    def init(
-        params: ServoParams,
-        model: Any,
-        first: Any,
-        hybrid: hybrid_law.HybridGains | None,
-        compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None,
-    ) -> Carry:
-        return initial_carry(
-            params,
-            model,
-            first,
-            plant=plant,
-            rates=rates,
-            outer=outer,
-            hybrid=hybrid,
-            start=start,
-            compliance=compliance,
-        )
-
-    return jax.jit(jax.vmap(init, in_axes=(params_axis, 0, 0, hybrid_axis, None)))
-
-
-@functools.lru_cache(maxsize=None)
-def _chunk_program(
-    plant: Plant, rates: LoopRates, outer: str, params_axis: int | None, hybrid_axis: int | None, masked: bool
-) -> jax.stages.Wrapped:
-    """:func:`rollout_chunk` (with ``n_valid`` when ``masked``) vmapped over a batch, jitted (cached per static
-    arguments: one compile serves every path length)."""
-
-    def chunk(
-        params: ServoParams,
-        model: Any,
-        reference: Any,
-        hybrid: hybrid_law.HybridGains | None,
-        compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None,
-        carry: Carry,
-        n_valid: jax.Array,
-    ) -> tuple[dict[str, Any], Carry]:
-        return rollout_chunk(
-            params,
-            model,
-            reference,
-            carry,
-            n_valid if masked else None,
-            plant=plant,
-            rates=rates,
-            outer=outer,
-            hybrid=hybrid,
-            compliance=compliance,
-        )
-
-    return jax.jit(jax.vmap(chunk, in_axes=(params_axis, 0, 0, hybrid_axis, None, 0, None)))
-
-
-def run_chunked(
-    params: ServoParams,
-    models: Any,
-    reference: Any,
-    *,
-    plant: Plant = AxisPlant(),
-    rates: LoopRates = LoopRates(),
-    outer: str = "imc",
-    hybrid: hybrid_law.HybridGains | None = None,
-    start: str = "rest",
-    compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None = None,
-    params_axis: int | None = None,
-    hybrid_axis: int | None = None,
-    marks: Sequence[int] = (),
-    chunk: int = CHUNK,
-) -> tuple[Trace, Carry | None]:
-    """A batch of runs, each :func:`rollout` of its ``models[b]`` over ``reference[b]`` ``(B, N, ...)``, cut into
-    calls of one compiled program of ``chunk`` periods (host-side): ``(trace (B, N, ...), carries (B, len(marks),
-    ...))``.
-
-    ``params`` (and ``hybrid``) are shared, or batched along their leading axis when ``params_axis``
-    (``hybrid_axis``) is 0; ``compliance``: ``(AdmittanceGains, Geometry)``, shared, or None; ``models`` is batched
-    (the plant's per-run arrays, e.g. :meth:`MJXPlant.variant`'s).  Every path length runs the same two compiled
-    programs (the start and one chunk), so a horizon that changes compiles nothing.  The last chunk runs past the
-    path's end, on its last sample held; what it records there is dropped.
-
-    ``marks``: periods at which to keep the carry (the start states of windows, for ``rollout(init=...)``).  With
-    marks, the chunks stop at them (:func:`rollout_chunk`'s ``n_valid``: another program, whose select per period
-    costs run time); without, every chunk runs whole.  Different programs round differently: a run agrees with
-    :func:`rollout`'s to float64 rounding, not bit for bit (``tests/test_windows.py``).
-    """
-    init = _init_program(plant, rates, outer, start, params_axis, hybrid_axis)
-    step = _chunk_program(plant, rates, outer, params_axis, hybrid_axis, bool(marks))
-    host = jax.tree.map(np.asarray, reference)
-    n = jax.tree.leaves(host)[0].shape[1]
-    if any(not 0 <= m < n for m in marks):
-        raise ValueError(f"run_chunked: expected marks in [0, {n}), got {list(marks)}")
-    carry = init(params, models, jax.tree.map(lambda x: x[:, 0], host), hybrid, compliance)
-    kept: dict[int, Carry]
-    records: list[tuple[dict[str, Any], int]]
-    kept, records, done = {}, [], 0
-    for stop in sorted(set(marks) | {n}):
-        while done < stop:
-            k = min(chunk, stop - done)
-            pad = [(0, 0), (0, chunk - k)]  # the last sample held
-            piece = jax.tree.map(
-                lambda x: np.pad(x[:, done : done + k], pad + [(0, 0)] * (x.ndim - 2), mode="edge"), host
-            )
-            rec, carry = step(params, models, piece, hybrid, compliance, carry, np.int32(k))
-            records.append((rec, k))
-            done += k
-        if done in marks:
-            kept[done] = carry
-    rec = jax.tree.map(
-        lambda *x: np.concatenate([np.asarray(r)[:, :k] for r, (_, k) in zip(x, records)], axis=1),
-        *[r for r, _ in records],
-    )  # fetched at the end: the calls before queue without waiting
-    carries = jax.tree.map(lambda *c: jnp.stack(c, axis=1), *[kept[m] for m in marks]) if marks else None
-    t = np.arange(n) * period_dt(rates, cascade_.control_mode(outer))
-    return Trace(t=np.repeat(t[None], len(rec["theta"]), axis=0), **rec), carries
 
 
 _rollout_jit = jax.jit(rollout, static_argnames=("plant", "rates", "outer", "remat", "start"))

@@ -503,14 +503,14 @@ def test_the_export_writes_every_file_or_none(tmp_path, refused):
         del old[fifo.name]
         message = "expected a regular file to write (or nothing), found a FIFO"
     report = export(tmp_path, cfg, ServoParams.table1(), HybridGains(), machine_rates(), ("lambda1",), {})
-    assert report["exported"] == [] and message in report["export_error"]
-    assert report["gains_file"]["left_as_it_was"]["path"] == str(tmp_path / "gains.yaml")
+    assert report.exported == [] and message in report.error
+    assert report.gains_file.left_as_it_was["path"] == str(tmp_path / "gains.yaml")
     assert {name: (tmp_path / name).read_text() for name in old} == old
     assert refused == "joint names" or stat.S_ISFIFO(os.lstat(fifo).st_mode)
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
     if refused == "joint names":  # with the default names, all three
         report = export(tmp_path, TuneConfig(), ServoParams.table1(), HybridGains(), machine_rates(), ("lambda1",), {})
-        assert len(report["exported"]) == 3 and "export_error" not in report
+        assert len(report.exported) == 3 and report.error is None
 
 
 def test_a_tune_refuses_outputs_that_are_not_regular_files_before_any_work(tmp_path):

@@ -253,15 +253,15 @@ def test_a_refused_export_says_so_and_names_the_file_left_in_place(tmp_path):
 
     cfg = TuneConfig()
     good = export(tmp_path, cfg, GOOD, HYBRID, RATES, TUNED, {})
-    assert good["gains_file"]["sha256"] == hashlib.sha256((tmp_path / "gains.yaml").read_bytes()).hexdigest()
-    assert {p.split("/")[-1] for p in good["exported"]} == {
+    assert good.gains_file.sha256 == hashlib.sha256((tmp_path / "gains.yaml").read_bytes()).hexdigest()
+    assert {p.split("/")[-1] for p in good.exported} == {
         "gains.yaml",
         "ros2_pid_controller.yaml",
         "ros2_joint_trajectory_controller.yaml",
     }
     before = (tmp_path / "gains.yaml").read_bytes()
     bad = export(tmp_path, cfg, GOOD.replace(Kv=np.full(6, 2.0)), HYBRID, RATES, TUNED, {})
-    assert bad["exported"] == [] and "velocity loop" in bad["export_error"]
-    assert bad["gains_file"]["path"] is None and "velocity loop" in bad["gains_file"]["not_written"]
-    assert bad["gains_file"]["left_as_it_was"]["sha256"] == good["gains_file"]["sha256"]
+    assert bad.exported == [] and "velocity loop" in bad.error
+    assert bad.gains_file.path is None and "velocity loop" in bad.gains_file.not_written
+    assert bad.gains_file.left_as_it_was["sha256"] == good.gains_file.sha256
     assert (tmp_path / "gains.yaml").read_bytes() == before

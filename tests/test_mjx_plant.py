@@ -21,7 +21,8 @@ from pusupu_jax.plant import model as M
 from pusupu_jax.plant.friction import slider_friction
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.mjx_plant import MJXPlant
-from pusupu_jax.sim import rollout, run_chunked
+from pusupu_jax.chunked import run_chunked
+from pusupu_jax.sim import rollout
 
 with contextlib.redirect_stdout(io.StringIO()):  # MJX prints its optional GPU backends' import failures
     from mujoco import mjx

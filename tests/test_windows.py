@@ -7,7 +7,7 @@ import pytest
 from pusupu_jax import AxisLoad, ServoParams, rollout
 from pusupu_jax.params import LoopRates, stack
 from pusupu_jax.plant import AxisPlant
-from pusupu_jax.sim import run_chunked
+from pusupu_jax.chunked import run_chunked
 from pusupu_jax.trajectories import axis_reference
 
 SERVO = ServoParams.table1()
@@ -71,7 +71,7 @@ def test_paths_of_any_length_run_one_compiled_chunk():
     """Two path lengths, with and without marks: one compile of the chunk that runs whole and one of the chunk that
     stops at marks (and of the start): what lets every horizon of the experiments and the CLI share one program per
     mode and batch size, and the tuner's forward passes another."""
-    from pusupu_jax.sim import _chunk_program, _init_program
+    from pusupu_jax.chunked import _chunk_program, _init_program
 
     programs = [_init_program(AxisPlant(), LoopRates(), "pid_ff", "rest", None, None)]
     programs += [_chunk_program(AxisPlant(), LoopRates(), "pid_ff", None, None, masked) for masked in (False, True)]

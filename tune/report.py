@@ -217,17 +217,18 @@ def table(report: TuneReport) -> str:
 @dataclasses.dataclass(frozen=True)
 class SummaryRow:
     """One job's row of a batch's summary (``summary.csv``, ``.md``, ``.json``): means over its scenarios [mm, N],
-    and the first value of each tuned field."""
+    and the first value of each tuned field.  A job the job file could not give has no figures (None: left out of
+    the JSON, empty in the CSV)."""
 
     job: str
     status: JobStatus
     scenarios: int
-    objective_before: float
-    objective_after: float
-    rms_before_mm: float
-    rms_after_mm: float
-    max_after_mm: float
-    force_peak_after_n: float
+    objective_before: float | None
+    objective_after: float | None
+    rms_before_mm: float | None
+    rms_after_mm: float | None
+    max_after_mm: float | None
+    force_peak_after_n: float | None
     error: str
     gains: dict[str, float] = dataclasses.field(default_factory=dict)
 
@@ -246,18 +247,18 @@ class SummaryRow:
 
     def to_json(self) -> dict[str, Any]:
         """The row as plain data (what a Ray task returns, and ``summary.json`` holds): the columns, then the gains."""
-        return {c: str(self.status) if c == "status" else getattr(self, c) for c in self.COLUMNS} | self.gains
+        plain = {c: str(self.status) if c == "status" else getattr(self, c) for c in self.COLUMNS}
+        return {c: v for c, v in plain.items() if v is not None} | self.gains
 
     @classmethod
     def unread(cls, job: str, error: str) -> SummaryRow:
         """The row of a job that the job file could not give (``error``): no scenario, no figures."""
-        nan = float("nan")
-        return cls(job, JobStatus.FAILED, 0, nan, nan, nan, nan, nan, nan, error)
+        return cls(job, JobStatus.FAILED, 0, None, None, None, None, None, None, error)
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> SummaryRow:
         return cls(
-            **{c: JobStatus(d[c]) if c == "status" else d[c] for c in cls.COLUMNS},
+            **{c: JobStatus(d[c]) if c == "status" else d.get(c) for c in cls.COLUMNS},
             gains={k: v for k, v in d.items() if k not in cls.COLUMNS},
         )
 

@@ -35,7 +35,8 @@ from pusupu_jax.params import AxisLoad, ParameterError, ServoParams, stack
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
 from pusupu_jax.programs import Program, describe
-from pusupu_jax.sim import rollout, run_chunked
+from pusupu_jax.chunked import run_chunked
+from pusupu_jax.sim import rollout
 from pusupu_jax.paths import path_label, platform_path_from
 
 from .config import TuneConfig
@@ -160,8 +161,8 @@ class Scenarios:
     def whole(self, servo, hybrid, models, references, mode: str, rates, batched: bool = False, marks=None):
         """The forward pass over whole paths of one group (``models``, ``references`` ``(n, K every, ...)``):
         ``(traces (n, K every, ...), carries at the window starts (n, K, ...))``.  ``servo`` and ``hybrid`` are shared,
-        or one set per path when ``batched``.  One compiled chunk of :func:`~pusupu_jax.sim.run_chunked` serves every
-        path length.  ``marks``: the periods to keep the carries at, if not the window starts."""
+        or one set per path when ``batched``.  One compiled chunk of :func:`~pusupu_jax.chunked.run_chunked` serves
+        every path length.  ``marks``: the periods to keep the carries at, if not the window starts."""
         length = jax.tree.leaves(references)[0].shape[1]
         hybrid_mode = control_mode(mode).hybrid
         return run_chunked(

@@ -1,0 +1,149 @@
+"""Long runs on the host: a batch of rollouts cut into calls of one compiled chunk program, so that any path length
+runs the same two programs (the start and one chunk), with the carry kept at chosen periods (the training windows'
+start states)."""
+
+from __future__ import annotations
+
+import functools
+from typing import TYPE_CHECKING, Any, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import cascade as cascade_
+from . import compliance as compliance_law
+from . import hybrid as hybrid_law
+from .params import LoopRates, ServoParams
+from .plant import AxisPlant
+from .sim import Carry, initial_carry, period_dt, rollout_chunk
+from .trace import Trace
+
+if TYPE_CHECKING:
+    from .plant import Plant
+    from .plant.geometry import Geometry
+
+
+CHUNK = 250  # periods per call of run_chunked's compiled program
+
+
+@functools.lru_cache(maxsize=None)
+def _init_program(
+    plant: Plant, rates: LoopRates, outer: str, start: str, params_axis: int | None, hybrid_axis: int | None
+) -> jax.stages.Wrapped:
+    """:func:`initial_carry` vmapped over a batch, jitted (cached per static arguments)."""
+
+    def init(
+        params: ServoParams,
+        model: Any,
+        first: Any,
+        hybrid: hybrid_law.HybridGains | None,
+        compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None,
+    ) -> Carry:
+        return initial_carry(
+            params,
+            model,
+            first,
+            plant=plant,
+            rates=rates,
+            outer=outer,
+            hybrid=hybrid,
+            start=start,
+            compliance=compliance,
+        )
+
+    return jax.jit(jax.vmap(init, in_axes=(params_axis, 0, 0, hybrid_axis, None)))
+
+
+@functools.lru_cache(maxsize=None)
+def _chunk_program(
+    plant: Plant, rates: LoopRates, outer: str, params_axis: int | None, hybrid_axis: int | None, masked: bool
+) -> jax.stages.Wrapped:
+    """:func:`rollout_chunk` (with ``n_valid`` when ``masked``) vmapped over a batch, jitted (cached per static
+    arguments: one compile serves every path length)."""
+
+    def chunk(
+        params: ServoParams,
+        model: Any,
+        reference: Any,
+        hybrid: hybrid_law.HybridGains | None,
+        compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None,
+        carry: Carry,
+        n_valid: jax.Array,
+    ) -> tuple[dict[str, Any], Carry]:
+        return rollout_chunk(
+            params,
+            model,
+            reference,
+            carry,
+            n_valid if masked else None,
+            plant=plant,
+            rates=rates,
+            outer=outer,
+            hybrid=hybrid,
+            compliance=compliance,
+        )
+
+    return jax.jit(jax.vmap(chunk, in_axes=(params_axis, 0, 0, hybrid_axis, None, 0, None)))
+
+
+def run_chunked(
+    params: ServoParams,
+    models: Any,
+    reference: Any,
+    *,
+    plant: Plant = AxisPlant(),
+    rates: LoopRates = LoopRates(),
+    outer: str = "imc",
+    hybrid: hybrid_law.HybridGains | None = None,
+    start: str = "rest",
+    compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None = None,
+    params_axis: int | None = None,
+    hybrid_axis: int | None = None,
+    marks: Sequence[int] = (),
+    chunk: int = CHUNK,
+) -> tuple[Trace, Carry | None]:
+    """A batch of runs, each :func:`rollout` of its ``models[b]`` over ``reference[b]`` ``(B, N, ...)``, cut into
+    calls of one compiled program of ``chunk`` periods (host-side): ``(trace (B, N, ...), carries (B, len(marks),
+    ...))``.
+
+    ``params`` (and ``hybrid``) are shared, or batched along their leading axis when ``params_axis``
+    (``hybrid_axis``) is 0; ``compliance``: ``(AdmittanceGains, Geometry)``, shared, or None; ``models`` is batched
+    (the plant's per-run arrays, e.g. :meth:`MJXPlant.variant`'s).  Every path length runs the same two compiled
+    programs (the start and one chunk), so a horizon that changes compiles nothing.  The last chunk runs past the
+    path's end, on its last sample held; what it records there is dropped.
+
+    ``marks``: periods at which to keep the carry (the start states of windows, for ``rollout(init=...)``).  With
+    marks, the chunks stop at them (:func:`rollout_chunk`'s ``n_valid``: another program, whose select per period
+    costs run time); without, every chunk runs whole.  Different programs round differently: a run agrees with
+    :func:`rollout`'s to float64 rounding, not bit for bit (``tests/test_windows.py``).
+    """
+    init = _init_program(plant, rates, outer, start, params_axis, hybrid_axis)
+    step = _chunk_program(plant, rates, outer, params_axis, hybrid_axis, bool(marks))
+    host = jax.tree.map(np.asarray, reference)
+    n = jax.tree.leaves(host)[0].shape[1]
+    if any(not 0 <= m < n for m in marks):
+        raise ValueError(f"run_chunked: expected marks in [0, {n}), got {list(marks)}")
+    carry = init(params, models, jax.tree.map(lambda x: x[:, 0], host), hybrid, compliance)
+    kept: dict[int, Carry]
+    records: list[tuple[dict[str, Any], int]]
+    kept, records, done = {}, [], 0
+    for stop in sorted(set(marks) | {n}):
+        while done < stop:
+            k = min(chunk, stop - done)
+            pad = [(0, 0), (0, chunk - k)]  # the last sample held
+            piece = jax.tree.map(
+                lambda x: np.pad(x[:, done : done + k], pad + [(0, 0)] * (x.ndim - 2), mode="edge"), host
+            )
+            rec, carry = step(params, models, piece, hybrid, compliance, carry, np.int32(k))
+            records.append((rec, k))
+            done += k
+        if done in marks:
+            kept[done] = carry
+    rec = jax.tree.map(
+        lambda *x: np.concatenate([np.asarray(r)[:, :k] for r, (_, k) in zip(x, records)], axis=1),
+        *[r for r, _ in records],
+    )  # fetched at the end: the calls before queue without waiting
+    carries = jax.tree.map(lambda *c: jnp.stack(c, axis=1), *[kept[m] for m in marks]) if marks else None
+    t = np.arange(n) * period_dt(rates, cascade_.control_mode(outer))
+    return Trace(t=np.repeat(t[None], len(rec["theta"]), axis=0), **rec), carries
