@@ -5,8 +5,10 @@ The job is frozen: ``TuneConfig()`` (its digest is in the output), cut to ``--it
 so the steady iterations 2..6 include one renewal of the windows' start states, every ``refresh_every`` = 5, as the
 whole job's do).  Each run is a fresh interpreter that builds the problem and runs the optimiser as ``pusupu tune``
 does; it reports the time from its start (imports included) to the end of the first iteration, and the mean of the
-later ones.  A *cold* run has an empty compilation cache (and so no stored traced programs); the *warm* run after it
-uses the cache the cold one filled.
+later ones.  The first iteration is taken apart with JAX's own timings (``jax.monitoring``): tracing, lowering to
+StableHLO, XLA's compile (a cache hit's load included, and given apart), per program for the eight costliest, and
+the rest (running, Python, imports).  A *cold* run has an empty compilation cache (and so no stored traced
+programs); the *warm* run after it uses the cache the cold one filled.
 
 A configuration is ``LABEL=PLATFORM[@CPUS]``: ``cpu2=cpu@0-1`` runs on the CPU pinned to CPUs 0-1 (``taskset``),
 ``gpu=gpu`` on the GPU.  ``--against DIR`` runs each configuration also with another source tree (``git archive``
@@ -36,9 +38,20 @@ t0 = time.perf_counter()
     + MOUNT_TREE
     + r"""
 import json
+from collections import defaultdict
 from pusupu_jax.runtime import setup_jax
 setup_jax(sys.argv[1])
 import jax
+from jax import monitoring
+
+events = []  # (seconds from start, event, function, duration): JAX's own trace, lowering and compile timings
+
+
+def on_duration(event, duration, **kw):
+    events.append((time.perf_counter() - t0, event.rsplit("/", 1)[-1], kw.get("fun_name", ""), duration))
+
+
+monitoring.register_event_duration_secs_listener(on_duration)
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import ServoParams
 from pusupu_jax.tune.config import TuneConfig
@@ -59,9 +72,22 @@ p = Problem(cfg, ServoParams.table1(), HybridGains())
 result = p.tune(progress=progress)
 cpu1 = os.times()
 steady = [b[0] - a[0] for a, b in zip(ends, ends[1:])]
+KIND = {"jaxpr_trace_duration": "trace_s", "jaxpr_to_mlir_module_duration": "lower_s",
+        "backend_compile_duration": "compile_s", "cache_retrieval_time_sec": "cache_load_s"}
+totals, programs = defaultdict(float), defaultdict(lambda: defaultdict(float))
+for at, event, fun, duration in events:
+    if at <= ends[0][0] and event in KIND:
+        totals[KIND[event]] += duration
+        programs[fun.removeprefix("jit(").removesuffix(")")][KIND[event]] += duration
+top = sorted(programs.items(), key=lambda kv: -sum(v for k, v in kv[1].items() if k != "cache_load_s"))[:8]
+breakdown = {k: round(totals[k], 2) for k in KIND.values()} | {
+    "rest_s": round(ends[0][0] - totals["trace_s"] - totals["lower_s"] - totals["compile_s"], 2),
+    "programs": {name: {k: round(v, 2) for k, v in kinds.items()} for name, kinds in top},
+}
 print(json.dumps({
     "config_digest": digest,
     "first_iteration_s": ends[0][0],
+    "first_iteration_breakdown": breakdown,
     "steady_iteration_s": sum(steady) / len(steady),
     "steady_iterations": steady,
     "objective": [v for _, v in ends],
