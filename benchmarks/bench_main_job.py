@@ -6,8 +6,8 @@ so the steady iterations 2..6 include one renewal of the windows' start states, 
 whole job's do).  Each run is a fresh interpreter that builds the problem and runs the optimiser as ``pusupu tune``
 does; it reports the time from its start (imports included) to the end of the first iteration, and the mean of the
 later ones.  The first iteration is taken apart with JAX's own timings (``jax.monitoring``): tracing, lowering to
-StableHLO, XLA's compile (a cache hit's load included, and given apart), per program for the eight costliest, and
-the rest (running, Python, imports).  A *cold* run has an empty compilation cache (and so no stored traced
+StableHLO and XLA's compile (a cache hit's load included), per program for the eight costliest, the cache loads as a
+total, and the rest (running, Python, imports).  A *cold* run has an empty compilation cache (and so no stored traced
 programs); the *warm* run after it uses the cache the cold one filled.
 
 A configuration is ``LABEL=PLATFORM[@CPUS]``: ``cpu2=cpu@0-1`` runs on the CPU pinned to CPUs 0-1 (``taskset``),
@@ -78,8 +78,9 @@ totals, programs = defaultdict(float), defaultdict(lambda: defaultdict(float))
 for at, event, fun, duration in events:
     if at <= ends[0][0] and event in KIND:
         totals[KIND[event]] += duration
-        programs[fun.removeprefix("jit(").removesuffix(")")][KIND[event]] += duration
-top = sorted(programs.items(), key=lambda kv: -sum(v for k, v in kv[1].items() if k != "cache_load_s"))[:8]
+        if fun:  # JAX names no function for a cache load: those are a total only
+            programs[fun.removeprefix("jit(").removesuffix(")")][KIND[event]] += duration
+top = sorted(programs.items(), key=lambda kv: -sum(kv[1].values()))[:8]
 breakdown = {k: round(totals[k], 2) for k in KIND.values()} | {
     "rest_s": round(ends[0][0] - totals["trace_s"] - totals["lower_s"] - totals["compile_s"], 2),
     "programs": {name: {k: round(v, 2) for k, v in kinds.items()} for name, kinds in top},

@@ -31,7 +31,7 @@ CHUNK = 250  # periods per call of run_chunked's compiled program
 def _init_program(
     plant: Plant, rates: LoopRates, outer: str, start: str, params_axis: int | None, hybrid_axis: int | None
 ) -> jax.stages.Wrapped:
-    """:func:`initial_carry` vmapped over a batch, jitted (cached per static arguments)."""
+    """:func:`~pusupu_jax.sim.initial_carry` vmapped over a batch, jitted (cached per static arguments)."""
 
     def init(
         params: ServoParams,
@@ -59,8 +59,8 @@ def _init_program(
 def _chunk_program(
     plant: Plant, rates: LoopRates, outer: str, params_axis: int | None, hybrid_axis: int | None, masked: bool
 ) -> jax.stages.Wrapped:
-    """:func:`rollout_chunk` (with ``n_valid`` when ``masked``) vmapped over a batch, jitted (cached per static
-    arguments: one compile serves every path length)."""
+    """:func:`~pusupu_jax.sim.rollout_chunk` (with ``n_valid`` when ``masked``) vmapped over a batch, jitted (cached
+    per static arguments: one compile serves every path length)."""
 
     def chunk(
         params: ServoParams,
@@ -103,9 +103,9 @@ def run_chunked(
     marks: Sequence[int] = (),
     chunk: int = CHUNK,
 ) -> tuple[Trace, Carry | None]:
-    """A batch of runs, each :func:`rollout` of its ``models[b]`` over ``reference[b]`` ``(B, N, ...)``, cut into
-    calls of one compiled program of ``chunk`` periods (host-side): ``(trace (B, N, ...), carries (B, len(marks),
-    ...))``.
+    """A batch of runs, each :func:`~pusupu_jax.sim.rollout` of its ``models[b]`` over ``reference[b]``
+    ``(B, N, ...)``, cut into calls of one compiled program of ``chunk`` periods (host-side): ``(trace (B, N, ...),
+    carries (B, len(marks), ...))``.
 
     ``params`` (and ``hybrid``) are shared, or batched along their leading axis when ``params_axis``
     (``hybrid_axis``) is 0; ``compliance``: ``(AdmittanceGains, Geometry)``, shared, or None; ``models`` is batched
@@ -114,9 +114,9 @@ def run_chunked(
     path's end, on its last sample held; what it records there is dropped.
 
     ``marks``: periods at which to keep the carry (the start states of windows, for ``rollout(init=...)``).  With
-    marks, the chunks stop at them (:func:`rollout_chunk`'s ``n_valid``: another program, whose select per period
-    costs run time); without, every chunk runs whole.  Different programs round differently: a run agrees with
-    :func:`rollout`'s to float64 rounding, not bit for bit (``tests/test_windows.py``).
+    marks, the chunks stop at them (:func:`~pusupu_jax.sim.rollout_chunk`'s ``n_valid``: another program, whose
+    select per period costs run time); without, every chunk runs whole.  Different programs round differently: a run
+    agrees with :func:`~pusupu_jax.sim.rollout`'s to float64 rounding, not bit for bit (``tests/test_windows.py``).
     """
     init = _init_program(plant, rates, outer, start, params_axis, hybrid_axis)
     step = _chunk_program(plant, rates, outer, params_axis, hybrid_axis, bool(marks))

@@ -243,7 +243,8 @@ class TuneConfig:
         check_joints(self.ros_joints, "tune config ros_joints")  # the exporter's own rule, before any work
 
     def to_json(self) -> dict:
-        """Every setting as JSON types (a report's ``config``; :meth:`load` reads it back)."""
+        """Every setting as JSON types (a report's ``config``, a batch shard's settings: ``TuneConfig().replace(**d)``
+        reads it back)."""
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(self).items()}
 
     def digest(self) -> str:

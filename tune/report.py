@@ -121,10 +121,6 @@ class TuneReport:
         """Evaluations of the objective, over every start."""
         return len(self.history)
 
-    @property
-    def exported(self) -> bool:
-        return self.export.error is None
-
     def to_json(self, history: bool = True) -> dict[str, Any]:
         """``report.json``'s content (without the history when ``history`` is False)."""
         d: dict[str, Any] = {
@@ -320,14 +316,17 @@ class JobReport:
             "history": [dataclasses.asdict(h) for h in self.history],
             "objective_before": self.objective_before,
             "before": self.before,
-            "status": str(self.status),
-            "error": self.error,
         }
         if self.status is not JobStatus.FAILED:
-            d |= {"objective_after": self.objective_after, "after": self.after, "start": self.start}
-            d |= {"result": self.result}
+            d |= {
+                "objective_after": self.objective_after,
+                "after": self.after,
+                "start": self.start,
+                "result": self.result,
+            }
         if self.export is not None:
             d |= self.export.to_json()
+        d |= {"status": str(self.status), "error": self.error}
         if self.plots is not None:
             d["plots"] = self.plots
         return d | {"row": self.row().to_json()}
