@@ -200,6 +200,78 @@ def _replay(
     return Replay(run, log.torque[keep], log.position[keep], log.reference[keep], index * rates.dt_position)
 
 
+@dataclasses.dataclass(frozen=True)
+class Solution:
+    """What :func:`least_squares_excited` found: the values ``x`` (the unexcited ones at their start), their standard
+    errors, which were excited, the residual at the start, scipy's result of the last solve, and the residual and
+    Jacobian evaluations over every solve."""
+
+    x: np.ndarray
+    std: np.ndarray
+    excited: np.ndarray
+    residual_before: np.ndarray
+    result: Any
+    evaluations: int
+    jacobians: int
+
+
+def least_squares_excited(
+    residual_of: Callable[[np.ndarray], tuple[Callable[[jax.Array], jax.Array], Callable[[jax.Array], jax.Array]]],
+    start: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
+    say: Callable[[str], object] = lambda line: None,
+) -> Solution:
+    """Bounded least squares (scipy's trust-region reflective solver) from ``start`` inside ``[low, high]``, with
+    standard errors from the Jacobian at the optimum, that invents no value the data do not excite.
+
+    ``residual_of(free)`` gives the residual and its Jacobian as functions of the values at the indices ``free``
+    (the others held at their start).  A value whose Jacobian column is below :data:`UNEXCITED_COLUMN` of the largest,
+    or whose standard error is above :data:`UNEXCITED_ERROR` of its size (or of 1), is not excited: it keeps its
+    start, and the others are fitted again without it.  With none excited, every value keeps its start."""
+    from scipy.optimize import least_squares
+
+    def solve(free: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
+        f, jac = residual_of(free)
+        p0 = start[free]
+        say(f"identify: compiling the replay and its Jacobian ({len(free)} values)")
+        r0 = np.asarray(f(jnp.asarray(p0)))
+        jac(jnp.asarray(p0))
+        say("identify: fitting (trust-region least squares, each value inside its field's range)")
+        sol = least_squares(
+            lambda p: np.asarray(f(jnp.asarray(p))),
+            p0,
+            jac=lambda p: np.asarray(jac(jnp.asarray(p))),
+            bounds=(low[free], high[free]),
+            method="trf",
+            xtol=1e-9,
+            ftol=1e-9,
+        )
+        J = np.asarray(jac(jnp.asarray(sol.x)))
+        dof = max(J.shape[0] - J.shape[1], 1)
+        variance = 2 * sol.cost / dof
+        std = np.sqrt(np.maximum(np.diag(variance * np.linalg.pinv(J.T @ J)), 0.0))
+        return sol, r0, std, J
+
+    free = np.arange(start.size)
+    sol, r0, std, J = solve(free)
+    norms = np.linalg.norm(J, axis=0)
+    x = sol.x
+    excited = (norms > UNEXCITED_COLUMN * norms.max()) & (std < UNEXCITED_ERROR * np.maximum(np.abs(x), 1.0))
+    evaluations, jacobians = sol.nfev, sol.njev
+    if not excited.all() and excited.any():
+        say(f"identify: {int((~excited).sum())} value(s) not excited by the logs: fitting the others again")
+        kept = free[excited]
+        again, _, std_kept, _ = solve(kept)
+        x = start.copy()
+        x[kept] = again.x
+        std[kept] = std_kept
+        sol, evaluations, jacobians = again, evaluations + again.nfev, jacobians + again.njev
+    elif not excited.any():
+        x = start.copy()
+    return Solution(x, std, excited, r0, sol, int(evaluations), int(jacobians or 0))
+
+
 def fit(
     logs: list[DriveLog],
     machine: Machine,
@@ -216,8 +288,6 @@ def fit(
     the path, where not the logs' own).  Returns the report, the machine with the fitted values (the unexcited ones
     as they were), and per log the arrays of the plot (``t``, logged and replayed torques before and after).
     ``progress(line)`` is told what runs (compiles take about half a minute each on 2 CPU cores)."""
-    from scipy.optimize import least_squares
-
     say = progress or (lambda line: None)
     t0 = time.perf_counter()
     starts = np.stack([np.broadcast_to(np.asarray(machine.drives[f], float), (N_AXES,)) for f in fields])
@@ -256,44 +326,9 @@ def fit(
         programs[tuple(free)] = jax.jit(residual), jax.jit(jax.jacfwd(residual))
         return programs[tuple(free)]
 
-    def solve(free: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
-        f, jac = residual_of(free)
-        p0 = (starts / scale).ravel()[free]
-        say(f"identify: compiling the replay and its Jacobian ({len(free)} values, {len(replays)} log(s))")
-        r0 = np.asarray(f(jnp.asarray(p0)))
-        jac(jnp.asarray(p0))
-        say("identify: fitting (trust-region least squares, each value inside its field's range)")
-        sol = least_squares(
-            lambda p: np.asarray(f(jnp.asarray(p))),
-            p0,
-            jac=lambda p: np.asarray(jac(jnp.asarray(p))),
-            bounds=(low.ravel()[free], high.ravel()[free]),
-            method="trf",
-            xtol=1e-9,
-            ftol=1e-9,
-        )
-        J = np.asarray(jac(jnp.asarray(sol.x)))
-        dof = max(J.shape[0] - J.shape[1], 1)
-        variance = 2 * sol.cost / dof
-        std = np.sqrt(np.maximum(np.diag(variance * np.linalg.pinv(J.T @ J)), 0.0))
-        return sol, r0, J, std
-
-    free = np.arange(starts.size)
-    sol, r0, J, std = solve(free)
-    norms = np.linalg.norm(J, axis=0)
-    x = sol.x
-    excited = (norms > UNEXCITED_COLUMN * norms.max()) & (std < UNEXCITED_ERROR * np.maximum(np.abs(x), 1.0))
-    evaluations, jacobians = sol.nfev, sol.njev
-    if not excited.all() and excited.any():
-        say(f"identify: {int((~excited).sum())} value(s) not excited by the logs: fitting the others again")
-        kept = free[excited]
-        again, _, _, std_kept = solve(kept)
-        x = (starts / scale).ravel()
-        x[kept] = again.x
-        std[kept] = std_kept
-        sol, evaluations, jacobians = again, evaluations + again.nfev, jacobians + again.njev
-    elif not excited.any():
-        x = (starts / scale).ravel()
+    solution = least_squares_excited(residual_of, (starts / scale).ravel(), low.ravel(), high.ravel(), say)
+    sol, r0, x, std, excited = solution.result, solution.residual_before, solution.x, solution.std, solution.excited
+    evaluations, jacobians = solution.evaluations, solution.jacobians
     fitted = x.reshape(starts.shape) * scale
     errors = std.reshape(starts.shape) * scale
     flags = excited.reshape(starts.shape)
@@ -310,8 +345,8 @@ def fit(
         residual_rms_after=float(np.sqrt(np.mean(r1**2))),
         samples=int(sum(len(r.t) for r in replays)),
         window_s=window_s,
-        evaluations=int(evaluations),
-        jacobians=int(jacobians or 0),
+        evaluations=evaluations,
+        jacobians=jacobians,
         solver_message=str(sol.message),
         wall_s=time.perf_counter() - t0,
         logs=tuple({"path": log.path, "sha256": log.digest, "source": log.source} for log in logs),

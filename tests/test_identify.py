@@ -1,12 +1,16 @@
 """``pusupu identify``'s inputs: the names of the fields to fit, a file that is not a run log, and CSV drive tables
-that do not follow their layout (one that does is read in tests/test_paths.py, against its MCAP log).  The fit itself is
-not run by the suite: from an empty compile cache, its replay and Jacobian compile for minutes on 2 cores
-(docs/identify.md has the measured fits)."""
+that do not follow their layout (one that does is read in tests/test_paths.py, against its MCAP log), and the solver
+that keeps a value the data do not excite at its start, on a linear problem.  The fit of a log itself is not run by
+the suite: from an empty compile cache, its replay and Jacobian compile for minutes on 2 cores (docs/identify.md has
+the measured fits)."""
 
+import jax
+import jax.numpy as jnp
+import numpy as np
 import pytest
 
 from pusupu_jax import ParameterError, run_log
-from pusupu_jax.machine_fit import FitField, fit_fields
+from pusupu_jax.machine_fit import FitField, fit_fields, least_squares_excited
 
 
 def test_fit_names_are_fields_or_the_friction_group():
@@ -66,3 +70,36 @@ def test_a_bad_csv_drive_table_is_refused_in_one_line(tmp_path, comments, header
     with pytest.raises(ParameterError, match=message) as e:
         drive_table.read(bad)
     assert "\n" not in str(e.value)
+
+
+def _linear(A, b, start):
+    """``residual_of`` for ``A p - b`` over the values at ``free`` (the others held at ``start``), as ``fit`` builds
+    it for the replay."""
+
+    def residual_of(free):
+        def residual(p):
+            return jnp.asarray(A) @ jnp.asarray(start).at[free].set(p) - jnp.asarray(b)
+
+        return jax.jit(residual), jax.jit(jax.jacfwd(residual))
+
+    return residual_of
+
+
+def test_a_value_the_data_do_not_excite_keeps_its_start_and_the_others_are_fitted():
+    """Three values, the data see the first and the third only (the second's column is zero): the second keeps its
+    start and is reported as not excited; the others are found to the solver's tolerance, with standard errors of
+    the data's noise.  With no value excited, every value keeps its start."""
+    rng = np.random.default_rng(0)
+    A = np.column_stack([rng.normal(size=200), np.zeros(200), rng.normal(size=200)])
+    truth, start = np.array([2.0, 5.0, -1.5]), np.array([1.0, 3.0, 0.0])
+    b = A @ truth + 1e-3 * rng.normal(size=200)
+    low, high = np.full(3, -10.0), np.full(3, 10.0)
+    lines = []
+    found = least_squares_excited(_linear(A, b, start), start, low, high, lines.append)
+    assert found.excited.tolist() == [True, False, True]
+    assert found.x[1] == start[1]  # not invented
+    np.testing.assert_allclose(found.x[[0, 2]], truth[[0, 2]], atol=5e-4)
+    assert np.all(found.std[[0, 2]] < 1e-3)
+    assert "identify: 1 value(s) not excited by the logs: fitting the others again" in lines
+    none = least_squares_excited(_linear(np.zeros((50, 3)), np.ones(50), start), start, low, high)
+    assert not none.excited.any() and none.x.tolist() == start.tolist()
