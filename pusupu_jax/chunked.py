@@ -87,6 +87,23 @@ def _chunk_program(
     return jax.jit(jax.vmap(chunk, in_axes=(params_axis, 0, 0, hybrid_axis, None, 0, None)))
 
 
+def carry_structure(
+    params: ServoParams,
+    models: Any,
+    first: Any,
+    *,
+    plant: Plant = AxisPlant(),
+    rates: LoopRates = LoopRates(),
+    outer: str = "imc",
+    hybrid: hybrid_law.HybridGains | None = None,
+    start: str = "rest",
+) -> Any:
+    """The structure of :func:`run_chunked`'s carries (a tree of ``jax.ShapeDtypeStruct``, batch axis first) for
+    ``models`` and the references' first samples ``first``, traced from its start program without running it."""
+    init = _init_program(plant, rates, outer, start, None, None)
+    return jax.eval_shape(init, params, models, first, hybrid, None)
+
+
 def run_chunked(
     params: ServoParams,
     models: Any,

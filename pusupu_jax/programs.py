@@ -112,6 +112,18 @@ def _versions() -> str:
     return ",".join(out)
 
 
+def fingerprint(parts: Sequence[str], sources: tuple[Path, ...] = ()) -> str:
+    """A hash of ``parts`` and of everything else a traced computation depends on: the versions of jax, jaxlib,
+    mujoco, mujoco-mjx and numpy, the backend, the JAX settings that change a trace, and the source of this package
+    and of the ``sources`` folders."""
+    h = hashlib.sha256()
+    settings = ",".join(f"{name}={getattr(jax.config, name)}" for name in _SETTINGS)
+    extra = (_versions(), jax.default_backend(), settings, *(_source_digest(f) for f in (HERE, *sources)))
+    for part in (*parts, *extra):
+        h.update(part.encode() + b"\0")
+    return h.hexdigest()
+
+
 def cache_folder() -> Path | None:
     """``programs/`` in JAX's compilation cache folder (set by :func:`pusupu_jax.runtime.setup_jax`), or None."""
     folder = jax.config.jax_compilation_cache_dir  # type: ignore[attr-defined]  # JAX defines its flags at run time
@@ -169,20 +181,9 @@ class Program:
 
     def digest(self, tree: PyTreeDef, avals: Sequence[str]) -> str:
         """The file name's hash for arguments of structure ``tree`` and types ``avals``."""
-        h = hashlib.sha256()
-        settings = ",".join(f"{name}={getattr(jax.config, name)}" for name in _SETTINGS)
-        for part in (
-            self.key() if callable(self.key) else self.key,
-            _versions(),
-            jax.default_backend(),
-            f"devices={1 if self.mesh is None else self.mesh.size}",
-            settings,
-            describe(tree),
-            ";".join(avals),
-            *(_source_digest(f) for f in (HERE, *self.sources)),
-        ):
-            h.update(part.encode() + b"\0")
-        return h.hexdigest()
+        key = self.key() if callable(self.key) else self.key
+        devices = f"devices={1 if self.mesh is None else self.mesh.size}"
+        return fingerprint((key, devices, describe(tree), ";".join(avals)), self.sources)
 
     def _program(self, leaves: list[Any], tree: PyTreeDef, avals: Sequence[str]) -> Wrapped:
         def flat(*xs: Any) -> Any:

@@ -156,8 +156,9 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
     (pusupu_jax.tune.run._shared_gradient): each still equals its own batch member.  A problem started elsewhere does
     not
     share it (here the current loop's gain, which is not tuned and enters the program as a constant).  Built again
-    with nothing in memory, a problem reads the traced program from disk (pusupu_jax.programs) instead of tracing.
-    benchmarks/batch_equivalence.py checks every scenario of a 64-scenario batch the same way.
+    with nothing in memory, a problem reads the traced program from disk (pusupu_jax.programs) instead of tracing, and
+    the start states at its start from the file the first problem kept (pusupu_jax.tune.starts): bit for bit those a
+    forward pass gives.  benchmarks/batch_equivalence.py checks every scenario of a 64-scenario batch the same way.
     """
     _, out, summary, _, _ = batch
     jf = jobfile.read(out.parent / "job.yaml")
@@ -184,6 +185,9 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
     assert again._value_and_grad.loaded == 1
     got, want = again._value_and_grad(*args), problems[1]._value_and_grad(*args)
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)))
+    assert again.starts_loaded == 1
+    computed = jax.tree.map(lambda *c: np.concatenate(c), *[c for _, c in again.run_paths(again.z0())])
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(again.starts), jax.tree.leaves(computed)))
 
 
 def test_running_again_skips_the_finished_jobs(batch):

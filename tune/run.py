@@ -34,14 +34,15 @@ from pusupu_jax.machine_file import Machine
 from pusupu_jax.params import AxisLoad, ParameterError, ServoParams, stack
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
-from pusupu_jax.programs import Program, describe
-from pusupu_jax.chunked import run_chunked
+from pusupu_jax.programs import Program, UnstableKey, describe, fingerprint
+from pusupu_jax.chunked import carry_structure, run_chunked
 from pusupu_jax.sim import rollout
 from pusupu_jax.paths import path_label, platform_path_from
 
 from .config import TuneConfig
 from .optimise import OptimiseResult, optimise
 from .space import Space
+from . import starts as kept_starts
 
 HERE = Path(__file__).parent  # the tuner's source, which its traced programs depend on (pusupu_jax.programs)
 PENALTY_WEIGHT = 100.0
@@ -315,6 +316,7 @@ class Problem(WindowStarts):
         # every window of every scenario is independent: they are laid over the devices (one per CPU core)
         self.mesh = devices.row_mesh(self.rows * sc.windows)
         self._value_and_grad = _shared_gradient(self)
+        self.starts_loaded = 0  # start states read from disk rather than computed (refresh)
 
     def run_paths(self, z) -> list:
         """The forward pass over every scenario's whole path at ``z``: ``[(trace (K every, ...), carries (K,
@@ -355,10 +357,48 @@ class Problem(WindowStarts):
         return out
 
     def refresh(self, z) -> None:
-        """Renew the windows' start states from a forward pass over the whole paths at ``z``."""
-        runs = self.run_paths(z)
-        self.starts = jax.tree.map(lambda *c: jnp.concatenate(c), *[carries for _, carries in runs])
+        """Renew the windows' start states from a forward pass over the whole paths at ``z``, or load the states an
+        earlier run kept for the same problem and gains (:mod:`pusupu_jax.tune.starts`; counted in
+        ``starts_loaded``)."""
+        path = self._starts_file(z)
+        stored = None if path is None else kept_starts.load(path, lambda: self.starts_structure(z))
+        if stored is not None:
+            self.starts = jax.tree.map(jnp.asarray, stored)
+            self.starts_loaded += 1
+        else:
+            runs = self.run_paths(z)
+            self.starts = jax.tree.map(lambda *c: jnp.concatenate(c), *[carries for _, carries in runs])
+            if path is not None:
+                kept_starts.keep(path, self.starts)
         self._starts_z = {k: np.asarray(v) for k, v in z.items()}
+
+    def starts_structure(self, z) -> object:
+        """The structure of the start states ``refresh(z)`` makes (``jax.ShapeDtypeStruct`` leaves), traced, not run."""
+        servo, hybrid = self.space.apply(z)
+        sc = self.scenarios
+        _, models, refs = next(iter(sc.groups.values()))
+        return carry_structure(
+            servo,
+            models,
+            jax.tree.map(lambda x: np.asarray(x)[:, 0], refs),
+            plant=sc.plant,
+            rates=self.rates,
+            outer=self.cfg.mode,
+            hybrid=hybrid if control_mode(self.cfg.mode).hybrid else None,
+        )
+
+    def _starts_file(self, z) -> Path | None:
+        """Where the start states at ``z`` are kept: named by everything they depend on (:mod:`.starts`)."""
+        try:
+            parts = (
+                structure_key(self),
+                describe({k: np.asarray(v) for k, v in z.items()}),
+                describe([(models, refs) for _, models, refs in self.scenarios.groups.values()]),
+                f"devices={len(jax.devices())}",
+            )
+        except UnstableKey:
+            return None
+        return kept_starts.path_for(fingerprint(parts, (HERE,)))
 
     def z0(self) -> dict:
         return self.space.z0()
