@@ -20,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import io
 import warnings
+import zipfile
 from pathlib import Path
 from typing import Any, Callable
 
@@ -60,7 +61,7 @@ def load(path: Path, structure: Callable[[], Any]) -> Any | None:
             if sorted(arrays.files) != sorted(f"leaf{k}" for k in range(len(leaves))):
                 return None
             kept = [arrays[f"leaf{k}"] for k in range(len(leaves))]
-    except ValueError:  # not an npz, or one holding objects
+    except (ValueError, OSError, zipfile.BadZipFile):  # not an npz, a damaged one, or one holding objects
         return None
     if any(a.dtype != t.dtype or a.ndim != len(t.shape) for a, t in zip(kept, leaves)):
         return None
