@@ -104,14 +104,14 @@ def main() -> int:
         alone = problem.tune()
         t_alone += time.perf_counter() - t1
         report = json.loads((folder / "out" / "jobs" / j.name / "report.json").read_text())
-        history = relative([h["objective"] for h in report["history"]], [h["objective"] for h in alone["history"]])
-        values = problem.space.values(alone["z"])
+        history = relative([h["objective"] for h in report["history"]], [h.objective for h in alone.history])
+        values = problem.space.values(alone.z)
         gains = max(relative(np.ravel(report["result"][f]), np.ravel(v)) for f, v in values.items())
         rows.append(
             {
                 "job": j.name,
                 "trajectory": j.specs[0].trajectory,
-                "evaluations": len(alone["history"]),
+                "evaluations": len(alone.history),
                 "history_rel": history,
                 "gains_rel": gains,
                 "alone_s": time.perf_counter() - t1,

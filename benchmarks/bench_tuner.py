@@ -76,7 +76,7 @@ def main() -> None:
     result = optimise(
         counted, z0, space.project, iterations=cfg.iterations, learning_rate=cfg.learning_rate, clip_norm=cfg.clip_norm
     )
-    target = result["objective"]
+    target = result.objective
     grad_evals = next(i + 1 for i, (v, _) in enumerate(trace) if v <= target)
     grad_wall = trace[grad_evals - 1][1]
 

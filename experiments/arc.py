@@ -39,8 +39,9 @@ def run(quick: bool = False) -> Result:
         ((result, arrays),) = simulate_scenarios(
             ServoParams.table1().replace(imc_form=form), [Scenario(path)], mode=mode
         )
+        row = result.to_json()
         metrics["runs"][label] = {
-            k: result[k]
+            k: row[k]
             for k in (
                 "mode",
                 "imc_form",

@@ -31,7 +31,8 @@ SOLVER = dict(solver_iterations=4, cone="elliptic")  # ModelOptions of the conta
 
 def run_modes(path, options, runs: dict, *, rates: LoopRates = LoopRates(), force_setpoint=None) -> tuple[dict, dict]:
     """Run ``path`` on the machine built with ``options`` once per entry of ``runs``, ``label: (mode,
-    admittance gains or None)``; returns ``(results, arrays)`` keyed by label."""
+    admittance gains or None)``; returns ``(runs, arrays)`` keyed by label (each run a
+    :class:`~pusupu_jax.machine.MachineRun`)."""
     results, arrays = {}, {}
     for label, (mode, gains) in runs.items():
         ((result, a),) = simulate_scenarios(

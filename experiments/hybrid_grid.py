@@ -80,11 +80,8 @@ def run(quick: bool = False) -> Result:
             scenarios = [Scenario(path, ModelOptions(kin_error_seed=s), f"seed{s}") for _, s in grid]
             out = simulate_scenarios(servo, scenarios, mode="hybrid", hybrid=HybridGains(m6=m6))
             for (l2, s), (r, _) in zip(grid, out):
-                rms, mx, peak = (
-                    r[Metric.RMS_TRACKING_ERROR_MM],
-                    r[Metric.MAX_TRACKING_ERROR_MM],
-                    max(r[Metric.BRANCH_FORCE_PEAK_N]),
-                )
+                m = r.metrics
+                rms, mx, peak = m.rms_tracking_error_mm, m.max_tracking_error_mm, m.highest_branch_force_peak_n
                 rows.append(
                     {
                         "m6": m6,
@@ -138,11 +135,8 @@ def gain_sweep(path, l2_min: float) -> list:
     scenarios = [Scenario(path, ModelOptions(kin_error_seed=SWEEP_SEED), f"seed{SWEEP_SEED}") for _ in grid]
     rows = []
     for (name, k, l2), (r, _) in zip(grid, simulate_scenarios(servo, scenarios, mode="hybrid", hybrid=hybrid)):
-        rms, mx, peak = (
-            r[Metric.RMS_TRACKING_ERROR_MM],
-            r[Metric.MAX_TRACKING_ERROR_MM],
-            max(r[Metric.BRANCH_FORCE_PEAK_N]),
-        )
+        m = r.metrics
+        rms, mx, peak = m.rms_tracking_error_mm, m.max_tracking_error_mm, m.highest_branch_force_peak_n
         rows.append(
             {
                 "gain": name,

@@ -16,7 +16,7 @@ import numpy as np
 
 from pusupu_jax import LoopRates, ServoParams
 from pusupu_jax.cascade import Mode
-from pusupu_jax.machine import Scenario, simulate_scenarios
+from pusupu_jax.machine import MachineRun, Scenario, simulate_scenarios
 from pusupu_jax.metrics import Metric
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
@@ -74,16 +74,17 @@ def run(quick: bool = False, seeds=None) -> Result:
     return Result("p2p", metrics, series)
 
 
-def _keep(r: dict) -> dict:
-    peaks = r[Metric.BRANCH_FORCE_PEAK_N]
+def _keep(run: MachineRun) -> dict:
+    r = run.metrics
+    peaks = r.branch_force_peak_n
     return {
-        Metric.RMS_TRACKING_ERROR_MM: r[Metric.RMS_TRACKING_ERROR_MM],
-        Metric.MAX_TRACKING_ERROR_MM: r[Metric.MAX_TRACKING_ERROR_MM],
+        Metric.RMS_TRACKING_ERROR_MM: r.rms_tracking_error_mm,
+        Metric.MAX_TRACKING_ERROR_MM: r.max_tracking_error_mm,
         Metric.BRANCH_FORCE_PEAK_N: peaks,
-        Metric.MOTOR_TORQUE_PEAK_NM: r[Metric.MOTOR_TORQUE_PEAK_NM],
+        Metric.MOTOR_TORQUE_PEAK_NM: r.motor_torque_peak_nm,
         "highest_peak_1_5_n": max(peaks[:5]),
         "balance_max_over_min_1_5": max(peaks[:5]) / min(peaks[:5]),
-        Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM: r[Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM],
+        Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM: r.loop_closure_residual_max_mm,
     }
 
 

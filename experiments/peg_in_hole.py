@@ -28,7 +28,7 @@ import numpy as np
 
 from pusupu_jax import LoopRates
 from pusupu_jax.compliance import AdmittanceGains
-from pusupu_jax.metrics import Metric
+from pusupu_jax.machine import MachineRun
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import HOLE, PEG, ModelOptions
 from pusupu_jax.plots import save_atomic
@@ -72,7 +72,7 @@ def path(rates: LoopRates = LoopRates(), quick: bool = False):
     )
 
 
-def _metrics(result: dict, arrays: dict) -> dict:
+def _metrics(result: MachineRun, arrays: dict) -> dict:
     home = Geometry.default().home
     home_z, hole_axis = float(home[2]), np.asarray(home[:2]) + np.asarray(OFFSET)
     tip = tool_point(arrays, PEG["bottom"] + PEG["radius"])
@@ -92,8 +92,8 @@ def _metrics(result: dict, arrays: dict) -> dict:
         "periods_in_contact_fraction": float(np.mean(np.linalg.norm(force, axis=1) > 1.0)),
         # where the peg's tip ends, x and y, from the hole's axis
         "tip_from_hole_axis_final_mm": ((tip[-1, :2] - hole_axis) * 1e3).tolist(),
-        "highest_branch_force_peak_n": max(result[Metric.BRANCH_FORCE_PEAK_N]),
-        "wall_s": result["wall_s"],
+        "highest_branch_force_peak_n": result.metrics.highest_branch_force_peak_n,
+        "wall_s": result.wall_s,
     }
 
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from pusupu_jax import LoopRates
 from pusupu_jax.compliance import AdmittanceGains
+from pusupu_jax.machine import MachineRun
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
 from pusupu_jax.plots import save_atomic
@@ -87,7 +88,7 @@ def surface_height(x):
     return centre + np.asarray(x) * np.tan(TILT) + SURFACE["half_thickness"] / np.cos(TILT)
 
 
-def _metrics(result: dict, arrays: dict, path, setpoint, settled: int) -> dict:
+def _metrics(result: MachineRun, arrays: dict, path, setpoint, settled: int) -> dict:
     force = np.asarray(arrays["contact_force"])[settled:]
     error = force[:, 2] - setpoint[settled:, 2]
     lost = force[:, 2] < LOST_N
@@ -107,7 +108,7 @@ def _metrics(result: dict, arrays: dict, path, setpoint, settled: int) -> dict:
         "contact_losses": int(np.sum(lost[1:] & ~lost[:-1])),
         "lateral_path_error_rms_mm": float(np.sqrt(np.mean(lateral**2)) * 1e3),
         "height_over_surface_mm": [float(height[settled:].min() * 1e3), float(height[settled:].max() * 1e3)],
-        "wall_s": result["wall_s"],
+        "wall_s": result.wall_s,
     }
 
 

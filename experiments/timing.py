@@ -41,7 +41,8 @@ def run(quick: bool = False, trajectory: str = "arc", mode: str = "imc") -> Resu
         if quick:
             path = path[: int(QUICK_S / rates.dt_position)]
         result, _ = simulate_machine(ServoParams.table1(), path, mode=mode, options=options, rates=rates)
-        runs[label] = {k: result[k] for k in KEYS}
+        row = result.to_json()
+        runs[label] = {k: row[k] for k in KEYS}
     a, b = runs["default"][Metric.RMS_TRACKING_ERROR_MM], runs["halved"][Metric.RMS_TRACKING_ERROR_MM]
     return Result(
         "timing", {"trajectory": trajectory, "mode": mode, "runs": runs, "rms_relative_change": abs(b - a) / a}

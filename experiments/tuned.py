@@ -48,7 +48,7 @@ KEYS = {
     Metric.RMS_TRACKING_ERROR_MM: "RMS error [mm]",
     Metric.MAX_TRACKING_ERROR_MM: "max error [mm]",
     "highest_reversal_error_mm": "reversal glitch [mm]",
-    "highest_branch_force_peak_n": "highest branch force peak [N]",
+    Metric.HIGHEST_BRANCH_FORCE_PEAK_N: "highest branch force peak [N]",
 }
 
 
@@ -133,17 +133,15 @@ def run(quick: bool = False, gains=None) -> Result:
             )
             for sc, (r, a) in zip(scenarios, out):
                 runs.setdefault(sc.name, {}).setdefault(label, {})[set_label] = {
-                    k: r[k]
+                    k.value: r.metrics.value(k)
                     for k in (
                         Metric.RMS_TRACKING_ERROR_MM,
                         Metric.MAX_TRACKING_ERROR_MM,
                         Metric.BRANCH_FORCE_PEAK_N,
                         Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM,
+                        Metric.HIGHEST_BRANCH_FORCE_PEAK_N,
                     )
-                } | {
-                    "highest_branch_force_peak_n": max(r[Metric.BRANCH_FORCE_PEAK_N]),
-                    "highest_reversal_error_mm": highest(r[Metric.BRANCH_REVERSAL_ERROR_MM]),
-                }
+                } | {"highest_reversal_error_mm": highest(r.metrics.branch_reversal_error_mm)}
                 series.setdefault(sc.name, {}).setdefault(label, {})[set_label] = {
                     "t": np.asarray(a["t"]),
                     "error_mm": np.linalg.norm(np.asarray(a["platform"]) - np.asarray(a["reference"]), axis=1) * 1e3,

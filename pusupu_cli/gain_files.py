@@ -12,6 +12,8 @@ from pusupu_jax.params import ParameterError
 
 from .common import check_path_on, checking, machine_of, say
 
+COMPARED = (Metric.RMS_TRACKING_ERROR_MM, Metric.MAX_TRACKING_ERROR_MM, Metric.HIGHEST_BRANCH_FORCE_PEAK_N)
+
 
 def cmd_gains(args) -> int:
     from pathlib import Path
@@ -122,9 +124,7 @@ def _check_ros(args, g) -> int:
     }
     for who in runs:
         for sc, (r, _) in zip(scenarios, runs[who]):
-            result["paths"].setdefault(sc.name, {})[who] = {
-                k: r[k] for k in (Metric.RMS_TRACKING_ERROR_MM, Metric.MAX_TRACKING_ERROR_MM)
-            } | {"highest_branch_force_peak_n": max(r[Metric.BRANCH_FORCE_PEAK_N])}
+            result["paths"].setdefault(sc.name, {})[who] = {k.value: r.metrics.value(k) for k in COMPARED}
         m = margins[who]["position"]
         result["position_margins"][who] = {
             "phase_margin_deg": float(min(m["phase_margin_deg"])),
@@ -135,7 +135,7 @@ def _check_ros(args, g) -> int:
         return 0
     print(f"{'path':<6} {'metric':<28} {'pusupu (' + g.mode + ')':>18} {'ROS PID':>12}")
     for name, per in result["paths"].items():
-        for key in (Metric.RMS_TRACKING_ERROR_MM, Metric.MAX_TRACKING_ERROR_MM, "highest_branch_force_peak_n"):
+        for key in COMPARED:
             print(f"{name:<6} {key:<28} {per['pusupu'][key]:>18.4g} {per['ros'][key]:>12.4g}")
     for key in ("phase_margin_deg", "gain_margin_db"):
         print(

@@ -106,7 +106,7 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
         file=sys.stderr,
     )
     started_ns = time.time_ns()
-    result, trace = simulate_machine(
+    run, trace = simulate_machine(
         servo,
         path,
         mode=args.mode,
@@ -116,7 +116,7 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
         start=args.start,
         geom=machine.geometry,
     )
-    result = {"plant": "mjx", "trajectory": args.trajectory} | result
+    m = run.metrics
     if args.log:
         from pusupu_jax import __version__, machine_file, run_log
 
@@ -140,13 +140,13 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
             + (f", kinematic errors seed {args.kin_error}" if args.kin_error is not None else ""),
         )
     if args.json:
-        print(json.dumps(result, indent=2))
+        print(json.dumps({"plant": "mjx", "trajectory": args.trajectory} | run.to_json(), indent=2))
         return 0
     print(
         f"{args.trajectory} on the MJX machine {machine_of(args).name!r}, {args.mode} mode "
         f"(IMC form {servo.imc_form}, start {args.start}), "
-        f"{result['duration_s']:.3g} s simulated "
-        f"in {result['wall_s']:.2f} s (compile included)"
+        f"{m.duration_s:.3g} s simulated "
+        f"in {run.wall_s:.2f} s (compile included)"
     )
     for key in (
         Metric.RMS_TRACKING_ERROR_MM,
@@ -154,8 +154,8 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
         Metric.SYNC_ERROR_RHO,
         Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM,
     ):
-        print(f"  {key:<30} {num(result[key])}")
-    for key, value in result.get("hybrid", {}).items():
+        print(f"  {key:<30} {num(m.value(key))}")
+    for key, value in (m.hybrid.to_json() if m.hybrid else {}).items():
         print(f"  hybrid {key:<23} {value if isinstance(value, str) else num(value)}")
     keys = (
         Metric.BRANCH_RMS_ERROR_MM,
@@ -165,7 +165,7 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
     )
     print(f"{'branch':>6} " + " ".join(f"{k:>24}" for k in keys))
     for b in range(6):  # a branch whose reference never reverses: no reversal error
-        print(f"{b + 1:>6} " + " ".join(f"{num(result[k][b], none='-'):>24}" for k in keys))
+        print(f"{b + 1:>6} " + " ".join(f"{num(m.value(k)[b], none='-'):>24}" for k in keys))
     if args.plot:
         print(f"plot: {args.plot}")
     return 0

@@ -32,7 +32,7 @@ from .plant.geometry import Geometry
 from .plant.mjx_plant import MJXPlant
 from .plant.model import ModelOptions
 from .chunked import run_chunked
-from .metrics import Metric
+from .metrics import HybridFigures, MachineMetrics
 
 if TYPE_CHECKING:
     from .trace import Trace
@@ -102,6 +102,35 @@ class Scenario:
     geometry: Geometry | None = None
 
 
+@dataclasses.dataclass(frozen=True)
+class MachineRun:
+    """One scenario's run on the machine (:func:`simulate_scenarios`): the scenario's ``name`` (None for
+    :func:`simulate_machine`'s single path), the control ``mode``, the IMC form, how it started, its seeded kinematic
+    errors and payload [kg], its :class:`~pusupu_jax.metrics.MachineMetrics`, and the batch's wall time [s]
+    (compile included)."""
+
+    name: str | None
+    mode: str
+    imc_form: str
+    start: str
+    kin_error_seed: int | None
+    payload_kg: float
+    metrics: MachineMetrics
+    wall_s: float
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain data (``pusupu sim --json``'s, and the experiments'): the scenario, the metrics, the wall time."""
+        d: dict[str, Any] = {} if self.name is None else {"name": self.name}
+        d |= {
+            "mode": self.mode,
+            "imc_form": self.imc_form,
+            "start": self.start,
+            "kin_error_seed": self.kin_error_seed,
+            "payload_kg": self.payload_kg,
+        }
+        return d | self.metrics.to_json() | {"wall_s": self.wall_s}
+
+
 def simulate_scenarios(
     servo: ServoParams,
     scenarios: Iterable[Scenario],
@@ -112,8 +141,9 @@ def simulate_scenarios(
     start: str = "rest",
     compliance: compliance_law.AdmittanceGains | None = None,
     force_setpoint: npt.ArrayLike | None = None,
-) -> list[tuple[dict[str, Any], dict[str, Any]]]:
-    """Run several :class:`Scenario` on the machine as one vmapped batch.
+) -> list[tuple[MachineRun, dict[str, Any]]]:
+    """Run several :class:`Scenario` on the machine as one vmapped batch; per scenario, its :class:`MachineRun` and
+    arrays for plots.
 
     The batch runs in calls of :func:`~pusupu_jax.chunked.run_chunked`'s compiled program of
     ``CHUNK`` periods: one compile per mode and batch size, whatever the paths' length.
@@ -128,8 +158,8 @@ def simulate_scenarios(
     of the default structure).  ``compliance``: the admittance
     of :mod:`pusupu_jax.compliance` around the position loops (the scenarios' models need
     contacts), holding the contact force ``force_setpoint`` [N] on the tool (world axes;
-    ``(3,)``, or ``(N, 3)`` along the longest path; default zero).  Returns ``[(result, arrays)]`` as
-    :func:`simulate_machine`.
+    ``(3,)``, or ``(N, 3)`` along the longest path; default zero).  Returns ``[(run, arrays)]``: each scenario's
+    :class:`MachineRun` and arrays for plots, as :func:`simulate_machine`.
     """
     if mode not in MACHINE_MODES:
         raise ValueError(f"mode: expected one of {tuple(map(str, MACHINE_MODES))}, got {mode!r}")
@@ -204,21 +234,10 @@ def simulate_scenarios(
         if compliance is not None:
             reference = reference.inner
         result, arrays = machine_metrics(trace, servos[k], sc.path, reference, mode, rates.dt_position, hybrids[k])
-        out.append(
-            (
-                {
-                    "name": sc.name,
-                    "mode": str(mode),
-                    "imc_form": servo.imc_form,
-                    "start": start,
-                    "kin_error_seed": sc.options.kin_error_seed,
-                    "payload_kg": sc.options.payload,
-                }
-                | result
-                | {"wall_s": wall},
-                arrays,
-            )
+        run = MachineRun(
+            sc.name, str(mode), servo.imc_form, start, sc.options.kin_error_seed, sc.options.payload, result, wall
         )
+        out.append((run, arrays))
     return out
 
 
@@ -232,21 +251,20 @@ def simulate_machine(
     hybrid: hybrid_law.HybridGains | None = None,
     start: str = "rest",
     geom: Geometry | None = None,
-) -> tuple[dict[str, Any], dict[str, Any]]:
+) -> tuple[MachineRun, dict[str, Any]]:
     """Run platform poses ``path`` (``(N, 5)``, one per position period) on the machine of nominal geometry ``geom``
     (None: the default).
 
     ``hybrid``: the gains of eq. 14 for ``mode='hybrid'`` (default :class:`~pusupu_jax.hybrid.HybridGains`).
     ``start``: 'rest' (the machine held still by its drives at t = 0) or 'zero' (every controller state zero).
-    Returns ``(result, trace)``: the metrics (see ``pusupu sim --plant mjx``) and arrays for
+    Returns ``(run, arrays)``: its :class:`MachineRun` (``name`` None; see ``pusupu sim --plant mjx``) and arrays for
     plots (``t``, ``reference``, ``platform`` positions [m], ``branch_force`` [N]).  A batch of one
     :func:`simulate_scenarios`: seeded errors and payloads share the nominal machine's compile.
     """
     result, arrays = simulate_scenarios(
         servo, [Scenario(np.asarray(path), options, geometry=geom)], mode=mode, rates=rates, hybrid=hybrid, start=start
     )[0]
-    result.pop("name")
-    return result, arrays
+    return dataclasses.replace(result, name=None), arrays
 
 
 REVERSAL_WINDOW_S = 0.1  # s after a reversal of a slider's reference speed in which its error counts as the glitch
@@ -284,7 +302,7 @@ def machine_metrics(
     mode: str,
     dt: float,
     hybrid: hybrid_law.HybridGains | None = None,
-) -> tuple[dict[str, Any], dict[str, Any]]:
+) -> tuple[MachineMetrics, dict[str, Any]]:
     """The metrics of ``pusupu sim --plant mjx`` from a machine trace (host-side), and arrays for plots.
 
     ``reference``: the rollout reference of the run (see :func:`machine_reference`); branch errors are taken
@@ -300,28 +318,30 @@ def machine_metrics(
     force = np.asarray(branch_force(trace, servo))
     rho = hybrid_law.synchronous_error(jnp.asarray(e_branch), dt)
     residual = np.asarray(trace.observation["closure_residual"])
-    result = {
-        "duration_s": len(path) * dt,
-        Metric.RMS_TRACKING_ERROR_MM: float(np.sqrt(np.mean(e_platform**2)) * 1e3),
-        Metric.MAX_TRACKING_ERROR_MM: float(e_platform.max() * 1e3),
-        Metric.BRANCH_RMS_ERROR_MM: (np.sqrt(np.mean(e_branch**2, axis=0)) * 1e3).tolist(),
-        Metric.BRANCH_REVERSAL_ERROR_MM: [None if x is None else x * 1e3 for x in reversal_error(e_branch, s_ref, dt)],
-        Metric.MOTOR_TORQUE_PEAK_NM: np.abs(torque).max(axis=0).tolist(),
-        Metric.BRANCH_FORCE_PEAK_N: np.abs(force).max(axis=0).tolist(),
-        Metric.SYNC_ERROR_RHO: float(rho[-1]) * 1e3,  # mm s
-        Metric.LOOP_CLOSURE_RESIDUAL_MAX_MM: float(residual.max() * 1e3),
-    }
+    figures = None
     if control_mode(mode).hybrid:
         assert hybrid is not None  # a hybrid run has its gains
         # the state is recorded at the start of each period, so F_6 of period k shows at k + 1
         f_rho = np.asarray(trace.state.force.force)[1:] - np.asarray(reference.force_ff)[:-1]
-        result["hybrid"] = {
-            "form": hybrid.form,
-            **{f.name: float(getattr(hybrid, f.name)) for f in hybrid_law.gain_fields()},
-            "force_ff_peak_n": float(np.abs(np.asarray(reference.force_ff)).max()),
-            "f_rho_rms_n": float(np.sqrt(np.mean(f_rho**2))),
-            "f_rho_peak_n": float(np.abs(f_rho).max()),
-        }
+        figures = HybridFigures(
+            form=hybrid.form,
+            gains={f.name: float(getattr(hybrid, f.name)) for f in hybrid_law.gain_fields()},
+            force_ff_peak_n=float(np.abs(np.asarray(reference.force_ff)).max()),
+            f_rho_rms_n=float(np.sqrt(np.mean(f_rho**2))),
+            f_rho_peak_n=float(np.abs(f_rho).max()),
+        )
+    result = MachineMetrics(
+        duration_s=len(path) * dt,
+        rms_tracking_error_mm=float(np.sqrt(np.mean(e_platform**2)) * 1e3),
+        max_tracking_error_mm=float(e_platform.max() * 1e3),
+        branch_rms_error_mm=(np.sqrt(np.mean(e_branch**2, axis=0)) * 1e3).tolist(),
+        branch_reversal_error_mm=[None if x is None else x * 1e3 for x in reversal_error(e_branch, s_ref, dt)],
+        motor_torque_peak_nm=np.abs(torque).max(axis=0).tolist(),
+        branch_force_peak_n=np.abs(force).max(axis=0).tolist(),
+        sync_error_rho=float(rho[-1]) * 1e3,  # mm s
+        loop_closure_residual_max_mm=float(residual.max() * 1e3),
+        hybrid=figures,
+    )
     observed = {
         k: np.asarray(trace.observation[k])
         for k in ("contact_force", "compliance_offset", "platform_mat")

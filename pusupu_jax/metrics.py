@@ -1,10 +1,11 @@
 """Tracking metrics: the single-axis ones of a :class:`~pusupu_jax.trace.Trace` of a position mode (differentiable JAX),
-and the names of a machine run's metrics (:class:`Metric`)."""
+and a machine run's (:class:`MachineMetrics`, named by :class:`Metric`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import enum
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -17,7 +18,8 @@ if TYPE_CHECKING:
 
 
 class Metric(enum.StrEnum):
-    """A metric's key in a run's report (JSON and Python dicts alike)."""
+    """A machine run's metric: the name of its :class:`MachineMetrics` attribute and its key in the JSON written.
+    The highest branch force peak is derived from the six peaks: a property, written by the tune reports only."""
 
     RMS_TRACKING_ERROR_MM = "rms_tracking_error_mm"  # platform position error, RMS over the run [mm]
     MAX_TRACKING_ERROR_MM = "max_tracking_error_mm"  # platform position error, largest [mm]
@@ -27,6 +29,79 @@ class Metric(enum.StrEnum):
     BRANCH_FORCE_PEAK_N = "branch_force_peak_n"  # per branch: largest force along the rod [N]
     SYNC_ERROR_RHO = "sync_error_rho"  # the synchronous error of eq. 11 at the end [mm s]
     LOOP_CLOSURE_RESIDUAL_MAX_MM = "loop_closure_residual_max_mm"  # largest loop-closure residual of the model [mm]
+    HIGHEST_BRANCH_FORCE_PEAK_N = "highest_branch_force_peak_n"  # the highest of the six branch force peaks [N]
+
+
+@dataclasses.dataclass(frozen=True)
+class HybridFigures:
+    """What a hybrid run adds (eq. 14): the law's ``form`` and ``gains``, the feedforward force's peak [N] and the
+    force-loop error ``F_rho``'s RMS and peak [N]."""
+
+    form: str
+    gains: dict[str, float]
+    force_ff_peak_n: float
+    f_rho_rms_n: float
+    f_rho_peak_n: float
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain data: the form, each gain by name, then the three forces."""
+        return {"form": self.form, **self.gains} | {
+            "force_ff_peak_n": self.force_ff_peak_n,
+            "f_rho_rms_n": self.f_rho_rms_n,
+            "f_rho_peak_n": self.f_rho_peak_n,
+        }
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> HybridFigures:
+        """The record of :meth:`to_json`'s data."""
+        forces = ("force_ff_peak_n", "f_rho_rms_n", "f_rho_peak_n")
+        gains = {k: float(v) for k, v in d.items() if k != "form" and k not in forces}
+        return cls(str(d["form"]), gains, *(float(d[k]) for k in forces))
+
+
+@dataclasses.dataclass(frozen=True)
+class MachineMetrics:
+    """A machine run's metrics over a path of ``duration_s`` [s]: one field per :class:`Metric` (per-branch ones as six
+    values, a branch whose reference never reverses without a reversal error; the highest force peak a property),
+    and a hybrid run's figures."""
+
+    duration_s: float
+    rms_tracking_error_mm: float
+    max_tracking_error_mm: float
+    branch_rms_error_mm: list[float]
+    branch_reversal_error_mm: list[float | None]
+    motor_torque_peak_nm: list[float]
+    branch_force_peak_n: list[float]
+    sync_error_rho: float
+    loop_closure_residual_max_mm: float
+    hybrid: HybridFigures | None = None
+
+    @property
+    def highest_branch_force_peak_n(self) -> float:
+        """The highest of the six branch force peaks [N]."""
+        return max(self.branch_force_peak_n)
+
+    def value(self, metric: Metric) -> Any:
+        """The value of ``metric``: a float, or six per-branch values."""
+        return getattr(self, metric.value)
+
+    def to_json(self, highest_force: bool = False) -> dict[str, Any]:
+        """Plain data (what ``pusupu sim --json`` prints): the duration, each :class:`Metric` but the derived highest
+        force (unless ``highest_force``: last, as the reports have it), and the hybrid figures of a hybrid run."""
+        d: dict[str, Any] = {"duration_s": self.duration_s}
+        d |= {m.value: self.value(m) for m in Metric if m is not Metric.HIGHEST_BRANCH_FORCE_PEAK_N}
+        if self.hybrid is not None:
+            d["hybrid"] = self.hybrid.to_json()
+        if highest_force:
+            d[Metric.HIGHEST_BRANCH_FORCE_PEAK_N.value] = self.highest_branch_force_peak_n
+        return d
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> MachineMetrics:
+        """The record of :meth:`to_json`'s data (the derived highest force, if there, is left out)."""
+        fields = {m.value: d[m.value] for m in Metric if m is not Metric.HIGHEST_BRANCH_FORCE_PEAK_N}
+        hybrid = HybridFigures.from_json(d["hybrid"]) if "hybrid" in d else None
+        return cls(duration_s=d["duration_s"], **fields, hybrid=hybrid)
 
 
 def safe_sqrt(x: jax.Array) -> jax.Array:

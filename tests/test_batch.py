@@ -169,9 +169,9 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
         alone = problem.tune()
         report = json.loads((out / "jobs" / job.name / "report.json").read_text())
         assert [h["objective"] for h in report["history"]] == pytest.approx(
-            [h["objective"] for h in alone["history"]], rel=1e-7
+            [h.objective for h in alone.history], rel=1e-7
         )
-        for field, value in problem.space.values(alone["z"]).items():
+        for field, value in problem.space.values(alone.z).items():
             assert np.ravel(report["result"][field])[0] == pytest.approx(float(np.ravel(value)[0]), rel=1e-7)
     assert problems[0]._value_and_grad is problems[1]._value_and_grad
     elsewhere = Problem(

@@ -475,7 +475,7 @@ def test_loopback_tracks_the_arc_as_the_simulation_does(robot):
     assert rep["completed"] and not rep["faults"], rep["faults"]
     assert len(run.platform) >= SECONDS * RATE - 1, (len(run.platform), rep["feedback_age_us"])
     pure = _pure_arc()
-    assert rep["rms_tracking_error_mm"] == pytest.approx(pure["rms_tracking_error_mm"], rel=0.01)
+    assert rep["rms_tracking_error_mm"] == pytest.approx(pure.metrics.rms_tracking_error_mm, rel=0.01)
 
 
 def _stopped_at_onset(run, fault: str, late: int = 0, log: str = ""):
@@ -611,7 +611,7 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
     finally:
         proc.terminate()
         log = proc.communicate(timeout=30)[1]  # the robot's sessions and faults, for the messages below
-    pure = np.mean(_pure_arc()["branch_rms_error_mm"])
+    pure = np.mean(_pure_arc().metrics.branch_rms_error_mm)
     for run in runs[:2]:  # none, garbage
         rep = run.report(screw=loop.drive.screw)
         assert rep["completed"] and not rep["faults"], rep["faults"]

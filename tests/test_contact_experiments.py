@@ -32,7 +32,7 @@ def test_a_compliant_run_with_nothing_touching_is_the_plain_run():
     )
     assert np.all(b["contact_force"] == 0.0) and np.all(b["compliance_offset"] == 0.0)
     np.testing.assert_allclose(b["platform"], a["platform"], rtol=1e-12, atol=1e-15)
-    np.testing.assert_allclose(soft["branch_force_peak_n"], plain["branch_force_peak_n"], rtol=1e-12)
+    np.testing.assert_allclose(soft.metrics.branch_force_peak_n, plain.metrics.branch_force_peak_n, rtol=1e-12)
     assert LoopRates().dt_position == 1e-3  # the period the admittance's checks assume here
 
 

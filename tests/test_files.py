@@ -404,6 +404,10 @@ def test_crafted_checkpoints_end_in_one_line_without_loading_them(tmp_path, fini
             rezip(finished, meta={"history": [[{"start": 0}]]}),
             "meta.history[0][0]: missing key 'iteration'",
         ),
+        "a number past float's range": (
+            rezip(finished, meta={"best_value": [10**400]}),
+            "not a pusupu checkpoint (int too large to convert to float)",
+        ),
         "nesting": (
             rezip(finished, add={"meta.npy": npy(np.frombuffer(b"[" * 5000, np.uint8))}),
             "not a pusupu checkpoint (maximum recursion depth exceeded",
@@ -456,7 +460,7 @@ def test_a_finished_checkpoint_missing_a_field_is_refused_before_anything_is_exp
     with pytest.raises(ParameterError, match="missing arrays: best"):
         optimisation["resume"](path, value_and_grad=never)
     path.write_bytes(finished)
-    assert set(optimisation["resume"](path, value_and_grad=never)["z"]) == {"lambda1", "lambda2", "T0"}
+    assert set(optimisation["resume"](path, value_and_grad=never).z) == {"lambda1", "lambda2", "T0"}
 
 
 def test_ros_joint_names_are_checked_with_the_tune_config(tmp_path):

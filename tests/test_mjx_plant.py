@@ -564,11 +564,12 @@ def test_printed_form_started_as_before_reproduces_the_old_figures():
     from pusupu_jax.machine import simulate_scenarios
 
     before = SERVO.replace(imc_form="printed", coulomb=np.zeros(6), viscous=np.zeros(6))
-    (r, _), (_, hold) = simulate_scenarios(before, _hold(), mode="imc", start="zero")
-    assert r["rms_tracking_error_mm"] == pytest.approx(2.065628150536743, rel=1e-9)
-    assert r["max_tracking_error_mm"] == pytest.approx(4.578009063579978, rel=1e-9)
+    (run, _), (_, hold) = simulate_scenarios(before, _hold(), mode="imc", start="zero")
+    r = run.metrics
+    assert r.rms_tracking_error_mm == pytest.approx(2.065628150536743, rel=1e-9)
+    assert r.max_tracking_error_mm == pytest.approx(4.578009063579978, rel=1e-9)
     np.testing.assert_allclose(
-        r["branch_force_peak_n"],
+        r.branch_force_peak_n,
         [79.30522842232436, 79.30532047297841, 79.30509074855742, 79.30512444143275, 79.305292611425, 79.3051668677709],
         rtol=1e-9,
     )

@@ -136,7 +136,9 @@ def test_the_tuners_results_show_as_summaries():
     import jax
     import jax.numpy as jnp
 
-    from pusupu_jax.tune.report import Evaluation, Export, GainFileRef, TuneReport
+    from pusupu_jax.metrics import MachineMetrics
+    from pusupu_jax.tune.report import Export, GainFileRef, TuneReport
+    from pusupu_jax.tune.state import Evaluation
     from pusupu_jax.tune.optimise import optimise
 
     def vg(z):
@@ -146,15 +148,9 @@ def test_the_tuners_results_show_as_summaries():
     text = repr(result)
     assert len(text) < MAX_REPR and text.startswith("OptimiseResult: objective 6 at the start")
     assert "41 evaluations over 1 start(s)" in text and "lambda1 " in text
-    assert isinstance(result, dict) and set(result) == {"z", "objective", "history"}
-    run = {
-        "p2p": {
-            "rms_tracking_error_mm": 0.02,
-            "max_tracking_error_mm": 0.04,
-            "sync_error_rho": 0.001,
-            "highest_branch_force_peak_n": 64.0,
-        }
-    }
+    assert set(result.z) == {"lambda1"} and len(result.history) == 41 and result.objective < 1e-3
+    six = [1.0] * 6
+    run = {"p2p": MachineMetrics(3.0, 0.02, 0.04, six, [None] * 6, six, [64.0] + six[1:], 0.001, 1e-6)}
     report = TuneReport(
         config={},
         config_hash="0" * 16,

@@ -35,10 +35,10 @@ def test_tuner_recovers_known_gains_from_a_perturbed_start():
     """lambda1 0.018 -> 0.03 and lambda2 0.15 -> 0.08 recovered to 1 % (observed 0.1 %) by clipped Adam on log-gains."""
     space, vg = _synthetic()
     out = optimise(vg, space.z0(), space.project, iterations=300, learning_rate=0.03, final_lr_fraction=0.05)
-    got = space.values(out["z"])
+    got = space.values(out.z)
     assert float(got["lambda1"]) == pytest.approx(0.03, rel=0.01)
     assert float(got["lambda2"]) == pytest.approx(0.08, rel=0.01)
-    assert out["objective"] < 1e-3 * out["history"][0]["objective"]
+    assert out.objective < 1e-3 * out.history[0].objective
 
 
 def test_resuming_from_a_checkpoint_gives_the_uninterrupted_result(tmp_path):
@@ -57,10 +57,10 @@ def test_resuming_from_a_checkpoint_gives_the_uninterrupted_result(tmp_path):
     with pytest.raises(KeyboardInterrupt):
         optimise(interrupted, space.z0(), space.project, iterations=12, checkpoint=tmp_path / "b.npz", **kw)
     resumed = optimise(vg, space.z0(), space.project, iterations=12, checkpoint=tmp_path / "b.npz", **kw)
-    assert resumed["history"] == whole["history"]  # every entry, with plain Python numbers after the JSON
-    assert all(type(h["start"]) is int and type(h["objective"]) is float for h in resumed["history"])
-    for name in whole["z"]:
-        assert np.array_equal(np.asarray(resumed["z"][name]), np.asarray(whole["z"][name]))
+    assert resumed.history == whole.history  # every entry, with plain Python numbers after the JSON
+    assert all(type(h.start) is int and type(h.objective) is float for h in resumed.history)
+    for name in whole.z:
+        assert np.array_equal(np.asarray(resumed.z[name]), np.asarray(whole.z[name]))
     with pytest.raises(ParameterError, match="checkpoint of another configuration"):
         optimise(vg, space.z0(), space.project, iterations=12, checkpoint=tmp_path / "b.npz", **(kw | {"digest": "y"}))
 

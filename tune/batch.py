@@ -19,6 +19,7 @@ with copies of the last member.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Callable
 
@@ -41,7 +42,7 @@ from pusupu_jax.sim import rollout
 from .config import TuneConfig
 from .checkpoint import CheckpointLayout, load_checkpoint, save_checkpoint
 from .optimise import iterate, optimiser, start_point, train_step
-from .state import TunerState
+from .state import Evaluation, TunerState
 from .run import (
     HERE,
     Scenarios,
@@ -222,14 +223,25 @@ class BatchProblem(WindowStarts):
         return out
 
 
+@dataclasses.dataclass(frozen=True)
+class BatchResult:
+    """What :func:`optimise_batch` returns, per real member: ``best_value`` ``(n_real,)`` (the objective,
+    dimensionless), ``best_z`` (field -> log-gains with the member axis first), ``history`` (per member, one
+    :class:`~pusupu_jax.tune.state.Evaluation` per evaluation) and ``failed`` (``{member: message}``)."""
+
+    best_value: np.ndarray
+    best_z: dict[str, np.ndarray]
+    history: list[list[Evaluation]]
+    failed: dict[int, str]
+
+
 def optimise_batch(
     problem: BatchProblem, *, checkpoint: Path | None = None, digest: str = "", progress: Callable | None = None
-) -> dict:
+) -> BatchResult:
     """Every member of ``problem`` at once through the tuner's engine (:func:`pusupu_jax.tune.optimise.iterate`), with
     its configuration's settings; ``progress(iteration, iterations, values, elapsed)`` after each iteration.
 
-    Returns per real member ``best_value`` ``(P,)``, ``best_z``, ``history`` (per member, entries as
-    :func:`~pusupu_jax.tune.optimise.optimise`'s) and ``failed`` (``{member: message}``).  With ``checkpoint`` the state
+    Returns a :class:`BatchResult` of the real members.  With ``checkpoint`` the state
     is saved every ``checkpoint_every`` iterations and at the end, and a run that finds one continues from it.
     """
     cfg = problem.cfg
@@ -269,9 +281,9 @@ def optimise_batch(
         if checkpoint:
             save_checkpoint(checkpoint, state)
     n = problem.n_real
-    return {
-        "best_value": state.best_value[:n],
-        "best_z": {k: v[:n] for k, v in state.best_z.items()},
-        "history": state.history[:n],
-        "failed": {m: msg for m, msg in state.failed.items() if m < n},
-    }
+    return BatchResult(
+        best_value=state.best_value[:n],
+        best_z={k: v[:n] for k, v in state.best_z.items()},
+        history=state.history[:n],
+        failed={m: msg for m, msg in state.failed.items() if m < n},
+    )

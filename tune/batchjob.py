@@ -34,7 +34,7 @@ from pusupu_jax.params import ParameterError
 
 from . import jobfile
 from .config import TuneConfig
-from .report import Evaluation, JobReport, JobStatus, SummaryRow, scenario_metrics
+from .report import JobReport, JobStatus, SummaryRow, metrics_json
 
 SUMMARY_FILES = ("summary.csv", "summary.md", "summary.json", "summary.png")
 MAX_REPORT_BYTES = 64 << 20  # a job's report.json: its history, a few hundred bytes an iteration
@@ -112,20 +112,20 @@ def run_shard(task: dict, out: str, plots: bool = True, stream=None) -> list[dic
     R = cfg.starts
     best_members = []
     for j in range(n_jobs):
-        members = [m for m in range(j * R, (j + 1) * R) if m not in result["failed"]]
-        best_members.append(min(members, key=lambda m: result["best_value"][m]) if members else None)
+        members = [m for m in range(j * R, (j + 1) * R) if m not in result.failed]
+        best_members.append(min(members, key=lambda m: result.best_value[m]) if members else None)
     z0 = problem.z0()
     zb = {k: np.array(v) for k, v in z0.items()}
     for j, m in enumerate(best_members):
         if m is not None:
             for k in zb:
-                zb[k][j * R] = result["best_z"][k][m]
+                zb[k][j * R] = result.best_z[k][m]
     before, after = problem.path_metrics(z0), problem.path_metrics(zb)
     rows = []
     for j, e in enumerate(task["jobs"]):
         m = best_members[j]
-        history = [h for mm in range(j * R, (j + 1) * R) for h in result["history"][mm]]
-        failed = {mm - j * R: result["failed"][mm] for mm in range(j * R, (j + 1) * R) if mm in result["failed"]}
+        history = [h for mm in range(j * R, (j + 1) * R) for h in result.history[mm]]
+        failed = {mm - j * R: result.failed[mm] for mm in range(j * R, (j + 1) * R) if mm in result.failed}
         rows.append(
             write_job(
                 out,
@@ -166,8 +166,8 @@ def write_job(
 
     folder = job_dir(out, entry["name"])
     folder.mkdir(parents=True, exist_ok=True)
-    first = [h for h in history if h["iteration"] == 0 and h["start"] == 0]
-    objective_before = first[0]["objective"] if first else float("nan")
+    first = [h for h in history if h.iteration == 0 and h.start == 0]
+    objective_before = first[0].objective if first else float("nan")
     common = dict(
         job=entry["name"],
         job_digest=entry["digest"],
@@ -177,16 +177,16 @@ def write_job(
         config=cfg.to_json(),
         tuned_fields=list(problem.space.fields),
         failed_starts={str(k): v for k, v in failed.items()},
-        history=[Evaluation.of(h) for h in history],
+        history=[h.without_point() for h in history],
         objective_before=objective_before,
-        before={n: scenario_metrics(r) for n, (r, _) in before.items()},
+        before={n: r for n, (r, _) in before.items()},
     )
     if z is None:
         report = JobReport(**common, status=JobStatus.FAILED, error="every start failed: " + "; ".join(failed.values()))
     else:
         servo, hybrid = problem.space.host_values(z)
-        best = min(h["objective"] for h in history)
-        metrics_after = {n: scenario_metrics(r) for n, (r, _) in after.items()}
+        best = min(h.objective for h in history)
+        metrics_after = {n: r for n, (r, _) in after.items()}
         provenance = {
             "config_hash": cfg.digest(),
             "job": entry["name"],
@@ -194,7 +194,7 @@ def write_job(
             "objective_before": objective_before,
             "objective_after": best,
             "floors": [cfg.pm_min, cfg.gm_min],
-            "metrics_after": metrics_after,
+            "metrics_after": metrics_json(metrics_after),
         }
         outcome = export(folder, cfg, servo, hybrid, problem.rates, problem.space.fields, provenance, machine)
         report = JobReport(

@@ -19,7 +19,7 @@ from pusupu_jax.files import write_atomic
 from pusupu_jax.inputs import shown
 from pusupu_jax.params import ParameterError
 
-from .state import TunerState
+from .state import Evaluation, TunerState
 
 CHECKPOINT, CHECKPOINT_FORMAT = "checkpoint.npz", "pusupu-checkpoint-2"
 META = ("format", "digest", "start", "iteration", "history", "best_value", "failed", "done")  # meta's keys
@@ -38,7 +38,7 @@ def save_checkpoint(path: Path, state: TunerState) -> None:
         "digest": state.digest,
         "start": state.start,
         "iteration": state.iteration,
-        "history": state.history,
+        "history": [[h.to_json() for h in history] for history in state.history],
         "best_value": np.asarray(state.best_value, dtype=float).tolist(),
         "failed": {str(m): message for m, message in state.failed.items()},
         "done": state.done,
@@ -54,6 +54,7 @@ ZIP_RECORD = 1024  # bytes: at most a member's records in the zip (local and cen
 CHECKPOINT_ERRORS = (
     OSError,
     ValueError,
+    OverflowError,  # a number too large for a float (JSON's integers have no bound)
     KeyError,
     EOFError,
     NotImplementedError,
@@ -154,8 +155,7 @@ def _check_meta(meta: dict, layout: CheckpointLayout) -> None:
             )
             inputs.integer(h["start"], f"{where}[{k}].start", ValueError, low=0, high=layout.starts - 1)
             inputs.integer(h["iteration"], f"{where}[{k}].iteration", ValueError, low=0, high=layout.iterations)
-            if isinstance(h["objective"], bool) or not isinstance(h["objective"], (int, float)):
-                raise ValueError(f"{where}[{k}].objective: expected a number, got {shown(h['objective'])}")
+            inputs.number(h["objective"], f"{where}[{k}].objective", ValueError, finite=False)
             inputs.check_keys(h["z"], f"{where}[{k}].z", layout.z, ValueError, required=layout.z, what="field")
 
 
@@ -229,7 +229,7 @@ def load_checkpoint(path: Path, digest: str, layout: CheckpointLayout) -> TunerS
         digest=meta["digest"],
         z=z,
         opt=opt,
-        history=meta["history"],
+        history=[[Evaluation.from_json(h) for h in history] for history in meta["history"]],
         best_value=np.asarray(meta["best_value"], dtype=float),
         best_z={k: np.array(v) for k, v in (best or {}).items()},
         failed={int(m): message for m, message in meta["failed"].items()},

@@ -44,12 +44,13 @@ from pusupu_jax.start_gains import derive
 from .config import TuneConfig
 from .checkpoint import CHECKPOINT
 from .progress import progress_reporter
-from .report import Evaluation, Export, GainFileRef, TuneReport, scenario_metrics
+from .report import Export, GainFileRef, TuneReport, metrics_json
 from .run import Problem, check_work, scenario_list
+from .state import Evaluation
 
 
 def evaluate_baselines(cfg: TuneConfig, rates, specs=None, servo: ServoParams | None = None) -> dict:
-    """``{mode: {scenario: (metrics, arrays)}}`` of every baseline mode on the whole paths of ``specs`` (default: the
+    """``{mode: {scenario: (MachineRun, arrays)}}`` of every baseline mode on the whole paths of ``specs`` (default: the
     configuration's on the built-in machine), with the start gains ``servo`` (default Table 1)."""
     specs = scenario_list(cfg) if specs is None else specs
     servo = ServoParams.table1() if servo is None else servo
@@ -83,11 +84,11 @@ def start_gains(machine: Machine, start=None, stream=None) -> tuple[ServoParams,
     raise ParameterError(f"--start-gains: expected a gain file, table1 or derived, got {start!r}")
 
 
-def _plots(out: Path, history, before, after, baselines) -> list[str]:
+def _plots(out: Path, history: list[Evaluation], before, after, baselines) -> list[str]:
     files = []
     fig, ax = plt.subplots(figsize=(6, 4))
-    for k in sorted({h["start"] for h in history}):
-        pts = [(h["iteration"], h["objective"]) for h in history if h["start"] == k]
+    for k in sorted({h.start for h in history}):
+        pts = [(h.iteration, h.objective) for h in history if h.start == k]
         ax.plot(*zip(*pts), marker=".", label=f"start {k + 1}")
     ax.set_xlabel("iteration")
     ax.set_ylabel("objective (1 = start, lower is better)")
@@ -267,7 +268,7 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
     )
     result = problem.tune(checkpoint=checkpoint, progress=progress_reporter(cfg.starts, stream))
     servo0 = problem.space.servo0
-    servo1, hybrid1 = problem.space.host_values(result["z"])
+    servo1, hybrid1 = problem.space.host_values(result.z)
     t_opt = time.perf_counter() - t0
     print(
         "tune: evaluating the start and the result on the whole paths"
@@ -275,16 +276,16 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
         file=stream,
         flush=True,
     )
-    before, after = problem.path_metrics(problem.space.z0()), problem.path_metrics(result["z"])
+    before, after = problem.path_metrics(problem.space.z0()), problem.path_metrics(result.z)
     baselines = evaluate_baselines(cfg, problem.rates, specs, servo0)
-    objective_before = float(result["history"][0]["objective"])
-    metrics_after = {n: scenario_metrics(r) for n, (r, _) in after.items()}
+    objective_before = result.history[0].objective
+    metrics_after = {n: r for n, (r, _) in after.items()}
     provenance = {
         "config_hash": cfg.digest(),
         "objective_before": objective_before,
-        "objective_after": float(result["objective"]),
+        "objective_after": result.objective,
         "floors": [cfg.pm_min, cfg.gm_min],
-        "metrics_after": metrics_after,
+        "metrics_after": metrics_json(metrics_after),
     }
     outcome = export(out, cfg, servo1, hybrid1, problem.rates, problem.space.fields, provenance, machine)
     report = TuneReport(
@@ -294,17 +295,17 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
         start_gains=start_report,
         tuned_fields=list(problem.space.fields),
         start=problem.space.json_values(problem.space.z0()),
-        result=problem.space.json_values(result["z"]),
+        result=problem.space.json_values(result.z),
         objective_before=objective_before,
-        objective_after=float(result["objective"]),
-        history=[Evaluation.of(h) for h in result["history"]],
-        before={n: scenario_metrics(r) for n, (r, _) in before.items()},
+        objective_after=result.objective,
+        history=[h.without_point() for h in result.history],
+        before={n: r for n, (r, _) in before.items()},
         after=metrics_after,
-        baselines={mode: {n: scenario_metrics(r) for n, (r, _) in runs.items()} for mode, runs in baselines.items()},
+        baselines={mode: {n: r.metrics for n, (r, _) in runs.items()} for mode, runs in baselines.items()},
         margins_before=gains.margins_report(servo0, mode=cfg.mode, machine=machine),
         optimise_wall_s=t_opt,
         export=outcome,
-        plots=_plots(out, result["history"], before, after, baselines),
+        plots=_plots(out, result.history, before, after, baselines),
         wall_s=time.perf_counter() - t0,
     )
     write_atomic(out / "report.json", json.dumps(report.to_json(), indent=2))

@@ -10,6 +10,7 @@ after another, each from its own start point, since its windows' start states fo
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 from typing import Callable
@@ -20,7 +21,7 @@ import numpy as np
 import optax
 
 from .checkpoint import CheckpointLayout, load_checkpoint, save_checkpoint
-from .state import TunerState
+from .state import Evaluation, TunerState
 
 
 def start_point(z0: dict, k: int, spread: float, seed: int, project: Callable) -> dict:
@@ -133,7 +134,7 @@ def optimise(
     digest: str = "",
     progress: Callable | None = None,
     prepare: Callable | None = None,
-) -> "OptimiseResult":
+) -> OptimiseResult:
     """Minimise from ``z0`` (and ``starts - 1`` perturbed starts); returns the best ``z`` and the history.
 
     A batch of one member through :func:`iterate`, one start after another.  ``value_and_grad(z) -> ((value, aux),
@@ -185,19 +186,25 @@ def optimise(
     return OptimiseResult(z=best, objective=float(state.best_value[0]), history=state.history[0])
 
 
-class OptimiseResult(dict):
-    """What :func:`optimise` returns: a dict of the best ``z``, its ``objective`` and the ``history`` (one entry per
-    evaluation), shown as a short summary (a notebook's cell output) rather than every entry of the history."""
+@dataclasses.dataclass(frozen=True)
+class OptimiseResult:
+    """What :func:`optimise` returns: the best log-gains ``z`` (field -> array), their ``objective`` and the
+    ``history`` (one :class:`~pusupu_jax.tune.state.Evaluation` per evaluation, over every start), shown as a short
+    summary (a notebook's cell output) rather than every entry of the history."""
+
+    z: dict[str, np.ndarray]
+    objective: float
+    history: list[Evaluation]
 
     def __repr__(self) -> str:
-        history = self.get("history") or []
-        first = f"{history[0]['objective']:.4g} at the start, " if history else ""
-        best = next((h for h in history if h["objective"] == self.get("objective")), None)
-        where = f" (start {best['start'] + 1}, iteration {best['iteration']})" if best else ""
-        starts = len({h["start"] for h in history})
-        z = ", ".join(f"{k} {_values(v)}" for k, v in (self.get("z") or {}).items())
+        history = self.history
+        first = f"{history[0].objective:.4g} at the start, " if history else ""
+        best = next((h for h in history if h.objective == self.objective), None)
+        where = f" (start {best.start + 1}, iteration {best.iteration})" if best else ""
+        starts = len({h.start for h in history})
+        z = ", ".join(f"{k} {_values(v)}" for k, v in self.z.items())
         return (
-            f"OptimiseResult: objective {first}best {self.get('objective', float('nan')):.4g}{where}; "
+            f"OptimiseResult: objective {first}best {self.objective:.4g}{where}; "
             f"{len(history)} evaluations over {starts} start(s)\n  z: {z}"
         )[:2000]
 

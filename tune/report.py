@@ -2,8 +2,8 @@
 ``pusupu batch``), and of a batch summary's row.
 
 The records are what Python code passes around and reads by attribute; ``to_json()`` gives the file's content
-(JSON types only, keys as in ``docs/tuning.md``) and ``from_json()`` reads it back.  Metric keys are
-:class:`~pusupu_jax.metrics.Metric` values, plus :data:`HIGHEST_FORCE`.
+(JSON types only, keys as in ``docs/tuning.md``) and ``from_json()`` reads it back.  A scenario's metrics are a
+:class:`~pusupu_jax.metrics.MachineMetrics`, written with the highest branch force peak.
 """
 
 from __future__ import annotations
@@ -14,10 +14,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from pusupu_jax.metrics import Metric
+from pusupu_jax.metrics import MachineMetrics, Metric
 
-HIGHEST_FORCE = "highest_branch_force_peak_n"  # the highest of the six branch force peaks [N]
-ScenarioMetrics = dict[str, dict[str, Any]]  # scenario -> metric -> value (a float, or six per-branch floats)
+from .state import Evaluation
+
+ScenarioMetrics = dict[str, MachineMetrics]  # scenario -> its metrics
 Gains = dict[str, Any]  # tuned field -> value (a float or six per-axis floats)
 
 
@@ -29,24 +30,14 @@ class JobStatus(enum.StrEnum):
     FAILED = "failed"
 
 
-def scenario_metrics(result: dict[str, Any]) -> dict[str, Any]:
-    """Every machine metric of one run (:func:`pusupu_jax.machine.simulate_scenarios`), and the highest of the six
-    branch force peaks [N] (:data:`HIGHEST_FORCE`)."""
-    return result | {HIGHEST_FORCE: max(result[Metric.BRANCH_FORCE_PEAK_N])}
+def metrics_json(runs: ScenarioMetrics) -> dict[str, Any]:
+    """A report's metrics of each scenario as plain data, with the highest branch force peak."""
+    return {name: m.to_json(highest_force=True) for name, m in runs.items()}
 
 
-@dataclasses.dataclass(frozen=True)
-class Evaluation:
-    """One evaluation of the objective: start (from 0), iteration (0 = the start's own gains) and value."""
-
-    start: int
-    iteration: int
-    objective: float
-
-    @classmethod
-    def of(cls, entry: dict[str, Any]) -> Evaluation:
-        """From an optimiser history entry or its JSON (extra keys, such as the point ``z``, are left out)."""
-        return cls(int(entry["start"]), int(entry["iteration"]), float(entry["objective"]))
+def metrics_of(d: dict[str, Any]) -> ScenarioMetrics:
+    """:func:`metrics_json`'s records."""
+    return {name: MachineMetrics.from_json(m) for name, m in d.items()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,10 +125,10 @@ class TuneReport:
             "objective_before": self.objective_before,
             "objective_after": self.objective_after,
             "iterations": self.iterations,
-            "history": [dataclasses.asdict(h) for h in self.history],
-            "before": self.before,
-            "after": self.after,
-            "baselines": self.baselines,
+            "history": [h.to_json() for h in self.history],
+            "before": metrics_json(self.before),
+            "after": metrics_json(self.after),
+            "baselines": {mode: metrics_json(runs) for mode, runs in self.baselines.items()},
             "margins_before": self.margins_before,
             "optimise_wall_s": self.optimise_wall_s,
         }
@@ -158,10 +149,10 @@ class TuneReport:
             result=d["result"],
             objective_before=d["objective_before"],
             objective_after=d["objective_after"],
-            history=[Evaluation.of(h) for h in d["history"]],
-            before=d["before"],
-            after=d["after"],
-            baselines=d["baselines"],
+            history=[Evaluation.from_json(h) for h in d["history"]],
+            before=metrics_of(d["before"]),
+            after=metrics_of(d["after"]),
+            baselines={mode: metrics_of(runs) for mode, runs in d["baselines"].items()},
             margins_before=d["margins_before"],
             optimise_wall_s=d["optimise_wall_s"],
             export=Export.from_json(d),
@@ -176,7 +167,12 @@ class TuneReport:
         return f"```\n{self!r}\n```"
 
 
-TABLE_METRICS = (Metric.RMS_TRACKING_ERROR_MM, Metric.MAX_TRACKING_ERROR_MM, Metric.SYNC_ERROR_RHO, HIGHEST_FORCE)
+TABLE_METRICS = (
+    Metric.RMS_TRACKING_ERROR_MM,
+    Metric.MAX_TRACKING_ERROR_MM,
+    Metric.SYNC_ERROR_RHO,
+    Metric.HIGHEST_BRANCH_FORCE_PEAK_N,
+)
 
 
 def table(report: TuneReport) -> str:
@@ -190,11 +186,12 @@ def table(report: TuneReport) -> str:
     for name in report.before:
         b, a = report.before[name], report.after[name]
         for key in TABLE_METRICS:
-            change = (a[key] / b[key] - 1) * 100 if b[key] else float("nan")
-            base = [report.baselines[m][name][key] for m in modes]
-            versus = f" {(a[key] / min(base) - 1) * 100:>7.1f}%" if base and min(base) else ""
+            vb, va = b.value(key), a.value(key)
+            change = (va / vb - 1) * 100 if vb else float("nan")
+            base = [report.baselines[m][name].value(key) for m in modes]
+            versus = f" {(va / min(base) - 1) * 100:>7.1f}%" if base and min(base) else ""
             lines.append(
-                f"{name:<14} {key:<28} {b[key]:>10.4g} {a[key]:>10.4g} {change:>7.1f}%"
+                f"{name:<14} {key:<28} {vb:>10.4g} {va:>10.4g} {change:>7.1f}%"
                 + "".join(f" {v:>10.4g}" for v in base)
                 + versus
             )
@@ -285,8 +282,8 @@ class JobReport:
     plots: list[str] | None = None
 
     def row(self) -> SummaryRow:
-        def mean(runs: ScenarioMetrics | None, key: str) -> float:
-            return float(np.mean([r[key] for r in runs.values()])) if runs else float("nan")
+        def mean(runs: ScenarioMetrics | None, metric: Metric) -> float:
+            return float(np.mean([r.value(metric) for r in runs.values()])) if runs else float("nan")
 
         return SummaryRow(
             job=self.job,
@@ -297,7 +294,7 @@ class JobReport:
             rms_before_mm=mean(self.before, Metric.RMS_TRACKING_ERROR_MM),
             rms_after_mm=mean(self.after, Metric.RMS_TRACKING_ERROR_MM),
             max_after_mm=mean(self.after, Metric.MAX_TRACKING_ERROR_MM),
-            force_peak_after_n=mean(self.after, HIGHEST_FORCE),
+            force_peak_after_n=mean(self.after, Metric.HIGHEST_BRANCH_FORCE_PEAK_N),
             error=self.error,
             gains={f: float(np.ravel(v)[0]) for f, v in (self.result or {}).items()},
         )
@@ -313,14 +310,14 @@ class JobReport:
             "config": self.config,
             "tuned_fields": self.tuned_fields,
             "failed_starts": self.failed_starts,
-            "history": [dataclasses.asdict(h) for h in self.history],
+            "history": [h.to_json() for h in self.history],
             "objective_before": self.objective_before,
-            "before": self.before,
+            "before": metrics_json(self.before),
         }
         if self.status is not JobStatus.FAILED:
             d |= {
                 "objective_after": self.objective_after,
-                "after": self.after,
+                "after": None if self.after is None else metrics_json(self.after),
                 "start": self.start,
                 "result": self.result,
             }
