@@ -119,7 +119,7 @@ def _margins(servo, load, mode) -> list:
 
 def _along_path(args, servo) -> dict:
     """``--trajectory``: the linear model's load at the lightest and the heaviest pose of the path on the machine
-    (:func:`pusupu_jax.machine_file.carried_mass_range`), the path checked against the machine first; else none."""
+    (:func:`pusupu_jax.machine_file.margin_loads`), the path checked against the machine first; else none."""
     if not args.trajectory:
         return {}
     from pusupu_jax import machine_file
@@ -134,21 +134,21 @@ def _along_path(args, servo) -> dict:
     with checking(f"--trajectory {args.trajectory}"):
         poses = platform_path_from(args.trajectory, machine.geometry.home, LoopRates())
         check_path_on(machine, poses, servo, f"--trajectory {args.trajectory}")
-    lightest, heaviest = machine_file.carried_mass_range(machine, poses)
-    return {"lightest": args.linear_load.replace(mass=lightest), "heaviest": args.linear_load.replace(mass=heaviest)}
+    return {
+        k: load for k, load in machine_file.margin_loads(machine, [machine_file.PathRun(poses)]).items() if k != "home"
+    }
 
 
 def _refuse_unstable(args, servo, hybrid, rates, loads: dict) -> int:
-    """After ``analyze`` printed its diagnosis: 0 if the gains pass :func:`pusupu_jax.stability.check` with each of
+    """After ``analyze`` printed its diagnosis: 0 if the gains pass :func:`pusupu_jax.stability.check_loads` with
     ``loads`` (home, and with ``--trajectory`` the path's lightest and heaviest), else its reason on stderr and 2."""
     from pusupu_jax import stability
 
-    for where, load in loads.items():
-        problem = stability.check(servo, hybrid, rates, args.mode, args.floors, raise_error=False, load=load).problem()
-        if problem is not None:
-            at = "" if where == "home" else f" (with the load at the {where} pose along {args.trajectory})"
-            print(f"pusupu: error: gains: {problem}{at}", file=sys.stderr)
-            return 2
+    try:
+        stability.check_loads(servo, hybrid, rates, args.mode, args.floors, loads, along=str(args.trajectory))
+    except ParameterError as e:
+        print(f"pusupu: error: {e}", file=sys.stderr)
+        return 2
     return 0
 
 

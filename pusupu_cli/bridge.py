@@ -9,7 +9,7 @@ import time
 from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError
 
-from .common import check_output_path, check_plot_path, machine_of
+from .common import check_along_paths, check_output_path, check_plot_path, machine_of
 
 
 def add_parsers(sub) -> None:
@@ -200,6 +200,8 @@ def run_bridge(args) -> int:
             raise ParameterError(f"{message}; give that machine's file with --machine, or --allow-other-machine")
         print(f"pusupu: warning: {message}; running it as --allow-other-machine asks", file=sys.stderr)
     setup_jax(synchronous_cpu=True)  # the cycle's thread runs its steps itself (hw_bridge.compiled.cpu)
+    # the gain check of load() takes the load at home; the path to run may carry the sliders lighter or heavier
+    check_along_paths(g, machine, [args.trajectory], gains.FLOORS, f"--gains {args.gains}")
     from pusupu_jax.hw_bridge.loop import BridgeLoop, bridge_reference, cycle_rate, plan
     from pusupu_jax.hw_bridge.protocol import CST, FEEDBACK
     from pusupu_jax.hw_bridge.safety import Safety, limits_for

@@ -174,6 +174,14 @@ def _parser() -> argparse.ArgumentParser:
     g_diff.add_argument("other", metavar="OTHER")
     g_check = actions.add_parser("check", help="validate a gain file (exit 0 when it passes every check)")
     g_check.add_argument("file", metavar="FILE")
+    g_check.add_argument(
+        "--trajectory",
+        action="append",
+        default=[],
+        metavar="PATH",
+        help="also check the margins with the mass the sliders carry at the lightest and the heaviest pose along "
+        "this path (repeatable; a named path or a path file)",
+    )
     g_sign = actions.add_parser("sign", help="re-sign a deliberately edited gain file once its gains validate")
     g_sign.add_argument("file", metavar="FILE")
     g_migrate = actions.add_parser(

@@ -10,7 +10,7 @@ from pusupu_jax.cascade import Mode
 from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError
 
-from .common import check_path_on, checking, machine_of, say
+from .common import check_along_paths, check_path_on, checking, machine_of, say
 
 COMPARED = (Metric.RMS_TRACKING_ERROR_MM, Metric.MAX_TRACKING_ERROR_MM, Metric.HIGHEST_BRANCH_FORCE_PEAK_N)
 
@@ -46,11 +46,12 @@ def cmd_gains(args) -> int:
     elif args.action == "check":
         from pusupu_jax import machine_file
 
+        along = _check_along(args, g, machine, floors)
         print(
             f"{args.file}: valid {gains.SCHEMA} v{g.document['version']}, mode {g.mode}, tuned on machine "
             f"{g.machine['name']!r} (digest {g.machine['digest'][:12]}); on machine {machine.name!r} (digest "
             f"{machine_file.digest(machine)[:12]}) every loop is stable at the file's rates and has at least "
-            f"{floors[0]:g} deg and {floors[1]:g} dB"
+            f"{floors[0]:g} deg and {floors[1]:g} dB" + along
         )
         if not g.tuned_on(machine):
             say(
@@ -69,6 +70,17 @@ def cmd_gains(args) -> int:
     else:
         return _check_ros(args, g)
     return 0
+
+
+def _check_along(args, g, machine, floors) -> str:
+    """``gains check --trajectory``: what the check's line adds (:func:`.common.check_along_paths`)."""
+    if not args.trajectory:
+        return ""
+    loads = check_along_paths(g, machine, args.trajectory, floors, args.file)
+    light, heavy = loads["lightest"].mass, loads["heaviest"].mass
+    return f", also with the {light.min():.1f} to {heavy.max():.1f} kg the sliders carry along " + " and ".join(
+        args.trajectory
+    )
 
 
 def _check_ros(args, g) -> int:

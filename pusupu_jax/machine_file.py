@@ -32,7 +32,7 @@ import os
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -180,17 +180,49 @@ _CARRIED: dict[str, np.ndarray] = {}  # digest -> carried_mass: a machine's mode
 PATH_SAMPLES = 64  # poses of a path at which the carried mass is taken (evenly spaced, its ends included)
 
 
-def carried_mass_range(machine: Machine, poses: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+def carried_mass_range(
+    machine: Machine, poses: npt.ArrayLike, options: ModelOptions | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """The lightest and the heaviest mass [kg] each slider carries over ``poses`` ``(N, 5)`` and home, ``((6,),
     (6,))``: :func:`carried_mass`'s diagonal at :data:`PATH_SAMPLES` poses evenly spaced along the path (the
-    reflected mass changes slowly with the pose: the built-in machine's varies by 8 % over 0.14 m of travel)."""
+    reflected mass changes slowly with the pose: the built-in machine's varies by 8 % over 0.14 m of travel), with
+    the payload of ``options`` (default the machine's own, :meth:`Machine.options`)."""
     from .plant.dynamics import reflected_mass
 
     poses = np.asarray(poses, dtype=float)
     pick = np.unique(np.linspace(0, len(poses) - 1, min(PATH_SAMPLES, len(poses))).round().astype(int))
-    along = np.round(reflected_mass(machine.geometry, poses[pick], machine.options()), 3)
-    mass = np.vstack([carried_mass(machine)[None], along])
+    home = np.asarray(machine.geometry.home, dtype=float)[None]
+    options = machine.options() if options is None else options
+    mass = np.round(reflected_mass(machine.geometry, np.vstack([home, poses[pick]]), options), 3)
     return mass.min(axis=0), mass.max(axis=0)
+
+
+class PathRun(NamedTuple):
+    """A path on a machine: platform ``poses`` ``(N, 5)``, the model ``options`` it runs with (their payload; None:
+    the machine's own) and the nominal ``geometry`` (None: the machine's)."""
+
+    poses: npt.ArrayLike
+    options: ModelOptions | None = None
+    geometry: Geometry | None = None
+
+
+def margin_loads(machine: Machine, runs: Iterable[PathRun] = ()) -> dict[str, AxisLoad]:
+    """The single-axis loads the linear model's margins are taken with on ``machine``: ``home``
+    (:func:`axis_load`), and with ``runs`` the ``lightest`` and the ``heaviest`` mass each slider carries over all
+    of them (:func:`carried_mass_range` of each, on its geometry with its payload).  The gain check, the tuner's
+    margin constraints and ``pusupu analyze --trajectory`` take every one."""
+    home = axis_load(machine)
+    ranges = [
+        carried_mass_range(machine if g is None else dataclasses.replace(machine, geometry=g), poses, options)
+        for poses, options, g in runs
+    ]
+    if not ranges:
+        return {"home": home}
+    return {
+        "home": home,
+        "lightest": home.replace(mass=np.min([low for low, _ in ranges], axis=0)),
+        "heaviest": home.replace(mass=np.max([high for _, high in ranges], axis=0)),
+    }
 
 
 def axis_load(machine: Machine) -> AxisLoad:

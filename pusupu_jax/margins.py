@@ -186,6 +186,18 @@ def loop_margins(servo: ServoParams, load: AxisLoad, mode: str = "imc") -> dict[
     return {name: {k: v[i] for k, v in stacked.items()} for i, name in enumerate(LOOPS)}
 
 
+def envelope_margins(servo: ServoParams, loads: AxisLoad, mode: str = "imc") -> dict[str, dict[str, jax.Array]]:
+    """:func:`loop_margins` with one load, or with each of several stacked ones (:func:`pusupu_jax.params.stack` of
+    :func:`pusupu_jax.machine_file.margin_loads`: a leading axis on every field, and on every margin)."""
+    if jnp.ndim(loads.mass) < 2:
+        return loop_margins(servo, loads, mode)
+
+    def margins_with(load: AxisLoad) -> dict[str, dict[str, jax.Array]]:
+        return loop_margins(servo, load, mode)
+
+    return jax.vmap(margins_with)(loads)
+
+
 def in_band(servo: ServoParams, load: AxisLoad, mode: str = "imc") -> dict[str, jax.Array]:
     """``{loop: (..., 6) bool}``: ``|L|`` above 1 at the grid's lowest frequency and below 1 at its highest, so that
     every gain crossover of the loop lies on :data:`W_GRID` and :func:`loop_margins` has seen it."""

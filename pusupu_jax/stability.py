@@ -31,7 +31,7 @@ connected by ``interconnect`` (:func:`pusupu_jax.analysis.closed_loops` with rat
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import jax
@@ -257,6 +257,29 @@ def check_values(servo: ServoParams, hybrid: HybridGains | None, rates: LoopRate
     if hybrid is not None:
         validate_gains(hybrid)
     check_rates(rates)
+
+
+def check_loads(
+    servo: ServoParams,
+    hybrid: HybridGains | None,
+    rates: LoopRates,
+    mode: str | cascade.ControlMode,
+    floors: Sequence[float],
+    loads: Mapping[str, AxisLoad],
+    along: str = "the paths",
+) -> GainCheck:
+    """:func:`check` with each of ``loads`` (:func:`pusupu_jax.machine_file.margin_loads`: home, and the lightest and
+    the heaviest pose ``along`` the paths), in order; raises :class:`~pusupu_jax.params.ParameterError` with the
+    first problem and the load it was found with; returns the first load's :class:`GainCheck`."""
+    found = []
+    for name, load in loads.items():
+        try:
+            found.append(check(servo, hybrid, rates, mode, floors, load=load))
+        except ParameterError as e:
+            if not found:
+                raise
+            raise ParameterError(f"{e} (with the mass the sliders carry at the {name} pose along {along})") from None
+    return found[0]
 
 
 def check(

@@ -228,6 +228,12 @@ def test_tune_writes_gains_ros_files_report_and_plots(tuned):
     shown = pusupu("gains", "show", str(out / "gains.yaml")).stdout
     assert "lambda2" in shown and "yes" in shown
     assert "valid pusupu-gains v4" in pusupu("gains", "check", str(out / "gains.yaml")).stdout
+    # checked at export with the masses the sliders carry at home and at the extremes of the tuned path, and so again
+    loads = g.document["provenance"]["margin_loads_kg"]
+    assert list(loads) == ["home", "lightest", "heaviest"]
+    assert np.all(np.array(loads["lightest"]) <= loads["home"]) and np.all(np.array(loads["home"]) <= loads["heaviest"])
+    checked = pusupu("gains", "check", str(out / "gains.yaml"), "--trajectory", "p2p").stdout
+    assert "kg the sliders carry along p2p" in checked, checked  # the whole path: its range holds the tuned part's
 
 
 @pytest.mark.slow

@@ -167,6 +167,38 @@ def test_a_crossover_below_the_old_grid_is_seen():
     )
 
 
+def test_the_margins_are_checked_with_every_load_of_the_envelope():
+    """Table 1 on the built-in machine keeps 51.2 deg in the position loop with the 71.2 kg each slider carries at
+    home, and 39.4 deg with 300 kg: the check names the load it failed with.  The tuner's stacked margins
+    (envelope_margins) are those of each load alone."""
+    from pusupu_jax import machine_file
+    from pusupu_jax.margins import envelope_margins
+    from pusupu_jax.params import stack
+
+    machine = machine_file.Machine.default()
+    home = machine_file.axis_load(machine)
+    servo = machine.servo(TABLE1)
+    heavy = home.replace(mass=np.full(6, 300.0))
+    assert stability.check_loads(servo, None, LoopRates(), "imc", stability.FLOORS, {"home": home}).problem() is None
+    with pytest.raises(
+        ParameterError,
+        match=r"position loop of axis 1 has 39\.4 deg .* \(with the mass the sliders "
+        r"carry at the heaviest pose along arc\)$",
+    ):
+        stability.check_loads(
+            servo, None, LoopRates(), "imc", stability.FLOORS, {"home": home, "heaviest": heavy}, along="arc"
+        )
+    with pytest.raises(
+        ParameterError, match=r"39\.4 deg phase margin and 15\.0 dB gain margin; expected at least 45 deg and 6 dB$"
+    ):
+        stability.check_loads(servo, None, LoopRates(), "imc", stability.FLOORS, {"home": heavy})
+    both = envelope_margins(servo, stack([home, heavy]), "imc")
+    for k, load in enumerate((home, heavy)):
+        alone = loop_margins(servo, load, "imc")
+        for loop in alone:
+            np.testing.assert_allclose(both[loop]["phase_margin_deg"][k], alone[loop]["phase_margin_deg"], rtol=1e-9)
+
+
 def test_docs_give_every_range_as_the_code_has_it():
     """docs/safety.md holds the ranges table as :func:`pusupu_jax.stability.bounds_table` makes it."""
     from pathlib import Path

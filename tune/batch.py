@@ -33,9 +33,9 @@ from pusupu_jax.cascade import control_mode
 from pusupu_jax.gradients import value_and_grad
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import machine_rates
-from pusupu_jax.margins import loop_margins
+from pusupu_jax.margins import envelope_margins
 from pusupu_jax.machine_file import Machine
-from pusupu_jax.params import ServoParams
+from pusupu_jax.params import ServoParams, stack
 from pusupu_jax.programs import Program
 from pusupu_jax.sim import rollout
 
@@ -87,8 +87,15 @@ class BatchProblem(WindowStarts):
             cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared, bounds=cfg.bounds
         )
         self.scenarios = sc = Scenarios.build(cfg, self.space.servo0, self.rates, specs)
-        # the margin constraints' load (the machine's, as the export's): ``servo0`` and ``specs`` are on ``machine``
-        self.load = machine_file.axis_load(Machine.default() if machine is None else machine)
+        # the margin constraints' loads, per problem (machine_file.margin_loads): ``machine``'s at home, and at the
+        # lightest and the heaviest pose along the problem's paths with their payloads (on its scenarios' geometry)
+        machine = Machine.default() if machine is None else machine
+        self.loads = [
+            machine_file.margin_loads(
+                machine, [machine_file.PathRun(sc.paths[i], specs[i].options, specs[i].geometry) for i in p]
+            )
+            for p in problems
+        ]
         self.problems = problems
         if devices is None:
             devices = placement.chosen_devices()
@@ -108,14 +115,15 @@ class BatchProblem(WindowStarts):
         self.pair_member = np.array([m for m, _ in self.pairs])
         mesh = Mesh(np.array(self.devices), ("batch",))
         self.sharding = NamedSharding(mesh, PartitionSpec("batch"))
-        # arguments of the gradient, not constants in it (as pusupu_jax.tune.run.Problem.windows)
+        # arguments of the gradient, not constants in it (as pusupu_jax.tune.run.Problem.windows): the windows,
+        # and each member's margin loads, whole on every device
         self.windows = self.shard(
             (
                 _take(sc.window_models, windows),
                 _take(sc.window_reference, windows),
                 jnp.asarray(sc.window_path)[windows],
             )
-        )
+        ) + (jax.tree.map(jnp.asarray, stack([stack(list(self.loads[j].values())) for j, _ in members])),)
         self._apply = jax.jit(jax.vmap(self.space.apply))
         self.rows = len(self.pairs)  # the baseline's terms are per pair
         gradient = value_and_grad(self.objective, cfg.gradient)
@@ -181,7 +189,7 @@ class BatchProblem(WindowStarts):
                 remat=cfg.remat,
             )
 
-        models, reference, path = windows
+        models, reference, path = windows[:3]
         traces = jax.vmap(one)(_take(zb, self.window_member), models, reference, starts)
         Q, K = len(self.pairs), sc.windows
         joined = jax.tree.map(lambda x: join_windows(x, Q, K), traces)
@@ -195,10 +203,10 @@ class BatchProblem(WindowStarts):
         t = jax.vmap(terms)(_take(zb, self.pair_member), joined, path)
         per = scenario_objective(cfg, t, baseline)
 
-        def member(z, per_member):
-            return aggregate(cfg, per_member, loop_margins(self.space.apply(z)[0], self.load, mode=cfg.mode))
+        def member(z, per_member, loads):
+            return aggregate(cfg, per_member, envelope_margins(self.space.apply(z)[0], loads, mode=cfg.mode))
 
-        value = jax.vmap(member)(zb, per.reshape(len(self.members), -1))
+        value = jax.vmap(member)(zb, per.reshape(len(self.members), -1), windows[3])
         return jnp.sum(value), {"value": value, "scenarios": per, "terms": t}
 
     def z0(self) -> dict:

@@ -140,6 +140,7 @@ def run_shard(task: dict, out: str, plots: bool = True, stream=None) -> list[dic
                 plots,
                 machine,
                 start,
+                problem.loads[j],
             )
         )
     print(f"batch: shard {task['id']} done in {time.perf_counter() - t0:.0f} s", file=stream, flush=True)
@@ -159,9 +160,11 @@ def write_job(
     plots: bool,
     machine: Machine,
     start: dict,
+    loads: dict,
 ) -> dict:
     """One job's outputs on ``machine`` from the start gains ``start`` (what the report says of them): gains and ROS 2
-    files if they pass every check, plots, report.json last; its summary row."""
+    files if they pass every check (with each of its margin ``loads``, :func:`pusupu_jax.machine_file.margin_loads`),
+    plots, report.json last; its summary row."""
     from .job import _plots, export
 
     folder = job_dir(out, entry["name"])
@@ -194,9 +197,10 @@ def write_job(
             "objective_before": objective_before,
             "objective_after": best,
             "floors": [cfg.pm_min, cfg.gm_min],
+            "margin_loads_kg": {name: load.mass.tolist() for name, load in loads.items()},
             "metrics_after": metrics_json(metrics_after),
         }
-        outcome = export(folder, cfg, servo, hybrid, problem.rates, problem.space.fields, provenance, machine)
+        outcome = export(folder, cfg, servo, hybrid, problem.rates, problem.space.fields, provenance, machine, loads)
         report = JobReport(
             **common,
             status=JobStatus.OK if outcome.error is None else JobStatus.NOT_EXPORTED,

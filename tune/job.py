@@ -37,7 +37,7 @@ from pusupu_jax.files import check_output, write_atomic, write_files
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.machine_file import Machine
-from pusupu_jax.params import ParameterError, ServoParams
+from pusupu_jax.params import AxisLoad, ParameterError, ServoParams
 from pusupu_jax.plots import save_atomic
 from pusupu_jax.start_gains import derive
 
@@ -255,7 +255,7 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
             ]
         ).encode()
     ).hexdigest()
-    problem = Problem(cfg, servo0, hybrid0, specs, digest=digest, load=machine_file.axis_load(machine))
+    problem = Problem(cfg, servo0, hybrid0, specs, digest=digest, machine=machine)
     devices.announce(stream)
     extent = "whole path" if cfg.path_s is None else f"path cut to {cfg.path_s:g} s"
     print(
@@ -285,9 +285,12 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
         "objective_before": objective_before,
         "objective_after": result.objective,
         "floors": [cfg.pm_min, cfg.gm_min],
+        # the masses [kg] each slider carries at home and at the lightest and the heaviest pose along the paths:
+        # the loads the margins were checked with
+        "margin_loads_kg": {name: load.mass.tolist() for name, load in problem.loads.items()},
         "metrics_after": metrics_json(metrics_after),
     }
-    outcome = export(out, cfg, servo1, hybrid1, problem.rates, problem.space.fields, provenance, machine)
+    outcome = export(out, cfg, servo1, hybrid1, problem.rates, problem.space.fields, provenance, machine, problem.loads)
     report = TuneReport(
         config=cfg.to_json(),
         config_hash=cfg.digest(),
@@ -313,9 +316,19 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
 
 
 def export(
-    out: Path, cfg: TuneConfig, servo, hybrid, rates, tuned, provenance: dict, machine: Machine | None = None
+    out: Path,
+    cfg: TuneConfig,
+    servo,
+    hybrid,
+    rates,
+    tuned,
+    provenance: dict,
+    machine: Machine | None = None,
+    loads: dict[str, AxisLoad] | None = None,
 ) -> Export:
-    """Write ``gains.yaml`` and the ROS 2 files if the gains pass every check; the report's entries about them.
+    """Write ``gains.yaml`` and the ROS 2 files if the gains pass every check, with each of ``loads``
+    (:func:`pusupu_jax.machine_file.margin_loads` of the tuned paths; default the machine's at home); the report's
+    entries about them.
 
     All or nothing: every file's text is made (the gains checked, the joint names too) and every path checked before
     the first is written (:func:`pusupu_jax.files.write_files`), so that a refusal leaves the earlier files as they
@@ -325,13 +338,14 @@ def export(
     """
     gains_path = out / "gains.yaml"
     try:
-        margins = stability.check(
+        margins = stability.check_loads(
             servo,
             hybrid,
             rates,
             cfg.mode,
             (cfg.pm_min, cfg.gm_min),
-            load=machine_file.axis_load(machine or Machine.default()),
+            loads or {"home": machine_file.axis_load(machine or Machine.default())},
+            along="the tuned paths",
         ).margins()
         texts = {
             gains_path: gains.document(

@@ -29,9 +29,9 @@ from pusupu_jax.cascade import control_mode
 from pusupu_jax.gradients import value_and_grad
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import machine_metrics, machine_plant, machine_rates, machine_reference
-from pusupu_jax.margins import loop_margins
+from pusupu_jax.margins import envelope_margins
 from pusupu_jax.machine_file import Machine
-from pusupu_jax.params import AxisLoad, ParameterError, ServoParams, stack
+from pusupu_jax.params import ParameterError, ServoParams, stack
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
 from pusupu_jax.programs import Program, UnstableKey, describe, fingerprint
@@ -298,7 +298,7 @@ class Problem(WindowStarts):
         hybrid0: HybridGains,
         specs: list[ScenarioSpec] | None = None,
         digest: str | None = None,
-        load: AxisLoad | None = None,
+        machine: Machine | None = None,
     ):
         self.cfg = cfg
         self.digest = cfg.digest() if digest is None else digest  # what a checkpoint must match to be resumed
@@ -307,11 +307,20 @@ class Problem(WindowStarts):
             cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared, bounds=cfg.bounds
         )
         self.scenarios = sc = Scenarios.build(cfg, self.space.servo0, self.rates, specs)
-        # the windows' models, references and paths enter the gradient as arguments, not as constants folded into
-        # the compiled program (constants cost compile time, and change its cache key with their last bits)
-        self.windows = (sc.window_models, sc.window_reference, jnp.asarray(sc.window_path))
-        # the margin constraints' single-axis load: the machine's (machine_file.axis_load; default the built-in one's)
-        self.load = machine_file.axis_load(Machine.default()) if load is None else load
+        # the margin constraints' single-axis loads (machine_file.margin_loads): ``machine``'s (default the built-in
+        # one) at home, and at the lightest and the heaviest pose along the scenarios' paths with their payloads
+        specs = scenario_list(cfg) if specs is None else specs
+        runs = [machine_file.PathRun(path, spec.options, spec.geometry) for path, spec in zip(sc.paths, specs)]
+        self.loads = machine_file.margin_loads(Machine.default() if machine is None else machine, runs)
+        # the windows' models, references and paths, and the margins' loads, enter the gradient as arguments, not as
+        # constants folded into the compiled program (constants cost compile time, and change its cache key with
+        # their last bits): problems of other paths, seeds or payloads share one program
+        self.windows = (
+            sc.window_models,
+            sc.window_reference,
+            jnp.asarray(sc.window_path),
+            stack(list(self.loads.values())),
+        )
         self.rows = len(sc.names)
         # every window of every scenario is independent: they are laid over the devices (one per CPU core)
         self.mesh = devices.row_mesh(self.rows * sc.windows)
@@ -435,15 +444,13 @@ class Problem(WindowStarts):
         )(joined, path)
         return terms, traces
 
-    def margins(self, z) -> dict:
-        servo, _ = self.space.apply(z)
-        return loop_margins(servo, self.load, mode=self.cfg.mode)
-
     def objective(self, z, baseline, starts, windows):
-        """``(J, aux)``; ``baseline`` holds each scenario's terms at the start (the normalisers)."""
+        """``(J, aux)``; ``baseline`` holds each scenario's terms at the start (the normalisers); ``windows`` the
+        windows' models, references and paths, and the margins' loads (stacked, :attr:`loads`)."""
         t, traces = self.scenario_terms(z, starts, windows)
         per = scenario_objective(self.cfg, t, baseline)
-        return aggregate(self.cfg, per, self.margins(z)), {"scenarios": per, "terms": t}
+        margins = envelope_margins(self.space.apply(z)[0], windows[3], mode=self.cfg.mode)
+        return aggregate(self.cfg, per, margins), {"scenarios": per, "terms": t}
 
     def value_and_grad(self, z):
         return self._value_and_grad(z, self.start_baseline(), self.starts, self.windows)
@@ -486,10 +493,10 @@ _GRADIENTS: dict = {}  # structure key -> the compiled gradient shared by the Pr
 def structure_key(problem: WindowStarts, *layout) -> str:
     """A stable description (:func:`pusupu_jax.programs.describe`) of what a problem's objective reads from it besides
     its arguments: the configuration (every setting), the tuned fields around their start (``space``), the nominal
-    plant's options, the rates, the load of the margins, the number of rows, and ``layout`` (a subclass's own), with
-    the problem's class."""
+    plant's options, the rates, the number of rows, and ``layout`` (a subclass's own: a batch's load of the margins),
+    with the problem's class."""
     space = problem.space
-    start = (space.servo0, space.hybrid0, problem.load)
+    start = (space.servo0, space.hybrid0)
     # the weights' order too: the objective sums its terms in it, and the digest sorts them
     return describe(
         (
