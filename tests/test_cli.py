@@ -232,8 +232,14 @@ def test_tune_writes_gains_ros_files_report_and_plots(tuned):
     loads = g.document["provenance"]["margin_loads_kg"]
     assert list(loads) == ["home", "lightest", "heaviest"]
     assert np.all(np.array(loads["lightest"]) <= loads["home"]) and np.all(np.array(loads["home"]) <= loads["heaviest"])
-    checked = pusupu("gains", "check", str(out / "gains.yaml"), "--trajectory", "p2p").stdout
-    assert "kg the sliders carry along p2p" in checked, checked  # the whole path: its range holds the tuned part's
+    # gains check --trajectory: the same check along the whole p2p path (in process: the command is a line around it)
+    from pusupu_cli.common import check_along_paths
+    from pusupu_jax.machine_file import Machine
+
+    along = check_along_paths(g, Machine.default(), ["p2p"], (45.0, 6.0), "gains.yaml")
+    assert list(along) == ["home", "lightest", "heaviest"]
+    assert along["home"].mass.tolist() == loads["home"]
+    assert np.all(along["lightest"].mass <= along["home"].mass) and np.all(along["heaviest"].mass >= along["home"].mass)
 
 
 @pytest.mark.slow
