@@ -10,7 +10,7 @@ import numpy as np
 
 from pusupu_jax.params import N_AXES, ParameterError
 
-from .common import check_path_on, check_plot_path, checking, load_gains, machine_of, num
+from .common import check_plot_path, checking, load_gains, loads_along, machine_of, num
 
 
 def cmd_analyze(args) -> int:
@@ -119,24 +119,17 @@ def _margins(servo, load, mode) -> list:
 
 def _along_path(args, servo) -> dict:
     """``--trajectory``: the linear model's load at the lightest and the heaviest pose of the path on the machine
-    (:func:`pusupu_jax.machine_file.margin_loads`), the path checked against the machine first; else none."""
+    (:func:`.common.loads_along`, at the default rates), the path checked against the machine first; else none."""
     if not args.trajectory:
         return {}
-    from pusupu_jax import machine_file
     from pusupu_jax.params import LoopRates
-    from pusupu_jax.paths import platform_path_from
 
     if args.load_from_params:
         raise ParameterError(
             f"--trajectory: expected the machine's load, got the load section of --params {args.params}"
         )
-    machine = machine_of(args)
-    with checking(f"--trajectory {args.trajectory}"):
-        poses = platform_path_from(args.trajectory, machine.geometry.home, LoopRates())
-        check_path_on(machine, poses, servo, f"--trajectory {args.trajectory}")
-    return {
-        k: load for k, load in machine_file.margin_loads(machine, [machine_file.PathRun(poses)]).items() if k != "home"
-    }
+    loads = loads_along(machine_of(args), [args.trajectory], servo, LoopRates())
+    return {k: load for k, load in loads.items() if k != "home"}
 
 
 def _refuse_unstable(args, servo, hybrid, rates, loads: dict) -> int:

@@ -24,20 +24,28 @@ def checking(source: str):
         raise ParameterError(f"{source}: cannot use these values ({type(e).__name__}: {e})") from None
 
 
-def check_along_paths(g, machine, specs: list[str], floors, source: str) -> dict:
-    """The gain check of ``g`` (a :class:`~pusupu_jax.gains.GainFile` read from ``source``) with the load at the
-    lightest and the heaviest pose along the paths ``specs`` too (:func:`pusupu_jax.machine_file.margin_loads`), each
-    path checked against ``machine`` first; raises :class:`ParameterError` in one line.  Returns the loads."""
-    from pusupu_jax import machine_file, stability
+def loads_along(machine, specs: list[str], servo, rates) -> dict:
+    """:func:`pusupu_jax.machine_file.margin_loads` of ``machine`` along the paths ``specs`` (``--trajectory``), each
+    sampled at ``rates`` and checked against the machine with ``servo``'s drives first."""
+    from pusupu_jax import machine_file
     from pusupu_jax.paths import platform_path_from
 
     runs = []
     for spec in specs:
         with checking(f"--trajectory {spec}"):
-            poses = platform_path_from(spec, machine.geometry.home, g.rates)
-            check_path_on(machine, poses, g.servo, f"--trajectory {spec}", g.rates.dt_position)
+            poses = platform_path_from(spec, machine.geometry.home, rates)
+            check_path_on(machine, poses, servo, f"--trajectory {spec}", rates.dt_position)
         runs.append(machine_file.PathRun(poses))
-    loads = machine_file.margin_loads(machine, runs)
+    return machine_file.margin_loads(machine, runs)
+
+
+def check_along_paths(g, machine, specs: list[str], floors, source: str) -> dict:
+    """The gain check of ``g`` (a :class:`~pusupu_jax.gains.GainFile` read from ``source``) with the load at the
+    lightest and the heaviest pose along the paths ``specs`` too (:func:`loads_along`); raises
+    :class:`ParameterError` in one line.  Returns the loads."""
+    from pusupu_jax import stability
+
+    loads = loads_along(machine, specs, g.servo, g.rates)
     try:
         stability.check_loads(g.servo, g.hybrid, g.rates, g.mode, floors, loads, along=" and ".join(specs))
     except ParameterError as e:
