@@ -197,7 +197,6 @@ def write_job(
             "objective_before": objective_before,
             "objective_after": best,
             "floors": [cfg.pm_min, cfg.gm_min],
-            "margin_loads_kg": {name: load.mass.tolist() for name, load in loads.items()},
             "metrics_after": metrics_json(metrics_after),
         }
         outcome = export(folder, cfg, servo, hybrid, problem.rates, problem.space.fields, provenance, machine, loads)

@@ -285,9 +285,6 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
         "objective_before": objective_before,
         "objective_after": result.objective,
         "floors": [cfg.pm_min, cfg.gm_min],
-        # the masses [kg] each slider carries at home and at the lightest and the heaviest pose along the paths:
-        # the loads the margins were checked with
-        "margin_loads_kg": {name: load.mass.tolist() for name, load in problem.loads.items()},
         "metrics_after": metrics_json(metrics_after),
     }
     outcome = export(out, cfg, servo1, hybrid1, problem.rates, problem.space.fields, provenance, machine, problem.loads)
@@ -327,8 +324,8 @@ def export(
     loads: dict[str, AxisLoad] | None = None,
 ) -> Export:
     """Write ``gains.yaml`` and the ROS 2 files if the gains pass every check, with each of ``loads``
-    (:func:`pusupu_jax.machine_file.margin_loads` of the tuned paths; default the machine's at home); the report's
-    entries about them.
+    (:func:`pusupu_jax.machine_file.margin_loads` of the tuned paths; default the machine's at home), which the gain
+    file's ``provenance`` records (``margin_loads_kg``: each slider's mass [kg]); the report's entries about them.
 
     All or nothing: every file's text is made (the gains checked, the joint names too) and every path checked before
     the first is written (:func:`pusupu_jax.files.write_files`), so that a refusal leaves the earlier files as they
@@ -337,15 +334,11 @@ def export(
     that are not in ``gains.yaml``.
     """
     gains_path = out / "gains.yaml"
+    loads = loads or {"home": machine_file.axis_load(machine or Machine.default())}
+    provenance = provenance | {"margin_loads_kg": {name: load.mass.tolist() for name, load in loads.items()}}
     try:
         margins = stability.check_loads(
-            servo,
-            hybrid,
-            rates,
-            cfg.mode,
-            (cfg.pm_min, cfg.gm_min),
-            loads or {"home": machine_file.axis_load(machine or Machine.default())},
-            along="the tuned paths",
+            servo, hybrid, rates, cfg.mode, (cfg.pm_min, cfg.gm_min), loads, along="the tuned paths"
         ).margins()
         texts = {
             gains_path: gains.document(
