@@ -1,4 +1,5 @@
-"""``pusupu identify``: the machine file's drive-train friction fitted to run logs."""
+"""``pusupu identify``: the machine file's drive fields (friction, rotor inertia, torque constant) and payload fitted
+to run logs."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ def add_parser(sub):
     """The ``identify`` subcommand's parser (``--device`` is added with the other computing commands')."""
     i = sub.add_parser(
         "identify",
-        help="fit the machine file's drive-train friction to run logs (MCAP of pusupu sim --log or bridge --log, "
+        help="fit the machine file's drive friction, rotor inertia, torque constant or payload to run logs (MCAP of pusupu sim --log or bridge --log, "
         "or CSV drive tables)",
     )
     i.add_argument("logs", nargs="+", metavar="LOG", help="MCAP run logs, or CSV drive tables (.csv; docs/logs.md)")
@@ -26,7 +27,9 @@ def add_parser(sub):
         "--fit",
         default="friction",
         metavar="NAMES",
-        help="comma-separated fields to fit, per axis: coulomb, viscous, or friction for both (default friction)",
+        help="comma-separated fields to fit: per axis coulomb, viscous, J (rotor inertia), Kt (torque constant: needs "
+        "logs with currents); payload_mass, payload_com; the groups friction (coulomb,viscous), motor (J,Kt) and "
+        "payload (payload_mass,payload_com) (default friction)",
     )
     i.add_argument(
         "--window",
@@ -37,7 +40,9 @@ def add_parser(sub):
     )
     i.add_argument("--trajectory", metavar="NAME|FILE", help="the path the logs ran, where not the one they name")
     i.add_argument("--out", required=True, metavar="FILE", help="the identified machine file to write")
-    i.add_argument("--plot", metavar="PNG", help="write the logged torques against the replay's, before and after")
+    i.add_argument(
+        "--plot", metavar="PNG", help="write the logged currents (or torques) against the replay's, before and after"
+    )
     i.add_argument("--json", action="store_true", help="print the report as JSON")
     return i
 
@@ -99,7 +104,7 @@ def cmd_identify(args) -> int:
         f"#   residual RMS {report.residual_rms_before:.4g} -> {report.residual_rms_after:.4g} over "
         f"{report.samples} samples",
         *(
-            f"#   {v.field}[{v.axis}] not excited by the logs: kept at {v.start:g} {machine_fit.UNITS[v.field]}"
+            f"#   {v.name} not excited by the logs: kept at {v.start:g} {machine_fit.UNITS[v.field]}"
             for v in report.unexcited()
         ),
     ]
@@ -108,9 +113,9 @@ def cmd_identify(args) -> int:
         machine_file.parse(yaml.safe_load(text))
     write_atomic(args.out, text)
     if args.plot:
-        from pusupu_jax.plots import plot_friction_fit
+        from pusupu_jax.plots import plot_drive_fit
 
-        plot_friction_fit(plots, args.plot)
+        plot_drive_fit(plots, args.plot)
     if args.json:
         print(json.dumps(report.as_dict() | {"out": args.out}, indent=2))
         return 0
@@ -118,14 +123,13 @@ def cmd_identify(args) -> int:
         f"identify: residual RMS {report.residual_rms_before:.4g} -> {report.residual_rms_after:.4g} over "
         f"{report.samples} samples of {len(logs)} log(s) ({report.evaluations} evaluations, {report.wall_s:.0f} s)"
     )
-    print(f"{'field':<9} {'axis':>4} {'start':>10} {'fitted':>10} {'std error':>10}  unit")
+    print(f"{'value':<15} {'start':>10} {'fitted':>10} {'std error':>10}  unit")
     for v in report.values:
         note = "" if v.excited else "  not excited: kept"
         print(
-            f"{v.field:<9} {v.axis:>4} {v.start:>10.4g} {v.value:>10.4g} {v.std_error:>10.2g}  "
-            f"{machine_fit.UNITS[v.field]}{note}"
+            f"{v.name:<15} {v.start:>10.4g} {v.value:>10.4g} {v.std_error:>10.2g}  {machine_fit.UNITS[v.field]}{note}"
         )
     for v in report.unexcited():
-        print(f"pusupu: warning: {v.field}[{v.axis}] was not excited by the logs; kept at {v.start:g}", file=sys.stderr)
+        print(f"pusupu: warning: {v.name} was not excited by the logs; kept at {v.start:g}", file=sys.stderr)
     print(f"wrote {args.out}" + (f", {args.plot}" if args.plot else ""))
     return 0

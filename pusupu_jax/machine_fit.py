@@ -1,20 +1,26 @@
-"""Fitting the machine's drive-train friction to run logs (host-side driver of a differentiable replay).
+"""Fitting the machine's drive fields (friction, rotor inertia, torque constant) to run logs (host-side driver of a
+differentiable replay).
 
 A log (:func:`pusupu_jax.run_log.drive_log`: ``pusupu sim --plant mjx --log`` or ``pusupu bridge --log``) holds, per
-sample, the motor angle each axis followed, and the angle, speed and torque its drive measured.  :func:`fit` replays
-the logged path through the simulated closed loop (the cascade with the gains the log ran with, on the MJX machine of
-the machine file), from rest at the path's start, and fits chosen drive-train fields of the machine file
-(:class:`FitField`) so that the replay's motor torques and angles match the logged ones: a nonlinear least-squares
-problem whose residual is
+sample, the motor angle each axis followed, and the angle, speed, torque and (protocol version 2) current its drive
+measured.  :func:`fit` replays the logged path through the simulated closed loop (the cascade with the gains the log
+ran with, on the MJX machine of the machine file), from rest at the path's start, and fits chosen drive fields of the
+machine file (:class:`FitField`) so that the replay's motor efforts and angles match the logged ones: a nonlinear
+least-squares problem whose residual is
 
-    r = [(tau_sim - tau_log) / s_tau, (theta_sim - theta_log) / s_theta]   over every logged sample and axis,
+    r = [(e_sim - e_log) / s_e, (theta_sim - theta_log) / s_theta]   over every logged sample and axis,
 
-``s_tau`` the RMS of the logged torques and ``s_theta`` the RMS of the logged tracking error (so both count alike).
+``e`` the log's :class:`Channel`: the measured current [A] where the log has it (what a drive measures: the torque it
+reports is the current times its own idea of Kt), else the torque [N m]; ``s_e`` the RMS of the logged efforts of
+that channel and ``s_theta`` the RMS of the logged tracking error (so both count alike).  ``Kt`` needs currents: with
+torques only, the replay's torque does not depend on it.  Its scale is fixed by the loads the machine file knows
+absolutely, chiefly gravity on the sliders and the mechanism's masses; ``J``, by the accelerations along the path.
 
 *Closed-loop replay, not open-loop.*  The logged run was closed loop: replaying the logged torques into the open-loop
 machine drifts away from the logged motion within a fraction of a second (an unstable double integrator per axis), so
-its residual stops measuring the parameters.  The replayed closed loop stays on the path, and the torque its
-controller needs to get there carries the friction (Coulomb and viscous) the log's controller paid.
+its residual stops measuring the parameters.  The replayed closed loop stays on the path, and the effort its
+controller needs to get there carries the friction (Coulomb and viscous), the inertia and the torque constant of the
+logged machine.
 
 *Solver.*  scipy's trust-region reflective least squares (``scipy.optimize.least_squares(method='trf')``), each
 value held inside its field's range (:func:`pusupu_jax.params.bounds`: no negative friction), over two jitted
@@ -51,15 +57,97 @@ from .sim import rollout
 
 
 class FitField(enum.StrEnum):
-    """A drive-train field of the machine file that :func:`fit` can fit, per axis."""
+    """A field of the machine file that :func:`fit` can fit: a drive field (one value per axis) or the payload's."""
 
     COULOMB = "coulomb"  # Coulomb friction at the slider [N]
     VISCOUS = "viscous"  # viscous friction at the slider [N s/m]
+    INERTIA = "J"  # the motor's rotor inertia [kg m^2]
+    TORQUE_CONSTANT = "Kt"  # the motor's torque constant [N m/A]: needs logs with measured current
+    PAYLOAD_MASS = "payload_mass"  # the payload's mass [kg]
+    PAYLOAD_COM = "payload_com"  # the payload's centre of mass (x, y, z) in the platform frame [m]
+
+    @property
+    def drive(self) -> bool:
+        """A drive field: one value per axis, in ``Machine.drives``."""
+        return self not in (FitField.PAYLOAD_MASS, FitField.PAYLOAD_COM)
+
+    @property
+    def size(self) -> int:
+        """How many values the field has: one per axis, one mass, three coordinates."""
+        return N_AXES if self.drive else 3 if self is FitField.PAYLOAD_COM else 1
+
+    def label(self, index: int) -> str:
+        """One value's name: ``coulomb[3]`` (axis 3, from 1), ``payload_com.x``, ``payload_mass``."""
+        if self.drive:
+            return f"{self}[{index + 1}]"
+        return f"{self}.{'xyz'[index]}" if self is FitField.PAYLOAD_COM else str(self)
+
+    def start(self, machine: Machine) -> np.ndarray:
+        """The field's values in ``machine`` ``(size,)``: where the fit starts."""
+        if self.drive:
+            return np.broadcast_to(np.asarray(machine.drives[self], float), (N_AXES,)).copy()
+        if self is FitField.PAYLOAD_COM:
+            return np.asarray(machine.payload.com, float).copy()
+        return np.array([machine.payload.mass], float)
 
 
-FIT_GROUPS = {"friction": (FitField.COULOMB, FitField.VISCOUS)}  # names of several fields at once (``--fit``)
-UNITS = {FitField.COULOMB: "N", FitField.VISCOUS: "N*s/m"}
-SCALES = {FitField.COULOMB: 10.0, FitField.VISCOUS: 50.0}  # a fitted value's scale where its start is 0
+FIT_GROUPS = {  # names of several fields at once (``--fit``)
+    "friction": (FitField.COULOMB, FitField.VISCOUS),
+    "motor": (FitField.INERTIA, FitField.TORQUE_CONSTANT),
+    "payload": (FitField.PAYLOAD_MASS, FitField.PAYLOAD_COM),
+}
+UNITS = {
+    FitField.COULOMB: "N",
+    FitField.VISCOUS: "N*s/m",
+    FitField.INERTIA: "kg*m^2",
+    FitField.TORQUE_CONSTANT: "N*m/A",
+    FitField.PAYLOAD_MASS: "kg",
+    FitField.PAYLOAD_COM: "m",
+}
+SCALES = {  # a fitted value's scale where its start is 0
+    FitField.COULOMB: 10.0,
+    FitField.VISCOUS: 50.0,
+    FitField.INERTIA: 1e-4,
+    FitField.TORQUE_CONSTANT: 1.0,
+    FitField.PAYLOAD_MASS: 1.0,
+    FitField.PAYLOAD_COM: 0.05,
+}
+
+
+def value_range(field: FitField) -> tuple[float, float]:
+    """The range a fitted value is held in: a drive field's (:func:`pusupu_jax.params.bounds`, its numeric ends),
+    a mass from 0 up, a centre of mass anywhere."""
+    if field is FitField.PAYLOAD_MASS:
+        return 0.0, np.inf
+    if field is FitField.PAYLOAD_COM:
+        return -np.inf, np.inf
+    b = bounds(next(f for f in dataclasses.fields(ServoParams) if f.name == field))
+    if b is None:
+        return -np.inf, np.inf
+    return float(b[0]), float(b[1]) if isinstance(b[1], (int, float)) else np.inf
+
+
+def with_values(machine: Machine, values: dict[FitField, np.ndarray]) -> Machine:
+    """``machine`` with the fields of ``values`` set (each ``(field.size,)``), named ``<name> identified``."""
+    payload = machine.payload
+    if FitField.PAYLOAD_MASS in values:
+        payload = dataclasses.replace(payload, mass=float(values[FitField.PAYLOAD_MASS][0]))
+    if FitField.PAYLOAD_COM in values:
+        x, y, z = (float(c) for c in values[FitField.PAYLOAD_COM])
+        payload = dataclasses.replace(payload, com=(x, y, z))
+    drives = {str(f): np.asarray(v, float) for f, v in values.items() if f.drive}
+    return dataclasses.replace(
+        machine, name=f"{machine.name} identified", drives=machine.drives | drives, payload=payload
+    )
+
+
+class Channel(enum.StrEnum):
+    """What a log's drive effort is compared as: the measured current where the log has it, else the torque."""
+
+    CURRENT = "current"  # A: what a drive measures; the torque a drive reports is its own Kt times it
+    TORQUE = "torque"  # N m
+
+
 UNEXCITED_COLUMN = 1e-8  # a Jacobian column this small against the largest: the logs do not excite the value
 UNEXCITED_ERROR = 0.5  # a standard error above this fraction of the value (or of its scale): not identified
 
@@ -79,20 +167,27 @@ def fit_fields(text: str) -> tuple[FitField, ...]:
 
 @dataclasses.dataclass(frozen=True)
 class FittedValue:
-    """One axis's value of one field: where the fit started, where it ended, its standard error (in the field's
-    unit), and whether the logs excited it (if not, ``value`` is ``start``)."""
+    """One value of one field (``index``: the axis of a drive field, the coordinate of the payload's centre of mass,
+    both from 0): where the fit started, where it ended, its standard error (in the field's unit), and whether the
+    logs excited it (if not, ``value`` is ``start``)."""
 
     field: FitField
-    axis: int
+    index: int
     start: float
     value: float
     std_error: float
     excited: bool
 
+    @property
+    def name(self) -> str:
+        """``coulomb[3]`` (axis 3, from 1), ``payload_com.x``, ``payload_mass``."""
+        return self.field.label(self.index)
+
     def as_dict(self) -> dict[str, Any]:
         return {
             "field": str(self.field),
-            "axis": self.axis,
+            "index": self.index,
+            "name": self.name,
             "unit": UNITS[self.field],
             "start": self.start,
             "value": self.value,
@@ -126,11 +221,14 @@ class FitReport:
 
 @dataclasses.dataclass(frozen=True)
 class Replay:
-    """One log's replay: the jitted ``run(values) -> (torque, theta)`` at the logged samples ``(n, n_axes)``, and the
-    logged ``torque`` and ``position`` there; ``t`` [s] along the path."""
+    """One log's replay: the jitted ``run(values) -> (effort, theta)`` (``values``: ``{field: (field.size,)}``) at
+    the logged samples ``(n, n_axes)``, the
+    effort in the log's ``channel`` (current [A] where the log has it, else torque [N m]), and the logged ``effort``
+    and ``position`` there; ``t`` [s] along the path."""
 
-    run: Callable[[list[jax.Array]], tuple[jax.Array, jax.Array]]
-    torque: np.ndarray
+    run: Callable[[dict[FitField, jax.Array]], tuple[jax.Array, jax.Array]]
+    channel: Channel
+    effort: np.ndarray
     position: np.ndarray
     reference: np.ndarray
     t: np.ndarray
@@ -143,7 +241,6 @@ def _replay(
     hybrid: HybridGains | None,
     rates: LoopRates,
     window_s: float,
-    fields: tuple[FitField, ...],
     trajectory: str | None,
 ) -> Replay:
     """The closed-loop replay of ``log``'s first ``window_s`` seconds on ``machine`` under ``gains``, checked against
@@ -183,21 +280,31 @@ def _replay(
     plant = machine_plant(nominal)
     model = plant.variant(options, machine.geometry)
     mode, hybrid = log.mode, hybrid if control_mode(log.mode).hybrid else None
+    channel = Channel.TORQUE if log.current is None else Channel.CURRENT
+
+    payload = plant.mj_model.body("payload").id  # welded to the platform at its centre of mass (plant.model)
 
     @jax.jit
-    def run(values: list[jax.Array]) -> tuple[jax.Array, jax.Array]:
+    def run(values: dict[FitField, jax.Array]) -> tuple[jax.Array, jax.Array]:
+        fitted = model
+        if FitField.PAYLOAD_MASS in values:
+            fitted = fitted.replace(body_mass=fitted.body_mass.at[payload].set(values[FitField.PAYLOAD_MASS][0]))
+        if FitField.PAYLOAD_COM in values:
+            fitted = fitted.replace(body_pos=fitted.body_pos.at[payload].set(values[FitField.PAYLOAD_COM]))
         trace = rollout(
-            servo.replace(**dict(zip(fields, values))),
-            model,
+            servo.replace(**{str(f): v for f, v in values.items() if f.drive}),
+            fitted,
             reference,
             plant=plant,
             rates=rates,
             outer=mode,
             hybrid=hybrid,
         )
-        return trace.torque[index], trace.theta[index]
+        effort = trace.current if channel is Channel.CURRENT else trace.torque
+        return effort[index], trace.theta[index]
 
-    return Replay(run, log.torque[keep], log.position[keep], log.reference[keep], index * rates.dt_position)
+    logged = log.current if log.current is not None else log.torque
+    return Replay(run, channel, logged[keep], log.position[keep], log.reference[keep], index * rates.dt_position)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -234,10 +341,9 @@ def least_squares_excited(
     def solve(free: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
         f, jac = residual_of(free)
         p0 = start[free]
-        say(f"identify: compiling the replay and its Jacobian ({len(free)} values)")
         r0 = np.asarray(f(jnp.asarray(p0)))
         jac(jnp.asarray(p0))
-        say("identify: fitting (trust-region least squares, each value inside its field's range)")
+        say(f"identify: fitting {len(free)} values (trust-region least squares, each inside its field's range)")
         sol = least_squares(
             lambda p: np.asarray(f(jnp.asarray(p))),
             p0,
@@ -282,89 +388,114 @@ def fit(
     window_s: float = 2.0,
     trajectory: str | None = None,
     progress: Callable[[str], object] | None = None,
-) -> tuple[FitReport, Machine, list[dict[str, np.ndarray]]]:
+) -> tuple[FitReport, Machine, list[dict[str, Any]]]:
     """Fit ``fields`` of ``machine`` (its values are the start) to ``logs``, each replayed over its first
     ``window_s`` [s] with ``gains`` (``hybrid``: a hybrid log's gains; ``rates``: the gains' rates; ``trajectory``:
     the path, where not the logs' own).  Returns the report, the machine with the fitted values (the unexcited ones
-    as they were), and per log the arrays of the plot (``t``, logged and replayed torques before and after).
+    as they were), and per log the arrays of the plot (``channel``, ``t``, logged and replayed efforts before and
+    after).
     ``progress(line)`` is told what runs (compiles take about half a minute each on 2 CPU cores)."""
     say = progress or (lambda line: None)
     t0 = time.perf_counter()
-    starts = np.stack([np.broadcast_to(np.asarray(machine.drives[f], float), (N_AXES,)) for f in fields])
-    scale = np.where(starts != 0, np.abs(starts), np.array([[SCALES[f]] for f in fields]))
-    ranges = {f.name: bounds(f) for f in dataclasses.fields(ServoParams) if f.name in fields}
+    # every fitted value in one vector, field after field (each field.size long), scaled by its start (or SCALES)
+    starts = np.concatenate([f.start(machine) for f in fields])
+    owner = [(f, k) for f in fields for k in range(f.size)]
+    scale = np.array([abs(v) if v != 0 else SCALES[f] for v, (f, _) in zip(starts, owner)])
+    low = np.array([value_range(f)[0] for f, _ in owner]) / scale
+    high = np.array([value_range(f)[1] for f, _ in owner]) / scale
+    ends = np.cumsum([0, *(f.size for f in fields)])
 
-    # an end of the field's range (params.bounds), or no limit
-    def limit(field: str, end: int, beyond: float) -> float | str:
-        b = ranges[field]
-        return b[end] if b is not None and isinstance(b[end], (int, float)) else beyond
+    def split(x: Any) -> dict[FitField, Any]:
+        """The vector of every fitted value (unscaled) as ``{field: its values}``."""
+        return {f: x[ends[i] : ends[i + 1]] for i, f in enumerate(fields)}
 
-    low = np.stack([np.full(N_AXES, limit(f, 0, -np.inf)) for f in fields]) / scale
-    high = np.stack([np.full(N_AXES, limit(f, 1, np.inf)) for f in fields]) / scale
-    replays = [_replay(log, machine, gains, hybrid, rates, window_s, fields, trajectory) for log in logs]
-    s_tau = max(float(np.sqrt(np.mean(np.concatenate([r.torque.ravel() for r in replays]) ** 2))), 1e-12)
+    for log in logs if FitField.TORQUE_CONSTANT in fields else ():
+        if log.current is None:
+            raise ParameterError(
+                f"{log.path}: expected measured currents to fit Kt (protocol version 2, sim --log, or a CSV's "
+                "current_a columns), found torques only"
+            )
+    replays = [_replay(log, machine, gains, hybrid, rates, window_s, trajectory) for log in logs]
+    if FitField.TORQUE_CONSTANT in fields:
+        for log in logs:
+            if control_mode(log.mode).hybrid:
+                raise ParameterError(
+                    f"{log.path}: expected a log of a position mode to fit Kt, got {log.mode!r} (the force law's "
+                    "current F r / (eta Kt) takes Kt as the controller was told, not as the motor is)"
+                )
+    scales = {  # the RMS of each channel's logged efforts over every log, so that both count alike
+        c: max(float(np.sqrt(np.mean(np.concatenate(efforts) ** 2))), 1e-12)
+        for c in Channel
+        if (efforts := [r.effort.ravel() for r in replays if r.channel is c])
+    }
     tracking = np.concatenate([(r.position - r.reference).ravel() for r in replays])
     s_theta = max(float(np.sqrt(np.mean(tracking**2))), 1e-12)
 
-    programs: dict[tuple[Any, ...], tuple[Callable[[jax.Array], jax.Array], Callable[[jax.Array], jax.Array]]] = {}
+    # the logged data are the programs' arguments, not constants inside them: a fit of other logs of the same
+    # shapes (another noise draw, another run of the path) traces the same programs and finds them compiled in the
+    # persistent cache
+    data = (
+        jnp.asarray(starts / scale),
+        jnp.asarray(scale),
+        [(jnp.asarray(r.effort), jnp.asarray(r.position), scales[r.channel]) for r in replays],
+        s_theta,
+    )
+
+    def residual(x: jax.Array, data: Any) -> jax.Array:
+        """The residual at every fitted value ``x`` (scaled)."""
+        _, unit, logged, s_th = data
+        values = split(x * unit)
+        parts = []
+        for r, (effort_log, position_log, s_e) in zip(replays, logged):
+            effort, theta = r.run(values)
+            parts += [((effort - effort_log) / s_e).ravel(), ((theta - position_log) / s_th).ravel()]
+        return jnp.concatenate(parts)
+
+    # one program pair for every set of free values: a refit without the unexcited ones compiles nothing new
+    residual_all, jacobian_all = jax.jit(residual), jax.jit(jax.jacfwd(residual))
 
     def residual_of(free: np.ndarray) -> tuple[Callable[[jax.Array], jax.Array], Callable[[jax.Array], jax.Array]]:
-        """The residual as a function of the free values (scaled), the others held at their start, and its Jacobian:
-        jitted once per set of free values."""
-        if tuple(free) in programs:
-            return programs[tuple(free)]
+        """The residual as a function of the free values (scaled), the others held at their start, and its Jacobian
+        (the full one's columns of the free values)."""
 
-        def residual(p: jax.Array) -> jax.Array:
-            x = jnp.asarray(starts / scale).ravel().at[free].set(p)
-            values = list(x.reshape(starts.shape) * scale)
-            parts = []
-            for r in replays:
-                torque, theta = r.run(values)
-                parts += [((torque - r.torque) / s_tau).ravel(), ((theta - r.position) / s_theta).ravel()]
-            return jnp.concatenate(parts)
+        def at(p: jax.Array) -> jax.Array:
+            return data[0].at[free].set(p)
 
-        programs[tuple(free)] = jax.jit(residual), jax.jit(jax.jacfwd(residual))
-        return programs[tuple(free)]
+        return (lambda p: residual_all(at(p), data)), (lambda p: jacobian_all(at(p), data)[:, free])
 
-    solution = least_squares_excited(residual_of, (starts / scale).ravel(), low.ravel(), high.ravel(), say)
-    sol, r0, x, std, excited = solution.result, solution.residual_before, solution.x, solution.std, solution.excited
-    evaluations, jacobians = solution.evaluations, solution.jacobians
-    fitted = x.reshape(starts.shape) * scale
-    errors = std.reshape(starts.shape) * scale
-    flags = excited.reshape(starts.shape)
+    say(f"identify: compiling the replay and its Jacobian ({starts.size} values; cached for logs of these shapes)")
+    solution = least_squares_excited(residual_of, starts / scale, low, high, say)
+    sol, r0 = solution.result, solution.residual_before
+    fitted, errors = solution.x * scale, solution.std * scale
     values = tuple(
-        FittedValue(f, a, float(starts[i, a]), float(fitted[i, a]), float(errors[i, a]), bool(flags[i, a]))
-        for i, f in enumerate(fields)
-        for a in range(N_AXES)
+        FittedValue(f, k, float(v0), float(v), float(e), bool(ok))
+        for (f, k), v0, v, e, ok in zip(owner, starts, fitted, errors, solution.excited)
     )
     f_all, _ = residual_of(np.arange(starts.size))
-    r1 = np.asarray(f_all(jnp.asarray(fitted.ravel() / scale.ravel())))
+    r1 = np.asarray(f_all(jnp.asarray(solution.x)))
     report = FitReport(
         values=values,
         residual_rms_before=float(np.sqrt(np.mean(r0**2))),
         residual_rms_after=float(np.sqrt(np.mean(r1**2))),
         samples=int(sum(len(r.t) for r in replays)),
         window_s=window_s,
-        evaluations=evaluations,
-        jacobians=jacobians,
+        evaluations=solution.evaluations,
+        jacobians=solution.jacobians,
         solver_message=str(sol.message),
         wall_s=time.perf_counter() - t0,
         logs=tuple({"path": log.path, "sha256": log.digest, "source": log.source} for log in logs),
     )
-    identified = dataclasses.replace(
-        machine,
-        name=f"{machine.name} identified",
-        drives=machine.drives | {str(f): np.asarray(fitted[i], float) for i, f in enumerate(fields)},
-    )
-    plots, at = [], 0  # the replayed torques, from the residual's first part for each log (no other program)
+    identified = with_values(machine, split(fitted))
+    plots, at = [], 0  # the replayed efforts, from the residual's first part for each log (no other program)
     for r in replays:
-        n = r.torque.size
+        n, s_effort = r.effort.size, scales[r.channel]
         plots.append(
             {
+                "channel": r.channel,
                 "t": r.t,
-                "logged": r.torque,
-                "before": r.torque + s_tau * r0[at : at + n].reshape(r.torque.shape),
-                "after": r.torque + s_tau * r1[at : at + n].reshape(r.torque.shape),
+                "logged": r.effort,
+                "before": r.effort + s_effort * r0[at : at + n].reshape(r.effort.shape),
+                "after": r.effort + s_effort * r1[at : at + n].reshape(r.effort.shape),
             }
         )
         at += 2 * n

@@ -166,23 +166,25 @@ def plot_identification(result: dict[str, Any], path: str | os.PathLike[str] | N
     return _output(fig, path)
 
 
-def plot_friction_fit(
-    replays: list[dict[str, np.ndarray]], path: str | os.PathLike[str] | None = None, title: str = ""
+def plot_drive_fit(
+    replays: list[dict[str, Any]], path: str | os.PathLike[str] | None = None, title: str = ""
 ) -> Figure:
-    """Per axis, the logged motor torque against the replay's with the machine file's friction and with the fitted
-    one (:func:`pusupu_jax.machine_fit.fit`'s plot arrays; the first log's)."""
+    """Per axis, the logged motor current (or torque, for a log without currents) against the replay's with the
+    machine file's values and with the fitted ones (:func:`pusupu_jax.machine_fit.fit`'s plot arrays; the first
+    log's)."""
     r = replays[0]
     t = np.asarray(r["t"])
+    label = "current [A]" if r["channel"] == "current" else "torque [N m]"
     fig, axes = plt.subplots(3, 2, figsize=(11, 8), sharex=True, squeeze=False)
     for b, ax in enumerate(axes.ravel()):
         ax.plot(t, np.asarray(r["logged"])[:, b], "k", lw=1.4, label="logged")
-        ax.plot(t, np.asarray(r["before"])[:, b], "--", lw=1.0, label="replay, machine file's friction")
-        ax.plot(t, np.asarray(r["after"])[:, b], lw=1.0, label="replay, fitted friction")
-        ax.set_ylabel(f"axis {b + 1} torque [N m]")
+        ax.plot(t, np.asarray(r["before"])[:, b], "--", lw=1.0, label="replay, machine file's values")
+        ax.plot(t, np.asarray(r["after"])[:, b], lw=1.0, label="replay, fitted values")
+        ax.set_ylabel(f"axis {b + 1} {label}")
         ax.grid(True, alpha=0.3)
     axes[0, 0].legend(fontsize=7)
     for ax in axes[-1]:
         ax.set_xlabel("time along the path [s]")
-    fig.suptitle(title or "motor torques: logged against the closed-loop replay")
+    fig.suptitle(title or f"motor {label.split()[0]}s: logged against the closed-loop replay")
     fig.tight_layout()
     return _output(fig, path)

@@ -1,5 +1,5 @@
-"""``pusupu identify``'s inputs: the names of the fields to fit, a file that is not a run log, and CSV drive tables
-that do not follow their layout (one that does is read in tests/test_paths.py, against its MCAP log), and the solver
+"""``pusupu identify``'s inputs: the names of the fields to fit, a file that is not a run log, Kt asked of a log
+without currents, and CSV drive tables that do not follow their layout (one that does is read in tests/test_paths.py, against its MCAP log), and the solver
 that keeps a value the data do not excite at its start, on a linear problem.  The fit of a log itself is not run by
 the suite: from an empty compile cache, its replay and Jacobian compile for minutes on 2 cores (docs/identify.md has
 the measured fits)."""
@@ -9,15 +9,70 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from pusupu_jax import ParameterError, run_log
+from pusupu_jax import ParameterError, ServoParams, machine_fit, run_log
 from pusupu_jax.machine_fit import FitField, fit_fields, least_squares_excited
 
 
-def test_fit_names_are_fields_or_the_friction_group():
+def test_fit_names_are_fields_or_groups():
     assert fit_fields("friction") == (FitField.COULOMB, FitField.VISCOUS)
     assert fit_fields("viscous,coulomb,viscous") == (FitField.VISCOUS, FitField.COULOMB)
-    with pytest.raises(ParameterError, match="--fit: expected names among friction, coulomb, viscous, got 'mass'"):
+    assert fit_fields("motor,friction,J") == (
+        FitField.INERTIA,
+        FitField.TORQUE_CONSTANT,
+        FitField.COULOMB,
+        FitField.VISCOUS,
+    )
+    assert fit_fields("payload") == (FitField.PAYLOAD_MASS, FitField.PAYLOAD_COM)
+    with pytest.raises(
+        ParameterError,
+        match="--fit: expected names among friction, motor, payload, coulomb, viscous, J, Kt, payload_mass, payload_com, got 'mass'",
+    ):
         fit_fields("coulomb,mass")
+
+
+def test_fitted_values_go_into_the_machine_file_that_is_written():
+    """Drive fields per axis and the payload's mass and centre of mass: read from the machine as the fit's start,
+    named one by one, and written back into a machine file that loads with them."""
+    import yaml
+
+    from pusupu_jax import machine_file
+    from pusupu_jax.machine_file import Machine
+
+    start = Machine.default()
+    assert FitField.COULOMB.start(start).tolist() == [20.0] * 6
+    assert FitField.PAYLOAD_COM.start(start).tolist() == [0.0] * 3 and FitField.PAYLOAD_MASS.start(start).size == 1
+    assert [FitField.VISCOUS.label(5), FitField.PAYLOAD_COM.label(1), FitField.PAYLOAD_MASS.label(0)] == [
+        "viscous[6]",
+        "payload_com.y",
+        "payload_mass",
+    ]
+    fitted = machine_fit.with_values(
+        start,
+        {
+            FitField.TORQUE_CONSTANT: np.linspace(1.2, 1.45, 6),
+            FitField.PAYLOAD_MASS: np.array([4.5]),
+            FitField.PAYLOAD_COM: np.array([0.01, -0.02, 0.03]),
+        },
+    )
+    written = machine_file.parse(yaml.safe_load(machine_file.template(fitted)))
+    assert written.name == "built-in identified"
+    np.testing.assert_allclose(written.drives["Kt"], np.linspace(1.2, 1.45, 6), rtol=1e-12)
+    np.testing.assert_array_equal(written.drives["coulomb"], start.drives["coulomb"])
+    assert written.payload.mass == 4.5 and list(written.payload.com) == [0.01, -0.02, 0.03]
+
+
+def test_kt_is_not_fitted_to_a_log_without_currents(tmp_path):
+    """Without measured currents the replay's torque does not depend on Kt: asking for it is refused in one line,
+    before anything is replayed."""
+    from pusupu_jax import drive_table
+    from pusupu_jax.machine_file import Machine
+
+    names = drive_table.columns(current=False)
+    rows = [",".join(f"{v:g}" for v in [0.001 * (k + 1)] + [0.0] * (len(names) - 1)) for k in range(2)]
+    log = drive_table.read(_table(tmp_path / "drive.csv", ",".join(names), rows))
+    assert log.current is None
+    with pytest.raises(ParameterError, match=r"drive.csv: expected measured currents to fit Kt .*, found torques only"):
+        machine_fit.fit([log], Machine.default(), ServoParams.table1(), fields=fit_fields("friction,Kt"))
 
 
 def test_a_file_that_is_not_a_run_log_is_refused_in_one_line(tmp_path):
