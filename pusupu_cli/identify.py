@@ -15,8 +15,8 @@ def add_parser(sub):
     """The ``identify`` subcommand's parser (``--device`` is added with the other computing commands')."""
     i = sub.add_parser(
         "identify",
-        help="fit the machine file's drive friction, rotor inertia, torque constant or payload to run logs (MCAP of pusupu sim --log or bridge --log, "
-        "or CSV drive tables)",
+        help="fit the machine file's drive friction, rotor inertia, torque constant or payload to run logs (MCAP of "
+        "pusupu sim --log or bridge --log, or CSV drive tables)",
     )
     i.add_argument("logs", nargs="+", metavar="LOG", help="MCAP run logs, or CSV drive tables (.csv; docs/logs.md)")
     i.add_argument("--machine", metavar="FILE", help="the machine file to start from (default the built-in machine)")
@@ -128,6 +128,12 @@ def cmd_identify(args) -> int:
         note = "" if v.excited else "  not excited: kept"
         print(
             f"{v.name:<15} {v.start:>10.4g} {v.value:>10.4g} {v.std_error:>10.2g}  {machine_fit.UNITS[v.field]}{note}"
+        )
+    if not report.converged:
+        print(
+            f"pusupu: warning: the fit stopped after {report.evaluations} evaluations without converging "
+            f"({report.solver_message}); the values with large standard errors are loosely determined by these logs",
+            file=sys.stderr,
         )
     for v in report.unexcited():
         print(f"pusupu: warning: {v.name} was not excited by the logs; kept at {v.start:g}", file=sys.stderr)

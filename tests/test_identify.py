@@ -1,7 +1,8 @@
 """``pusupu identify``'s inputs: the names of the fields to fit, a file that is not a run log, Kt asked of a log
-without currents, and CSV drive tables that do not follow their layout (one that does is read in tests/test_paths.py, against its MCAP log), and the solver
-that keeps a value the data do not excite at its start, on a linear problem.  The fit of a log itself is not run by
-the suite: from an empty compile cache, its replay and Jacobian compile for minutes on 2 cores (docs/identify.md has
+without currents, and CSV drive tables that do not follow their layout (one that does is read in tests/test_paths.py,
+against its MCAP log); fitted values written into a machine file; and the solver that keeps a value the data do not
+excite at its start, on a linear problem.  The fit of a log itself is not run by the suite: from an empty compile
+cache, its replay and Jacobian compile for minutes on 2 cores (docs/identify.md and benchmarks/bench_identify.py have
 the measured fits)."""
 
 import jax
@@ -25,7 +26,8 @@ def test_fit_names_are_fields_or_groups():
     assert fit_fields("payload") == (FitField.PAYLOAD_MASS, FitField.PAYLOAD_COM)
     with pytest.raises(
         ParameterError,
-        match="--fit: expected names among friction, motor, payload, coulomb, viscous, J, Kt, payload_mass, payload_com, got 'mass'",
+        match="--fit: expected names among friction, motor, payload, coulomb, viscous, J, Kt, payload_mass, "
+        "payload_com, got 'mass'",
     ):
         fit_fields("coulomb,mass")
 
