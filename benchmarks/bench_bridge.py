@@ -128,7 +128,7 @@ def main() -> None:
                 stolen = steal_ms_since(steal)
                 end = time.monotonic()
                 ep.close()
-                rep = run.report()
+                rep = run.report().as_dict()
                 runs.append(
                     {
                         **{

@@ -24,6 +24,7 @@ over CANopen, whose frames carry no send time (its feedback's timestamp is 0).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import enum
 import os
 import signal
@@ -33,7 +34,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pusupu_jax.metrics import Metric
 from pusupu_jax.run_log import Channel
 
 from . import cia402, protocol
@@ -109,31 +109,68 @@ class BridgeRun:
     ended: End | None = None
     run_start: int | None = None  # the cycle at which the path began (None: it never did)
 
-    def report(self, screw=None) -> dict:
-        """The run's figures: cycles, missed deadlines, latency percentiles [us], faults, tracking error [mm]."""
-        out = {
-            "rate_hz": self.rate,
-            "cycles": self.cycles,
-            "missed_deadlines": self.missed,
-            "missed_fraction": self.missed / max(self.cycles + self.skipped, 1),
-            "skipped_cycles": self.skipped,
-            "latency_us": percentiles(self.latency_us),
-            "feedback_age_us": percentiles(self.feedback_age_us),
-            "faults": [f.line() for f in self.faults],
-            "rejected_packets": dict(self.rejected),
-            "realtime": self.realtime,
-            "completed": self.completed,
-            "ended": self.ended,
-        }
+    def report(self, screw=None) -> BridgeReport:
+        """The run's figures (``screw``: each axis's screw ratio [m/rad], for the branches' errors)."""
+        branch_rms = branch_max = rms = peak = None
         if self.position and screw is not None:
             e = (np.asarray(self.position) - np.asarray(self.reference)) * np.asarray(screw) * 1e3
-            out[Metric.BRANCH_RMS_ERROR_MM] = np.sqrt(np.mean(e**2, axis=0)).tolist()
-            out["branch_max_error_mm"] = np.abs(e).max(axis=0).tolist()
+            branch_rms, branch_max = np.sqrt(np.mean(e**2, axis=0)).tolist(), np.abs(e).max(axis=0).tolist()
         if self.platform and self.platform_reference and np.isfinite(np.asarray(self.platform)).all():
             e = np.linalg.norm(np.asarray(self.platform) - np.asarray(self.platform_reference), axis=1) * 1e3
-            out[Metric.RMS_TRACKING_ERROR_MM] = float(np.sqrt(np.mean(e**2)))
-            out[Metric.MAX_TRACKING_ERROR_MM] = float(e.max())
-        return out
+            rms, peak = float(np.sqrt(np.mean(e**2))), float(e.max())
+        return BridgeReport(
+            rate_hz=self.rate,
+            cycles=self.cycles,
+            missed_deadlines=self.missed,
+            missed_fraction=self.missed / max(self.cycles + self.skipped, 1),
+            skipped_cycles=self.skipped,
+            latency_us=percentiles(self.latency_us),
+            feedback_age_us=percentiles(self.feedback_age_us),
+            faults=tuple(f.line() for f in self.faults),
+            rejected_packets=dict(self.rejected),
+            realtime=tuple(self.realtime),
+            completed=self.completed,
+            ended=self.ended,
+            branch_rms_error_mm=branch_rms,
+            branch_max_error_mm=branch_max,
+            rms_tracking_error_mm=rms,
+            max_tracking_error_mm=peak,
+        )
+
+
+@dataclass(frozen=True)
+class BridgeReport:
+    """What a run reports: its cycles at ``rate_hz`` [Hz], the missed deadlines (and their fraction of the cycles
+    due), the skipped cycles, the cycle's latency and the feedback's age (:func:`~pusupu_jax.hw_bridge.runner.
+    percentiles` [us], None without samples), each fault as a line, the packets refused by kind, the real-time
+    settings asked for and what came of each, whether the path completed and why the run ended; where the run
+    followed the path, per branch the RMS and largest error [mm] (at the motor angle, through the screw) and the
+    platform's RMS and largest tracking error [mm] (where the robot reports its platform)."""
+
+    rate_hz: float
+    cycles: int
+    missed_deadlines: int
+    missed_fraction: float
+    skipped_cycles: int
+    latency_us: dict[str, float] | None
+    feedback_age_us: dict[str, float] | None
+    faults: tuple[str, ...]
+    rejected_packets: dict[str, int]
+    realtime: tuple[str, ...]
+    completed: bool
+    ended: End | None
+    branch_rms_error_mm: list[float] | None = None
+    branch_max_error_mm: list[float] | None = None
+    rms_tracking_error_mm: float | None = None
+    max_tracking_error_mm: float | None = None
+
+    def as_dict(self) -> dict:
+        """The report as ``pusupu bridge --json`` prints it: every field, the errors only where the run has them."""
+        return {
+            k: list(v) if isinstance(v, tuple) else v
+            for k, v in dataclasses.asdict(self).items()
+            if v is not None or k in ("latency_us", "feedback_age_us", "ended")
+        }
 
 
 class Bridge:

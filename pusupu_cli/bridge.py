@@ -5,11 +5,14 @@ from __future__ import annotations
 import json
 import sys
 import time
+from typing import TYPE_CHECKING
 
-from pusupu_jax.metrics import Metric
 from pusupu_jax.params import ParameterError
 
 from .common import check_along_paths, check_output_path, check_plot_path, machine_of
+
+if TYPE_CHECKING:
+    from pusupu_jax.hw_bridge.session import BridgeReport
 
 
 def add_parsers(sub) -> None:
@@ -263,12 +266,12 @@ def run_bridge(args) -> int:
         }
         run_log.write(args.log, bridge_channels(run), metadata, started_ns)
     if args.json:
-        print(json.dumps(report, indent=2))
+        print(json.dumps(report.as_dict(), indent=2))
     else:
         print(_table(report))
     if args.plot:
         bridge_figure(run, report, args.plot)
-    for line in report["faults"]:
+    for line in report.faults:
         print(f"pusupu: fault: {line}", file=sys.stderr)
     if run.ended in (End.SIGINT, End.SIGTERM):
         print(f"pusupu: {run.ended}: the run stopped (quick stop, then disable voltage)", file=sys.stderr)
@@ -276,33 +279,33 @@ def run_bridge(args) -> int:
     return {End.COMPLETED: 0, End.FAULT: 1, End.SIGINT: 130, End.SIGTERM: 143}[run.ended]
 
 
-def _table(rep: dict) -> str:
+def _table(rep: BridgeReport) -> str:
+    from pusupu_jax.hw_bridge.session import End
+
     lines = [
-        f"cycles {rep['cycles']} at {rep['rate_hz']:g} Hz, missed deadlines {rep['missed_deadlines']} "
-        f"({100 * rep['missed_fraction']:.3f} %), skipped {rep['skipped_cycles']}"
+        f"cycles {rep.cycles} at {rep.rate_hz:g} Hz, missed deadlines {rep.missed_deadlines} "
+        f"({100 * rep.missed_fraction:.3f} %), skipped {rep.skipped_cycles}"
     ]
-    for key in ("latency_us", "feedback_age_us"):
-        p = rep[key]
+    for key, p in (("latency_us", rep.latency_us), ("feedback_age_us", rep.feedback_age_us)):
         if p:
             lines.append(
                 f"{key:15s} p50 {p['p50']:8.1f}  p99 {p['p99']:8.1f}  p99.9 {p['p99.9']:8.1f}  max {p['max']:8.1f}"
             )
-    if Metric.RMS_TRACKING_ERROR_MM in rep:
+    if rep.rms_tracking_error_mm is not None:
         lines.append(
-            f"platform tracking error: RMS {rep['rms_tracking_error_mm']:.4f} mm, "
-            f"max {rep['max_tracking_error_mm']:.4f} mm"
+            f"platform tracking error: RMS {rep.rms_tracking_error_mm:.4f} mm, max {rep.max_tracking_error_mm:.4f} mm"
         )
-    lines.append(f"rejected packets: {rep['rejected_packets'] or 'none'}")
-    lines += [f"real-time {line}" for line in rep["realtime"]]
+    lines.append(f"rejected packets: {rep.rejected_packets or 'none'}")
+    lines += [f"real-time {line}" for line in rep.realtime]
     lines.append(
-        {"completed": "completed", "fault": f"stopped: {len(rep['faults'])} fault(s)"}.get(
-            rep["ended"], f"stopped: {rep['ended']}"
+        {End.COMPLETED: "completed", End.FAULT: f"stopped: {len(rep.faults)} fault(s)"}.get(
+            rep.ended, f"stopped: {rep.ended}"
         )
     )
     return "\n".join(lines)
 
 
-def bridge_figure(run, report: dict, path) -> None:
+def bridge_figure(run, report: BridgeReport, path) -> None:
     """The latency histogram [us] and the tracking trace (branch 1's reference and position, every branch's error)."""
     import numpy as np
 
@@ -315,10 +318,10 @@ def bridge_figure(run, report: dict, path) -> None:
     if len(lat):
         a.hist(lat, bins=100, log=True)
         for key in ("p50", "p99", "p99.9"):
-            a.axvline(report["latency_us"][key], ls="--", color="k", lw=0.8)
+            a.axvline(report.latency_us[key], ls="--", color="k", lw=0.8)
     a.set_xlabel("wake-up to command sent [us]")
     a.set_ylabel("cycles")
-    a.set_title(f"{report['cycles']} cycles at {report['rate_hz']:g} Hz, {report['missed_deadlines']} missed")
+    a.set_title(f"{report.cycles} cycles at {report.rate_hz:g} Hz, {report.missed_deadlines} missed")
     if run.position:
         t = np.asarray(run.t)
         e = (np.asarray(run.position) - np.asarray(run.reference)) * 1e3

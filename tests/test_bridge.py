@@ -472,10 +472,10 @@ def test_loopback_tracks_the_arc_as_the_simulation_does(robot):
     late cycles reuse the previous sample: 1-3 % apart with 4-17 % of the cycles late (docs/bridge.md)."""
     run = _session(robot, SECONDS)
     rep = run.report()
-    assert rep["completed"] and not rep["faults"], rep["faults"]
-    assert len(run.platform) >= SECONDS * RATE - 1, (len(run.platform), rep["feedback_age_us"])
+    assert rep.completed and not rep.faults, rep.faults
+    assert len(run.platform) >= SECONDS * RATE - 1, (len(run.platform), rep.feedback_age_us)
     pure = _pure_arc()
-    assert rep["rms_tracking_error_mm"] == pytest.approx(pure.metrics.rms_tracking_error_mm, rel=0.01)
+    assert rep.rms_tracking_error_mm == pytest.approx(pure.metrics.rms_tracking_error_mm, rel=0.01)
 
 
 def _stopped_at_onset(run, fault: str, late: int = 0, log: str = ""):
@@ -614,8 +614,8 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
     pure = np.mean(_pure_arc().metrics.branch_rms_error_mm)
     for run in runs[:2]:  # none, garbage
         rep = run.report(screw=loop.drive.screw)
-        assert rep["completed"] and not rep["faults"], rep["faults"]
-        assert np.mean(rep["branch_rms_error_mm"]) == pytest.approx(pure, rel=0.15)
+        assert rep.completed and not rep.faults, rep.faults
+        assert np.mean(rep.branch_rms_error_mm) == pytest.approx(pure, rel=0.15)
     assert not runs[0].rejected and runs[1].rejected["PDO length"] >= 12 * int(0.3 * RATE), runs[1].rejected
     for fault, stopped in zip(CAN_FAULTS[2:], runs[2:]):
         assert _stopped_at_onset(stopped, fault, log=log).kind == "feedback stale", fault

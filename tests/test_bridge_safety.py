@@ -255,8 +255,8 @@ def test_feedback_of_another_axis_count_is_refused_and_the_run_stops_safely(setu
     robot = WireRobot(_from(50, lambda robot, fb: [(protocol.encode_feedback(_resized(fb, n)), robot.sock)]))
     run = _bridge_run(setup, robot)
     rep = run.report()
-    assert [f.kind for f in run.faults] == ["feedback stale"], rep["faults"]
-    assert rep["rejected_packets"]["axes"] >= 5 and not rep["completed"]
+    assert [f.kind for f in run.faults] == ["feedback stale"], rep.faults
+    assert rep.rejected_packets["axes"] >= 5 and not rep.completed
     _ended_safe(robot, setup.limits)
 
 
@@ -370,11 +370,11 @@ def test_feedback_from_another_port_is_refused_and_the_run_stops_safely(setup):
     robot = WireRobot(_from(50, lambda robot, fb: [(protocol.encode_feedback(fb), robot.foreign)]))
     run = _bridge_run(setup, robot)
     rep = run.report()
-    assert [f.kind for f in run.faults] == ["feedback stale"], rep["faults"]
+    assert [f.kind for f in run.faults] == ["feedback stale"], rep.faults
     assert (
-        rep["rejected_packets"] == {"sender": rep["rejected_packets"]["sender"]}
-        and rep["rejected_packets"]["sender"] >= 5
-        and not rep["completed"]
+        rep.rejected_packets == {"sender": rep.rejected_packets["sender"]}
+        and rep.rejected_packets["sender"] >= 5
+        and not rep.completed
     )
     _ended_safe(robot, setup.limits)
 
@@ -452,8 +452,8 @@ def test_an_exception_inside_a_cycle_ends_in_the_stop_and_the_report(setup, monk
     run = _bridge_run(setup, robot)
     rep = run.report()
     error = "FloatingPointError: injected into the step" if where == "step" else "IndexError: injected into the decoder"
-    assert [(f.kind, f.detail) for f in run.faults] == [("internal error", error)], rep["faults"]
-    assert rep["ended"] == "fault" and not rep["completed"] and rep["cycles"] == len(robot.commands)
+    assert [(f.kind, f.detail) for f in run.faults] == [("internal error", error)], rep.faults
+    assert rep.ended == "fault" and not rep.completed and rep.cycles == len(robot.commands)
     _ended_safe(robot, setup.limits)
 
 
@@ -485,7 +485,7 @@ def test_bring_up_on_late_feedback_walks_the_state_machine_once(setup, lag):
     for d in robot.drives:
         d.fault()
     run = _bridge_run(setup, robot, duration=0.2)
-    assert run.completed and not run.faults, run.report()["faults"]
+    assert run.completed and not run.faults, run.report().faults
     assert all(len(s) == 1 for s in states)
     walk = [s.pop() for s in states]
     walk = [w for k, w in enumerate(walk) if not k or w != walk[k - 1]]
@@ -563,7 +563,7 @@ def test_a_signal_mid_run_ends_in_the_stop_and_the_run_puts_the_handlers_back(se
     robot = WireRobot(_signal_at(10, sig))
     run = _bridge_run(setup, robot)
     rep = run.report()
-    assert rep["ended"] == sig.name and not rep["faults"] and not rep["completed"], rep
+    assert rep.ended == sig.name and not rep.faults and not rep.completed, rep
     assert {s: signal.getsignal(s) for s in before} == before
     assert 10 <= robot.enabled <= 11  # the next cycle stopped
     _ended_safe(robot, setup.limits)
@@ -681,18 +681,18 @@ def test_an_axis_that_stops_following_its_path_trips_the_following_error_and_a_c
     robot = WireRobot(_from(50, _axis_1_stuck(2 * lim.following_error[0] / lim.screw[0])))
     run = _bridge_run(setup, robot)
     assert [f.kind for f in run.faults] == ["following error"] and run.faults[0].detail.startswith("axis 1 "), (
-        run.report()["faults"]
+        run.report().faults
     )
     enabled = next(k for k, word, _ in run.commands if word == cia402.ENABLE_OPERATION)
     stuck = enabled + 50  # the robot's 50th enabled command: the bridge's of cycle enabled + 49, answered in lock step
     assert stuck + 26 <= run.faults[0].cycle <= stuck + 26 + 3, (run.faults[0].line(), enabled)  # late replies: later
-    assert run.report()["ended"] == "fault"
+    assert run.report().ended == "fault"
     _ended_safe(robot, lim)
     clean = WireRobot()
     run = _bridge_run(setup, clean)
     rep = run.report(screw=setup.loop.drive.screw)
-    assert rep["completed"] and rep["ended"] == "completed" and not rep["faults"], rep["faults"]
-    assert max(rep["branch_max_error_mm"]) < 0.1 * 1e3 * min(lim.following_error)
+    assert rep.completed and rep.ended == "completed" and not rep.faults, rep.faults
+    assert max(rep.branch_max_error_mm) < 0.1 * 1e3 * min(lim.following_error)
     _ended_safe(clean, lim)
 
 
