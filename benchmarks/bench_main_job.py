@@ -28,7 +28,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from timing import MOUNT_TREE  # beside this script
+from timing import MOUNT_TREE, processor  # beside this script
 
 CHILD = (
     r"""
@@ -172,7 +172,7 @@ def write(args, configs, trees, runs) -> None:
             "configs": {k: {"platform": v[0], "cpus": v[1]} for k, v in configs.items()},
             "machine": platform.machine(),
             "cpus": os.cpu_count(),
-            "processor": _processor(),
+            "processor": processor(),
             "trees": {k: str(v) for k, v in trees.items()},
             "runs": runs,
         },
@@ -182,16 +182,6 @@ def write(args, configs, trees, runs) -> None:
         args.out.write_text(text)
     else:
         print(text)
-
-
-def _processor() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 if __name__ == "__main__":

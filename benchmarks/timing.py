@@ -10,6 +10,20 @@ import sys
 import time
 
 
+def processor() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), else what ``platform`` says."""
+    import platform
+    from pathlib import Path
+
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
+
+
 def median_time(fn, repeats: int) -> float:
     """Median wall time [s] of ``repeats`` calls of ``fn()``, each awaited, after one warm-up call (the compile)."""
     import jax

@@ -1,0 +1,213 @@
+"""Does ``pusupu identify`` recover a machine it did not start from?  Per fitted value: truth, fit, standard error
+(JSON on stdout).
+
+A "true" machine differs from the built-in one in every value the fit is asked for: per axis Coulomb and viscous
+friction, rotor inertia and torque constant (its back-EMF constant with it), and a 5 kg payload off centre.
+``pusupu sim --plant mjx --log`` runs Table 1's gains (IMC) on it along ``--trajectory``; ``pusupu identify``'s fit
+(:func:`pusupu_jax.machine_fit.fit`) then starts from the built-in machine with a 3 kg payload at the platform
+centre (the payload's inertia given as the truth's, as from CAD: it is not fitted) and fits ``--fit``.  A payload
+centre of mass that is not fitted is a model error unless ``--true-com 0,0,0``.
+
+The log is written by the same MJX model that replays it, at the same step: this measures the fit and what the
+data excite, not the model's error (a robot's log, or the simulated robot's in C MuJoCo, is docs/identify.md's
+other case).  ``--noise-seeds N`` fits N more copies of the log with the sensors' noise drawn afresh: each motor
+angle rounded to an encoder of ``--encoder-bits`` a turn, and each current with Gaussian noise of
+``--current-noise`` of its axis's RMS.  Each entry says whether the truth lies inside the value's 95 % interval
+(1.96 standard errors).  The later fits find the programs compiled (the logged data are their arguments)::
+
+    python benchmarks/bench_identify.py [--trajectory p2p] [--window 2] [--fit friction,motor,payload]
+        [--noise-seeds 0] [--out FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from timing import emit, processor  # beside this script
+
+TRUTH = {  # per axis, and the payload: what the true machine has where the built-in one differs
+    "coulomb": [28.0, 24.0, 20.0, 16.0, 30.0, 22.0],  # N (built-in 20)
+    "viscous": [35.0, 60.0, 50.0, 80.0, 40.0, 55.0],  # N s/m (built-in 50)
+    "J": [2.26e-4, 1.70e-4, 2.07e-4, 1.88e-4, 2.44e-4, 1.60e-4],  # kg m^2 (built-in 1.88e-4)
+    "Kt": [1.19, 1.45, 1.322, 1.26, 1.40, 1.22],  # N m/A (built-in 1.322); Ke the same
+}
+PAYLOAD = {"mass": 5.0, "com": (0.03, -0.02, 0.05), "inertia": (0.02, 0.02, 0.03)}  # kg, m, kg m^2
+START_PAYLOAD = {"mass": 3.0, "com": (0.0, 0.0, 0.0), "inertia": PAYLOAD["inertia"]}
+
+
+def _machines(tmp: Path, com: tuple[float, ...]):
+    """The true machine (its payload's centre of mass at ``com`` [m]) and the start machine, written as machine
+    files; the true one returned."""
+    from pusupu_jax import machine_file
+    from pusupu_jax.files import write_atomic
+    from pusupu_jax.machine_file import Machine, Payload
+
+    base = Machine.default()
+    drives = base.drives | {k: np.asarray(v, float) for k, v in TRUTH.items()} | {"Ke": np.asarray(TRUTH["Kt"])}
+    truth = dataclasses.replace(base, name="true", drives=drives, payload=Payload(**(PAYLOAD | {"com": com})))
+    start = dataclasses.replace(base, name="start", payload=Payload(**START_PAYLOAD))
+    for name, m in (("true", truth), ("start", start)):
+        write_atomic(tmp / f"{name}.yaml", machine_file.template(m))
+    return truth
+
+
+def _gain_file(tmp: Path) -> Path:
+    """Table 1's gains in IMC, as a gain file of the built-in machine (what the logged run uses)."""
+    from pusupu_jax import LoopRates, ServoParams
+    from pusupu_jax.hybrid import HybridGains
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.job import export
+
+    done = export(tmp, TuneConfig(mode="imc"), ServoParams.table1(), HybridGains(), LoopRates(), (), {})
+    if done.error:
+        raise SystemExit(f"bench_identify: Table 1's gains were not exported: {done.error}")
+    return tmp / "gains.yaml"
+
+
+def _noisy(log, seed: int, bits: int, current_noise: float):
+    """``log`` as sensors would give it: angles on an encoder of ``bits`` a turn, currents with Gaussian noise of
+    ``current_noise`` of each axis's RMS."""
+    rng = np.random.default_rng(seed)
+    count = 2 * np.pi / 2**bits
+    current = log.current + current_noise * np.sqrt(np.mean(log.current**2, axis=0)) * rng.normal(
+        size=log.current.shape
+    )
+    return dataclasses.replace(log, position=np.round(log.position / count) * count, current=current)
+
+
+def _entries(report, truth) -> list[dict]:
+    """Per fitted value: truth, fit, standard error, relative error, and whether 1.96 standard errors cover it."""
+    from pusupu_jax.machine_fit import FitField
+
+    out = []
+    for v in report.values:
+        true = float(v.field.start(truth)[v.index])
+        rel = abs(v.value - true) / abs(true) if true else None
+        out.append(
+            {
+                "name": v.name,
+                "true": true,
+                "start": v.start,
+                "fitted": v.value,
+                "std_error": v.std_error,
+                "relative_error": rel,
+                "abs_error": abs(v.value - true),
+                "covered_95": bool(abs(v.value - true) <= 1.96 * v.std_error),
+                "excited": v.excited,
+            }
+        )
+        if v.field is FitField.PAYLOAD_COM:
+            out[-1]["relative_error"] = abs(v.value - true) / max(float(np.linalg.norm(truth.payload.com)), 1e-3)
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--trajectory", default="p2p")
+    ap.add_argument("--window", type=float, default=2.0, help="seconds of the log fitted (default 2)")
+    ap.add_argument("--fit", default="friction,motor,payload")
+    ap.add_argument("--noise-seeds", type=int, default=0, help="noisy copies of the log fitted after it")
+    ap.add_argument("--encoder-bits", type=int, default=17)
+    ap.add_argument("--current-noise", type=float, default=0.01, help="of each axis's RMS current (default 0.01)")
+    ap.add_argument(
+        "--true-com",
+        default="0.03,-0.02,0.05",
+        help="the true payload's centre of mass x,y,z [m] in the platform frame (default 0.03,-0.02,0.05)",
+    )
+    ap.add_argument("--out", help="also write the JSON here")
+    args = ap.parse_args()
+
+    from pusupu_jax import gains as gain_files
+    from pusupu_jax import machine_file, machine_fit, run_log
+    from pusupu_jax.runtime import setup_jax
+
+    setup_jax()
+    with tempfile.TemporaryDirectory() as d:
+        tmp = Path(d)
+        truth = _machines(tmp, tuple(float(c) for c in args.true_com.split(",")))
+        gain_path = _gain_file(tmp)
+        t0 = time.perf_counter()
+        subprocess.run(
+            [sys.executable, "-m", "pusupu_jax.cli", "sim", "--plant", "mjx", "--machine", str(tmp / "true.yaml")]
+            + ["--gains", str(gain_path), "--trajectory", args.trajectory, "--log", str(tmp / "run.mcap")],
+            check=True,
+            stdout=subprocess.DEVNULL,
+            env=os.environ,
+        )
+        sim_s = time.perf_counter() - t0
+        log = run_log.drive_log(tmp / "run.mcap")
+        start = machine_file.load(tmp / "start.yaml")
+        g = gain_files.load(gain_path)
+        fields = machine_fit.fit_fields(args.fit)
+        cases = [("noise-free", log)] + [
+            (f"noise seed {k}", _noisy(log, k, args.encoder_bits, args.current_noise)) for k in range(args.noise_seeds)
+        ]
+        fits = []
+        for name, case in cases:
+            print(f"bench_identify: fitting {name}", file=sys.stderr, flush=True)
+            report, _, _ = machine_fit.fit(
+                [case], start, g.servo, g.hybrid, g.rates, fields, args.window,
+                progress=lambda line: print(line, file=sys.stderr, flush=True),
+            )  # fmt: skip
+            entries = _entries(report, truth)
+            fits.append(
+                {
+                    "case": name,
+                    "wall_s": report.wall_s,
+                    "evaluations": report.evaluations,
+                    "jacobians": report.jacobians,
+                    "residual_rms_before": report.residual_rms_before,
+                    "residual_rms_after": report.residual_rms_after,
+                    "worst_relative_error": max(e["relative_error"] for e in entries),
+                    "covered_95": sum(e["covered_95"] for e in entries),
+                    "values": entries,
+                }
+            )
+            summary = _summary(args, fields, report.samples, sim_s, fits)
+            print(
+                f"bench_identify: {name}: worst relative error {fits[-1]['worst_relative_error']:.3g}, "
+                f"{fits[-1]['covered_95']} of {len(entries)} inside their 95 % intervals, {report.wall_s:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+            if args.out:  # each fit as it ends: a long run stopped early keeps what it found
+                from pusupu_jax.files import write_atomic
+
+                write_atomic(args.out, json.dumps(summary, indent=1) + "\n")
+    emit(summary, args.out)
+
+
+def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict:
+    """The benchmark's JSON over the fits done so far."""
+    import jax
+
+    noisy = fits[1:]
+    return {
+        "benchmark": "identify",
+        "command": "python benchmarks/bench_identify.py " + " ".join(sys.argv[1:]),
+        "trajectory": args.trajectory,
+        "window_s": args.window,
+        "fit": [str(f) for f in fields],
+        "values_fitted": len(fits[0]["values"]),
+        "samples": samples,
+        "noise": {"encoder_bits": args.encoder_bits, "current_rms_fraction": args.current_noise},
+        "true_payload_com_m": [float(c) for c in args.true_com.split(",")],
+        "sim_log_s": sim_s,
+        "fits": fits,
+        "coverage_95": (sum(f["covered_95"] for f in noisy) / sum(len(f["values"]) for f in noisy) if noisy else None),
+        "machine": {"processor": processor(), "cores": os.cpu_count(), "jax": jax.__version__},
+    }
+
+
+if __name__ == "__main__":
+    main()
