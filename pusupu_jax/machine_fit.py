@@ -450,15 +450,15 @@ def fit(
     # shapes (another noise draw, another run of the path) traces the same programs and finds them compiled in the
     # persistent cache
     data = (
-        jnp.asarray(starts / scale),
         jnp.asarray(scale),
         [(jnp.asarray(r.effort), jnp.asarray(r.position), scales[r.channel]) for r in replays],
         s_theta,
     )
+    x0 = jnp.asarray(starts / scale)
 
     def residual(x: jax.Array, data: Any) -> jax.Array:
         """The residual at every fitted value ``x`` (scaled)."""
-        _, unit, logged, s_th = data
+        unit, logged, s_th = data
         values = split(x * unit)
         parts = []
         for r, (effort_log, position_log, s_e) in zip(replays, logged):
@@ -474,7 +474,7 @@ def fit(
         (the full one's columns of the free values)."""
 
         def at(p: jax.Array) -> jax.Array:
-            return data[0].at[free].set(p)
+            return x0.at[free].set(p)
 
         return (lambda p: residual_all(at(p), data)), (lambda p: jacobian_all(at(p), data)[:, free])
 
