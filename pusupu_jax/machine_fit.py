@@ -486,8 +486,7 @@ def fit(
         FittedValue(f, k, float(v0), float(v), float(e), bool(ok))
         for (f, k), v0, v, e, ok in zip(owner, starts, fitted, errors, solution.excited)
     )
-    f_all, _ = residual_of(np.arange(starts.size))
-    r1 = np.asarray(f_all(jnp.asarray(solution.x)))
+    r1 = np.asarray(residual_all(jnp.asarray(solution.x), data))
     report = FitReport(
         values=values,
         residual_rms_before=float(np.sqrt(np.mean(r0**2))),
