@@ -480,6 +480,31 @@ def test_a_payloads_weight_and_centre_of_mass_show_in_the_holding_forces():
     np.testing.assert_allclose(minus, plus[[1, 0, 5, 4, 3, 2]], atol=tol)
 
 
+def test_every_bodys_centre_of_mass_is_where_the_model_puts_it():
+    """In C MuJoCo at home, in each body's own frame: an off-centre payload's centre of mass at its ``payload_com``
+    in the platform's (the payload body sits there), each rod's half its length along the rod, the passive leg's
+    tubes at their middles (the lower one above the base's U joint, the upper one below the platform's), every
+    other body's at its frame's origin.  MuJoCo's compiler copies a body's position into an inertial position left
+    undefined, which put every such centre of mass at twice the body's position (a payload at 2 x its com).  Exact
+    but for rounding (1e-12 m)."""
+    m = M.build_model(G, OFF_CENTRE)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+
+    def com_in(body: str, frame: str) -> np.ndarray:
+        b, f = m.body(body).id, m.body(frame).id
+        return d.xmat[f].reshape(3, 3).T @ (d.xipos[b] - d.xpos[f])
+
+    np.testing.assert_allclose(com_in("payload", "platform"), OFF_CENTRE.payload_com, atol=1e-12)
+    np.testing.assert_allclose(com_in("upu_lower", "upu_lower"), [0, 0, M.UPU_TUBE / 2], atol=1e-12)
+    np.testing.assert_allclose(com_in("upu_upper", "upu_upper"), [0, 0, -M.UPU_TUBE / 2], atol=1e-12)
+    for i in range(6):
+        length = float(np.asarray(G.rod_lengths)[i])
+        np.testing.assert_allclose(com_in(f"rod_{i}", f"rod_{i}"), [0, 0, length / 2], atol=1e-12)
+        np.testing.assert_allclose(com_in(f"slider_{i}", f"slider_{i}"), 0.0, atol=1e-12)
+    np.testing.assert_allclose(com_in("platform", "platform"), 0.0, atol=1e-12)
+
+
 @pytest.mark.parametrize(
     "options, message",
     [

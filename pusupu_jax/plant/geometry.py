@@ -111,7 +111,7 @@ FIELDS = {  # name: (shape, unit, meaning)
     "rod_mass": ((6,), "kg", "each rod"),
     "platform_mass": ((), "kg", "the platform with its fixed tooling"),
     "platform_inertia": ((3,), "kg*m^2", "the platform's principal moments about its centre"),
-    "upu_mass": ((2,), "kg", "the lower and the upper part of the UPU leg"),
+    "upu_mass": ((2,), "kg", "the lower and the upper tube of the UPU leg (each 400 mm, centre of mass at its middle)"),
 }
 _SHAPES = {name: shape for name, (shape, _, _) in FIELDS.items()}
 _POSITIVE = (

@@ -58,6 +58,8 @@ if TYPE_CHECKING:
     from jax.typing import ArrayLike
 
 GROUP_VISUAL = 1
+UPU_TUBE = 0.4  # m: the length of each of the passive leg's two tubes (its lower one from the base up, its upper one
+# from the platform down), their masses Geometry.upu_mass
 SCENES = ("surface", "peg_in_hole")
 CONES = {"pyramidal": mujoco.mjtCone.mjCONE_PYRAMIDAL, "elliptic": mujoco.mjtCone.mjCONE_ELLIPTIC}
 PEG = dict(radius=0.008, top=0.12, bottom=0.18)  # m: a capsule from 120 to 180 mm under the platform centre
@@ -147,9 +149,14 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
         quat: Iterable[float],
         mass: float,
         inertia: Iterable[float],
+        com: Iterable[float] = (0.0, 0.0, 0.0),
     ) -> mujoco.MjsBody:
+        """A body at ``pos``, ``quat`` in ``parent``'s frame, of ``mass`` [kg] with the principal ``inertia``
+        [kg m^2] about its centre of mass at ``com`` [m] in its own frame.  ``ipos`` is always set: left undefined,
+        MuJoCo's compiler copies the body's position into it, which puts the centre of mass at twice ``pos``."""
         b = parent.add_body(name=name, pos=list(pos), quat=list(quat))
         b.mass, b.inertia, b.explicitinertial = float(mass), list(inertia), True
+        b.ipos, b.iquat = list(com), [1.0, 0.0, 0.0, 0.0]
         return b
 
     def hinge(b: mujoco.MjsBody, name: str, axis: Iterable[float], ref: float) -> None:
@@ -167,17 +174,22 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
 
     # passive UPU branch: the two hinges of each universal joint sit on one body, applied in order
     m_low, m_up = (float(v) for v in np.asarray(nominal.upu_mass))
-    lower = body(world, "upu_lower", [0, 0, 0], [1, 0, 0, 0], m_low, _rod_inertia(m_low, 0.4))
+    # each of the leg's two tubes is a slender rod of UPU_TUBE [m] with its centre of mass at its middle
+    lower = body(
+        world, "upu_lower", [0, 0, 0], [1, 0, 0, 0], m_low, _rod_inertia(m_low, UPU_TUBE), [0, 0, UPU_TUBE / 2]
+    )
     hinge(lower, "upu_phi1", [1, 0, 0], phi1)
     hinge(lower, "upu_phi2", [0, 1, 0], phi2)
-    visual(lower, [0, 0, 0, 0, 0, 0.4], 0.03)
-    upper = body(lower, "upu_upper", [0, 0, leg], [1, 0, 0, 0], m_up, _rod_inertia(m_up, 0.4))
+    visual(lower, [0, 0, 0, 0, 0, UPU_TUBE], 0.03)
+    upper = body(
+        lower, "upu_upper", [0, 0, leg], [1, 0, 0, 0], m_up, _rod_inertia(m_up, UPU_TUBE), [0, 0, -UPU_TUBE / 2]
+    )
     upper.add_joint(name="upu_leg", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 0, 1], ref=leg)
-    visual(upper, [0, 0, -0.4, 0, 0, 0], 0.025)
+    visual(upper, [0, 0, -UPU_TUBE, 0, 0, 0], 0.025)
     platform = body(
         upper, "platform", [0, 0, 0], [1, 0, 0, 0], nominal.platform_mass, np.asarray(nominal.platform_inertia)
     )
-    body(platform, "payload", options.payload_com, [1, 0, 0, 0], options.payload, options.payload_inertia)
+    body(platform, "payload", options.payload_com, [1, 0, 0, 0], options.payload, options.payload_inertia)  # at its com
     hinge(platform, "upu_alpha", [0, 1, 0], alpha)
     hinge(platform, "upu_beta", [1, 0, 0], beta)
     for c in np.asarray(real.platform_points):
@@ -209,8 +221,8 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
             _frame_z_to(rod_dir_local / np.linalg.norm(rod_dir_local)),
             rod_m,
             _rod_inertia(rod_m, length),
+            [0, 0, length / 2],
         )
-        rod.ipos = [0, 0, length / 2]
         hinge(rod, f"rod_{i}_x", [1, 0, 0], 0.0)
         hinge(rod, f"rod_{i}_y", [0, 1, 0], 0.0)
         visual(rod, [0, 0, 0, 0, 0, length], 0.012)
