@@ -306,10 +306,10 @@ def test_gradient_through_contact_matches_central_differences():
     assert abs(ad - fd) <= 1e-6 * abs(fd), (ad, fd)
 
 
-def _tracking_and_torque_peak(params, reference):
-    """IMC mode: mean squared motor-angle error [rad^2] + 0.01 x a smooth torque peak (log-sum-exp, sharpness
-    20 /(N m))."""
-    trace = rollout(params, None, reference, plant=PLANT, rates=RATES, outer="imc")
+def _tracking_and_torque_peak(params, model, reference):
+    """IMC mode on ``model`` (an ``mjx.Model`` of PLANT's structure): mean squared motor-angle error [rad^2] + 0.01 x
+    a smooth torque peak (log-sum-exp, sharpness 20 /(N m))."""
+    trace = rollout(params, model, reference, plant=PLANT, rates=RATES, outer="imc")
     peak = jax.nn.logsumexp(20.0 * jnp.abs(trace.torque), axis=0) / 20.0
     return jnp.mean((trace.theta - trace.reference) ** 2) + 1e-2 * jnp.mean(peak)
 
@@ -333,22 +333,33 @@ def _short_move(outer):
 @pytest.mark.slow
 def test_gradient_through_the_cosimulation_matches_central_differences():
     """Reverse mode through cascade + MJX in IMC mode (50 ms: 200 MJX steps, 1000 current ticks, float64), servo
-    gains and the drive train's friction perturbed on axis 0 (by 1e-4 of their value): relative error <= 1e-3.
-    Observed with Table 1's friction: 5.6e-9 (lambda1), 1.6e-7 (lambda2), 1.8e-8 (Kv), 6.4e-6 (Tv), 1.9e-7
-    (coulomb), 3.1e-5 (viscous), 1.1e-7 (v_coulomb).  The friction's values are arrays of the one compiled program,
-    as the gains are."""
+    gains and the drive train's friction perturbed on axis 0, and the platform's mass (what identification fits of a
+    payload), each by 1e-4 of its value: relative error <= 1e-3.  Observed with Table 1's friction: 5.6e-9
+    (lambda1), 1.6e-7 (lambda2), 1.8e-8 (Kv), 6.4e-6 (Tv), 1.9e-7 (coulomb), 3.1e-5 (viscous), 1.1e-7 (v_coulomb),
+    and 1.1e-9 for the mass, whose derivative includes that of the torque the run starts holding the machine with
+    (2.6e-2 with that torque held out of the derivative).  The friction's values are arrays of the one compiled
+    program, as the gains and the model are."""
     ref = _short_move("imc")
-    value_and_grad = jax.jit(jax.value_and_grad(_tracking_and_torque_peak))  # one compile for both (as the tuner)
-    grad = value_and_grad(SERVO, ref)[1]
+    model = PLANT.mjx_model
+    value_and_grad = jax.jit(
+        jax.value_and_grad(_tracking_and_torque_peak, argnums=(0, 1), allow_int=True)
+    )  # one compile for all
+    grad, grad_model = value_and_grad(SERVO, model, ref)[1]
     for name in ("lambda1", "lambda2", "Kv", "Tv", "coulomb", "viscous", "v_coulomb"):
         v = np.asarray(getattr(SERVO, name))
         e = np.zeros(6)
         e[0] = 1e-4 * abs(v[0])
         plus, minus = SERVO.replace(**{name: v + e}), SERVO.replace(**{name: v - e})
-        fd = (value_and_grad(plus, ref)[0] - value_and_grad(minus, ref)[0]) / (2 * e[0])
+        fd = (value_and_grad(plus, model, ref)[0] - value_and_grad(minus, model, ref)[0]) / (2 * e[0])
         ad = float(np.asarray(getattr(grad, name))[0])
         assert fd != 0.0, name
         assert abs(ad - fd) <= 1e-3 * abs(fd), (name, ad, float(fd))
+    platform = PLANT.mj_model.body("platform").id
+    h = 1e-4 * float(model.body_mass[platform])
+    plus, minus = (model.replace(body_mass=model.body_mass.at[platform].add(d)) for d in (h, -h))
+    fd = (value_and_grad(SERVO, plus, ref)[0] - value_and_grad(SERVO, minus, ref)[0]) / (2 * h)
+    ad = float(grad_model.body_mass[platform])
+    assert fd != 0.0 and abs(ad - fd) <= 1e-3 * abs(fd), ("platform mass", ad, float(fd))
 
 
 @pytest.mark.slow

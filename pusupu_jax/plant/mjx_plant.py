@@ -166,10 +166,11 @@ class MJXPlant:
         (unique).  ``N``: the UPU leg's five joints are the platform's coordinates, and the
         spherical joints' constraints ``Jc_u dq_u + Jc_b dq_b = 0`` give each branch's three
         joints from them (``Jc_b`` is block diagonal, 3 x 3 per branch, invertible away from
-        singular poses).  This is the machine's own model (seeded errors and payload included);
-        no gradient flows through it.
+        singular poses).  This is the machine's own model (seeded errors and payload included), and the
+        derivatives with respect to it flow through: a run starts holding its machine, so the identification's
+        derivative of a run by a payload's mass includes the change of the torque that holds it.
         """
-        model, data = jax.lax.stop_gradient((aux.model, data))
+        model = aux.model
         upu, branches = self._upu_and_branch_dofs
         jc = self._connect_jacobian(model, data)  # (18, nv)
         basis = jnp.zeros((jc.shape[1], len(upu))).at[upu].set(jnp.eye(len(upu)))
