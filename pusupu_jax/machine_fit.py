@@ -293,10 +293,13 @@ def _replay(
     @jax.jit
     def run(values: dict[FitField, jax.Array]) -> tuple[jax.Array, jax.Array]:
         fitted = model
-        if FitField.PAYLOAD_MASS in values:
-            fitted = fitted.replace(body_mass=fitted.body_mass.at[payload].set(values[FitField.PAYLOAD_MASS][0]))
-        if FitField.PAYLOAD_COM in values:
-            fitted = fitted.replace(body_pos=fitted.body_pos.at[payload].set(values[FitField.PAYLOAD_COM]))
+        if FitField.PAYLOAD_MASS in values or FitField.PAYLOAD_COM in values:  # and what MuJoCo derives from them
+            mass, pos = model.body_mass, model.body_pos
+            if FitField.PAYLOAD_MASS in values:
+                mass = mass.at[payload].set(values[FitField.PAYLOAD_MASS][0])
+            if FitField.PAYLOAD_COM in values:
+                pos = pos.at[payload].set(values[FitField.PAYLOAD_COM])
+            fitted = plant.with_masses(model, mass, pos)
         trace = rollout(
             servo.replace(**{str(f): v for f, v in values.items() if f.drive}),
             fitted,

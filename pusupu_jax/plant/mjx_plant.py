@@ -94,6 +94,53 @@ class MJXPlant:
         }
         return self.mjx_model.replace(**arrays)
 
+    def with_masses(self, model: mjx.Model, body_mass: jax.Array, body_pos: jax.Array) -> mjx.Model:
+        """``model`` with new body masses [kg] and positions [m] (``(nbody,)``, ``(nbody, 3)``), and the constants
+        MuJoCo's compiler derives from them computed again (its ``mj_setConst``, in JAX, so differentiable).
+
+        The derived constants, at ``qpos0`` with ``model``'s armature: ``body_subtreemass`` (the mass of each body's
+        subtree), ``dof_M0`` (the joint-space inertia's diagonal), ``body_invweight0`` (each body's inverse
+        translational and rotational inertia at its centre of mass, ``J M^-1 J^T``'s diagonal averaged over x, y, z)
+        and ``dof_invweight0`` (``M^-1``'s diagonal, averaged over a ball joint's three DOFs).  The last two set the
+        regularisation of the loop-closure constraints, and so how the closed chain moves: setting only the masses
+        leaves the machine a payload's inverse weights with another payload (3 against 5 kg: 10-12 % apart).
+        """
+        m = self.mj_model
+        model = model.replace(body_mass=body_mass, body_pos=body_pos)
+        data = mjx.crb(model, mjx.com_pos(model, mjx.kinematics(model, mjx.make_data(model))))  # at qpos0
+        inertia = mjx.full_m(model, data)
+        inverse = jnp.linalg.inv(inertia)
+        subtree = [body_mass[i] for i in range(m.nbody)]
+        for i in range(m.nbody - 1, 0, -1):
+            subtree[m.body_parentid[i]] = subtree[m.body_parentid[i]] + subtree[i]
+        weights = [jnp.zeros(2)]
+        for i in range(1, m.nbody):
+            if m.body_weldid[i] == 0:  # fixed to the world
+                weights.append(jnp.zeros(2))
+            elif m.body_simple[i] == 2:  # slides only: its mass
+                weights.append(jnp.stack([1.0 / jnp.maximum(body_mass[i], mujoco.mjMINVAL), 0.0]))
+            else:
+                jacp, jacr = mjx.jac(model, data, data.xipos[i], i)
+                weights.append(
+                    jnp.stack([jnp.trace(j.T @ inverse @ j) / 3.0 for j in (jacp, jacr)])  # (nv, 3) each
+                )
+        dof_weights = jnp.diagonal(inverse)
+        for j in range(m.njnt):
+            adr, body = m.jnt_dofadr[j], m.jnt_bodyid[j]
+            if m.body_simple[body] == 2:
+                dof_weights = dof_weights.at[adr].set(1.0 / jnp.maximum(body_mass[body], mujoco.mjMINVAL))
+            elif m.jnt_type[j] == mujoco.mjtJoint.mjJNT_BALL:
+                dof_weights = dof_weights.at[adr : adr + 3].set(dof_weights[adr : adr + 3].mean())
+            elif m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE:
+                for start in (adr, adr + 3):
+                    dof_weights = dof_weights.at[start : start + 3].set(dof_weights[start : start + 3].mean())
+        return model.replace(
+            body_subtreemass=jnp.stack(subtree),
+            dof_M0=jnp.diagonal(inertia),
+            body_invweight0=jnp.stack(weights),
+            dof_invweight0=dof_weights,
+        )
+
     @property
     def _dofs(self) -> np.ndarray:
         return slide_dofs(self.mj_model)
