@@ -7,7 +7,6 @@ the suite's time.)"""
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -71,7 +70,9 @@ def test_a_users_machine_end_to_end(tmp_path):
         text=True,
     )
     try:
-        time.sleep(1.0)
+        # the robot compiles its programs before it opens its port, and says so: on a loaded machine that took
+        # longer than the bridge waits for the drives to come up
+        assert "listening" in robot.stdout.readline(), robot.stderr.read()
         r = pusupu(
             "bridge",
             "--gains",
