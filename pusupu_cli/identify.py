@@ -27,9 +27,9 @@ def add_parser(sub):
         "--fit",
         default="friction",
         metavar="NAMES",
-        help="comma-separated fields to fit: per axis coulomb, viscous, J (rotor inertia), Kt (torque constant: needs "
-        "logs with currents); payload_mass, payload_com; the groups friction (coulomb,viscous), motor (J,Kt) and "
-        "payload (payload_mass,payload_com) (default friction)",
+        help="comma-separated fields to fit: per axis coulomb, viscous, J (rotor inertia), Kt (torque constant, and "
+        "Ke in the machine file's ratio to it: needs logs with currents); payload_mass, payload_com; the groups "
+        "friction (coulomb,viscous), motor (J,Kt) and payload (payload_mass,payload_com) (default friction)",
     )
     i.add_argument(
         "--window",

@@ -59,6 +59,9 @@ def test_fitted_values_go_into_the_machine_file_that_is_written():
     written = machine_file.parse(yaml.safe_load(machine_file.template(fitted)))
     assert written.name == "built-in identified"
     np.testing.assert_allclose(written.drives["Kt"], np.linspace(1.2, 1.45, 6), rtol=1e-12)
+    # the back-EMF constant follows the torque constant in the machine file's ratio
+    ratio = np.asarray(start.drives["Ke"]) / np.asarray(start.drives["Kt"])
+    np.testing.assert_allclose(written.drives["Ke"], ratio * np.linspace(1.2, 1.45, 6), rtol=1e-12)
     np.testing.assert_array_equal(written.drives["coulomb"], start.drives["coulomb"])
     assert written.payload.mass == 4.5 and list(written.payload.com) == [0.01, -0.02, 0.03]
 
