@@ -22,28 +22,6 @@ from pusupu_jax.runtime import setup_jax  # noqa: E402
 CACHE = setup_jax(os.environ.get("PUSUPU_JAX_CACHE") or Path(__file__).resolve().parent.parent / ".jax_cache")
 os.environ["PUSUPU_JAX_CACHE"] = str(CACHE)  # the CLI subprocesses share it
 
-# The files whose tests take longest, longest first (seconds of their tests in a clean run of the suite on the 2-core
-# machine: 1117, 1111, 912, 627, 278, 243, 230, 213, 178 of 6238), handed to the workers before the rest so that the
-# three end together.  pytest-xdist's own order, most tests first (pyproject.toml turns it off), started
-# test_batch.py's 9 tests late, and its Ray test ran on alone at the end.
-LONGEST_FIRST = (
-    "test_mjx_plant.py",
-    "test_cli.py",
-    "test_batch.py",
-    "test_experiments.py",
-    "test_contact_experiments.py",
-    "test_bridge.py",
-    "test_user_machine.py",
-    "test_devices.py",
-    "test_notebook.py",
-)
-
-
-def pytest_collection_modifyitems(items):
-    """Order the files as :data:`LONGEST_FIRST`, then the rest as collected (each file's tests keep their order)."""
-    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
-
 
 @pytest.fixture(scope="session")
 def table1():
