@@ -282,15 +282,15 @@ class SimRobot:
         """The session's fault is ``kind`` and due: ``at`` seconds of machine time (periods run) after enable."""
         return self.fault.kind == kind and self.enabled_at is not None and self.sim_time >= self.fault.at
 
-    def begins(self, command: str) -> None:
-        """After each command: the first time the session's fault is due, say so on the log, naming ``command`` as the
-        bridge numbers it (its sequence over UDP, its SYNC's counter over CANopen).  A command the robot never received
-        (a frame lost while it stalled) runs no period, so the onset can come later in the bridge's count than
-        ``at`` seconds after enable."""
+    def begins(self, what: str, number: int) -> None:
+        """After each command: the first time the session's fault is due, say so on the log, naming the command as the
+        bridge numbers it (``what``, ``number``: its sequence over UDP, its SYNC's counter over CANopen).  A command the
+        robot never received (a frame lost while it stalled) runs no period, so the onset can come later in the
+        bridge's count than ``at`` seconds after enable."""
         if self.began or self.fault.kind == Injected.NONE or self.enabled_at is None or self.sim_time < self.fault.at:
             return
         self.began = True
-        self.log(f"sim-robot: session {self.session}: fault {self.fault.kind} begins on {command}")
+        self.log(f"sim-robot: session {self.session}: fault {self.fault.kind} begins on {what} {number}")
 
     def watch(self, now: float) -> None:
         """Each turn of the serving loop: the drives' sync watchdog (enabled and no command for ``watchdog_s``: fault,
@@ -492,7 +492,7 @@ class UdpServer:
             if cmd is None:
                 continue
             fb = self.robot.handle(cmd, now)
-            self.robot.begins(f"command {cmd.sequence}")
+            self.robot.begins("command", cmd.sequence)
             self.held.follow()
             if fb is not None:
                 self._send(fb, now)
@@ -556,7 +556,7 @@ class CanServer:
             r.applied + 1, 0, 0, np.array([m["Controlword"].raw for m in maps], np.uint16), modes, target
         )
         fb = r.handle(cmd, now)
-        r.begins(f"SYNC counter {data[0] if data else 0}")
+        r.begins("SYNC counter", data[0] if data else 0)
         self.held.follow()
         if fb is None or (r.active(Injected.DROP, now) and r.fault.arg >= 1.0):
             return
