@@ -278,16 +278,21 @@ class SimRobot:
         self.applied = 0
         self.began = False  # the session's fault has come due (begins)
 
+    @property
+    def due(self) -> bool:
+        """The session's fault is due: ``at`` seconds of machine time (periods run) after enable."""
+        return self.enabled_at is not None and self.sim_time >= self.fault.at
+
     def active(self, kind: Injected, now: float) -> bool:
-        """The session's fault is ``kind`` and due: ``at`` seconds of machine time (periods run) after enable."""
-        return self.fault.kind == kind and self.enabled_at is not None and self.sim_time >= self.fault.at
+        """The session's fault is ``kind`` and :attr:`due`."""
+        return self.fault.kind == kind and self.due
 
     def begins(self, what: str, number: int) -> None:
         """After each command: the first time the session's fault is due, say so on the log, naming the command as the
         bridge numbers it (``what``, ``number``: its sequence over UDP, its SYNC's counter over CANopen).  A command the
         robot never received (a frame lost while it stalled) runs no period, so the onset can come later in the
         bridge's count than ``at`` seconds after enable."""
-        if self.began or self.fault.kind == Injected.NONE or self.enabled_at is None or self.sim_time < self.fault.at:
+        if self.began or self.fault.kind == Injected.NONE or not self.due:
             return
         self.began = True
         self.log(f"sim-robot: session {self.session}: fault {self.fault.kind} begins on {what} {number}")
