@@ -77,6 +77,15 @@ def add_parsers(sub) -> None:
         help="local address (default loopback; another is said on stderr)",
     )
     b.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO, mlockall or CPU affinity")
+    b.add_argument(
+        "--lockstep",
+        type=float,
+        default=0.0,
+        metavar="S",
+        help="each cycle waits up to S seconds for the answer to the last command, and a late cycle moves the "
+        "deadlines after it instead of skipping: for runs against the simulated robot on a shared machine, whose "
+        "results must not depend on scheduling; never against drives (default 0: real time)",
+    )
     b.add_argument("--json", action="store_true", help="print the report as JSON")
     b.add_argument("--plot", metavar="PNG", help="write the latency histogram and the tracking trace")
     b.add_argument(
@@ -186,6 +195,8 @@ def run_bridge(args) -> int:
         raise ParameterError(f"--duration: expected a positive number of seconds, got {args.duration}")
     if not args.watchdog >= 1:
         raise ParameterError(f"--watchdog: expected at least 1 cycle, got {args.watchdog}")
+    if not 0.0 <= args.lockstep <= 10.0:
+        raise ParameterError(f"--lockstep: expected seconds in [0, 10], got {args.lockstep}")
     if args.plot:
         check_plot_path(args.plot)
     if args.log:
@@ -243,9 +254,8 @@ def run_bridge(args) -> int:
     )
     started_ns = time.time_ns()
     try:
-        run = Bridge(loop, endpoint, Safety(limits_for(g.servo, machine.geometry), args.watchdog)).run(
-            args.duration, not args.no_realtime
-        )
+        safety = Safety(limits_for(g.servo, machine.geometry), args.watchdog)
+        run = Bridge(loop, endpoint, safety, lockstep_s=args.lockstep).run(args.duration, not args.no_realtime)
     finally:
         endpoint.close()
     report = run.report(screw=loop.drive.screw)

@@ -726,6 +726,7 @@ BEYOND = [
     (["bridge", "--rate", "0.001"], "rate: expected a number of Hz in [1, 4000], got 0.001"),
     (["bridge", "--rate", "2e4"], "rate: expected a number of Hz in [1, 4000], got 20000.0"),
     (["bridge", "--duration", "1e9"], "--duration: expected at most "),
+    (["bridge", "--lockstep", "nan"], "--lockstep: expected seconds in [0, 10], got nan"),
     (["sim-robot", "--kin-error", "-1"], "--kin-error: expected a non-negative integer seed, got -1"),
     (["sim-robot", "--seconds", "nan"], "--seconds: expected a positive number of seconds, got nan"),
     (["sim-robot", "--rate", "0.001"], "rate: expected a number of Hz in [1, 4000], got 0.001"),

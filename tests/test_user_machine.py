@@ -64,6 +64,8 @@ def test_a_users_machine_end_to_end(tmp_path):
             "--seconds",
             "120",
             "--no-realtime",
+            "--drive-watchdog",  # the bridge's cycles wait on the robot in lock step: a stall of either is no fault
+            "2",
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -86,8 +88,11 @@ def test_a_users_machine_end_to_end(tmp_path):
             "--duration",
             "2",
             "--no-realtime",
-            "--watchdog",  # 100 ms, not 5: this run is about the machine file, and the suite's other worker and the
-            "100",  # robot share two cores with it (a 6 ms stall of the robot tripped the default once)
+            # this run is about the machine file, and the suite's other workers and the robot share two cores with
+            # it: in real time a 6 ms stall of the robot tripped the watchdog once, and 4 late cycles in a row the
+            # deadline check once; in lock step each cycle waits for the robot's answer and a late one delays the rest
+            "--lockstep",
+            "0.5",
             "--json",
         )
         assert r.returncode == 0, r.stderr
