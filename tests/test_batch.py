@@ -130,6 +130,38 @@ def test_a_job_file_names_the_machine_every_job_runs_on(tmp_path):
             jobfile.read(_write(tmp_path / "bad.yaml", doc | {"machine": bad}))
 
 
+def test_a_scenario_may_name_its_own_machine(tmp_path):
+    """A scenario's ``machine:`` puts its job on that machine in place of the file's: its geometry, payload and
+    digest, in a group of its own (one set of drives per shard); a machine file that does not read fails that job
+    alone; a robust problem over two machine files fails in one line."""
+    from pusupu_jax import machine_file
+    from pusupu_jax.machine_file import Machine
+
+    example = Path(__file__).parent.parent / "docs" / "examples" / "machine_user.yaml"
+    (tmp_path / "mine.yaml").write_text(example.read_text())
+    (tmp_path / "builtin.yaml").write_text(machine_file.template())
+    own = [SCENARIOS[0] | {"name": "arc-builtin", "machine": "builtin.yaml"}]
+    broken = [SCENARIOS[0] | {"name": "arc-none", "machine": "none.yaml"}]
+    doc = JOB | {"machine": "mine.yaml", "scenarios": SCENARIOS[:3] + own + broken}
+    jsonschema.validate(doc, SCHEMA)
+    jf = jobfile.read(_write(tmp_path / "job.yaml", doc))
+    jobs = {j.name: j for j in jf.jobs}
+    assert [n for n, j in jobs.items() if j.error is None] == RUNS + ["arc-builtin"], [j.error for j in jf.jobs]
+    assert jobs["arc-none"].error.startswith("scenarios[4].machine: ") and "none.yaml" in jobs["arc-none"].error
+    mine = machine_file.load(example)
+    assert all(machine_file.digest(jobs[n].machine) == machine_file.digest(mine) for n in RUNS)
+    assert jobs["arc-builtin"].machine is None  # the built-in machine, as a file without machine: has it
+    spec = jobs["arc-builtin"].specs[0]
+    np.testing.assert_array_equal(spec.geometry.rail_points, Machine.default().geometry.rail_points)
+    assert spec.options.payload == Machine.default().payload.mass
+    assert jobs["arc-builtin"].digest() != jobs["arc-s1"].digest()
+    assert sorted(len(g) for g in jobfile.groups(jf.jobs).values()) == [1, 3]
+    robust = JOB | {"problems": "robust", "machine": "mine.yaml", "scenarios": SCENARIOS[:2] + own}
+    (job,) = jobfile.read(_write(tmp_path / "robust.yaml", robust)).jobs
+    assert job.error.startswith("robust problems need one machine for every scenario"), job.error
+    assert repr(mine.name) in job.error and repr(Machine.default().name) in job.error
+
+
 def test_batch_writes_every_jobs_outputs_and_marks_the_failed_ones(batch):
     job, out, summary, status, log = batch
     assert status == 1 and summary["jobs"] == 5 and summary["ok"] == 3

@@ -16,6 +16,7 @@ A job file (JSON Schema: ``tune/schemas/pusupu-batch.schema.json``; ``docs/batch
       - name: arc-seed1        # default: trajectory/seedN/Pkg (a path file: its stem)
         trajectory: arc        # arc | p2p | circle | tilt | a path file (.yaml, .yml, .csv; docs/paths.md),
                                # a relative file name taken from the job file's folder
+        machine: other.yaml    # this scenario's machine file, in place of the file's (relative: as above)
         mode: hybrid           # hybrid | imc | pid | pid_ff (default: tune.mode)
         payload: 0.0           # kg added to the machine's payload, at its centre of mass
         kin_error_seed: 1      # seeded 0.5 mm errors of the simulated machine (null: none)
@@ -27,8 +28,9 @@ A job file (JSON Schema: ``tune/schemas/pusupu-batch.schema.json``; ``docs/batch
 A scenario that is malformed, names an unknown key or whose path the machine cannot follow (its
 workspace, its motors' speed and torque: :func:`pusupu_jax.paths.check_path`), or a job of more work than
 :func:`pusupu_jax.tune.run.check_work` allows, fails its own job (:class:`Job` with ``error``); the other jobs run.
-A file that is not such a mapping fails as a whole.
-Jobs whose settings compile to the same shapes (mode, windows, window_s) form one group: one
+A file that is not such a mapping fails as a whole.  A robust problem takes one machine for all its
+scenarios (one set of drives, one start).
+Jobs on one machine whose settings compile to the same shapes (mode, windows, window_s) form one group: one
 compiled gradient serves all of them.
 """
 
@@ -55,7 +57,18 @@ from .run import ScenarioSpec, check_work
 FORMAT = "pusupu-batch-1"
 SCHEMA_FILE = Path(__file__).resolve().parent / "schemas" / "pusupu-batch.schema.json"
 FILE_KEYS = ("format", "problems", "name", "shard_size", "plots", "machine", "tune", "scenarios")
-SCENARIO_KEYS = ("name", "trajectory", "mode", "payload", "kin_error_seed", "geometry", "path_s", "windows", "window_s")
+SCENARIO_KEYS = (
+    "name",
+    "trajectory",
+    "machine",
+    "mode",
+    "payload",
+    "kin_error_seed",
+    "geometry",
+    "path_s",
+    "windows",
+    "window_s",
+)
 SCENARIO_TUNE_KEYS = ("mode", "windows", "window_s")  # per scenario, default from tune:
 NOT_IN_TUNE = ("trajectories", "kin_error_seeds", "payloads", "path_s", "baselines")  # the scenarios say these
 GEOMETRY_FIELDS = tuple(f.name for f in dataclasses.fields(Geometry))
@@ -76,9 +89,11 @@ class Job:
     machine: Machine | None = None  # None: the built-in machine
 
     def group_key(self) -> tuple:
-        """Jobs with equal keys compile to the same shapes (one group, one compiled gradient)."""
+        """Jobs with equal keys run on one machine and compile to the same shapes (one group, one compiled
+        gradient)."""
         c = self.config
-        return (c.mode, c.windows, c.window_s, len(self.specs))
+        machine = None if self.machine is None else machine_file.digest(self.machine)
+        return (c.mode, c.windows, c.window_s, len(self.specs), machine)
 
     def digest(self) -> str:
         """A hash of the job's settings and scenarios, and of their path files' contents (its report and its group's
@@ -149,13 +164,38 @@ def _geometry(value, where: str, machine: Machine) -> Geometry:
     return geom
 
 
+class _Machines:
+    """The machine files a job file names, each read and checked once: ``(machine, the drives' limits)`` by name
+    (relative to the job file's ``folder``; None: the file's own machine, ``default``)."""
+
+    def __init__(self, folder: Path, default: Machine):
+        self.folder = folder
+        self.default = default
+        self.read: dict[str | None, tuple[Machine, ServoParams]] = {}
+
+    def __call__(self, source, where: str) -> tuple[Machine, ServoParams]:
+        if source not in self.read:
+            if source is None:
+                machine = self.default
+            elif not isinstance(source, str) or not source:
+                raise JobFileError(f"{where}: expected the name of a machine file, got {inputs.shown(source)}")
+            else:
+                try:
+                    machine = machine_file.load(self.folder / source)  # an absolute name stays as it is
+                except ParameterError as e:
+                    raise JobFileError(f"{where}: {e}") from None
+            self.read[source] = (machine, start_limits(machine))
+        return self.read[source]
+
+
 def _scenario(
-    entry, k: int, base: TuneConfig, folder: Path, machine: Machine, limits: ServoParams
-) -> tuple[ScenarioSpec, TuneConfig]:
-    """Scenario ``k``'s spec on ``machine`` and its job's configuration (a path file named relative to ``folder``, the
-    job file's; the path checked against the drives' ``limits``); raises :class:`JobFileError` naming it."""
+    entry, k: int, base: TuneConfig, folder: Path, machines: _Machines
+) -> tuple[ScenarioSpec, TuneConfig, Machine]:
+    """Scenario ``k``'s spec, its job's configuration and its machine (a path file named relative to ``folder``, the
+    job file's; the path checked against the machine's drives); raises :class:`JobFileError` naming it."""
     where = f"scenarios[{k}]"
     inputs.check_keys(entry, where, SCENARIO_KEYS, JobFileError, required=("trajectory",))
+    machine, limits = machines(entry.get("machine"), f"{where}.machine")
     trajectory = paths.resolve(paths.check_spec(entry["trajectory"], f"{where}.trajectory", JobFileError), folder)
     seed = entry.get("kin_error_seed")
     if seed is not None:
@@ -187,7 +227,7 @@ def _scenario(
         name, trajectory, options, _geometry(entry.get("geometry"), f"{where}.geometry", machine), path_s
     )
     check_scenario(spec, cfg, where, limits)
-    return spec, cfg
+    return spec, cfg, machine
 
 
 def check_scenario(spec: ScenarioSpec, cfg: TuneConfig, where: str, limits: ServoParams) -> None:
@@ -255,49 +295,54 @@ def read(path) -> JobFile:
         base = TuneConfig().replace(baselines=(), **tune)
     except ParameterError as e:
         raise JobFileError(f"{where}: {e}") from None
-    machine = Machine.default()
+    machines = _Machines(path.parent, Machine.default())
     if data.get("machine") is not None:
-        source = data["machine"]
-        if not isinstance(source, str) or not source:
-            raise JobFileError(f"{where}: machine: expected the name of a machine file, got {inputs.shown(source)}")
-        try:
-            machine = machine_file.load(path.parent / source)  # an absolute name stays as it is
-        except ParameterError as e:
-            raise JobFileError(f"{where}: machine: {e}") from None
-    limits = start_limits(machine)
+        machines.default = machines(data["machine"], f"{where}: machine")[0]
     scenarios = data["scenarios"]
     if not isinstance(scenarios, list) or not scenarios:
         raise JobFileError(f"{where}: scenarios: expected a non-empty list of scenarios, got {scenarios!r}")
-    parsed = []
+    parsed: list = []
     for k, entry in enumerate(scenarios):
         try:
-            parsed.append(_scenario(entry, k, base, path.parent, machine, limits))
+            parsed.append(_scenario(entry, k, base, path.parent, machines))
         except ParameterError as e:
             name = entry.get("name") if isinstance(entry, dict) and isinstance(entry.get("name"), str) else None
             parsed.append((name or f"scenario{k}", str(e)))
-    on = None if machine_file.is_builtin(machine) else machine
+
+    def on(machine: Machine) -> Machine | None:
+        return None if machine_file.is_builtin(machine) else machine
+
     if problems == "independent":
         jobs = [
-            Job(p[0].name, p[1], (p[0],), machine=on) if isinstance(p[0], ScenarioSpec) else Job(p[0], None, (), p[1])
+            Job(p[0].name, p[1], (p[0],), machine=on(p[2]))
+            if isinstance(p[0], ScenarioSpec)
+            else Job(p[0], None, (), p[1])
             for p in parsed
         ]
     else:
         name = data.get("name", "robust")
+        ok = [p for p in parsed if isinstance(p[0], ScenarioSpec)]
         errors = [p[1] for p in parsed if not isinstance(p[0], ScenarioSpec)]
-        configs = {(c.mode, c.windows, c.window_s) for s, c in parsed if isinstance(s, ScenarioSpec)}
+        configs = {(c.mode, c.windows, c.window_s) for _, c, _ in ok}
         if not errors and len(configs) > 1:
             errors = [f"robust problems need one mode, windows and window_s for every scenario; got {sorted(configs)}"]
+        on_machines = {machine_file.digest(m): m.name for _, _, m in ok}
+        if not errors and len(on_machines) > 1:
+            errors = [
+                "robust problems need one machine for every scenario (one set of drives, one start); got "
+                + ", ".join(sorted(f"{n!r} ({d[:12]})" for d, n in on_machines.items()))
+            ]
         jobs = [
             Job(name, None, (), errors[0])
             if errors
-            else Job(name, parsed[0][1], tuple(s for s, _ in parsed), machine=on)
+            else Job(name, parsed[0][1], tuple(s for s, _, _ in parsed), machine=on(parsed[0][2]))
         ]
     jobs = [bounded(job) for job in jobs]
     names = [j.name for j in jobs]
     dup = next((n for n in names if names.count(n) > 1), None)
     if dup is not None:
         raise JobFileError(f"{where}: scenarios: expected distinct names, got {dup!r} twice")
-    return JobFile(str(path), problems, shard, plots, tuple(jobs), machine)
+    return JobFile(str(path), problems, shard, plots, tuple(jobs), machines.default)
 
 
 def start_limits(machine: Machine) -> ServoParams:
