@@ -110,6 +110,13 @@ def add_parsers(sub) -> None:
         help="the bridge's --drive-modes: with --rate, they say which loop the rate is of (default csv)",
     )
     r.add_argument("--kin-error", type=int, metavar="SEED", help="seeded kinematic errors of the machine (0.5 mm std)")
+    r.add_argument(
+        "--noise-seed",
+        type=int,
+        default=0,
+        metavar="SEED",
+        help="the seed of the current sensors' noise, where the machine file gives current_noise (default 0)",
+    )
     for sp in (b, r):
         sp.add_argument(
             "--machine", metavar="FILE", help="the machine file (pusupu machine init; default: the built-in machine)"
@@ -363,6 +370,8 @@ def run_sim_robot(args) -> int:
         raise ParameterError(f"--drive-watchdog: expected seconds in (0, 60], got {args.drive_watchdog}")
     if args.kin_error is not None and args.kin_error < 0:
         raise ParameterError(f"--kin-error: expected a non-negative integer seed, got {args.kin_error}")
+    if args.noise_seed < 0:
+        raise ParameterError(f"--noise-seed: expected a non-negative integer seed, got {args.noise_seed}")
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise ParameterError(f"--seconds: expected a positive number of seconds, got {args.seconds}")
     from pusupu_jax.sim_robot.robot import FaultSpec, RobotModel, main_loop
@@ -381,5 +390,7 @@ def run_sim_robot(args) -> int:
         codes, _ = plan(g, None if args.drive_modes == "csv" else _drive_modes(args.drive_modes), args.rate)
     except ValueError as e:
         raise ParameterError(str(e)) from None
-    model = RobotModel(g, args.rate, args.kin_error, cst=bool((codes == CST).any()), machine=machine)
+    model = RobotModel(
+        g, args.rate, args.kin_error, cst=bool((codes == CST).any()), machine=machine, noise_seed=args.noise_seed
+    )
     return main_loop(model, args.listen, faults, args.seconds, args.drive_watchdog, not args.no_realtime)

@@ -11,7 +11,7 @@ machine as a commented template; ``docs/machine.md`` documents each field)::
     name: my-robot                 # a label for reports and gain files
     geometry: {rail_points: [[x, y, z] x 6], ...}   # every Geometry field, SI units
     drives: {R: 1.3, L: 0.0027, ...}                # every plant field of ServoParams: a number, or six
-                                                    # (encoder_counts, optional: the encoders' resolution)
+                                                    # (optional: encoder_counts, current_noise: the sensors)
     payload: {mass: 0.0, com: [0, 0, 0], inertia: [0, 0, 0]}
 
 :func:`load` reads and checks one: size, keys, shapes, signs, each drive value's range
@@ -59,10 +59,42 @@ PAYLOAD_FIELDS = {
     ),
 }
 COND_MAX = 30.0  # the Jacobian condition number a pose may reach (kinematics.check_poses)
-# the motor encoders' resolution: optional (left out, an ideal encoder: what the paper's machine is modelled with)
-ENCODER = "encoder_counts"
-ENCODER_RANGE = (256, 2**32)  # counts per motor revolution: an 8-bit encoder to a 32-bit one
-ENCODER_DOC = "encoder counts per motor revolution (optional; left out: an ideal encoder)"
+
+
+class Sensor(NamedTuple):
+    """An optional ``drives`` key that describes a drive's sensor, not its plant: left out, an ideal sensor (what the
+    paper's machine is modelled with), and the file's digest is what it was before the key existed.  Only the
+    simulated robot uses them; the MJX machine keeps ideal sensors."""
+
+    kind: type[int] | type[float]
+    low: float
+    high: float
+    unit: str
+    doc: str
+    range_doc: str
+    example: str  # a commented line of the template
+
+
+SENSORS = {
+    "encoder_counts": Sensor(
+        int,
+        256,
+        2**32,
+        "1",
+        "encoder counts per motor revolution (optional; left out: an ideal encoder)",
+        "an 8-bit encoder to a 32-bit one",
+        f"a 20-bit encoder: {2**20}",
+    ),
+    "current_noise": Sensor(
+        float,
+        0.0,
+        100.0,
+        "A",
+        "the current sensor's noise, its standard deviation (optional; left out: none)",
+        "0 to 100 A",
+        "1 % of a 10 A rating: 0.1",
+    ),
+}
 
 
 def _bounds(f: dataclasses.Field[Any]) -> tuple[float, float | str, str]:
@@ -89,14 +121,16 @@ class Payload:
 @dataclass(frozen=True)
 class Machine:
     """One robot: ``geometry``, ``drives`` (``{field: (6,) array}`` of the plant fields of
-    :class:`~pusupu_jax.params.ServoParams`), ``payload`` and ``encoder_counts`` (counts per motor revolution,
-    ``(6,)`` integers; None: ideal encoders); ``name`` labels it."""
+    :class:`~pusupu_jax.params.ServoParams`), ``payload``, ``encoder_counts`` (counts per motor revolution,
+    ``(6,)`` integers; None: ideal encoders) and ``current_noise`` (the current sensors' standard deviation [A],
+    ``(6,)``; None: noise-free); ``name`` labels it."""
 
     name: str
     geometry: Geometry
     drives: dict[str, np.ndarray]
     payload: Payload = field(default_factory=Payload)
     encoder_counts: np.ndarray | None = None
+    current_noise: np.ndarray | None = None
 
     @classmethod
     def default(cls) -> "Machine":
@@ -134,15 +168,17 @@ class Machine:
         )
 
     def content(self) -> dict[str, Any]:
-        """The machine as plain data (lists and floats), every field: what :func:`digest` hashes (the encoders only
+        """The machine as plain data (lists and floats), every field: what :func:`digest` hashes (the sensors only
         where given, so that a file without them keeps its digest)."""
-        encoder = {} if self.encoder_counts is None else {ENCODER: _compact(self.encoder_counts, int)}
+        sensors = {
+            k: _compact(getattr(self, k), spec.kind) for k, spec in SENSORS.items() if getattr(self, k) is not None
+        }
         return {
             "format": FORMAT,
             "version": VERSION,
             "name": self.name,
             "geometry": {k: np.asarray(getattr(self.geometry, k), dtype=float).tolist() for k in GEOMETRY_FIELDS},
-            "drives": {k: _compact(v) for k, v in self.drives.items()} | encoder,
+            "drives": {k: _compact(v) for k, v in self.drives.items()} | sensors,
             "payload": {
                 "mass": float(self.payload.mass),
                 "com": [float(x) for x in self.payload.com],
@@ -268,8 +304,8 @@ def parse(doc: Any) -> Machine:
     geometry = _geometry(doc["geometry"])
     drives = _drives(doc["drives"])
     payload = _payload(doc["payload"])
-    encoder = _encoder(doc["drives"][ENCODER]) if ENCODER in doc["drives"] else None
-    machine = Machine(name, geometry, drives, payload, encoder)
+    sensors = {k: _sensor(k, doc["drives"][k]) for k in SENSORS if k in doc["drives"]}
+    machine = Machine(name, geometry, drives, payload, **sensors)
     check(machine)
     return machine
 
@@ -291,7 +327,7 @@ def _geometry(values: Any) -> Geometry:
 
 def _drives(values: Any) -> dict[str, np.ndarray]:
     names = [f.name for f in drive_fields()]
-    inputs.check_keys(values, "drives", [*names, ENCODER], ParameterError, required=names, what="field")
+    inputs.check_keys(values, "drives", [*names, *SENSORS], ParameterError, required=names, what="field")
     out: dict[str, np.ndarray] = {}
     for f in drive_fields():
         v, where = values[f.name], f"drives.{f.name}"
@@ -316,21 +352,24 @@ def _drives(values: Any) -> dict[str, np.ndarray]:
     return out
 
 
-def _encoder(value: Any) -> np.ndarray:
-    where, (low, high) = f"drives.{ENCODER}", ENCODER_RANGE
+def _sensor(name: str, value: Any) -> np.ndarray:
+    """The optional ``drives`` key ``name`` (:data:`SENSORS`): one value for all six axes or six, each in range."""
+    spec, where = SENSORS[name], f"drives.{name}"
     values = value if isinstance(value, list) else [value] * N_AXES
+    one = "an integer" if spec.kind is int else "a number"
     if len(values) != N_AXES:
         raise ParameterError(
-            f"{where}: expected an integer or a list of {N_AXES} (one per axis), got a list of {len(values)}"
+            f"{where}: expected {one} or a list of {N_AXES} (one per axis), got a list of {len(values)}"
         )
+
+    def read(v: Any, at: str) -> float:
+        if spec.kind is int:
+            return inputs.integer(v, at, ParameterError, low=int(spec.low), high=int(spec.high))
+        return inputs.number(v, at, ParameterError, low=spec.low, high=spec.high)
+
     return np.array(
-        [
-            inputs.integer(
-                v, f"{where}" if not isinstance(value, list) else f"{where}[{k}]", ParameterError, low=low, high=high
-            )
-            for k, v in enumerate(values)
-        ],
-        dtype=np.int64,
+        [read(v, where if not isinstance(value, list) else f"{where}[{k}]") for k, v in enumerate(values)],
+        dtype=np.int64 if spec.kind is int else float,
     )
 
 
@@ -401,12 +440,13 @@ def template(machine: Machine | None = None) -> str:
         lines.append(f"  {k}: {_flow(content['geometry'][k])}")
     lines.append("drives:  # each axis: motor, inverter, ball screw, ratings and drive-train friction")
     for k, v in content["drives"].items():
-        unit, doc = units[k] if k != ENCODER else ("1", ENCODER_DOC)
+        unit, doc = units[k] if k not in SENSORS else (SENSORS[k].unit, SENSORS[k].doc)
         lines.append(f"  # {doc} [{unit}]")
         lines.append(f"  {k}: {_flow(v)}")
-    if ENCODER not in content["drives"]:
-        lines.append(f"  # {ENCODER_DOC}; a 20-bit encoder: {2**20}")
-        lines.append(f"  # {ENCODER}: {2**20}")
+    for k, spec in SENSORS.items():
+        if k not in content["drives"]:
+            lines.append(f"  # {spec.doc} [{spec.unit}]; {spec.example}")
+            lines.append(f"  # {k}: {spec.example.rsplit(': ', 1)[-1]}")
     lines.append("payload:")
     for k, (_, unit, doc) in PAYLOAD_FIELDS.items():
         lines.append(f"  # {doc} [{unit}]")
@@ -439,11 +479,13 @@ def json_schema() -> dict[str, Any]:
             "description": f"{f.metadata['doc']} [{f.metadata['unit']}]; range: {why}",
             "oneOf": [one, {"type": "array", "items": one, "minItems": N_AXES, "maxItems": N_AXES}],
         }
-    count = {"type": "integer", "minimum": ENCODER_RANGE[0], "maximum": ENCODER_RANGE[1]}
-    encoder = {
-        "description": f"{ENCODER_DOC}; range: an 8-bit encoder to a 32-bit one",
-        "oneOf": [count, {"type": "array", "items": count, "minItems": N_AXES, "maxItems": N_AXES}],
-    }
+    sensors = {}
+    for k, spec in SENSORS.items():
+        one = {"type": "integer" if spec.kind is int else "number", "minimum": spec.low, "maximum": spec.high}
+        sensors[k] = {
+            "description": f"{spec.doc} [{spec.unit}]; range: {spec.range_doc}",
+            "oneOf": [one, {"type": "array", "items": one, "minItems": N_AXES, "maxItems": N_AXES}],
+        }
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": f"{FORMAT} version {VERSION}",
@@ -466,7 +508,7 @@ def json_schema() -> dict[str, Any]:
                 "type": "object",
                 "additionalProperties": False,
                 "required": list(drives),
-                "properties": drives | {ENCODER: encoder},
+                "properties": drives | sensors,
             },
             "payload": {
                 "type": "object",

@@ -139,7 +139,9 @@ class RobotModel:
     drive-train friction (:func:`pusupu_jax.plant.friction.slider_friction`, in numpy, at the slider
     speeds at each step's start), one step per velocity period (the timestep is ``rates.dt_velocity``);
     with the machine's ``encoder_counts``, the drives and the feedback see whole encoder counts, and each
-    drive's speed is the counts it saw over the last velocity period;
+    drive's speed is the counts it saw over the last velocity period; with its ``current_noise``, each current the
+    drives report (and the torque they report, ``Kt`` times it) carries Gaussian noise of that standard deviation,
+    drawn from ``noise_seed`` (the drives' own current loops close on the true current);
     the drives at rest start from the MJX plant's static equilibrium, as the simulator's runs do.  Why C
     MuJoCo: on this 2-core CPU an MJX step through JAX's dispatch took about 300 us, more than a 250 us
     cycle; C MuJoCo takes tens (and the friction law in numpy 2 us).
@@ -152,6 +154,7 @@ class RobotModel:
         kin_error_seed: int | None = None,
         cst: bool = False,
         machine: Machine | None = None,
+        noise_seed: int = 0,
     ):
         from pusupu_jax.hw_bridge.loop import bridge_rates
 
@@ -182,6 +185,8 @@ class RobotModel:
         self.count = None if counts is None else 2 * np.pi / np.asarray(counts, dtype=float)
         self._last_angle = np.zeros(len(self.Kt))
         self._measured = np.zeros(len(self.Kt))
+        self.current_noise = machine.current_noise  # A, or None: noise-free current sensors
+        self._noise = np.random.default_rng(noise_seed)
 
         def velocity_period(d, state, target, cst_mask, omega):
             electrical, sc = state
@@ -234,6 +239,15 @@ class RobotModel:
         position."""
         omega = d.qvel[self.dofs] / self.r if self.count is None else self._measured
         return self._encoder(d), omega, d.xpos[self.platform].copy()
+
+    def sensed(self, torque):
+        """``(torque [N m], current [A])`` as the drives report them when their motors give ``torque``: the current
+        ``torque / Kt`` with the current sensors' noise where the machine has it, and the torque ``Kt`` times that
+        current."""
+        if self.current_noise is None:
+            return torque, torque / self.Kt
+        current = torque / self.Kt + self.current_noise * self._noise.standard_normal(len(torque))
+        return self.Kt * current, current
 
     def advance(self, d, state, target, cst_mask):
         """One bridge period under ``target`` (CSV: rad/s; CST: N m): the drive state and the motor torque [N m]."""
@@ -349,7 +363,8 @@ class SimRobot:
         if self.active(Injected.RANGE, now):
             theta = theta + self.fault.arg
         faulted = np.array([d.state == cia402.FAULT for d in self.drives])
-        torque = np.where(faulted, 0.0, self.torque)  # a faulted drive's power stage is off
+        # a faulted drive's power stage is off
+        torque, current = (np.where(faulted, 0.0, x) for x in self.model.sensed(self.torque))
         fb = protocol.Feedback(
             self.sequence,
             time.monotonic_ns(),
@@ -358,9 +373,9 @@ class SimRobot:
             self.mode,
             theta,
             omega,
-            torque,
+            torque,  # the torque a drive reports: Kt times the current it measures
             platform,
-            torque / self.model.Kt,  # the current loop's current [A] (protocol version 2): its torque is Kt times it
+            current,  # the current loop's current as its sensor measures it [A] (protocol version 2)
         )
         self.sequence += 1
         return fb

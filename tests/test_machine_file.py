@@ -36,11 +36,13 @@ def test_the_template_is_the_built_in_machine_and_the_digest_ignores_layout():
     assert machine_file.digest(machine_file.parse(doc)) != machine_file.digest(Machine.default())
 
 
-def test_encoders_are_optional_and_a_file_without_them_keeps_its_digest():
-    """``drives.encoder_counts`` left out is an ideal encoder, and the machine's digest (which gain files record) is
-    that of a file written before the key existed; given, it is one integer or six, and enters the digest."""
+def test_sensors_are_optional_and_a_file_without_them_keeps_its_digest():
+    """``drives.encoder_counts`` and ``drives.current_noise`` left out are ideal sensors, and the machine's digest
+    (which gain files record) is that of a file written before the keys existed; given, each is one value or six,
+    and enters the digest."""
     doc = yaml.safe_load(machine_file.template())
     assert "encoder_counts" not in doc["drives"] and machine_file.parse(doc).encoder_counts is None
+    assert "current_noise" not in doc["drives"] and machine_file.parse(doc).current_noise is None
     assert machine_file.digest(Machine.default()) == BUILT_IN_DIGEST
     doc["drives"]["encoder_counts"] = 2**20
     twenty_bit = machine_file.parse(doc)
@@ -51,6 +53,11 @@ def test_encoders_are_optional_and_a_file_without_them_keeps_its_digest():
     quanta = machine_file.encoder_quanta(twenty_bit, 2.5e-4)
     assert quanta["slider_count_m"][0] == pytest.approx(0.01 / 2**20)  # the 10 mm lead over 2^20 counts
     assert quanta["speed_step_rad_s"][0] == pytest.approx(2 * np.pi / 2**20 / 2.5e-4)
+    doc["drives"]["current_noise"] = [0.1, 0.1, 0.1, 0.1, 0.1, 0.2]
+    noisy = machine_file.parse(doc)
+    assert noisy.current_noise.tolist() == [0.1] * 5 + [0.2] and noisy.current_noise.dtype == float
+    assert machine_file.digest(noisy) != machine_file.digest(twenty_bit)
+    assert machine_file.parse(yaml.safe_load(machine_file.template(noisy))).current_noise.tolist() == [0.1] * 5 + [0.2]
 
 
 # the built-in machine's digest as gain files tuned on it record it: it changes only with the machine
@@ -85,6 +92,8 @@ BAD = {
     "an encoder of 100 counts": (lambda d: d["drives"].update(encoder_counts=100), "drives.encoder_counts: expected"),
     "fractional encoder counts": (lambda d: d["drives"].update(encoder_counts=4096.5), "drives.encoder_counts"),
     "an encoder list of five": (lambda d: d["drives"].update(encoder_counts=[4096] * 5), "drives.encoder_counts"),
+    "a negative current noise": (lambda d: d["drives"].update(current_noise=-0.1), "drives.current_noise: expected"),
+    "a current noise of NaN": (lambda d: d["drives"].update(current_noise=[0.1] * 5 + [float("nan")]), "current_noise"),
 }
 
 
