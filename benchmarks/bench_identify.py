@@ -8,15 +8,18 @@ friction, rotor inertia and torque constant (its back-EMF constant with it), and
 centre (the payload's inertia given as the truth's, as from CAD: it is not fitted) and fits ``--fit``.  A payload
 centre of mass that is not fitted is a model error unless ``--true-com 0,0,0``.
 
-The log is written by the same MJX model that replays it, at the same step: this measures the fit and what the
-data excite, not the model's error (a robot's log, or the simulated robot's in C MuJoCo, is docs/identify.md's
-other case).  ``--noise-seeds N`` fits N more copies of the log with the sensors' noise drawn afresh: each motor
+With ``--source sim`` (default) the log is written by the same MJX model that replays it, at the same step: this
+measures the fit and what the data excite, not the model's error.  With ``--source bridge`` the true machine is the
+simulated robot (``pusupu sim-robot --machine true.yaml``: C MuJoCo, with the drives' loops in the robot) and the log
+is ``pusupu bridge --log``'s over UDP on loopback, in lock step (``--lockstep``: each cycle waits for the robot's
+answer, so no cycle is skipped on a loaded machine).
+``--noise-seeds N`` fits N more copies of the log with the sensors' noise drawn afresh: each motor
 angle rounded to an encoder of ``--encoder-bits`` a turn, and each current with Gaussian noise of
 ``--current-noise`` of its axis's RMS.  Each entry says whether the truth lies inside the value's 95 % interval
 (1.96 standard errors).  The later fits find the programs compiled (the logged data are their arguments)::
 
-    python benchmarks/bench_identify.py [--trajectory p2p] [--window 2] [--fit friction,motor,payload]
-        [--noise-seeds 0] [--out FILE]
+    python benchmarks/bench_identify.py [--source sim|bridge] [--trajectory p2p] [--window 2]
+        [--fit friction,motor,payload] [--noise-seeds 0] [--out FILE]
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ import argparse
 import dataclasses
 import json
 import os
+import socket
 import subprocess
 import sys
 import tempfile
@@ -74,6 +78,52 @@ def _gain_file(tmp: Path) -> Path:
     return tmp / "gains.yaml"
 
 
+def _sim_log(tmp: Path, gain_path: Path, trajectory: str) -> None:
+    """``pusupu sim --plant mjx --log``: the true machine's run, by the fitting model itself."""
+    subprocess.run(
+        [sys.executable, "-m", "pusupu_jax.cli", "sim", "--plant", "mjx", "--machine", str(tmp / "true.yaml")]
+        + ["--gains", str(gain_path), "--trajectory", trajectory, "--log", str(tmp / "run.mcap")],
+        check=True,
+        stdout=subprocess.DEVNULL,
+        env=os.environ,
+    )
+
+
+def _bridge_log(tmp: Path, gain_path: Path, trajectory: str, seconds: float) -> dict:
+    """``pusupu bridge --log`` against ``pusupu sim-robot --machine true.yaml`` over UDP on loopback, in lock step,
+    for ``seconds`` of the path; returns the bridge's report."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        url = f"udp://127.0.0.1:{probe.getsockname()[1]}"
+    cli = [sys.executable, "-m", "pusupu_jax.cli"]
+    robot = subprocess.Popen(
+        cli + ["sim-robot", "--gains", str(gain_path), "--machine", str(tmp / "true.yaml"), "--listen", url]
+        + ["--seconds", "3600", "--no-realtime", "--drive-watchdog", "5"],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=os.environ,
+    )  # fmt: skip
+    try:
+        line = robot.stdout.readline() if robot.stdout else ""
+        if "listening" not in line:
+            raise SystemExit(f"bench_identify: the simulated robot did not start: {line!r}")
+        r = subprocess.run(
+            cli + ["bridge", "--gains", str(gain_path), "--robot", url, "--trajectory", trajectory]
+            + ["--duration", f"{seconds:g}", "--no-realtime", "--lockstep", "0.5", "--watchdog", "100"]
+            + ["--log", str(tmp / "run.mcap"), "--json"],
+            capture_output=True,
+            text=True,
+            env=os.environ,
+        )  # fmt: skip
+        if r.returncode != 0:
+            raise SystemExit(f"bench_identify: the bridge run failed: {r.stderr.strip()}")
+        report: dict = json.loads(r.stdout)
+        return report
+    finally:
+        robot.terminate()
+        robot.wait(timeout=60)
+
+
 def _noisy(log, seed: int, bits: int, current_noise: float):
     """``log`` as sensors would give it: angles on an encoder of ``bits`` a turn, currents with Gaussian noise of
     ``current_noise`` of each axis's RMS."""
@@ -113,6 +163,12 @@ def _entries(report, truth) -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument(
+        "--source",
+        choices=("sim", "bridge"),
+        default="sim",
+        help="the log: pusupu sim's (the fitting model) or pusupu bridge's against pusupu sim-robot (C MuJoCo)",
+    )
     ap.add_argument("--trajectory", default="p2p")
     ap.add_argument("--window", type=float, default=2.0, help="seconds of the log fitted (default 2)")
     ap.add_argument("--fit", default="friction,motor,payload")
@@ -137,13 +193,12 @@ def main() -> None:
         truth = _machines(tmp, tuple(float(c) for c in args.true_com.split(",")))
         gain_path = _gain_file(tmp)
         t0 = time.perf_counter()
-        subprocess.run(
-            [sys.executable, "-m", "pusupu_jax.cli", "sim", "--plant", "mjx", "--machine", str(tmp / "true.yaml")]
-            + ["--gains", str(gain_path), "--trajectory", args.trajectory, "--log", str(tmp / "run.mcap")],
-            check=True,
-            stdout=subprocess.DEVNULL,
-            env=os.environ,
-        )
+        if args.source == "bridge":
+            bridge = _bridge_log(tmp, gain_path, args.trajectory, args.window + 0.5)
+            run = {k: bridge.get(k) for k in ("cycles", "missed_deadlines", "faults", "ended")}
+        else:
+            _sim_log(tmp, gain_path, args.trajectory)
+            run = None
         sim_s = time.perf_counter() - t0
         log = run_log.drive_log(tmp / "run.mcap")
         start = machine_file.load(tmp / "start.yaml")
@@ -173,7 +228,7 @@ def main() -> None:
                     "values": entries,
                 }
             )
-            summary = _summary(args, fields, report.samples, sim_s, fits)
+            summary = _summary(args, fields, report.samples, sim_s, fits) | {"bridge_run": run}
             print(
                 f"bench_identify: {name}: worst relative error {fits[-1]['worst_relative_error']:.3g}, "
                 f"{fits[-1]['covered_95']} of {len(entries)} inside their 95 % intervals, {report.wall_s:.0f} s",
@@ -195,6 +250,7 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict
     return {
         "benchmark": "identify",
         "command": "python benchmarks/bench_identify.py " + " ".join(sys.argv[1:]),
+        "source": args.source,
         "trajectory": args.trajectory,
         "window_s": args.window,
         "fit": [str(f) for f in fields],
