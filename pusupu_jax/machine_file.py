@@ -72,7 +72,8 @@ class Sensor(NamedTuple):
     unit: str
     doc: str
     range_doc: str
-    example: str  # a commented line of the template
+    example_doc: str  # the commented example of the template: what it is
+    example: str  # and its value as written
 
 
 SENSORS = {
@@ -83,7 +84,8 @@ SENSORS = {
         "1",
         "encoder counts per motor revolution (optional; left out: an ideal encoder)",
         "an 8-bit encoder to a 32-bit one",
-        f"a 20-bit encoder: {2**20}",
+        "a 20-bit encoder",
+        str(2**20),
     ),
     "current_noise": Sensor(
         float,
@@ -92,7 +94,8 @@ SENSORS = {
         "A",
         "the current sensor's noise, its standard deviation (optional; left out: none)",
         "0 to 100 A",
-        "1 % of a 10 A rating: 0.1",
+        "1 % of a 10 A rating",
+        "0.1",
     ),
 }
 
@@ -445,8 +448,8 @@ def template(machine: Machine | None = None) -> str:
         lines.append(f"  {k}: {_flow(v)}")
     for k, spec in SENSORS.items():
         if k not in content["drives"]:
-            lines.append(f"  # {spec.doc} [{spec.unit}]; {spec.example}")
-            lines.append(f"  # {k}: {spec.example.rsplit(': ', 1)[-1]}")
+            lines.append(f"  # {spec.doc} [{spec.unit}]; {spec.example_doc}: {spec.example}")
+            lines.append(f"  # {k}: {spec.example}")
     lines.append("payload:")
     for k, (_, unit, doc) in PAYLOAD_FIELDS.items():
         lines.append(f"  # {doc} [{unit}]")
