@@ -166,12 +166,13 @@ def _geometry(value, where: str, machine: Machine) -> Geometry:
 
 class _Machines:
     """The machine files a job file names, each read and checked once: ``(machine, the drives' limits)`` by name
-    (relative to the job file's ``folder``; None: the file's own machine, ``default``)."""
+    (relative to the job file's ``folder``; None: the file's own machine, ``default``, that of its ``machine:`` key
+    ``source`` or the built-in one)."""
 
-    def __init__(self, folder: Path, default: Machine):
+    def __init__(self, folder: Path, source, where: str):
         self.folder = folder
-        self.default = default
         self.read: dict[str | None, tuple[Machine, ServoParams]] = {}
+        self.default = Machine.default() if source is None else self(source, where)[0]
 
     def __call__(self, source, where: str) -> tuple[Machine, ServoParams]:
         if source not in self.read:
@@ -295,9 +296,7 @@ def read(path) -> JobFile:
         base = TuneConfig().replace(baselines=(), **tune)
     except ParameterError as e:
         raise JobFileError(f"{where}: {e}") from None
-    machines = _Machines(path.parent, Machine.default())
-    if data.get("machine") is not None:
-        machines.default = machines(data["machine"], f"{where}: machine")[0]
+    machines = _Machines(path.parent, data.get("machine"), f"{where}: machine")
     scenarios = data["scenarios"]
     if not isinstance(scenarios, list) or not scenarios:
         raise JobFileError(f"{where}: scenarios: expected a non-empty list of scenarios, got {scenarios!r}")
