@@ -4,21 +4,25 @@ Both sides use :func:`drive_dictionary`, the object dictionary of one drive (CiA
 the predefined PDO mapping below).  Node IDs 1-6 are axes 1-6.
 
 * set-up over SDO: the bridge writes each drive's mode of operation (0x6060: 9 CSV, 10 CST),
-  reads it back (0x6061), and reads the motor's rated torque (0x6076, mN m) that scales torques;
+  reads it back (0x6061), and reads the motor's rated torque (0x6076, mN m) that scales torques and
+  its rated current (0x6075, mA) that scales currents;
 * each cycle the bridge sends one RPDO per drive (controlword 0x6040, target velocity 0x60FF,
   target torque 0x6071), then SYNC with a counter (CiA 301: 1 to :data:`SYNC_OVERFLOW`); on SYNC
   each drive applies its RPDO, runs one period, and answers with two TPDOs: (statusword 0x6041,
-  position actual 0x6064, torque actual 0x6077) and (velocity actual 0x606C, mode display 0x6061,
-  the counter of the SYNC answered, :data:`SYNC_ECHO`).
+  position actual 0x6064, torque actual 0x6077) and (velocity actual 0x606C, current actual 0x6078,
+  mode display 0x6061, the counter of the SYNC answered, :data:`SYNC_ECHO`): 8 bytes each.
+
+The measured current is what a drive's torque constant is identified from (``pusupu identify``), as in the UDP
+protocol's version 2; a drive whose rated current reads 0 reports none (the bridge logs null).
 
 The echoed counter tells the bridge which command an answer belongs to, as the UDP protocol's ack
 does: without it an answer that comes after the next SYNC would be taken for that SYNC's, and on a
 loaded host the feedback then lagged a cycle for stretches of a run.  A drive that does not map
 the echo answers 0, read as "unknown" (the answer is then taken for the last SYNC's).
 
-Units on the bus, as drives use them: positions in increments of a 20-bit encoder
-(:data:`COUNTS_PER_RAD`), speeds in increments per second, torques in thousandths of the rated
-torque.  :class:`CanLink` gives the bridge the interface of :class:`pusupu_jax.hw_bridge.udp.Endpoint`
+Units on the bus, as drives use them: positions in increments of a 20-bit encoder (:data:`COUNTS_PER_RAD`),
+speeds in increments per second, torques in thousandths of the rated torque, currents in thousandths of the
+rated current. :class:`CanLink` gives the bridge the interface of :class:`pusupu_jax.hw_bridge.udp.Endpoint`
 (commands out, the newest complete feedback in), so the session runs over either transport.
 
 On a real bus, bit timing limits the rate: 19 frames per cycle at 1 Mbit/s take about 2.3 ms
@@ -74,8 +78,10 @@ def drive_dictionary():
         (0x6064, "Position actual value", INTEGER32, "ro"),
         (0x606C, "Velocity actual value", INTEGER32, "ro"),
         (0x6071, "Target torque", INTEGER16, "rw"),
+        (0x6075, "Motor rated current", UNSIGNED32, "rw"),
         (0x6076, "Motor rated torque", UNSIGNED32, "rw"),
         (0x6077, "Torque actual value", INTEGER16, "ro"),
+        (0x6078, "Current actual value", INTEGER16, "ro"),
         (0x60FF, "Target velocity", INTEGER32, "rw"),
         (SYNC_ECHO, "SYNC counter echo", UNSIGNED8, "ro"),
     ):
@@ -96,7 +102,7 @@ def drive_dictionary():
 
     pdo(0x1400, 0x1600, 0x200, [(0x6040, 16), (0x60FF, 32), (0x6071, 16)], "RPDO1")
     pdo(0x1800, 0x1A00, 0x180, [(0x6041, 16), (0x6064, 32), (0x6077, 16)], "TPDO1")
-    pdo(0x1801, 0x1A01, 0x280, [(0x606C, 32), (0x6061, 8), (SYNC_ECHO, 8)], "TPDO2")
+    pdo(0x1801, 0x1A01, 0x280, [(0x606C, 32), (0x6078, 16), (0x6061, 8), (SYNC_ECHO, 8)], "TPDO2")
     return od
 
 
@@ -152,12 +158,14 @@ class CanLink:
             self.nodes.append(node)
         self.modes = np.asarray(drive_modes, np.int8)
         self.rated = np.zeros(N_AXES)
+        self.rated_current = np.zeros(N_AXES)  # A; 0: the drive reports no current
         for k, node in enumerate(self.nodes):  # SDO set-up
             node.sdo["Modes of operation"].raw = int(self.modes[k])
             shown = node.sdo["Modes of operation display"].raw
             if shown != self.modes[k]:
                 raise RuntimeError(f"drive {k + 1}: mode of operation {self.modes[k]} not taken (shows {shown})")
             self.rated[k] = node.sdo["Motor rated torque"].raw * 1e-3  # N m
+            self.rated_current[k] = node.sdo["Motor rated current"].raw * 1e-3  # A
         if rated_torque is not None and not np.allclose(self.rated, rated_torque, rtol=1e-3):
             raise RuntimeError(f"drives' rated torque {self.rated} N m, expected {rated_torque}")
 
@@ -180,7 +188,11 @@ class CanLink:
         with self._lock:
             answers = self._answers[k]
             answers.pop(echo, None)
-            answers[echo] = first + (m["Velocity actual value"].raw, m["Modes of operation display"].raw)
+            answers[echo] = first + (
+                m["Velocity actual value"].raw,
+                m["Modes of operation display"].raw,
+                m["Current actual value"].raw,
+            )
             if len(answers) > 2:
                 answers.pop(next(iter(answers)))
             self._count[k] += 1
@@ -221,7 +233,7 @@ class CanLink:
         if answer is None:
             return None
         echo, rows = answer
-        status, position, torque, velocity, mode = (np.array(c) for c in zip(*rows))
+        status, position, torque, velocity, mode, current = (np.array(c) for c in zip(*rows))
         fb = protocol.Feedback(  # timestamp 0: a CAN frame carries no send time (the bridge reports no feedback age)
             self._sequence,
             0,
@@ -232,6 +244,7 @@ class CanLink:
             velocity / COUNTS_PER_RAD,
             torque * self.rated / 1000.0,
             np.full(3, np.nan),
+            current * self.rated_current / 1000.0 if self.rated_current.all() else None,
         )
         self._sequence += 1
         return fb

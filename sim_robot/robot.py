@@ -545,12 +545,14 @@ class CanServer:
             node = canopen.LocalNode(k + 1, node_dictionary(k + 1))
             self.network.add_node(node)
             node.sdo["Motor rated torque"].raw = int(round(float(robot.model.Kt[k] * robot.model.servo.I_max[k]) * 1e3))
+            node.sdo["Motor rated current"].raw = int(round(float(robot.model.servo.I_max[k]) * 1e3))  # mA
             node.sdo["Modes of operation display"].raw = protocol.CSV
             node.add_write_callback(lambda index, subindex, od, data, node=node: self._on_write(node, index, data))
             node.rpdo.read(from_od=True)
             node.tpdo.read(from_od=True)
             self.nodes.append(node)
         self.rated = np.array([n.sdo["Motor rated torque"].raw for n in self.nodes], float) * 1e-3  # N m, fixed
+        self.rated_current = np.array([n.sdo["Motor rated current"].raw for n in self.nodes], float) * 1e-3  # A
         self.held = HeldReplies(robot, self._send)
         import can
 
@@ -587,6 +589,9 @@ class CanServer:
             t1["Position actual value"].raw = int(np.clip(round(fb.position[k] * self.scale), -(2**31), 2**31 - 1))
             t1["Torque actual value"].raw = int(np.clip(round(fb.torque[k] / rated[k] * 1000.0), -(2**15), 2**15 - 1))
             t2["Velocity actual value"].raw = int(np.clip(round(fb.velocity[k] * self.scale), -(2**31), 2**31 - 1))
+            t2["Current actual value"].raw = int(
+                np.clip(round(fb.current[k] / self.rated_current[k] * 1000.0), -(2**15), 2**15 - 1)
+            )
             t2["Modes of operation display"].raw = int(modes[k])
             t2["SYNC counter echo"].raw = data[0] if data else 0
             frames += [(t1.cob_id, bytes(t1.data)), (t2.cob_id, bytes(t2.data))]

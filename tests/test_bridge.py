@@ -571,13 +571,13 @@ CAN_FAULTS = ["none", "garbage@0.3", "stop@0.3:2", "delay@0.3:3", "reorder@0.3:1
 
 @pytest.mark.slow
 def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_path):
-    """Six simulated CiA 402 drive nodes (canopen LocalNode) in a subprocess, the bridge as the master: SDO set-up
-    of the modes of operation and the rated torque, the state machine over controlwords, RPDO + SYNC, two TPDOs
-    per drive.  In lock step (see _session), the arc's first second tracks as the pure simulation of the same rates
-    does (mean branch RMS error within 15 %: encoder counts quantise the feedback), and so it does when from 0.3 s
-    each answer comes after cut-short copies of its TPDOs and before the previous answer again (the short frames
-    dropped and counted); then sessions whose drives go silent, answer 3 s late, hold 12 answers and send them
-    newest first, or cut every TPDO short each end in a safe stop on stale feedback."""
+    """Six simulated CiA 402 drive nodes (canopen LocalNode) in a subprocess, the bridge as the master: SDO set-up of
+    the modes of operation and the rated torque and current, the state machine over controlwords, RPDO + SYNC,
+    two TPDOs per drive. In lock step (see _session), the arc's first second tracks as the pure simulation of the
+    same rates does (mean branch RMS error within 15 %: encoder counts quantise the feedback), and so it does
+    when from 0.3 s each answer comes after cut-short copies of its TPDOs and before the previous answer again
+    (the short frames dropped and counted); then sessions whose drives go silent, answer 3 s late, hold 12
+    answers and send them newest first, or cut every TPDO short each end in a safe stop on stale feedback."""
     from pusupu_jax.hw_bridge.canopen_link import CanLink, open_bus
     from pusupu_jax.hw_bridge.loop import bridge_reference, plan
     from pusupu_jax.hw_bridge.safety import limits_for
@@ -630,6 +630,11 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
         assert rep.completed and not rep.faults, rep.faults
         assert np.mean(rep.branch_rms_error_mm) == pytest.approx(pure, rel=0.15)
     assert not runs[0].rejected and runs[1].rejected["PDO length"] >= 12 * int(0.3 * RATE), runs[1].rejected
+    # every answer's current (0x6078) and torque (0x6077), each in thousandths of its rating, agree through Kt to
+    # their two roundings: Kt I_max / 1000 N m
+    _, torque, current = np.moveaxis(np.asarray(runs[0].drive), 1, 0)
+    assert np.isfinite(current).all() and np.abs(current).max() > 0.1
+    assert np.abs(torque - SERVO.Kt * current).max() <= np.max(SERVO.Kt * SERVO.I_max) / 1000 + 1e-9
     for session, (fault, stopped) in enumerate(zip(CAN_FAULTS[2:], runs[2:]), start=2):
         assert _stopped_at_onset(stopped, fault, log=log, session=session).kind == "feedback stale", fault
     assert runs[-1].rejected["PDO length"] > 0
@@ -638,13 +643,14 @@ def test_canopen_runs_the_arc_and_stops_safely_when_the_drives_go_silent(tmp_pat
 
 
 def test_canopen_feedback_names_the_sync_it_answers():
-    """The drives echo the SYNC counter in their second TPDO, so an answer that arrives after the next SYNC is known
-    for the older command's, frames of two answers are never read as one, and while one answer is arriving the one
-    before it is the newest whole answer.  (Without it, on a loaded host the lock-step CANopen test above read late
-    answers as the next cycle's: mean branch error 0.0036-0.0044 mm against 0.0027 with the bridge, the robot and
-    two CPU hogs on one core.)  The drives here are six canopen LocalNodes on python-can's in-process virtual bus,
-    whose TPDOs this test sends by hand.  TPDOs shorter than their mapping are dropped and counted, and so is a command
-    the bus does not take (the bridge's stop goes on)."""
+    """The drives echo the SYNC counter in their second TPDO, so an answer that arrives after the next SYNC is known for
+    the older command's, frames of two answers are never read as one, and while one answer is arriving the one
+    before it is the newest whole answer. (Without it, on a loaded host the lock-step CANopen test above read
+    late answers as the next cycle's: mean branch error 0.0036-0.0044 mm against 0.0027 with the bridge, the
+    robot and two CPU hogs on one core.) The drives here are six canopen LocalNodes on python-can's in-process
+    virtual bus, whose TPDOs this test sends by hand; their currents (object 0x6078) come in amperes. TPDOs
+    shorter than their mapping are dropped and counted, and so is a command the bus does not take (the bridge's
+    stop goes on)."""
     import can
     import canopen
 
@@ -659,6 +665,7 @@ def test_canopen_feedback_names_the_sync_it_answers():
         drives.add_node(node)
         node.sdo["Modes of operation display"].raw = protocol.CSV  # what the bridge sets and reads back
         node.sdo["Motor rated torque"].raw = 1000
+        node.sdo["Motor rated current"].raw = 8000  # mA: the current is reported in thousandths of it
         node.tpdo.read(from_od=True)
         nodes.append(node)
     syncs = []
@@ -669,6 +676,7 @@ def test_canopen_feedback_names_the_sync_it_answers():
         for k in which:
             t1, t2 = nodes[k].tpdo[1], nodes[k].tpdo[2]
             t1["Position actual value"].raw, t2["SYNC counter echo"].raw = position, echo
+            t2["Current actual value"].raw = -(position // 3) - k  # thousandths of 8 A
             t1.transmit()
             if cut:  # copies of both cut short, between the two: dropped and counted, and they change nothing
                 for m in (t1, t2):
@@ -697,6 +705,7 @@ def test_canopen_feedback_names_the_sync_it_answers():
         answer(1, 333, which=range(3))  # the rest of the current one
         fresh = link.poll(timeout=2.0)
         assert fresh.ack == SYNC_OVERFLOW and np.allclose(fresh.position * COUNTS_PER_RAD, 333)
+        assert np.allclose(fresh.current, (-111 - np.arange(6)) * 8.0 / 1000)  # A, per drive
         assert link.poll(timeout=0.1) is None  # nothing new
         for s in (SYNC_OVERFLOW + 1, SYNC_OVERFLOW + 2):  # counters 2 and 3
             command(s)
