@@ -10,7 +10,7 @@ whether the run completed; over the runs the spread (min, median, max) of each.
   4 kHz and its force law at 1 kHz).
 
     python benchmarks/bench_bridge.py [--seconds 60] [--runs 3] [--rates 1000,4000] [--transport udp|can]
-                                      [--watchdog N] [--pause-probe] [--out FILE]
+                                      [--watchdog N] [--pause-probe] [--log] [--out FILE]
 
 ``steal_ms_per_cpu``: per CPU, the time the hypervisor gave it to others during the run (``/proc/stat``, 10 ms
 ticks), a stall no setting inside the VM prevents; ``robot_stalls``: the simulated robot's own reports of its
@@ -20,6 +20,10 @@ serving loop not turning for more than 5 ms, with the steal on each CPU since it
 the robot) records the intervals in which every CPU stopped at once; each run gets ``pauses`` and
 ``pauses_in_last_s`` (those that began in the last second of the run, which a stop on a fault ends 55 cycles
 after the fault).  For diagnosis: the probe's wake-ups take a little from the bridge's latency.
+
+``--log``: after each run, its MCAP log is written as ``pusupu bridge --log`` writes it (from the run's record, after
+the run: the cycles run the same code with or without it, so their latencies are those without); each run gets
+``log_write_s`` (the wall time of that write), ``log_bytes`` and ``log_bytes_per_s`` (per second of the cycles run).
 
 ``--transport can``: the six drives as CANopen nodes on python-can's udp_multicast bus (SDO set-up, RPDO +
 SYNC, two TPDOs per drive).
@@ -59,6 +63,7 @@ def main() -> None:
         help="the bridge's watchdog: cycles without fresh feedback before a safe stop (pusupu bridge's default)",
     )
     ap.add_argument("--pause-probe", action="store_true", help="record whole-machine pauses during each run")
+    ap.add_argument("--log", action="store_true", help="write each run's MCAP log after it; time it and size it")
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
     apply_xla_workaround(one_thread=True)  # as pusupu bridge does, before any computation
@@ -70,7 +75,8 @@ def main() -> None:
     from pusupu_jax.hw_bridge.safety import Safety, limits_for
     from pusupu_jax.hw_bridge.session import Bridge
     from pusupu_jax.hw_bridge.udp import Endpoint
-    from pusupu_jax import gains
+    from pusupu_jax import __version__, gains, run_log
+    from pusupu_jax.hw_bridge.session import run_log as bridge_channels
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.params import LoopRates, ServoParams
 
@@ -79,6 +85,7 @@ def main() -> None:
         "seconds": args.seconds,
         "runs": args.runs,
         "watchdog_cycles": args.watchdog,
+        "log": args.log,
         "cpus": os.cpu_count(),
         "uname": " ".join(os.uname()),
         "rates": {},
@@ -122,6 +129,7 @@ def main() -> None:
                     ep = CanLink(open_bus(url), loop.drive_modes, np.asarray(g.servo.Kt * g.servo.I_max))
                 probe = PauseProbe() if args.pause_probe else None
                 steal = steal_seconds()
+                started_ns = time.time_ns()
                 run = Bridge(loop, ep, Safety(limits_for(g.servo), args.watchdog), hold_s=args.seconds).run(
                     args.seconds
                 )
@@ -148,6 +156,16 @@ def main() -> None:
                         "steal_ms_per_cpu": stolen,
                     }
                 )
+                if args.log:
+                    t0 = time.perf_counter()
+                    meta = {"package_version": __version__, "source": "bench_bridge", "rate_hz": rate}
+                    log = run_log.write(folder / "run.mcap", bridge_channels(run), meta, started_ns)
+                    size = log.stat().st_size
+                    runs[-1] |= {
+                        "log_write_s": round(time.perf_counter() - t0, 4),
+                        "log_bytes": size,
+                        "log_bytes_per_s": round(size * rate / max(rep["cycles"], 1)),
+                    }
                 if probe is not None:
                     pauses = probe.stop()
                     runs[-1]["pauses"] = pauses
