@@ -86,9 +86,10 @@ def json_schema() -> dict[str, Any]:
     radius = {
         "type": "object",
         "required": ["spectral_radius"],
-        "properties": {"spectral_radius": per_axis(0, 1)},
+        "properties": {"spectral_radius": per_axis(0, 1 + stability.UNIT_CIRCLE_ROUNDING)},
         "description": "the largest eigenvalue modulus of the loop's closed-loop map over one period, at the "
-        "file's rates on the machine named (pusupu_jax.stability): stable below 1",
+        "file's rates on the machine named (pusupu_jax.stability): stable below 1 (the current and velocity "
+        "loops: below 1 + 1e-9, the free speed of a drive train without viscous friction)",
     }
     rates = {
         name: (low, high, why)

@@ -154,6 +154,22 @@ def test_a_loop_past_minus_180_deg_reads_a_negative_margin():
     assert stability.spectral_radii(servo, LoopRates(), "imc", LOAD)["current"][0] > 1
 
 
+def test_a_drive_train_without_viscous_friction_passes_with_its_free_speed_on_the_unit_circle():
+    """Without viscous friction the current loop (velocity open) leaves the speed free: a mode of eigenvalue exactly
+    1, which rounding put at 1 + 1.1e-15 with 63 kg on a slider, and the check refused every gain set on such a
+    machine.  Its current loop now passes within rounding of 1 (the position loop, strictly inside); the current
+    loop of emf_ff = 1.7 (outside the bounds, read below the check) has poles far outside that rounding."""
+    servo = TABLE1.replace(coulomb=np.zeros(6), viscous=np.zeros(6))
+    load = LOAD.replace(mass=np.array([62.0, 63.0, 64.0, 65.0, 66.0, 67.0]))
+    found = stability.check(servo, HybridGains(), LoopRates(), "imc", raise_error=False, load=load)
+    current = found.loops["current"].spectral_radius
+    assert np.abs(current - 1).max() < 1e-12 and current.max() > 1  # on the circle, one axis rounded outside
+    assert (found.loops["position"].spectral_radius < 1 - 1e-5).all()
+    assert found.problem() is None
+    unstable = stability.spectral_radii(servo.replace(emf_ff=np.full(6, 1.7)), LoopRates(), "imc", load)
+    assert (unstable["current"] > 1 + 1e3 * stability.UNIT_CIRCLE_ROUNDING).all()  # far beyond the rounding
+
+
 def test_a_crossover_below_the_old_grid_is_seen():
     """The grid started at 1e-2 rad/s and missed slower crossovers.  A PID position loop with Kp = 1e-3 1/s crosses
     over near 1e-3 rad/s: its margins are read now (python-control agrees), and the whole band is covered."""
