@@ -25,7 +25,7 @@ left out before the eigenvalues are taken.
 
 A drive train without viscous friction leaves the speed itself free in the current loop (the velocity
 loop open): a constant speed, with the current integrator holding the back-EMF, is a mode of eigenvalue
-exactly 1 there, which rounding puts anywhere in 1 +- 3e-15 (:data:`UNIT_CIRCLE_ROUNDING`).  The loops
+exactly 1 there, which rounding put 2.4e-15 below to 1.1e-15 above 1 (:data:`UNIT_CIRCLE_ROUNDING`).  The loops
 around it control that speed, so the current and velocity loops may hold a pole on the unit circle to
 that rounding; the position loop, which closes around everything, may not.
 
@@ -54,8 +54,8 @@ from .programs import Program, describe
 
 LOOPS = ("current", "velocity", "position")
 # The inner loops' poles may reach the unit circle by this much (a modulus, over one period): rounding of a mode of
-# eigenvalue exactly 1, never a growth (1e-9 per 0.25 ms is a time constant of 70 hours), where emf_ff = 3 puts
-# the current loop's at 1.1.
+# eigenvalue exactly 1, never a growth (1e-9 per 0.25 ms is a time constant of 70 hours), where a back-EMF fed
+# forward with the wrong sign (emf_ff > 1) puts the current loop's poles at +400 1/s and more, a modulus of 1.1.
 UNIT_CIRCLE_ROUNDING = 1e-9
 
 
