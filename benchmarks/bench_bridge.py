@@ -73,10 +73,9 @@ def main() -> None:
     from pusupu_jax.hw_bridge.protocol import FEEDBACK
     from pusupu_jax.hw_bridge.runner import steal_seconds
     from pusupu_jax.hw_bridge.safety import Safety, limits_for
-    from pusupu_jax.hw_bridge.session import Bridge
+    from pusupu_jax.hw_bridge.session import Bridge, run_log as bridge_channels
     from pusupu_jax.hw_bridge.udp import Endpoint
     from pusupu_jax import __version__, gains, run_log
-    from pusupu_jax.hw_bridge.session import run_log as bridge_channels
     from pusupu_jax.hybrid import HybridGains
     from pusupu_jax.params import LoopRates, ServoParams
 

@@ -48,6 +48,12 @@ SYNC_OVERFLOW = 240  # the SYNC counter runs 1..240 (CiA 301 object 0x1019)
 SYNC_ECHO = 0x2000  # manufacturer-specific: the counter of the SYNC a drive's TPDOs answer (u8, 0: none)
 
 
+def thousandths(value, rated) -> np.ndarray:
+    """``value`` in thousandths of ``rated`` (per axis), rounded and held to an INTEGER16: CiA 402's unit of torques
+    (of the rated torque 0x6076) and currents (of the rated current 0x6075)."""
+    return np.clip(np.round(np.asarray(value) / rated * 1000.0), -(2**15), 2**15 - 1).astype(int)
+
+
 def drive_dictionary():
     """The object dictionary of one simulated drive (and of the bridge's view of it)."""
     import canopen
@@ -201,13 +207,13 @@ class CanLink:
         """One RPDO per drive, then SYNC; a frame the bus does not take ends the command's frames and is counted
         (``rejected['send failed']``), as a UDP endpoint counts a failed send."""
         velocity = np.round(np.where(self.modes == protocol.CSV, cmd.target, 0.0) * COUNTS_PER_RAD)
-        torque = np.round(np.where(self.modes == protocol.CST, cmd.target, 0.0) / self.rated * 1000.0)
+        torque = thousandths(np.where(self.modes == protocol.CST, cmd.target, 0.0), self.rated)
         try:
             for k, node in enumerate(self.nodes):
                 m = node.rpdo[1]
                 m["Controlword"].raw = int(cmd.controlword[k])
                 m["Target velocity"].raw = int(np.clip(velocity[k], -(2**31), 2**31 - 1))
-                m["Target torque"].raw = int(np.clip(torque[k], -(2**15), 2**15 - 1))
+                m["Target torque"].raw = int(torque[k])
                 m.transmit()
             self._sent = cmd.sequence
             self.network.sync.transmit(cmd.sequence % SYNC_OVERFLOW + 1)

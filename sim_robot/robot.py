@@ -57,6 +57,7 @@ from pusupu_jax.plant.model import ModelOptions, build_model, slide_dofs, slide_
 from pusupu_jax.runtime import require_x64
 
 from pusupu_jax.hw_bridge import cia402, protocol
+from pusupu_jax.hw_bridge.canopen_link import thousandths
 from pusupu_jax.hw_bridge.compiled import FlatStep, cpu
 from pusupu_jax.hw_bridge.runner import realtime_setup, steal_seconds
 from pusupu_jax.hw_bridge.safety import command_limits
@@ -583,15 +584,14 @@ class CanServer:
         if fb is None or (r.active(Injected.DROP, now) and r.fault.arg >= 1.0):
             return
         frames = []  # the answer: each drive's two TPDOs, as (COB-ID, bytes) to send now or later
+        torque, current = thousandths(fb.torque, rated), thousandths(fb.current, self.rated_current)
         for k, node in enumerate(self.nodes):
             t1, t2 = node.tpdo[1], node.tpdo[2]
             t1["Statusword"].raw = int(fb.statusword[k])
             t1["Position actual value"].raw = int(np.clip(round(fb.position[k] * self.scale), -(2**31), 2**31 - 1))
-            t1["Torque actual value"].raw = int(np.clip(round(fb.torque[k] / rated[k] * 1000.0), -(2**15), 2**15 - 1))
+            t1["Torque actual value"].raw = int(torque[k])
             t2["Velocity actual value"].raw = int(np.clip(round(fb.velocity[k] * self.scale), -(2**31), 2**31 - 1))
-            t2["Current actual value"].raw = int(
-                np.clip(round(fb.current[k] / self.rated_current[k] * 1000.0), -(2**15), 2**15 - 1)
-            )
+            t2["Current actual value"].raw = int(current[k])
             t2["Modes of operation display"].raw = int(modes[k])
             t2["SYNC counter echo"].raw = data[0] if data else 0
             frames += [(t1.cob_id, bytes(t1.data)), (t2.cob_id, bytes(t2.data))]
