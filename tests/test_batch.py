@@ -186,11 +186,11 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
     summation order (last-bit differences) and 3 Adam steps carry them on; measured 3e-10 on the gains.
     The two lone problems differ only in their scenarios, so they share one traced and compiled gradient
     (pusupu_jax.tune.run._shared_gradient): each still equals its own batch member.  A problem started elsewhere does
-    not
-    share it (here the current loop's gain, which is not tuned and enters the program as a constant).  Built again
+    not share it (here the current loop's gain, which is not tuned and enters the program as a constant).  Built again
     with nothing in memory, a problem reads the traced program from disk (pusupu_jax.programs) instead of tracing, and
-    the start states at its start from the file the first problem kept (pusupu_jax.tune.starts): bit for bit those a
-    forward pass gives.  benchmarks/batch_equivalence.py checks every scenario of a 64-scenario batch the same way.
+    the start states and terms at its start from the files the first problem kept (pusupu_jax.tune.starts): bit for
+    bit those a forward pass and the gradient give.  benchmarks/batch_equivalence.py checks every scenario of a
+    64-scenario batch the same way.
     """
     _, out, summary, _, _ = batch
     jf = jobfile.read(out.parent / "job.yaml")
@@ -214,10 +214,11 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
     monkeypatch.setattr(run, "_GRADIENTS", {})
     again = Problem(cfg, ServoParams.table1(), HybridGains(), specs=list(job.specs))
     args = (again.z0(), again.start_baseline(), again.starts, again.windows)
-    assert again._value_and_grad.loaded == 1
     got, want = again._value_and_grad(*args), problems[1]._value_and_grad(*args)
+    assert again._value_and_grad.loaded == 1
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)))
-    assert again.starts_loaded == 1
+    assert again.starts_loaded == 1 and again.baseline_loaded == 1  # the start's terms too: one gradient less
+    assert all(np.array_equal(again.baseline[k], problems[1].baseline[k]) for k in again.baseline)
     computed = jax.tree.map(lambda *c: np.concatenate(c), *[c for _, c in again.run_paths(again.z0())])
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(again.starts), jax.tree.leaves(computed)))
 

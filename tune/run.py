@@ -258,6 +258,12 @@ class WindowStarts:
     starts = None  # window start carries (rows K, ...)
     _starts_z = None
     mesh = None  # the devices the gradient's windows are laid over (pusupu_jax.devices.row_mesh), or None: one
+    baseline_loaded = 0  # start terms read from disk rather than computed (start_baseline)
+
+    def _baseline_file(self, z0) -> Path | None:
+        """Where the terms at the start ``z0`` are kept, or None: not kept (a subclass that keeps its start states
+        names it)."""
+        return None
 
     def prepare(self, z, iteration: int) -> None:
         """Before iteration ``iteration``: renew the start states every ``refresh_every`` iterations (and when
@@ -269,14 +275,25 @@ class WindowStarts:
             self.refresh(z)
 
     def start_baseline(self):
-        """The terms at the start, from one call of the compiled gradient (normalisers of 1: no new compile)."""
+        """The terms at the start, from one call of the compiled gradient (normalisers of 1: no new compile), or
+        read from the file an earlier run of the same problem kept beside its start states (:meth:`_baseline_file`;
+        counted in ``baseline_loaded``)."""
         if self.baseline is None:
             kept = (self.starts, self._starts_z)  # a resumed run has its own starts already: keep them
             z0 = self.z0()
             self.refresh(z0)
-            ones = {k: jnp.ones(self.rows) for k in objectives.TERMS}
-            (_, aux), _ = self._value_and_grad(z0, ones, self.starts, self.windows)
-            self.baseline = aux["terms"]
+            path = self._baseline_file(z0)
+            structure = {k: jax.ShapeDtypeStruct((self.rows,), np.float64) for k in objectives.TERMS}
+            stored = None if path is None else kept_starts.load(path, lambda: structure)
+            if stored is not None:
+                self.baseline = {k: jnp.asarray(v) for k, v in stored.items()}
+                self.baseline_loaded += 1
+            else:
+                ones = {k: jnp.ones(self.rows) for k in objectives.TERMS}
+                (_, aux), _ = self._value_and_grad(z0, ones, self.starts, self.windows)
+                self.baseline = aux["terms"]
+                if path is not None:
+                    kept_starts.keep(path, self.baseline)
             if kept[0] is not None:
                 self.starts, self._starts_z = kept
         return self.baseline
@@ -408,6 +425,12 @@ class Problem(WindowStarts):
         except UnstableKey:
             return None
         return kept_starts.path_for(fingerprint(parts, (HERE,)))
+
+    def _baseline_file(self, z0) -> Path | None:
+        """Beside the start states at ``z0``: the terms at the start are the gradient program's, from those states and
+        the windows of the same scenario arrays, which that file's name already hashes."""
+        path = self._starts_file(z0)
+        return None if path is None else path.with_name(f"{path.stem}-terms.npz")
 
     def z0(self) -> dict:
         return self.space.z0()

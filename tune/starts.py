@@ -8,6 +8,9 @@ hashes (:func:`pusupu_jax.programs.fingerprint`): the problem's structure (its c
 options, rates; :func:`~pusupu_jax.tune.run.structure_key`), the gains ``z``, every scenario's model arrays and
 reference, the number of devices, and the source and versions of what computes them.  So a second run of a job
 (or a notebook's second problem) loads the states its first run kept: bit for bit the arrays that run computed.
+Beside the states at the start gains, the objective's terms there (its normalisers,
+:meth:`~pusupu_jax.tune.run.WindowStarts.start_baseline`) are kept the same way: a second run then starts with one
+gradient, not two.
 
 A file holds the states' arrays (``numpy.savez``, read with ``allow_pickle=False``) after the SHA-256 of the rest;
 the states' structure comes from the problem (:meth:`~pusupu_jax.tune.run.Problem.starts_structure`), and a file
