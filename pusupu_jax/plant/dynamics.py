@@ -44,6 +44,27 @@ if TYPE_CHECKING:
     from ..params import ServoParams
 
 
+_POSE_JACOBIANS: dict[str, Program] = {}  # the programs of pose_jacobian, by machine
+POSE_JACOBIANS_KEPT = 8
+
+
+def pose_jacobian(geom: Geometry, options: ModelOptions = ModelOptions()) -> Program:
+    """The compiled ``q (N, 5) -> (qpos (N, nq), T = dqpos/dq (N, nq, 5))`` of the nominal machine ``geom`` (seeded
+    errors left out), one program per machine for the process, kept on disk (:class:`~pusupu_jax.programs.Program`):
+    every command that builds a reference or reads a machine file asks it, for each path and for the linear model's
+    load, and a new jitted function would be traced and lowered again at each call."""
+    options = dataclasses.replace(options, kin_error_seed=None)
+    key = describe((geom, options))
+    if key not in _POSE_JACOBIANS:
+        while len(_POSE_JACOBIANS) >= POSE_JACOBIANS_KEPT:
+            _POSE_JACOBIANS.pop(next(iter(_POSE_JACOBIANS)))
+        phi = pose_to_qpos(build_model(geom, options), geom)
+        _POSE_JACOBIANS[key] = Program(
+            lambda q: (phi(q), jnp.vectorize(jax.jacfwd(phi), signature="(5)->(n,5)")(q)), key
+        )
+    return _POSE_JACOBIANS[key]
+
+
 def nominal_model(servo: ServoParams, geom: Geometry, options: ModelOptions) -> mujoco.MjModel:
     """The model without kinematic errors, with the rotor armature of ``servo`` on the slides."""
     m = build_model(geom, dataclasses.replace(options, kin_error_seed=None))
@@ -70,9 +91,7 @@ def inverse_dynamics_forces(
     if path.ndim != 2 or path.shape[1] != 5 or len(path) < 3:
         raise ValueError(f"path: expected poses of shape (N >= 3, 5), got {path.shape}")
     m = nominal_model(servo, geom, options)
-    phi = pose_to_qpos(m, geom)
-    with_jacobian = jax.jit(lambda q: (phi(q), jnp.vectorize(jax.jacfwd(phi), signature="(5)->(n,5)")(q)))
-    qpos, T = (np.asarray(a) for a in with_jacobian(jnp.asarray(path)))  # one compile, not one per operation
+    qpos, T = (np.asarray(a) for a in pose_jacobian(geom, options)(jnp.asarray(path)))
     qvel = np.gradient(qpos, dt, axis=0)
     qacc = np.gradient(qvel, dt, axis=0)
     d = mujoco.MjData(m)
@@ -97,32 +116,41 @@ def coupling_row(J: npt.ArrayLike) -> np.ndarray:
     return np.linalg.solve(np.swapaxes(J[..., :5, :], -1, -2), J[..., 5, :][..., None])[..., 0]
 
 
-def reflected_mass(geom: Geometry, poses: npt.ArrayLike, options: ModelOptions = ModelOptions()) -> np.ndarray:
-    """The mechanism's mass [kg] each slider carries at each of ``poses`` ``(N, 5)``: the diagonal of the
-    actuator-space inertia ``J+^T M_q J+``, ``(N, 6)``.
+def pose_inertia(
+    geom: Geometry, poses: npt.ArrayLike, options: ModelOptions = ModelOptions()
+) -> tuple[np.ndarray, np.ndarray]:
+    """The mechanism linearised at each of ``poses`` ``(N, 5)``: its inertia in the platform's five coordinates,
+    ``M_q = T^T M T`` ``(N, 5, 5)`` [kg, kg m, kg m^2], and the actuation Jacobian ``J = ds/dq`` ``(N, 6, 5)``.
 
-    ``M_q = T^T M T`` is the mechanism's inertia in the platform's five coordinates (``T = dPhi/dq``, the
-    consistent motions; rotors left out), ``J = ds/dq`` and ``J+`` its pseudo-inverse: the slider forces of
-    the minimum-norm distribution (as :func:`inverse_dynamics_forces`) that accelerate the platform as
-    slider accelerations ``s''`` ask are ``J+^T M_q J+ s''``, so its diagonal is the mass one axis's loop sees
-    when the others hold their share.  The payload of ``options`` is included; seeded errors are not.
+    ``M`` is MuJoCo's joint-space inertia of the whole mechanism (rotors left out; the payload of ``options`` in,
+    seeded errors not) and ``T = dPhi/dq`` maps the platform's rates to every joint's (the consistent motions), so
+    ``q'^T M_q q' / 2`` is the mechanism's kinetic energy.
     """
     poses = np.atleast_2d(np.asarray(poses, dtype=float))
     options = dataclasses.replace(options, kin_error_seed=None)
     m = build_model(geom, options)
-    phi = pose_to_qpos(m, geom)
-    # kept on disk: every command that reads a machine file asks this for the linear model's load
-    with_jacobian = Program(
-        lambda q: (phi(q), jnp.vectorize(jax.jacfwd(phi), signature="(5)->(n,5)")(q)), describe((geom, options))
-    )
-    qpos, T = (np.asarray(a) for a in with_jacobian(jnp.asarray(poses)))
+    qpos, T = (np.asarray(a) for a in pose_jacobian(geom, options)(jnp.asarray(poses)))
     d = mujoco.MjData(m)
     M = np.zeros((m.nv, m.nv))
-    out = np.zeros((len(poses), 6))
+    inertia = np.zeros((len(poses), 5, 5))
     for k in range(len(poses)):
         d.qpos[:] = qpos[k]
         mujoco.mj_forward(m, d)
         mujoco.mj_fullM(m, d, M)
-        pinv = np.linalg.pinv(T[k][slide_qpos(m)])
-        out[k] = np.diag(pinv.T @ (T[k].T @ M @ T[k]) @ pinv)
+        inertia[k] = T[k].T @ M @ T[k]
+    return inertia, T[:, slide_qpos(m), :]
+
+
+def reflected_mass(geom: Geometry, poses: npt.ArrayLike, options: ModelOptions = ModelOptions()) -> np.ndarray:
+    """The mechanism's mass [kg] each slider carries at each of ``poses`` ``(N, 5)``: the diagonal of the
+    actuator-space inertia ``J+^T M_q J+``, ``(N, 6)``.
+
+    ``M_q`` and ``J`` are :func:`pose_inertia`'s, and ``J+`` the pseudo-inverse of ``J``: the slider forces of
+    the minimum-norm distribution (as :func:`inverse_dynamics_forces`) that accelerate the platform as
+    slider accelerations ``s''`` ask are ``J+^T M_q J+ s''``, so its diagonal is the mass one axis's loop sees
+    when the others hold their share.  The payload of ``options`` is included; seeded errors are not.
+    """
+    inertia, J = pose_inertia(geom, poses, options)
+    pinv = np.linalg.pinv(J)  # (N, 5, 6)
+    out: np.ndarray = np.einsum("nii->ni", np.swapaxes(pinv, -1, -2) @ inertia @ pinv)
     return out
