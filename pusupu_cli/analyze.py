@@ -25,6 +25,8 @@ def cmd_analyze(args) -> int:
             raise ParameterError(
                 "--trajectory: not with --identify-T0 (T0 is identified from velocity steps about home)"
             )
+        if args.coupled:
+            raise ParameterError("--coupled: not with --identify-T0 (it is a loop analysis)")
         return _identify(args, servo, load, rates)
     if args.kin_error is not None:
         raise ParameterError("--kin-error: only with --identify-T0 (the loop analysis uses the single-axis load)")
@@ -47,6 +49,8 @@ def cmd_analyze(args) -> int:
                 "trajectory": args.trajectory,
                 "carried_mass_kg": {k: np.asarray(v.mass).tolist() for k, v in loads.items() if k != "home"},
             } | {k: _margins(servo, v, args.mode) for k, v in loads.items() if k != "home"}
+        if args.coupled:
+            result["coupled"] = _coupled(args, servo)
         if args.plot:
             from pusupu_jax.plots import plot_loops
 
@@ -88,9 +92,51 @@ def cmd_analyze(args) -> int:
                 f"  {name:<9} crossover {num(min(hz, default=None))} to {num(max(hz, default=None))} Hz, "
                 f"PM at least {num(worst['phase_margin_deg'])} deg, GM at least {num(worst['gain_margin_db'])} dB"
             )
+    if "coupled" in result:
+        coupled = result["coupled"]
+        print(
+            f"coupled model at home ({coupled['pose']}): each axis's loop broken, the other five closed "
+            "(velocity: at the current reference, the axis's position loop open)"
+        )
+        print(f"{'axis':>4} {'loop':<9} " + " ".join(f"{title:>{w}}" for _, title, w in cols[:3]))
+        for k, row in enumerate(coupled["axes"]):
+            for name, m in row.items():
+                print(f"{k:>4} {name:<9} " + " ".join(f"{num(m[key]):>{w}}" for key, _, w in cols[:3]))
     if args.plot:
         print(f"plot: {args.plot}")
     return _refuse_unstable(args, servo, hybrid, rates, loads)
+
+
+def _coupled(args, servo) -> dict:
+    """``--coupled``: :func:`pusupu_jax.coupled.loop_margins` at the machine's home (its payload in), per axis
+    ``{loop: {crossover_hz, phase_margin_deg, gain_margin_db}}`` for the current, velocity and position loops."""
+    from pusupu_jax import coupled
+
+    if args.load_from_params:
+        raise ParameterError(
+            f"--coupled: expected the machine's mechanism, got the load section of --params {args.params}"
+        )
+    machine = machine_of(args)
+    home = np.asarray(machine.geometry.home, dtype=float)
+    found = coupled.loop_margins(servo, coupled.Mechanism.at(machine.geometry, home, machine.options()), args.mode)
+    return {
+        "pose": home.tolist(),
+        "axes": [{loop: _cells(found[loop], k) for loop in ("current", "velocity", "position")} for k in range(N_AXES)],
+    }
+
+
+def _cells(m: dict, k: int) -> dict:
+    """Axis ``k`` of a margins dict (``crossover_rad_s``, ``phase_margin_deg``, ``gain_margin_db``) in Hz, deg and dB
+    (None where there is no crossing)."""
+
+    def cell(x, scale=1.0):
+        return None if not np.isfinite(x) else float(x) * scale
+
+    return {
+        "crossover_hz": cell(m["crossover_rad_s"][k], 1 / (2 * np.pi)),
+        "phase_margin_deg": cell(m["phase_margin_deg"][k]),
+        "gain_margin_db": cell(m["gain_margin_db"][k]),
+    }
 
 
 def _margins(servo, load, mode) -> list:
@@ -100,21 +146,7 @@ def _margins(servo, load, mode) -> list:
     from pusupu_jax import stability
 
     found, _ = stability.margins(servo, mode, load)
-
-    def cell(x, scale=1.0):
-        return None if not np.isfinite(x) else float(x) * scale
-
-    return [
-        {
-            loop: {
-                "crossover_hz": cell(m["crossover_rad_s"][k], 1 / (2 * np.pi)),
-                "phase_margin_deg": cell(m["phase_margin_deg"][k]),
-                "gain_margin_db": cell(m["gain_margin_db"][k]),
-            }
-            for loop, m in found.items()
-        }
-        for k in range(N_AXES)
-    ]
+    return [{loop: _cells(m, k) for loop, m in found.items()} for k in range(N_AXES)]
 
 
 def _along_path(args, servo) -> dict:

@@ -2,7 +2,7 @@
 in its own module: ``analyze``, ``sim``, ``tuning`` (tune, batch), ``experiment``, ``gain_files`` (gains),
 ``machine``, ``bridge`` (bridge, sim-robot); ``common`` holds what they share.
 
-    pusupu analyze [--params FILE] [--mode imc|pid|pid_ff] [--trajectory PATH] [--json] [--plot PNG]
+    pusupu analyze [--params FILE] [--mode imc|pid|pid_ff] [--trajectory PATH] [--coupled] [--json] [--plot PNG]
     pusupu analyze --identify-T0 [--params FILE] [--kin-error SEED] [--json] [--plot PNG]
     pusupu sim --plant axis --trajectory step|ramp|sine [--mode imc|pid|pid_ff] [--params FILE]
                [--duration S] [--json] [--plot PNG]
@@ -76,6 +76,12 @@ def _parser() -> argparse.ArgumentParser:
         metavar="NAME|FILE",
         help="analyse the loops also with the load each slider carries at the lightest and the heaviest pose along "
         "this path on the machine (arc|p2p|circle|tilt or a path file; docs/machine.md)",
+    )
+    a.add_argument(
+        "--coupled",
+        action="store_true",
+        help="also the coupled linear model at the machine's home: the six cascades on the mechanism linearised "
+        "there, each axis's loops broken in turn with the other five closed (docs/machine.md)",
     )
     a.add_argument(
         "--identify-T0",

@@ -19,7 +19,7 @@ The test leaves out the drive train's Coulomb friction (its viscous part stays):
 time constant of the linear loop that C2 models, and a Coulomb force is a constant load that
 the velocity PI's slow integral (Table 1's ``Tv`` = 5 s) leaves as an offset over the test, so
 that the first-order fit runs to its bound (0.2 s on the built-in machine with 20 N, against
-36.8 ms without).
+30.8 ms without).
 """
 
 from __future__ import annotations

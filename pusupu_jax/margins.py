@@ -47,26 +47,19 @@ def _tf(num: Sequence[jax.Array], den: Sequence[jax.Array], s: jax.Array) -> jax
     return jnp.polyval(jnp.stack(num), s) / jnp.polyval(jnp.stack(den), s)
 
 
-def loop_gains(servo: ServoParams, load: AxisLoad, w: ArrayLike, mode: str = "imc") -> dict[str, jax.Array]:
-    """``L(jw)`` of the current, velocity and position loops; parameters ``(..., 6)``, result ``(..., 6, len(w))``."""
+def axis_blocks(servo: ServoParams, s: ArrayLike, mode: str = "imc") -> dict[str, jax.Array]:
+    """Each axis's continuous controller and drive blocks at the complex frequencies ``s``; parameters ``(..., 6)``,
+    each block ``(..., 6, len(s))``.
+
+    ``armature`` ``L s + R`` [V/A], ``inverter`` ``Kn/(Tn s + 1)``, ``emf`` ``Ke (1 - emf_ff/(Tn s + 1))`` [V s/rad]
+    (the back-EMF less its feedforward through the inverter), the current PI ``Gi`` with its feedback filter ``Gcf``
+    and reference filter ``Gxi``, the velocity PI ``Gv`` with ``Gw`` and ``Gxv``, and the position controller ``C``
+    (``C2`` for IMC; the PID, whose velocity feedforward acts outside the loop).  The mechanics are the caller's: one
+    lumped load (:func:`loop_gains`) or the coupled mechanism (:mod:`pusupu_jax.coupled`).
+    """
     p = {k: jnp.asarray(v)[..., None] for k, v in arrays(servo).items()}
-    q = {k: jnp.asarray(v)[..., None] for k, v in arrays(load).items()}
-    s = 1j * jnp.asarray(w)
-    one = jnp.ones_like(p["Ki"])
-    zero = jnp.zeros_like(one)
-    r = screw_ratio(servo)[..., None]
-    j_eff = p["J"] + q["mass"] * r**2 / p["eta"]
-    b_eff = p["viscous"] * r**2 / p["eta"]
-    motion = p["Kt"] / (j_eff * s + b_eff)
-    inverter = p["Kn"] / (p["Tn"] * s + 1)
-    p_u = inverter / (p["L"] * s + p["R"] + p["Ke"] * motion * (1 - p["emf_ff"] / (p["Tn"] * s + 1)))
-    g_i = _tf([p["Ki"] * p["Ti"], p["Ki"]], [p["Ti"], zero], s)
-    g_cf = p["Kcf"] / (p["Tcf"] * s + 1)
-    l_i = g_i * p_u * g_cf
-    t_i = g_i * p_u / (p["Tcf"] * s + 1) / (1 + l_i)
-    g_v = _tf([p["Kv"] * p["Tv"], p["Kv"]], [p["Tv"], zero], s)
-    l_v = g_v * t_i * motion * p["Kw"] / (p["Tw"] * s + 1)
-    t_v = g_v * t_i * motion / (p["Tw"] * s + 1) / (1 + l_v)
+    s = jnp.asarray(s)
+    zero = jnp.zeros_like(p["Ki"])
     law = control_mode(mode).law
     if law == Law.IMC:
         l2, T0 = p["lambda2"], p["T0"]
@@ -76,8 +69,38 @@ def loop_gains(servo: ServoParams, load: AxisLoad, w: ArrayLike, mode: str = "im
     elif law == Law.ROS_PID:  # ROS's PID: no derivative filter (its d acts on the measured velocity error)
         c = p["Kp_pid"] + p["Ki_pid"] / s + p["Kd_pid"] * s
     else:
-        raise ValueError(f"loop_gains: expected a mode with a position loop, got {mode!r}")
-    return {"current": l_i, "velocity": l_v, "position": c * t_v / s}
+        raise ValueError(f"axis_blocks: expected a mode with a position loop, got {mode!r}")
+    return {
+        "armature": p["L"] * s + p["R"],
+        "inverter": p["Kn"] / (p["Tn"] * s + 1),
+        "emf": p["Ke"] * (1 - p["emf_ff"] / (p["Tn"] * s + 1)),
+        "Gi": _tf([p["Ki"] * p["Ti"], p["Ki"]], [p["Ti"], zero], s),
+        "Gcf": p["Kcf"] / (p["Tcf"] * s + 1),
+        "Gxi": 1 / (p["Tcf"] * s + 1),
+        "Gv": _tf([p["Kv"] * p["Tv"], p["Kv"]], [p["Tv"], zero], s),
+        "Gw": p["Kw"] / (p["Tw"] * s + 1),
+        "Gxv": 1 / (p["Tw"] * s + 1),
+        "C": c,
+    }
+
+
+def loop_gains(servo: ServoParams, load: AxisLoad, w: ArrayLike, mode: str = "imc") -> dict[str, jax.Array]:
+    """``L(jw)`` of the current, velocity and position loops; parameters ``(..., 6)``, result ``(..., 6, len(w))``."""
+    p = {k: jnp.asarray(v)[..., None] for k, v in arrays(servo).items()}
+    q = {k: jnp.asarray(v)[..., None] for k, v in arrays(load).items()}
+    s = 1j * jnp.asarray(w)
+    b = axis_blocks(servo, s, mode)
+    r = screw_ratio(servo)[..., None]
+    j_eff = p["J"] + q["mass"] * r**2 / p["eta"]
+    b_eff = p["viscous"] * r**2 / p["eta"]
+    motion = p["Kt"] / (j_eff * s + b_eff)
+    # the blocks' own expressions, in the same order of operations as before they were shared: the same rounding
+    p_u = b["inverter"] / (b["armature"] + p["Ke"] * motion * (1 - p["emf_ff"] / (p["Tn"] * s + 1)))
+    l_i = b["Gi"] * p_u * b["Gcf"]
+    t_i = b["Gi"] * p_u / (p["Tcf"] * s + 1) / (1 + l_i)
+    l_v = b["Gv"] * t_i * motion * p["Kw"] / (p["Tw"] * s + 1)
+    t_v = b["Gv"] * t_i * motion / (p["Tw"] * s + 1) / (1 + l_v)
+    return {"current": l_i, "velocity": l_v, "position": b["C"] * t_v / s}
 
 
 def _crossings(f: jax.Array, log_w: jax.Array) -> tuple[jax.Array, jax.Array]:

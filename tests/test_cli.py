@@ -28,11 +28,19 @@ def pusupu(*args, check=True):
 @pytest.mark.slow
 def test_analyze_json_has_every_loop_of_every_axis(tmp_path):
     """Also along the arc (``--trajectory``): each slider's carried mass at the arc's poses spans home's, and the
-    velocity loop crosses over later with the lighter load on every axis (the same gains push less mass)."""
+    velocity loop crosses over later with the lighter load on every axis (the same gains push less mass).  With
+    ``--coupled``, every axis's loops in the coupled model at home, where the other five axes' velocity loops damp
+    each branch through the mechanism: its velocity loop has more phase margin than the single-axis model's (26 deg
+    more on the built-in machine, docs/machine.md)."""
     from pusupu_jax import machine_file
 
     png = tmp_path / "loops.png"
-    out = json.loads(pusupu("analyze", "--json", "--plot", str(png), "--trajectory", "arc").stdout)
+    out = json.loads(pusupu("analyze", "--json", "--plot", str(png), "--trajectory", "arc", "--coupled").stdout)
+    coupled = out["coupled"]
+    assert coupled["pose"] == list(machine_file.Machine.default().geometry.home) and len(coupled["axes"]) == 6
+    for single, both in zip(out["axes"], coupled["axes"]):
+        assert set(both) == {"current", "velocity", "position"}
+        assert both["velocity"]["phase_margin_deg"] > single["velocity"]["phase_margin_deg"] + 10
     assert len(out["axes"]) == 6
     for axis in out["axes"]:
         for loop in ("current", "velocity", "position"):
@@ -45,7 +53,7 @@ def test_analyze_json_has_every_loop_of_every_axis(tmp_path):
                 "settling_time_s",
                 "overshoot_pct",
             }
-    assert out["axes"][0]["current"]["crossover_hz"] == pytest.approx(245.6, rel=0.005)  # the machine's 71.2 kg
+    assert out["axes"][0]["current"]["crossover_hz"] == pytest.approx(245.6, rel=0.005)  # the machine's 54.7 kg
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     along = out["along_path"]
     light, heavy = (np.asarray(along["carried_mass_kg"][k]) for k in ("lightest", "heaviest"))
@@ -116,6 +124,7 @@ def test_sim_mjx_reports_the_machine_metrics(tmp_path):
         ["sim", "--plant", "mjx", "--duration", "2"],
         ["sim", "--plant", "axis", "--mode", "hybrid"],
         ["analyze", "--identify-T0", "--trajectory", "arc"],
+        ["analyze", "--identify-T0", "--coupled"],
         ["sim", "--plant", "mjx", "--device", "gpu"],  # no GPU for JAX where the suite runs
         ["tune", "--device", "tpu"],
         ["identify", "run.mcap", "--fit", "mass", "--out", "x.yaml"],
