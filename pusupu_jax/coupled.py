@@ -32,7 +32,8 @@ controller's output, with every loop of the other five axes closed around zero r
 With the blocks as diagonal matrices, a closed axis obeys ``Z i = -(Q K + E) w``: ``Z = L s + R + Ginv Gi Gcf`` (the
 armature and its current loop), ``Q = Ginv Gi Gxi``, ``K = Gv (Gxv C / s + Gw)`` (the velocity and position loops
 seen from the current reference), ``E`` the back-EMF.  The broken axis's row takes its own form and the injection
-``x``; ``(D + P G) i = e_k b x`` is one 6 x 6 linear solve per frequency, and ``L = -y / x`` from the controller's
+``x``: ``(D + P G) i = e_k b x``, solved per frequency as the 5 x 5 impedance of the platform's rates (the six
+currents' system has the five coordinates' rank in its mechanical part), and ``L = -y / x`` from the controller's
 output ``y``.  ``tests/test_coupled.py`` checks it against python-control's interconnection of the same blocks, and
 against the single-axis model on a mechanism whose axes do not couple.
 """
