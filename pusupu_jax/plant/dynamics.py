@@ -44,25 +44,18 @@ if TYPE_CHECKING:
     from ..params import ServoParams
 
 
-_POSE_JACOBIANS: dict[str, Program] = {}  # the programs of pose_jacobian, by machine
-POSE_JACOBIANS_KEPT = 8
-
-
 def pose_jacobian(geom: Geometry, options: ModelOptions = ModelOptions()) -> Program:
     """The compiled ``q (N, 5) -> (qpos (N, nq), T = dqpos/dq (N, nq, 5))`` of the nominal machine ``geom`` (seeded
-    errors left out), one program per machine for the process, kept on disk (:class:`~pusupu_jax.programs.Program`):
-    every command that builds a reference or reads a machine file asks it, for each path and for the linear model's
-    load, and a new jitted function would be traced and lowered again at each call."""
+    errors left out), kept on disk (:class:`~pusupu_jax.programs.Program`): every command that builds a reference or
+    reads a machine file asks it, for each path and for the linear model's load, and a later process loads it
+    instead of tracing it.  A new one at each call, not one kept for the process: the bridge reads its gain file
+    (which asks this) before it turns float64 on, and a program of single precision kept alive across that switch
+    made a later jitted call of the path checks get single-precision arguments for its double-precision program."""
     options = dataclasses.replace(options, kin_error_seed=None)
-    key = describe((geom, options))
-    if key not in _POSE_JACOBIANS:
-        while len(_POSE_JACOBIANS) >= POSE_JACOBIANS_KEPT:
-            _POSE_JACOBIANS.pop(next(iter(_POSE_JACOBIANS)))
-        phi = pose_to_qpos(build_model(geom, options), geom)
-        _POSE_JACOBIANS[key] = Program(
-            lambda q: (phi(q), jnp.vectorize(jax.jacfwd(phi), signature="(5)->(n,5)")(q)), key
-        )
-    return _POSE_JACOBIANS[key]
+    phi = pose_to_qpos(build_model(geom, options), geom)
+    return Program(
+        lambda q: (phi(q), jnp.vectorize(jax.jacfwd(phi), signature="(5)->(n,5)")(q)), describe((geom, options))
+    )
 
 
 def nominal_model(servo: ServoParams, geom: Geometry, options: ModelOptions) -> mujoco.MjModel:
