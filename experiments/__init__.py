@@ -36,7 +36,7 @@ REGISTRY = {  # name: its module in this package
     "tuned": "tuned",  # Table 1 vs pusupu tune's gains on arc and p2p in every mode
     "peg_in_hole": "peg_in_hole",  # Fig. 9a: a peg into a chamfered hole off its axis, MJX contact
     "surface_tracking": "surface_tracking",  # Fig. 9b: a tool holding a force on a tilted surface
-    "loop_match": "loop_match",  # loop gains of the MJX machine by injection vs the single-axis model
+    "loop_match": "loop_match",  # loop gains of the MJX machine by injection vs the single-axis and coupled models
 }
 
 

@@ -53,7 +53,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-from pusupu_jax import AxisLoad, LoopRates, ServoParams, analysis, coupled, injection, machine_file
+from pusupu_jax import AxisLoad, LoopRates, ServoParams, analysis, coupled, injection, machine_file, margins
 from pusupu_jax.machine import machine_plant, machine_rates
 from pusupu_jax.machine_file import Machine
 from pusupu_jax.params import stack
@@ -241,7 +241,7 @@ def run(quick: bool = False, machine: Machine | None = None) -> Result:
                 "frequencies_hz": freqs.tolist(),
                 "model_20kg": _margins(m20[loop]),
                 "model_carried": _margins(mc[loop]),
-                "model_coupled": _coupled(coupled_margins[pose][mine_coupled], axis),
+                "model_coupled": margins.in_units(coupled_margins[pose][mine_coupled], axis),
                 "mjx": injection.crossover(freqs, L),
                 "sampled_single_axis": injection.crossover(freqs, sampled),
                 "linearity": abs(mine[-1][0] / mine[len(freqs) // 2][0] - 1.0),
@@ -253,7 +253,7 @@ def run(quick: bool = False, machine: Machine | None = None) -> Result:
                 row |= {
                     "model_20kg_position_open": _margins(m20["velocity_open"]),
                     "model_carried_position_open": _margins(mc["velocity_open"]),
-                    "model_coupled_position_open": _coupled(coupled_margins[pose]["velocity"], axis),
+                    "model_coupled_position_open": margins.in_units(coupled_margins[pose]["velocity"], axis),
                 }
             for label in ("model_20kg", "model_carried", "model_coupled"):
                 row[f"{label}_matches"] = _matches(row[label], row["mjx"])
@@ -272,15 +272,6 @@ def run(quick: bool = False, machine: Machine | None = None) -> Result:
                 "carried_mass_kg": mass,
             }
     return Result("loop_match", metrics, series)
-
-
-def _coupled(m: dict, axis: int) -> dict:
-    """One axis of :func:`pusupu_jax.coupled.loop_margins`'s margins of a loop, as :func:`_margins` gives them."""
-    pm = float(m["phase_margin_deg"][axis])
-    return {
-        "crossover_hz": float(m["crossover_rad_s"][axis]) / (2 * np.pi) if np.isfinite(pm) else None,
-        "phase_margin_deg": pm if np.isfinite(pm) else None,
-    }
 
 
 def _matches(model: dict, measured: dict) -> bool | None:

@@ -30,6 +30,10 @@ def cmd_analyze(args) -> int:
         return _identify(args, servo, load, rates)
     if args.kin_error is not None:
         raise ParameterError("--kin-error: only with --identify-T0 (the loop analysis uses the single-axis load)")
+    if args.coupled and args.load_from_params:
+        raise ParameterError(
+            f"--coupled: expected the machine's mechanism, got the load section of --params {args.params}"
+        )
     loads = {"home": load} | _along_path(args, servo)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -49,12 +53,12 @@ def cmd_analyze(args) -> int:
                 "trajectory": args.trajectory,
                 "carried_mass_kg": {k: np.asarray(v.mass).tolist() for k, v in loads.items() if k != "home"},
             } | {k: _margins(servo, v, args.mode) for k, v in loads.items() if k != "home"}
-        if args.coupled:
-            result["coupled"] = _coupled(args, servo)
         if args.plot:
             from pusupu_jax.plots import plot_loops
 
             plot_loops(servo, load, args.plot, mode=args.mode)
+    if args.coupled:
+        result["coupled"] = _coupled(args, servo)
     if args.json:
         print(json.dumps(result, indent=2))
         return _refuse_unstable(args, servo, hybrid, rates, loads)
@@ -111,31 +115,16 @@ def _coupled(args, servo) -> dict:
     """``--coupled``: :func:`pusupu_jax.coupled.loop_margins` at the machine's home (its payload in), per axis
     ``{loop: {crossover_hz, phase_margin_deg, gain_margin_db}}`` for the current, velocity and position loops."""
     from pusupu_jax import coupled
+    from pusupu_jax.margins import in_units
 
-    if args.load_from_params:
-        raise ParameterError(
-            f"--coupled: expected the machine's mechanism, got the load section of --params {args.params}"
-        )
     machine = machine_of(args)
     home = np.asarray(machine.geometry.home, dtype=float)
     found = coupled.loop_margins(servo, coupled.Mechanism.at(machine.geometry, home, machine.options()), args.mode)
     return {
         "pose": home.tolist(),
-        "axes": [{loop: _cells(found[loop], k) for loop in ("current", "velocity", "position")} for k in range(N_AXES)],
-    }
-
-
-def _cells(m: dict, k: int) -> dict:
-    """Axis ``k`` of a margins dict (``crossover_rad_s``, ``phase_margin_deg``, ``gain_margin_db``) in Hz, deg and dB
-    (None where there is no crossing)."""
-
-    def cell(x, scale=1.0):
-        return None if not np.isfinite(x) else float(x) * scale
-
-    return {
-        "crossover_hz": cell(m["crossover_rad_s"][k], 1 / (2 * np.pi)),
-        "phase_margin_deg": cell(m["phase_margin_deg"][k]),
-        "gain_margin_db": cell(m["gain_margin_db"][k]),
+        "axes": [
+            {loop: in_units(found[loop], k) for loop in ("current", "velocity", "position")} for k in range(N_AXES)
+        ],
     }
 
 
@@ -144,9 +133,10 @@ def _margins(servo, load, mode) -> list:
     (:func:`pusupu_jax.stability.margins`, which the gain check reads; agreeing with python-control's to 0.5 deg and
     0.1 dB, tests/test_margins.py)."""
     from pusupu_jax import stability
+    from pusupu_jax.margins import in_units
 
     found, _ = stability.margins(servo, mode, load)
-    return [{loop: _cells(m, k) for loop, m in found.items()} for k in range(N_AXES)]
+    return [{loop: in_units(m, k) for loop, m in found.items()} for k in range(N_AXES)]
 
 
 def _along_path(args, servo) -> dict:

@@ -249,7 +249,7 @@ def _parser() -> argparse.ArgumentParser:
         "(each loop: Bode, step, load-torque step, margins), tuned "
         "(Table 1 vs pusupu tune's gains on arc and p2p, every mode), "
         "peg_in_hole (Fig. 9a), surface_tracking (Fig. 9b) or loop_match (the "
-        "MJX machine's loop gains against the linear model)",
+        "MJX machine's loop gains against the single-axis and the coupled linear models)",
     )
     e.add_argument("--out", metavar="DIR", default="experiments_out", help="output folder (default experiments_out)")
     e.add_argument("--quick", action="store_true", help="a short version (a few seconds of the paths, fewer seeds)")

@@ -132,7 +132,9 @@ def loop_margins(servo: ServoParams, mech: Mechanism, mode: str = "imc") -> dict
 
     The phase margin is read within (-180, 180] deg: the single-axis margins anchor the phase at the grid's lowest
     frequency where a loop's integrators put it, but a coupled loop need not start there (the other axes' position
-    loops hold the platform, so at low frequency the broken axis pushes against a spring)."""
+    loops hold the platform, so at low frequency the broken axis pushes against a spring).  The anchor's error is a
+    whole turn common to every crossing of a loop, so the smallest margin is still found at the right crossing; a
+    margin below -180 deg would read as its value plus 360 deg (stability is read from poles, not from margins)."""
 
     def of(loop: str) -> Callable[[ArrayLike], jax.Array]:
         return lambda w: loop_gains(servo, mech, w, mode)[loop]

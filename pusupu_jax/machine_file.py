@@ -269,8 +269,9 @@ def axis_load(machine: Machine) -> AxisLoad:
     tuner's margin constraints): the mass each slider carries at home (:func:`carried_mass`), level rails.
 
     Measured against the MJX machine's own loop gains (``pusupu experiment loop_match``, ``docs/machine.md``), it
-    puts the velocity loop's crossover within 2 % (a lumped 20 kg, 44-50 % too high), and the phase margins it
-    reports are below the machine's: on the safe side."""
+    puts the velocity loop's crossover within 5 % (a lumped 20 kg, 33-38 % too high), and the phase margins it
+    reports are below the machine's: on the safe side (the coupled model, :mod:`pusupu_jax.coupled`, matches
+    them)."""
     return AxisLoad.default().replace(mass=carried_mass(machine))
 
 

@@ -190,6 +190,18 @@ def margins(gain_fn: Callable[[ArrayLike], jax.Array], w: npt.NDArray[np.float64
     }
 
 
+def in_units(m: dict[str, jax.Array], axis: int) -> dict[str, float | None]:
+    """Axis ``axis`` of a :func:`margins` result in Hz, deg and dB: ``crossover_hz``, ``phase_margin_deg`` and
+    ``gain_margin_db``, None where the loop has no such crossing (no crossover where the phase margin is infinite)."""
+    pm, gm = float(m["phase_margin_deg"][axis]), float(m["gain_margin_db"][axis])
+    crossing = bool(np.isfinite(pm))
+    return {
+        "crossover_hz": float(m["crossover_rad_s"][axis]) / (2 * np.pi) if crossing else None,
+        "phase_margin_deg": pm if crossing else None,
+        "gain_margin_db": gm if np.isfinite(gm) else None,
+    }
+
+
 LOOPS = ("current", "velocity", "position")
 
 
