@@ -41,7 +41,6 @@ against the single-axis model on a mechanism whose axes do not couple.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -76,13 +75,16 @@ class Mechanism:
 
 def loop_gains(servo: ServoParams, mech: Mechanism, w: ArrayLike, mode: str = "imc") -> dict[str, jax.Array]:
     """``L(jw)`` of every loop (:data:`LOOPS`) of every axis, each broken in turn: ``(6, len(w))``, or, for ``w`` of
-    shape ``(6, n)``, axis ``k``'s loop at its own row of frequencies (as :func:`pusupu_jax.margins.margins` refines
-    each axis's crossings)."""
+    shape ``(..., 6, n)``, axis ``k``'s loop at its own row ``w[..., k, :]`` of frequencies (as
+    :func:`pusupu_jax.margins.margins` refines each axis's crossings)."""
     w = jnp.asarray(w, dtype=float)
-    if w.ndim == 2:
+    if w.ndim >= 2:
         flat = loop_gains(servo, mech, w.reshape(-1), mode)
-        own = jnp.arange(N_AXES)
-        return {k: v.reshape(N_AXES, N_AXES, -1)[own, own] for k, v in flat.items()}
+        # (broken axis, ..., axis, n): the broken axis's own row
+        return {
+            k: jnp.moveaxis(jnp.diagonal(v.reshape((N_AXES,) + w.shape), 0, 0, w.ndim - 1), -1, -2)
+            for k, v in flat.items()
+        }
     p = {k: jnp.asarray(v) for k, v in arrays(servo).items()}
     r = jnp.asarray(screw_ratio(servo))
     J = jnp.asarray(mech.jacobian)
@@ -136,11 +138,12 @@ def loop_margins(servo: ServoParams, mech: Mechanism, mode: str = "imc") -> dict
     whole turn common to every crossing of a loop, so the smallest margin is still found at the right crossing; a
     margin below -180 deg would read as its value plus 360 deg (stability is read from poles, not from margins)."""
 
-    def of(loop: str) -> Callable[[ArrayLike], jax.Array]:
-        return lambda w: loop_gains(servo, mech, w, mode)[loop]
+    # w: the grid (n,), or points per loop (4, 6, k): every loop from one evaluation of loop_gains
+    def stack(w: ArrayLike) -> jax.Array:
+        gains = loop_gains(servo, mech, w, mode)
+        return jnp.stack([gains[name] if jnp.ndim(w) == 1 else gains[name][i] for i, name in enumerate(LOOPS)])
 
-    out = {loop: margins(of(loop), W_GRID) for loop in LOOPS}
-    for m in out.values():
-        pm = m["phase_margin_deg"]
-        m["phase_margin_deg"] = jnp.where(jnp.isfinite(pm), 180.0 - jnp.mod(180.0 - pm, 360.0), pm)
-    return out
+    stacked = margins(stack, W_GRID)
+    pm = stacked["phase_margin_deg"]
+    stacked["phase_margin_deg"] = jnp.where(jnp.isfinite(pm), 180.0 - jnp.mod(180.0 - pm, 360.0), pm)
+    return {name: {k: v[i] for k, v in stacked.items()} for i, name in enumerate(LOOPS)}
