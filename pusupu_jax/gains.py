@@ -35,7 +35,8 @@ line naming the problem: the schema and version, unknown and missing keys, units
 bounds of every value, that the discrete blocks are the discretisation of the gains at the
 stated rates, that every loop is stable by its discrete poles and keeps at least
 :data:`~pusupu_jax.stability.FLOORS` of margin (:func:`pusupu_jax.stability.check`; or the
-caller's explicit floors, never thresholds read from the file), and last the checksum.  The
+caller's explicit floors, never thresholds read from the file) with the machine's load at home
+and with every load the file records it was tuned with (:func:`tuned_loads`), and last the checksum.  The
 checksum detects accidents (a truncated or edited file), not attacks: anyone can compute it.
 :func:`sign` recomputes the derived blocks and the checksum of a deliberately edited file once
 its gains pass the same checks.
@@ -66,7 +67,7 @@ from .gain_view import show
 from .hybrid import HybridGains, gain_fields
 from .lti import LTI
 from .machine_file import Machine
-from .params import LoopRates, ParameterError, ServoParams, array_fields, static_fields
+from .params import AxisLoad, LoopRates, ParameterError, ServoParams, array_fields, static_fields
 from .stability import FLOORS
 
 SCHEMA, VERSION = "pusupu-gains", 4
@@ -293,13 +294,16 @@ def document(
     machine: Machine | None = None,
 ) -> str:
     """The YAML text of a gain file for gains tuned on ``machine`` (default: the built-in one); checked first:
-    raises ParameterError rather than describe gains that :func:`pusupu_jax.stability.check` refuses, or ``servo``
-    whose plant fields are not the machine's drives."""
+    raises ParameterError rather than describe gains that :func:`pusupu_jax.stability.check` refuses (with each of
+    :func:`tuned_loads`: the machine's load at home, and those ``provenance`` records as ``margin_loads_kg``), or
+    ``servo`` whose plant fields are not the machine's drives."""
     if mode not in MODES:
         raise ParameterError(f"gains mode: expected one of {tuple(map(str, MODES))}, got {mode!r}")
     machine = Machine.default() if machine is None else machine
     _check_plant({name: getattr(servo, name) for name in machine.drives}, "servo", machine)
-    found = stability.check(servo, hybrid, rates, mode, floors, load=machine_file.axis_load(machine))
+    provenance = _plain(provenance or {})
+    loads = tuned_loads(provenance, machine, machine_file.reference(machine))
+    found = stability.check_loads(servo, hybrid, rates, mode, floors, loads, along="the paths it was tuned on")
     controller: dict[str, dict[str, Any]] = {name: {} for name in CONTROLLER_SECTIONS}
     for f in static_fields(ServoParams):
         controller[f.metadata["section"]][f.name] = getattr(servo, f.name)
@@ -326,7 +330,7 @@ def document(
             **_versions(),
             "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
             "tuned_fields": sorted(tuned),
-            **_plain(provenance or {}),
+            **provenance,
         },
     }
     # innermost mappings on one line
@@ -391,7 +395,8 @@ def parse(
     if not isinstance(doc["provenance"], dict):
         raise ParameterError(f"provenance: expected a mapping, got {type(doc['provenance']).__name__}")
     if check_stability:
-        stability.check(servo, hybrid, rates, mode, floors, load=machine_file.axis_load(machine))
+        loads = tuned_loads(doc["provenance"], machine, tuned_on)
+        stability.check_loads(servo, hybrid, rates, mode, floors, loads, along="the paths it was tuned on")
     else:
         stability.check_values(servo, hybrid, rates)
     if checksum:
@@ -409,6 +414,38 @@ def parse(
                 "edit, pusupu gains sign re-signs it once it validates)"
             )
     return GainFile(servo, hybrid, rates, mode, doc, tuned_on)
+
+
+def tuned_loads(provenance: dict[str, Any], machine: Machine, tuned_on: dict[str, str]) -> dict[str, AxisLoad]:
+    """The single-axis loads a gain file's margins are checked with on ``machine``: ``home``
+    (:func:`~pusupu_jax.machine_file.axis_load`), then every other load its ``provenance.margin_loads_kg`` records
+    the gains were tuned with (each slider's mass [kg], six values: the lightest and the heaviest pose along the tuned
+    paths, :func:`~pusupu_jax.machine_file.margin_loads`), when it was tuned on ``machine`` (same digest).  On
+    another machine, or with nothing recorded, home only."""
+    home = machine_file.axis_load(machine)
+    loads = {"home": home}
+    recorded = provenance.get("margin_loads_kg")
+    if recorded is None or tuned_on["digest"] != machine_file.digest(machine):
+        return loads
+    if not isinstance(recorded, dict):
+        raise ParameterError(
+            f"provenance.margin_loads_kg: expected a mapping of load names to masses, got {inputs.shown(recorded)}"
+        )
+    for name, masses in recorded.items():
+        mass = np.asarray(masses, dtype=float) if _numbers(masses) else None
+        if mass is None or mass.shape != (len(home.mass),) or not np.all(np.isfinite(mass) & (mass > 0)):
+            raise ParameterError(
+                f"provenance.margin_loads_kg.{name}: expected {len(home.mass)} masses above 0 kg, "
+                f"got {inputs.shown(masses)}"
+            )
+        if name != "home":
+            loads[str(name)] = home.replace(mass=mass)
+    return loads
+
+
+def _numbers(value: Any) -> bool:
+    """A list of plain numbers (no bools, strings or nested lists)."""
+    return isinstance(value, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
 
 
 def _machine_reference(value: Any) -> dict[str, str]:

@@ -265,3 +265,40 @@ def test_a_refused_export_says_so_and_names_the_file_left_in_place(tmp_path):
     assert bad.gains_file.path is None and "velocity loop" in bad.gains_file.not_written
     assert bad.gains_file.left_as_it_was["sha256"] == good.gains_file.sha256
     assert (tmp_path / "gains.yaml").read_bytes() == before
+
+
+def test_the_loads_a_file_was_tuned_with_are_checked_again_on_every_read(tmp_path):
+    """``provenance.margin_loads_kg`` (each slider's mass at the lightest and the heaviest pose along the tuned
+    paths) is checked with the margins on writing and on every read, on the machine the file was tuned on.  Table 1's
+    position loop keeps 52.1 deg at the built-in machine's 54.7 kg and 39.4 deg at 300 kg: a recorded 300 kg is
+    refused when written, and when edited into a written file, naming the load; on another machine the recorded
+    masses are not its own and home alone is checked; a malformed record is refused in one line."""
+    from pusupu_jax import machine_file
+    from pusupu_jax.machine_file import Machine
+
+    table1, builtin = ServoParams.table1(), Machine.default()
+    home = machine_file.axis_load(builtin).mass.tolist()
+    recorded = {"home": home, "lightest": [40.0] * 6, "heaviest": [60.0] * 6}
+    path = gains.write(tmp_path / "g.yaml", table1, HYBRID, RATES, mode="imc", provenance={"margin_loads_kg": recorded})
+    g = gains.load(path)
+    loads = gains.tuned_loads(g.document["provenance"], builtin, g.machine)
+    assert list(loads) == ["home", "lightest", "heaviest"] and float(loads["heaviest"].mass[0]) == 60.0
+    heavy = "expected at least 45 deg and 6 dB \\(with the mass the sliders carry at the heaviest pose along the paths"
+    with pytest.raises(ParameterError, match="position loop of axis 1 has 39.4 deg .*" + heavy):
+        gains.write(
+            tmp_path / "no.yaml",
+            table1,
+            HYBRID,
+            RATES,
+            mode="imc",
+            provenance={"margin_loads_kg": recorded | {"heaviest": [300.0] * 6}},
+        )
+    assert not (tmp_path / "no.yaml").exists()
+    path.write_text(path.read_text().replace("heaviest: [60.0", "heaviest: [300.0"))
+    with pytest.raises(ParameterError, match=heavy):
+        gains.load(path)
+    other = {"name": "another", "digest": "0" * 64}
+    assert list(gains.tuned_loads(g.document["provenance"], builtin, other)) == ["home"]
+    for bad in ([1.0, "x"], [0.0] * 6, [50.0] * 5, 50.0):
+        with pytest.raises(ParameterError, match="provenance.margin_loads_kg.heaviest: expected 6 masses above 0 kg"):
+            gains.tuned_loads({"margin_loads_kg": {"heaviest": bad}}, builtin, g.machine)
