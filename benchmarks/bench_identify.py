@@ -16,10 +16,17 @@ answer, so no cycle is skipped on a loaded machine).
 ``--noise-seeds N`` fits N more copies of the log with the sensors' noise drawn afresh: each motor
 angle rounded to an encoder of ``--encoder-bits`` a turn, and each current with Gaussian noise of
 ``--current-noise`` of its axis's RMS.  Each entry says whether the truth lies inside the value's 95 % interval
-(1.96 standard errors).  The later fits find the programs compiled (the logged data are their arguments)::
+(1.96 standard errors).  The later fits find the programs compiled (the logged data are their arguments).
+
+``--derivatives exact,finite-differences`` fits each log once with each Jacobian
+(:class:`pusupu_jax.machine_fit.Derivatives`): the exact one through the replay, and the derivative-free anchor,
+scipy's 2-point differences of the same residual with the same solver, bounds and tolerances.  Each fit gives the
+seconds spent in the residual's and the Jacobian's calls (``solve_s``, compiles left out) and its cost in forward
+replays (``replays``: every residual call, the differences' included, plus the Jacobian's seconds over one
+residual call's); ``anchor`` compares them per log::
 
     python benchmarks/bench_identify.py [--source sim|bridge] [--trajectory p2p] [--window 2]
-        [--fit friction,motor,payload] [--noise-seeds 0] [--out FILE]
+        [--fit friction,motor,payload] [--noise-seeds 0] [--derivatives exact] [--out FILE]
 """
 
 from __future__ import annotations
@@ -180,6 +187,11 @@ def main() -> None:
         default="0.03,-0.02,0.05",
         help="the true payload's centre of mass x,y,z [m] in the platform frame (default 0.03,-0.02,0.05)",
     )
+    ap.add_argument(
+        "--derivatives",
+        default="exact",
+        help="the solver's Jacobians to fit each log with, in order: exact, finite-differences (default exact)",
+    )
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
 
@@ -207,20 +219,29 @@ def main() -> None:
         cases = [("noise-free", log)] + [
             (f"noise seed {k}", _noisy(log, k, args.encoder_bits, args.current_noise)) for k in range(args.noise_seeds)
         ]
+        methods = [machine_fit.Derivatives(m) for m in args.derivatives.split(",")]
         fits = []
-        for name, case in cases:
-            print(f"bench_identify: fitting {name}", file=sys.stderr, flush=True)
+        for (name, case), derivatives in ((c, m) for c in cases for m in methods):
+            print(f"bench_identify: fitting {name} ({derivatives} Jacobian)", file=sys.stderr, flush=True)
             report, _, _ = machine_fit.fit(
                 [case], start, g.servo, g.hybrid, g.rates, fields, args.window,
-                progress=lambda line: print(line, file=sys.stderr, flush=True),
+                progress=lambda line: print(line, file=sys.stderr, flush=True), derivatives=derivatives,
             )  # fmt: skip
             entries = _entries(report, truth)
+            per_call = report.residual_s / max(report.residual_calls, 1)
             fits.append(
                 {
                     "case": name,
+                    "derivatives": str(derivatives),
                     "wall_s": report.wall_s,
+                    "solve_s": report.residual_s + report.jacobian_s,
+                    "residual_calls": report.residual_calls,
+                    "residual_s": report.residual_s,
+                    "jacobian_s": report.jacobian_s,
+                    "replays": report.residual_calls + report.jacobian_s / per_call,
                     "evaluations": report.evaluations,
                     "jacobians": report.jacobians,
+                    "converged": report.converged,
                     "residual_rms_before": report.residual_rms_before,
                     "residual_rms_after": report.residual_rms_after,
                     "worst_relative_error": max(e["relative_error"] for e in entries),
@@ -246,7 +267,22 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict
     """The benchmark's JSON over the fits done so far."""
     import jax
 
-    noisy = fits[1:]
+    exact = [f for f in fits if f["derivatives"] == "exact"]
+    noisy = exact[1:]
+    anchor = []
+    for f in fits:
+        other = next((e for e in exact if e["case"] == f["case"]), None)
+        if f["derivatives"] != "exact" and other is not None:
+            anchor.append(
+                {
+                    "case": f["case"],
+                    "derivatives": f["derivatives"],
+                    "solve_s_ratio": f["solve_s"] / other["solve_s"],
+                    "wall_s_ratio": f["wall_s"] / other["wall_s"],
+                    "replays_ratio": f["replays"] / other["replays"],
+                    "residual_rms_after": [other["residual_rms_after"], f["residual_rms_after"]],
+                }
+            )
     return {
         "benchmark": "identify",
         "command": "python benchmarks/bench_identify.py " + " ".join(sys.argv[1:]),
@@ -255,11 +291,13 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict
         "window_s": args.window,
         "fit": [str(f) for f in fields],
         "values_fitted": len(fits[0]["values"]),
+        "derivatives": args.derivatives.split(","),
         "samples": samples,
         "noise": {"encoder_bits": args.encoder_bits, "current_rms_fraction": args.current_noise},
         "true_payload_com_m": [float(c) for c in args.true_com.split(",")],
         "sim_log_s": sim_s,
         "fits": fits,
+        "anchor": anchor,  # the other Jacobians against the exact one, per log (a ratio above 1: exact is faster)
         "coverage_95": (sum(f["covered_95"] for f in noisy) / sum(len(f["values"]) for f in noisy) if noisy else None),
         "machine": {"processor": processor(), "cores": os.cpu_count(), "jax": jax.__version__},
     }

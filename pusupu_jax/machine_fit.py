@@ -162,6 +162,15 @@ class Channel(enum.StrEnum):
     TORQUE = "torque"  # N m
 
 
+class Derivatives(enum.StrEnum):
+    """How the solver gets the residual's Jacobian."""
+
+    EXACT = "exact"  # jax.jacfwd through the replay: one program, forward mode, one tangent per fitted value
+    # scipy's 2-point differences of the residual: one more replay per fitted value at each Jacobian, and no
+    # derivative through the model (the derivative-free anchor of benchmarks/bench_identify.py)
+    FINITE_DIFFERENCES = "finite-differences"
+
+
 UNEXCITED_COLUMN = 1e-8  # a Jacobian column this small against the largest: the logs do not excite the value
 UNEXCITED_ERROR = 0.5  # a standard error above this fraction of the value (or of its scale): not identified
 # the residual evaluations one solve may take: a value the logs barely determine lets the solver crawl along a flat
@@ -217,8 +226,10 @@ class FittedValue:
 @dataclasses.dataclass(frozen=True)
 class FitReport:
     """What :func:`fit` found: every fitted value, the residual's RMS before and after, the samples and the window,
-    the solver's work (``converged``: False where it stopped at :data:`MAX_EVALUATIONS`), and the logs (path, SHA-256,
-    what wrote them)."""
+    the solver's work (``converged``: False where it stopped at :data:`MAX_EVALUATIONS`; ``derivatives``: the Jacobian
+    it took; ``residual_calls``: every replay of the residual, finite differences included; ``residual_s``,
+    ``jacobian_s``: seconds in the residual's and the Jacobian's calls, compiles left out), and the logs (path,
+    SHA-256, what wrote them)."""
 
     values: tuple[FittedValue, ...]
     residual_rms_before: float
@@ -227,13 +238,18 @@ class FitReport:
     window_s: float
     evaluations: int
     jacobians: int
+    derivatives: Derivatives
+    residual_calls: int
+    residual_s: float
+    jacobian_s: float
     solver_message: str
     converged: bool
     wall_s: float
     logs: tuple[dict[str, str], ...]
 
     def as_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self) | {"values": [v.as_dict() for v in self.values]}
+        values = [v.as_dict() for v in self.values]
+        return dataclasses.asdict(self) | {"values": values, "derivatives": str(self.derivatives)}
 
     def unexcited(self) -> list[FittedValue]:
         return [v for v in self.values if not v.excited]
@@ -343,6 +359,9 @@ class Solution:
     result: Any
     evaluations: int
     jacobians: int
+    residual_calls: int
+    residual_s: float
+    jacobian_s: float
 
 
 def least_squares_excited(
@@ -351,9 +370,14 @@ def least_squares_excited(
     low: np.ndarray,
     high: np.ndarray,
     say: Callable[[str], object] = lambda line: None,
+    derivatives: Derivatives = Derivatives.EXACT,
 ) -> Solution:
     """Bounded least squares (scipy's trust-region reflective solver) from ``start`` inside ``[low, high]``, with
     standard errors from the Jacobian at the optimum, that invents no value the data do not excite.
+
+    ``derivatives``: the Jacobian the solver takes, the exact one (``residual_of``'s) or scipy's finite differences
+    of the residual.  The Solution counts every residual call (the finite differences' included) and the seconds
+    spent in the residual's and in the Jacobian's calls, each program's first call (its compile) left out.
 
     ``residual_of(free)`` gives the residual and its Jacobian as functions of the values at the indices ``free``
     (the others held at their start).  A value whose Jacobian column is below :data:`UNEXCITED_COLUMN` of the largest,
@@ -361,16 +385,28 @@ def least_squares_excited(
     start, and the others are fitted again without it.  With none excited, every value keeps its start."""
     from scipy.optimize import least_squares
 
+    exact = derivatives is Derivatives.EXACT
+    work: dict[str, float] = {"residual_calls": 0, "residual_s": 0.0, "jacobian_s": 0.0}
+
+    def timed(fun: Callable[[jax.Array], jax.Array], p: np.ndarray, seconds: str) -> np.ndarray:
+        t = time.perf_counter()
+        out = np.asarray(fun(jnp.asarray(p)))
+        work[seconds] += time.perf_counter() - t
+        return out
+
     def solve(free: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
         f, jac = residual_of(free)
         p0 = start[free]
         r0 = np.asarray(f(jnp.asarray(p0)))
-        jac(jnp.asarray(p0))
-        say(f"identify: fitting {len(free)} values (trust-region least squares, each inside its field's range)")
+        if exact:
+            jac(jnp.asarray(p0))
+        how = "" if exact else ", finite-difference Jacobian"
+        say(f"identify: fitting {len(free)} values (trust-region least squares, each inside its field's range{how})")
         evaluated = [0]
 
         def residual(p: np.ndarray) -> np.ndarray:
-            r = np.asarray(f(jnp.asarray(p)))
+            r = timed(f, p, "residual_s")
+            work["residual_calls"] += 1
             evaluated[0] += 1
             say(f"identify: evaluation {evaluated[0]}: residual RMS {np.sqrt(np.mean(r**2)):.6g}")
             return r
@@ -378,14 +414,14 @@ def least_squares_excited(
         sol = least_squares(
             residual,
             p0,
-            jac=lambda p: np.asarray(jac(jnp.asarray(p))),
+            jac=(lambda p: timed(jac, p, "jacobian_s")) if exact else "2-point",
             bounds=(low[free], high[free]),
             method="trf",
             xtol=1e-9,
             ftol=1e-9,
             max_nfev=MAX_EVALUATIONS,
         )
-        J = np.asarray(jac(jnp.asarray(sol.x)))
+        J = np.asarray(jac(jnp.asarray(sol.x))) if exact else np.asarray(sol.jac)
         dof = max(J.shape[0] - J.shape[1], 1)
         variance = 2 * sol.cost / dof
         std = np.sqrt(np.maximum(np.diag(variance * np.linalg.pinv(J.T @ J)), 0.0))
@@ -407,7 +443,8 @@ def least_squares_excited(
         sol, evaluations, jacobians = again, evaluations + again.nfev, jacobians + again.njev
     elif not excited.any():
         x = start.copy()
-    return Solution(x, std, excited, r0, sol, int(evaluations), int(jacobians or 0))
+    calls, residual_s, jacobian_s = int(work["residual_calls"]), work["residual_s"], work["jacobian_s"]
+    return Solution(x, std, excited, r0, sol, int(evaluations), int(jacobians or 0), calls, residual_s, jacobian_s)
 
 
 def fit(
@@ -420,13 +457,15 @@ def fit(
     window_s: float = 2.0,
     trajectory: str | None = None,
     progress: Callable[[str], object] | None = None,
+    derivatives: Derivatives = Derivatives.EXACT,
 ) -> tuple[FitReport, Machine, list[dict[str, Any]]]:
     """Fit ``fields`` of ``machine`` (its values are the start) to ``logs``, each replayed over its first
     ``window_s`` [s] with ``gains`` (``hybrid``: a hybrid log's gains; ``rates``: the gains' rates; ``trajectory``:
     the path, where not the logs' own).  Returns the report, the machine with the fitted values (the unexcited ones
     as they were), and per log the arrays of the plot (``channel``, ``t``, logged and replayed efforts before and
     after).
-    ``progress(line)`` is told what runs (compiles take about half a minute each on 2 CPU cores)."""
+    ``progress(line)`` is told what runs (compiles take about half a minute each on 2 CPU cores).  ``derivatives``:
+    the solver's Jacobian (:class:`Derivatives`: the exact one, or finite differences to compare with)."""
     say = progress or (lambda line: None)
     t0 = time.perf_counter()
     # every fitted value in one vector, field after field (each field.size long), scaled by its start (or SCALES)
@@ -496,7 +535,7 @@ def fit(
         return (lambda p: residual_all(at(p), data)), (lambda p: jacobian_all(at(p), data)[:, free])
 
     say(f"identify: compiling the replay and its Jacobian ({starts.size} values; cached for logs of these shapes)")
-    solution = least_squares_excited(residual_of, starts / scale, low, high, say)
+    solution = least_squares_excited(residual_of, starts / scale, low, high, say, derivatives)
     sol, r0 = solution.result, solution.residual_before
     fitted, errors = solution.x * scale, solution.std * scale
     values = tuple(
@@ -512,6 +551,10 @@ def fit(
         window_s=window_s,
         evaluations=solution.evaluations,
         jacobians=solution.jacobians,
+        derivatives=derivatives,
+        residual_calls=solution.residual_calls,
+        residual_s=solution.residual_s,
+        jacobian_s=solution.jacobian_s,
         solver_message=str(sol.message),
         converged=bool(sol.status > 0),
         wall_s=time.perf_counter() - t0,
