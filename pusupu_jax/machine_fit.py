@@ -27,7 +27,8 @@ value held inside its field's range (:func:`pusupu_jax.params.bounds`: no negati
 programs, the residual and its Jacobian (``jax.jacfwd``: forward mode, one tangent per fitted value, exact).  An
 optimistix Levenberg-Marquardt traces the whole solve, both programs inside its loop, into one program: on the
 2-core CPU (beside another job) its compile for a 1 s window had not ended after 8 minutes, where the two programs
-here compile in about 35 s.
+here compile in about 35 s.  With scipy's finite differences of the residual instead (:class:`Derivatives`), a fit
+of 28 values took 3.1x to 5.6x more replays and had not converged at 50 evaluations (``docs/benchmarks.md``).
 
 *Standard errors* come from the Jacobian at the optimum, ``s^2 (J^T J)^-1`` with ``s^2`` the residual's variance
 per degree of freedom.  A value the logs do not excite (its Jacobian column below ``1e-8`` of the largest, or a
