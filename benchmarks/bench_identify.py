@@ -199,6 +199,10 @@ def main() -> None:
     from pusupu_jax import machine_file, machine_fit, run_log
     from pusupu_jax.runtime import setup_jax
 
+    try:
+        methods = [machine_fit.Derivatives(m) for m in args.derivatives.split(",")]
+    except ValueError:
+        ap.error(f"--derivatives: expected names among exact, finite-differences, got {args.derivatives!r}")
     setup_jax()
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
@@ -219,7 +223,6 @@ def main() -> None:
         cases = [("noise-free", log)] + [
             (f"noise seed {k}", _noisy(log, k, args.encoder_bits, args.current_noise)) for k in range(args.noise_seeds)
         ]
-        methods = [machine_fit.Derivatives(m) for m in args.derivatives.split(",")]
         fits = []
         for (name, case), derivatives in ((c, m) for c in cases for m in methods):
             print(f"bench_identify: fitting {name} ({derivatives} Jacobian)", file=sys.stderr, flush=True)
