@@ -387,12 +387,13 @@ def least_squares_excited(
     from scipy.optimize import least_squares
 
     exact = derivatives is Derivatives.EXACT
-    work: dict[str, float] = {"residual_calls": 0, "residual_s": 0.0, "jacobian_s": 0.0}
+    residual_times: list[float] = []  # s, each residual call's (the finite differences' included)
+    jacobian_times: list[float] = []  # s, each exact Jacobian's call
 
-    def timed(fun: Callable[[jax.Array], jax.Array], p: np.ndarray, seconds: str) -> np.ndarray:
+    def timed(fun: Callable[[jax.Array], jax.Array], p: np.ndarray, times: list[float]) -> np.ndarray:
         t = time.perf_counter()
         out = np.asarray(fun(jnp.asarray(p)))
-        work[seconds] += time.perf_counter() - t
+        times.append(time.perf_counter() - t)
         return out
 
     def solve(free: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
@@ -406,8 +407,7 @@ def least_squares_excited(
         evaluated = [0]
 
         def residual(p: np.ndarray) -> np.ndarray:
-            r = timed(f, p, "residual_s")
-            work["residual_calls"] += 1
+            r = timed(f, p, residual_times)
             evaluated[0] += 1
             say(f"identify: evaluation {evaluated[0]}: residual RMS {np.sqrt(np.mean(r**2)):.6g}")
             return r
@@ -415,7 +415,7 @@ def least_squares_excited(
         sol = least_squares(
             residual,
             p0,
-            jac=(lambda p: timed(jac, p, "jacobian_s")) if exact else "2-point",
+            jac=(lambda p: timed(jac, p, jacobian_times)) if exact else "2-point",
             bounds=(low[free], high[free]),
             method="trf",
             xtol=1e-9,
@@ -444,8 +444,8 @@ def least_squares_excited(
         sol, evaluations, jacobians = again, evaluations + again.nfev, jacobians + again.njev
     elif not excited.any():
         x = start.copy()
-    calls, residual_s, jacobian_s = int(work["residual_calls"]), work["residual_s"], work["jacobian_s"]
-    return Solution(x, std, excited, r0, sol, int(evaluations), int(jacobians or 0), calls, residual_s, jacobian_s)
+    work = len(residual_times), sum(residual_times), sum(jacobian_times)
+    return Solution(x, std, excited, r0, sol, int(evaluations), int(jacobians or 0), *work)
 
 
 def fit(
