@@ -38,13 +38,28 @@ def axis_reference(kind: str, rates: LoopRates = LoopRates(), duration: float | 
     return np.repeat(x[:, None], N_AXES, axis=1)
 
 
-PLATFORM_TRAJECTORIES = ("arc", "p2p", "circle", "tilt")
+PLATFORM_TRAJECTORIES = ("arc", "p2p", "circle", "tilt", "excite")
 SPEED, ACCELERATION = 0.05, 0.2  # m/s, m/s^2: the paths' peak speed and acceleration along the path, by default
 CIRCLE_RADIUS = 0.1  # m, the ISO 230-4 circle's
 TILT_AMPLITUDE = 0.1  # rad, the tilt sweep's
 # rad/s and rad/s^2: tilting at these rates moves the spherical joints (320 mm from the platform centre on the
 # default machine) about as fast as the translations' defaults, 0.05 m/s and 0.2 m/s^2
 TILT_SPEED, TILT_ACCELERATION = 0.15, 0.6
+# The excitation path's poses (offsets from home: x, y, z [m], a, b [rad]) and each move's peak acceleration along
+# the path [m/s^2] and in tilt [rad/s^2] (one per move; speeds are left to the accelerations: 0.3 m/s and 1.5 rad/s
+# caps that these short moves do not reach)
+EXCITATION_WAYPOINTS = (
+    (0.0, 0.0, 0.0, 0.0, 0.0),
+    (0.0, 0.0, 0.02, 0.0, 0.0),
+    (0.025, 0.0, -0.02, 0.06, 0.0),
+    (-0.025, 0.0, 0.0, -0.06, 0.0),
+    (0.0, 0.025, 0.02, 0.0, -0.06),
+    (0.0, -0.025, -0.02, 0.0, 0.06),
+    (0.02, 0.02, 0.0, 0.06, 0.06),
+    (0.0, 0.0, 0.0, 0.0, 0.0),
+)
+EXCITATION_ACCELERATION = (4.0, 3.5, 4.0, 3.5, 4.0, 3.5, 4.0)  # m/s^2; the tilts' 4 rad/s^2 per m/s^2
+EXCITATION_SPEED, EXCITATION_TILT_SPEED = 0.3, 1.5  # m/s, rad/s
 
 
 def _quintic_time(length: float, v_max: float, a_max: float) -> float:
@@ -147,9 +162,10 @@ def platform_path(
       :data:`CIRCLE_RADIUS` about home in the horizontal plane at the feed ``v_max``, counterclockwise
       then clockwise, approached from the centre;
     * ``tilt``: a tilt sweep (:func:`tilt_sweep`) of :data:`TILT_AMPLITUDE` about a, then b, then both,
-      at :data:`TILT_SPEED` and :data:`TILT_ACCELERATION`.
+      at :data:`TILT_SPEED` and :data:`TILT_ACCELERATION`;
+    * ``excite``: the excitation path for identification (:func:`excitation`), its own limits.
 
-    Offsets are from ``home`` (x, y, z [m], a, b [rad]); the platform stays level but in ``tilt``.
+    Offsets are from ``home`` (x, y, z [m], a, b [rad]); the platform stays level but in ``tilt`` and ``excite``.
     Straight segments have quintic timing with peak speed ``v_max`` [m/s] and acceleration
     ``a_max`` [m/s^2] along the path; ``hold`` [s] at rest is appended.
     """
@@ -168,6 +184,8 @@ def platform_path(
         return iso_circle(home, rates, CIRCLE_RADIUS, v_max, a_max, hold)
     if kind == "tilt":
         return tilt_sweep(home, rates, TILT_AMPLITUDE, hold=hold)
+    if kind == "excite":
+        return excitation(home, rates, hold)
     return platform_waypoints(home, [[0.0, 0.0, 0.0], [-0.1, -0.1, 0.0], [0.1, 0.1, 0.0]], rates, v_max, a_max, hold)
 
 
@@ -218,6 +236,42 @@ def tilt_sweep(
     tilts = amplitude * np.array([[0, 0], [1, 0], [-1, 0], [0, 0], [0, 1], [0, -1], [0, 0], [1, 1], [-1, -1], [0, 0]])
     points = np.concatenate([np.zeros((len(tilts), 3)), tilts], axis=1)
     return platform_waypoints(home, points, rates, hold=hold, w_max=w_max, alpha_max=alpha_max)
+
+
+def excitation(home: npt.ArrayLike, rates: LoopRates = LoopRates(), hold: float = 0.5) -> np.ndarray:
+    """The excitation path for identification (``pusupu identify``) as platform poses ``(N, 5)``: 2 s of moves that
+    excite the drive trains' friction, the rotors' inertia and torque constants, and the payload's mass and centre of
+    mass, then ``hold`` [s] at rest.
+
+    Seven straight moves through :data:`EXCITATION_WAYPOINTS`, each mixing a translation of 20-64 mm with a tilt of
+    up to 0.12 rad, at rest at every waypoint (quintic timing, peak accelerations
+    :data:`EXCITATION_ACCELERATION`, alternately 4 and 3.5 m/s^2, and 4 rad/s^2 per m/s^2 in tilt):
+
+    * every slider reverses at least four times, at peak speeds of 0.2-0.4 m/s on the built-in machine, and each
+      quintic move sweeps its speed from rest to its peak, so Coulomb (the sign of the speed) and viscous friction
+      (the speed) part;
+    * accelerations of about 4 m/s^2 at the sliders make the rotors' inertia the largest load in the moves (the
+      built-in rotor is 74 kg at the slider), against gravity's at rest;
+    * the moves up and down accelerate the payload vertically (its mass), and the tilts of both signs about a
+      and b swing its centre of mass sideways (the height of the centre: a level path barely moves it);
+    * the motion takes 2.0 s, ``pusupu identify``'s default window (its last 4 ms of slowing to rest fall
+      outside).
+
+    On the built-in machine the motors reach up to 252 rad/s of their 314 and 0.82 N m of their 13.2 N m
+    (:func:`pusupu_jax.paths.check_path`); on another machine every path is checked the same way before it runs.
+    """
+    _check_limits({}, {"hold": hold})
+    accel = np.asarray(EXCITATION_ACCELERATION)
+    return platform_waypoints(
+        home,
+        EXCITATION_WAYPOINTS,
+        rates,
+        EXCITATION_SPEED,
+        accel,
+        hold,
+        w_max=EXCITATION_TILT_SPEED,
+        alpha_max=4.0 * accel,
+    )
 
 
 def path_seconds(kind: str) -> float:
