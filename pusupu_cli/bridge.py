@@ -48,7 +48,7 @@ def add_parsers(sub) -> None:
         "--trajectory",
         metavar="NAME|FILE",
         default="arc",
-        help="arc, p2p, circle, tilt or a path file: waypoints (.yaml, .yml) or a pose table (.csv) "
+        help="arc, p2p, circle, tilt, excite or a path file: waypoints (.yaml, .yml) or a pose table (.csv) "
         "(docs/paths.md); checked against the machine before anything is sent (default arc)",
     )
     b.add_argument(

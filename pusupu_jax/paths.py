@@ -6,7 +6,7 @@ Wherever a path is asked for (``pusupu sim --plant mjx --trajectory``, ``pusupu 
 job's ``trajectory:``), a *path spec* gives it (:func:`platform_path_from`):
 
 * a name of :data:`~pusupu_jax.trajectories.PLATFORM_TRAJECTORIES` (``arc``, ``p2p``, ``circle``,
-  ``tilt``: :func:`~pusupu_jax.trajectories.platform_path`);
+  ``tilt``, ``excite``: :func:`~pusupu_jax.trajectories.platform_path`);
 * a waypoint file, ``.yaml`` or ``.yml`` (:data:`FORMAT` version :data:`VERSION`): poses reached one
   after the other from home by straight segments in pose space with quintic timing, each under its
   own limits (:data:`DEFAULTS` where it gives none), with a dwell at its arrival;
@@ -316,7 +316,8 @@ def check_path(
        every slider within its stroke, the passive UPU leg within its lengths, the Jacobian well
        conditioned.
     2. The motors' speed: slider speed ``v`` [m/s] over the screw ratio ``r = lead / 2 pi``
-       [m/rad], at most ``servo.speed_max`` [rad/s].
+       [m/rad], at most ``servo.speed_max`` [rad/s] and at most ``V_max / Ke`` [rad/s], where the
+       back-EMF takes the whole voltage (the velocity loop's clamp: the cascade commands no more).
     3. The motors' torque: ``(F + F_f(v)) r / eta`` [N m], at most ``Kt I_max``: ``F`` the
        minimum-norm slider forces [N] that move the nominal machine (``geom``, ``options``'
        payload) along the path (:func:`pusupu_jax.plant.dynamics.inverse_dynamics_forces`; its
@@ -346,7 +347,9 @@ def check_path(
     r, eta = np.asarray(screw_ratio(servo), dtype=float), np.asarray(servo.eta, dtype=float)
     speed = np.abs(v) / r
     torque = np.abs(force + np.asarray(slider_friction(servo, v))) * r / eta
-    speed_max = np.asarray(servo.speed_max, dtype=float)
+    rated = np.asarray(servo.speed_max, dtype=float)
+    emf = np.asarray(servo.V_max, dtype=float) / np.asarray(servo.Ke, dtype=float)
+    speed_max = np.minimum(rated, emf)
     torque_max = np.asarray(servo.Kt, dtype=float) * np.asarray(servo.I_max, dtype=float)
     failing = [
         (int(np.argmax(bad.any(axis=1))), n)
@@ -359,9 +362,10 @@ def check_path(
         at = f"{where} exceeds the drives: pose {k} (t = {k * dt:.6g} s)"
         if n == 0:
             i = int(np.argmax(speed[j] > speed_max))
+            name = "speed_max" if rated[i] <= emf[i] else "V_max/Ke"
             raise GeometryError(
                 f"{at}: branch {i + 1} motor speed {speed[j, i]:.4g} rad/s (slider {abs(v[j, i]):.3g} "
-                f"m/s), expected at most speed_max = {speed_max[i]:.4g} rad/s"
+                f"m/s), expected at most {name} = {speed_max[i]:.4g} rad/s"
             )
         i = int(np.argmax(torque[j] > torque_max))
         raise GeometryError(

@@ -46,19 +46,19 @@ TILT_AMPLITUDE = 0.1  # rad, the tilt sweep's
 # default machine) about as fast as the translations' defaults, 0.05 m/s and 0.2 m/s^2
 TILT_SPEED, TILT_ACCELERATION = 0.15, 0.6
 # The excitation path's poses (offsets from home: x, y, z [m], a, b [rad]) and each move's peak acceleration along
-# the path [m/s^2] and in tilt [rad/s^2] (one per move; speeds are left to the accelerations: 0.3 m/s and 1.5 rad/s
-# caps that these short moves do not reach)
+# the path [m/s^2] (the tilts' 4 rad/s^2 per m/s^2); the speed caps, 0.3 m/s and 1.5 rad/s, are above what these
+# short moves reach
 EXCITATION_WAYPOINTS = (
     (0.0, 0.0, 0.0, 0.0, 0.0),
-    (0.0, 0.0, 0.02, 0.0, 0.0),
-    (0.025, 0.0, -0.02, 0.06, 0.0),
-    (-0.025, 0.0, 0.0, -0.06, 0.0),
-    (0.0, 0.025, 0.02, 0.0, -0.06),
-    (0.0, -0.025, -0.02, 0.0, 0.06),
-    (0.02, 0.02, 0.0, 0.06, 0.06),
+    (0.0, 0.0, 0.009, 0.0, 0.0),
+    (0.017, 0.0, -0.009, 0.038, 0.0),
+    (-0.017, 0.0, 0.0, -0.038, 0.0),
+    (0.0, 0.017, 0.009, 0.0, -0.038),
+    (0.0, -0.017, -0.009, 0.0, 0.038),
+    (0.0136, 0.0136, 0.0, 0.038, 0.038),
     (0.0, 0.0, 0.0, 0.0, 0.0),
 )
-EXCITATION_ACCELERATION = (4.0, 3.5, 4.0, 3.5, 4.0, 3.5, 4.0)  # m/s^2; the tilts' 4 rad/s^2 per m/s^2
+EXCITATION_ACCELERATION = (2.0, 1.7, 2.0, 1.7, 2.0, 1.7, 2.0)  # m/s^2
 EXCITATION_SPEED, EXCITATION_TILT_SPEED = 0.3, 1.5  # m/s, rad/s
 
 
@@ -243,22 +243,23 @@ def excitation(home: npt.ArrayLike, rates: LoopRates = LoopRates(), hold: float 
     excite the drive trains' friction, the rotors' inertia and torque constants, and the payload's mass and centre of
     mass, then ``hold`` [s] at rest.
 
-    Seven straight moves through :data:`EXCITATION_WAYPOINTS`, each mixing a translation of 20-64 mm with a tilt of
-    up to 0.12 rad, at rest at every waypoint (quintic timing, peak accelerations
-    :data:`EXCITATION_ACCELERATION`, alternately 4 and 3.5 m/s^2, and 4 rad/s^2 per m/s^2 in tilt):
+    Seven straight moves through :data:`EXCITATION_WAYPOINTS`, each mixing a translation of 9-37 mm with a tilt of
+    up to 0.076 rad, at rest at every waypoint (quintic timing, peak accelerations
+    :data:`EXCITATION_ACCELERATION`, alternately 2 and 1.7 m/s^2, and 4 rad/s^2 per m/s^2 in tilt). On the built-in
+    machine:
 
-    * every slider reverses at least four times, at peak speeds of 0.2-0.4 m/s on the built-in machine, and each
-      quintic move sweeps its speed from rest to its peak, so Coulomb (the sign of the speed) and viscous friction
-      (the speed) part;
-    * accelerations of about 4 m/s^2 at the sliders make the rotors' inertia the largest load in the moves (the
-      built-in rotor is 74 kg at the slider), against gravity's at rest;
+    * every slider reverses at least three times, at peak speeds of 0.1-0.27 m/s (2-5 times the task paths'), and
+      each quintic move sweeps its speed from rest to its peak, so Coulomb (the sign of the speed) and viscous
+      friction (the speed) part;
+    * the sliders accelerate at 2-2.5 m/s^2, so the rotors' inertia (74 kg at the slider with the built-in rotor)
+      is the largest load in the moves, against gravity's at rest;
     * the moves up and down accelerate the payload vertically (its mass), and the tilts of both signs about a
-      and b swing its centre of mass sideways (the height of the centre: a level path barely moves it);
-    * the motion takes 2.0 s, ``pusupu identify``'s default window (its last 4 ms of slowing to rest fall
-      outside).
+      and b swing its centre of mass sideways (the centre's height: a level path barely moves it);
+    * the motion takes 1.99 s, inside ``pusupu identify``'s default window of 2 s;
+    * the motors reach 167 rad/s, 0.74 of ``V_max/Ke`` (227 rad/s, the velocity loop's clamp), so a machine with a
+      torque constant 10 % above the built-in one still follows it.
 
-    On the built-in machine the motors reach up to 252 rad/s of their 314 and 0.82 N m of their 13.2 N m
-    (:func:`pusupu_jax.paths.check_path`); on another machine every path is checked the same way before it runs.
+    On another machine the path is checked like every path (:func:`pusupu_jax.paths.check_path`).
     """
     _check_limits({}, {"hold": hold})
     accel = np.asarray(EXCITATION_ACCELERATION)

@@ -215,7 +215,7 @@ def test_an_unknown_name_or_kind_of_file_is_refused(tmp_path):
     for spec in ("square", str(tmp_path / "p.txt"), 3):
         with pytest.raises(
             ParameterError,
-            match=r"trajectory: expected one of \('arc', 'p2p', 'circle', 'tilt'\) or "
+            match=r"trajectory: expected one of \('arc', 'p2p', 'circle', 'tilt', 'excite'\) or "
             r"a path file \(\.yaml, \.yml, \.csv\)",
         ):
             paths.platform_path_from(spec, HOME, RATES)
@@ -244,13 +244,17 @@ def test_a_segment_too_fast_for_the_motors_names_its_first_pose_branch_speed_and
     message = str(e.value)
     assert re.fullmatch(
         r"path exceeds the drives: pose \d+ \(t = \S+ s\): branch [1-6] motor speed \S+ rad/s "
-        r"\(slider \S+ m/s\), expected at most speed_max = 314\.2 rad/s",
+        r"\(slider \S+ m/s\), expected at most V_max/Ke = 226\.9 rad/s",
         message,
     ), message
     k, branch = _first(message), int(re.search(r"branch (\d)", message).group(1))
     s = np.asarray(kinematics.inverse_kinematics(G, jnp.asarray(q)))
     motor = np.abs(np.gradient(s, DT, axis=0)) / np.asarray(screw_ratio(SERVO))  # the oracle: central differences
-    assert motor[k, branch - 1] > 314.16 * 0.999 and motor[:k].max() < 314.16 * 1.001  # the first, not the worst
+    limit = 300.0 / 1.322  # V_max/Ke: below speed_max, 314.16 rad/s
+    assert motor[k, branch - 1] > limit * 0.999 and motor[:k].max() < limit * 1.001  # the first, not the worst
+    slow = SERVO.replace(speed_max=np.full(6, 200.0))  # now the rated speed binds, and is named
+    with pytest.raises(GeometryError, match=r"expected at most speed_max = 200 rad/s"):
+        paths.check_path(q, slow, DT)
 
 
 def test_a_path_beyond_the_motors_torque_names_its_first_pose_branch_torque_and_limit():

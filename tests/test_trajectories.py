@@ -1,9 +1,16 @@
-"""Named platform paths (the paper's, the ISO 230-4 circle, the tilt sweep): geometry, timing limits, clear errors."""
+"""Named platform paths (the paper's, the ISO 230-4 circle, the tilt sweep, the excitation path): geometry, timing
+limits, clear errors."""
 
 import numpy as np
 import pytest
 
-from pusupu_jax import LoopRates, ParameterError
+import inspect
+
+import jax.numpy as jnp
+
+from pusupu_jax import LoopRates, ParameterError, ServoParams, machine_fit
+from pusupu_jax.paths import check_path
+from pusupu_jax.plant import kinematics
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.trajectories import TILT_SPEED, platform_path
 
@@ -83,4 +90,30 @@ def test_tilt_sweep_tilts_a_then_b_then_both_at_the_angular_limit():
         assert part.max() == pytest.approx(0.1) and part.min() == pytest.approx(-0.1)
     rate = np.linalg.norm(np.diff(q[:, 3:], axis=0), axis=1) / DT
     assert TILT_SPEED * 0.99 < rate.max() <= TILT_SPEED * 1.001
+    assert np.all(q[-1] == HOME)
+
+
+def test_the_excitation_path_reverses_every_slider_fast_and_tilts_both_ways_within_the_drives():
+    """What identification needs from one log (``pusupu_jax.trajectories.excitation``): every slider reverses at
+    least three times and reaches 0.1 m/s both ways (Coulomb against viscous friction), accelerates at 1.9 m/s^2 or
+    more (the rotors' inertia), the platform moves up and down and tilts both ways about a and b (the payload's mass
+    and its centre of mass's height), the drives' limits hold with a quarter of ``V_max/Ke`` to spare
+    (``check_path``), and the motion ends inside the fit's default window."""
+    servo = ServoParams.table1()
+    q = platform_path("excite", HOME)
+    report = check_path(q, servo, DT)  # raises where a limit is exceeded
+    assert max(report["motor_speed_peak_rad_s"]) < 0.75 * servo.V_max[0] / servo.Ke[0]
+    s = np.asarray(kinematics.inverse_kinematics(Geometry.default(), jnp.asarray(q)))
+    v = np.gradient(s, DT, axis=0)
+    a = np.gradient(v, DT, axis=0)
+    for i in range(6):
+        moving = v[:, i][np.abs(v[:, i]) > 1e-3]
+        assert np.sum(np.diff(np.sign(moving)) != 0) >= 3, i
+        assert v[:, i].max() > 0.1 and v[:, i].min() < -0.1, i
+        assert np.abs(a[:, i]).max() > 1.9, i
+    offsets = q - HOME
+    for j in (2, 3, 4):  # z, a, b: both ways
+        assert offsets[:, j].max() > 0.5 * np.abs(offsets[:, j]).max() and offsets[:, j].min() < 0
+    last_move = np.flatnonzero(np.abs(np.diff(q, axis=0)).max(axis=1) > 0).max() + 1
+    assert last_move * DT <= inspect.signature(machine_fit.fit).parameters["window_s"].default
     assert np.all(q[-1] == HOME)

@@ -7,8 +7,8 @@ Every key of :class:`TuneConfig` may appear in the file (unknown keys are errors
     groups: [imc, velocity, hybrid]   # what to tune: imc (lambda1, lambda2, T0), velocity (Kv, Tv),
                                # current (Ki, Ti), pid (Kp, Ki, Kd, Tf of the PID), feedforward (Kff_pid), hybrid
     shared: true               # one value for all six axes (false: one per axis)
-    trajectories: [arc, p2p]   # paths: arc, p2p, circle, tilt, or path files (.yaml, .yml, .csv; docs/paths.md),
-                               # a relative file name taken from the configuration file's folder
+    trajectories: [arc, p2p]   # paths: arc, p2p, circle, tilt, excite, or path files (.yaml, .yml, .csv;
+                               # docs/paths.md), a relative file name taken from the configuration file's folder
     path_s: null               # s: use the first path_s seconds of each path (null: the whole paths)
     windows: 6                 # training windows per path, spread over it: window k starts at k/windows of it
     window_s: 0.5              # s, the length of each training window

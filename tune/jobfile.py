@@ -14,7 +14,7 @@ A job file (JSON Schema: ``tune/schemas/pusupu-batch.schema.json``; ``docs/batch
       starts: 2                #   mode, windows and window_s are the scenarios' defaults
     scenarios:
       - name: arc-seed1        # default: trajectory/seedN/Pkg (a path file: its stem)
-        trajectory: arc        # arc | p2p | circle | tilt | a path file (.yaml, .yml, .csv; docs/paths.md),
+        trajectory: arc        # arc | p2p | circle | tilt | excite | a path file (.yaml, .yml, .csv; docs/paths.md),
                                # a relative file name taken from the job file's folder
         machine: other.yaml    # this scenario's machine file, in place of the file's (relative: as above)
         mode: hybrid           # hybrid | imc | pid | pid_ff (default: tune.mode)
