@@ -117,6 +117,14 @@ def add_parsers(sub) -> None:
         metavar="SEED",
         help="the seed of the current sensors' noise, where the machine file gives current_noise (default 0)",
     )
+    r.add_argument(
+        "--substeps",
+        type=int,
+        default=1,
+        metavar="N",
+        help="step the machine N times a velocity period, at 1/N of the model's step: a truth finer than the model "
+        "that tune and identify step (default 1)",
+    )
     for sp in (b, r):
         sp.add_argument(
             "--machine", metavar="FILE", help="the machine file (pusupu machine init; default: the built-in machine)"
@@ -372,6 +380,8 @@ def run_sim_robot(args) -> int:
         raise ParameterError(f"--kin-error: expected a non-negative integer seed, got {args.kin_error}")
     if args.noise_seed < 0:
         raise ParameterError(f"--noise-seed: expected a non-negative integer seed, got {args.noise_seed}")
+    if not 1 <= args.substeps <= 64:
+        raise ParameterError(f"--substeps: expected a whole number of steps from 1 to 64, got {args.substeps}")
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise ParameterError(f"--seconds: expected a positive number of seconds, got {args.seconds}")
     from pusupu_jax.sim_robot.robot import FaultSpec, RobotModel, main_loop
@@ -391,6 +401,12 @@ def run_sim_robot(args) -> int:
     except ValueError as e:
         raise ParameterError(str(e)) from None
     model = RobotModel(
-        g, args.rate, args.kin_error, cst=bool((codes == CST).any()), machine=machine, noise_seed=args.noise_seed
+        g,
+        args.rate,
+        args.kin_error,
+        cst=bool((codes == CST).any()),
+        machine=machine,
+        noise_seed=args.noise_seed,
+        substeps=args.substeps,
     )
     return main_loop(model, args.listen, faults, args.seconds, args.drive_watchdog, not args.no_realtime)

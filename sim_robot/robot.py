@@ -138,7 +138,9 @@ class RobotModel:
     The mechanism is the machine's own MuJoCo model (:func:`pusupu_jax.plant.model.build_model`, seeded
     kinematic errors included) stepped by C MuJoCo with the MJX plant's armature, torque mapping and
     drive-train friction (:func:`pusupu_jax.plant.friction.slider_friction`, in numpy, at the slider
-    speeds at each step's start), one step per velocity period (the timestep is ``rates.dt_velocity``);
+    speeds at each step's start), ``substeps`` steps per velocity period (the timestep is ``rates.dt_velocity /
+    substeps``; the motors' torque held over the period, the friction taken anew at each step): with more than
+    one, a truth finer than the model the tuner and ``pusupu identify`` step (one step a velocity period);
     with the machine's ``encoder_counts``, the drives and the feedback see whole encoder counts, and each
     drive's speed is the counts it saw over the last velocity period; with its ``current_noise``, each current the
     drives report (and the torque they report, ``Kt`` times it) carries Gaussian noise of that standard deviation,
@@ -156,14 +158,20 @@ class RobotModel:
         cst: bool = False,
         machine: Machine | None = None,
         noise_seed: int = 0,
+        substeps: int = 1,
     ):
         from pusupu_jax.hw_bridge.loop import bridge_rates
 
         require_x64("the simulated robot's drives")
+        if not (isinstance(substeps, int) and substeps >= 1):
+            raise ValueError(f"substeps: expected a whole number of steps of at least 1, got {substeps!r}")
+        self.substeps = substeps
         self.servo = servo = gains.servo
         self.rates = bridge_rates(gains.rates, cst, rate)  # the bridge's, for its drive-mode pattern
         machine = Machine.default() if machine is None else machine
-        options = machine.options(ModelOptions(timestep=self.rates.dt_velocity, kin_error_seed=kin_error_seed))
+        options = machine.options(
+            ModelOptions(timestep=self.rates.dt_velocity / substeps, kin_error_seed=kin_error_seed)
+        )
         nominal = ModelOptions(timestep=self.rates.dt_velocity)
         plant = machine_plant(nominal)
         rates = machine_rates(nominal, self.rates)
@@ -256,8 +264,10 @@ class RobotModel:
         for _ in range(1 if np.any(cst_mask) else self.rates.n_position):  # velocity periods in a bridge period
             self._measured = self._speed(d)
             state, torque = self._drive(state, target, cst_mask, self._measured)
-            d.qfrc_applied[self.dofs] = self.force_gain * torque - slider_friction(self.friction, d.qvel[self.dofs])
-            mujoco.mj_step(self.m, d)
+            for _ in range(self.substeps):
+                friction = slider_friction(self.friction, d.qvel[self.dofs])
+                d.qfrc_applied[self.dofs] = self.force_gain * torque - friction
+                mujoco.mj_step(self.m, d)
         return state, torque
 
 
