@@ -203,7 +203,9 @@ class RobotModel:
             limit = d.velocity.limit
             i_ref = jnp.where(cst_mask, jnp.clip(target / d.Kt, -limit, limit), i_vel)
             electrical, sc, torque, _ = sim.current_ticks(d, electrical, sc, i_ref, omega, rates.n_mech)
-            return (electrical, sc), torque
+            # the torque the motors gave over the period (the mechanism's), and the armature current at its end:
+            # what the current sensors read when the drives answer, the sample the simulator's trace records
+            return (electrical, sc), jnp.concatenate([torque, loops.electrical_current(electrical)])
 
         z = np.zeros(len(self.Kt))
         self._drive = FlatStep(
@@ -213,7 +215,7 @@ class RobotModel:
             (z, np.zeros(len(z), bool), z),
         )
         self.drive0 = self._drive.state
-        self.torque0 = self.Kt * np.asarray(loops.electrical_current(carry0.electrical))
+        self.current0 = np.asarray(loops.electrical_current(carry0.electrical))
 
     def reset(self, d):
         """``d``, an ``MjData`` of this model, reset in place to the machine at rest at home, held by its drives;
@@ -249,26 +251,28 @@ class RobotModel:
         omega = d.qvel[self.dofs] / self.r if self.count is None else self._measured
         return self._encoder(d), omega, d.xpos[self.platform].copy()
 
-    def sensed(self, torque):
-        """``(torque [N m], current [A])`` as the drives report them when their motors give ``torque``: the current
-        ``torque / Kt`` with the current sensors' noise where the machine has it, and the torque ``Kt`` times that
-        current."""
-        if self.current_noise is None:
-            return torque, torque / self.Kt
-        current = torque / self.Kt + self.current_noise * self._noise.standard_normal(len(torque))
+    def sensed(self, current):
+        """``(torque [N m], current [A])`` as the drives report them when their motors' armature current is
+        ``current``: that current with the current sensors' noise where the machine has it, and the torque ``Kt``
+        times the reported current."""
+        if self.current_noise is not None:
+            current = current + self.current_noise * self._noise.standard_normal(len(current))
         return self.Kt * current, current
 
     def advance(self, d, state, target, cst_mask):
-        """One bridge period under ``target`` (CSV: rad/s; CST: N m): the drive state and the motor torque [N m]."""
-        torque = np.zeros(len(self.Kt))
+        """One bridge period under ``target`` (CSV: rad/s; CST: N m): the drive state and the motors' armature
+        currents [A] at its end (what the drives' sensors read when they answer)."""
+        n = len(self.Kt)
+        current = np.zeros(n)
         for _ in range(1 if np.any(cst_mask) else self.rates.n_position):  # velocity periods in a bridge period
             self._measured = self._speed(d)
-            state, torque = self._drive(state, target, cst_mask, self._measured)
+            state, out = self._drive(state, target, cst_mask, self._measured)
+            torque, current = out[:n], out[n:]
             for _ in range(self.substeps):
                 friction = slider_friction(self.friction, d.qvel[self.dofs])
                 d.qfrc_applied[self.dofs] = self.force_gain * torque - friction
                 mujoco.mj_step(self.m, d)
-        return state, torque
+        return state, current
 
 
 class SimRobot:
@@ -295,7 +299,7 @@ class SimRobot:
     def _new_session(self):
         self.session += 1
         self.state = self.model.reset(self.data)
-        self.torque = self.model.torque0
+        self.current = self.model.current0
         self.fault = self.faults[self.session] if self.session < len(self.faults) else FaultSpec()
         self.enabled_at = None
         self.sim_time = 0.0  # s of machine time since enable (periods run)
@@ -359,12 +363,12 @@ class SimRobot:
                 self.enabled_at = now
             self.mode = np.asarray(cmd.mode, np.int8)
             cst = self.mode == protocol.CST
-            self.state, self.torque = self.model.advance(
+            self.state, self.current = self.model.advance(
                 self.data, self.state, np.asarray(cmd.target, dtype=float), cst
             )
             self.sim_time += self.model.rates.dt_velocity * (1 if cst.any() else self.model.rates.n_position)
         elif after == {cia402.QUICK_STOP_ACTIVE}:
-            self.state, self.torque = self.model.advance(
+            self.state, self.current = self.model.advance(
                 self.data, self.state, np.zeros(len(self.drives)), np.zeros(len(self.drives), bool)
             )
         self.applied = cmd.sequence
@@ -375,7 +379,7 @@ class SimRobot:
             theta = theta + self.fault.arg
         faulted = np.array([d.state == cia402.FAULT for d in self.drives])
         # a faulted drive's power stage is off
-        torque, current = (np.where(faulted, 0.0, x) for x in self.model.sensed(self.torque))
+        torque, current = (np.where(faulted, 0.0, x) for x in self.model.sensed(self.current))
         fb = protocol.Feedback(
             self.sequence,
             time.monotonic_ns(),

@@ -299,10 +299,10 @@ def test_the_simulated_robots_encoders_read_whole_counts_and_its_drives_count_th
 
 def test_the_simulated_robots_finer_steps_converge_to_a_truth_the_model_step_is_close_to(setup, robot_model):
     """``substeps``: the machine stepped 2, 4 and 16 times a velocity period under the same speed commands (six
-    speeds, reversed after 0.1 s).  Against 16 substeps, the motors' torques and angles over 0.2 s differ less with
-    every halving of the step, by about half (semi-implicit Euler is of first order: measured 2.3x and 2.4x; asserted
-    1.8x), and at the model's own step (one a velocity period, what the tuner and identify step) the torques stay
-    within 0.5 % of their peak (measured 0.2 %)."""
+    speeds, reversed after 0.1 s).  Against 16 substeps, the motors' currents and angles over 0.2 s differ less with
+    every halving of the step, by about half (semi-implicit Euler is of first order: asserted 1.8x), and at the
+    model's own step (one a velocity period, what the tuner and identify step) the currents stay within 0.5 % of
+    their peak."""
     import mujoco
 
     from pusupu_jax.sim_robot.robot import RobotModel
@@ -313,13 +313,13 @@ def test_the_simulated_robots_finer_steps_converge_to_a_truth_the_model_step_is_
         d = mujoco.MjData(model.m)
         state, out = model.reset(d), []
         for k in range(100):  # 0.2 s
-            state, torque = model.advance(d, state, target if k < 50 else -target, np.zeros(N, bool))
-            out.append(np.concatenate([torque, model.actual(d)[0]]))
+            state, current = model.advance(d, state, target if k < 50 else -target, np.zeros(N, bool))
+            out.append(np.concatenate([current, model.actual(d)[0]]))
         return np.array(out)
 
     g = gains.load(setup.path)
     runs = {1: run(robot_model)} | {n: run(RobotModel(g, RATE, substeps=n)) for n in (2, 4, 16)}
-    errors = [np.abs(runs[n] - runs[16]).max(axis=0) for n in (1, 2, 4)]  # torques [N m], then angles [rad]
+    errors = [np.abs(runs[n] - runs[16]).max(axis=0) for n in (1, 2, 4)]  # currents [A], then angles [rad]
     assert np.all(errors[0] > 1.8 * errors[1]) and np.all(errors[1] > 1.8 * errors[2]), errors
     assert errors[0][:N].max() < 0.005 * np.abs(runs[16][:, :N]).max()
     with pytest.raises(ValueError, match=r"substeps: expected a whole number of steps of at least 1, got 0"):
@@ -328,23 +328,23 @@ def test_the_simulated_robots_finer_steps_converge_to_a_truth_the_model_step_is_
 
 def test_the_simulated_robots_current_sensors_carry_the_machines_noise(setup, robot_model):
     """A machine with ``current_noise`` (0.1 A, 0.3 A on axis 6): the currents the robot reports scatter about the
-    motors' ``torque / Kt`` with that standard deviation (within 5 % over 4000 draws: the sample deviation's own
+    motors' armature currents with that standard deviation (within 5 % over 4000 draws: the sample deviation's own
     spread is 1.1 %), drawn from the seed it is given, and the torques it reports are ``Kt`` times them; the built-in
-    machine reports ``torque / Kt`` exactly."""
+    machine reports the armature currents exactly."""
     from pusupu_jax.machine_file import Machine
     from pusupu_jax.sim_robot.robot import RobotModel
 
     sigma = np.array([0.1] * 5 + [0.3])
     machine = dataclasses.replace(Machine.default(), current_noise=sigma)
     model = RobotModel(gains.load(setup.path), RATE, machine=machine, noise_seed=7)
-    torque = np.linspace(-2.0, 3.0, N)  # N m
-    reported, current = (np.array(x) for x in zip(*[model.sensed(torque) for _ in range(4000)]))
-    noise = current - torque / model.Kt
+    armature = np.linspace(-2.0, 3.0, N)  # A
+    reported, current = (np.array(x) for x in zip(*[model.sensed(armature) for _ in range(4000)]))
+    noise = current - armature
     np.testing.assert_allclose(noise.std(axis=0), sigma, rtol=0.05)
     np.testing.assert_allclose(noise, sigma * np.random.default_rng(7).standard_normal((4000, N)), rtol=1e-9)
     np.testing.assert_allclose(reported, model.Kt * current, rtol=1e-14)
-    exact_torque, exact_current = robot_model.sensed(torque)
-    assert np.array_equal(exact_torque, torque) and np.array_equal(exact_current, torque / robot_model.Kt)
+    exact_torque, exact_current = robot_model.sensed(armature)
+    assert np.array_equal(exact_current, armature) and np.array_equal(exact_torque, robot_model.Kt * armature)
 
 
 def _command(sequence, word, target=np.zeros(N), mode=protocol.CSV):
