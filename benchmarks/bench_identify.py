@@ -1,8 +1,9 @@
 """Does ``pusupu identify`` recover a machine it did not start from?  Per fitted value: truth, fit, standard error
 (JSON on stdout).
 
-A "true" machine differs from the built-in one in every value the fit is asked for: per axis Coulomb and viscous
-friction, rotor inertia and torque constant (its back-EMF constant with it), and a 5 kg payload off centre.
+A "true" machine (``docs/examples/machine_as_built.yaml``) differs from the built-in one in every value the fit is
+asked for: per axis Coulomb and viscous friction, rotor inertia and torque constant (its back-EMF constant with it),
+and a 5 kg payload off centre.
 ``pusupu sim --plant mjx --log`` runs Table 1's gains (IMC) on it along ``--trajectory``; ``pusupu identify``'s fit
 (:func:`pusupu_jax.machine_fit.fit`) then starts from the built-in machine with a 3 kg payload at the platform
 centre (the payload's inertia given as the truth's, as from CAD: it is not fitted) and fits ``--fit``.  A payload
@@ -47,27 +48,25 @@ import numpy as np
 
 from timing import emit, processor  # beside this script
 
-TRUTH = {  # per axis, and the payload: what the true machine has where the built-in one differs
-    "coulomb": [28.0, 24.0, 20.0, 16.0, 30.0, 22.0],  # N (built-in 20)
-    "viscous": [35.0, 60.0, 50.0, 80.0, 40.0, 55.0],  # N s/m (built-in 50)
-    "J": [2.26e-4, 1.70e-4, 2.07e-4, 1.88e-4, 2.44e-4, 1.60e-4],  # kg m^2 (built-in 1.88e-4)
-    "Kt": [1.19, 1.45, 1.322, 1.26, 1.40, 1.22],  # N m/A (built-in 1.322); Ke the same
-}
-PAYLOAD = {"mass": 5.0, "com": (0.03, -0.02, 0.05), "inertia": (0.02, 0.02, 0.03)}  # kg, m, kg m^2
-START_PAYLOAD = {"mass": 3.0, "com": (0.0, 0.0, 0.0), "inertia": PAYLOAD["inertia"]}
+# per axis Coulomb 28, 24, 20, 16, 30, 22 N and viscous friction 35, 60, 50, 80, 40, 55 N s/m (built-in 20 and 50),
+# rotor inertia 2.26, 1.70, 2.07, 1.88, 2.44, 1.60 x 1e-4 kg m^2 (1.88), torque and back-EMF constants 1.19, 1.45,
+# 1.322, 1.26, 1.40, 1.22 N m/A (1.322); a 5 kg payload at (0.03, -0.02, 0.05) m, inertia (0.02, 0.02, 0.03) kg m^2
+TRUE_MACHINE = Path(__file__).resolve().parent.parent / "docs" / "examples" / "machine_as_built.yaml"
 
 
 def _machines(tmp: Path, com: tuple[float, ...]):
-    """The true machine (its payload's centre of mass at ``com`` [m]) and the start machine, written as machine
-    files; the true one returned."""
+    """The true machine (:data:`TRUE_MACHINE`, its payload's centre of mass at ``com`` [m]) and the start machine
+    (the built-in one with a 3 kg payload at the platform centre, the truth's inertia), written as machine files; the
+    true one returned."""
     from pusupu_jax import machine_file
     from pusupu_jax.files import write_atomic
     from pusupu_jax.machine_file import Machine, Payload
 
-    base = Machine.default()
-    drives = base.drives | {k: np.asarray(v, float) for k, v in TRUTH.items()} | {"Ke": np.asarray(TRUTH["Kt"])}
-    truth = dataclasses.replace(base, name="true", drives=drives, payload=Payload(**(PAYLOAD | {"com": com})))
-    start = dataclasses.replace(base, name="start", payload=Payload(**START_PAYLOAD))
+    given = machine_file.load(TRUE_MACHINE)
+    truth = dataclasses.replace(given, name="true", payload=dataclasses.replace(given.payload, com=com))
+    start = dataclasses.replace(
+        Machine.default(), name="start", payload=Payload(mass=3.0, com=(0.0, 0.0, 0.0), inertia=given.payload.inertia)
+    )
     for name, m in (("true", truth), ("start", start)):
         write_atomic(tmp / f"{name}.yaml", machine_file.template(m))
     return truth

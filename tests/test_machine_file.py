@@ -1,6 +1,7 @@
 """The machine file: the built-in template reads back as the built-in machine, bad files are refused in one line with
 exit 2 and nothing written, and a gain file names the machine it was tuned on (the bridge refuses another machine's)."""
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -34,6 +35,26 @@ def test_the_template_is_the_built_in_machine_and_the_digest_ignores_layout():
     assert machine_file.digest(machine_file.parse(doc)) == machine_file.digest(Machine.default())
     doc["drives"]["R"] = 1.3 * (1 + 1e-9)
     assert machine_file.digest(machine_file.parse(doc)) != machine_file.digest(Machine.default())
+
+
+def test_the_as_built_example_is_the_built_in_machine_with_other_drive_values_and_a_payload():
+    """docs/examples/machine_as_built.yaml, the robot of the README's identification walk-through and the truth of
+    benchmarks/bench_identify.py: the built-in geometry and every drive field the same but the fitted ones (per axis
+    friction, rotor inertia, torque constant with the back-EMF constant equal to it), each away from its built-in
+    value on at least four axes, and a 5 kg payload off centre."""
+    built_in = Machine.default()
+    as_built = machine_file.load(EXAMPLE.parent / "machine_as_built.yaml")
+    same_rest = dataclasses.replace(as_built, name=built_in.name, drives=built_in.drives, payload=built_in.payload)
+    assert machine_file.digest(same_rest) == machine_file.digest(built_in)  # geometry and all else the built-in's
+    fitted = {"coulomb", "viscous", "J", "Kt", "Ke"}
+    for name, value in built_in.drives.items():
+        theirs = np.broadcast_to(as_built.drives[name], (6,))
+        if name in fitted:
+            assert np.sum(~np.isclose(theirs, np.broadcast_to(value, (6,)))) >= 4, name
+        else:
+            np.testing.assert_array_equal(theirs, np.broadcast_to(value, (6,)), err_msg=name)
+    np.testing.assert_array_equal(as_built.drives["Ke"], as_built.drives["Kt"])
+    assert as_built.payload.mass == 5.0 and np.linalg.norm(as_built.payload.com) > 0.05
 
 
 def test_sensors_are_optional_and_a_file_without_them_keeps_its_digest():
