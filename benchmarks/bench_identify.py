@@ -51,22 +51,20 @@ from timing import emit, processor  # beside this script
 # per axis Coulomb 28, 24, 20, 16, 30, 22 N and viscous friction 35, 60, 50, 80, 40, 55 N s/m (built-in 20 and 50),
 # rotor inertia 2.26, 1.70, 2.07, 1.88, 2.44, 1.60 x 1e-4 kg m^2 (1.88), torque and back-EMF constants 1.19, 1.45,
 # 1.322, 1.26, 1.40, 1.22 N m/A (1.322); a 5 kg payload at (0.03, -0.02, 0.05) m, inertia (0.02, 0.02, 0.03) kg m^2
-TRUE_MACHINE = Path(__file__).resolve().parent.parent / "docs" / "examples" / "machine_as_built.yaml"
+EXAMPLES = Path(__file__).resolve().parent.parent / "docs" / "examples"
+TRUE_MACHINE = EXAMPLES / "machine_as_built.yaml"
+START_MACHINE = EXAMPLES / "machine_as_designed.yaml"  # the built-in one with a 3 kg payload at the centre
 
 
 def _machines(tmp: Path, com: tuple[float, ...]):
     """The true machine (:data:`TRUE_MACHINE`, its payload's centre of mass at ``com`` [m]) and the start machine
-    (the built-in one with a 3 kg payload at the platform centre, the truth's inertia), written as machine files; the
-    true one returned."""
+    (:data:`START_MACHINE`), written as machine files; the true one returned."""
     from pusupu_jax import machine_file
     from pusupu_jax.files import write_atomic
-    from pusupu_jax.machine_file import Machine, Payload
 
     given = machine_file.load(TRUE_MACHINE)
     truth = dataclasses.replace(given, name="true", payload=dataclasses.replace(given.payload, com=com))
-    start = dataclasses.replace(
-        Machine.default(), name="start", payload=Payload(mass=3.0, com=(0.0, 0.0, 0.0), inertia=given.payload.inertia)
-    )
+    start = dataclasses.replace(machine_file.load(START_MACHINE), name="start")
     for name, m in (("true", truth), ("start", start)):
         write_atomic(tmp / f"{name}.yaml", machine_file.template(m))
     return truth
