@@ -13,8 +13,8 @@ With ``--source sim`` (default) the log is written by the same MJX model that re
 measures the fit and what the data excite, not the model's error.  With ``--source bridge`` the true machine is the
 simulated robot (``pusupu sim-robot --machine true.yaml``: C MuJoCo, with the drives' loops in the robot) and the log
 is ``pusupu bridge --log``'s over UDP on loopback, in lock step (``--lockstep``: each cycle waits for the robot's
-answer, so no cycle is skipped on a loaded machine); ``--substeps N`` has the simulated robot step its machine at 1/N
-of the fitting model's step, a truth finer than the model.
+answer, so no cycle is skipped on a loaded machine); ``--fine-steps N`` has the simulated robot step its machine N
+times per current-loop tick (``pusupu sim-robot --fine-steps``), a truth finer than the fitting model.
 ``--noise-seeds N`` fits N more copies of the log with the sensors' noise drawn afresh: each motor
 angle rounded to an encoder of ``--encoder-bits`` a turn, and each current with Gaussian noise of
 ``--current-noise`` of its axis's RMS.  Each entry says whether the truth lies inside the value's 95 % interval
@@ -27,7 +27,7 @@ seconds spent in the residual's and the Jacobian's calls (``solve_s``, compiles 
 replays (``replays``: every residual call, the differences' included, plus the Jacobian's seconds over one
 residual call's); ``anchor`` compares them per log::
 
-    python benchmarks/bench_identify.py [--source sim|bridge] [--substeps 1] [--trajectory p2p] [--window 2]
+    python benchmarks/bench_identify.py [--source sim|bridge] [--fine-steps N] [--trajectory p2p] [--window 2]
         [--fit friction,motor,payload] [--noise-seeds 0] [--derivatives exact] [--out FILE]
 """
 
@@ -94,8 +94,8 @@ def _sim_log(tmp: Path, gain_path: Path, trajectory: str) -> None:
     )
 
 
-def _bridge_log(tmp: Path, gain_path: Path, trajectory: str, seconds: float, substeps: int) -> dict:
-    """``pusupu bridge --log`` against ``pusupu sim-robot --machine true.yaml --substeps substeps`` over UDP on
+def _bridge_log(tmp: Path, gain_path: Path, trajectory: str, seconds: float, fine_steps: int | None) -> dict:
+    """``pusupu bridge --log`` against ``pusupu sim-robot --machine true.yaml [--fine-steps fine_steps]`` over UDP on
     loopback, in lock step, for ``seconds`` of the path; returns the bridge's report."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
         probe.bind(("127.0.0.1", 0))
@@ -103,7 +103,8 @@ def _bridge_log(tmp: Path, gain_path: Path, trajectory: str, seconds: float, sub
     cli = [sys.executable, "-m", "pusupu_jax.cli"]
     robot = subprocess.Popen(
         cli + ["sim-robot", "--gains", str(gain_path), "--machine", str(tmp / "true.yaml"), "--listen", url]
-        + ["--seconds", "3600", "--no-realtime", "--drive-watchdog", "5", "--substeps", str(substeps)],
+        + ["--seconds", "3600", "--no-realtime", "--drive-watchdog", "5"]
+        + ([] if fine_steps is None else ["--fine-steps", str(fine_steps)]),
         stdout=subprocess.PIPE,
         text=True,
         env=os.environ,
@@ -176,11 +177,10 @@ def main() -> None:
     )
     ap.add_argument("--trajectory", default="p2p")
     ap.add_argument(
-        "--substeps",
+        "--fine-steps",
         type=int,
-        default=1,
-        help="with --source bridge: the simulated robot steps its machine this many times a velocity period, at a "
-        "step this much finer than the fitting model's (default 1)",
+        help="with --source bridge: the simulated robot steps its machine this many times per current-loop tick, a "
+        "truth finer than the fitting model (default: the model's stepping)",
     )
     ap.add_argument("--window", type=float, default=2.0, help="seconds of the log fitted (default 2)")
     ap.add_argument("--fit", default="friction,motor,payload")
@@ -215,7 +215,7 @@ def main() -> None:
         gain_path = _gain_file(tmp)
         t0 = time.perf_counter()
         if args.source == "bridge":
-            bridge = _bridge_log(tmp, gain_path, args.trajectory, args.window + 0.5, args.substeps)
+            bridge = _bridge_log(tmp, gain_path, args.trajectory, args.window + 0.5, args.fine_steps)
             run = {k: bridge.get(k) for k in ("cycles", "missed_deadlines", "faults", "ended")}
         else:
             _sim_log(tmp, gain_path, args.trajectory)
@@ -296,7 +296,7 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict
         "command": "python benchmarks/bench_identify.py " + " ".join(sys.argv[1:]),
         "source": args.source,
         "trajectory": args.trajectory,
-        "robot_substeps": args.substeps if args.source == "bridge" else None,
+        "robot_fine_steps": args.fine_steps if args.source == "bridge" else None,
         "window_s": args.window,
         "fit": [str(f) for f in fields],
         "values_fitted": len(fits[0]["values"]),

@@ -118,12 +118,11 @@ def add_parsers(sub) -> None:
         help="the seed of the current sensors' noise, where the machine file gives current_noise (default 0)",
     )
     r.add_argument(
-        "--substeps",
+        "--fine-steps",
         type=int,
-        default=1,
         metavar="N",
-        help="step the machine N times a velocity period, at 1/N of the model's step: a truth finer than the model "
-        "that tune and identify step (default 1)",
+        help="step the machine N times per current-loop tick, each tick on the latest speed: a truth finer than the "
+        "model that tune and identify step, one step per velocity period (default: that model's stepping)",
     )
     for sp in (b, r):
         sp.add_argument(
@@ -380,8 +379,8 @@ def run_sim_robot(args) -> int:
         raise ParameterError(f"--kin-error: expected a non-negative integer seed, got {args.kin_error}")
     if args.noise_seed < 0:
         raise ParameterError(f"--noise-seed: expected a non-negative integer seed, got {args.noise_seed}")
-    if not 1 <= args.substeps <= 64:
-        raise ParameterError(f"--substeps: expected a whole number of steps from 1 to 64, got {args.substeps}")
+    if args.fine_steps is not None and not 1 <= args.fine_steps <= 64:
+        raise ParameterError(f"--fine-steps: expected a whole number of steps from 1 to 64, got {args.fine_steps}")
     if args.seconds is not None and not (math.isfinite(args.seconds) and args.seconds > 0):
         raise ParameterError(f"--seconds: expected a positive number of seconds, got {args.seconds}")
     from pusupu_jax.sim_robot.robot import FaultSpec, RobotModel, main_loop
@@ -407,6 +406,6 @@ def run_sim_robot(args) -> int:
         cst=bool((codes == CST).any()),
         machine=machine,
         noise_seed=args.noise_seed,
-        substeps=args.substeps,
+        fine_steps=args.fine_steps,
     )
     return main_loop(model, args.listen, faults, args.seconds, args.drive_watchdog, not args.no_realtime)

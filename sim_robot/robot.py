@@ -36,6 +36,7 @@ are in :data:`ARGS` (at most 60 s of silence or delay, blocks of 1 to 1000 repli
 from __future__ import annotations
 
 import enum
+import functools
 import gc
 import heapq
 import os
@@ -138,9 +139,10 @@ class RobotModel:
     The mechanism is the machine's own MuJoCo model (:func:`pusupu_jax.plant.model.build_model`, seeded
     kinematic errors included) stepped by C MuJoCo with the MJX plant's armature, torque mapping and
     drive-train friction (:func:`pusupu_jax.plant.friction.slider_friction`, in numpy, at the slider
-    speeds at each step's start), ``substeps`` steps per velocity period (the timestep is ``rates.dt_velocity /
-    substeps``; the motors' torque held over the period, the friction taken anew at each step): with more than
-    one, a truth finer than the model the tuner and ``pusupu identify`` step (one step a velocity period);
+    speeds at each step's start), as the MJX machine steps: one step per velocity period (the timestep is
+    ``rates.dt_velocity``), the current loop's ticks inside it on the speed at its start, their mean torque held over
+    it.  With ``fine_steps`` N, a truth finer than that model: N steps per current-loop tick (the timestep
+    ``rates.dt_current / N``), each tick on the motors' speed after the last step, its torque held over its N steps;
     with the machine's ``encoder_counts``, the drives and the feedback see whole encoder counts, and each
     drive's speed is the counts it saw over the last velocity period; with its ``current_noise``, each current the
     drives report (and the torque they report, ``Kt`` times it) carries Gaussian noise of that standard deviation,
@@ -158,20 +160,19 @@ class RobotModel:
         cst: bool = False,
         machine: Machine | None = None,
         noise_seed: int = 0,
-        substeps: int = 1,
+        fine_steps: int | None = None,
     ):
         from pusupu_jax.hw_bridge.loop import bridge_rates
 
         require_x64("the simulated robot's drives")
-        if not (isinstance(substeps, int) and substeps >= 1):
-            raise ValueError(f"substeps: expected a whole number of steps of at least 1, got {substeps!r}")
-        self.substeps = substeps
+        if fine_steps is not None and not (isinstance(fine_steps, int) and fine_steps >= 1):
+            raise ValueError(f"fine_steps: expected a whole number of steps of at least 1, got {fine_steps!r}")
+        self.fine_steps = fine_steps
         self.servo = servo = gains.servo
         self.rates = bridge_rates(gains.rates, cst, rate)  # the bridge's, for its drive-mode pattern
         machine = Machine.default() if machine is None else machine
-        options = machine.options(
-            ModelOptions(timestep=self.rates.dt_velocity / substeps, kin_error_seed=kin_error_seed)
-        )
+        step = self.rates.dt_velocity if fine_steps is None else self.rates.dt_current / fine_steps
+        options = machine.options(ModelOptions(timestep=step, kin_error_seed=kin_error_seed))
         nominal = ModelOptions(timestep=self.rates.dt_velocity)
         plant = machine_plant(nominal)
         rates = machine_rates(nominal, self.rates)
@@ -197,23 +198,30 @@ class RobotModel:
         self.current_noise = machine.current_noise  # A, or None: noise-free current sensors
         self._noise = np.random.default_rng(noise_seed)
 
-        def velocity_period(d, state, target, cst_mask, omega):
+        def velocity_part(d, state, target, cst_mask, omega):
             electrical, sc = state
             sc, i_vel = cascade.velocity_tick(d, vmode, sc, jnp.where(cst_mask, 0.0, target), omega)
             limit = d.velocity.limit
-            i_ref = jnp.where(cst_mask, jnp.clip(target / d.Kt, -limit, limit), i_vel)
-            electrical, sc, torque, _ = sim.current_ticks(d, electrical, sc, i_ref, omega, rates.n_mech)
-            # the torque the motors gave over the period (the mechanism's), and the armature current at its end:
+            return (electrical, sc), jnp.where(cst_mask, jnp.clip(target / d.Kt, -limit, limit), i_vel)
+
+        def ticks(n, d, state, i_ref, omega):
+            electrical, sc = state
+            electrical, sc, torque, _ = sim.current_ticks(d, electrical, sc, i_ref, omega, n)
+            # the torque the motors gave over the ticks (the mechanism's), and the armature current after them:
             # what the current sensors read when the drives answer, the sample the simulator's trace records
             return (electrical, sc), jnp.concatenate([torque, loops.electrical_current(electrical)])
 
-        z = np.zeros(len(self.Kt))
-        self._drive = FlatStep(
-            velocity_period,
-            (loops.discretize(servo, rates),),
-            (carry0.electrical, carry0.cascade),
-            (z, np.zeros(len(z), bool), z),
-        )
+        def velocity_period(d, state, target, cst_mask, omega):
+            state, i_ref = velocity_part(d, state, target, cst_mask, omega)
+            return ticks(rates.n_mech, d, state, i_ref, omega)
+
+        z, no = np.zeros(len(self.Kt)), np.zeros(len(self.Kt), bool)
+        consts, state0 = (loops.discretize(servo, rates),), (carry0.electrical, carry0.cascade)
+        if fine_steps is None:
+            self._drive = FlatStep(velocity_period, consts, state0, (z, no, z))
+        else:  # the velocity tick, then each current tick apart
+            self._drive = FlatStep(velocity_part, consts, state0, (z, no, z))
+            self._tick = FlatStep(functools.partial(ticks, 1), consts, state0, (z, z))
         self.drive0 = self._drive.state
         self.current0 = np.asarray(loops.electrical_current(carry0.electrical))
 
@@ -266,13 +274,24 @@ class RobotModel:
         current = np.zeros(n)
         for _ in range(1 if np.any(cst_mask) else self.rates.n_position):  # velocity periods in a bridge period
             self._measured = self._speed(d)
-            state, out = self._drive(state, target, cst_mask, self._measured)
-            torque, current = out[:n], out[n:]
-            for _ in range(self.substeps):
-                friction = slider_friction(self.friction, d.qvel[self.dofs])
-                d.qfrc_applied[self.dofs] = self.force_gain * torque - friction
-                mujoco.mj_step(self.m, d)
+            if self.fine_steps is None:
+                state, out = self._drive(state, target, cst_mask, self._measured)
+                self._step(d, out[:n], 1)
+                current = out[n:]
+                continue
+            state, i_ref = self._drive(state, target, cst_mask, self._measured)
+            for _ in range(self.rates.n_velocity):  # each current tick on the motors' speed now
+                state, out = self._tick(state, i_ref, d.qvel[self.dofs] / self.r)
+                self._step(d, out[:n], self.fine_steps)
+                current = out[n:]
         return state, current
+
+    def _step(self, d, torque, steps):
+        """``steps`` steps of the mechanism in ``d`` under the motors' ``torque`` [N m], the drive train's friction
+        taken at the slider speeds at each step's start."""
+        for _ in range(steps):
+            d.qfrc_applied[self.dofs] = self.force_gain * torque - slider_friction(self.friction, d.qvel[self.dofs])
+            mujoco.mj_step(self.m, d)
 
 
 class SimRobot:
