@@ -28,6 +28,7 @@ replays (``replays``: every residual call, the differences' included, plus the J
 residual call's); ``anchor`` compares them per log::
 
     python benchmarks/bench_identify.py [--source sim|bridge] [--fine-steps N] [--trajectory p2p] [--window 2]
+        [--mech-step S]
         [--fit friction,motor,payload] [--noise-seeds 0] [--derivatives exact] [--out FILE]
 """
 
@@ -183,6 +184,7 @@ def main() -> None:
         "truth finer than the fitting model (default: the model's stepping)",
     )
     ap.add_argument("--window", type=float, default=2.0, help="seconds of the log fitted (default 2)")
+    ap.add_argument("--mech-step", type=float, help="the replay's mechanical step [s] (default the model's)")
     ap.add_argument("--fit", default="friction,motor,payload")
     ap.add_argument("--noise-seeds", type=int, default=0, help="noisy copies of the log fitted after it")
     ap.add_argument("--encoder-bits", type=int, default=17)
@@ -234,6 +236,7 @@ def main() -> None:
             report, _, _ = machine_fit.fit(
                 [case], start, g.servo, g.hybrid, g.rates, fields, args.window,
                 progress=lambda line: print(line, file=sys.stderr, flush=True), derivatives=derivatives,
+                mech_step=args.mech_step,
             )  # fmt: skip
             entries = _entries(report, truth)
             per_call = report.residual_s / max(report.residual_calls, 1)
@@ -247,6 +250,7 @@ def main() -> None:
                     "residual_s": report.residual_s,
                     "jacobian_s": report.jacobian_s,
                     "replays": report.residual_calls + report.jacobian_s / per_call,
+                    "mech_step_s": report.mech_step_s,
                     "evaluations": report.evaluations,
                     "jacobians": report.jacobians,
                     "converged": report.converged,
@@ -298,6 +302,7 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict
         "trajectory": args.trajectory,
         "robot_fine_steps": args.fine_steps if args.source == "bridge" else None,
         "window_s": args.window,
+        "mech_step_s": fits[0]["mech_step_s"] if fits else None,
         "fit": [str(f) for f in fields],
         "values_fitted": len(fits[0]["values"]),
         "derivatives": args.derivatives.split(","),

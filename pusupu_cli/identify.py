@@ -39,6 +39,13 @@ def add_parser(sub):
         help="replay each log's first S seconds from rest at the path's start (default 2)",
     )
     i.add_argument("--trajectory", metavar="NAME|FILE", help="the path the logs ran, where not the one they name")
+    i.add_argument(
+        "--mech-step",
+        type=float,
+        metavar="S",
+        help="the replay's mechanical step: 0.00005 (one a current-loop tick: closer to the robot, 5x the time) or "
+        "0.00025 (default: the model's, as tune steps it)",
+    )
     i.add_argument("--out", required=True, metavar="FILE", help="the identified machine file to write")
     i.add_argument(
         "--plot", metavar="PNG", help="write the logged currents (or torques) against the replay's, before and after"
@@ -62,6 +69,7 @@ def cmd_identify(args) -> int:
     fields = machine_fit.fit_fields(args.fit)
     if not (np.isfinite(args.window) and args.window > 0):
         raise ParameterError(f"--window: expected a positive number of seconds, got {args.window}")
+    machine_fit.check_mech_step(args.mech_step, name="--mech-step")
     check_output_path(args.out, "--out", "machine")
     if args.plot:
         check_plot_path(args.plot)
@@ -96,10 +104,11 @@ def cmd_identify(args) -> int:
             args.window,
             args.trajectory,
             progress=lambda line: print(line, file=sys.stderr, flush=True),
+            mech_step=args.mech_step,
         )
     header = [
         f"# identified by pusupu identify from {machine.name!r}: {', '.join(map(str, fields))} fitted to "
-        f"{len(logs)} log(s), the first {args.window:g} s of each",
+        f"{len(logs)} log(s), the first {args.window:g} s of each, replayed at a {report.mech_step_s * 1e6:g} us step",
         *(f"#   log {d['path']} sha256 {d['sha256']}" for d in report.logs),
         f"#   residual RMS {report.residual_rms_before:.4g} -> {report.residual_rms_after:.4g} over "
         f"{report.samples} samples",

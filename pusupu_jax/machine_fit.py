@@ -53,6 +53,7 @@ from .machine import MACHINE_MODES, machine_plant, machine_rates, machine_refere
 from .machine_file import Machine
 from .params import N_AXES, LoopRates, ParameterError, ServoParams, bounds
 from .paths import platform_path_from
+from .plant.model import ModelOptions
 from .run_log import DriveLog
 from .sim import rollout
 
@@ -227,16 +228,17 @@ class FittedValue:
 @dataclasses.dataclass(frozen=True)
 class FitReport:
     """What :func:`fit` found: every fitted value, the residual's RMS before and after, the samples and the window,
-    the solver's work (``converged``: False where it stopped at :data:`MAX_EVALUATIONS`; ``derivatives``: the Jacobian
-    it took; ``residual_calls``: every replay of the residual, finite differences included; ``residual_s``,
-    ``jacobian_s``: seconds in the residual's and the Jacobian's calls, compiles left out), and the logs (path,
-    SHA-256, what wrote them)."""
+    the replay's mechanical step [s], the solver's work (``converged``: False where it stopped at
+    :data:`MAX_EVALUATIONS`; ``derivatives``: the Jacobian it took; ``residual_calls``: every replay of the residual,
+    finite differences included; ``residual_s``, ``jacobian_s``: seconds in the residual's and the Jacobian's calls,
+    compiles left out), and the logs (path, SHA-256, what wrote them)."""
 
     values: tuple[FittedValue, ...]
     residual_rms_before: float
     residual_rms_after: float
     samples: int
     window_s: float
+    mech_step_s: float
     evaluations: int
     jacobians: int
     derivatives: Derivatives
@@ -279,12 +281,13 @@ def _replay(
     rates: LoopRates,
     window_s: float,
     trajectory: str | None,
+    mech_step: float | None,
 ) -> Replay:
     """The closed-loop replay of ``log``'s first ``window_s`` seconds on ``machine`` under ``gains``, checked against
-    the log: its mode, rate and reference."""
+    the log: its mode, rate and reference; the MJX machine stepped every ``mech_step`` [s] (None: the model's)."""
     if log.mode not in MACHINE_MODES:
         raise ParameterError(f"{log.path}: mode: expected one of {tuple(map(str, MACHINE_MODES))}, got {log.mode!r}")
-    options = machine.options()
+    options = machine.options(None if mech_step is None else ModelOptions(timestep=mech_step))
     rates = machine_rates(options, rates)
     spec = trajectory or log.trajectory
     if not spec:
@@ -448,6 +451,19 @@ def least_squares_excited(
     return Solution(x, std, excited, r0, sol, int(evaluations), int(jacobians or 0), *work)
 
 
+def check_mech_step(mech_step: float | None, rates: LoopRates = LoopRates(), name: str = "mech step") -> None:
+    """ParameterError in one line naming ``name`` unless ``mech_step`` [s] is None (the model's step) or a whole
+    number of ``rates``' current-loop ticks that divides the velocity period: the steps the replay's MJX machine can
+    take."""
+    ticks = [k for k in range(1, rates.n_velocity + 1) if rates.n_velocity % k == 0]
+    if mech_step is None or any(np.isclose(mech_step, k * rates.dt_current, rtol=1e-9, atol=0) for k in ticks):
+        return
+    raise ParameterError(
+        f"{name}: expected a whole number of current-loop ticks that divides the velocity period, one of "
+        f"{', '.join(f'{k * rates.dt_current:g}' for k in ticks)} s, got {mech_step!r}"
+    )
+
+
 def fit(
     logs: list[DriveLog],
     machine: Machine,
@@ -459,6 +475,7 @@ def fit(
     trajectory: str | None = None,
     progress: Callable[[str], object] | None = None,
     derivatives: Derivatives = Derivatives.EXACT,
+    mech_step: float | None = None,
 ) -> tuple[FitReport, Machine, list[dict[str, Any]]]:
     """Fit ``fields`` of ``machine`` (its values are the start) to ``logs``, each replayed over its first
     ``window_s`` [s] with ``gains`` (``hybrid``: a hybrid log's gains; ``rates``: the gains' rates; ``trajectory``:
@@ -466,7 +483,9 @@ def fit(
     as they were), and per log the arrays of the plot (``channel``, ``t``, logged and replayed efforts before and
     after).
     ``progress(line)`` is told what runs (compiles take about half a minute each on 2 CPU cores).  ``derivatives``:
-    the solver's Jacobian (:class:`Derivatives`: the exact one, or finite differences to compare with)."""
+    the solver's Jacobian (:class:`Derivatives`: the exact one, or finite differences to compare with).
+    ``mech_step`` [s]: the replay's mechanical step (:func:`check_mech_step`; None: the model's, 0.25 ms, as the
+    tuner steps it); a finer one is closer to a robot and costs time in proportion."""
     say = progress or (lambda line: None)
     t0 = time.perf_counter()
     # every fitted value in one vector, field after field (each field.size long), scaled by its start (or SCALES)
@@ -487,7 +506,8 @@ def fit(
                 f"{log.path}: expected measured currents to fit Kt (protocol version 2, sim --log, or a CSV's "
                 "current_a columns), found torques only"
             )
-    replays = [_replay(log, machine, gains, hybrid, rates, window_s, trajectory) for log in logs]
+    check_mech_step(mech_step, rates)
+    replays = [_replay(log, machine, gains, hybrid, rates, window_s, trajectory, mech_step) for log in logs]
     if FitField.TORQUE_CONSTANT in fields:
         for log in logs:
             if control_mode(log.mode).hybrid:
@@ -550,6 +570,7 @@ def fit(
         residual_rms_after=float(np.sqrt(np.mean(r1**2))),
         samples=int(sum(len(r.t) for r in replays)),
         window_s=window_s,
+        mech_step_s=ModelOptions().timestep if mech_step is None else mech_step,
         evaluations=solution.evaluations,
         jacobians=solution.jacobians,
         derivatives=derivatives,

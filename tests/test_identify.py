@@ -5,6 +5,9 @@ excite at its start, on a linear problem.  The fit of a log itself is not run by
 cache, its replay and Jacobian compile for minutes on 2 cores (docs/identify.md and benchmarks/bench_identify.py have
 the measured fits)."""
 
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -78,6 +81,32 @@ def test_kt_is_not_fitted_to_a_log_without_currents(tmp_path):
     assert log.current is None
     with pytest.raises(ParameterError, match=r"drive.csv: expected measured currents to fit Kt .*, found torques only"):
         machine_fit.fit([log], Machine.default(), ServoParams.table1(), fields=fit_fields("friction,Kt"))
+
+
+def test_a_mech_step_the_machine_cannot_take_is_refused_in_one_line_before_any_replay(tmp_path):
+    """The replay's mechanical step must be a whole number of current-loop ticks dividing the velocity period (50 and
+    250 us at the default rates); another is refused by the fit and by ``pusupu identify --mech-step`` (exit 2)."""
+    from pusupu_jax.machine_file import Machine
+
+    machine_fit.check_mech_step(5e-5)
+    machine_fit.check_mech_step(2.5e-4)
+    machine_fit.check_mech_step(None)
+    expected = (
+        r"expected a whole number of current-loop ticks that divides the velocity period, one of 5e-05, 0.00025 s"
+    )
+    with pytest.raises(ParameterError, match=r"mech step: " + expected + ", got 0.0001"):
+        machine_fit.fit([], Machine.default(), ServoParams.table1(), mech_step=1e-4)
+    r = subprocess.run(
+        [sys.executable, "-m", "pusupu_jax.cli", "identify", "x.mcap", "--out", str(tmp_path / "m.yaml")]
+        + ["--mech-step", "1.5e-4"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert r.returncode == 2 and r.stderr.strip().splitlines() == [
+        f"pusupu: error: --mech-step: {expected.replace(chr(92), '')}, got 0.00015"
+    ], r.stderr
+    assert not (tmp_path / "m.yaml").exists()
 
 
 def test_a_file_that_is_not_a_run_log_is_refused_in_one_line(tmp_path):
