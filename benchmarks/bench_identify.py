@@ -302,7 +302,7 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict
         "trajectory": args.trajectory,
         "robot_fine_steps": args.fine_steps if args.source == "bridge" else None,
         "window_s": args.window,
-        "mech_step_s": fits[0]["mech_step_s"] if fits else None,
+        "mech_step_s": fits[0]["mech_step_s"],
         "fit": [str(f) for f in fields],
         "values_fitted": len(fits[0]["values"]),
         "derivatives": args.derivatives.split(","),

@@ -261,7 +261,6 @@ def excitation(home: npt.ArrayLike, rates: LoopRates = LoopRates(), hold: float 
 
     On another machine the path is checked like every path (:func:`pusupu_jax.paths.check_path`).
     """
-    _check_limits({}, {"hold": hold})
     accel = np.asarray(EXCITATION_ACCELERATION)
     return platform_waypoints(
         home,
