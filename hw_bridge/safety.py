@@ -14,13 +14,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pusupu_jax.params import command_limits
+
 from .protocol import CSV
-
-
-def command_limits(servo) -> tuple[np.ndarray, np.ndarray]:
-    """The largest speed [rad/s] and torque [N m] target of each axis, ``V_max/Ke`` and ``Kt I_max``: what the bridge
-    clamps its targets to, and what a drive takes."""
-    return np.asarray(servo.V_max / servo.Ke, dtype=float), np.asarray(servo.Kt * servo.I_max, dtype=float)
 
 
 @dataclass(frozen=True)

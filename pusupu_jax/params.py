@@ -547,6 +547,13 @@ class LoopRates:
         return dataclasses.replace(self, f_current=self.f_current * factor)
 
 
+def command_limits(servo: ServoParams) -> tuple[np.ndarray, np.ndarray]:
+    """The largest speed [rad/s] and torque [N m] target of each axis, ``V_max/Ke`` and ``Kt I_max``: where the
+    velocity loop clamps its command (the back-EMF takes the whole voltage there) and the current loop its current;
+    what the bridge clamps its targets to, what a drive takes, and what a path may ask of the motors."""
+    return np.asarray(servo.V_max / servo.Ke, dtype=float), np.asarray(servo.Kt * servo.I_max, dtype=float)
+
+
 def _fmt(x: float) -> str:
     return f"{x:.4g}"
 

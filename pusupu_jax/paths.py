@@ -36,7 +36,7 @@ import numpy.typing as npt
 from scipy.interpolate import PchipInterpolator
 
 from . import inputs, trajectories, workload
-from .params import LoopRates, ParameterError, ServoParams
+from .params import LoopRates, ParameterError, ServoParams, command_limits
 from .plant import dynamics, kinematics
 from .plant.axis import screw_ratio
 from .plant.friction import slider_friction
@@ -348,9 +348,8 @@ def check_path(
     speed = np.abs(v) / r
     torque = np.abs(force + np.asarray(slider_friction(servo, v))) * r / eta
     rated = np.asarray(servo.speed_max, dtype=float)
-    emf = np.asarray(servo.V_max, dtype=float) / np.asarray(servo.Ke, dtype=float)
+    emf, torque_max = command_limits(servo)
     speed_max = np.minimum(rated, emf)
-    torque_max = np.asarray(servo.Kt, dtype=float) * np.asarray(servo.I_max, dtype=float)
     failing = [
         (int(np.argmax(bad.any(axis=1))), n)
         for n, bad in enumerate((speed > speed_max, torque > torque_max))

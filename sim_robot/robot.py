@@ -7,7 +7,7 @@ drive state machine.  ``pusupu sim-robot --listen udp://127.0.0.1:PORT`` runs it
 
 Each valid command from the bridge goes to the six drives' CiA 402 state machines, and a drive
 faults, as a CiA 402 drive does, on a mode of operation it does not have (it has CSV and CST) or a
-target that is not finite or beyond its limit (:func:`~pusupu_jax.hw_bridge.safety.command_limits`); a
+target that is not finite or beyond its limit (:func:`~pusupu_jax.params.command_limits`); a
 faulted drive applies no torque.  While all six are 'operation enabled' the machine advances one
 bridge period under the command (CSV: each drive's velocity loop follows the speed target; CST:
 its current loop follows the torque target), with the same drive-side functions the simulator
@@ -61,7 +61,7 @@ from pusupu_jax.hw_bridge import cia402, protocol
 from pusupu_jax.hw_bridge.canopen_link import thousandths
 from pusupu_jax.hw_bridge.compiled import FlatStep, cpu
 from pusupu_jax.hw_bridge.runner import realtime_setup, steal_seconds
-from pusupu_jax.hw_bridge.safety import command_limits
+from pusupu_jax.params import command_limits
 from pusupu_jax.hw_bridge.udp import Endpoint
 
 
