@@ -169,6 +169,8 @@ def _entries(report, truth) -> list[dict]:
 
 
 def main() -> None:
+    from pusupu_jax import machine_fit
+
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument(
         "--source",
@@ -183,7 +185,9 @@ def main() -> None:
         help="with --source bridge: the simulated robot steps its machine this many times per current-loop tick, a "
         "truth finer than the fitting model (default: the model's stepping)",
     )
-    ap.add_argument("--window", type=float, default=2.0, help="seconds of the log fitted (default 2)")
+    ap.add_argument(
+        "--window", type=float, default=machine_fit.WINDOW_S, help="seconds of the log fitted (default: identify's)"
+    )
     ap.add_argument("--mech-step", type=float, help="the replay's mechanical step [s] (default the model's)")
     ap.add_argument("--fit", default="friction,motor,payload")
     ap.add_argument("--noise-seeds", type=int, default=0, help="noisy copies of the log fitted after it")

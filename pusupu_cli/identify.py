@@ -34,9 +34,9 @@ def add_parser(sub):
     i.add_argument(
         "--window",
         type=float,
-        default=2.0,
         metavar="S",
-        help="replay each log's first S seconds from rest at the path's start (default 2)",
+        help="replay each log's first S seconds from rest at the path's start (default 2: the excitation path's "
+        "motion)",
     )
     i.add_argument("--trajectory", metavar="NAME|FILE", help="the path the logs ran, where not the one they name")
     i.add_argument(
@@ -67,6 +67,8 @@ def cmd_identify(args) -> int:
 
     devices.choose(args.device, len(args.logs), "log replay(s), one after another")
     fields = machine_fit.fit_fields(args.fit)
+    if args.window is None:
+        args.window = machine_fit.WINDOW_S
     if not (np.isfinite(args.window) and args.window > 0):
         raise ParameterError(f"--window: expected a positive number of seconds, got {args.window}")
     machine_fit.check_mech_step(args.mech_step, name="--mech-step")

@@ -173,6 +173,7 @@ class Derivatives(enum.StrEnum):
     FINITE_DIFFERENCES = "finite-differences"
 
 
+WINDOW_S = 2.0  # [s] the replay of each log: the excitation path's motion (1.99 s) from rest
 UNEXCITED_COLUMN = 1e-8  # a Jacobian column this small against the largest: the logs do not excite the value
 UNEXCITED_ERROR = 0.5  # a standard error above this fraction of the value (or of its scale): not identified
 # the residual evaluations one solve may take: a value the logs barely determine lets the solver crawl along a flat
@@ -471,7 +472,7 @@ def fit(
     hybrid: HybridGains | None = None,
     rates: LoopRates = LoopRates(),
     fields: tuple[FitField, ...] = FIT_GROUPS["friction"],
-    window_s: float = 2.0,
+    window_s: float = WINDOW_S,
     trajectory: str | None = None,
     progress: Callable[[str], object] | None = None,
     derivatives: Derivatives = Derivatives.EXACT,
