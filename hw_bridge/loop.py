@@ -31,7 +31,7 @@ import numpy as np
 from pusupu_jax import cascade, loops
 from pusupu_jax.gains import GainFile
 from pusupu_jax.hybrid import HybridReference
-from pusupu_jax.params import LoopRates
+from pusupu_jax.params import LoopRates, command_limits
 from pusupu_jax.runtime import require_x64
 
 from jax.flatten_util import ravel_pytree
@@ -195,7 +195,7 @@ class BridgeLoop:
         self.state = self._rest(np.asarray(torque, dtype=float) / self.Kt, theta)
         ref = self.reference
         delta = np.abs(ref.theta[0] - theta)
-        vmax = TAKEOVER_SPEED * np.asarray(self.gains.servo.V_max / self.gains.servo.Ke, dtype=float)
+        vmax = TAKEOVER_SPEED * command_limits(self.gains.servo)[0]
         duration = float(np.max(1.875 * delta / vmax))
         force0 = None
         if self.mode.hybrid:

@@ -53,6 +53,7 @@ from pusupu_jax import cascade, loops, sim
 from pusupu_jax.gains import GainFile
 from pusupu_jax.machine import machine_plant, machine_rates
 from pusupu_jax.machine_file import Machine
+from pusupu_jax.params import command_limits
 from pusupu_jax.plant.friction import Friction, slider_friction
 from pusupu_jax.plant.model import ModelOptions, build_model, slide_dofs, slide_qpos
 from pusupu_jax.runtime import require_x64
@@ -61,7 +62,6 @@ from pusupu_jax.hw_bridge import cia402, protocol
 from pusupu_jax.hw_bridge.canopen_link import thousandths
 from pusupu_jax.hw_bridge.compiled import FlatStep, cpu
 from pusupu_jax.hw_bridge.runner import realtime_setup, steal_seconds
-from pusupu_jax.params import command_limits
 from pusupu_jax.hw_bridge.udp import Endpoint
 
 
