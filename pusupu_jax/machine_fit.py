@@ -176,6 +176,7 @@ class Derivatives(enum.StrEnum):
 WINDOW_S = 2.0  # [s] the replay of each log: the excitation path's motion (1.99 s) from rest
 UNEXCITED_COLUMN = 1e-8  # a Jacobian column this small against the largest: the logs do not excite the value
 UNEXCITED_ERROR = 0.5  # a standard error above this fraction of the value (or of its scale): not identified
+COM_SCALE_M = 1e-3  # [m] the least distance a centre of mass's error is taken relative to (FittedValue.against)
 # the residual evaluations one solve may take: a value the logs barely determine lets the solver crawl along a flat
 # valley for thousands of them (a payload's centre of mass on a level path: 33 evaluations of 30 s each, the residual
 # still falling by 3e-4 of itself per step); it stops here instead, and the standard errors show what is loose
@@ -223,6 +224,22 @@ class FittedValue:
             "value": self.value,
             "std_error": self.std_error,
             "excited": self.excited,
+        }
+
+    def against(self, truth: Machine) -> dict[str, Any]:
+        """:meth:`as_dict` with the ``truth``'s value of the same field and index (a machine whose values are known:
+        a simulated robot's), the error, the error relative to the truth (a centre-of-mass coordinate's to the
+        truth's distance from the platform's centre, at least :data:`COM_SCALE_M`; None for a truth of 0) and
+        whether the 95 % interval (1.96 standard errors) covers the truth."""
+        true = float(self.field.start(truth)[self.index])
+        scale = (
+            max(float(np.linalg.norm(truth.payload.com)), COM_SCALE_M) if self.field is FitField.PAYLOAD_COM else true
+        )
+        return self.as_dict() | {
+            "true": true,
+            "error": self.value - true,
+            "relative_error": abs(self.value - true) / abs(scale) if scale else None,
+            "covered_95": bool(abs(self.value - true) <= 1.96 * self.std_error),
         }
 
 

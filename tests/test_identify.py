@@ -69,6 +69,21 @@ def test_fitted_values_go_into_the_machine_file_that_is_written():
     assert written.payload.mass == 4.5 and list(written.payload.com) == [0.01, -0.02, 0.03]
 
 
+def test_a_fitted_value_against_a_known_truth():
+    """The error, the error relative to the truth (a centre-of-mass coordinate's relative to the truth's distance from
+    the platform's centre) and whether 1.96 standard errors cover the truth."""
+    import dataclasses
+
+    from pusupu_jax.machine_file import Machine, Payload
+
+    truth = dataclasses.replace(Machine.default(), payload=Payload(5.0, (0.03, 0.0, 0.04), (0.02, 0.02, 0.03)))
+    coulomb = machine_fit.FittedValue(FitField.COULOMB, 2, 10.0, 21.0, 0.4, True).against(truth)
+    assert (coulomb["true"], coulomb["error"], coulomb["relative_error"]) == (20.0, 1.0, 0.05)
+    assert coulomb["covered_95"] is False and coulomb["name"] == "coulomb[3]" and coulomb["value"] == 21.0
+    com = machine_fit.FittedValue(FitField.PAYLOAD_COM, 1, 0.0, 0.001, 0.001, True).against(truth)
+    assert com["true"] == 0.0 and com["relative_error"] == pytest.approx(0.001 / 0.05) and com["covered_95"] is True
+
+
 def test_kt_is_not_fitted_to_a_log_without_currents(tmp_path):
     """Without measured currents the replay's torque does not depend on Kt: asking for it is refused in one line,
     before anything is replayed."""
