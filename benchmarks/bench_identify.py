@@ -38,7 +38,6 @@ import argparse
 import dataclasses
 import json
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -71,19 +70,6 @@ def _machines(tmp: Path, com: tuple[float, ...]):
     return truth
 
 
-def _gain_file(tmp: Path) -> Path:
-    """Table 1's gains in IMC, as a gain file of the built-in machine (what the logged run uses)."""
-    from pusupu_jax import LoopRates, ServoParams
-    from pusupu_jax.hybrid import HybridGains
-    from pusupu_jax.tune.config import TuneConfig
-    from pusupu_jax.tune.job import export
-
-    done = export(tmp, TuneConfig(mode="imc"), ServoParams.table1(), HybridGains(), LoopRates(), (), {})
-    if done.error:
-        raise SystemExit(f"bench_identify: Table 1's gains were not exported: {done.error}")
-    return tmp / "gains.yaml"
-
-
 def _sim_log(tmp: Path, gain_path: Path, trajectory: str) -> None:
     """``pusupu sim --plant mjx --log``: the true machine's run, by the fitting model itself."""
     subprocess.run(
@@ -98,37 +84,15 @@ def _sim_log(tmp: Path, gain_path: Path, trajectory: str) -> None:
 def _bridge_log(tmp: Path, gain_path: Path, trajectory: str, seconds: float, fine_steps: int | None) -> dict:
     """``pusupu bridge --log`` against ``pusupu sim-robot --machine true.yaml [--fine-steps fine_steps]`` over UDP on
     loopback, in lock step, for ``seconds`` of the path; returns the bridge's report."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        url = f"udp://127.0.0.1:{probe.getsockname()[1]}"
-    cli = [sys.executable, "-m", "pusupu_jax.cli"]
-    robot = subprocess.Popen(
-        cli + ["sim-robot", "--gains", str(gain_path), "--machine", str(tmp / "true.yaml"), "--listen", url]
-        + ["--seconds", "3600", "--no-realtime", "--drive-watchdog", "5"]
-        + ([] if fine_steps is None else ["--fine-steps", str(fine_steps)]),
-        stdout=subprocess.PIPE,
-        text=True,
-        env=os.environ,
-    )  # fmt: skip
+    from pusupu_jax.params import ParameterError
+    from pusupu_jax.sim_robot.lockstep import bridge_run
+
     try:
-        line = robot.stdout.readline() if robot.stdout else ""
-        if "listening" not in line:
-            raise SystemExit(f"bench_identify: the simulated robot did not start: {line!r}")
-        r = subprocess.run(
-            cli + ["bridge", "--gains", str(gain_path), "--robot", url, "--trajectory", trajectory]
-            + ["--duration", f"{seconds:g}", "--no-realtime", "--lockstep", "0.5", "--watchdog", "100"]
-            + ["--log", str(tmp / "run.mcap"), "--json"],
-            capture_output=True,
-            text=True,
-            env=os.environ,
-        )  # fmt: skip
-        if r.returncode != 0:
-            raise SystemExit(f"bench_identify: the bridge run failed: {r.stderr.strip()}")
-        report: dict = json.loads(r.stdout)
-        return report
-    finally:
-        robot.terminate()
-        robot.wait(timeout=60)
+        return bridge_run(
+            gain_path, trajectory, tmp / "true.yaml", seconds=seconds, fine_steps=fine_steps, log=tmp / "run.mcap"
+        )
+    except ParameterError as e:
+        raise SystemExit(f"bench_identify: {e}") from None
 
 
 def _noisy(log, seed: int, bits: int, current_noise: float):
@@ -143,29 +107,13 @@ def _noisy(log, seed: int, bits: int, current_noise: float):
 
 
 def _entries(report, truth) -> list[dict]:
-    """Per fitted value: truth, fit, standard error, relative error, and whether 1.96 standard errors cover it."""
-    from pusupu_jax.machine_fit import FitField
-
-    out = []
-    for v in report.values:
-        true = float(v.field.start(truth)[v.index])
-        rel = abs(v.value - true) / abs(true) if true else None
-        out.append(
-            {
-                "name": v.name,
-                "true": true,
-                "start": v.start,
-                "fitted": v.value,
-                "std_error": v.std_error,
-                "relative_error": rel,
-                "abs_error": abs(v.value - true),
-                "covered_95": bool(abs(v.value - true) <= 1.96 * v.std_error),
-                "excited": v.excited,
-            }
-        )
-        if v.field is FitField.PAYLOAD_COM:
-            out[-1]["relative_error"] = abs(v.value - true) / max(float(np.linalg.norm(truth.payload.com)), 1e-3)
-    return out
+    """Per fitted value: truth, fit, standard error, relative error, and whether 1.96 standard errors cover it
+    (:meth:`pusupu_jax.machine_fit.FittedValue.against`)."""
+    keys = ("name", "true", "start", "std_error", "relative_error", "covered_95", "excited")
+    return [
+        {k: e[k] for k in keys} | {"fitted": e["value"], "abs_error": abs(e["error"])}
+        for e in (v.against(truth) for v in report.values)
+    ]
 
 
 def main() -> None:
@@ -208,6 +156,7 @@ def main() -> None:
 
     from pusupu_jax import gains as gain_files
     from pusupu_jax import machine_file, machine_fit, run_log
+    from pusupu_jax.experiments import real2sim
     from pusupu_jax.runtime import setup_jax
 
     try:
@@ -218,7 +167,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         truth = _machines(tmp, tuple(float(c) for c in args.true_com.split(",")))
-        gain_path = _gain_file(tmp)
+        gain_path = real2sim.table1_gain_file(tmp)
         t0 = time.perf_counter()
         if args.source == "bridge":
             bridge = _bridge_log(tmp, gain_path, args.trajectory, args.window + 0.5, args.fine_steps)

@@ -37,6 +37,7 @@ REGISTRY = {  # name: its module in this package
     "peg_in_hole": "peg_in_hole",  # Fig. 9a: a peg into a chamfered hole off its axis, MJX contact
     "surface_tracking": "surface_tracking",  # Fig. 9b: a tool holding a force on a tilted surface
     "loop_match": "loop_match",  # loop gains of the MJX machine by injection vs the single-axis and coupled models
+    "real2sim": "real2sim",  # gains tuned on the identified machine vs the nominal and the true one, through the bridge
 }
 
 

@@ -3,7 +3,9 @@
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
+import yaml
 
 from pusupu_jax import experiments
 from pusupu_jax.experiments import hybrid_grid
@@ -183,3 +185,33 @@ def test_experiment_gains_or_machine_misuse_exits_2_with_one_line(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("pusupu: error: ") and message in err[0], err
     assert not (tmp_path / "out").exists()
+
+
+def test_real2sim_true_machines_are_valid_machine_files_within_the_stated_ranges():
+    """The real-to-sim experiment's hidden machines (its full run is about an hour: docs/identify.md gives its figures)
+    load back from their files, and differ from the built-in one within the ranges its docstring states."""
+    from pusupu_jax import machine_file
+    from pusupu_jax.experiments import real2sim
+
+    base = machine_file.Machine.default().drives
+    cases = real2sim.true_machines()
+    assert len({t.kin_error_seed for t in cases}) == len(cases) == 3
+    for t in cases:
+        again = machine_file.parse(yaml.safe_load(machine_file.template(t.machine)))
+        assert machine_file.digest(again) == machine_file.digest(t.machine)
+        for name, low, high in (("coulomb", 0.5, 3.0), ("viscous", 0.5, 3.0), ("Kt", 0.9, 1.1), ("J", 0.85, 1.3)):
+            ratio = t.machine.drives[name] / base[name]
+            assert np.all((ratio >= low - 1e-12) & (ratio <= high + 1e-12)), (t.machine.name, name, ratio)
+        np.testing.assert_array_equal(t.machine.drives["Ke"], t.machine.drives["Kt"])
+        assert 1.0 <= t.machine.payload.mass <= 10.0 and np.linalg.norm(t.machine.payload.com) > 0
+        start = real2sim.as_designed(t.machine)
+        assert start.payload.mass == real2sim.DESIGNED_PAYLOAD_KG and start.payload.inertia == t.machine.payload.inertia
+
+
+def test_real2sim_gap_closed_is_the_share_of_the_rms_gap():
+    from pusupu_jax.experiments.real2sim import gap_closed
+
+    assert gap_closed(1.0, 0.6, 0.5) == pytest.approx(0.8)
+    assert gap_closed(1.0, 1.0, 0.5) == 0.0 and gap_closed(1.0, 0.5, 0.5) == 1.0
+    assert gap_closed(1.0, 1.2, 0.5) == pytest.approx(-0.4)
+    assert np.isnan(gap_closed(0.5, 0.4, 0.6))

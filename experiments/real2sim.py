@@ -1,0 +1,338 @@
+"""From the robot's data to new gains, measured: on true machines that differ from the nominal one, the gains tuned
+on the machine ``pusupu identify`` found against those tuned on the nominal machine and those tuned on the truth.
+
+Each true machine (:func:`true_machines`) is the built-in one with other drive-train friction (x0.5 to x3), torque
+and back-EMF constants (-10 to +10 %), rotor inertias, a payload of 1 to 10 kg off the platform's centre, and seeded
+kinematic errors.  It stands in for a robot: ``pusupu sim-robot --machine true.yaml --kin-error SEED --fine-steps``
+:data:`FINE_STEPS` (C MuJoCo stepped four times per current-loop tick, finer than the tuner's model), reached by
+``pusupu bridge`` over UDP in lock step (:func:`pusupu_jax.sim_robot.lockstep.bridge_run`).  The workflow, as a user
+runs it (README, "From your robot's data to new gains"):
+
+1. ``pusupu tune`` on the nominal (built-in) machine from Table 1: the nominal-tuned gains, once;
+2. per true machine, a logged bridge run on the excitation path (``excite``) with Table 1's gains in IMC
+   (:func:`table1_gain_file`), stiffer in the velocity loop than the tuned ones: with the nominal-tuned gains the
+   worn machine's axis 5 fell 5.39 mm behind its reference there and the bridge stopped the run (its following-error
+   window is 5 mm);
+3. ``pusupu identify`` of friction, motor (torque constant, rotor inertia) and payload (mass, centre of mass) from
+   that log, starting from the machine as designed (the built-in one with a 3 kg payload guessed at the centre; the
+   payload's inertia given as the truth's, as from CAD);
+4. ``pusupu tune`` on the identified machine, and on the true machine itself (its kinematic errors included), both
+   from the nominal-tuned gains;
+5. a bridge run on the task path (:data:`TASK_PATH`) with each of the three gain sets against the true machine.
+
+The tunings are IMC (``lambda1, lambda2, T0, Kv, Tv``) on the task path with the default windows and iterations, so
+that the bridge runs every drive in cyclic synchronous velocity at 1 kHz.  Reported per true machine: the identified
+values against the truth, the platform's RMS and max error of each gain set on the bridge, and the share of the gap
+between the nominal-tuned and the truth-tuned gains' RMS error that the identified-tuned gains close
+(:func:`gap_closed`); a bridge run that ends in a safe stop is reported with its faults, its errors over the cycles
+before it.  ``quick`` runs one true machine on the task path's first :data:`QUICK_S` seconds with a few
+iterations: a check of the workflow, not a measurement.  The full run takes about an hour on a 2-core CPU.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import tempfile
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+from pusupu_jax import gains as gain_files
+from pusupu_jax import machine_file, machine_fit, run_log
+from pusupu_jax.files import write_atomic
+from pusupu_jax.machine_file import Machine, Payload
+from pusupu_jax.params import ParameterError
+from pusupu_jax.plots import save_atomic
+from pusupu_jax.sim_robot.lockstep import bridge_run
+
+from . import Result
+
+TASK_PATH = "arc"
+EXCITATION_PATH = "excite"
+FINE_STEPS = 4  # the simulated robot's mechanical steps per current-loop tick
+FIT = "friction,motor,payload"
+DESIGNED_PAYLOAD_KG = 3.0  # the machine as designed: a payload guessed at the platform's centre
+QUICK_S = 2.0  # s of the task path in the quick run
+SETS = ("nominal", "identified", "truth")  # whose machine each gain set was tuned on
+TARGET = 0.7  # the share of the gap the identified-tuned gains should close
+
+
+@dataclasses.dataclass(frozen=True)
+class TrueMachine:
+    """A hidden true machine: ``machine`` (its file), ``kin_error_seed`` (the robot's seeded kinematic errors) and
+    ``differs`` (how it differs from the nominal machine, in words)."""
+
+    machine: Machine
+    kin_error_seed: int
+    differs: str
+
+
+def true_machines() -> list[TrueMachine]:
+    """Three machines that differ from the built-in one in every value ``identify`` fits, within the ranges a shop
+    sees: friction x0.5 to x3, torque constants -10 to +10 % (the back-EMF constants with them, in SI units equal),
+    rotor inertias -15 to +30 %, payloads of 1 to 10 kg, each off the platform's centre."""
+    base = Machine.default()
+    d = base.drives
+
+    def machine(name, coulomb, viscous, kt, rotor, payload):
+        drives = d | {
+            "coulomb": d["coulomb"] * np.asarray(coulomb, float),
+            "viscous": d["viscous"] * np.asarray(viscous, float),
+            "Kt": d["Kt"] * np.asarray(kt, float),
+            "Ke": d["Ke"] * np.asarray(kt, float),
+            "J": d["J"] * np.asarray(rotor, float),
+        }
+        return dataclasses.replace(base, name=name, drives=drives, payload=payload)
+
+    return [
+        TrueMachine(
+            machine(
+                "worn",
+                [3.0, 2.5, 2.8, 3.0, 2.2, 2.6],
+                [2.0, 3.0, 2.4, 2.8, 2.0, 2.6],
+                [0.90, 0.92, 0.95, 0.90, 0.93, 0.91],
+                [1.1, 1.3, 1.2, 1.25, 1.15, 1.3],
+                Payload(10.0, (0.05, 0.03, 0.08), (0.06, 0.05, 0.09)),
+            ),
+            1,
+            "friction x2.2-3, Kt -5 to -10 %, rotors +10-30 %, 10 kg payload off centre",
+        ),
+        TrueMachine(
+            machine(
+                "run-in",
+                [0.5, 0.6, 0.55, 0.5, 0.65, 0.6],
+                [0.5, 0.6, 0.7, 0.5, 0.55, 0.65],
+                [1.10, 1.08, 1.05, 1.10, 1.07, 1.09],
+                [0.85, 0.9, 0.95, 0.85, 0.9, 0.95],
+                Payload(1.0, (-0.04, 0.02, 0.03), (0.004, 0.004, 0.006)),
+            ),
+            2,
+            "friction x0.5-0.7, Kt +5 to +10 %, rotors -5 to -15 %, 1 kg payload off centre",
+        ),
+        TrueMachine(
+            machine(
+                "mixed",
+                [1.4, 0.8, 2.0, 1.2, 0.7, 1.6],
+                [0.7, 1.5, 1.2, 2.0, 0.8, 1.1],
+                [1.05, 0.93, 1.0, 0.96, 1.06, 0.92],
+                [1.2, 0.9, 1.1, 1.0, 1.3, 0.85],
+                Payload(5.0, (0.03, -0.02, 0.05), (0.02, 0.02, 0.03)),
+            ),
+            3,
+            "friction x0.7-2, Kt -8 to +6 %, rotors -15 to +30 %, 5 kg payload off centre",
+        ),
+    ]
+
+
+def as_designed(truth: Machine) -> Machine:
+    """Where identification starts: the built-in machine with a :data:`DESIGNED_PAYLOAD_KG` payload at the platform's
+    centre, its inertia the truth's (as from CAD: the fit leaves it alone)."""
+    return dataclasses.replace(
+        Machine.default(),
+        name="as designed",
+        payload=Payload(DESIGNED_PAYLOAD_KG, (0.0, 0.0, 0.0), truth.payload.inertia),
+    )
+
+
+def table1_gain_file(folder: Path) -> Path:
+    """Table 1's gains in IMC, written as the built-in machine's gain file ``folder/gains.yaml``."""
+    from pusupu_jax import LoopRates, ServoParams
+    from pusupu_jax.hybrid import HybridGains
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.job import export
+
+    done = export(folder, TuneConfig(mode="imc"), ServoParams.table1(), HybridGains(), LoopRates(), (), {})
+    if done.error:
+        raise ParameterError(f"Table 1's gains were not exported: {done.error}")
+    return folder / "gains.yaml"
+
+
+def gap_closed(nominal: float, identified: float, truth: float) -> float:
+    """The share of the RMS-error gap between the nominal-tuned and the truth-tuned gains that the identified-tuned
+    gains close: 1 where they track as the truth-tuned ones, 0 as the nominal-tuned ones, below 0 where worse; NaN
+    where there is no gap to close (the truth-tuned gains no better than the nominal-tuned ones)."""
+    gap = nominal - truth
+    return float((nominal - identified) / gap) if gap > 0 else float("nan")
+
+
+def _config(quick: bool):
+    from pusupu_jax.tune.config import TuneConfig
+
+    cfg = TuneConfig(mode="imc", groups=("imc", "velocity"), trajectories=(TASK_PATH,), baselines=())
+    if quick:
+        cfg = cfg.replace(path_s=QUICK_S, windows=2, window_s=0.3, refresh_every=1, iterations=3)
+    return cfg
+
+
+def _say(line: str) -> None:
+    print(f"real2sim: {line}", file=sys.stderr, flush=True)
+
+
+def _tune(cfg, out: Path, machine: Machine, start) -> dict:
+    """``pusupu tune`` of ``machine`` from ``start`` into ``out``; the objective before and after, and the wall time."""
+    from pusupu_jax.tune.job import run_job
+
+    report, status = run_job(cfg, out, machine=machine, start=start)
+    if status:
+        raise ParameterError(f"tune on {machine.name!r}: no gains exported: {report.export.error}")
+    return {
+        "objective_before": report.objective_before,
+        "objective_after": report.objective_after,
+        "wall_s": report.wall_s,
+    }
+
+
+def _case(t: TrueMachine, folder: Path, nominal: Path, excitation: Path, cfg, quick: bool) -> dict:
+    """One true machine through the workflow (module docstring, steps 2 to 5); ``excitation``: the gain file of the
+    excitation run."""
+    name = t.machine.name
+    true_file = folder / "true.yaml"
+    write_atomic(true_file, machine_file.template(t.machine))
+    _say(f"{name}: a logged bridge run on {EXCITATION_PATH!r} with Table 1's gains")
+    log_file = folder / "excite.mcap"
+    excite = bridge_run(
+        excitation, EXCITATION_PATH, true_file, seconds=machine_fit.WINDOW_S + 0.5, fine_steps=FINE_STEPS,
+        kin_error=t.kin_error_seed, log=log_file,
+    )  # fmt: skip
+    start = as_designed(t.machine)
+    g = gain_files.load(excitation)
+    _say(f"{name}: identify {FIT} from the machine as designed (a few minutes)")
+    report, identified, _ = machine_fit.fit(
+        [run_log.drive_log(log_file)], start, g.servo, g.hybrid, g.rates, machine_fit.fit_fields(FIT),
+        progress=lambda line: _say(f"{name}: {line}"),
+    )  # fmt: skip
+    identified = dataclasses.replace(identified, name=f"{name}, identified")
+    identified_file = folder / "identified.yaml"
+    write_atomic(identified_file, machine_file.template(identified))
+    tunes, gain_paths = {}, {"nominal": nominal}
+    for label, machine, config in (
+        ("identified", identified, cfg),
+        ("truth", t.machine, cfg.replace(kin_error_seeds=(t.kin_error_seed,))),
+    ):
+        _say(f"{name}: tune on the {label} machine")
+        out = folder / f"tuned_{label}"
+        tunes[label] = _tune(config, out, machine, gain_files.load(nominal, machine=machine))
+        gain_paths[label] = out / "gains.yaml"
+    runs = {}
+    for label, bridge_machine in (("nominal", None), ("identified", identified_file), ("truth", true_file)):
+        _say(f"{name}: the {label}-tuned gains on {TASK_PATH!r} through the bridge")
+        r = bridge_run(
+            gain_paths[label], TASK_PATH, true_file, bridge_machine, seconds=QUICK_S if quick else None,
+            fine_steps=FINE_STEPS, kin_error=t.kin_error_seed,
+        )  # fmt: skip
+        runs[label] = {k: r.get(k) for k in ("rms_tracking_error_mm", "max_tracking_error_mm", "cycles", "faults")}
+    rms = [runs[s]["rms_tracking_error_mm"] for s in SETS]
+    return {
+        "machine": name,
+        "differs": t.differs,
+        "kin_error_seed": t.kin_error_seed,
+        "excitation_run": {
+            k: excite.get(k) for k in ("cycles", "faults", "rms_tracking_error_mm", "max_tracking_error_mm")
+        },
+        "identify": {
+            "residual_rms_before": report.residual_rms_before,
+            "residual_rms_after": report.residual_rms_after,
+            "evaluations": report.evaluations,
+            "converged": report.converged,
+            "wall_s": report.wall_s,
+            "values": [v.against(t.machine) for v in report.values],
+        },
+        "tunes": tunes,
+        "runs": runs,
+        "gap_closed": gap_closed(*rms),
+    }
+
+
+def run(quick: bool = False) -> Result:
+    cfg = _config(quick)
+    cases = true_machines()[:1] if quick else true_machines()
+    with tempfile.TemporaryDirectory(prefix="pusupu-real2sim-") as d:
+        folder = Path(d)
+        _say("tune on the nominal machine from Table 1")
+        nominal_tune = _tune(cfg, folder / "tuned_nominal", Machine.default(), "table1")
+        nominal = folder / "tuned_nominal" / "gains.yaml"
+        (folder / "table1").mkdir()
+        excitation = table1_gain_file(folder / "table1")
+        results = []
+        for t in cases:
+            (folder / t.machine.name).mkdir()
+            results.append(_case(t, folder / t.machine.name, nominal, excitation, cfg, quick))
+    closed = [c["gap_closed"] for c in results]
+    return Result(
+        "real2sim",
+        {
+            "task_path": TASK_PATH,
+            "duration_s": QUICK_S if quick else None,
+            "fine_steps": FINE_STEPS,
+            "fit": FIT,
+            "tune": {
+                "mode": cfg.mode,
+                "groups": list(cfg.groups),
+                "windows": cfg.windows,
+                "iterations": cfg.iterations,
+            },
+            "nominal_tune": nominal_tune,
+            "machines": results,
+            "summary": {
+                "target": TARGET,
+                "machines": len(results),
+                "closing_target": sum(bool(c >= TARGET) for c in closed),
+                "gap_closed": closed,
+            },
+        },
+    )
+
+
+def plot(result: Result, out) -> list:
+    m = result.metrics
+    cases = m["machines"]
+    fig, ax = plt.subplots(figsize=(3 + 2.5 * len(cases), 5))
+    x = np.arange(len(cases))
+    for k, label in enumerate(SETS):
+        values = [c["runs"][label]["rms_tracking_error_mm"] for c in cases]
+        ax.bar(x + (k - 1) * 0.27, values, 0.27, label=f"tuned on the {label} machine")
+    for i, c in enumerate(cases):
+        ax.annotate(f"gap closed {100 * c['gap_closed']:.0f} %", (i, 0), xytext=(0, -28), textcoords="offset points",
+                    ha="center", fontsize=8)  # fmt: skip
+    ax.set_xticks(x, [c["machine"] for c in cases])
+    ax.set_ylabel(f"platform RMS error on {m['task_path']} through the bridge [mm]")
+    ax.grid(True, axis="y", alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title("Gains tuned on the nominal, the identified and the true machine, run on the true machine")
+    fig.tight_layout()
+    return [save_atomic(fig, out / "real2sim.png")]
+
+
+def table(result: Result) -> str:
+    m = result.metrics
+    lines = [
+        f"Gains tuned on the nominal, the identified and the true machine, each run through the bridge on the true "
+        f"machine (sim-robot, {m['fine_steps']} steps a current tick) along {m['task_path']}"
+        + (f" (first {m['duration_s']:g} s)" if m["duration_s"] else "")
+        + ". RMS / max platform error [mm].",
+        "",
+        "| true machine | identify: residual, worst value | nominal-tuned | identified-tuned | truth-tuned "
+        "| gap closed |",
+        "|---|---|---|---|---|---|",
+    ]
+    for c in m["machines"]:
+        i = c["identify"]
+        worst = max((v for v in i["values"] if v["relative_error"] is not None), key=lambda v: v["relative_error"])
+        cells = [
+            f"{c['runs'][s]['rms_tracking_error_mm']:.3f} / {c['runs'][s]['max_tracking_error_mm']:.3f}"
+            + (f" (faulted: {', '.join(map(str, c['runs'][s]['faults']))})" if c["runs"][s]["faults"] else "")
+            for s in SETS
+        ]
+        lines.append(
+            f"| {c['machine']} ({c['differs']}; kinematic errors seed {c['kin_error_seed']}) | "
+            f"{i['residual_rms_before']:.3g} -> {i['residual_rms_after']:.3g}; {worst['name']} "
+            f"{100 * worst['relative_error']:.1f} % off | " + " | ".join(cells) + f" | {100 * c['gap_closed']:.0f} % |"
+        )
+    s = m["summary"]
+    lines += [
+        "",
+        f"{s['closing_target']} of {s['machines']} machine(s) close at least {100 * s['target']:.0f} % of the gap.",
+    ]
+    return "\n".join(lines)
