@@ -151,13 +151,8 @@ def table1_gain_file(folder: Path) -> Path:
     """Table 1's gains in IMC, written as the built-in machine's gain file ``folder/gains.yaml``."""
     from pusupu_jax import LoopRates, ServoParams
     from pusupu_jax.hybrid import HybridGains
-    from pusupu_jax.tune.config import TuneConfig
-    from pusupu_jax.tune.job import export
 
-    done = export(folder, TuneConfig(mode="imc"), ServoParams.table1(), HybridGains(), LoopRates(), (), {})
-    if done.error:
-        raise ParameterError(f"Table 1's gains were not exported: {done.error}")
-    return folder / "gains.yaml"
+    return gain_files.write(folder / "gains.yaml", ServoParams.table1(), HybridGains(), LoopRates(), mode="imc")
 
 
 def gap_closed(nominal: float, identified: float, truth: float) -> float:
