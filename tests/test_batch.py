@@ -223,6 +223,27 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(again.starts), jax.tree.leaves(computed)))
 
 
+@pytest.mark.skipif(len(jax.devices()) < 2, reason="one CPU: one host device")
+def test_a_jobs_gradient_laid_over_devices_is_its_gradient_on_one(batch, monkeypatch):
+    """A job tuned alone (test_batch_equals_tuning_each_scenario_alone's problem, whose program is compiled already):
+    its two starts' two windows laid over two devices and run on one give value and gradient equal to 1e-12
+    relative.  Not bit for bit: the gradient's sum over the windows is then an all-reduce across devices, in another
+    order than one device's sum."""
+    _, out, _, _, _ = batch
+    (job,) = [j for j in jobfile.read(out.parent / "job.yaml").jobs if j.name == "arc-s1"]
+    spread = Problem(job.config, ServoParams.table1(), HybridGains(), specs=list(job.specs))
+    assert spread.mesh is not None and spread.mesh.size == 2
+    monkeypatch.setattr(run.devices, "row_mesh", lambda rows: None)
+    alone = Problem(job.config, ServoParams.table1(), HybridGains(), specs=list(job.specs))
+    assert alone.mesh is None and alone._value_and_grad is not spread._value_and_grad
+    z = spread.z0()
+    (v1, _), g1 = spread.value_and_grad(z)
+    (v2, _), g2 = alone.value_and_grad(z)
+    assert float(v1) == pytest.approx(float(v2), rel=1e-12)
+    for k in g1:
+        np.testing.assert_allclose(np.asarray(g1[k]), np.asarray(g2[k]), rtol=1e-10, atol=1e-14)
+
+
 def test_running_again_skips_the_finished_jobs(batch):
     job, out, summary, _, _ = batch
     log = _Log()
