@@ -24,29 +24,6 @@ CACHE = setup_jax(os.environ.get("PUSUPU_JAX_CACHE") or Path(__file__).resolve()
 os.environ["PUSUPU_JAX_CACHE"] = str(CACHE)  # the CLI subprocesses share it
 
 
-# The files that take longest, longest first (wall time of each file's tests in one run of the suite from an empty
-# cache on the 2-core CPU, 3 workers: 120 to 560 s each).  pytest-xdist hands whole files to its workers in
-# collection order (``--no-loadscope-reorder`` in pyproject.toml; its own order, by number of tests, started the
-# batch file, 480 s, after the CLI's on one worker and left that worker running alone for the last 150 s).  The other
-# files follow in their usual order.
-LONGEST_FIRST = (
-    "test_cli.py",
-    "test_mjx_plant.py",
-    "test_batch.py",
-    "test_experiments.py",
-    "test_contact_experiments.py",
-    "test_bridge.py",
-    "test_user_machine.py",
-    "test_bridge_safety.py",
-    "test_notebook.py",
-)
-
-
-def pytest_collection_modifyitems(config, items):
-    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(LONGEST_FIRST)))  # stable: each file's order is kept
-
-
 @pytest.fixture(scope="session")
 def table1():
     from pusupu_jax import ServoParams
