@@ -27,6 +27,7 @@ import functools
 import signal
 import sys
 import threading
+import warnings
 
 from pusupu_jax.cascade import AXIS_MODES, GAIN_FILE_MODES, Mode
 from pusupu_jax.devices import DeviceChoice
@@ -349,6 +350,13 @@ def _version() -> str:
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     _file_backend()
+    # JAX warns for each program whose entry in the persistent compilation cache cannot be read or written, and
+    # pusupu_jax.programs for each traced program it cannot keep beside them (a full disk, a read-only or over-quota
+    # cache folder): dozens of lines before the command's own.  The programs are compiled or traced instead and the
+    # results do not change; if the disk is full the command's own write fails too, and that error is the one line
+    # it ends with.
+    warnings.filterwarnings("ignore", message="Error (reading|writing) persistent compilation cache entry")
+    warnings.filterwarnings("ignore", message="pusupu_jax.programs: could not keep")
     commands = {
         "analyze": cmd_analyze,
         "sim": cmd_sim,

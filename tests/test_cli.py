@@ -477,11 +477,16 @@ def test_version_and_python_m():
 def test_a_write_that_fails_midway_keeps_the_old_file_and_ends_in_one_line(tmp_path):
     """A full disk gave an ENOSPC traceback.  The process may write at most 4 kB per file
     (RLIMIT_FSIZE; the write fails with EFBIG where a full disk gives ENOSPC, through the same code).  Re-signing a
-    gain file must end with one line and exit 2, the old file intact and no temporary left behind."""
+    gain file must end with one line and exit 2, the old file intact and no temporary left behind.  The command
+    starts from an empty compilation cache, whose entries it then cannot write either: the warnings of JAX and of
+    pusupu_jax.programs for each of them (some forty lines here) must not reach the user."""
     from pusupu_jax import LoopRates, ServoParams, gains
     from pusupu_jax.hybrid import HybridGains
 
-    path = gains.write(tmp_path / "gains.yaml", ServoParams.table1(), HybridGains(), LoopRates(n_mech=5), mode="imc")
+    (tmp_path / "out").mkdir()
+    path = gains.write(
+        tmp_path / "out" / "gains.yaml", ServoParams.table1(), HybridGains(), LoopRates(n_mech=5), mode="imc"
+    )
     before = path.read_bytes()
     limited = (
         "import resource, runpy, signal, sys; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
@@ -490,8 +495,12 @@ def test_a_write_that_fails_midway_keeps_the_old_file_and_ends_in_one_line(tmp_p
         "runpy.run_module('pusupu_jax.cli', run_name='__main__')"
     )
     r = subprocess.run(
-        [sys.executable, "-c", limited], capture_output=True, text=True, env=dict(os.environ), timeout=300
+        [sys.executable, "-c", limited],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, PUSUPU_JAX_CACHE=str(tmp_path / "cache")),
+        timeout=300,
     )
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "File too large" in r.stderr
-    assert path.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["gains.yaml"]
+    assert path.read_bytes() == before and sorted(p.name for p in path.parent.iterdir()) == ["gains.yaml"]
