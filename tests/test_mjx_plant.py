@@ -307,111 +307,82 @@ def test_gradient_through_contact_matches_central_differences():
     assert abs(ad - fd) <= 1e-6 * abs(fd), (ad, fd)
 
 
-def _tracking_and_torque_peak(params, model, reference):
-    """IMC mode on ``model`` (an ``mjx.Model`` of PLANT's structure): mean squared motor-angle error [rad^2] + 0.01 x
-    a smooth torque peak (log-sum-exp, sharpness 20 /(N m))."""
-    trace = rollout(params, model, reference, plant=PLANT, rates=RATES, outer="imc")
-    peak = jax.nn.logsumexp(20.0 * jnp.abs(trace.torque), axis=0) / 20.0
-    return jnp.mean((trace.theta - trace.reference) ** 2) + 1e-2 * jnp.mean(peak)
-
-
 def _short_path(n=50):
     """Platform poses of a 5 mm cosine move along x in ``n`` position periods (50 ms)."""
     x = 0.005 * (1 - np.cos(np.pi * np.arange(n) / (n - 1)))
     return np.stack([x, 0 * x, np.full(n, float(G.home[2])), 0 * x, 0 * x], axis=1)
 
 
-def _short_move(outer):
-    """The rollout reference of :func:`_short_path` for ``outer``."""
-    from pusupu_jax.machine import machine_reference
-
-    return machine_reference(SERVO, _short_path(), outer, rates=RATES)
-
-
-# Hybrid mode is left to test_every_objective_term_has_the_gradient_of_central_differences below (lambda1, lambda2,
-# T0, m6, c6, g, every term, both gradient modes, the default signed form); the rms form differs from it only in rho',
-# whose gradient tests/test_hybrid.py checks in the force law itself.  A hybrid case here cost a compile (100 s).
-@pytest.mark.slow
-def test_gradient_through_the_cosimulation_matches_central_differences():
-    """Reverse mode through cascade + MJX in IMC mode (50 ms: 200 MJX steps, 1000 current ticks, float64), servo
-    gains and the drive train's friction perturbed on axis 0, and the platform's mass (what identification fits of a
-    payload), each by 1e-4 of its value: relative error <= 1e-3.  Observed with Table 1's friction: 5.6e-9
-    (lambda1), 1.6e-7 (lambda2), 1.8e-8 (Kv), 6.4e-6 (Tv), 1.9e-7 (coulomb), 3.1e-5 (viscous), 1.1e-7 (v_coulomb),
-    and 1.1e-9 for the mass, whose derivative includes that of the torque the run starts holding the machine with
-    (2.6e-2 with that torque held out of the derivative).  The friction's values are arrays of the one compiled
-    program, as the gains and the model are."""
-    ref = _short_move("imc")
-    model = PLANT.mjx_model
-
-    def objective(params, body_mass, model, reference):  # by the masses only: the model's other arrays get no cotangent
-        return _tracking_and_torque_peak(params, model.replace(body_mass=body_mass), reference)
-
-    value_and_grad = jax.jit(jax.value_and_grad(objective, argnums=(0, 1)))  # one compile for all
-    mass = model.body_mass
-    grad, grad_mass = value_and_grad(SERVO, mass, model, ref)[1]
-    for name in ("lambda1", "lambda2", "Kv", "Tv", "coulomb", "viscous", "v_coulomb"):
-        v = np.asarray(getattr(SERVO, name))
-        e = np.zeros(6)
-        e[0] = 1e-4 * abs(v[0])
-        plus, minus = SERVO.replace(**{name: v + e}), SERVO.replace(**{name: v - e})
-        fd = (value_and_grad(plus, mass, model, ref)[0] - value_and_grad(minus, mass, model, ref)[0]) / (2 * e[0])
-        ad = float(np.asarray(getattr(grad, name))[0])
-        assert fd != 0.0, name
-        assert abs(ad - fd) <= 1e-3 * abs(fd), (name, ad, float(fd))
-    platform = PLANT.mj_model.body("platform").id
-    h = 1e-4 * float(mass[platform])
-    plus, minus = (mass.at[platform].add(d) for d in (h, -h))
-    fd = (value_and_grad(SERVO, plus, model, ref)[0] - value_and_grad(SERVO, minus, model, ref)[0]) / (2 * h)
-    ad = float(grad_mass[platform])
-    assert fd != 0.0 and abs(ad - fd) <= 1e-3 * abs(fd), ("platform mass", ad, float(fd))
+AXIS_0 = ("Kv", "Tv", "coulomb", "viscous", "v_coulomb")  # velocity loop and drive-train friction of axis 0
 
 
 @pytest.mark.slow
 def test_every_objective_term_has_the_gradient_of_central_differences():
-    """Each term of pusupu_jax.objectives through hybrid mode on the machine (50 ms), d/d(log gain) for the
-    tuner's default fields (shared lambda1, lambda2, T0 and m6, c6, g), in reverse and in forward mode: relative
-    error <= 1e-3, or within 1e-7 of the term's size.  Observed: 1e-7 to 2e-5 where the gradient is
-    substantial (lambda2, c6 on every term); up to 1e-2 only on gradients 1e-6 of the term or smaller (g and
-    m6 on a 50 ms run, lambda1 on force_peak).  The two modes agree to 1e-9 of the term's size: they differ
-    by rounding only.
+    """Reverse mode through cascade + MJX, hybrid mode on the machine (50 ms: 200 MJX steps, 1000 current ticks,
+    float64; axes 1-5 in the IMC position loop, axis 6 in force control), for every term of pusupu_jax.objectives:
+    d/d(log gain) for the tuner's default fields (shared lambda1, lambda2, T0 and m6, c6, g); d/d(relative change)
+    of axis 0's velocity PI and drive-train friction (Kv, Tv, coulomb, viscous, v_coulomb: values of the one compiled
+    program, as the gains and the model are); and d/d(platform mass) (what identification fits of a payload), whose
+    derivative includes that of the torque the run starts holding the machine with.  Reverse and forward mode
+    against central differences (steps of 1e-3 in log gain, 1e-4 relative, 1e-4 of the platform's mass): relative
+    error <= 1e-3, or within 1e-7 of the term's size.  Observed: 1e-9 to 1e-5 on every term of every input with
+    Table 1's friction (the mass 1e-9, Kv 1e-8, the friction 1e-8 to 4e-5), except the gains whose effect on a 50 ms
+    run is some 1e-10 of the term (g: up to 3.5e-3, inside the 1e-7 floor).  Each input has a term whose derivative
+    is non-zero and agrees to 1e-3 relative.  The two modes agree to 1e-9 of the term's size: they differ by
+    rounding only.  (One hybrid program for all of it: an IMC-mode program of its own cost another compile, 45 s.)
     """
     from pusupu_jax import objectives
+    from pusupu_jax.machine import machine_reference
     from pusupu_jax.tune.space import Space
 
-    ref = _short_move("hybrid")
     path = _short_path()
+    ref = machine_reference(SERVO, path, "hybrid", rates=RATES)
     space = Space.create(("imc", "hybrid"), SERVO, HybridGains())
+    platform = PLANT.mj_model.body("platform").id
+    model, mass = PLANT.mjx_model, PLANT.mjx_model.body_mass
 
-    def terms(z):
-        servo, hybrid = space.apply(z)
-        trace = rollout(servo, None, ref, plant=PLANT, rates=RATES, outer="hybrid", hybrid=hybrid)
+    def terms(x):
+        servo, hybrid = space.apply(x["z"])
+        servo = servo.replace(**{n: jnp.asarray(getattr(servo, n), float).at[0].multiply(1.0 + x[n]) for n in AXIS_0})
+        m = model.replace(body_mass=mass.at[platform].add(x["mass"]))
+        trace = rollout(servo, m, ref, plant=PLANT, rates=RATES, outer="hybrid", hybrid=hybrid)
         return objectives.terms(trace, servo, jnp.asarray(path), RATES.dt_position, sharpness_force=1.0)
 
-    z0 = space.z0()
-    jac = jax.jit(jax.jacrev(terms))(z0)
+    x0 = {"z": space.z0(), **{n: jnp.zeros(()) for n in AXIS_0}, "mass": jnp.zeros(())}
+    steps = {n: 1e-4 for n in AXIS_0} | {"mass": 1e-4 * float(mass[platform])}
+    jac = jax.jit(jax.jacrev(terms))(x0)
     # forward mode as one tangent at a time, and the terms' values from the same compiled program (its primal
     # output): one compile serves the forward-mode check and the central differences
-    jvp = jax.jit(lambda z, dz: jax.jvp(terms, (z,), (dz,)))
-    zero = {k: jnp.zeros_like(v) for k, v in z0.items()}
+    jvp = jax.jit(lambda x, dx: jax.jvp(terms, (x,), (dx,)))
+    zero = jax.tree.map(jnp.zeros_like, x0)
 
-    def value(z):
-        return jvp(z, zero)[0]
+    def value(x):
+        return jvp(x, zero)[0]
 
-    h = 1e-3
-    at_start = value(z0)
+    def moved(name, by):  # x0 with one input moved by ``by``: a tuner field (in z) or an input of its own
+        if name in x0["z"]:
+            return x0 | {"z": x0["z"] | {name: x0["z"][name] + by}}
+        return x0 | {name: x0[name] + by}
+
+    at_start = value(x0)
     report = []
-    for field in z0:
-        plus, minus = value(z0 | {field: z0[field] + h}), value(z0 | {field: z0[field] - h})
-        forward = jvp(z0, zero | {field: jnp.ones_like(z0[field])})[1]
-        for name in objectives.TERMS:
-            fd = (float(plus[name]) - float(minus[name])) / (2 * h)
-            ad = float(jac[name][field])
-            report.append((field, name, ad, fd))
-            assert abs(float(forward[name]) - ad) <= 1e-9 * abs(float(at_start[name])), (field, name)
+    for name in [*x0["z"], *AXIS_0, "mass"]:
+        h = steps.get(name, 1e-3)
+        plus, minus = value(moved(name, h)), value(moved(name, -h))
+        tangent = jax.tree.map(lambda a, b: b - a, x0, moved(name, 1.0))
+        forward = jvp(x0, tangent)[1]
+        for term in objectives.TERMS:
+            fd = (float(plus[term]) - float(minus[term])) / (2 * h)
+            ad = float(jac[term]["z"][name] if name in x0["z"] else jac[term][name])
+            size = abs(float(at_start[term]))
+            report.append((name, term, ad, fd, size, h))
+            assert abs(float(forward[term]) - ad) <= 1e-9 * size, (name, term)
             # 1e-3 relative, or 1e-7 of the term's own size for gradients too small to matter to the tuner
             # (where central differences see the rollout's round-off: force_peak vs lambda1 is 1e-6 relative)
-            assert abs(ad - fd) <= 1e-3 * abs(fd) + 1e-7 * abs(float(at_start[name])), (field, name, ad, fd)
-    assert sum(abs(fd) > 1e-3 * abs(float(at_start[name])) for _, name, _, fd in report) >= 5  # real gradients
+            assert abs(ad - fd) <= 1e-3 * abs(fd) + 1e-7 * size, (name, term, ad, fd)
+    for name in [*x0["z"], *AXIS_0, "mass"]:  # each input's derivative is exercised: some term moves and agrees
+        assert any(fd != 0.0 and abs(ad - fd) <= 1e-3 * abs(fd) for n, _, ad, fd, _, _ in report if n == name), name
+    assert sum(abs(fd) > 1e-3 * size for _, _, _, fd, size, _ in report) >= 5  # real gradients
 
 
 def test_model_variants_vmapped_equal_their_own_plants():
