@@ -3,11 +3,12 @@ XLA's backend (LLVM) optimisation level 0 for every program the suite compiles, 
 it runs.
 
 The suite compiles some hundred MJX programs from an empty cache, and compiling is most of its time. At level 0 the
-same programs (XLA's own passes unchanged, LLVM's optimisation off) compile faster, and the suite's short runs hardly
-feel the slower code; on the 2-core CPU, from an empty cache: the cosimulation gradient test 70 -> 55 s, the quick arc
-experiment 64 -> 53 s; the whole suite, a clean clone as CI runs it, 41 min 21 s at level 3 against 36 min 35 s at 0
-(75 against 65 min of CPU). The suite passes at both levels. A user's programs keep XLA's default (3); to run the
-suite at it, set ``XLA_FLAGS=--xla_backend_optimization_level=3`` (a level set there is kept)."""
+same programs (XLA's own passes unchanged, LLVM's optimisation off) compile faster, and the suite's short runs
+hardly feel the slower code; on the 2-core CPU, from an empty cache: a gradient check through the cosimulation 70 ->
+55 s, the quick arc experiment 64 -> 53 s; the whole suite, a clean clone as CI runs it, 41 min 21 s at level 3
+against 36 min 35 s at 0 (75 against 65 min of CPU). The suite passes at both levels. A user's programs keep XLA's
+default (3); to run the suite at it, set ``XLA_FLAGS=--xla_backend_optimization_level=3`` (a level set there is
+kept)."""
 
 import os
 

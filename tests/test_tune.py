@@ -180,3 +180,23 @@ def test_progress_keeps_the_first_iteration_apart_from_the_rate(tty):
     else:
         assert "\r" in stream.text and "4/4" in stream.text and "first iteration (with the compile)" in stream.text
         assert "it/s" in stream.text  # tqdm's rate over the iterations after the first: faster than 1 per second
+
+
+def test_the_gradients_program_is_named_by_the_settings_it_reads_only():
+    """Problems that differ in the optimiser's settings, the paths, seeds and payloads share one traced gradient
+    program (the second process loads it from disk); a setting that the objective reads names a program of its own."""
+    from pusupu_jax.tune.config import OBJECTIVE_SETTINGS, TuneConfig
+    from pusupu_jax.tune.run import Problem, structure_key
+
+    base = TuneConfig(trajectories=("p2p",), path_s=0.3, windows=2, window_s=0.1, baselines=())
+    servo, hybrid = ServoParams.table1(), HybridGains()
+    key = structure_key(Problem(base, servo, hybrid))
+    same = base.replace(
+        trajectories=("arc",), kin_error_seeds=(3,), payloads=(5.0,), iterations=7, learning_rate=0.02,
+        refresh_every=3, starts=2, seed=4, checkpoint_every=6, baselines=("pid",), bounds={"lambda2": (0.02, 0.4)},
+    )  # fmt: skip
+    assert structure_key(Problem(same, servo, hybrid)) == key
+    for change in ({"pm_min": 50.0}, {"weights": {"track_rms": 1.0, "balance": 0.2}}, {"aggregate": "max"}):
+        assert set(change) <= set(OBJECTIVE_SETTINGS)
+        assert structure_key(Problem(base.replace(**change), servo, hybrid)) != key, change
+    assert structure_key(Problem(base, servo.replace(Kv=servo.Kv * 1.1), hybrid)) != key  # another start point

@@ -57,6 +57,23 @@ from pusupu_jax.ros2 import JOINTS, check_joints
 
 from .space import GROUPS
 
+# the settings that the objective's traced program reads (pusupu_jax.tune.run.structure_key names its program by them):
+# the tuned fields' groups, form and sharing reach it through the start point; the paths, seeds and payloads enter as
+# arguments; the optimiser's, the schedule's and the outputs' settings and the bounds are used on the host only
+OBJECTIVE_SETTINGS = (
+    "mode",
+    "windows",
+    "window_s",
+    "aggregate",
+    "weights",
+    "force_peak_limit",
+    "pm_min",
+    "gm_min",
+    "sharpness_force",
+    "gradient",
+    "remat",
+)
+
 
 @dataclass(frozen=True)
 class TuneConfig:

@@ -39,7 +39,7 @@ from pusupu_jax.chunked import carry_structure, run_chunked
 from pusupu_jax.sim import rollout
 from pusupu_jax.paths import path_label, platform_path_from
 
-from .config import TuneConfig
+from .config import OBJECTIVE_SETTINGS, TuneConfig
 from .optimise import OptimiseResult, optimise
 from .space import Space
 from . import starts as kept_starts
@@ -515,16 +515,17 @@ _GRADIENTS: dict = {}  # structure key -> the compiled gradient shared by the Pr
 
 def structure_key(problem: WindowStarts, *layout) -> str:
     """A stable description (:func:`pusupu_jax.programs.describe`) of what a problem's objective reads from it besides
-    its arguments: the configuration (every setting), the tuned fields around their start (``space``), the nominal
-    plant's options, the rates, the number of rows, and ``layout`` (a subclass's own: a batch's load of the margins),
-    with the problem's class."""
+    its arguments: the configuration's settings that reach the program (:data:`~.config.OBJECTIVE_SETTINGS`), the
+    tuned fields around their start (``space``), the nominal plant's options, the rates, the number of rows, and
+    ``layout`` (a subclass's own: a batch's load of the margins), with the problem's class.  So a run with other
+    iterations, learning rate, paths, seeds or payloads loads the program an earlier run traced."""
     space = problem.space
     start = (space.servo0, space.hybrid0)
     # the weights' order too: the objective sums its terms in it, and the digest sorts them
     return describe(
         (
             type(problem),
-            problem.cfg.digest(),
+            {k: getattr(problem.cfg, k) for k in OBJECTIVE_SETTINGS},
             tuple(problem.cfg.weights),
             problem.scenarios.plant.options,
             problem.rates,
