@@ -224,24 +224,33 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
 
 
 @pytest.mark.skipif(len(jax.devices()) < 2, reason="one CPU: one host device")
-def test_a_jobs_gradient_laid_over_devices_is_its_gradient_on_one(batch, monkeypatch):
-    """A job tuned alone (test_batch_equals_tuning_each_scenario_alone's problem, whose program is compiled already):
-    its two starts' two windows laid over two devices and run on one give value and gradient equal to 1e-12
-    relative.  Not bit for bit: the gradient's sum over the windows is then an all-reduce across devices, in another
-    order than one device's sum."""
+def test_a_jobs_gradient_laid_over_devices_is_its_gradient_on_one(batch):
+    """A job tuned alone, its two windows laid over two devices (test_batch_equals_tuning_each_scenario_alone's
+    problem), against the same job's member of the batch on one device (the batch's own program), at the start: the
+    value to 1e-12 relative (at the start it is the weights' sum, 1.1: equal in both), each gradient component to 1e-9
+    of the largest.  Observed: at most 4.4e-11 of the largest component (5e-12 on Kv's -0.116; 1e-9 relative on g's
+    1.2e-8, the smallest).  Both programs are compiled already (the batch's is read from disk).  Not bit for bit: the
+    gradient's sum over the windows is then an all-reduce across devices, in another order than one device's sum, and
+    vmapping over the batch's members changes XLA's fusion."""
+    from pusupu_jax.tune.batch import BatchProblem
+
     _, out, _, _, _ = batch
-    (job,) = [j for j in jobfile.read(out.parent / "job.yaml").jobs if j.name == "arc-s1"]
-    spread = Problem(job.config, ServoParams.table1(), HybridGains(), specs=list(job.specs))
+    jobs = [j for j in jobfile.read(out.parent / "job.yaml").jobs if j.error is None]
+    specs, problems = [], []
+    for j in jobs:  # as pusupu batch lays the jobs out (pusupu_jax.tune.batchjob)
+        problems.append(list(range(len(specs), len(specs) + len(j.specs))))
+        specs += list(j.specs)
+    one = BatchProblem(jobs[0].config, specs, problems, ServoParams.table1(), HybridGains())
+    assert len(one.devices) == 1 and one.members[0] == (0, 0) and jobs[0].name == "arc-s1"
+    spread = Problem(jobs[0].config, ServoParams.table1(), HybridGains(), specs=list(jobs[0].specs))
     assert spread.mesh is not None and spread.mesh.size == 2
-    monkeypatch.setattr(run.devices, "row_mesh", lambda rows: None)
-    alone = Problem(job.config, ServoParams.table1(), HybridGains(), specs=list(job.specs))
-    assert alone.mesh is None and alone._value_and_grad is not spread._value_and_grad
-    z = spread.z0()
-    (v1, _), g1 = spread.value_and_grad(z)
-    (v2, _), g2 = alone.value_and_grad(z)
-    assert float(v1) == pytest.approx(float(v2), rel=1e-12)
+    (v1, _), g1 = spread.value_and_grad(spread.z0())
+    (_, aux), g2 = one.value_and_grad(one.z0())  # every member at the start: member 0 is the job's first start
+    assert one._value_and_grad.loaded == 1  # the batch's traced program, from disk
+    assert float(v1) == pytest.approx(float(aux["value"][0]), rel=1e-12)
+    largest = max(float(np.max(np.abs(np.asarray(g1[k])))) for k in g1)
     for k in g1:
-        np.testing.assert_allclose(np.asarray(g1[k]), np.asarray(g2[k]), rtol=1e-10, atol=1e-14)
+        assert np.max(np.abs(np.asarray(g1[k]) - np.asarray(g2[k])[0])) <= 1e-9 * largest, k
 
 
 def test_running_again_skips_the_finished_jobs(batch):
