@@ -521,7 +521,7 @@ def structure_key(problem: WindowStarts, *layout) -> str:
     iterations, learning rate, paths, seeds or payloads loads the program an earlier run traced."""
     space = problem.space
     start = (space.servo0, space.hybrid0)
-    # the weights' order too: the objective sums its terms in it, and the digest sorts them
+    # the weights' order too: the objective sums its terms in it, and describe sorts a dict's keys
     return describe(
         (
             type(problem),
