@@ -232,14 +232,11 @@ def test_a_jobs_gradient_laid_over_devices_is_its_gradient_on_one(batch):
     1.2e-8, the smallest).  Both programs are compiled already (the batch's is read from disk).  Not bit for bit: the
     gradient's sum over the windows is then an all-reduce across devices, in another order than one device's sum, and
     vmapping over the batch's members changes XLA's fusion."""
-    from pusupu_jax.tune.batch import BatchProblem
+    from pusupu_jax.tune.batch import BatchProblem, lay_out
 
     _, out, _, _, _ = batch
     jobs = [j for j in jobfile.read(out.parent / "job.yaml").jobs if j.error is None]
-    specs, problems = [], []
-    for j in jobs:  # as pusupu batch lays the jobs out (pusupu_jax.tune.batchjob)
-        problems.append(list(range(len(specs), len(specs) + len(j.specs))))
-        specs += list(j.specs)
+    specs, problems = lay_out([list(j.specs) for j in jobs])  # as pusupu batch lays the jobs out
     one = BatchProblem(jobs[0].config, specs, problems, ServoParams.table1(), HybridGains())
     assert len(one.devices) == 1 and one.members[0] == (0, 0) and jobs[0].name == "arc-s1"
     spread = Problem(jobs[0].config, ServoParams.table1(), HybridGains(), specs=list(jobs[0].specs))

@@ -365,8 +365,9 @@ def test_every_objective_term_has_the_gradient_of_central_differences():
         return x0 | {name: x0[name] + by}
 
     at_start = value(x0)
+    inputs = [*x0["z"], *AXIS_0, "mass"]
     report = []
-    for name in [*x0["z"], *AXIS_0, "mass"]:
+    for name in inputs:
         h = steps.get(name, 1e-3)
         plus, minus = value(moved(name, h)), value(moved(name, -h))
         tangent = jax.tree.map(lambda a, b: b - a, x0, moved(name, 1.0))
@@ -380,7 +381,7 @@ def test_every_objective_term_has_the_gradient_of_central_differences():
             # 1e-3 relative, or 1e-7 of the term's own size for gradients too small to matter to the tuner
             # (where central differences see the rollout's round-off: force_peak vs lambda1 is 1e-6 relative)
             assert abs(ad - fd) <= 1e-3 * abs(fd) + 1e-7 * size, (name, term, ad, fd)
-    for name in [*x0["z"], *AXIS_0, "mass"]:  # each input's derivative is exercised: some term moves and agrees
+    for name in inputs:  # each input's derivative is exercised: some term moves and agrees
         assert any(fd != 0.0 and abs(ad - fd) <= 1e-3 * abs(fd) for n, _, ad, fd, _, _ in report if n == name), name
     assert sum(abs(fd) > 1e-3 * size for _, _, _, fd, size, _ in report) >= 5  # real gradients
 

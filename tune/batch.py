@@ -61,6 +61,17 @@ def _take(tree, index):
     return jax.tree.map(lambda x: x[index], tree)
 
 
+def lay_out(jobs: list[list[ScenarioSpec]]) -> tuple[list[ScenarioSpec], list[list[int]]]:
+    """A :class:`BatchProblem`'s ``specs`` and ``problems`` for one list of scenarios per job, in order: every job's
+    scenarios end to end, and each job's indices into them."""
+    specs: list[ScenarioSpec] = []
+    problems = []
+    for scenarios in jobs:
+        problems.append(list(range(len(specs), len(specs) + len(scenarios))))
+        specs += scenarios
+    return specs, problems
+
+
 class BatchProblem(WindowStarts):
     """``problems`` (scenario index lists into ``specs``, all of one length) x ``starts`` members, one objective.
 

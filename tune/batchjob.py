@@ -80,7 +80,7 @@ def run_shard(task: dict, out: str, plots: bool = True, stream=None) -> list[dic
     plain data).  Its pid is in ``DIR/shards/<id>/worker.pid`` while it runs.
     """
     setup_jax()
-    from .batch import BatchProblem, optimise_batch
+    from .batch import BatchProblem, lay_out, optimise_batch
     from .job import start_gains
 
     stream = stream or sys.stderr
@@ -90,10 +90,7 @@ def run_shard(task: dict, out: str, plots: bool = True, stream=None) -> list[dic
     write_atomic(folder / "worker.pid", str(os.getpid()))
     cfg = TuneConfig().replace(**task["config"])
     entries = task["jobs"] + [task["jobs"][-1]] * task["pad"]
-    specs, problems = [], []
-    for e in entries:
-        problems.append(list(range(len(specs), len(specs) + len(e["specs"]))))
-        specs += [jobfile.spec_from_dict(d) for d in e["specs"]]
+    specs, problems = lay_out([[jobfile.spec_from_dict(d) for d in e["specs"]] for e in entries])
     n_jobs = len(task["jobs"])
     t0 = time.perf_counter()
     padding = f", {task['pad']} padding" if task["pad"] else ""
