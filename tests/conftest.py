@@ -25,6 +25,34 @@ CACHE = setup_jax(os.environ.get("PUSUPU_JAX_CACHE") or Path(__file__).resolve()
 os.environ["PUSUPU_JAX_CACHE"] = str(CACHE)  # the CLI subprocesses share it
 
 
+# The order in which pytest-xdist hands out the test files (``--dist loadfile --no-loadscope-reorder``, pyproject.toml).
+# Each worker runs one file and has the next one queued behind it.  xdist's own order (most tests first) left the
+# heaviest files of few tests to the end: from an empty cache on the 2-core CPU, the user's machine end to end (one
+# test, 189 s) started at minute 18, and the last 2 min 20 s ran on one worker (the batch file's Ray test, then the
+# loop-match file queued behind it), the other two done.  So the files that take minutes go first, in pairs that
+# take about as long on each worker (the CLI's and the user's machine's; the MJX oracles and the contact
+# experiments; the paper's experiments, then the batch, whose comparison with lone tunes loads the programs that the
+# CLI's tune compiled by then), then the loop match (three tests, a minute), and the rest follow, most tests first, as
+# xdist would hand them out.
+HEAVY_FIRST = (
+    "test_cli.py",
+    "test_mjx_plant.py",
+    "test_experiments.py",
+    "test_user_machine.py",
+    "test_contact_experiments.py",
+    "test_batch.py",
+    "test_loop_match.py",
+)
+
+
+def pytest_collection_modifyitems(items):
+    count: dict[str, int] = {}
+    for item in items:
+        count[item.path.name] = count.get(item.path.name, 0) + 1
+    rank = {name: k for k, name in enumerate(HEAVY_FIRST)}
+    items.sort(key=lambda item: (rank.get(item.path.name, len(rank)), -count[item.path.name]))  # stable per file
+
+
 @pytest.fixture(scope="session")
 def table1():
     from pusupu_jax import ServoParams

@@ -264,7 +264,11 @@ def test_ray_retries_a_killed_worker_and_gives_the_in_process_summary(batch, tmp
     figures equal the in-process run's exactly: the workers run the programs this process compiled (from the
     persistent cache) on the same inputs.  A task of two CPUs has this process's two host devices, so the programs
     laid over them are the same ones: with the cache warm, the worker's first iteration took 26 s, against 69 s with
-    one CPU a task, whose worker compiled those programs again (one run after the other on the 2-core CPU)."""
+    one CPU a task, whose worker compiled those programs again (one run after the other on the 2-core CPU).
+
+    Ray starts its workers at niceness 15 (``RAY_worker_niceness``), so beside the suite's other workers they got
+    almost none of the two cores: in one run the first worker took 185 s for what its retry then did in 52 s, once
+    the other tests had finished, and the last minutes ran on one core.  This run asks for niceness 0."""
     job, _, summary, _, _ = batch
     out = tmp_path / "ray_out"
     killed = []
@@ -299,6 +303,7 @@ def test_ray_retries_a_killed_worker_and_gives_the_in_process_summary(batch, tmp
         ],
         capture_output=True,
         text=True,
+        env=dict(os.environ, RAY_worker_niceness="0"),
         timeout=1500,
     )
     killer.join(timeout=1)
