@@ -119,6 +119,15 @@ def test_mjx_matches_c_mujoco_step_by_step_float64():
     assert residual.max() < 1e-5  # stiff connects: the chain stays closed to micrometres
 
 
+def test_a_run_from_the_plants_start_is_a_run_from_the_whole_forward_to_the_bit():
+    """MJXPlant.init computes the kinematics, centres of mass and bias forces only, not the whole ``mjx.forward``: 400
+    steps from it and from the whole forward's start are the same to the bit (the step computes the rest again).  The
+    holding torque that its fields give holds the machine still (test_a_run_starts_at_rest_in_every_mode)."""
+    aux = PLANT.prepare(SERVO, None, RATES.dt_mech)
+    for a, b in zip(mjx_run(PLANT, aux), mjx_run(PLANT, aux, qpos=PLANT.mj_model.qpos0)):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_mjx_matches_c_mujoco_with_friction_through_reversals_and_an_off_centre_payload():
     """The friction law on every slide, MJX against C MuJoCo (float64), with a 5 kg payload off the platform's centre
     (120, -50, 40 mm, its own inertia) on the MJX plant as a variant model, and torques that reverse sliders 1-3
