@@ -629,39 +629,40 @@ def test_pusupu_bridge_on_sigint_or_sigterm_prints_its_report_and_exits_130_or_1
     real-time run whose deadlines survive a loaded machine.)  The first binds to 0.0.0.0 (it sends to 127.0.0.1
     alone) and says so on stderr, in one line."""
     runs = {}
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        robot = WireRobot()
-        bind = ["--bind", "0.0.0.0"] if sig == signal.SIGINT else []
-        proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "pusupu_jax.cli",
-                "bridge",
-                "--gains",
-                str(setup.path),
-                "--robot",
-                f"udp://127.0.0.1:{robot.port}",
-                "--rate",
-                "100",
-                "--duration",
-                "30",
-                "--watchdog",
-                "50",
-                "--no-realtime",
-                "--json",
-                *bind,
-            ],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        runs[sig] = (robot, proc)
     try:
-        for sig, (robot, proc) in runs.items():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            robot = WireRobot()
+            bind = ["--bind", "0.0.0.0"] if sig == signal.SIGINT else []
+            proc = subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "pusupu_jax.cli",
+                    "bridge",
+                    "--gains",
+                    str(setup.path),
+                    "--robot",
+                    f"udp://127.0.0.1:{robot.port}",
+                    "--rate",
+                    "100",
+                    "--duration",
+                    "600",  # s: both run until their signal, the first while the second starts
+                    "--watchdog",
+                    "50",
+                    "--no-realtime",
+                    "--json",
+                    *bind,
+                ],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            runs[sig] = (robot, proc)
+            # the second starts once the first runs: it loads the programs the first compiled (persistent cache)
             end = time.monotonic() + TIMEOUT
             while robot.enabled < 10 and proc.poll() is None and time.monotonic() < end:
                 time.sleep(1e-3)
+        for sig, (robot, proc) in runs.items():
             proc.send_signal(sig)
         for sig, (robot, proc) in runs.items():
             out, err = proc.communicate(timeout=TIMEOUT)
