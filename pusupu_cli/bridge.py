@@ -200,6 +200,9 @@ def run_bridge(args) -> int:
     from pusupu_jax.runtime import apply_xla_workaround, setup_jax
 
     apply_xla_workaround(one_thread=True)  # before any computation: the gain file's checks run on JAX
+    # the cycle's thread runs its steps itself (hw_bridge.compiled.cpu); the cache before the gain file's checks,
+    # whose programs a later run then loads instead of compiling them again
+    setup_jax(synchronous_cpu=True)
 
     address = _robot_url(args.robot)
     if address is not None:
@@ -227,7 +230,6 @@ def run_bridge(args) -> int:
         if not args.allow_other_machine:
             raise ParameterError(f"{message}; give that machine's file with --machine, or --allow-other-machine")
         print(f"pusupu: warning: {message}; running it as --allow-other-machine asks", file=sys.stderr)
-    setup_jax(synchronous_cpu=True)  # the cycle's thread runs its steps itself (hw_bridge.compiled.cpu)
     # the gain check of load() takes the load at home; the path to run may carry the sliders lighter or heavier
     check_along_paths(g, machine, [args.trajectory], gains.FLOORS, f"--gains {args.gains}")
     from pusupu_jax.hw_bridge.loop import BridgeLoop, bridge_reference, cycle_rate, plan
@@ -364,6 +366,7 @@ def run_sim_robot(args) -> int:
     from pusupu_jax.runtime import apply_xla_workaround, setup_jax
 
     apply_xla_workaround(one_thread=True)  # before any computation: the gain file's checks run on JAX
+    setup_jax(synchronous_cpu=True)  # as the bridge's: before the gain file's checks, whose programs are then kept
 
     from pusupu_jax.hw_bridge.udp import parse_url
 
@@ -391,7 +394,6 @@ def run_sim_robot(args) -> int:
         raise ParameterError(str(e)) from None
     machine = machine_of(args)
     g = gains.load(args.gains, machine=machine)
-    setup_jax(synchronous_cpu=True)  # the cycle's thread runs its steps itself (hw_bridge.compiled.cpu)
     from pusupu_jax.hw_bridge.loop import plan
     from pusupu_jax.hw_bridge.protocol import CST
 
