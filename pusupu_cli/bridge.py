@@ -200,8 +200,9 @@ def run_bridge(args) -> int:
     from pusupu_jax.runtime import apply_xla_workaround, setup_jax
 
     apply_xla_workaround(one_thread=True)  # before any computation: the gain file's checks run on JAX
-    # the cycle's thread runs its steps itself (hw_bridge.compiled.cpu); the cache before the gain file's checks,
-    # whose programs a later run then loads instead of compiling them again
+    # before any computation too: JAX's CPU backend starts with the first one and reads then whether to dispatch
+    # synchronously (the cycle's thread runs its steps itself: hw_bridge.compiled.cpu), and the gain file's checks
+    # compile programs that the cache keeps for the next run
     setup_jax(synchronous_cpu=True)
 
     address = _robot_url(args.robot)
@@ -366,7 +367,7 @@ def run_sim_robot(args) -> int:
     from pusupu_jax.runtime import apply_xla_workaround, setup_jax
 
     apply_xla_workaround(one_thread=True)  # before any computation: the gain file's checks run on JAX
-    setup_jax(synchronous_cpu=True)  # as the bridge's: before the gain file's checks, whose programs are then kept
+    setup_jax(synchronous_cpu=True)  # before any computation, as the bridge's (run_bridge says why)
 
     from pusupu_jax.hw_bridge.udp import parse_url
 
