@@ -15,6 +15,7 @@ import os
 if "--xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):  # before JAX starts its backend
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level=0".strip()
 
+from collections import Counter  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
@@ -45,11 +46,30 @@ HEAVY_FIRST = (
 
 
 def pytest_collection_modifyitems(items):
-    count: dict[str, int] = {}
-    for item in items:
-        count[item.path.name] = count.get(item.path.name, 0) + 1
+    count = Counter(item.path.name for item in items)
     rank = {name: k for k, name in enumerate(HEAVY_FIRST)}
     items.sort(key=lambda item: (rank.get(item.path.name, len(rank)), -count[item.path.name]))  # stable per file
+
+
+@pytest.fixture
+def refused(capsys):
+    """``refused(*args, alone=True)``: the error line of ``pusupu ARGS`` run in this process (``cli.main``), which must
+    refuse its input: SystemExit with status 2 and ``pusupu: error: ...`` as the last line on stderr (with ``alone``,
+    the only one).  A command of its own costs 2.4 to 3.9 s of CPU to start; the refusals that a real process must
+    show (nothing else on stderr, no traceback) have subprocess tests (tests/test_cli.py)."""
+    from pusupu_jax.cli.cli import main
+
+    def run(*args, alone: bool = True) -> str:
+        capsys.readouterr()
+        with pytest.raises(SystemExit) as e:
+            main([str(a) for a in args])
+        err = capsys.readouterr().err
+        lines = err.strip().splitlines()
+        assert e.value.code == 2 and lines and lines[-1].startswith("pusupu: error: "), (e.value.code, err)
+        assert len(lines) == 1 or not alone, err
+        return lines[-1]
+
+    return run
 
 
 @pytest.fixture(scope="session")

@@ -1,5 +1,5 @@
 """The ``pusupu`` command, run as a user runs it (a real subprocess, real files); the refusals of bad input that
-need no process of their own call its ``main`` in this process (:func:`refused`)."""
+need no process of their own call its ``main`` in this process (the ``refused`` fixture, tests/conftest.py)."""
 
 import hashlib
 import json
@@ -24,25 +24,6 @@ def pusupu(*args, check=True):
     if check:
         assert r.returncode == 0, r.stderr
     return r
-
-
-def refused(capsys, *args, alone: bool = True) -> str:
-    """The error line of ``pusupu ARGS`` run in this process (``cli.main``), which must refuse its input with exit
-    status 2 before it computes anything; ``alone``: the only line on stderr.  A command of its own costs some 3 s
-    of CPU to start; the refusals that a real process must show (nothing else on stderr, no traceback) are this
-    file's subprocess tests."""
-    from pusupu_jax.cli.cli import main
-
-    capsys.readouterr()
-    try:
-        status = main([str(a) for a in args])
-    except SystemExit as e:
-        status = e.code
-    err = capsys.readouterr().err
-    lines = err.strip().splitlines()
-    assert status == 2 and lines and lines[-1].startswith("pusupu: error: "), (status, err)
-    assert len(lines) == 1 or not alone, err
-    return lines[-1]
 
 
 @pytest.mark.slow
@@ -151,8 +132,8 @@ def test_sim_mjx_reports_the_machine_metrics(tmp_path):
         ["identify", "/no/such/run.mcap", "--out", "x.yaml"],
     ],
 )
-def test_bad_machine_arguments_exit_2_with_one_line(args, capsys):
-    refused(capsys, *args)
+def test_bad_machine_arguments_exit_2_with_one_line(args, refused):
+    refused(*args)
 
 
 @pytest.mark.slow
@@ -183,11 +164,11 @@ def test_sim_mjx_hybrid_takes_its_gains_from_the_params_file(tmp_path):
     assert out["loop_closure_residual_max_mm"] < 0.01 * out["rms_tracking_error_mm"]
 
 
-def test_a_bad_hybrid_section_exits_2_naming_the_gain(tmp_path, capsys):
+def test_a_bad_hybrid_section_exits_2_naming_the_gain(tmp_path, refused):
     params = tmp_path / "params.yaml"
     params.write_text("hybrid: {c6: -3.0}\n")
     assert "HybridGains.c6: expected a number from 0 to" in refused(
-        capsys, "sim", "--plant", "mjx", "--mode", "hybrid", "--params", params
+        "sim", "--plant", "mjx", "--mode", "hybrid", "--params", params
     )
 
 
@@ -369,13 +350,13 @@ sys.exit(status)
     assert [line for line in r.stderr.splitlines() if line.strip()] == ["pusupu: interrupted", "fired 1"], r.stderr
 
 
-def test_a_bad_gain_file_exits_2_with_one_line(tuned, tmp_path, capsys):
+def test_a_bad_gain_file_exits_2_with_one_line(tuned, tmp_path, refused):
     folder, _ = tuned
     bad = tmp_path / "gains.yaml"
     bad.write_text((folder / "out" / "gains.yaml").read_text().replace("version: 4", "version: 7"))
     for command in (["analyze"], ["sim"], ["gains", "show"], ["gains", "check"]):
         args = [*command, str(bad)] if command[0] == "gains" else [*command, "--gains", str(bad)]
-        assert "version: expected 4" in refused(capsys, *args)
+        assert "version: expected 4" in refused(*args)
 
 
 @pytest.mark.slow
@@ -399,17 +380,17 @@ def test_gains_check_ros_prints_both_controllers(tuned):
     assert out["ros_gains"]["d"][0] > 0
 
 
-def test_a_foreign_checkpoint_is_refused_without_running(tmp_path, capsys):
+def test_a_foreign_checkpoint_is_refused_without_running(tmp_path, refused):
     """A crafted checkpoint.pkl in --out used to run its code.  Now nothing reads a pickle."""
     out = tmp_path / "out"
     out.mkdir()
     marker = tmp_path / "pwned"
     payload = f"cos\nsystem\n(S'touch {marker}'\ntR.".encode()  # a pickle that runs a shell command
     (out / "checkpoint.pkl").write_bytes(payload)
-    assert "never read" in refused(capsys, "tune", "--quick", "--out", out)
+    assert "never read" in refused("tune", "--quick", "--out", out)
     (out / "checkpoint.pkl").unlink()
     (out / "checkpoint.npz").write_bytes(payload)  # the same bytes where the checkpoint is now kept
-    assert "not a pusupu checkpoint" in refused(capsys, "tune", "--quick", "--out", out, alone=False)
+    assert "not a pusupu checkpoint" in refused("tune", "--quick", "--out", out, alone=False)
     assert not marker.exists()
 
 
@@ -450,7 +431,7 @@ def test_a_second_run_into_a_busy_folder_is_refused(tmp_path):
         ),
     ],
 )
-def test_every_probe_input_ends_in_one_line_and_exit_2(tmp_path, capsys, args, message):
+def test_every_probe_input_ends_in_one_line_and_exit_2(tmp_path, refused, args, message):
     """A reliability probe: inputs that ended in tracebacks, hangs or silent acceptance, each one line now,
     before any compile."""
     files = {
@@ -473,7 +454,7 @@ def test_every_probe_input_ends_in_one_line_and_exit_2(tmp_path, capsys, args, m
             paths[key].mkdir()
         else:
             paths[key].write_bytes(data)
-    assert message in refused(capsys, *[a.format(**paths) if "{" in a else a for a in args])
+    assert message in refused(*[a.format(**paths) if "{" in a else a for a in args])
 
 
 def test_version_and_python_m():

@@ -170,20 +170,14 @@ def test_tuned_quick_with_a_gain_file_compares_every_mode_on_both_paths(tmp_path
     ],
 )
 def test_experiment_gains_or_machine_misuse_exits_2_with_one_line(
-    tmp_path, tweaked_gains, capsys, name, option, value, message
+    tmp_path, tweaked_gains, refused, name, option, value, message
 ):
     """``pusupu experiment NAME --gains FILE`` or ``--machine FILE``: an experiment that takes no gains or runs on no
     machine file, or a file that cannot be read, is one line on stderr and exit status 2, before anything is
     written."""
-    from pusupu_jax.cli.cli import main
-
     example = Path(__file__).parent.parent / "docs" / "examples" / "machine_user.yaml"
     value = {"GAINS": str(tweaked_gains), "MACHINE": str(example)}.get(value, str(tmp_path / value))
-    with pytest.raises(SystemExit) as e:
-        main(["experiment", name, "--quick", option, value, "--out", str(tmp_path / "out")])
-    assert e.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("pusupu: error: ") and message in err[0], err
+    assert message in refused("experiment", name, "--quick", option, value, "--out", tmp_path / "out")
     assert not (tmp_path / "out").exists()
 
 
