@@ -80,7 +80,8 @@ else:
         piece = jax.tree.map(lambda x: np.pad(x[:, :chunked.CHUNK], [(0, 0), (0, max(chunked.CHUNK - x.shape[1], 0))]
                                               + [(0, 0)] * (x.ndim - 2), mode="edge"), refs)
         first = (servo, models, jax.tree.map(lambda x: x[:, 0], refs), hybrid_arg, None)
-        carry = timed(lambda: init.lower(*first))(*first)
+        # programs kept on disk (pusupu_jax.programs.Program): their compiled calls take the arguments' leaves
+        carry = timed(lambda: init.lower(*first))(*jax.tree.leaves(first))
         timed(lambda: chunk.lower(servo, models, piece, hybrid_arg, None, carry, np.int32(1)))
 p.refresh(z0)
 ones = {k: jnp.ones(p.rows) for k in objectives.TERMS}

@@ -1,14 +1,18 @@
 """Long runs on the host: a batch of rollouts cut into calls of one compiled chunk program, so that any path length
 runs the same two programs (the start and one chunk), with the carry kept at chosen periods (the training windows'
-start states)."""
+start states).
+
+Both programs are kept on disk beside the compilation cache (:mod:`pusupu_jax.programs`), so that a later process
+loads them instead of tracing them again: some 6 s of CPU for the default machine's start and chunk, paid by every
+``pusupu sim``, experiment and tuning run before its first period (a batch laid over several devices traces them in
+its process)."""
 
 from __future__ import annotations
 
 import functools
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from . import cascade as cascade_
@@ -16,6 +20,7 @@ from . import compliance as compliance_law
 from . import hybrid as hybrid_law
 from .params import LoopRates, ServoParams
 from .plant import AxisPlant
+from .programs import Program, describe
 from .sim import Carry, initial_carry, period_dt, rollout_chunk
 from .trace import Trace
 
@@ -27,11 +32,10 @@ if TYPE_CHECKING:
 CHUNK = 250  # periods per call of run_chunked's compiled program
 
 
-@functools.lru_cache(maxsize=None)
-def _init_program(
+def _init(
     plant: Plant, rates: LoopRates, outer: str, start: str, params_axis: int | None, hybrid_axis: int | None
-) -> jax.stages.Wrapped:
-    """:func:`~pusupu_jax.sim.initial_carry` vmapped over a batch, jitted (cached per static arguments)."""
+) -> Callable[..., Carry]:
+    """:func:`~pusupu_jax.sim.initial_carry` vmapped over a batch."""
 
     def init(
         params: ServoParams,
@@ -52,15 +56,13 @@ def _init_program(
             compliance=compliance,
         )
 
-    return jax.jit(jax.vmap(init, in_axes=(params_axis, 0, 0, hybrid_axis, None)))
+    return jax.vmap(init, in_axes=(params_axis, 0, 0, hybrid_axis, None))
 
 
-@functools.lru_cache(maxsize=None)
-def _chunk_program(
+def _chunk(
     plant: Plant, rates: LoopRates, outer: str, params_axis: int | None, hybrid_axis: int | None, masked: bool
-) -> jax.stages.Wrapped:
-    """:func:`~pusupu_jax.sim.rollout_chunk` (with ``n_valid`` when ``masked``) vmapped over a batch, jitted (cached
-    per static arguments: one compile serves every path length)."""
+) -> Callable[..., tuple[dict[str, Any], Carry]]:
+    """:func:`~pusupu_jax.sim.rollout_chunk` (with ``n_valid`` when ``masked``) vmapped over a batch."""
 
     def chunk(
         params: ServoParams,
@@ -84,7 +86,36 @@ def _chunk_program(
             compliance=compliance,
         )
 
-    return jax.jit(jax.vmap(chunk, in_axes=(params_axis, 0, 0, hybrid_axis, None, 0, None)))
+    return jax.vmap(chunk, in_axes=(params_axis, 0, 0, hybrid_axis, None, 0, None))
+
+
+@functools.lru_cache(maxsize=None)
+def _init_program(
+    plant: Plant, rates: LoopRates, outer: str, start: str, params_axis: int | None, hybrid_axis: int | None
+) -> Program:
+    """The start's program (cached per static arguments), kept on disk (:class:`~pusupu_jax.programs.Program`): a
+    later process loads it rather than tracing it again."""
+    static = (rates, cascade_.control_mode(outer), start, params_axis, hybrid_axis)
+    fun = _init(plant, rates, outer, start, params_axis, hybrid_axis)
+    return Program(fun, lambda: describe(("init", plant.key(), static)), to_host=False)
+
+
+@functools.lru_cache(maxsize=None)
+def _chunk_program(
+    plant: Plant, rates: LoopRates, outer: str, params_axis: int | None, hybrid_axis: int | None, masked: bool
+) -> Program:
+    """The chunk's program (cached per static arguments: one compile serves every path length), kept on disk as
+    :func:`_init_program`'s."""
+    static = (rates, cascade_.control_mode(outer), params_axis, hybrid_axis, masked)
+    fun = _chunk(plant, rates, outer, params_axis, hybrid_axis, masked)
+    return Program(fun, lambda: describe(("chunk", plant.key(), static)), to_host=False)
+
+
+@functools.lru_cache(maxsize=None)
+def _laid_over(fun: Callable[..., Any], *static: Any) -> jax.stages.Wrapped:
+    """``fun(*static)`` jitted in this process only: for arguments laid over several devices, which a program kept
+    on disk (exported for one device) does not take."""
+    return jax.jit(fun(*static))
 
 
 def carry_structure(
@@ -100,7 +131,7 @@ def carry_structure(
 ) -> Any:
     """The structure of :func:`run_chunked`'s carries (a tree of ``jax.ShapeDtypeStruct``, batch axis first) for
     ``models`` and the references' first samples ``first``, traced from its start program without running it."""
-    init = _init_program(plant, rates, outer, start, None, None)
+    init = _init(plant, rates, outer, start, None, None)
     return jax.eval_shape(init, params, models, first, hybrid, None)
 
 
@@ -135,8 +166,14 @@ def run_chunked(
     select per period costs run time); without, every chunk runs whole.  Different programs round differently: a run
     agrees with :func:`~pusupu_jax.sim.rollout`'s to float64 rounding, not bit for bit (``tests/test_windows.py``).
     """
-    init = _init_program(plant, rates, outer, start, params_axis, hybrid_axis)
-    step = _chunk_program(plant, rates, outer, params_axis, hybrid_axis, bool(marks))
+    init: Callable[..., Carry]
+    step: Callable[..., tuple[dict[str, Any], Carry]]
+    if any(len(x.sharding.device_set) > 1 for x in jax.tree.leaves(models) if isinstance(x, jax.Array)):
+        init = _laid_over(_init, plant, rates, outer, start, params_axis, hybrid_axis)
+        step = _laid_over(_chunk, plant, rates, outer, params_axis, hybrid_axis, bool(marks))
+    else:
+        init = _init_program(plant, rates, outer, start, params_axis, hybrid_axis)
+        step = _chunk_program(plant, rates, outer, params_axis, hybrid_axis, bool(marks))
     host = jax.tree.map(np.asarray, reference)
     n = jax.tree.leaves(host)[0].shape[1]
     if any(not 0 <= m < n for m in marks):
@@ -161,6 +198,7 @@ def run_chunked(
         lambda *x: np.concatenate([np.asarray(r)[:, :k] for r, (_, k) in zip(x, records)], axis=1),
         *[r for r, _ in records],
     )  # fetched at the end: the calls before queue without waiting
-    carries = jax.tree.map(lambda *c: jnp.stack(c, axis=1), *[kept[m] for m in marks]) if marks else None
+    # on the host: taken as arguments by other programs, as a plain jit's (uncommitted) outputs would be
+    carries = jax.tree.map(lambda *c: np.stack(c, axis=1), *[kept[m] for m in marks]) if marks else None
     t = np.arange(n) * period_dt(rates, cascade_.control_mode(outer))
     return Trace(t=np.repeat(t[None], len(rec["theta"]), axis=0), **rec), carries

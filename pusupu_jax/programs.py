@@ -13,10 +13,13 @@ A file is named by a hash of everything its program depends on: the caller's ``k
 besides its arguments), the source of this package and of the ``sources`` folders named, the versions of jax,
 jaxlib, mujoco, mujoco-mjx and numpy, the backend, the JAX settings that change a trace (float64, matmul precision,
 dtype promotion), and the arguments' structure, shapes and dtypes.  It starts with the SHA-256 of the rest, checked
-on reading.  The files trust the same folder as the compilation cache's executables, which are machine code.  A
-file that fails its checksum, does not deserialise, was made for other arguments or does not lower is traced again
-and replaced, with a warning; a function that cannot be exported is only jitted, with a warning; with no
-compilation cache configured nothing is kept and the function is only jitted.  The folder can be deleted.
+on reading; then the names of the pytree node types its outputs hold beyond tuples, lists and dicts (JSON: a run's
+carry holds the cascade's states and MJX's data), each of a module in :data:`TRUSTED_MODULES`, imported and its
+serialization registered before the program is read; then the program.  The files trust the same folder as the
+compilation cache's executables, which are machine code.  A file that fails its checksum, does not deserialise, was
+made for other arguments or does not lower is traced again and replaced, with a warning; a function that cannot be
+exported is only jitted, with a warning; with no compilation cache configured nothing is kept and the function is
+only jitted.  The folder can be deleted.
 """
 
 from __future__ import annotations
@@ -24,7 +27,9 @@ from __future__ import annotations
 import dataclasses
 import enum
 import hashlib
+import importlib
 import importlib.metadata
+import json
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -46,6 +51,13 @@ SUFFIX = ".jaxexport"
 HERE = Path(__file__).parent
 _VERSIONED = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")
 _SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion")
+
+
+# The modules whose pytree node types (a run's carry: the cascade's states, MJX's data) a kept program's outputs may
+# hold: a file names them, and a process that loads it imports them and registers their serialization with jax.export
+# (nothing else is imported or built from a file).
+TRUSTED_MODULES = ("pusupu_jax.", "mujoco.mjx.")
+_registered: set[type] = set()  # the node types whose serialization this module registered
 
 
 class UnstableKey(ValueError):
@@ -94,6 +106,82 @@ def _describe_treedef(treedef: PyTreeDef) -> str:
     return head + "(" + ",".join(_describe_treedef(c) for c in treedef.children()) + ")"
 
 
+def _node_types(treedef: PyTreeDef) -> set[type]:
+    """The node types of ``treedef`` that jax.export does not serialize itself (every one but tuples, lists, dicts
+    and None)."""
+    node = treedef.node_data()
+    found = set() if node is None or node[0] in (tuple, list, dict, type(None)) else {node[0]}
+    for child in treedef.children():
+        found |= _node_types(child)
+    return found
+
+
+def _register(t: type) -> None:
+    """Register the serialization of node type ``t`` with jax.export (once): a NamedTuple by its fields; another node
+    by its static data, which must be numbers, strings, None, tuples and lists of them, or MJX's wrapped NumPy arrays
+    (:func:`_encode`).  ``TypeError`` for a type outside :data:`TRUSTED_MODULES`."""
+    if t in _registered:
+        return
+    name = f"{t.__module__}:{t.__qualname__}"
+    if not t.__module__.startswith(TRUSTED_MODULES):
+        raise TypeError(f"an output of type {name}, outside {TRUSTED_MODULES}")
+    if issubclass(t, tuple) and hasattr(t, "_fields"):
+        export.register_namedtuple_serialization(t, serialized_name=name)
+    else:
+        export.register_pytree_node_serialization(
+            t,
+            serialized_name=name,
+            serialize_auxdata=lambda aux: json.dumps(_encode(aux)).encode(),
+            deserialize_auxdata=lambda data: _decode(json.loads(data)),
+        )
+    _registered.add(t)
+
+
+def _encode(x: Any) -> Any:
+    """A node's static data as JSON (:func:`_register`); ``TypeError`` for anything else."""
+    if x is None or isinstance(x, (bool, int, float, str)):
+        return x
+    if isinstance(x, (np.integer, np.floating, np.bool_)):  # read back as the same NumPy type: a node's static data
+        return {"numpy": x.dtype.str, "value": x.item()}  # is in its structure, which names the programs it enters
+    if isinstance(x, (tuple, list)):
+        return {type(x).__name__: [_encode(v) for v in x]}
+    wrapped = getattr(x, "array", None)
+    if (
+        isinstance(wrapped, np.ndarray)
+        and type(x).__module__.startswith(TRUSTED_MODULES)
+        and not wrapped.dtype.hasobject
+    ):
+        kind = f"{type(x).__module__}:{type(x).__qualname__}"
+        return {"wrapped": kind, "dtype": wrapped.dtype.str, "shape": wrapped.shape, "values": wrapped.ravel().tolist()}
+    raise TypeError(f"static data of type {_name(type(x))}")
+
+
+def _decode(x: Any) -> Any:
+    """The inverse of :func:`_encode`."""
+    if isinstance(x, dict) and "numpy" in x:
+        return np.dtype(x["numpy"]).type(x["value"])
+    if isinstance(x, dict) and "wrapped" in x:
+        array = np.asarray(x["values"], dtype=np.dtype(x["dtype"])).reshape(x["shape"])
+        return _trusted_type(x["wrapped"])(array)
+    if isinstance(x, dict):
+        ((kind, items),) = x.items()
+        return {"tuple": tuple, "list": list}[kind](_decode(v) for v in items)
+    return x
+
+
+def _trusted_type(name: str) -> Any:
+    """The class ``module:qualname`` of a module in :data:`TRUSTED_MODULES` (imported); ``TypeError`` for another."""
+    module, _, qualname = name.partition(":")
+    if not module.startswith(TRUSTED_MODULES):
+        raise TypeError(f"a type outside {TRUSTED_MODULES}: {name}")
+    found: Any = importlib.import_module(module)
+    for part in qualname.split("."):
+        found = getattr(found, part)
+    if not isinstance(found, type):
+        raise TypeError(f"not a type: {name}")
+    return found
+
+
 def _source_digest(folder: Path) -> str:
     """Every ``.py`` file under ``folder``, names and bytes (read again each time: a notebook may have edited one)."""
     h = hashlib.sha256()
@@ -137,8 +225,11 @@ class Program:
     that returns one (called when a signature is first traced or loaded, so that the name is taken from the state
     the trace reads, should that have changed since).  ``sources``: folders of Python code that ``fun``'s program is
     traced from, besides this package.  ``folder``: where the programs are kept (default :func:`cache_folder`).
-    ``loaded`` counts the signatures read from disk.  The outputs come back as host copies (uncommitted arrays, as
-    a plain jit returns them): this is for programs with small outputs, such as a value and its gradient.
+    ``loaded`` counts the signatures read from disk.  With ``to_host`` (the default) the outputs come back as host
+    copies (uncommitted arrays, as a plain jit returns them): for programs with small outputs, such as a value and its
+    gradient, that other programs take as arguments.  Without, they stay where the program put them (committed to its
+    device): for a program whose outputs only it takes back (a run's carry from one chunk to the next) or that are
+    fetched to the host anyway.
 
     ``mesh``: the devices a program that lays its work over several (:func:`pusupu_jax.devices.spread_rows`) runs
     on; its arguments and outputs are whole on each of them (replicated), and its file is for that many devices.
@@ -151,8 +242,9 @@ class Program:
         sources: tuple[Path, ...] = (),
         folder: Path | None = None,
         mesh: Mesh | None = None,
+        to_host: bool = True,
     ) -> None:
-        self.fun, self.key, self.folder, self.mesh = fun, key, folder, mesh
+        self.fun, self.key, self.folder, self.mesh, self.to_host = fun, key, folder, mesh, to_host
         self.sources = tuple(Path(s) for s in sources)
         self.loaded = 0
         self._calls: dict[tuple[PyTreeDef, tuple[str, ...]], Wrapped] = {}
@@ -160,11 +252,18 @@ class Program:
     def __call__(self, *args: Any) -> Any:
         leaves, tree = jax.tree.flatten(args)
         call = self._call(leaves, tree)
+        if not self.to_host:
+            return call(*leaves)
         # an exported call's outputs are committed to their device, a plain jit's (of uncommitted arguments) are not;
         # fed back (the optimiser's next step, the next start states) they would change the arguments' placement, and
         # every program they reach, this one included, would be lowered and compiled again for it: small outputs
         # (a value and its gradient) come back as plain jit's would
         return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), call(*leaves))
+
+    def cache_size(self) -> int:
+        """The executables this program holds in this process: one per argument signature (as a jitted function's
+        ``_cache_size``)."""
+        return sum(call._cache_size() for call in self._calls.values())  # type: ignore[attr-defined]  # jax's own
 
     def lower(self, *args: Any) -> Lowered:
         """The lowered program for ``args`` (traced and exported, or loaded), to time or inspect; its ``compile()``
@@ -216,9 +315,13 @@ class Program:
             )
             return jit(flat)
         try:
-            blob = bytes(exported.serialize())
+            types = sorted(f"{t.__module__}:{t.__qualname__}" for t in _node_types(exported.out_tree))
+            for t in _node_types(exported.out_tree):
+                _register(t)
+            header = json.dumps(types).encode()
+            body = len(header).to_bytes(4, "little") + header + bytes(exported.serialize())
             folder.mkdir(parents=True, exist_ok=True)
-            write_atomic(path, hashlib.sha256(blob).digest() + blob)
+            write_atomic(path, hashlib.sha256(body).digest() + body)
         except Exception as e:  # a full or read-only disk, an output jax.export cannot write, no flatbuffers
             warnings.warn(f"pusupu_jax.programs: could not keep {path} ({type(e).__name__}: {e})", stacklevel=4)
         return jit(exported.call)
@@ -236,10 +339,13 @@ class Program:
     def _load(path: Path, leaves: list[Any], jit: Callable[[Callable[..., Any]], Wrapped]) -> Wrapped:
         """The jitted call of the program in ``path``, checked: its checksum, its arguments' types, and a lowering."""
         data = path.read_bytes()
-        blob = data[32:]
-        if hashlib.sha256(blob).digest() != data[:32]:
+        body = data[32:]
+        if hashlib.sha256(body).digest() != data[:32]:
             raise ValueError("checksum mismatch")
-        exported = export.deserialize(bytearray(blob))
+        size = int.from_bytes(body[:4], "little")
+        for name in json.loads(body[4 : 4 + size]):  # the outputs' node types, registered before they are read
+            _register(_trusted_type(name))
+        exported = export.deserialize(bytearray(body[4 + size :]))
         want = [jax.typeof(x) for x in leaves]
         if [(a.shape, a.dtype) for a in exported.in_avals] != [(a.shape, a.dtype) for a in want]:
             raise ValueError("made for other argument types")

@@ -140,3 +140,73 @@ def test_descriptions_are_equal_for_equal_values_only():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         describe(jnp.ones(2))  # a jax array by its values
+
+
+KEPT_IN_A_PROCESS = """
+import json, sys
+from pathlib import Path
+
+import jax, jax.numpy as jnp, mujoco
+from mujoco import mjx
+
+jax.config.update("jax_enable_x64", True)
+from pusupu_jax.loops import PIState
+from pusupu_jax.programs import Program
+
+model = mjx.put_model(mujoco.MjModel.from_xml_string(
+    "<mujoco><worldbody><body><joint type='slide'/><geom size='.1' mass='2'/></body></worldbody></mujoco>"))
+
+
+def run(q):  # a run's carry: the cascade's states and MJX's data, node types jax.export does not know
+    data = mjx.forward(model, mjx.make_data(model).replace(qpos=q))
+    return PIState(q, 2.0 * q, jnp.sum(data.qfrc_bias)), data
+
+
+program = Program(run, "key", folder=Path(sys.argv[1]), to_host=False)
+state, data = program(jnp.ones(1))
+print(json.dumps({"loaded": program.loaded, "values": [repr(float(jnp.sum(x))) for x in jax.tree.leaves((state, data))],
+                  "types": [type(state).__name__, type(data).__name__]}))
+"""
+
+
+def test_outputs_holding_the_cascades_states_and_mjx_data_are_kept_and_read_in_a_new_process(tmp_path):
+    """A run's carry (the cascade's NamedTuples, MJX's data with its static arrays) as a program's outputs: the file
+    names those node types, and a new process, which has registered none of them, reads it back with its outputs'
+    structure and the same values to the bit, without tracing."""
+    import json
+    import subprocess
+    import sys
+
+    script = tmp_path / "kept.py"
+    script.write_text(KEPT_IN_A_PROCESS)
+    runs = [
+        subprocess.run([sys.executable, script, tmp_path / "programs"], capture_output=True, text=True) for _ in "ab"
+    ]
+    assert all(r.returncode == 0 and "Warning" not in r.stderr for r in runs), [r.stderr for r in runs]
+    first, second = (json.loads(r.stdout.splitlines()[-1]) for r in runs)  # MJX prints its GPU backends' absence
+    assert (first["loaded"], second["loaded"]) == (0, 1)
+    assert second["values"] == first["values"] and second["types"] == first["types"] == ["PIState", "Data"]
+    (path,) = (tmp_path / "programs").glob("*" + SUFFIX)
+    assert b"pusupu_jax.loops:PIState" in path.read_bytes()[:400]
+
+
+def test_a_file_naming_a_type_from_elsewhere_is_traced_again(tmp_path):
+    """A file whose list of node types names a module outside pusupu_jax and MJX (checksum made good): nothing is
+    imported from it; the program is traced again and the file replaced."""
+    import hashlib
+
+    from pusupu_jax.loops import PIState
+
+    def fun(x):
+        return PIState(x, 2.0 * x, jnp.sum(x))
+
+    want = Program(fun, "key", folder=tmp_path)(ARGS[0])
+    (path,) = tmp_path.glob("*" + SUFFIX)
+    body = path.read_bytes()[32:]
+    assert b"pusupu_jax.loops:PIState" in body
+    body = body.replace(b"pusupu_jax.loops:PIState", b"os:system".ljust(len(b"pusupu_jax.loops:PIState")))
+    path.write_bytes(hashlib.sha256(body).digest() + body)
+    p = Program(fun, "key", folder=tmp_path)
+    with pytest.warns(UserWarning, match="did not load.*outside"):
+        _same(p(ARGS[0]), want)
+    assert p.loaded == 0 and Program(fun, "key", folder=tmp_path)(ARGS[0]) is not None

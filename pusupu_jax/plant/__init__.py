@@ -2,6 +2,9 @@
 
 A plant is a hashable object (a static argument of the jitted rollout) with:
 
+* ``key() -> str``: a stable description of all that the traced functions read from the plant, for the
+  names of the traced programs kept on disk (:mod:`pusupu_jax.programs`);
+
 * ``n_axes`` (int): number of driven axes;
 * ``prepare(servo, plant_params, dt) -> aux``: everything the step needs that depends
   only on parameters (e.g. the ZOH matrices), computed once per rollout outside the
@@ -34,6 +37,8 @@ if TYPE_CHECKING:
         """The interface above, for type checkers; ``aux`` and the state are each plant's own."""
 
         def __hash__(self) -> int: ...
+
+        def key(self) -> str: ...
 
         @property
         def n_axes(self) -> int: ...

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 
 from .. import lti
 from ..params import N_AXES, AxisLoad, ServoParams
+from ..programs import describe
 from .friction import Friction, coulomb_friction
 
 
@@ -43,6 +44,11 @@ class AxisPlant:
     """Six independent single-axis plants (see the module docstring)."""
 
     n_axes: int = N_AXES
+
+    def key(self) -> str:
+        """A stable description of all that the traced functions read from this plant (its axis count), for the
+        names of the traced programs kept on disk (:mod:`pusupu_jax.programs`)."""
+        return describe(self)
 
     def prepare(self, servo: ServoParams, load: AxisLoad, dt: float) -> AxisAux:
         return AxisAux(

@@ -38,6 +38,7 @@ import numpy as np
 with contextlib.redirect_stdout(io.StringIO()):  # MJX prints its optional GPU backends' import failures
     from mujoco import mjx
 
+from ..programs import describe
 from .axis import screw_ratio
 from .friction import Friction, slider_friction
 from .geometry import Geometry
@@ -69,6 +70,14 @@ class MJXPlant:
     def create(cls, geom: Geometry | None = None, options: ModelOptions = ModelOptions()) -> "MJXPlant":
         m = build_model(geom, options)
         return cls(m, mjx.put_model(m), options)
+
+    def key(self) -> str:
+        """A stable description of all that the traced functions read from this plant: its options, its C model (as
+        MuJoCo's binary MJB) and its MJX model, for the names of the traced programs kept on disk
+        (:mod:`pusupu_jax.programs`)."""
+        mjb = np.zeros(mujoco.mj_sizeModel(self.mj_model), np.uint8)
+        mujoco.mj_saveModel(self.mj_model, None, mjb)
+        return describe((type(self), self.options, self.n_axes, mjb, self.mjx_model))
 
     def variant(self, options: ModelOptions, geom: Geometry | None = None) -> mjx.Model:
         """The ``mjx.Model`` of the machine built with ``options``, as array fields on this plant's structure.
