@@ -1,5 +1,7 @@
 """The ``pusupu`` command, run as a user runs it (a real subprocess, real files); the refusals of bad input that
-need no process of their own call its ``main`` in this process (the ``refused`` fixture, tests/conftest.py)."""
+need no process of their own call its ``main`` in this process (the ``refused`` fixture, tests/conftest.py), and so
+do the tiny tuning run and the commands that read its files or resume it (``in_process``: its programs are in this
+process's memory, and the same command runs as a process of its own when it is killed and interrupted)."""
 
 import hashlib
 import json
@@ -188,17 +190,17 @@ baselines: [pid]
 
 
 @pytest.fixture(scope="module")
-def tuned(tmp_path_factory):
-    """One uninterrupted tiny tuning run (hybrid mode, two 0.1 s windows of the p2p path's first 0.3 s): its folder
-    and report."""
+def tuned(tmp_path_factory, in_process):
+    """One uninterrupted tiny tuning run (hybrid mode, two 0.1 s windows of the p2p path's first 0.3 s), in this
+    process (the tests below run the same command as a process of its own, killed and interrupted, and read its files
+    with commands that find its programs in memory): its folder and report."""
     folder = tmp_path_factory.mktemp("tune")
     (folder / "tiny.yaml").write_text(TINY_TUNE)
-    r = pusupu("tune", "--config", str(folder / "tiny.yaml"), "--out", str(folder / "out"), "--json")
-    return folder, json.loads(r.stdout)
+    return folder, json.loads(in_process("tune", "--config", folder / "tiny.yaml", "--out", folder / "out", "--json"))
 
 
 @pytest.mark.slow
-def test_tune_writes_gains_ros_files_report_and_plots(tuned):
+def test_tune_writes_gains_ros_files_report_and_plots(tuned, in_process):
     import yaml
 
     from pusupu_jax import gains, ros2
@@ -232,11 +234,11 @@ def test_tune_writes_gains_ros_files_report_and_plots(tuned):
     for k, joint in enumerate(ros["dof_names"]):
         assert [ros["gains"][joint][key] for key in "pid"] == [expected[key][k] for key in "pid"]
     # the exported gains drive the other commands
-    a = json.loads(pusupu("analyze", "--gains", str(out / "gains.yaml"), "--json").stdout)
+    a = json.loads(in_process("analyze", "--gains", out / "gains.yaml", "--json"))
     assert len(a["axes"]) == 6
-    shown = pusupu("gains", "show", str(out / "gains.yaml")).stdout
+    shown = in_process("gains", "show", out / "gains.yaml")
     assert "lambda2" in shown and "yes" in shown
-    assert "valid pusupu-gains v4" in pusupu("gains", "check", str(out / "gains.yaml")).stdout
+    assert "valid pusupu-gains v4" in in_process("gains", "check", out / "gains.yaml")
     # checked at export with the masses the sliders carry at home and at the extremes of the tuned path, and so again
     loads = g.document["provenance"]["margin_loads_kg"]
     assert list(loads) == ["home", "lightest", "heaviest"]
@@ -252,8 +254,9 @@ def test_tune_writes_gains_ros_files_report_and_plots(tuned):
 
 
 @pytest.mark.slow
-def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
-    """SIGKILL after the first checkpoint, run the same command again: the result equals the uninterrupted run's."""
+def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path, in_process):
+    """SIGKILL after the first checkpoint, run the same command again (in this process, which has the programs in
+    memory): the result equals the uninterrupted run's."""
     folder, report = tuned
     cmd = [
         sys.executable,
@@ -274,7 +277,7 @@ def test_a_killed_tuning_run_resumes_from_its_checkpoint(tuned, tmp_path):
     p.communicate()
     assert p.returncode == -signal.SIGKILL, "the run ended before it could be killed"
     assert not (tmp_path / "out" / "gains.yaml").exists()
-    resumed = json.loads(pusupu(*cmd[3:]).stdout)
+    resumed = json.loads(in_process(*cmd[3:]))
     assert resumed["result"] == report["result"]
     assert resumed["objective_after"] == report["objective_after"]
 
@@ -360,19 +363,12 @@ def test_a_bad_gain_file_exits_2_with_one_line(tuned, tmp_path, refused):
 
 
 @pytest.mark.slow
-def test_gains_check_ros_prints_both_controllers(tuned):
+def test_gains_check_ros_prints_both_controllers(tuned, in_process):
     folder, _ = tuned
     out = json.loads(
-        pusupu(
-            "gains",
-            "check-ros",
-            str(folder / "out" / "gains.yaml"),
-            "--trajectory",
-            "p2p",
-            "--seconds",
-            "0.3",
-            "--json",
-        ).stdout
+        in_process(
+            "gains", "check-ros", folder / "out" / "gains.yaml", "--trajectory", "p2p", "--seconds", 0.3, "--json"
+        )
     )
     for who in ("pusupu", "ros"):
         assert out["paths"]["p2p"][who]["rms_tracking_error_mm"] > 0
