@@ -130,9 +130,9 @@ def carry_structure(
     start: str = "rest",
 ) -> Any:
     """The structure of :func:`run_chunked`'s carries (a tree of ``jax.ShapeDtypeStruct``, batch axis first) for
-    ``models`` and the references' first samples ``first``, traced from its start program without running it."""
-    init = _init(plant, rates, outer, start, None, None)
-    return jax.eval_shape(init, params, models, first, hybrid, None)
+    ``models`` and the references' first samples ``first``, from its start program without running it (read from
+    disk where it is kept there)."""
+    return _init_program(plant, rates, outer, start, None, None).eval_shape(params, models, first, hybrid, None)
 
 
 def run_chunked(

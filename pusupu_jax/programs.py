@@ -260,6 +260,12 @@ class Program:
         # (a value and its gradient) come back as plain jit's would
         return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), call(*leaves))
 
+    def eval_shape(self, *args: Any) -> Any:
+        """The outputs' structure for ``args`` (``jax.ShapeDtypeStruct`` leaves), from the program on disk when there
+        is one (nothing traced), else traced and kept as a call would."""
+        leaves, tree = jax.tree.flatten(args)
+        return jax.eval_shape(self._call(leaves, tree), *leaves)
+
     def cache_size(self) -> int:
         """The executables this program holds in this process: one per argument signature (as a jitted function's
         ``_cache_size``)."""

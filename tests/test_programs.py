@@ -210,3 +210,15 @@ def test_a_file_naming_a_type_from_elsewhere_is_traced_again(tmp_path):
     with pytest.warns(UserWarning, match="did not load.*outside"):
         _same(p(ARGS[0]), want)
     assert p.loaded == 0 and Program(fun, "key", folder=tmp_path)(ARGS[0]) is not None
+
+
+def test_the_outputs_structure_comes_from_the_file_without_a_trace(tmp_path):
+    fun, traces = _counted()
+    Program(fun, "key", folder=tmp_path)(*ARGS)
+    traces.clear()
+    loaded = Program(fun, "key", folder=tmp_path)
+    shape = loaded.eval_shape(*ARGS)
+    assert traces == [] and loaded.loaded == 1
+    want = jax.eval_shape(fun, *ARGS)
+    assert jax.tree.structure(shape) == jax.tree.structure(want)
+    assert [(x.shape, x.dtype) for x in jax.tree.leaves(shape)] == [(x.shape, x.dtype) for x in jax.tree.leaves(want)]

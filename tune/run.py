@@ -399,7 +399,8 @@ class Problem(WindowStarts):
         self._starts_z = {k: np.asarray(v) for k, v in z.items()}
 
     def starts_structure(self, z) -> object:
-        """The structure of the start states ``refresh(z)`` makes (``jax.ShapeDtypeStruct`` leaves), traced, not run."""
+        """The structure of the start states ``refresh(z)`` makes (``jax.ShapeDtypeStruct`` leaves), not run (from the
+        start program kept on disk, where it is)."""
         servo, hybrid = self.space.apply(z)
         sc = self.scenarios
         _, models, refs = next(iter(sc.groups.values()))
