@@ -122,7 +122,7 @@ def _register(t: type) -> None:
     (:func:`_encode`).  ``TypeError`` for a type outside :data:`TRUSTED_MODULES`."""
     if t in _registered:
         return
-    name = f"{t.__module__}:{t.__qualname__}"
+    name = _type_name(t)
     if not t.__module__.startswith(TRUSTED_MODULES):
         raise TypeError(f"an output of type {name}, outside {TRUSTED_MODULES}")
     if issubclass(t, tuple) and hasattr(t, "_fields"):
@@ -151,8 +151,12 @@ def _encode(x: Any) -> Any:
         and type(x).__module__.startswith(TRUSTED_MODULES)
         and not wrapped.dtype.hasobject
     ):
-        kind = f"{type(x).__module__}:{type(x).__qualname__}"
-        return {"wrapped": kind, "dtype": wrapped.dtype.str, "shape": wrapped.shape, "values": wrapped.ravel().tolist()}
+        return {
+            "wrapped": _type_name(type(x)),
+            "dtype": wrapped.dtype.str,
+            "shape": wrapped.shape,
+            "values": wrapped.ravel().tolist(),
+        }
     raise TypeError(f"static data of type {_name(type(x))}")
 
 
@@ -167,6 +171,11 @@ def _decode(x: Any) -> Any:
         ((kind, items),) = x.items()
         return {"tuple": tuple, "list": list}[kind](_decode(v) for v in items)
     return x
+
+
+def _type_name(t: type) -> str:
+    """``module:qualname``, as a kept file names a type (:func:`_trusted_type` reads it)."""
+    return f"{t.__module__}:{t.__qualname__}"
 
 
 def _trusted_type(name: str) -> Any:
@@ -321,10 +330,10 @@ class Program:
             )
             return jit(flat)
         try:
-            types = sorted(f"{t.__module__}:{t.__qualname__}" for t in _node_types(exported.out_tree))
-            for t in _node_types(exported.out_tree):
+            types = _node_types(exported.out_tree)
+            for t in types:
                 _register(t)
-            header = json.dumps(types).encode()
+            header = json.dumps(sorted(map(_type_name, types))).encode()
             body = len(header).to_bytes(4, "little") + header + bytes(exported.serialize())
             folder.mkdir(parents=True, exist_ok=True)
             write_atomic(path, hashlib.sha256(body).digest() + body)
