@@ -139,10 +139,12 @@ def _register(t: type) -> None:
 
 def _encode(x: Any) -> Any:
     """A node's static data as JSON (:func:`_register`); ``TypeError`` for anything else."""
+    # NumPy scalars first (np.float64 is a float): read back as the same NumPy type, since a node's static data is in
+    # its structure, which names the programs it enters
+    if isinstance(x, (np.integer, np.floating, np.bool_)):
+        return {"numpy": x.dtype.str, "value": x.item()}
     if x is None or isinstance(x, (bool, int, float, str)):
         return x
-    if isinstance(x, (np.integer, np.floating, np.bool_)):  # read back as the same NumPy type: a node's static data
-        return {"numpy": x.dtype.str, "value": x.item()}  # is in its structure, which names the programs it enters
     if isinstance(x, (tuple, list)):
         return {type(x).__name__: [_encode(v) for v in x]}
     wrapped = getattr(x, "array", None)

@@ -222,3 +222,13 @@ def test_the_outputs_structure_comes_from_the_file_without_a_trace(tmp_path):
     want = jax.eval_shape(fun, *ARGS)
     assert jax.tree.structure(shape) == jax.tree.structure(want)
     assert [(x.shape, x.dtype) for x in jax.tree.leaves(shape)] == [(x.shape, x.dtype) for x in jax.tree.leaves(want)]
+
+
+def test_static_data_reads_back_as_it_was_described():
+    """A node's static data written to a kept file and read back describes as before, NumPy scalars included
+    (np.float64 is a Python float too): the structure of a loaded program's outputs names the programs it enters."""
+    import json
+
+    static = (np.int64(18), np.float64(0.5), np.bool_(True), 3, 2.5, "s", None, [np.int32(1)], ())
+    back = programs._decode(json.loads(json.dumps(programs._encode(static))))
+    assert describe(back) == describe(static)
