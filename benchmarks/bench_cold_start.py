@@ -68,7 +68,9 @@ if hasattr(p, "_whole"):  # a tree before the chunked forward pass: one program 
     for idx, models, refs in p.scenarios.groups.values():
         timed(lambda: p._whole.lower(servo, hybrid, models, refs))
 else:
-    init = chunked._init_program(p.scenarios.plant, p.rates, cfg.mode, "rest", None, None)
+    # the start: one kept program, or (a tree with the plant's rest shared by the modes) the rest, then the controllers
+    start_program = getattr(chunked, "_start_program", chunked._init_program)
+    init = start_program(p.scenarios.plant, p.rates, cfg.mode, "rest", None, None)
     chunk = chunked._chunk_program(p.scenarios.plant, p.rates, cfg.mode, None, None, True)
     hybrid_arg = hybrid if control_mode(cfg.mode).hybrid else None
     batches = set()
@@ -81,7 +83,11 @@ else:
                                               + [(0, 0)] * (x.ndim - 2), mode="edge"), refs)
         first = (servo, models, jax.tree.map(lambda x: x[:, 0], refs), hybrid_arg, None)
         # programs kept on disk (pusupu_jax.programs.Program): their compiled calls take the arguments' leaves
-        carry = timed(lambda: init.lower(*first))(*jax.tree.leaves(first))
+        if hasattr(init, "rest"):
+            rest = timed(lambda: init.rest.lower(servo, models))(*jax.tree.leaves((servo, models)))
+            carry = timed(lambda: init.finish.lower(*first, rest))(*first, rest)
+        else:
+            carry = timed(lambda: init.lower(*first))(*jax.tree.leaves(first))
         timed(lambda: chunk.lower(servo, models, piece, hybrid_arg, None, carry, np.int32(1)))
 p.refresh(z0)
 ones = {k: jnp.ones(p.rows) for k in objectives.TERMS}

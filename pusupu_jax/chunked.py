@@ -1,11 +1,12 @@
 """Long runs on the host: a batch of rollouts cut into calls of one compiled chunk program, so that any path length
-runs the same two programs (the start and one chunk), with the carry kept at chosen periods (the training windows'
-start states).
+runs the same programs (the start and one chunk), with the carry kept at chosen periods (the training windows' start
+states).  The start is the plant's rest, one program for every mode, then the controllers' states from it, which
+compiles in well under a second.
 
-Both programs are kept on disk beside the compilation cache (:mod:`pusupu_jax.programs`), so that a later process
-loads them instead of tracing them again: some 6 s of CPU for the default machine's start and chunk, paid by every
-``pusupu sim``, experiment and tuning run before its first period (a batch laid over several devices traces them in
-its process)."""
+The rest and the chunk are kept on disk beside the compilation cache (:mod:`pusupu_jax.programs`), so that a later
+process loads them instead of tracing them again: some 6 s of CPU for the default machine's start and chunk, paid by
+every ``pusupu sim``, experiment and tuning run before its first period (a batch laid over several devices traces
+them in its process)."""
 
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from . import hybrid as hybrid_law
 from .params import LoopRates, ServoParams
 from .plant import AxisPlant
 from .programs import Program, describe
-from .sim import Carry, initial_carry, period_dt, rollout_chunk
+from .sim import Carry, Rest, initial_carry, period_dt, plant_rest, rollout_chunk
 from .trace import Trace
 
 if TYPE_CHECKING:
@@ -33,9 +34,16 @@ CHUNK = 250  # periods per call of run_chunked's compiled program
 
 
 def _init(
-    plant: Plant, rates: LoopRates, outer: str, start: str, params_axis: int | None, hybrid_axis: int | None
+    plant: Plant,
+    rates: LoopRates,
+    outer: str,
+    start: str,
+    params_axis: int | None,
+    hybrid_axis: int | None,
+    rested: bool = False,
 ) -> Callable[..., Carry]:
-    """:func:`~pusupu_jax.sim.initial_carry` vmapped over a batch."""
+    """:func:`~pusupu_jax.sim.initial_carry` vmapped over a batch; ``rested``: from the plant's rest, computed before
+    (:func:`_rest`), taken as a last argument."""
 
     def init(
         params: ServoParams,
@@ -43,6 +51,7 @@ def _init(
         first: Any,
         hybrid: hybrid_law.HybridGains | None,
         compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None,
+        rest: Rest | None = None,
     ) -> Carry:
         return initial_carry(
             params,
@@ -54,9 +63,19 @@ def _init(
             hybrid=hybrid,
             start=start,
             compliance=compliance,
+            rest=rest,
         )
 
-    return jax.vmap(init, in_axes=(params_axis, 0, 0, hybrid_axis, None))
+    return jax.vmap(init, in_axes=(params_axis, 0, 0, hybrid_axis, None) + ((0,) if rested else ()))
+
+
+def _rest(plant: Plant, dt_mech: float, params_axis: int | None) -> Callable[..., Rest]:
+    """:func:`~pusupu_jax.sim.plant_rest` vmapped over a batch: ``(params, models) -> Rest``."""
+
+    def rest(params: ServoParams, model: Any) -> Rest:
+        return plant_rest(plant, plant.prepare(params, model, dt_mech))
+
+    return jax.vmap(rest, in_axes=(params_axis, 0))
 
 
 def _chunk(
@@ -90,14 +109,43 @@ def _chunk(
 
 
 @functools.lru_cache(maxsize=None)
-def _init_program(
+def _rest_program(plant: Plant, dt_mech: float, params_axis: int | None) -> Program:
+    """The plant's rest (:func:`_rest`, cached per static arguments), kept on disk
+    (:class:`~pusupu_jax.programs.Program`): a later process loads it rather than tracing it again.  One program for
+    every mode, start and rates of the same mechanical step."""
+    return Program(
+        _rest(plant, dt_mech, params_axis),
+        lambda: describe(("rest", plant.key(), (dt_mech, params_axis))),
+        to_host=False,
+    )
+
+
+class _Rested:
+    """A batch's start in two programs: the plant's rest (kept on disk, :func:`_rest_program`), then the controllers'
+    states from it (jitted in this process: no plant step in it, it compiles in well under a second)."""
+
+    def __init__(self, rest: Program, finish: Callable[..., Carry]) -> None:
+        self.rest, self.finish = rest, finish
+
+    def __call__(self, params: ServoParams, models: Any, first: Any, hybrid: Any, compliance: Any) -> Carry:
+        return self.finish(params, models, first, hybrid, compliance, self.rest(params, models))
+
+    def eval_shape(self, params: ServoParams, models: Any, first: Any, hybrid: Any, compliance: Any) -> Any:
+        """The carries' structure, with no plant traced (the rest's from disk where it is kept there)."""
+        rest = self.rest.eval_shape(params, models)
+        return jax.eval_shape(self.finish, params, models, first, hybrid, compliance, rest)
+
+
+@functools.lru_cache(maxsize=None)
+def _start_program(
     plant: Plant, rates: LoopRates, outer: str, start: str, params_axis: int | None, hybrid_axis: int | None
-) -> Program:
-    """The start's program (cached per static arguments), kept on disk (:class:`~pusupu_jax.programs.Program`): a
-    later process loads it rather than tracing it again."""
-    static = (rates, cascade_.control_mode(outer), start, params_axis, hybrid_axis)
-    fun = _init(plant, rates, outer, start, params_axis, hybrid_axis)
-    return Program(fun, lambda: describe(("init", plant.key(), static)), to_host=False)
+) -> _Rested:
+    """The start of :func:`run_chunked`.  Its plant's part (the state at rest and the static equilibrium that the
+    holding torques are solved from) is the same in every mode, so that the modes, the IMC's two forms, a compliant run
+    and its plain one, and both starts share its program, whose compile is most of a start's (an MJX machine's: some
+    5 to 15 s, each traced in 3 to 10 s)."""
+    finish = jax.jit(_init(plant, rates, outer, start, params_axis, hybrid_axis, rested=True))
+    return _Rested(_rest_program(plant, rates.dt_mech, params_axis), finish)
 
 
 @functools.lru_cache(maxsize=None)
@@ -105,7 +153,7 @@ def _chunk_program(
     plant: Plant, rates: LoopRates, outer: str, params_axis: int | None, hybrid_axis: int | None, masked: bool
 ) -> Program:
     """The chunk's program (cached per static arguments: one compile serves every path length), kept on disk as
-    :func:`_init_program`'s."""
+    :func:`_rest_program`'s."""
     static = (rates, cascade_.control_mode(outer), params_axis, hybrid_axis, masked)
     fun = _chunk(plant, rates, outer, params_axis, hybrid_axis, masked)
     return Program(fun, lambda: describe(("chunk", plant.key(), static)), to_host=False)
@@ -132,7 +180,7 @@ def carry_structure(
     """The structure of :func:`run_chunked`'s carries (a tree of ``jax.ShapeDtypeStruct``, batch axis first) for
     ``models`` and the references' first samples ``first``, from its start program without running it (read from
     disk where it is kept there)."""
-    return _init_program(plant, rates, outer, start, None, None).eval_shape(params, models, first, hybrid, None)
+    return _start_program(plant, rates, outer, start, None, None).eval_shape(params, models, first, hybrid, None)
 
 
 def run_chunked(
@@ -172,7 +220,7 @@ def run_chunked(
         init = _laid_over(_init, plant, rates, outer, start, params_axis, hybrid_axis)
         step = _laid_over(_chunk, plant, rates, outer, params_axis, hybrid_axis, bool(marks))
     else:
-        init = _init_program(plant, rates, outer, start, params_axis, hybrid_axis)
+        init = _start_program(plant, rates, outer, start, params_axis, hybrid_axis)
         step = _chunk_program(plant, rates, outer, params_axis, hybrid_axis, bool(marks))
     host = jax.tree.map(np.asarray, reference)
     n = jax.tree.leaves(host)[0].shape[1]

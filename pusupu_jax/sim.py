@@ -81,6 +81,23 @@ class Carry(NamedTuple):
     outer: Any = None  # the compliance law's state (compliance.AdmittanceState) when one runs outside the cascade
 
 
+class Rest(NamedTuple):
+    """The part of a run's start that no controller changes: the plant at rest in its initial state, its motor angles
+    ``theta0`` [rad] there, and its static equilibrium ``statics`` (``plant.statics``: what the holding torques of
+    every mode are solved from)."""
+
+    plant: Any
+    theta0: jax.Array
+    statics: Any
+
+
+def plant_rest(plant: Plant, aux: Any) -> Rest:
+    """:class:`Rest` of ``plant`` (prepared as ``aux``): the same in every mode."""
+    plant_state = plant.init(aux)
+    theta0, _ = plant.measure(aux, plant_state)
+    return Rest(plant_state, theta0, plant.statics(aux, plant_state))
+
+
 def initial_state(
     drive: loops.Drive,
     plant: Plant,
@@ -88,6 +105,7 @@ def initial_state(
     mode: cascade_.ControlMode,
     start: str = "rest",
     force_ff0: ArrayLike | None = None,
+    rest: Rest | None = None,
 ) -> Carry:
     """The plant at rest in its initial state, and the cascade as ``start`` says.
 
@@ -96,19 +114,20 @@ def initial_state(
     (``plant.holding_torque``; in hybrid mode branch 6 pushes ``force_ff0``, its ``F_q`` at
     t = 0 [N]) and the electrical model carrying them.  ``start='zero'``: every controller and
     electrical state zero, so that the plant sags under gravity until the integrators catch up
-    (how runs started before; kept to reproduce old figures).
+    (how runs started before; kept to reproduce old figures).  ``rest``: the plant's :func:`plant_rest`, computed
+    before (by a program of its own, shared by every mode: :mod:`pusupu_jax.chunked`), or None to compute it here.
     """
     if start not in STARTS:
         raise ValueError(f"rollout: expected start in {STARTS}, got {start!r}")
-    plant_state = plant.init(aux)
-    theta0, _ = plant.measure(aux, plant_state)
+    if rest is None:
+        rest = plant_rest(plant, aux)
     if start == "zero":
-        return Carry(plant_state, loops.electrical_init(drive.electrical), cascade_.init(drive, mode, theta0))
+        return Carry(rest.plant, loops.electrical_init(drive.electrical), cascade_.init(drive, mode, rest.theta0))
     force = (mode.force_axis, force_ff0) if mode.hybrid else (None, None)
-    i = plant.holding_torque(aux, plant_state, *force) / drive.Kt
+    i = plant.holding_torque(aux, rest.statics, *force) / drive.Kt
     electrical, u = loops.electrical_rest(drive.electrical, i)
     force0 = 0.0 if force_ff0 is None else force_ff0
-    return Carry(plant_state, electrical, cascade_.rest(drive, mode, i, u, theta0, force0))
+    return Carry(rest.plant, electrical, cascade_.rest(drive, mode, i, u, rest.theta0, force0))
 
 
 def current_ticks(
@@ -141,7 +160,7 @@ class Pieces(NamedTuple):
     # -> trace entries; the observation when the period already made it
     record: Callable[..., dict[str, Any]]
     dt: float
-    init: Callable[[str, Any], Carry]  # (start, force_ff0) -> carry
+    init: Callable[[str, Any, Rest | None], Carry]  # (start, force_ff0, the plant's rest or None) -> carry
     observe: Callable[[Carry], Any]  # carry -> what the plant's observe() returns (for a law outside the cascade)
 
 
@@ -243,7 +262,7 @@ def pieces(
         period,
         record,
         period_dt(rates, mode),
-        lambda start, force_ff0: initial_state(drive, plant, aux, mode, start, force_ff0),
+        lambda start, force_ff0, rest: initial_state(drive, plant, aux, mode, start, force_ff0, rest),
         lambda c: plant.observe(aux, c.plant),
     )
 
@@ -292,7 +311,7 @@ def compliant_pieces(
         period,
         record,
         base.dt,
-        lambda start, force_ff0: base.init(start, force_ff0)._replace(outer=compliance_law.init()),
+        lambda start, force_ff0, rest: base.init(start, force_ff0, rest)._replace(outer=compliance_law.init()),
         base.observe,
     )
 
@@ -370,11 +389,12 @@ def _start(
     first: Any,
     start: str,
     compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None,
+    rest: Rest | None = None,
 ) -> Carry:
-    """The carry at ``start`` for a reference whose first sample is ``first``."""
+    """The carry at ``start`` for a reference whose first sample is ``first`` (``rest``: :func:`initial_state`'s)."""
     first, _ = _injected(first)
     first = first.inner if compliance is not None else first
-    return cascade.init(start, first.force_ff if mode.hybrid else None)
+    return cascade.init(start, first.force_ff if mode.hybrid else None, rest)
 
 
 def initial_carry(
@@ -388,12 +408,14 @@ def initial_carry(
     hybrid: hybrid_law.HybridGains | None = None,
     start: str = "rest",
     compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None = None,
+    rest: Rest | None = None,
 ) -> Carry:
     """The carry :func:`rollout` starts from, for a reference whose first sample is ``first`` (pure; arguments as
-    :func:`rollout`'s).  With :func:`rollout_chunk`, a run cut into calls of one fixed length."""
+    :func:`rollout`'s).  With :func:`rollout_chunk`, a run cut into calls of one fixed length.  ``rest``: the plant's
+    :func:`plant_rest`, computed before, or None to compute it here (:func:`initial_state`)."""
     mode = cascade_.control_mode(outer)
     return _start(
-        _cascade(params, plant_params, plant, rates, mode, hybrid, compliance), mode, first, start, compliance
+        _cascade(params, plant_params, plant, rates, mode, hybrid, compliance), mode, first, start, compliance, rest
     )
 
 

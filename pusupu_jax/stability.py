@@ -77,7 +77,7 @@ def _monodromy_program(rates: LoopRates, mode: cascade.ControlMode) -> Program:
 
     def program(servo: ServoParams, load: AxisLoad) -> tuple[jax.Array, jax.Array]:
         p = pieces(servo, load, plant=AxisPlant(), rates=rates, mode=mode, hybrid=None)
-        carry = p.init("zero", None)
+        carry = p.init("zero", None, None)
         flat, unravel = ravel_pytree(carry)
         axis_of = ravel_pytree(
             jax.tree.map(

@@ -178,7 +178,9 @@ class RobotModel:
         rates = machine_rates(nominal, self.rates)
         vmode = cascade.control_mode("velocity")
         carry0 = jax.jit(
-            lambda model: sim.pieces(servo, model, plant=plant, rates=rates, mode=vmode, hybrid=None).init("rest", None)
+            lambda model: sim.pieces(servo, model, plant=plant, rates=rates, mode=vmode, hybrid=None).init(
+                "rest", None, None
+            )
         )(jax.device_put(plant.variant(options, machine.geometry), cpu()))
         self.m = build_model(machine.geometry, options)
         self.dofs, self.qpos = slide_dofs(self.m), slide_qpos(self.m)

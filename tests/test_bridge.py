@@ -44,7 +44,10 @@ class ReplayPlant:
     def init(self, aux):
         return jnp.zeros((), jnp.int32)
 
-    def holding_torque(self, aux, k, force_axis=None, force=None):
+    def statics(self, aux, k):
+        return ()
+
+    def holding_torque(self, aux, statics, force_axis=None, force=None):
         return jnp.zeros(6)
 
     def measure(self, aux, k):

@@ -469,7 +469,7 @@ def test_a_payloads_weight_and_centre_of_mass_show_in_the_holding_forces():
     @jax.jit
     def hold(model):
         aux = PLANT.prepare(SERVO, model, RATES.dt_mech)
-        return PLANT.holding_torque(aux, PLANT.init(aux)) * aux.force_gain
+        return PLANT.holding_torque(aux, PLANT.statics(aux, PLANT.init(aux))) * aux.force_gain
 
     def force(options=M.ModelOptions(), geom=None):
         return np.asarray(hold(PLANT.variant(options, geom)))

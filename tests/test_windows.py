@@ -69,16 +69,19 @@ def test_a_change_of_gains_mid_run_moves_the_command_in_proportion(field):
 
 def test_paths_of_any_length_run_one_compiled_chunk():
     """Two path lengths, with and without marks: one compile of the chunk that runs whole and one of the chunk that
-    stops at marks (and of the start): what lets every horizon of the experiments and the CLI share one program per
-    mode and batch size, and the tuner's forward passes another."""
-    from pusupu_jax.chunked import _chunk_program, _init_program
+    stops at marks (and of the start's controllers): what lets every horizon of the experiments and the CLI share one
+    program per mode and batch size, and the tuner's forward passes another.  The plant's rest is one program for
+    every mode: compiled here at most once (not at all when a test before ran another mode in this process)."""
+    from pusupu_jax.chunked import _chunk_program, _start_program
 
-    programs = [_init_program(AxisPlant(), LoopRates(), "pid_ff", "rest", None, None)]
-    programs += [_chunk_program(AxisPlant(), LoopRates(), "pid_ff", None, None, masked) for masked in (False, True)]
-    before = [p.cache_size() for p in programs]
+    start = _start_program(AxisPlant(), LoopRates(), "pid_ff", "rest", None, None)
+    programs = [_chunk_program(AxisPlant(), LoopRates(), "pid_ff", None, None, m) for m in (False, True)]
+    before = [p.cache_size() for p in programs] + [start.finish._cache_size()]
+    rest_before = start.rest.cache_size()
     for n in (130, 700):
         for marks in ((), (0, 101, n - 1)):
             trace, carries = run_chunked(SERVO, stack([LOAD]), np.asarray(REF)[None, :n], outer="pid_ff", marks=marks)
             assert trace.theta.shape == (1, n, 6) and np.isfinite(trace.theta).all()
             assert carries is None if not marks else jax.tree.leaves(carries)[0].shape[:2] == (1, len(marks))
-    assert [p.cache_size() for p in programs] == [b + 1 for b in before]
+    assert [p.cache_size() for p in programs] + [start.finish._cache_size()] == [b + 1 for b in before]
+    assert start.rest.cache_size() - rest_before <= 1 and start.rest.cache_size() >= 1

@@ -10,9 +10,11 @@ A plant is a hashable object (a static argument of the jitted rollout) with:
   only on parameters (e.g. the ZOH matrices), computed once per rollout outside the
   scan; ``dt`` [s] is the mechanical step;
 * ``init(aux) -> state``: the machine at rest at its home position;
-* ``holding_torque(aux, state, force_axis=None, force=None) -> torque``: the motor torques
-  [N m] that hold the plant still in ``state`` (its static equilibrium), optionally with one
-  axis pushing a given slider force [N]; runs start from it (:func:`pusupu_jax.sim.rollout`);
+* ``statics(aux, state) -> statics``: the plant's static equilibrium in ``state``, what the
+  holding torques are solved from;
+* ``holding_torque(aux, statics, force_axis=None, force=None) -> torque``: the motor torques
+  [N m] that hold the plant still (its static equilibrium), optionally with one axis pushing a
+  given slider force [N]; runs start from it (:func:`pusupu_jax.sim.rollout`);
 * ``measure(aux, state) -> (theta, omega)``: the encoders, motor angle [rad] and
   speed [rad/s], shape ``(..., n_axes)``;
 * ``step(aux, state, torque) -> state``: advance one mechanical step with motor
@@ -47,8 +49,10 @@ if TYPE_CHECKING:
 
         def init(self, aux: Any) -> Any: ...
 
+        def statics(self, aux: Any, state: Any) -> Any: ...
+
         def holding_torque(
-            self, aux: Any, state: Any, force_axis: int | None = None, force: Any = None
+            self, aux: Any, statics: Any, force_axis: int | None = None, force: Any = None
         ) -> jax.Array: ...
 
         def measure(self, aux: Any, state: Any) -> tuple[jax.Array, jax.Array]: ...

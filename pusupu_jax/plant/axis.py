@@ -62,14 +62,20 @@ class AxisPlant:
     def init(self, aux: AxisAux) -> jax.Array:
         return jnp.zeros(aux.r.shape + (2,))
 
+    def statics(self, aux: AxisAux, state: jax.Array) -> jax.Array:
+        """The slider force [N] that holds each axis still in ``state``: gravity along the rail (friction is 0 at
+        rest), ``(..., n_axes)``."""
+        force: jax.Array = aux.load_force * jnp.ones_like(state[..., 0])
+        return force
+
     def holding_torque(
-        self, aux: AxisAux, state: jax.Array, force_axis: int | None = None, force: Any = None
+        self, aux: AxisAux, statics: jax.Array, force_axis: int | None = None, force: Any = None
     ) -> jax.Array:
-        """Motor torques [N m] that hold each axis still: gravity along the rail (friction is 0 at rest).
+        """Motor torques [N m] that hold each axis still against its :meth:`statics`.
 
         The axes are independent: ``force_axis`` (pushing a slider force ``force`` [N]) leaves the others as they are.
         """
-        torque: jax.Array = aux.r / aux.eta * aux.load_force * jnp.ones_like(state[..., 0])
+        torque: jax.Array = aux.r / aux.eta * statics
         if force_axis is None:
             return torque
         return torque.at[..., force_axis].set(force * aux.r[..., force_axis] / aux.eta[..., force_axis])

@@ -219,30 +219,33 @@ class MJXPlant:
             return mjx.forward(model, data)
         return mjx.rne(model, mjx.com_vel(model, mjx.com_pos(model, mjx.kinematics(model, data))))
 
-    def holding_torque(
-        self, aux: MJXAux, data: mjx.Data, force_axis: int | None = None, force: Any = None
-    ) -> jax.Array:
-        """Motor torques [N m] that hold the machine still in ``data`` (at rest: gravity only), ``(6,)``.
+    def statics(self, aux: MJXAux, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
+        """The machine's static equilibrium in ``data`` (at rest: gravity only), ``(J, Q)``: the five equations
+        ``J^T F = Q`` for the slider forces ``F`` [N] along the motions the closed chain allows (``N``: a basis of
+        those motions; ``J = N`` at the slides, ``(6, 5)``; ``Q = N^T qfrc_bias``, ``(5,)``).
 
-        The five equations of static equilibrium along the motions the closed chain allows,
-        ``J^T F = Q`` (``N``: a basis of those motions; ``J = N`` at the slides; ``Q = N^T
-        qfrc_bias``), are solved for the slider forces ``F`` with the minimum norm (no internal
-        force), as :mod:`pusupu_jax.plant.dynamics` distributes the inverse dynamics; with
-        ``force_axis``, that branch pushes ``force`` [N] and the other five carry the rest
-        (unique).  ``N``: the UPU leg's five joints are the platform's coordinates, and the
-        spherical joints' constraints ``Jc_u dq_u + Jc_b dq_b = 0`` give each branch's three
-        joints from them (``Jc_b`` is block diagonal, 3 x 3 per branch, invertible away from
-        singular poses).  This is the machine's own model (seeded errors and payload included), and the
-        derivatives with respect to it flow through: a run starts holding its machine, so the identification's
-        derivative of a run by a payload's mass includes the change of the torque that holds it.
+        ``N``: the UPU leg's five joints are the platform's coordinates, and the spherical joints' constraints
+        ``Jc_u dq_u + Jc_b dq_b = 0`` give each branch's three joints from them (``Jc_b`` is block diagonal, 3 x 3 per
+        branch, invertible away from singular poses).  This is the machine's own model (seeded errors and payload
+        included), and the derivatives with respect to it flow through: a run starts holding its machine, so the
+        identification's derivative of a run by a payload's mass includes the change of the torque that holds it.
         """
         model = aux.model
         upu, branches = self._upu_and_branch_dofs
         jc = self._connect_jacobian(model, data)  # (18, nv)
         basis = jnp.zeros((jc.shape[1], len(upu))).at[upu].set(jnp.eye(len(upu)))
         basis = basis.at[branches].set(-jnp.linalg.solve(jc[:, branches], jc[:, upu]))
-        J = basis[self._dofs]
-        Q = basis.T @ data.qfrc_bias
+        return basis[self._dofs], basis.T @ data.qfrc_bias
+
+    def holding_torque(
+        self, aux: MJXAux, statics: tuple[jax.Array, jax.Array], force_axis: int | None = None, force: Any = None
+    ) -> jax.Array:
+        """Motor torques [N m] that hold the machine still, ``(6,)``, from its :meth:`statics` ``(J, Q)``: ``J^T F =
+        Q`` solved for the slider forces ``F`` with the minimum norm (no internal force), as
+        :mod:`pusupu_jax.plant.dynamics` distributes the inverse dynamics; with ``force_axis``, that branch pushes
+        ``force`` [N] and the other five carry the rest (unique).
+        """
+        J, Q = statics
         if force_axis is None:
             F = J @ jnp.linalg.solve(J.T @ J, Q)
         else:
