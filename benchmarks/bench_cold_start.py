@@ -85,7 +85,7 @@ else:
         # programs kept on disk (pusupu_jax.programs.Program): their compiled calls take the arguments' leaves
         if hasattr(init, "rest"):
             rest = timed(lambda: init.rest.lower(servo, models))(*jax.tree.leaves((servo, models)))
-            carry = timed(lambda: init.finish.lower(*first, rest))(*first, rest)
+            carry = timed(lambda: init.finish.lower(*first, rest))(*jax.tree.leaves((*first, rest)))
         else:
             carry = timed(lambda: init.lower(*first))(*jax.tree.leaves(first))
         timed(lambda: chunk.lower(servo, models, piece, hybrid_arg, None, carry, np.int32(1)))

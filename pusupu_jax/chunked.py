@@ -1,17 +1,16 @@
 """Long runs on the host: a batch of rollouts cut into calls of one compiled chunk program, so that any path length
 runs the same programs (the start and one chunk), with the carry kept at chosen periods (the training windows' start
-states).  The start is the plant's rest, one program for every mode, then the controllers' states from it, which
-compiles in well under a second.
+states).  The start is the plant's rest, one program for every mode, then the controllers' states from it.
 
-The rest and the chunk are kept on disk beside the compilation cache (:mod:`pusupu_jax.programs`), so that a later
-process loads them instead of tracing them again: some 6 s of CPU for the default machine's start and chunk, paid by
-every ``pusupu sim``, experiment and tuning run before its first period (a batch laid over several devices traces
-them in its process)."""
+The start's programs and the chunk are kept on disk beside the compilation cache (:mod:`pusupu_jax.programs`), so
+that a later process loads them instead of tracing them again: some 6 s of CPU for the default machine's start and
+chunk, paid by every ``pusupu sim``, experiment and tuning run before its first period (a batch laid over several
+devices traces them in its process)."""
 
 from __future__ import annotations
 
 import functools
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence, cast
 
 import jax
 import numpy as np
@@ -121,30 +120,37 @@ def _rest_program(plant: Plant, dt_mech: float, params_axis: int | None) -> Prog
 
 
 class _Rested:
-    """A batch's start in two programs: the plant's rest (kept on disk, :func:`_rest_program`), then the controllers'
-    states from it (jitted in this process: no plant step in it, it compiles in well under a second)."""
+    """A batch's start in two programs, both kept on disk: the plant's rest (:func:`_rest_program`), then the
+    controllers' states from it (:func:`_start_program`)."""
 
-    def __init__(self, rest: Program, finish: Callable[..., Carry]) -> None:
+    def __init__(self, rest: Program, finish: Program) -> None:
         self.rest, self.finish = rest, finish
 
     def __call__(self, params: ServoParams, models: Any, first: Any, hybrid: Any, compliance: Any) -> Carry:
-        return self.finish(params, models, first, hybrid, compliance, self.rest(params, models))
+        return cast(Carry, self.finish(params, models, first, hybrid, compliance, self.rest(params, models)))
 
     def eval_shape(self, params: ServoParams, models: Any, first: Any, hybrid: Any, compliance: Any) -> Any:
-        """The carries' structure, with no plant traced (the rest's from disk where it is kept there)."""
+        """The carries' structure, nothing traced where both programs are on disk."""
         rest = self.rest.eval_shape(params, models)
-        return jax.eval_shape(self.finish, params, models, first, hybrid, compliance, rest)
+        return self.finish.eval_shape(params, models, first, hybrid, compliance, rest)
 
 
 @functools.lru_cache(maxsize=None)
 def _start_program(
     plant: Plant, rates: LoopRates, outer: str, start: str, params_axis: int | None, hybrid_axis: int | None
 ) -> _Rested:
-    """The start of :func:`run_chunked`.  Its plant's part (the state at rest and the static equilibrium that the
-    holding torques are solved from) is the same in every mode, so that the modes, the IMC's two forms, a compliant run
-    and its plain one, and both starts share its program, whose compile is most of a start's (an MJX machine's: some
-    5 to 15 s, each traced in 3 to 10 s)."""
-    finish = jax.jit(_init(plant, rates, outer, start, params_axis, hybrid_axis, rested=True))
+    """The start of :func:`run_chunked` (cached per static arguments).  Its plant's part (the state at rest and the
+    static equilibrium that the holding torques are solved from) is the same in every mode, so that the modes, the
+    IMC's two forms, a compliant run and its plain one, and both starts share its program, whose compile is most of a
+    start's.  The controllers' states follow in a program per mode with no plant step in it.  The default machine's
+    start of one run, on the 2-core CPU at XLA's default optimisation: the rest 6.5 s of CPU to trace, compile and
+    run; the controllers' 1.2 to 2.0 s to trace and compile."""
+    static = (rates, cascade_.control_mode(outer), start, params_axis, hybrid_axis)
+    finish = Program(
+        _init(plant, rates, outer, start, params_axis, hybrid_axis, rested=True),
+        lambda: describe(("start", plant.key(), static)),
+        to_host=False,
+    )
     return _Rested(_rest_program(plant, rates.dt_mech, params_axis), finish)
 
 

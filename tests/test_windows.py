@@ -76,12 +76,12 @@ def test_paths_of_any_length_run_one_compiled_chunk():
 
     start = _start_program(AxisPlant(), LoopRates(), "pid_ff", "rest", None, None)
     programs = [_chunk_program(AxisPlant(), LoopRates(), "pid_ff", None, None, m) for m in (False, True)]
-    before = [p.cache_size() for p in programs] + [start.finish._cache_size()]
+    before = [p.cache_size() for p in programs] + [start.finish.cache_size()]
     rest_before = start.rest.cache_size()
     for n in (130, 700):
         for marks in ((), (0, 101, n - 1)):
             trace, carries = run_chunked(SERVO, stack([LOAD]), np.asarray(REF)[None, :n], outer="pid_ff", marks=marks)
             assert trace.theta.shape == (1, n, 6) and np.isfinite(trace.theta).all()
             assert carries is None if not marks else jax.tree.leaves(carries)[0].shape[:2] == (1, len(marks))
-    assert [p.cache_size() for p in programs] + [start.finish._cache_size()] == [b + 1 for b in before]
+    assert [p.cache_size() for p in programs] + [start.finish.cache_size()] == [b + 1 for b in before]
     assert start.rest.cache_size() - rest_before <= 1 and start.rest.cache_size() >= 1
