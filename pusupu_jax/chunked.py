@@ -39,10 +39,9 @@ def _init(
     start: str,
     params_axis: int | None,
     hybrid_axis: int | None,
-    rested: bool = False,
 ) -> Callable[..., Carry]:
-    """:func:`~pusupu_jax.sim.initial_carry` vmapped over a batch; ``rested``: from the plant's rest, computed before
-    (:func:`_rest`), taken as a last argument."""
+    """:func:`~pusupu_jax.sim.initial_carry` vmapped over a batch, from the plant's rest computed before
+    (:func:`_rest`), its last argument."""
 
     def init(
         params: ServoParams,
@@ -50,7 +49,7 @@ def _init(
         first: Any,
         hybrid: hybrid_law.HybridGains | None,
         compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None,
-        rest: Rest | None = None,
+        rest: Rest,
     ) -> Carry:
         return initial_carry(
             params,
@@ -65,7 +64,7 @@ def _init(
             rest=rest,
         )
 
-    return jax.vmap(init, in_axes=(params_axis, 0, 0, hybrid_axis, None) + ((0,) if rested else ()))
+    return jax.vmap(init, in_axes=(params_axis, 0, 0, hybrid_axis, None, 0))
 
 
 def _rest(plant: Plant, dt_mech: float, params_axis: int | None) -> Callable[..., Rest]:
@@ -120,10 +119,11 @@ def _rest_program(plant: Plant, dt_mech: float, params_axis: int | None) -> Prog
 
 
 class _Rested:
-    """A batch's start in two programs, both kept on disk: the plant's rest (:func:`_rest_program`), then the
-    controllers' states from it (:func:`_start_program`)."""
+    """A batch's start in two programs: the plant's rest, then the controllers' states from it.  Both kept on disk
+    (:func:`_start_program`), or, for a batch laid over several devices, jitted in this process (:func:`_laid_over`:
+    no :meth:`eval_shape` then)."""
 
-    def __init__(self, rest: Program, finish: Program) -> None:
+    def __init__(self, rest: Any, finish: Any) -> None:
         self.rest, self.finish = rest, finish
 
     def __call__(self, params: ServoParams, models: Any, first: Any, hybrid: Any, compliance: Any) -> Carry:
@@ -147,7 +147,7 @@ def _start_program(
     run; the controllers' 1.2 to 2.0 s to trace and compile."""
     static = (rates, cascade_.control_mode(outer), start, params_axis, hybrid_axis)
     finish = Program(
-        _init(plant, rates, outer, start, params_axis, hybrid_axis, rested=True),
+        _init(plant, rates, outer, start, params_axis, hybrid_axis),
         lambda: describe(("start", plant.key(), static)),
         to_host=False,
     )
@@ -223,7 +223,10 @@ def run_chunked(
     init: Callable[..., Carry]
     step: Callable[..., tuple[dict[str, Any], Carry]]
     if any(len(x.sharding.device_set) > 1 for x in jax.tree.leaves(models) if isinstance(x, jax.Array)):
-        init = _laid_over(_init, plant, rates, outer, start, params_axis, hybrid_axis)
+        init = _Rested(
+            _laid_over(_rest, plant, rates.dt_mech, params_axis),
+            _laid_over(_init, plant, rates, outer, start, params_axis, hybrid_axis),
+        )
         step = _laid_over(_chunk, plant, rates, outer, params_axis, hybrid_axis, bool(marks))
     else:
         init = _start_program(plant, rates, outer, start, params_axis, hybrid_axis)

@@ -67,6 +67,30 @@ def test_a_change_of_gains_mid_run_moves_the_command_in_proportion(field):
     assert jump <= 0.05 * np.ptp(command), (field, jump, np.ptp(command))
 
 
+@pytest.mark.skipif(len(jax.devices()) < 2, reason="one CPU: one host device")
+def test_a_batch_laid_over_devices_runs_as_on_one():
+    """Two runs laid over two devices (as the tuner's forward pass lays paths of different lengths: the start and
+    the chunk jitted in this process) record what they record on one device (the kept programs), to float64
+    rounding: relative 1e-13 (the two sides are different compiled programs)."""
+    from jax.sharding import NamedSharding, PartitionSpec
+
+    from pusupu_jax import chunked, devices
+
+    loads = stack([LOAD, LOAD.replace(mass=LOAD.mass * 1.5)])
+    refs = np.stack([np.asarray(REF)[:300]] * 2)
+    mesh = devices.row_mesh(2)
+    spread = jax.device_put(loads, NamedSharding(mesh, PartitionSpec("rows")))
+    one, _ = run_chunked(SERVO, loads, refs, outer="pid")
+    calls = chunked._laid_over.cache_info()
+    laid, _ = run_chunked(SERVO, spread, refs, outer="pid")
+    after = chunked._laid_over.cache_info()
+    assert after.hits + after.misses == calls.hits + calls.misses + 3  # the rest, the controllers, the chunk
+    for field in ("theta", "current", "command"):
+        a, b = np.asarray(getattr(one, field)), np.asarray(getattr(laid, field))
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-13 * np.abs(a).max(), err_msg=field)
+    assert np.abs(np.asarray(one.current[0]) - np.asarray(one.current[1])).max() > 1e-3  # the two loads differ
+
+
 def test_paths_of_any_length_run_one_compiled_chunk():
     """Two path lengths, with and without marks: one compile of the chunk that runs whole and one of the chunk that
     stops at marks (and of the start's controllers): what lets every horizon of the experiments and the CLI share one
