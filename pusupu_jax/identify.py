@@ -40,6 +40,7 @@ from .plant.axis import screw_ratio
 from .plant.geometry import Geometry
 from .plant.mjx_plant import MJXPlant
 from .plant.model import ModelOptions
+from .programs import Program, describe
 from .sim import rollout
 from .trace import Trace
 
@@ -48,8 +49,12 @@ DIRECTIONS = {"x": (1.0, 0, 0, 0, 0), "y": (0, 1.0, 0, 0, 0), "z": (0, 0, 1.0, 0
 
 @functools.lru_cache(maxsize=None)
 def _step_tests(plant: MJXPlant, rates: LoopRates) -> Callable[..., Trace]:
-    return jax.jit(
-        jax.vmap(functools.partial(rollout, plant=plant, rates=rates, outer="velocity"), in_axes=(None, None, 0))
+    """The step tests' program ``(servo, model, references (D, N, 6)) -> Trace``: the servo parameters and the
+    machine's model are arguments, so that every machine of the plant's structure runs one program, kept on disk
+    (:class:`~pusupu_jax.programs.Program`): a later process loads it rather than tracing it again."""
+    return Program(
+        jax.vmap(functools.partial(rollout, plant=plant, rates=rates, outer="velocity"), in_axes=(None, None, 0)),
+        lambda: describe(("velocity steps", plant.key(), rates)),
     )
 
 
