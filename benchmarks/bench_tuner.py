@@ -61,7 +61,7 @@ def main() -> None:
     problem = Problem(cfg, ServoParams.table1(), HybridGains())
     space, z0 = problem.space, problem.space.z0()
     baseline = problem.start_baseline()  # and the window start states at z0, kept for both optimisers
-    value = jax.jit(lambda z: problem.objective(z, baseline, problem.starts, problem.windows)[0])
+    value = jax.jit(lambda z: problem.objective(z, baseline, problem.starts, problem.windows, problem.space.start)[0])
     t_forward = median_time(lambda: value(z0), 1)  # after one compiling call each
     t_grad = median_time(lambda: problem.value_and_grad(z0), 1)
 

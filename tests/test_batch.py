@@ -185,8 +185,9 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
     Tolerance 1e-7 relative: the same operations, but vmapping over 6 members changes XLA's fusion and
     summation order (last-bit differences) and 3 Adam steps carry them on; measured 3e-10 on the gains.
     The two lone problems differ only in their scenarios, so they share one traced and compiled gradient
-    (pusupu_jax.tune.run._shared_gradient): each still equals its own batch member.  A problem started elsewhere does
-    not share it (here the current loop's gain, which is not tuned and enters the program as a constant).  Built again
+    (pusupu_jax.tune.run._shared_gradient): each still equals its own batch member.  A problem started elsewhere (here
+    another current loop gain, which is not tuned) shares it as well, the start point being an argument, and its
+    objective at the same gains differs (the program does not hold the first problem's start).  Built again
     with nothing in memory, a problem reads the traced program from disk (pusupu_jax.programs) instead of tracing, and
     the start states and terms at its start from the files the first problem kept (pusupu_jax.tune.starts): bit for
     bit those a forward pass and the gradient give.  benchmarks/batch_equivalence.py checks every scenario of a
@@ -206,14 +207,19 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
         for field, value in problem.space.values(alone.z).items():
             assert np.ravel(report["result"][field])[0] == pytest.approx(float(np.ravel(value)[0]), rel=1e-7)
     assert problems[0]._value_and_grad is problems[1]._value_and_grad
+    # another start point shares the program too: the start is its argument, and the objective moves with it
     elsewhere = Problem(
         cfg, ServoParams.table1().replace(Ki=ServoParams.table1().Ki * 1.1), HybridGains(), specs=list(job.specs)
     )
-    assert elsewhere._value_and_grad is not problems[1]._value_and_grad
+    assert elsewhere._value_and_grad is problems[1]._value_and_grad
+    at = (problems[1].z0(), problems[1].start_baseline(), problems[1].starts, problems[1].windows)
+    (J, _), _ = problems[1]._value_and_grad(*at, problems[1].space.start)
+    (J_elsewhere, _), _ = problems[1]._value_and_grad(*at, elsewhere.space.start)
+    assert abs(float(J_elsewhere) / float(J) - 1) > 1e-6, (J, J_elsewhere)
     # as a new process would: the gradient's traced program is read from disk, not traced, and gives the same numbers
     monkeypatch.setattr(run, "_GRADIENTS", {})
     again = Problem(cfg, ServoParams.table1(), HybridGains(), specs=list(job.specs))
-    args = (again.z0(), again.start_baseline(), again.starts, again.windows)
+    args = (again.z0(), again.start_baseline(), again.starts, again.windows, again.space.start)
     got, want = again._value_and_grad(*args), problems[1]._value_and_grad(*args)
     assert again._value_and_grad.loaded == 1
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)))

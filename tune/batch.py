@@ -181,13 +181,14 @@ class BatchProblem(WindowStarts):
         self.starts = self.shard(jax.tree.map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:]), carries))
         self._starts_z = {k: np.asarray(v) for k, v in zb.items()}
 
-    def objective(self, zb, baseline, starts, windows):
-        """``(sum of the members' objectives, aux)``: aux ``value`` ``(P,)``, ``scenarios`` and ``terms`` ``(Q,)``."""
+    def objective(self, zb, baseline, starts, windows, start):
+        """``(sum of the members' objectives, aux)``: aux ``value`` ``(P,)``, ``scenarios`` and ``terms`` ``(Q,)``;
+        ``start`` the start point (:attr:`Space.start`) that gives the fields not tuned."""
         cfg, sc = self.cfg, self.scenarios
         hybrid_mode = control_mode(cfg.mode).hybrid
 
         def one(z, model, reference, init):
-            servo, hybrid = self.space.apply(z)
+            servo, hybrid = self.space.apply(z, start)
             return rollout(
                 servo,
                 model,
@@ -208,14 +209,14 @@ class BatchProblem(WindowStarts):
 
         def terms(z, trace, p):
             return objectives.terms(
-                trace, self.space.apply(z)[0], p, self.rates.dt_position, sharpness_force=cfg.sharpness_force
+                trace, self.space.apply(z, start)[0], p, self.rates.dt_position, sharpness_force=cfg.sharpness_force
             )
 
         t = jax.vmap(terms)(_take(zb, self.pair_member), joined, path)
         per = scenario_objective(cfg, t, baseline)
 
         def member(z, per_member, loads):
-            return aggregate(cfg, per_member, envelope_margins(self.space.apply(z)[0], loads, mode=cfg.mode))
+            return aggregate(cfg, per_member, envelope_margins(self.space.apply(z, start)[0], loads, mode=cfg.mode))
 
         value = jax.vmap(member)(zb, per.reshape(len(self.members), -1), windows[3])
         return jnp.sum(value), {"value": value, "scenarios": per, "terms": t}
@@ -224,7 +225,7 @@ class BatchProblem(WindowStarts):
         return {k: jnp.broadcast_to(v, (len(self.members),) + jnp.shape(v)) for k, v in self.space.z0().items()}
 
     def value_and_grad(self, zb):
-        return self._value_and_grad(self.shard(zb), self.start_baseline(), self.starts, self.windows)
+        return self._value_and_grad(self.shard(zb), self.start_baseline(), self.starts, self.windows, self.space.start)
 
     def path_metrics(self, zb) -> list[dict]:
         """Per real member, ``{scenario: (metrics, plot arrays)}`` on the whole paths at its ``z``."""

@@ -250,7 +250,8 @@ class WindowStarts:
     renewed
     by ``refresh(z)`` (a forward pass over the whole paths), and the normalisers at the start ``z0()``.
 
-    A subclass sets ``cfg``, ``windows``, ``_value_and_grad(z, baseline, starts, windows)`` and ``rows`` (the
+    A subclass sets ``cfg``, ``space``, ``windows``, ``_value_and_grad(z, baseline, starts, windows, start)`` and
+    ``rows`` (the
     length of each term's vector) and defines ``z0()`` and ``refresh(z)``, which sets ``starts`` and ``_starts_z``.
     """
 
@@ -290,7 +291,7 @@ class WindowStarts:
                 self.baseline_loaded += 1
             else:
                 ones = {k: jnp.ones(self.rows) for k in objectives.TERMS}
-                (_, aux), _ = self._value_and_grad(z0, ones, self.starts, self.windows)
+                (_, aux), _ = self._value_and_grad(z0, ones, self.starts, self.windows, self.space.start)
                 self.baseline = aux["terms"]
                 if path is not None:
                     kept_starts.keep(path, self.baseline)
@@ -419,6 +420,7 @@ class Problem(WindowStarts):
         try:
             parts = (
                 structure_key(self),
+                describe(self.space.start),
                 describe({k: np.asarray(v) for k, v in z.items()}),
                 describe([(models, refs) for _, models, refs in self.scenarios.groups.values()]),
                 f"devices={len(jax.devices())}",
@@ -436,10 +438,10 @@ class Problem(WindowStarts):
     def z0(self) -> dict:
         return self.space.z0()
 
-    def scenario_terms(self, z, starts, windows) -> tuple[dict, object]:
+    def scenario_terms(self, z, starts, windows, start) -> tuple[dict, object]:
         """Every objective term of every scenario over its ``windows`` (models, references, paths), ``{term: (S,)}``,
-        and the window traces."""
-        servo, hybrid = self.space.apply(z)
+        and the window traces, at ``z`` from the start point ``start``."""
+        servo, hybrid = self.space.apply(z, start)
         sc = self.scenarios
 
         def one(model, reference, init):
@@ -468,16 +470,17 @@ class Problem(WindowStarts):
         )(joined, path)
         return terms, traces
 
-    def objective(self, z, baseline, starts, windows):
+    def objective(self, z, baseline, starts, windows, start):
         """``(J, aux)``; ``baseline`` holds each scenario's terms at the start (the normalisers); ``windows`` the
-        windows' models, references and paths, and the margins' loads (stacked, :attr:`loads`)."""
-        t, traces = self.scenario_terms(z, starts, windows)
+        windows' models, references and paths, and the margins' loads (stacked, :attr:`loads`); ``start`` the start
+        point ``(servo0, hybrid0)`` (:attr:`Space.start`) that gives the fields not tuned."""
+        t, traces = self.scenario_terms(z, starts, windows, start)
         per = scenario_objective(self.cfg, t, baseline)
-        margins = envelope_margins(self.space.apply(z)[0], windows[3], mode=self.cfg.mode)
+        margins = envelope_margins(self.space.apply(z, start)[0], windows[3], mode=self.cfg.mode)
         return aggregate(self.cfg, per, margins), {"scenarios": per, "terms": t}
 
     def value_and_grad(self, z):
-        return self._value_and_grad(z, self.start_baseline(), self.starts, self.windows)
+        return self._value_and_grad(z, self.start_baseline(), self.starts, self.windows, self.space.start)
 
     def tune(self, *, checkpoint: Path | None = None, progress: Callable | None = None) -> "OptimiseResult":
         """:func:`optimise` from the start gains with the config's optimiser, starts and seed (what ``pusupu tune``
@@ -517,11 +520,12 @@ _GRADIENTS: dict = {}  # structure key -> the compiled gradient shared by the Pr
 def structure_key(problem: WindowStarts, *layout) -> str:
     """A stable description (:func:`pusupu_jax.programs.describe`) of what a problem's objective reads from it besides
     its arguments: the configuration's settings that reach the program (:data:`~.config.OBJECTIVE_SETTINGS`), the
-    tuned fields around their start (``space``), the nominal plant's options, the rates, the number of rows, and
-    ``layout`` (a subclass's own: a batch's load of the margins), with the problem's class.  So a run with other
-    iterations, learning rate, paths, seeds or payloads loads the program an earlier run traced."""
+    tuned fields and the structure of their start point (``space``: the start's values are an argument), the nominal
+    plant's options, the rates, the number of rows, and ``layout`` (a subclass's own: a batch's load of the margins),
+    with the problem's class.  So a run with other iterations, learning rate, paths, seeds, payloads, start gains or
+    drives (another machine of the same mechanism: its model arrays are arguments too) loads the program an earlier
+    run traced."""
     space = problem.space
-    start = (space.servo0, space.hybrid0)
     # the weights' order too: the objective sums its terms in it, and describe sorts a dict's keys
     return describe(
         (
@@ -534,8 +538,7 @@ def structure_key(problem: WindowStarts, *layout) -> str:
             1 if problem.mesh is None else problem.mesh.size,
             space.fields,
             space.shared,
-            start,
-            jax.tree.structure(start),
+            jax.tree.structure(space.start),
             layout,
         )
     )
@@ -544,11 +547,11 @@ def structure_key(problem: WindowStarts, *layout) -> str:
 def _shared_gradient(problem: Problem) -> Program:
     """The jitted ``value_and_grad`` of ``problem.objective``, or that of an earlier Problem of the same structure.
 
-    The objective reads from its Problem only what :func:`structure_key` holds; the scenarios' windows, start states
-    and normalisers are arguments.  So Problems that differ only in their scenarios (seeds, payloads, geometry
-    arrays, paths) share one trace and one compile: tracing the gradient of the MJX rollout takes about half a minute
-    on this CPU, each time a new function is jitted.  The same key names the traced program on disk
-    (:class:`pusupu_jax.programs.Program`), so that a later process loads it instead of tracing.
+    The objective reads from its Problem only what :func:`structure_key` holds; the scenarios' windows, start states,
+    normalisers and the start point are arguments.  So Problems that differ only in their scenarios (seeds, payloads,
+    geometry arrays, paths) or their start gains share one trace and one compile: tracing the gradient of the MJX
+    rollout takes about half a minute on this CPU, each time a new function is jitted.  The same key names the traced
+    program on disk (:class:`pusupu_jax.programs.Program`), so that a later process loads it instead of tracing.
     """
     key = structure_key(problem)
     if key not in _GRADIENTS:

@@ -109,12 +109,19 @@ class Space:
     def project(self, z) -> dict:
         return {f: jnp.clip(v, np.log(self.lower[f]), np.log(self.upper[f])) for f, v in z.items()}
 
-    def apply(self, z) -> tuple[ServoParams, HybridGains]:
-        """The full parameter sets at ``z`` (traceable)."""
+    @property
+    def start(self) -> tuple[ServoParams, HybridGains]:
+        """The start point ``(servo0, hybrid0)``: every field the tuner leaves alone takes its value from it."""
+        return self.servo0, self.hybrid0
+
+    def apply(self, z, start: tuple[ServoParams, HybridGains] | None = None) -> tuple[ServoParams, HybridGains]:
+        """The full parameter sets at ``z`` (traceable), the other fields from ``start`` (default :attr:`start`; the
+        tuner's gradient takes it as an argument, so that one program serves every start point and machine)."""
+        servo0, hybrid0 = self.start if start is None else start
         vals = self.values(z)
         servo = {f: jnp.broadcast_to(v, (6,)) for f, v in vals.items() if f not in HYBRID_FIELDS}
         hybrid = {f: v for f, v in vals.items() if f in HYBRID_FIELDS}
-        return self.servo0.replace(**servo), self.hybrid0.replace(**hybrid)
+        return servo0.replace(**servo), hybrid0.replace(**hybrid)
 
     def host_values(self, z) -> tuple[ServoParams, HybridGains]:
         """:meth:`apply` as host values: numpy arrays in the servo parameters, floats in the hybrid gains."""

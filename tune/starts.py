@@ -4,8 +4,8 @@ does not run the forward pass over the whole paths again for gains it has alread
 A :class:`pusupu_jax.tune.run.Problem` renews its windows' start states with a forward pass over every scenario's
 whole path (:meth:`~pusupu_jax.tune.run.Problem.refresh`): on the 2-core CPU about 10 s for the default job's two
 paths, at its start and every ``refresh_every`` iterations.  Those states depend only on what the file's name
-hashes (:func:`pusupu_jax.programs.fingerprint`): the problem's structure (its configuration, start gains, plant
-options, rates; :func:`~pusupu_jax.tune.run.structure_key`), the gains ``z``, every scenario's model arrays and
+hashes (:func:`pusupu_jax.programs.fingerprint`): the problem's structure (its configuration, plant options, rates;
+:func:`~pusupu_jax.tune.run.structure_key`), its start gains, the gains ``z``, every scenario's model arrays and
 reference, the number of devices, and the source and versions of what computes them.  So a second run of a job
 (or a notebook's second problem) loads the states its first run kept: bit for bit the arrays that run computed.
 Beside the states at the start gains, the objective's terms there (its normalisers,
