@@ -54,18 +54,22 @@ def pytest_collection_modifyitems(items):
 @pytest.fixture
 def refused(capsys):
     """``refused(*args, alone=True)``: the error line of ``pusupu ARGS`` run in this process (``cli.main``), which must
-    refuse its input: SystemExit with status 2 and ``pusupu: error: ...`` as the last line on stderr (with ``alone``,
-    the only one).  A command of its own costs 2.4 to 3.9 s of CPU to start; the refusals that a real process must
-    show (nothing else on stderr, no traceback) have subprocess tests (tests/test_cli.py)."""
+    refuse its input: exit status 2 (SystemExit, or returned by a command that prints its findings first) and
+    ``pusupu: error: ...`` as the last line on stderr (with ``alone``, the only one); what the command printed on
+    stdout is then ``refused.stdout``.  A command of its own costs 2.4 to 3.9 s of CPU to start; the refusals that a
+    real process must show (nothing else on stderr, no traceback) have subprocess tests (tests/test_cli.py)."""
     from pusupu_jax.cli.cli import main
 
     def run(*args, alone: bool = True) -> str:
         capsys.readouterr()
-        with pytest.raises(SystemExit) as e:
-            main([str(a) for a in args])
-        err = capsys.readouterr().err
+        try:
+            status = main([str(a) for a in args])  # a command that prints its findings first returns its status
+        except SystemExit as e:
+            status = e.code
+        captured = capsys.readouterr()
+        run.stdout, err = captured.out, captured.err
         lines = err.strip().splitlines()
-        assert e.value.code == 2 and lines and lines[-1].startswith("pusupu: error: "), (e.value.code, err)
+        assert status == 2 and lines and lines[-1].startswith("pusupu: error: "), (status, err)
         assert len(lines) == 1 or not alone, err
         return lines[-1]
 

@@ -1,7 +1,9 @@
 """The ``pusupu`` command, run as a user runs it (a real subprocess, real files); the refusals of bad input that
 need no process of their own call its ``main`` in this process (the ``refused`` fixture, tests/conftest.py), and so
-do the tiny tuning run and the commands that read its files or resume it (``in_process``: its programs are in this
-process's memory, and the same command runs as a process of its own when it is killed and interrupted)."""
+do the commands whose output is the point rather than the process (``in_process``: a process of its own costs some
+3 s of CPU to start Python and JAX and load its programs), among them the tiny tuning run and the commands that read
+its files or resume it (its programs are in this process's memory, and the same command runs as a process of its
+own when it is killed and interrupted)."""
 
 import hashlib
 import json
@@ -29,7 +31,7 @@ def pusupu(*args, check=True):
 
 
 @pytest.mark.slow
-def test_analyze_json_has_every_loop_of_every_axis(tmp_path):
+def test_analyze_json_has_every_loop_of_every_axis(tmp_path, in_process):
     """Also along the arc (``--trajectory``): each slider's carried mass at the arc's poses spans home's, and the
     velocity loop crosses over later with the lighter load on every axis (the same gains push less mass).  With
     ``--coupled``, every axis's loops in the coupled model at home, where the other five axes' velocity loops damp
@@ -38,7 +40,7 @@ def test_analyze_json_has_every_loop_of_every_axis(tmp_path):
     from pusupu_jax import machine_file
 
     png = tmp_path / "loops.png"
-    out = json.loads(pusupu("analyze", "--json", "--plot", str(png), "--trajectory", "arc", "--coupled").stdout)
+    out = json.loads(in_process("analyze", "--json", "--plot", png, "--trajectory", "arc", "--coupled"))
     coupled = out["coupled"]
     assert coupled["pose"] == list(machine_file.Machine.default().geometry.home) and len(coupled["axes"]) == 6
     for single, both in zip(out["axes"], coupled["axes"]):
@@ -66,18 +68,16 @@ def test_analyze_json_has_every_loop_of_every_axis(tmp_path):
         assert along["lightest"][k]["velocity"]["crossover_hz"] > along["heaviest"][k]["velocity"]["crossover_hz"]
 
 
-def test_sim_step_prints_metrics_and_plots(tmp_path):
+def test_sim_step_prints_metrics_and_plots(tmp_path, in_process):
     png = tmp_path / "step.png"
     out = json.loads(
-        pusupu(
-            "sim", "--plant", "axis", "--trajectory", "step", "--json", "--plot", str(png), "--duration", "0.5"
-        ).stdout
+        in_process("sim", "--plant", "axis", "--trajectory", "step", "--json", "--plot", png, "--duration", "0.5")
     )
     assert out["duration_s"] == pytest.approx(0.5)
     assert len(out["rms_error_mm"]) == 6 and 0 < out["rms_error_mm"][0] < 5
     assert out["max_error_mm"][0] == pytest.approx(5.0, rel=1e-3)  # the step itself, at t = 0
     assert png.stat().st_size > 10_000
-    table = pusupu("sim", "--trajectory", "sine", "--mode", "pid", "--duration", "0.2").stdout
+    table = in_process("sim", "--trajectory", "sine", "--mode", "pid", "--duration", "0.2")
     assert "rms_error_mm" in table and "pid mode" in table
 
 
@@ -103,21 +103,6 @@ def test_bad_input_exits_2_with_one_line(tmp_path, args, message):
     assert "Traceback" not in r.stderr and r.stdout == ""
 
 
-@pytest.mark.slow
-def test_sim_mjx_reports_the_machine_metrics(tmp_path):
-    png = tmp_path / "p2p.png"
-    out = json.loads(
-        pusupu("sim", "--plant", "mjx", "--trajectory", "p2p", "--mode", "pid", "--json", "--plot", str(png)).stdout
-    )
-    assert "hybrid" not in out
-    for key in ("branch_rms_error_mm", "motor_torque_peak_nm", "branch_force_peak_n"):
-        assert len(out[key]) == 6 and all(v > 0 for v in out[key])
-    assert 0 < out["rms_tracking_error_mm"] <= out["max_tracking_error_mm"] < 20
-    assert out["loop_closure_residual_max_mm"] < 0.01 * out["rms_tracking_error_mm"]
-    assert out["sync_error_rho"] > 0 and out["wall_s"] > 0
-    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-
-
 @pytest.mark.parametrize(
     "args",
     [
@@ -139,9 +124,10 @@ def test_bad_machine_arguments_exit_2_with_one_line(args, refused):
 
 
 @pytest.mark.slow
-def test_sim_mjx_hybrid_takes_its_gains_from_the_params_file(tmp_path):
-    """Hybrid mode on the p2p path with kinematic errors; the eq. 14 gains come from the file's hybrid section."""
-    params = tmp_path / "params.yaml"
+def test_sim_mjx_hybrid_takes_its_gains_from_the_params_file_and_reports_the_machine_metrics(tmp_path):
+    """Hybrid mode on the p2p path with kinematic errors; the eq. 14 gains come from the file's hybrid section; the
+    machine's metrics per branch, the loop closure and the figure."""
+    params, png = tmp_path / "params.yaml", tmp_path / "p2p.png"
     params.write_text("hybrid: {m6: 0.5, c6: 4000.0, g: 500.0, form: signed}\n")
     out = json.loads(
         pusupu(
@@ -157,13 +143,19 @@ def test_sim_mjx_hybrid_takes_its_gains_from_the_params_file(tmp_path):
             "--params",
             str(params),
             "--json",
+            "--plot",
+            str(png),
         ).stdout
     )
     assert out["mode"] == "hybrid" and out["kin_error_seed"] == 3
     assert out["hybrid"]["form"] == "signed" and out["hybrid"]["c6"] == 4000.0
     assert 50.0 < out["hybrid"]["force_ff_peak_n"] < 200.0  # branch 6's share of the ~90 kg machine's weight
-    assert 0 < out["rms_tracking_error_mm"] < 30
+    for key in ("branch_rms_error_mm", "motor_torque_peak_nm", "branch_force_peak_n"):
+        assert len(out[key]) == 6 and all(v > 0 for v in out[key])
+    assert 0 < out["rms_tracking_error_mm"] <= out["max_tracking_error_mm"] < 30
     assert out["loop_closure_residual_max_mm"] < 0.01 * out["rms_tracking_error_mm"]
+    assert out["sync_error_rho"] > 0 and out["wall_s"] > 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_a_bad_hybrid_section_exits_2_naming_the_gain(tmp_path, refused):

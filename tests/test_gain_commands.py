@@ -67,35 +67,37 @@ def test_check_and_sign_refuse_it_and_leave_the_file(unstable):
     assert unstable.read_bytes() == before
 
 
-def test_export_ros_writes_nothing(unstable, tmp_path):
-    _refused(pusupu("gains", "export-ros", unstable, "--out", tmp_path))
+# the other commands in this process (cli.main: the same exit status and line, without starting Python again)
+
+
+def test_export_ros_writes_nothing(unstable, tmp_path, refused):
+    assert REFUSAL in refused("gains", "export-ros", unstable, "--out", tmp_path)
     assert list(tmp_path.iterdir()) == []
 
 
-def test_sim_refuses_before_simulating(unstable):
-    r = _refused(pusupu("sim", "--gains", unstable, "--json"))
-    assert r.stdout == ""
+def test_sim_refuses_before_simulating(unstable, refused):
+    assert REFUSAL in refused("sim", "--gains", unstable, "--json")
+    assert refused.stdout == ""
 
 
-def test_analyze_prints_its_diagnosis_then_refuses(unstable):
+def test_analyze_prints_its_diagnosis_then_refuses(unstable, refused):
     """The analysis of a refused file is what its user needs to see: it is printed, then the exit is 2."""
-    r = _refused(pusupu("analyze", "--gains", unstable))
-    assert "velocity" in r.stdout and "PM deg" in r.stdout
+    assert REFUSAL in refused("analyze", "--gains", unstable)
+    assert "velocity" in refused.stdout and "PM deg" in refused.stdout
 
 
-def test_the_bridge_refuses_before_any_socket(unstable):
-    r = _refused(pusupu("bridge", "--gains", unstable, "--robot", "udp://127.0.0.1:9", "--duration", "1"))
-    assert "cycle" not in r.stdout
+def test_the_bridge_refuses_before_any_socket(unstable, refused):
+    assert REFUSAL in refused("bridge", "--gains", unstable, "--robot", "udp://127.0.0.1:9", "--duration", "1")
+    assert "cycle" not in refused.stdout
 
 
-def test_a_version_2_file_on_the_built_in_plant_is_read_and_migrated(tmp_path):
+def test_a_version_2_file_on_the_built_in_plant_is_read_and_migrated(tmp_path, in_process):
     g2 = gains.load(V2_TABLE1)
     assert g2.document["version"] == 2 and g2.mode == "hybrid"
     path = Path(shutil.copy(V2_TABLE1, tmp_path / "gains.yaml"))
     with pytest.raises(ParameterError, match="pusupu gains migrate converts a version 2 file"):
         gains.sign(path)
-    r = pusupu("gains", "migrate", path)
-    assert r.returncode == 0, r.stderr
+    in_process("gains", "migrate", path)
     g3 = gains.load(path)
     assert g3.document["version"] == 4 and "plant" not in g3.document
     assert g3.machine["name"] == "built-in"
