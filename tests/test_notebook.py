@@ -55,7 +55,8 @@ def test_the_command_selects_agg_itself(tmp_path):
     """The ``pusupu`` command writes its figures with Agg whatever MPLBACKEND says (here a backend it must not keep)."""
     code = (
         "import sys, matplotlib; from pusupu_jax.cli.cli import main; "
-        f"status = main(['analyze', '--json', '--plot', {str(tmp_path / 'loops.png')!r}]); "
+        "status = main(['sim', '--plant', 'axis', '--trajectory', 'step', '--duration', '0.05', "
+        f"'--plot', {str(tmp_path / 'step.png')!r}]); "
         "print(matplotlib.get_backend().lower(), status, file=sys.stderr)"
     )
     out = subprocess.run(
@@ -67,7 +68,7 @@ def test_the_command_selects_agg_itself(tmp_path):
         check=True,
     )
     assert out.stderr.strip().splitlines()[-1] == "agg 0", out.stderr[-2000:]
-    assert (tmp_path / "loops.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "step.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_plot_helpers_return_figures_and_write_files_only_when_asked(tmp_path):
