@@ -5,8 +5,8 @@ as a JAX pytree, one value per axis (shape ``(6,)``; leading batch dimensions ar
 allowed, e.g. ``(1024, 6)`` for a vmapped parameter sweep).  Changing a value never
 recompiles a jitted function; changing a shape or a :class:`LoopRates` field does.
 
-Defaults are the paper's Table 1.  What the paper leaves out is chosen here and
-documented field by field (see also ``docs/parameters.md``).
+Defaults are the paper's Table 1.  What the paper leaves out is chosen here; why, in the comments of the
+fields' sections and ``docs/parameters.md``.
 
 Validation is host-side and explicit: :func:`validate` (called by
 :meth:`ServoParams.from_mapping`, :func:`load_params_file` and
@@ -124,7 +124,9 @@ class _PerAxis:
 class ServoParams(_PerAxis):
     """Servo drive of each axis: the three loops of the paper (Fig. 2) and the motor.
 
-    Every field has shape ``(..., 6)``.  Table 1 values unless marked *chosen*.
+    Every field has shape ``(..., 6)``.  Table 1 values where the paper gives them; the rest chosen, as the
+    section comments below and ``docs/parameters.md`` say.  A field's doc says what it is on any machine (it comments
+    the machine files and gain files); why the default has its value is in those comments.
     """
 
     # --- position loop, 2-DOF IMC (eq. 9) ---
@@ -259,7 +261,10 @@ class ServoParams(_PerAxis):
         section="plant",
         bounds=(1e-06, 1.0, "armature inductances of servo motors: microhenries to a henry"),
     )
-    # --- motor (J from Table 1; the rest chosen) ---
+    # --- motor (J from Table 1; the rest chosen, docs/parameters.md: Kt solved so that the velocity loop identified
+    # from the model has T0 = 0.01475 s with the default AxisLoad, analysis.kt_for_T0; 3000 rpm; a 10 A, 310 V drive;
+    # 13 N m peak torque at I_max; V_max the bus less a margin).  A field's doc says what it is, on any machine:
+    # it comments the machine files and the gain files ---
     J: Any = _f(
         0.000188,
         "kg*m^2",
@@ -270,43 +275,42 @@ class ServoParams(_PerAxis):
     Kt: Any = _f(
         1.322,
         "N*m/A",
-        "chosen: torque constant, solved so that the velocity loop identified "
-        "from the model has T0 = 0.01475 s with the default AxisLoad (analysis.kt_for_T0)",
+        "torque constant: motor torque per armature current",
         section="plant",
         bounds=(0.001, 100.0, "torque constants of servo motors"),
     )
     Ke: Any = _f(
         1.322,
         "V*s/rad",
-        "chosen: back-EMF constant; equal to Kt (SI units, power balance of the DC-equivalent motor model)",
+        "back-EMF constant; equal to Kt (SI units, power balance of the DC-equivalent motor model)",
         section="plant",
         bounds=(0.001, 100.0, "back-EMF constants of servo motors (equal to Kt in SI units)"),
     )
     I_peak: Any = _f(
         10.0,
         "A",
-        "chosen: the drive's peak current rating; I_max may not exceed it",
+        "the drive's peak current rating; I_max may not exceed it",
         section="plant",
         bounds=(0.001, 1000.0, "peak current ratings of servo drives: milliamps to a kiloamp"),
     )
     V_dc: Any = _f(
         310.0,
         "V",
-        "chosen: the drive's DC bus voltage; V_max may not exceed it",
+        "the drive's DC bus voltage; V_max may not exceed it",
         section="plant",
         bounds=(1.0, 10000.0, "DC bus voltages of servo drives"),
     )
     speed_max: Any = _f(
         314.16,
         "rad/s",
-        "chosen: the motor's rated maximum speed (3000 rpm); a path whose motor speed exceeds it is refused",
+        "the motor's rated maximum speed; a path whose motor speed exceeds it is refused",
         section="plant",
         bounds=(1.0, 20000.0, "maximum speeds of servo motors: 10 rpm to 190 000 rpm"),
     )
     emf_ff: Any = _f(
         1.0,
         "1",
-        "chosen: fraction of the back-EMF Ke*w fed forward into the current PI output "
+        "fraction of the back-EMF Ke*w fed forward into the current PI output "
         "(decoupling, as PMSM drives do; 1 = full, 0 = none)",
         kind="nonnegative",
         section="current",
@@ -320,7 +324,7 @@ class ServoParams(_PerAxis):
     I_max: Any = _f(
         10.0,
         "A",
-        "chosen: current limit on the velocity PI output (13 N*m peak torque)",
+        "current limit on the velocity PI output",
         section="limits",
         bounds=(
             0.0,
@@ -331,14 +335,14 @@ class ServoParams(_PerAxis):
     V_max: Any = _f(
         300.0,
         "V",
-        "chosen: armature voltage limit (310 V DC bus less margin); the current PI output saturates at V_max/Kn",
+        "armature voltage limit; the current PI output saturates at V_max/Kn",
         section="limits",
         bounds=(0.0, "V_dc", "the DC bus voltage V_dc (the inverter cannot apply more)"),
     )
     following_error: Any = _f(
         0.005,
         "m",
-        "chosen: following-error window (CiA 402 object 0x6065), in slider travel: "
+        "following-error window (CiA 402 object 0x6065), in slider travel: "
         "a branch whose position error stays beyond it for following_error_time stops the "
         "machine",
         section="limits",
@@ -351,22 +355,22 @@ class ServoParams(_PerAxis):
     following_error_time: Any = _f(
         0.05,
         "s",
-        "chosen: following-error time-out (CiA 402 object 0x6066)",
+        "following-error time-out (CiA 402 object 0x6066)",
         section="limits",
         bounds=(0.001, 1.0, "under 1 ms is a single position period; over 1 s lets a runaway go on for a second"),
     )
-    # --- drive train (chosen) ---
+    # --- drive train (chosen, docs/parameters.md: a 10 mm lead) ---
     lead: Any = _f(
         0.01,
         "m/rev",
-        "chosen: ball-screw lead (10 mm per motor revolution)",
+        "ball-screw lead: slider travel per motor revolution",
         section="plant",
         bounds=(0.0001, 0.1, "ball-screw leads: 0.1 mm to 100 mm per revolution"),
     )
     eta: Any = _f(
         0.9,
         "1",
-        "chosen: ball-screw efficiency (0 < eta <= 1); the load seen by the motor is divided by eta",
+        "ball-screw efficiency (0 < eta <= 1); the load seen by the motor is divided by eta",
         section="plant",
         bounds=(0.001, 1.0, "an efficiency: at most 1"),
     )
@@ -375,7 +379,7 @@ class ServoParams(_PerAxis):
     coulomb: Any = _f(
         20.0,
         "N",
-        "chosen: Coulomb friction of the screw and the rail at the slider (smoothed by tanh)",
+        "Coulomb friction of the screw and the rail at the slider (smoothed by tanh)",
         kind="nonnegative",
         section="plant",
         bounds=(0.0, 100000.0, "Coulomb friction of a rail and screw"),
@@ -383,7 +387,7 @@ class ServoParams(_PerAxis):
     viscous: Any = _f(
         50.0,
         "N*s/m",
-        "chosen: viscous friction of the screw and the rail at the slider",
+        "viscous friction of the screw and the rail at the slider",
         kind="nonnegative",
         section="plant",
         bounds=(0.0, 1000000.0, "viscous friction of a rail and screw"),
@@ -391,7 +395,7 @@ class ServoParams(_PerAxis):
     v_coulomb: Any = _f(
         0.001,
         "m/s",
-        "chosen: slider speed over which the Coulomb friction builds up (the tanh's scale)",
+        "slider speed over which the Coulomb friction builds up (the tanh's scale)",
         section="plant",
         bounds=(1e-06, 10.0, "the speed over which Coulomb friction builds up"),
     )
