@@ -58,8 +58,9 @@ from pusupu_jax.ros2 import JOINTS, check_joints
 from .space import GROUPS
 
 # the settings that the objective's traced program reads (pusupu_jax.tune.run.structure_key names its program by them):
-# the tuned fields' groups, form and sharing reach it through the start point; the paths, seeds and payloads enter as
-# arguments; the optimiser's, the schedule's and the outputs' settings and the bounds are used on the host only
+# the tuned fields' groups and sharing name it through the space, the IMC form through the start point's structure;
+# the paths, seeds, payloads and the start point's values enter as arguments; the optimiser's, the schedule's and the
+# outputs' settings and the bounds are used on the host only
 OBJECTIVE_SETTINGS = (
     "mode",
     "windows",
