@@ -251,8 +251,8 @@ class WindowStarts:
     by ``refresh(z)`` (a forward pass over the whole paths), and the normalisers at the start ``z0()``.
 
     A subclass sets ``cfg``, ``space``, ``windows``, ``_value_and_grad(z, baseline, starts, windows, start)`` and
-    ``rows`` (the
-    length of each term's vector) and defines ``z0()`` and ``refresh(z)``, which sets ``starts`` and ``_starts_z``.
+    ``rows`` (the length of each term's vector) and defines ``z0()`` and ``refresh(z)``, which sets ``starts`` and
+    ``_starts_z``.
     """
 
     baseline = None
