@@ -263,8 +263,7 @@ class ServoParams(_PerAxis):
     )
     # --- motor (J from Table 1; the rest chosen, docs/parameters.md: Kt solved so that the velocity loop identified
     # from the model has T0 = 0.01475 s with the default AxisLoad, analysis.kt_for_T0; 3000 rpm; a 10 A, 310 V drive;
-    # 13 N m peak torque at I_max; V_max the bus less a margin).  A field's doc says what it is, on any machine:
-    # it comments the machine files and the gain files ---
+    # 13 N m peak torque at I_max; V_max the bus less a margin) ---
     J: Any = _f(
         0.000188,
         "kg*m^2",
