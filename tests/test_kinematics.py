@@ -128,3 +128,28 @@ def test_inconsistent_geometry_and_files(tmp_path):
     path.write_text("rod_length: 0.9\n")
     with pytest.raises(GeometryError, match="unknown geometry field 'rod_length'"):
         load_geometry(path)
+
+
+def test_the_pose_jacobian_of_a_padded_program_is_each_poses_own():
+    """pusupu_jax.plant.dynamics.pose_jacobian pads the poses to a power of two (one program per octave of path
+    lengths): each pose's ``qpos`` and ``dqpos/dq`` come out as they do alone, and equal ``jax.jacfwd`` of the pose map
+    (1e-12: XLA vectorises a batch differently from one pose, last bits only), for lengths below, at and above a
+    padded size, and the shorter paths of one octave share a program."""
+    from pusupu_jax.plant import dynamics
+    from pusupu_jax.plant.model import ModelOptions, build_model, pose_to_qpos
+    from pusupu_jax.programs import describe
+
+    assert [dynamics.padded_rows(n) for n in (1, 64, 65, 128, 129, 43347)] == [64, 64, 128, 128, 256, 65536]
+    poses = workspace_sample(129, seed=1)
+    phi = pose_to_qpos(build_model(G, ModelOptions()), G)
+    want_qpos, want_T = phi(jnp.asarray(poses)), jax.vmap(jax.jacfwd(phi))(jnp.asarray(poses))
+    jacobian = dynamics.pose_jacobian(G)
+    for n in (3, 64, 100, 129):
+        qpos, T = jacobian(poses[:n])
+        assert qpos.shape == (n, want_qpos.shape[1]) and T.shape == (n, want_qpos.shape[1], 5)
+        np.testing.assert_allclose(qpos, want_qpos[:n], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(T, want_T[:n], rtol=0, atol=1e-12)
+    # the process's one program for G holds one executable per padded size (64, 128, 256 here), none per length
+    program = dynamics._POSE_JACOBIANS[(describe((G, ModelOptions())), True)]
+    rows = {int(avals[0].split("[")[1].split(",")[0]) for _, avals in program._calls}
+    assert {64, 128, 256} <= rows and all(dynamics.padded_rows(r) == r for r in rows), rows

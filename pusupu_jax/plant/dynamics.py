@@ -27,7 +27,7 @@ kinematic errors of the real machine.
 from __future__ import annotations
 
 import dataclasses
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import jax
 import jax.numpy as jnp
@@ -44,18 +44,47 @@ if TYPE_CHECKING:
     from ..params import ServoParams
 
 
-def pose_jacobian(geom: Geometry, options: ModelOptions = ModelOptions()) -> Program:
-    """The compiled ``q (N, 5) -> (qpos (N, nq), T = dqpos/dq (N, nq, 5))`` of the nominal machine ``geom`` (seeded
-    errors left out), kept on disk (:class:`~pusupu_jax.programs.Program`): every command that builds a reference or
-    reads a machine file asks it, for each path and for the linear model's load, and a later process loads it
-    instead of tracing it.  A new one at each call, not one kept for the process: the bridge reads its gain file
-    (which asks this) before it turns float64 on, and a program of single precision kept alive across that switch
-    made a later jitted call of the path checks get single-precision arguments for its double-precision program."""
+# the compiled pose Jacobians of this process, by machine and precision (float64 on or off): see pose_jacobian
+_POSE_JACOBIANS: dict[tuple[str, bool], Program] = {}
+MIN_ROWS = 64  # the shortest padded length of pose_jacobian's program
+
+
+def padded_rows(n: int) -> int:
+    """The length that ``n`` poses are padded to for :func:`pose_jacobian`'s program: the next power of two, at
+    least :data:`MIN_ROWS`, so that the paths of one octave of lengths share one compiled program (at most twice the
+    rows computed)."""
+    return max(MIN_ROWS, 1 << (n - 1).bit_length())
+
+
+def pose_jacobian(
+    geom: Geometry, options: ModelOptions = ModelOptions()
+) -> Callable[[npt.ArrayLike], tuple[np.ndarray, np.ndarray]]:
+    """``q (N, 5) -> (qpos (N, nq), T = dqpos/dq (N, nq, 5))`` of the nominal machine ``geom`` (seeded errors left
+    out), as numpy arrays.
+
+    Every command that builds a reference or reads a machine file asks it, for each path and for the linear model's
+    load.  Its program is kept on disk (:class:`~pusupu_jax.programs.Program`), so that a later process loads it
+    instead of tracing it, and in this process per machine and precision: the bridge reads its gain file (which asks
+    this) before it turns float64 on, and a program of single precision must not serve it after that switch.  The
+    poses are padded (the last one repeated) to :func:`padded_rows`: one program per octave of path lengths, not one
+    per length."""
     options = dataclasses.replace(options, kin_error_seed=None)
-    phi = pose_to_qpos(build_model(geom, options), geom)
-    return Program(
-        lambda q: (phi(q), jnp.vectorize(jax.jacfwd(phi), signature="(5)->(n,5)")(q)), describe((geom, options))
-    )
+    key = (describe((geom, options)), bool(jax.config.jax_enable_x64))  # type: ignore[attr-defined]  # JAX's flag
+    program = _POSE_JACOBIANS.get(key)
+    if program is None:
+        phi = pose_to_qpos(build_model(geom, options), geom)
+        program = _POSE_JACOBIANS[key] = Program(
+            lambda q: (phi(q), jnp.vectorize(jax.jacfwd(phi), signature="(5)->(n,5)")(q)), key[0]
+        )
+
+    def run(q: npt.ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        q = np.asarray(q)
+        n = len(q)
+        padded = np.concatenate([q, np.repeat(q[-1:], padded_rows(n) - n, axis=0)])
+        qpos, T = program(jnp.asarray(padded))
+        return np.asarray(qpos)[:n], np.asarray(T)[:n]
+
+    return run
 
 
 def nominal_model(servo: ServoParams, geom: Geometry, options: ModelOptions) -> mujoco.MjModel:
@@ -84,7 +113,7 @@ def inverse_dynamics_forces(
     if path.ndim != 2 or path.shape[1] != 5 or len(path) < 3:
         raise ValueError(f"path: expected poses of shape (N >= 3, 5), got {path.shape}")
     m = nominal_model(servo, geom, options)
-    qpos, T = (np.asarray(a) for a in pose_jacobian(geom, options)(jnp.asarray(path)))
+    qpos, T = pose_jacobian(geom, options)(path)
     qvel = np.gradient(qpos, dt, axis=0)
     qacc = np.gradient(qvel, dt, axis=0)
     d = mujoco.MjData(m)
@@ -122,7 +151,7 @@ def pose_inertia(
     poses = np.atleast_2d(np.asarray(poses, dtype=float))
     options = dataclasses.replace(options, kin_error_seed=None)
     m = build_model(geom, options)
-    qpos, T = (np.asarray(a) for a in pose_jacobian(geom, options)(jnp.asarray(poses)))
+    qpos, T = pose_jacobian(geom, options)(poses)
     d = mujoco.MjData(m)
     M = np.zeros((m.nv, m.nv))
     inertia = np.zeros((len(poses), 5, 5))
