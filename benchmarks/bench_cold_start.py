@@ -32,6 +32,7 @@ t0 = time.perf_counter()
 """
     + MOUNT_TREE
     + r"""
+import inspect
 import json
 import jax, jax.numpy as jnp
 import numpy as np
@@ -71,7 +72,9 @@ else:
     # the start: one kept program, or (a tree with the plant's rest shared by the modes) the rest, then the controllers
     start_program = getattr(chunked, "_start_program", chunked._init_program)
     init = start_program(p.scenarios.plant, p.rates, cfg.mode, "rest", None, None)
-    chunk = chunked._chunk_program(p.scenarios.plant, p.rates, cfg.mode, None, None, True)
+    # a tree whose chunks that stop at marks are a program of their own takes ``masked``
+    masked = [True] if "masked" in inspect.signature(chunked._chunk_program).parameters else []
+    chunk = chunked._chunk_program(p.scenarios.plant, p.rates, cfg.mode, None, None, *masked)
     hybrid_arg = hybrid if control_mode(cfg.mode).hybrid else None
     batches = set()
     for idx, models, refs in p.scenarios.groups.values():

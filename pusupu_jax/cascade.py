@@ -133,19 +133,17 @@ class CascadeState(NamedTuple):
 
     current: PIState
     velocity: PIState | None
-    position: Any | None  # IMCState, the PID's state, PIDFFState or RosPIDState
+    position: Any | None  # IMCState, PIDFFState (both PIDs) or RosPIDState
     force: hybrid_law.ForceState | None
 
 
 def _position_init(
     drive: Drive, mode: ControlMode, theta0: ArrayLike
-) -> loops.IMCState | jax.Array | loops.PIDFFState | loops.RosPIDState | None:
+) -> loops.IMCState | loops.PIDFFState | loops.RosPIDState | None:
     """The position controller at rest at ``theta0`` [rad], zero error: IMC's prefilter holds ``theta0``."""
     if mode.law == Law.IMC:
         return loops.imc_rest(drive.imc, theta0)
-    if mode.law == Law.PID:
-        return loops.pid_init(drive.pid)
-    if mode.law == Law.PID_FF:
+    if mode.law in (Law.PID, Law.PID_FF):
         return loops.pid_ff_init(drive.pid, theta0)
     if mode.law == Law.ROS_PID:
         return loops.ros_pid_init(drive.ros, theta0)
@@ -207,13 +205,12 @@ def position_tick(
     theta_ref = mode.theta(ref)
     position = s.position
     assert position is not None  # a mode that closes the position loop carries its controller's state
-    sp: loops.IMCState | jax.Array | loops.PIDFFState | loops.RosPIDState
+    sp: loops.IMCState | loops.PIDFFState | loops.RosPIDState
     if mode.law == Law.IMC:
         sp, w_ref = loops.imc_step(drive.imc, position, theta_ref, theta)
-    elif mode.law == Law.PID:
-        sp, w_ref = loops.pid_step(drive.pid, position, theta_ref, theta)
-    elif mode.law == Law.PID_FF:
-        sp, w_ref = loops.pid_ff_step(drive.pid, drive.velocity_ff, position, theta_ref, theta)
+    elif mode.law in (Law.PID, Law.PID_FF):  # the PID baseline: PID + velocity feedforward at Kff = 0
+        velocity_ff = drive.velocity_ff if mode.law == Law.PID_FF else 0.0
+        sp, w_ref = loops.pid_ff_step(drive.pid, velocity_ff, position, theta_ref, theta)
     else:
         sp, w_ref = loops.ros_pid_step(drive.ros, position, theta_ref, theta, omega)
     if not mode.hybrid:

@@ -13,6 +13,7 @@ import functools
 from typing import TYPE_CHECKING, Any, Callable, Sequence, cast
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from . import cascade as cascade_
@@ -30,6 +31,15 @@ if TYPE_CHECKING:
 
 
 CHUNK = 250  # periods per call of run_chunked's compiled program
+
+
+def _programs_mode(params: ServoParams, outer: str) -> tuple[ServoParams, str]:
+    """The gains and mode whose programs run ``outer``: the PID baseline is the PID with velocity feedforward at
+    ``Kff = 0`` (:func:`pusupu_jax.cascade.position_tick`), so it runs that mode's programs with ``Kff_pid`` zero (the
+    same numbers, one compile for both baselines)."""
+    if cascade_.control_mode(outer).law != cascade_.Law.PID:
+        return params, outer
+    return params.replace(Kff_pid=np.zeros_like(np.asarray(params.Kff_pid))), cascade_.Mode.PID_FF
 
 
 def _init(
@@ -67,19 +77,24 @@ def _init(
     return jax.vmap(init, in_axes=(params_axis, 0, 0, hybrid_axis, None, 0))
 
 
-def _rest(plant: Plant, dt_mech: float, params_axis: int | None) -> Callable[..., Rest]:
-    """:func:`~pusupu_jax.sim.plant_rest` vmapped over a batch: ``(params, models) -> Rest``."""
+def _rest_one(plant: Plant, dt_mech: float) -> Callable[..., Rest]:
+    """:func:`~pusupu_jax.sim.plant_rest` of one run: ``(params, model) -> Rest``."""
 
     def rest(params: ServoParams, model: Any) -> Rest:
         return plant_rest(plant, plant.prepare(params, model, dt_mech))
 
-    return jax.vmap(rest, in_axes=(params_axis, 0))
+    return rest
+
+
+def _rest(plant: Plant, dt_mech: float, params_axis: int | None) -> Callable[..., Rest]:
+    """:func:`_rest_one` vmapped over a batch (laid over several devices: :func:`_laid_over`)."""
+    return jax.vmap(_rest_one(plant, dt_mech), in_axes=(params_axis, 0))
 
 
 def _chunk(
-    plant: Plant, rates: LoopRates, outer: str, params_axis: int | None, hybrid_axis: int | None, masked: bool
+    plant: Plant, rates: LoopRates, outer: str, params_axis: int | None, hybrid_axis: int | None
 ) -> Callable[..., tuple[dict[str, Any], Carry]]:
-    """:func:`~pusupu_jax.sim.rollout_chunk` (with ``n_valid`` when ``masked``) vmapped over a batch."""
+    """:func:`~pusupu_jax.sim.rollout_chunk` vmapped over a batch."""
 
     def chunk(
         params: ServoParams,
@@ -95,7 +110,7 @@ def _chunk(
             model,
             reference,
             carry,
-            n_valid if masked else None,
+            n_valid,
             plant=plant,
             rates=rates,
             outer=outer,
@@ -107,15 +122,38 @@ def _chunk(
 
 
 @functools.lru_cache(maxsize=None)
-def _rest_program(plant: Plant, dt_mech: float, params_axis: int | None) -> Program:
-    """The plant's rest (:func:`_rest`, cached per static arguments), kept on disk
+def _rest_program(plant: Plant, dt_mech: float) -> Program:
+    """The plant's rest of one run, ``(params, model) -> Rest`` (cached per static arguments), kept on disk
     (:class:`~pusupu_jax.programs.Program`): a later process loads it rather than tracing it again.  One program for
-    every mode, start and rates of the same mechanical step."""
+    every mode, start, rates of the same mechanical step and batch size (:class:`_MemberRests`)."""
     return Program(
-        _rest(plant, dt_mech, params_axis),
-        lambda: describe(("rest", plant.key(), (dt_mech, params_axis))),
+        _rest_one(plant, dt_mech),
+        lambda: describe(("rest", plant.key(), dt_mech)),
         to_host=False,
     )
+
+
+class _MemberRests:
+    """A batch's rests from the one-run program of :func:`_rest_program`, a call per member, stacked: the rest is a
+    few MJX calls per run, once, where a program per batch size cost a compile each (some 8 s of CPU for the default
+    machine)."""
+
+    def __init__(self, plant: Plant, dt_mech: float, params_axis: int | None) -> None:
+        self.program, self.params_axis = _rest_program(plant, dt_mech), params_axis
+
+    def _members(self, params: ServoParams, models: Any) -> list[tuple[ServoParams, Any]]:
+        n = jax.tree.leaves(models)[0].shape[0]
+        one = (lambda b: jax.tree.map(lambda x: x[b], params)) if self.params_axis == 0 else (lambda b: params)
+        return [(one(b), jax.tree.map(lambda x: x[b], models)) for b in range(n)]
+
+    def __call__(self, params: ServoParams, models: Any) -> Rest:
+        rests = [self.program(*member) for member in self._members(params, models)]
+        return cast(Rest, jax.tree.map(lambda *r: jnp.stack(r), *rests))
+
+    def eval_shape(self, params: ServoParams, models: Any) -> Any:
+        members = self._members(params, models)
+        one = self.program.eval_shape(*members[0])
+        return jax.tree.map(lambda x: jax.ShapeDtypeStruct((len(members),) + x.shape, x.dtype), one)  # type: ignore[no-untyped-call]  # jax leaves it unannotated
 
 
 class _Rested:
@@ -151,17 +189,17 @@ def _start_program(
         lambda: describe(("start", plant.key(), static)),
         to_host=False,
     )
-    return _Rested(_rest_program(plant, rates.dt_mech, params_axis), finish)
+    return _Rested(_MemberRests(plant, rates.dt_mech, params_axis), finish)
 
 
 @functools.lru_cache(maxsize=None)
 def _chunk_program(
-    plant: Plant, rates: LoopRates, outer: str, params_axis: int | None, hybrid_axis: int | None, masked: bool
+    plant: Plant, rates: LoopRates, outer: str, params_axis: int | None, hybrid_axis: int | None
 ) -> Program:
-    """The chunk's program (cached per static arguments: one compile serves every path length), kept on disk as
-    :func:`_rest_program`'s."""
-    static = (rates, cascade_.control_mode(outer), params_axis, hybrid_axis, masked)
-    fun = _chunk(plant, rates, outer, params_axis, hybrid_axis, masked)
+    """The chunk's program (cached per static arguments: one compile serves every path length, and runs that keep
+    carries at marks or none), kept on disk as :func:`_rest_program`'s."""
+    static = (rates, cascade_.control_mode(outer), params_axis, hybrid_axis)
+    fun = _chunk(plant, rates, outer, params_axis, hybrid_axis)
     return Program(fun, lambda: describe(("chunk", plant.key(), static)), to_host=False)
 
 
@@ -186,6 +224,7 @@ def carry_structure(
     """The structure of :func:`run_chunked`'s carries (a tree of ``jax.ShapeDtypeStruct``, batch axis first) for
     ``models`` and the references' first samples ``first``, from its start program without running it (read from
     disk where it is kept there)."""
+    params, outer = _programs_mode(params, outer)
     return _start_program(plant, rates, outer, start, None, None).eval_shape(params, models, first, hybrid, None)
 
 
@@ -215,22 +254,23 @@ def run_chunked(
     programs (the start and one chunk), so a horizon that changes compiles nothing.  The last chunk runs past the
     path's end, on its last sample held; what it records there is dropped.
 
-    ``marks``: periods at which to keep the carry (the start states of windows, for ``rollout(init=...)``).  With
-    marks, the chunks stop at them (:func:`~pusupu_jax.sim.rollout_chunk`'s ``n_valid``: another program, whose
-    select per period costs run time); without, every chunk runs whole.  Different programs round differently: a run
-    agrees with :func:`~pusupu_jax.sim.rollout`'s to float64 rounding, not bit for bit (``tests/test_windows.py``).
+    ``marks``: periods at which to keep the carry (the start states of windows, for ``rollout(init=...)``): the
+    chunks stop at them (:func:`~pusupu_jax.sim.rollout_chunk`'s ``n_valid``, the same program), and run whole between
+    them.  Different programs round differently: a run agrees with :func:`~pusupu_jax.sim.rollout`'s to float64
+    rounding, not bit for bit (``tests/test_windows.py``).
     """
     init: Callable[..., Carry]
     step: Callable[..., tuple[dict[str, Any], Carry]]
+    params, outer = _programs_mode(params, outer)
     if any(len(x.sharding.device_set) > 1 for x in jax.tree.leaves(models) if isinstance(x, jax.Array)):
         init = _Rested(
             _laid_over(_rest, plant, rates.dt_mech, params_axis),
             _laid_over(_init, plant, rates, outer, start, params_axis, hybrid_axis),
         )
-        step = _laid_over(_chunk, plant, rates, outer, params_axis, hybrid_axis, bool(marks))
+        step = _laid_over(_chunk, plant, rates, outer, params_axis, hybrid_axis)
     else:
         init = _start_program(plant, rates, outer, start, params_axis, hybrid_axis)
-        step = _chunk_program(plant, rates, outer, params_axis, hybrid_axis, bool(marks))
+        step = _chunk_program(plant, rates, outer, params_axis, hybrid_axis)
     host = jax.tree.map(np.asarray, reference)
     n = jax.tree.leaves(host)[0].shape[1]
     if any(not 0 <= m < n for m in marks):

@@ -24,8 +24,8 @@ Loops and their signals (motor side; Fig. 2 of the paper):
   ``w_r = C2 (C1 theta' - theta)`` with ``C2 = (3 l2 s+1)(T0 s+1) / (3 l2^2 s (l2/3 s+1))``
   (eq. 9) and the prefilter ``C1`` in one of two forms (``ServoParams.imc_form``, see
   :func:`imc_c1` and ``docs/imc.md``); or the PID baseline ``Kp + Ki/s + Kd s/(Tf s+1)`` on
-  ``theta' - theta``, alone ('pid') or plus the velocity feedforward ``Kff (theta'_k -
-  theta'_{k-1})/dt`` ('pid_ff', the industry-standard baseline).
+  ``theta' - theta``, plus the velocity feedforward ``Kff (theta'_k - theta'_{k-1})/dt``
+  ('pid_ff', the industry-standard baseline) or alone ('pid': the same with ``Kff = 0``).
 
 The current and velocity loops have the same structure (reference filter, feedback
 filter, clamped PI) and share :class:`PILoop` and :func:`pi_loop_step`.
@@ -268,15 +268,6 @@ def imc_step(c: IMC, s: IMCState, theta_ref: jax.Array, theta: jax.Array) -> tup
     return IMCState(x1, x2), w_ref
 
 
-def pid_init(c: LTI) -> jax.Array:
-    return lti.zeros_state(c)
-
-
-def pid_step(c: LTI, s: jax.Array, theta_ref: jax.Array, theta: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """PID baseline on the position error [rad] -> velocity reference [rad/s]."""
-    return lti.step_siso(c, s, theta_ref - theta)
-
-
 class PIDFFState(NamedTuple):
     pid: Any
     previous_ref: Any  # the last motor-angle reference, rad
@@ -291,7 +282,8 @@ def pid_ff_init(c: LTI, theta_ref0: ArrayLike = 0.0) -> PIDFFState:
 def pid_ff_step(
     c: LTI, velocity_ff: ArrayLike, s: PIDFFState, theta_ref: jax.Array, theta: jax.Array
 ) -> tuple[PIDFFState, jax.Array]:
-    """PID plus velocity feedforward: ``w_r = PID(theta_ref - theta) + Kff (theta_ref - previous)/dt`` [rad/s]."""
+    """PID plus velocity feedforward: ``w_r = PID(theta_ref - theta) + Kff (theta_ref - previous)/dt`` [rad/s]; the
+    PID baseline alone is this at ``velocity_ff = 0``."""
     x, w_pid = lti.step_siso(c, s.pid, theta_ref - theta)
     return PIDFFState(x, theta_ref), w_pid + velocity_ff * (theta_ref - s.previous_ref)
 

@@ -30,7 +30,7 @@ def test_a_run_cut_into_chunks_is_the_whole_run_and_restarts_from_its_carries():
     for mode in ("imc", "pid"):
         whole = jax.jit(lambda r: rollout(SERVO, LOAD, r, outer=mode))(REF)
         trace, carries = _chunked(mode, marks=(0, 300, 901))
-        for run in (trace, _chunked(mode)[0]):  # stopping at the marks (the masked program), and whole chunks
+        for run in (trace, _chunked(mode)[0]):  # stopping at the marks, and whole chunks (one program)
             np.testing.assert_array_equal(run.t, np.asarray(whole.t))
             for field in ("theta", "omega", "current", "command"):
                 a, b = np.asarray(getattr(whole, field)), getattr(run, field)
@@ -92,20 +92,27 @@ def test_a_batch_laid_over_devices_runs_as_on_one():
 
 
 def test_paths_of_any_length_run_one_compiled_chunk():
-    """Two path lengths, with and without marks: one compile of the chunk that runs whole and one of the chunk that
-    stops at marks (and of the start's controllers): what lets every horizon of the experiments and the CLI share one
-    program per mode and batch size, and the tuner's forward passes another.  The plant's rest is one program for
-    every mode: compiled here at most once (not at all when a test before ran another mode in this process)."""
+    """Two path lengths, with and without marks: one compile of the chunk (whole chunks and chunks that stop at marks
+    are the same program) and of the start's controllers, which the PID baseline's runs take too: what lets every
+    horizon of the experiments, the CLI and the tuner's forward passes share one program per mode and batch size.
+    The plant's rest is one program for every mode: compiled here at most once (not at all when a test before ran
+    another mode in this process)."""
     from pusupu_jax.chunked import _chunk_program, _start_program
 
     start = _start_program(AxisPlant(), LoopRates(), "pid_ff", "rest", None, None)
-    programs = [_chunk_program(AxisPlant(), LoopRates(), "pid_ff", None, None, m) for m in (False, True)]
-    before = [p.cache_size() for p in programs] + [start.finish.cache_size()]
-    rest_before = start.rest.cache_size()
+    program = _chunk_program(AxisPlant(), LoopRates(), "pid_ff", None, None)
+    rest_before = start.rest.program.cache_size()
+    sizes = []  # the executables after each run: whatever the first run compiled, the others compile nothing
     for n in (130, 700):
         for marks in ((), (0, 101, n - 1)):
             trace, carries = run_chunked(SERVO, stack([LOAD]), np.asarray(REF)[None, :n], outer="pid_ff", marks=marks)
             assert trace.theta.shape == (1, n, 6) and np.isfinite(trace.theta).all()
             assert carries is None if not marks else jax.tree.leaves(carries)[0].shape[:2] == (1, len(marks))
-    assert [p.cache_size() for p in programs] + [start.finish.cache_size()] == [b + 1 for b in before]
-    assert start.rest.cache_size() - rest_before <= 1 and start.rest.cache_size() >= 1
+            sizes.append((program.cache_size(), start.finish.cache_size()))
+    # the PID baseline is the PID + feedforward at Kff = 0: its run takes these programs, and compiles none of its own
+    pid, _ = run_chunked(SERVO, stack([LOAD]), np.asarray(REF)[None, :130], outer="pid")
+    assert np.isfinite(pid.theta).all()
+    sizes.append((program.cache_size(), start.finish.cache_size()))
+    assert sizes == sizes[:1] * 5, sizes
+    assert _chunk_program(AxisPlant(), LoopRates(), "pid", None, None).cache_size() == 0
+    assert start.rest.program.cache_size() - rest_before <= 1 and start.rest.program.cache_size() >= 1
