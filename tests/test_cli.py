@@ -124,13 +124,14 @@ def test_bad_machine_arguments_exit_2_with_one_line(args, refused):
 
 
 @pytest.mark.slow
-def test_sim_mjx_hybrid_takes_its_gains_from_the_params_file_and_reports_the_machine_metrics(tmp_path):
+def test_sim_mjx_hybrid_takes_its_gains_from_the_params_file_and_reports_the_machine_metrics(tmp_path, in_process):
     """Hybrid mode on the p2p path with kinematic errors; the eq. 14 gains come from the file's hybrid section; the
-    machine's metrics per branch, the loop closure and the figure."""
+    machine's metrics per branch, the loop closure and the figure.  In this process: its chunk program is the one
+    the tiny tune below runs (a simulation and a tune of one mode share it)."""
     params, png = tmp_path / "params.yaml", tmp_path / "p2p.png"
     params.write_text("hybrid: {m6: 0.5, c6: 4000.0, g: 500.0, form: signed}\n")
     out = json.loads(
-        pusupu(
+        in_process(
             "sim",
             "--plant",
             "mjx",
@@ -145,7 +146,7 @@ def test_sim_mjx_hybrid_takes_its_gains_from_the_params_file_and_reports_the_mac
             "--json",
             "--plot",
             str(png),
-        ).stdout
+        )
     )
     assert out["mode"] == "hybrid" and out["kin_error_seed"] == 3
     assert out["hybrid"]["form"] == "signed" and out["hybrid"]["c6"] == 4000.0

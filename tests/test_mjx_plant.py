@@ -396,27 +396,28 @@ def test_every_objective_term_has_the_gradient_of_central_differences():
 
 
 def test_model_variants_vmapped_equal_their_own_plants():
-    """Seeded errors and a payload as MJXPlant.variant models, vmapped through one compiled (chunked) run, give the
-    trajectories of plants built for them (observed 4e-16 m, 8e-12 N m over 0.1 s of the p2p path).
+    """Seeded kinematic errors with a payload, as an MJXPlant.variant model vmapped beside the nominal one through one
+    compiled (chunked) run, give the trajectory of a plant built for them, whose model is a constant of its own
+    program (observed 4e-16 m, 8e-12 N m over 0.1 s of the p2p path).  The nominal member moves differently: the
+    batch's program reads each member's model.
     """
     from pusupu_jax.machine import machine_reference
     from pusupu_jax.trajectories import platform_path
 
-    options = [M.ModelOptions(kin_error_seed=3), M.ModelOptions(payload=5.0)]
+    options = M.ModelOptions(kin_error_seed=3, payload=5.0)
     path = platform_path("p2p", G.home, RATES)[:100]
     ref = machine_reference(SERVO, path, "pid", rates=RATES)
-    models = stack([PLANT.variant(o) for o in options])
-    # the chunked batch of simulate_scenarios (its program is the start-at-rest test's of PID, through the cache)
+    models = stack([PLANT.variant(options), PLANT.variant(M.ModelOptions())])
+    # the chunked batch of simulate_scenarios (the PID + feedforward's programs of the start-at-rest test, at Kff = 0)
     batch, _ = run_chunked(SERVO, models, np.stack([ref, ref]), plant=PLANT, rates=RATES, outer="pid")
-    for k, o in enumerate(options):
-        own = MJXPlant.create(G, o)
-        trace = jax.jit(lambda r: rollout(SERVO, None, r, plant=own, rates=RATES, outer="pid"))(ref)
-        np.testing.assert_allclose(batch.position[k], trace.position, atol=1e-12)
-        np.testing.assert_allclose(batch.torque[k], trace.torque, atol=1e-9)
-        np.testing.assert_allclose(
-            batch.observation["closure_residual"][k], trace.observation["closure_residual"], atol=1e-12
-        )
-    assert np.max(np.abs(np.asarray(batch.torque[0] - batch.torque[1]))) > 1e-3  # the variants do differ
+    own = MJXPlant.create(G, options)
+    trace = jax.jit(lambda r: rollout(SERVO, None, r, plant=own, rates=RATES, outer="pid"))(ref)
+    np.testing.assert_allclose(batch.position[0], trace.position, atol=1e-12)
+    np.testing.assert_allclose(batch.torque[0], trace.torque, atol=1e-9)
+    np.testing.assert_allclose(
+        batch.observation["closure_residual"][0], trace.observation["closure_residual"], atol=1e-12
+    )
+    assert np.max(np.abs(np.asarray(batch.torque[0] - batch.torque[1]))) > 1e-3  # the variant does differ
 
 
 def test_a_payload_is_a_variant_of_the_same_structure_and_adds_its_mass():
