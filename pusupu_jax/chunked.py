@@ -33,6 +33,17 @@ if TYPE_CHECKING:
 CHUNK = 250  # periods per call of run_chunked's compiled program
 
 
+def _per_member(tree: Any, axis: int | None, n: int) -> Any:
+    """``tree``'s leaves as NumPy arrays with a leading axis of ``n`` members: as they are where batched (``axis``
+    0), repeated where shared (None: nothing).  So every caller of :func:`run_chunked` runs the same programs: shared
+    or batched gains, arrays or Python numbers (whose weak types would name programs of their own)."""
+    if tree is None:
+        return None
+    if axis == 0:
+        return jax.tree.map(np.asarray, tree)
+    return jax.tree.map(lambda x: np.broadcast_to(np.asarray(x), (n,) + np.shape(x)), tree)
+
+
 def _programs_mode(params: ServoParams, outer: str) -> tuple[ServoParams, str]:
     """The gains and mode whose programs run ``outer``: the PID baseline is the PID with velocity feedforward at
     ``Kff = 0`` (:func:`pusupu_jax.cascade.position_tick`), so it runs that mode's programs with ``Kff_pid`` zero (the
@@ -225,7 +236,10 @@ def carry_structure(
     ``models`` and the references' first samples ``first``, from its start program without running it (read from
     disk where it is kept there)."""
     params, outer = _programs_mode(params, outer)
-    return _start_program(plant, rates, outer, start, None, None).eval_shape(params, models, first, hybrid, None)
+    n = jax.tree.leaves(models)[0].shape[0]
+    params, hybrid = _per_member(params, None, n), _per_member(hybrid, None, n)
+    program = _start_program(plant, rates, outer, start, 0, None if hybrid is None else 0)
+    return program.eval_shape(params, models, first, hybrid, None)
 
 
 def run_chunked(
@@ -251,8 +265,9 @@ def run_chunked(
     ``params`` (and ``hybrid``) are shared, or batched along their leading axis when ``params_axis``
     (``hybrid_axis``) is 0; ``compliance``: ``(AdmittanceGains, Geometry)``, shared, or None; ``models`` is batched
     (the plant's per-run arrays, e.g. :meth:`MJXPlant.variant`'s).  Every path length runs the same two compiled
-    programs (the start and one chunk), so a horizon that changes compiles nothing.  The last chunk runs past the
-    path's end, on its last sample held; what it records there is dropped.
+    programs (the start and one chunk), so a horizon that changes compiles nothing; and shared gains run as batched
+    ones (repeated per member), so that a simulation, a tune and a grid of gains share them too.  The last chunk runs
+    past the path's end, on its last sample held; what it records there is dropped.
 
     ``marks``: periods at which to keep the carry (the start states of windows, for ``rollout(init=...)``): the
     chunks stop at them (:func:`~pusupu_jax.sim.rollout_chunk`'s ``n_valid``, the same program), and run whole between
@@ -262,6 +277,10 @@ def run_chunked(
     init: Callable[..., Carry]
     step: Callable[..., tuple[dict[str, Any], Carry]]
     params, outer = _programs_mode(params, outer)
+    n = jax.tree.leaves(models)[0].shape[0]
+    params, hybrid = _per_member(params, params_axis, n), _per_member(hybrid, hybrid_axis, n)
+    params_axis, hybrid_axis = 0, None if hybrid is None else 0
+    compliance = None if compliance is None else jax.tree.map(np.asarray, compliance)
     if any(len(x.sharding.device_set) > 1 for x in jax.tree.leaves(models) if isinstance(x, jax.Array)):
         init = _Rested(
             _laid_over(_rest, plant, rates.dt_mech, params_axis),
