@@ -26,10 +26,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import functools
 import io
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Callable, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import jax
 import jax.numpy as jnp
@@ -266,21 +265,9 @@ class MJXPlant:
 
     def step(self, aux: MJXAux, data: mjx.Data, torque: jax.Array) -> mjx.Data:
         """One mechanical step under motor torques ``torque`` [N m] ``(6,)``, held, with the drive train's friction."""
-        return cast(mjx.Data, self._jitted_step(aux, data, torque))
-
-    @functools.cached_property
-    def _jitted_step(self) -> Callable[[MJXAux, mjx.Data, jax.Array], mjx.Data]:
-        """:meth:`step`'s body jitted, so that a process traces MJX's step once per plant and argument types: every
-        program that runs it (each mode, batch size, its gradient) reuses that trace, vmapped or differentiated, where
-        it traced the step again (some 2 s of each program's trace on the 2-core CPU); XLA inlines it, so the compiled
-        programs are the same."""
-
-        def step(aux: MJXAux, data: mjx.Data, torque: jax.Array) -> mjx.Data:
-            force = aux.force_gain * torque - slider_friction(aux.friction, data.qvel[self._dofs])
-            qfrc = jnp.zeros_like(data.qfrc_applied).at[self._dofs].set(force)
-            return mjx.step(aux.model, data.replace(qfrc_applied=qfrc))
-
-        return jax.jit(step)
+        force = aux.force_gain * torque - slider_friction(aux.friction, data.qvel[self._dofs])
+        qfrc = jnp.zeros_like(data.qfrc_applied).at[self._dofs].set(force)
+        return mjx.step(aux.model, data.replace(qfrc_applied=qfrc))
 
     def slider(self, aux: MJXAux, data: mjx.Data) -> tuple[jax.Array, jax.Array]:
         return data.qpos[self._qpos] - aux.model.qpos0[self._qpos], data.qvel[self._dofs]
