@@ -15,6 +15,12 @@ A configuration is ``LABEL=PLATFORM[@CPUS]``: ``cpu2=cpu@0-1`` runs on the CPU p
 of another commit unpacked there), alternating, so that both see the same machine::
 
     python benchmarks/bench_main_job.py --configs cpu2=cpu@0-1,cpu14=cpu@2-15,gpu=gpu [--against DIR] [--repeat 1]
+
+``--whole`` runs the whole job instead, as a user runs it: the tree's own ``pusupu`` command (the entry point and
+package folders its ``pyproject.toml`` names, so a tree of another layout runs too) with no arguments but ``tune
+--out``, from an empty compilation cache, and reports its wall time, its CPU time and its last output line::
+
+    python benchmarks/bench_main_job.py --whole --configs cpu2=cpu --against DIR --repeat 2
 """
 
 from __future__ import annotations
@@ -23,9 +29,11 @@ import argparse
 import json
 import os
 import platform
+import resource
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 from timing import MOUNT_TREE, processor  # beside this script
@@ -105,16 +113,60 @@ print(json.dumps({
 )
 
 
-def run(tree: Path, cache: str, platform_name: str, cpus: str | None, iterations: int) -> dict:
+WHOLE = r"""
+import importlib, importlib.util, os, sys, tomllib
+tree = sys.argv.pop()
+with open(os.path.join(tree, "pyproject.toml"), "rb") as f:
+    project = tomllib.load(f)
+for name, folder in project.get("tool", {}).get("setuptools", {}).get("package-dir", {}).items():
+    importlib.import_module(name.rpartition(".")[0])
+    path = os.path.join(tree, folder)
+    spec = importlib.util.spec_from_file_location(name, os.path.join(path, "__init__.py"),
+                                                  submodule_search_locations=[path])
+    sys.modules[name] = module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+entry, _, function = project["project"]["scripts"]["pusupu"].partition(":")
+sys.argv[0] = "pusupu"
+sys.exit(getattr(importlib.import_module(entry), function)())
+"""
+
+
+def child(tree: Path, platform_name: str, cpus: str | None, cmd: list[str], cwd: Path, **env_extra: str):
+    """Run ``cmd`` with ``tree`` first on the path, on the platform and CPUs asked, in ``cwd``."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, (str(tree), os.environ.get("PYTHONPATH")))))
     env.pop("PUSUPU_JAX_CACHE", None)
     env.pop("JAX_PLATFORMS", None)
+    env.update(env_extra)
     if platform_name == "cpu":
         env["JAX_PLATFORMS"] = "cpu"
-    cmd = [sys.executable, "-c", CHILD, cache, str(iterations), str(tree)]
     if cpus:
         cmd = ["taskset", "-c", cpus] + cmd
-    done = subprocess.run(cmd, env=env, cwd=tree, capture_output=True, text=True, timeout=3600)
+    return subprocess.run(cmd, env=env, cwd=cwd, capture_output=True, text=True, timeout=3600)
+
+
+def run_whole(tree: Path, platform_name: str, cpus: str | None) -> dict:
+    """``pusupu tune`` of ``tree`` from an empty cache (and an empty home): wall and CPU seconds, last line."""
+    with tempfile.TemporaryDirectory(prefix="pusupu-main-job-") as scratch:
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        t0 = time.perf_counter()
+        cmd = [sys.executable, "-c", WHOLE, "tune", "--out", str(Path(scratch) / "out"), str(tree)]
+        done = child(tree, platform_name, cpus, cmd, Path(scratch), PUSUPU_JAX_CACHE=scratch, HOME=scratch)
+        wall = time.perf_counter() - t0
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if done.returncode:
+        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+        raise SystemExit(f"bench_main_job: pusupu tune in {tree} ({platform_name} {cpus or ''}) failed: {last}")
+    lines = (done.stdout + done.stderr).strip().splitlines()
+    return {
+        "wall_s": round(wall, 1),
+        "user_s": round(after.ru_utime - before.ru_utime, 1),
+        "system_s": round(after.ru_stime - before.ru_stime, 1),
+        "last_line": lines[-1] if lines else "",
+    }
+
+
+def run(tree: Path, cache: str, platform_name: str, cpus: str | None, iterations: int) -> dict:
+    done = child(tree, platform_name, cpus, [sys.executable, "-c", CHILD, cache, str(iterations), str(tree)], tree)
     if done.returncode:
         last = (done.stderr.strip().splitlines() or ["no output"])[-1]
         raise SystemExit(f"bench_main_job: the run in {tree} ({platform_name} {cpus or ''}) failed: {last}")
@@ -128,6 +180,7 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=6, help="iterations of each run (at least 2)")
     ap.add_argument("--repeat", type=int, default=1, help="cold + warm pairs of each configuration and tree")
     ap.add_argument("--no-warm", action="store_true", help="cold runs only")
+    ap.add_argument("--whole", action="store_true", help="the whole pusupu tune of each tree, cold (wall, CPU)")
     ap.add_argument("--out", type=Path, help="write the JSON here, after every run, instead of on stdout at the end")
     args = ap.parse_args()
     if args.iterations < 2:
@@ -145,6 +198,12 @@ def main() -> None:
     for r in range(args.repeat):
         for label, (name, cpus) in configs.items():
             for tree_name, tree in trees.items():
+                if args.whole:
+                    runs[f"{tree_name} {label}"].append(whole := run_whole(tree, name, cpus))
+                    if args.out:
+                        write(args, configs, trees, runs)
+                    print(f"bench_main_job: {tree_name} {label} round {r + 1}: {whole}", file=sys.stderr, flush=True)
+                    continue
                 with tempfile.TemporaryDirectory(prefix="pusupu-main-job-") as cache:
                     cold = run(tree, cache, name, cpus, args.iterations)
                     warm = None if args.no_warm else run(tree, cache, name, cpus, args.iterations)
@@ -167,13 +226,15 @@ def write(args, configs, trees, runs) -> None:
     text = json.dumps(
         {
             "benchmark": "main_job",
-            "job": "TuneConfig() (pusupu tune's embedded configuration), cut to --iterations",
-            "iterations": args.iterations,
+            "job": "pusupu tune, whole, cold"
+            if args.whole
+            else "TuneConfig() (pusupu tune's embedded configuration), cut to --iterations",
+            "iterations": None if args.whole else args.iterations,
             "configs": {k: {"platform": v[0], "cpus": v[1]} for k, v in configs.items()},
             "machine": platform.machine(),
             "cpus": os.cpu_count(),
             "processor": processor(),
-            "trees": {k: str(v) for k, v in trees.items()},
+            "trees": {k: describe(v) for k, v in trees.items()},
             "runs": runs,
         },
         indent=1,
@@ -182,6 +243,18 @@ def write(args, configs, trees, runs) -> None:
         args.out.write_text(text)
     else:
         print(text)
+
+
+def describe(tree: Path) -> dict:
+    """The tree's folder and, where it is a git checkout, its commit and whether it has changes."""
+    head = subprocess.run(["git", "-C", str(tree), "rev-parse", "HEAD"], capture_output=True, text=True)
+    dirty = subprocess.run(["git", "-C", str(tree), "status", "--porcelain"], capture_output=True, text=True)
+    found = head.returncode == 0 and Path(tree, ".git").exists()
+    return {
+        "path": str(tree),
+        "commit": head.stdout.strip() if found else None,
+        "changes": bool(dirty.stdout.strip()) if found else None,
+    }
 
 
 if __name__ == "__main__":
