@@ -71,11 +71,16 @@ if hasattr(p, "_whole"):  # a tree before the chunked forward pass: one program 
 else:
     # the start: one kept program, or (a tree with the plant's rest shared by the modes) the rest, then the controllers
     start_program = getattr(chunked, "_start_program", chunked._init_program)
-    init = start_program(p.scenarios.plant, p.rates, cfg.mode, "rest", None, None)
-    # a tree whose chunks that stop at marks are a program of their own takes ``masked``
-    masked = [True] if "masked" in inspect.signature(chunked._chunk_program).parameters else []
-    chunk = chunked._chunk_program(p.scenarios.plant, p.rates, cfg.mode, None, None, *masked)
     hybrid_arg = hybrid if control_mode(cfg.mode).hybrid else None
+    # the programs as run_chunked calls them: a tree with ``_per_member`` gives every member its own gains (an axis
+    # 0), an older one shares them (no axis); a tree whose programs take the axes as arguments gets them, and one
+    # whose chunks that stop at marks are a program of their own takes ``masked``
+    laid = hasattr(chunked, "_per_member")
+    takes = inspect.signature(chunked._chunk_program).parameters
+    axes = [0 if laid else None, 0 if laid and hybrid_arg is not None else None] if "params_axis" in takes else []
+    masked = [True] if "masked" in takes else []
+    init = start_program(p.scenarios.plant, p.rates, cfg.mode, "rest", *axes)
+    chunk = chunked._chunk_program(p.scenarios.plant, p.rates, cfg.mode, *axes, *masked)
     batches = set()
     for idx, models, refs in p.scenarios.groups.values():
         if len(idx) in batches:  # the same two programs (a batch of this size, any path length): compiled once
@@ -84,14 +89,20 @@ else:
         refs = jax.tree.map(np.asarray, refs)
         piece = jax.tree.map(lambda x: np.pad(x[:, :chunked.CHUNK], [(0, 0), (0, max(chunked.CHUNK - x.shape[1], 0))]
                                               + [(0, 0)] * (x.ndim - 2), mode="edge"), refs)
-        first = (servo, models, jax.tree.map(lambda x: x[:, 0], refs), hybrid_arg, None)
+        gains = [chunked._per_member(g, None, len(idx)) for g in (servo, hybrid_arg)] if laid else [servo, hybrid_arg]
+        first = (gains[0], models, jax.tree.map(lambda x: x[:, 0], refs), gains[1], None)
         # programs kept on disk (pusupu_jax.programs.Program): their compiled calls take the arguments' leaves
         if hasattr(init, "rest"):
-            rest = timed(lambda: init.rest.lower(servo, models))(*jax.tree.leaves((servo, models)))
+            if hasattr(init.rest, "lower"):
+                rest = timed(lambda: init.rest.lower(gains[0], models))(*jax.tree.leaves((gains[0], models)))
+            else:  # the rest a member at a time through one program: its first call traces, compiles and runs it
+                t = time.perf_counter()
+                rest = init.rest(gains[0], models)
+                out["forward_compile_s"] += time.perf_counter() - t
             carry = timed(lambda: init.finish.lower(*first, rest))(*jax.tree.leaves((*first, rest)))
         else:
             carry = timed(lambda: init.lower(*first))(*jax.tree.leaves(first))
-        timed(lambda: chunk.lower(servo, models, piece, hybrid_arg, None, carry, np.int32(1)))
+        timed(lambda: chunk.lower(gains[0], models, piece, gains[1], None, carry, np.int32(1)))
 p.refresh(z0)
 ones = {k: jnp.ones(p.rows) for k in objectives.TERMS}
 t = time.perf_counter()

@@ -58,11 +58,10 @@ def _init(
     rates: LoopRates,
     outer: str,
     start: str,
-    params_axis: int | None,
-    hybrid_axis: int | None,
 ) -> Callable[..., Carry]:
-    """:func:`~pusupu_jax.sim.initial_carry` vmapped over a batch, from the plant's rest computed before
-    (:func:`_rest`), its last argument."""
+    """:func:`~pusupu_jax.sim.initial_carry` vmapped over a batch (every argument per member but the shared
+    ``compliance``: :func:`run_chunked` lays them out so), from the plant's rest computed before (:func:`_rest`), its
+    last argument."""
 
     def init(
         params: ServoParams,
@@ -85,7 +84,7 @@ def _init(
             rest=rest,
         )
 
-    return jax.vmap(init, in_axes=(params_axis, 0, 0, hybrid_axis, None, 0))
+    return jax.vmap(init, in_axes=(0, 0, 0, 0, None, 0))
 
 
 def _rest_one(plant: Plant, dt_mech: float) -> Callable[..., Rest]:
@@ -97,15 +96,13 @@ def _rest_one(plant: Plant, dt_mech: float) -> Callable[..., Rest]:
     return rest
 
 
-def _rest(plant: Plant, dt_mech: float, params_axis: int | None) -> Callable[..., Rest]:
+def _rest(plant: Plant, dt_mech: float) -> Callable[..., Rest]:
     """:func:`_rest_one` vmapped over a batch (laid over several devices: :func:`_laid_over`)."""
-    return jax.vmap(_rest_one(plant, dt_mech), in_axes=(params_axis, 0))
+    return jax.vmap(_rest_one(plant, dt_mech))
 
 
-def _chunk(
-    plant: Plant, rates: LoopRates, outer: str, params_axis: int | None, hybrid_axis: int | None
-) -> Callable[..., tuple[dict[str, Any], Carry]]:
-    """:func:`~pusupu_jax.sim.rollout_chunk` vmapped over a batch."""
+def _chunk(plant: Plant, rates: LoopRates, outer: str) -> Callable[..., tuple[dict[str, Any], Carry]]:
+    """:func:`~pusupu_jax.sim.rollout_chunk` vmapped over a batch (laid out as :func:`_init`'s)."""
 
     def chunk(
         params: ServoParams,
@@ -129,7 +126,7 @@ def _chunk(
             compliance=compliance,
         )
 
-    return jax.vmap(chunk, in_axes=(params_axis, 0, 0, hybrid_axis, None, 0, None))
+    return jax.vmap(chunk, in_axes=(0, 0, 0, 0, None, 0, None))
 
 
 @functools.lru_cache(maxsize=None)
@@ -149,13 +146,13 @@ class _MemberRests:
     few MJX calls per run, once, where a program per batch size cost a compile each (some 8 s of CPU for the default
     machine)."""
 
-    def __init__(self, plant: Plant, dt_mech: float, params_axis: int | None) -> None:
-        self.program, self.params_axis = _rest_program(plant, dt_mech), params_axis
+    def __init__(self, plant: Plant, dt_mech: float) -> None:
+        self.program = _rest_program(plant, dt_mech)
 
-    def _members(self, params: ServoParams, models: Any) -> list[tuple[ServoParams, Any]]:
+    @staticmethod
+    def _members(params: ServoParams, models: Any) -> list[tuple[ServoParams, Any]]:
         n = jax.tree.leaves(models)[0].shape[0]
-        one = (lambda b: jax.tree.map(lambda x: x[b], params)) if self.params_axis == 0 else (lambda b: params)
-        return [(one(b), jax.tree.map(lambda x: x[b], models)) for b in range(n)]
+        return [jax.tree.map(lambda x: x[b], (params, models)) for b in range(n)]
 
     def __call__(self, params: ServoParams, models: Any) -> Rest:
         rests = [self.program(*member) for member in self._members(params, models)]
@@ -185,32 +182,28 @@ class _Rested:
 
 
 @functools.lru_cache(maxsize=None)
-def _start_program(
-    plant: Plant, rates: LoopRates, outer: str, start: str, params_axis: int | None, hybrid_axis: int | None
-) -> _Rested:
+def _start_program(plant: Plant, rates: LoopRates, outer: str, start: str) -> _Rested:
     """The start of :func:`run_chunked` (cached per static arguments).  Its plant's part (the state at rest and the
     static equilibrium that the holding torques are solved from) is the same in every mode, so that the modes, the
     IMC's two forms, a compliant run and its plain one, and both starts share its program, whose compile is most of a
     start's.  The controllers' states follow in a program per mode with no plant step in it.  The default machine's
     start of one run, on the 2-core CPU at XLA's default optimisation: the rest 6.5 s of CPU to trace, compile and
     run; the controllers' 1.2 to 2.0 s to trace and compile."""
-    static = (rates, cascade_.control_mode(outer), start, params_axis, hybrid_axis)
+    static = (rates, cascade_.control_mode(outer), start)
     finish = Program(
-        _init(plant, rates, outer, start, params_axis, hybrid_axis),
+        _init(plant, rates, outer, start),
         lambda: describe(("start", plant.key(), static)),
         to_host=False,
     )
-    return _Rested(_MemberRests(plant, rates.dt_mech, params_axis), finish)
+    return _Rested(_MemberRests(plant, rates.dt_mech), finish)
 
 
 @functools.lru_cache(maxsize=None)
-def _chunk_program(
-    plant: Plant, rates: LoopRates, outer: str, params_axis: int | None, hybrid_axis: int | None
-) -> Program:
+def _chunk_program(plant: Plant, rates: LoopRates, outer: str) -> Program:
     """The chunk's program (cached per static arguments: one compile serves every path length, and runs that keep
     carries at marks or none), kept on disk as :func:`_rest_program`'s."""
-    static = (rates, cascade_.control_mode(outer), params_axis, hybrid_axis)
-    fun = _chunk(plant, rates, outer, params_axis, hybrid_axis)
+    static = (rates, cascade_.control_mode(outer))
+    fun = _chunk(plant, rates, outer)
     return Program(fun, lambda: describe(("chunk", plant.key(), static)), to_host=False)
 
 
@@ -238,8 +231,7 @@ def carry_structure(
     params, outer = _programs_mode(params, outer)
     n = jax.tree.leaves(models)[0].shape[0]
     params, hybrid = _per_member(params, None, n), _per_member(hybrid, None, n)
-    program = _start_program(plant, rates, outer, start, 0, None if hybrid is None else 0)
-    return program.eval_shape(params, models, first, hybrid, None)
+    return _start_program(plant, rates, outer, start).eval_shape(params, models, first, hybrid, None)
 
 
 def run_chunked(
@@ -279,17 +271,16 @@ def run_chunked(
     params, outer = _programs_mode(params, outer)
     n = jax.tree.leaves(models)[0].shape[0]
     params, hybrid = _per_member(params, params_axis, n), _per_member(hybrid, hybrid_axis, n)
-    params_axis, hybrid_axis = 0, None if hybrid is None else 0
     compliance = None if compliance is None else jax.tree.map(np.asarray, compliance)
     if any(len(x.sharding.device_set) > 1 for x in jax.tree.leaves(models) if isinstance(x, jax.Array)):
         init = _Rested(
-            _laid_over(_rest, plant, rates.dt_mech, params_axis),
-            _laid_over(_init, plant, rates, outer, start, params_axis, hybrid_axis),
+            _laid_over(_rest, plant, rates.dt_mech),
+            _laid_over(_init, plant, rates, outer, start),
         )
-        step = _laid_over(_chunk, plant, rates, outer, params_axis, hybrid_axis)
+        step = _laid_over(_chunk, plant, rates, outer)
     else:
-        init = _start_program(plant, rates, outer, start, params_axis, hybrid_axis)
-        step = _chunk_program(plant, rates, outer, params_axis, hybrid_axis)
+        init = _start_program(plant, rates, outer, start)
+        step = _chunk_program(plant, rates, outer)
     host = jax.tree.map(np.asarray, reference)
     n = jax.tree.leaves(host)[0].shape[1]
     if any(not 0 <= m < n for m in marks):

@@ -99,8 +99,8 @@ def test_paths_of_any_length_run_one_compiled_chunk():
     another mode in this process)."""
     from pusupu_jax.chunked import _chunk_program, _start_program
 
-    start = _start_program(AxisPlant(), LoopRates(), "pid_ff", "rest", None, None)
-    program = _chunk_program(AxisPlant(), LoopRates(), "pid_ff", None, None)
+    start = _start_program(AxisPlant(), LoopRates(), "pid_ff", "rest")
+    program = _chunk_program(AxisPlant(), LoopRates(), "pid_ff")
     rest_before = start.rest.program.cache_size()
     sizes = []  # the executables after each run: whatever the first run compiled, the others compile nothing
     for n in (130, 700):
@@ -113,6 +113,6 @@ def test_paths_of_any_length_run_one_compiled_chunk():
     pid, _ = run_chunked(SERVO, stack([LOAD]), np.asarray(REF)[None, :130], outer="pid")
     assert np.isfinite(pid.theta).all()
     sizes.append((program.cache_size(), start.finish.cache_size()))
-    assert sizes == sizes[:1] * 5, sizes
-    assert _chunk_program(AxisPlant(), LoopRates(), "pid", None, None).cache_size() == 0
+    assert sizes == sizes[:1] * 5 and sizes[0] >= (1, 1), sizes  # these are the programs that ran, and none added
+    assert _chunk_program(AxisPlant(), LoopRates(), "pid").cache_size() == 0
     assert start.rest.program.cache_size() - rest_before <= 1 and start.rest.program.cache_size() >= 1
