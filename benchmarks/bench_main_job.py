@@ -18,7 +18,8 @@ of another commit unpacked there), alternating, so that both see the same machin
 
 ``--whole`` runs the whole job instead, as a user runs it: the tree's own ``pusupu`` command (the entry point and
 package folders its ``pyproject.toml`` names, so a tree of another layout runs too) with no arguments but ``tune
---out``, from an empty compilation cache, and reports its wall time, its CPU time and its last output line::
+--out``, from an empty compilation cache, and reports its wall time, its CPU time and its result (the end of its
+output)::
 
     python benchmarks/bench_main_job.py --whole --configs cpu2=cpu --against DIR --repeat 2
 """
@@ -131,6 +132,9 @@ sys.exit(getattr(importlib.import_module(entry), function)())
 """
 
 
+RESULT_LINES = 12  # of pusupu tune's stdout kept in the JSON: the objective, the tuned and baseline errors
+
+
 def child(tree: Path, platform_name: str, cpus: str | None, cmd: list[str], cwd: Path, **env_extra: str):
     """Run ``cmd`` with ``tree`` first on the path, on the platform and CPUs asked, in ``cwd``."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, (str(tree), os.environ.get("PYTHONPATH")))))
@@ -145,7 +149,8 @@ def child(tree: Path, platform_name: str, cpus: str | None, cmd: list[str], cwd:
 
 
 def run_whole(tree: Path, platform_name: str, cpus: str | None) -> dict:
-    """``pusupu tune`` of ``tree`` from an empty cache (and an empty home): wall and CPU seconds, last line."""
+    """``pusupu tune`` of ``tree`` from an empty cache (and an empty home): wall and CPU seconds, and the last lines
+    of what it printed on stdout (its result)."""
     with tempfile.TemporaryDirectory(prefix="pusupu-main-job-") as scratch:
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
@@ -156,12 +161,11 @@ def run_whole(tree: Path, platform_name: str, cpus: str | None) -> dict:
     if done.returncode:
         last = (done.stderr.strip().splitlines() or ["no output"])[-1]
         raise SystemExit(f"bench_main_job: pusupu tune in {tree} ({platform_name} {cpus or ''}) failed: {last}")
-    lines = (done.stdout + done.stderr).strip().splitlines()
     return {
         "wall_s": round(wall, 1),
         "user_s": round(after.ru_utime - before.ru_utime, 1),
         "system_s": round(after.ru_stime - before.ru_stime, 1),
-        "last_line": lines[-1] if lines else "",
+        "result": done.stdout.strip().splitlines()[-RESULT_LINES:],
     }
 
 
