@@ -132,7 +132,7 @@ sys.exit(getattr(importlib.import_module(entry), function)())
 """
 
 
-RESULT_LINES = 12  # of pusupu tune's stdout kept in the JSON: the objective, the tuned and baseline errors
+RESULT_LINES = 20  # of pusupu tune's stdout kept in the JSON: its table of errors, the objective, the gains
 
 
 def child(tree: Path, platform_name: str, cpus: str | None, cmd: list[str], cwd: Path, **env_extra: str):
