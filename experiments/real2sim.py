@@ -31,7 +31,7 @@ without kinematic errors: where the robot has them, the platform's error holds t
 remove, so that machine is reported apart (``docs/identify.md`` has the figures).  A bridge run that ends in a safe
 stop is reported with its faults, its errors over the cycles before it.  ``quick`` runs one true machine on the task
 path's first :data:`QUICK_S` seconds with a few iterations: a check of the workflow, not a measurement.  The full
-run takes about an hour on a 2-core CPU.
+run takes about 25 min a machine on a 2-core CPU.
 """
 
 from __future__ import annotations
