@@ -135,8 +135,9 @@ sys.exit(getattr(importlib.import_module(entry), function)())
 RESULT_LINES = 20  # of pusupu tune's stdout kept in the JSON: its table of errors, the objective, the gains
 
 
-def child(tree: Path, platform_name: str, cpus: str | None, cmd: list[str], cwd: Path, **env_extra: str):
-    """Run ``cmd`` with ``tree`` first on the path, on the platform and CPUs asked, in ``cwd``."""
+def child(tree: Path, platform_name: str, cpus: str | None, cmd: list[str], cwd: Path, what: str, **env_extra: str):
+    """Run ``cmd`` with ``tree`` first on the path, on the platform and CPUs asked, in ``cwd``; a failure ends the
+    benchmark in one line naming ``what`` ran and its last line of stderr."""
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, (str(tree), os.environ.get("PYTHONPATH")))))
     env.pop("PUSUPU_JAX_CACHE", None)
     env.pop("JAX_PLATFORMS", None)
@@ -145,7 +146,11 @@ def child(tree: Path, platform_name: str, cpus: str | None, cmd: list[str], cwd:
         env["JAX_PLATFORMS"] = "cpu"
     if cpus:
         cmd = ["taskset", "-c", cpus] + cmd
-    return subprocess.run(cmd, env=env, cwd=cwd, capture_output=True, text=True, timeout=3600)
+    done = subprocess.run(cmd, env=env, cwd=cwd, capture_output=True, text=True, timeout=3600)
+    if done.returncode:
+        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+        raise SystemExit(f"bench_main_job: {what} in {tree} ({platform_name} {cpus or ''}) failed: {last}")
+    return done
 
 
 def run_whole(tree: Path, platform_name: str, cpus: str | None) -> dict:
@@ -155,12 +160,11 @@ def run_whole(tree: Path, platform_name: str, cpus: str | None) -> dict:
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
         cmd = [sys.executable, "-c", WHOLE, "tune", "--out", str(Path(scratch) / "out"), str(tree)]
-        done = child(tree, platform_name, cpus, cmd, Path(scratch), PUSUPU_JAX_CACHE=scratch, HOME=scratch)
+        done = child(
+            tree, platform_name, cpus, cmd, Path(scratch), "pusupu tune", PUSUPU_JAX_CACHE=scratch, HOME=scratch
+        )
         wall = time.perf_counter() - t0
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    if done.returncode:
-        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
-        raise SystemExit(f"bench_main_job: pusupu tune in {tree} ({platform_name} {cpus or ''}) failed: {last}")
     return {
         "wall_s": round(wall, 1),
         "user_s": round(after.ru_utime - before.ru_utime, 1),
@@ -170,10 +174,8 @@ def run_whole(tree: Path, platform_name: str, cpus: str | None) -> dict:
 
 
 def run(tree: Path, cache: str, platform_name: str, cpus: str | None, iterations: int) -> dict:
-    done = child(tree, platform_name, cpus, [sys.executable, "-c", CHILD, cache, str(iterations), str(tree)], tree)
-    if done.returncode:
-        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
-        raise SystemExit(f"bench_main_job: the run in {tree} ({platform_name} {cpus or ''}) failed: {last}")
+    cmd = [sys.executable, "-c", CHILD, cache, str(iterations), str(tree)]
+    done = child(tree, platform_name, cpus, cmd, tree, "the run")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
