@@ -10,7 +10,7 @@ whether the run completed; over the runs the spread (min, median, max) of each.
   4 kHz and its force law at 1 kHz).
 
     python benchmarks/bench_bridge.py [--seconds 60] [--runs 3] [--rates 1000,4000] [--transport udp|can]
-                                      [--watchdog N] [--pause-probe] [--log] [--out FILE]
+                                      [--watchdog N] [--pause-probe] [--log [on|alternate]] [--out FILE]
 
 ``steal_ms_per_cpu``: per CPU, the time the hypervisor gave it to others during the run (``/proc/stat``, 10 ms
 ticks), a stall no setting inside the VM prevents; ``robot_stalls``: the simulated robot's own reports of its
@@ -22,8 +22,11 @@ the robot) records the intervals in which every CPU stopped at once; each run ge
 after the fault).  For diagnosis: the probe's wake-ups take a little from the bridge's latency.
 
 ``--log``: after each run, its MCAP log is written as ``pusupu bridge --log`` writes it (from the run's record, after
-the run: the cycles run the same code with or without it, so their latencies are those without); each run gets
-``log_write_s`` (the wall time of that write), ``log_bytes`` and ``log_bytes_per_s`` (per second of the cycles run).
+the run: the cycles run the same code with or without it); each run gets ``log_write_s`` (the wall time of that
+write), ``log_bytes`` and ``log_bytes_per_s`` (per second of the cycles run).  ``--log alternate`` runs ``--runs``
+runs each way, without and with the log in turn, and compares their missed deadlines and latencies (``by_log``).
+Every run gives ``record_us``: the percentiles of the time its record (what the log is written from) took inside
+each cycle with a fresh sample, all of logging's work inside a cycle.
 
 ``--transport can``: the six drives as CANopen nodes on python-can's udp_multicast bus (SDO set-up, RPDO +
 SYNC, two TPDOs per drive).
@@ -63,7 +66,15 @@ def main() -> None:
         help="the bridge's watchdog: cycles without fresh feedback before a safe stop (pusupu bridge's default)",
     )
     ap.add_argument("--pause-probe", action="store_true", help="record whole-machine pauses during each run")
-    ap.add_argument("--log", action="store_true", help="write each run's MCAP log after it; time it and size it")
+    ap.add_argument(
+        "--log",
+        nargs="?",
+        const="on",
+        default="off",
+        choices=("off", "on", "alternate"),
+        help="write each run's MCAP log after it, time it and size it (on); or every other run, starting without "
+        "(alternate: --runs runs each way)",
+    )
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
     apply_xla_workaround(one_thread=True)  # as pusupu bridge does, before any computation
@@ -121,7 +132,8 @@ def main() -> None:
         loop = BridgeLoop(g, bridge_reference(g, "arc", plan(g, None, rate)[1]), rate=rate)
         runs = []
         try:
-            for _ in range(args.runs):
+            for k in range(2 * args.runs if args.log == "alternate" else args.runs):
+                logged = args.log == "on" or (args.log == "alternate" and k % 2 == 1)
                 if args.transport == "udp":
                     ep = Endpoint(FEEDBACK, n_axes=len(loop.drive_modes), peer=("127.0.0.1", port))
                 else:
@@ -147,15 +159,17 @@ def main() -> None:
                                 "skipped_cycles",
                                 "latency_us",
                                 "feedback_age_us",
+                                "record_us",
                                 "completed",
                                 "faults",
                                 "realtime",
                             )
                         },
                         "steal_ms_per_cpu": stolen,
+                        "log": logged,
                     }
                 )
-                if args.log:
+                if logged:
                     t0 = time.perf_counter()
                     meta = {"package_version": __version__, "source": "bench_bridge", "rate_hz": rate}
                     log = run_log.write(folder / "run.mcap", bridge_channels(run), meta, started_ns)
@@ -188,9 +202,21 @@ def main() -> None:
             "robot_stalls": stalls,
             "spread": {
                 **percentile_spreads(runs, "latency_us", ("p50", "p99", "p99.9", "max")),
+                **percentile_spreads(runs, "record_us", ("p50", "p99", "p99.9", "max")),
                 "missed_fraction": spread([r["missed_fraction"] for r in runs]),
             },
         }
+        if args.log == "alternate":  # the runs with the log written after them, against those without
+            results["rates"][f"{rate:g}"]["by_log"] = {
+                way: {
+                    "runs": sum(r["log"] == logged for r in runs),
+                    "missed_deadlines": [r["missed_deadlines"] for r in runs if r["log"] == logged],
+                    "cycles": [r["cycles"] for r in runs if r["log"] == logged],
+                    "missed_fraction": spread([r["missed_fraction"] for r in runs if r["log"] == logged]),
+                    **percentile_spreads([r for r in runs if r["log"] == logged], "latency_us", ("p50", "p99")),
+                }
+                for way, logged in (("without", False), ("with", True))
+            }
     emit(results, args.out, indent=2)
 
 

@@ -94,6 +94,9 @@ class BridgeRun:
     skipped: int = 0
     latency_us: list = field(default_factory=list)
     feedback_age_us: list = field(default_factory=list)
+    # per run cycle with a fresh sample, the time [us] its record took inside the cycle (the lists below): all that
+    # logging does inside a cycle, the log's file being written from them after the run
+    record_us: list = field(default_factory=list)
     t: list = field(default_factory=list)
     path_time: list = field(default_factory=list)  # per sample, the time along the path of its reference [s]
     reference: list = field(default_factory=list)
@@ -126,6 +129,7 @@ class BridgeRun:
             skipped_cycles=self.skipped,
             latency_us=percentiles(self.latency_us),
             feedback_age_us=percentiles(self.feedback_age_us),
+            record_us=percentiles(self.record_us),
             faults=tuple(f.line() for f in self.faults),
             rejected_packets=dict(self.rejected),
             realtime=tuple(self.realtime),
@@ -141,11 +145,12 @@ class BridgeRun:
 @dataclass(frozen=True)
 class BridgeReport:
     """What a run reports: its cycles at ``rate_hz`` [Hz], the missed deadlines (and their fraction of the cycles
-    due), the skipped cycles, the cycle's latency and the feedback's age (:func:`~pusupu_jax.hw_bridge.runner.
-    percentiles` [us], None without samples), each fault as a line, the packets refused by kind, the real-time
-    settings asked for and what came of each, whether the path completed and why the run ended; where the run
-    followed the path, per branch the RMS and largest error [mm] (at the motor angle, through the screw) and the
-    platform's RMS and largest tracking error [mm] (where the robot reports its platform)."""
+    due), the skipped cycles, the cycle's latency, the feedback's age and the time the run's record took inside a
+    cycle (:func:`~pusupu_jax.hw_bridge.runner.percentiles` [us], None without samples), each fault as a line, the
+    packets refused by kind, the real-time settings asked for and what came of each, whether the path completed and
+    why the run ended; where the run followed the path, per branch the RMS and largest error [mm] (at the motor
+    angle, through the screw) and the platform's RMS and largest tracking error [mm] (where the robot reports its
+    platform)."""
 
     rate_hz: float
     cycles: int
@@ -154,6 +159,7 @@ class BridgeReport:
     skipped_cycles: int
     latency_us: dict[str, float] | None
     feedback_age_us: dict[str, float] | None
+    record_us: dict[str, float] | None
     faults: tuple[str, ...]
     rejected_packets: dict[str, int]
     realtime: tuple[str, ...]
@@ -169,7 +175,7 @@ class BridgeReport:
         return {
             k: list(v) if isinstance(v, tuple) else v
             for k, v in dataclasses.asdict(self).items()
-            if v is not None or k in ("latency_us", "feedback_age_us", "ended")
+            if v is not None or k in ("latency_us", "feedback_age_us", "record_us", "ended")
         }
 
 
@@ -364,6 +370,7 @@ class Bridge:
             if st["fresh"] and fb.timestamp_ns:
                 rec.feedback_age_us.append((ep.received_at - fb.timestamp_ns * 1e-9) * 1e6)
             if st["fresh"] and ja >= 0:
+                t_record = time.perf_counter_ns()
                 rec.t.append((ja + 1) / loop.rate)
                 rec.reference.append(loop.reference_at(ja + 1))
                 rec.path_time.append(loop.path_time(ja + 1))
@@ -376,6 +383,7 @@ class Bridge:
                         max((ja + 1) // loop.n_position - loop.takeover_periods, 0), len(loop.reference.platform) - 1
                     )
                     rec.platform_reference.append(loop.reference.platform[p])
+                rec.record_us.append((time.perf_counter_ns() - t_record) * 1e-3)
             sent[st["sequence"] - 1] = j
             if j + 1 >= st["run_cycles"]:
                 rec.completed = not safety.tripped

@@ -313,7 +313,11 @@ def _table(rep: BridgeReport) -> str:
         f"cycles {rep.cycles} at {rep.rate_hz:g} Hz, missed deadlines {rep.missed_deadlines} "
         f"({100 * rep.missed_fraction:.3f} %), skipped {rep.skipped_cycles}"
     ]
-    for key, p in (("latency_us", rep.latency_us), ("feedback_age_us", rep.feedback_age_us)):
+    for key, p in (
+        ("latency_us", rep.latency_us),
+        ("feedback_age_us", rep.feedback_age_us),
+        ("record_us", rep.record_us),
+    ):
         if p:
             lines.append(
                 f"{key:15s} p50 {p['p50']:8.1f}  p99 {p['p99']:8.1f}  p99.9 {p['p99.9']:8.1f}  max {p['max']:8.1f}"

@@ -478,6 +478,8 @@ def test_loopback_tracks_the_arc_as_the_simulation_does(robot):
     rep = run.report()
     assert rep.completed and not rep.faults, rep.faults
     assert len(run.platform) >= SECONDS * RATE - 1, (len(run.platform), rep.feedback_age_us)
+    # the record's time inside the cycle, once per sample kept (logging's work in the cycle: bench_bridge times it)
+    assert len(run.record_us) == len(run.position) and rep.record_us is not None and rep.record_us["p50"] > 0
     pure = _pure_arc()
     assert rep.rms_tracking_error_mm == pytest.approx(pure.metrics.rms_tracking_error_mm, rel=0.01)
 
