@@ -20,16 +20,18 @@ angle rounded to an encoder of ``--encoder-bits`` a turn, and each current with 
 ``--current-noise`` of its axis's RMS.  Each entry says whether the truth lies inside the value's 95 % interval
 (1.96 standard errors).  The later fits find the programs compiled (the logged data are their arguments).
 
-``--derivatives exact,finite-differences`` fits each log once with each Jacobian
-(:class:`pusupu_jax.machine_fit.Derivatives`): the exact one through the replay, and the derivative-free anchor,
-scipy's 2-point differences of the same residual with the same solver, bounds and tolerances.  Each fit gives the
-seconds spent in the residual's and the Jacobian's calls (``solve_s``, compiles left out) and its cost in forward
-replays (``replays``: every residual call, the differences' included, plus the Jacobian's seconds over one
-residual call's); ``anchor`` compares them per log::
+``--derivatives exact,finite-differences,mujoco-minimize`` fits each log once with each solver and Jacobian
+(:class:`pusupu_jax.machine_fit.Derivatives`): the exact one through the replay, and the derivative-free anchors,
+scipy's 2-point differences of the same residual with the same solver, bounds and tolerances, and MuJoCo's
+``mujoco.minimize.least_squares`` on its own forward differences (each Jacobian's replays as one batch).  Each fit
+gives the seconds spent in the residual's and the Jacobian's calls (``solve_s``, compiles left out), its cost in
+forward replays (``replays``: every residual call, the differences' included, plus the Jacobian's seconds over one
+residual call's) and ``trace``, the least residual RMS met against those seconds; ``anchor`` compares them per log,
+and the seconds each took to the same residual (the higher of the two fits' least)::
 
     python benchmarks/bench_identify.py [--source sim|bridge] [--fine-steps N] [--trajectory p2p] [--window 2]
         [--mech-step S]
-        [--fit friction,motor,payload] [--noise-seeds 0] [--derivatives exact] [--out FILE]
+        [--fit friction,motor,payload] [--noise-seeds 0] [--derivatives exact[,finite-differences,...]] [--out FILE]
 """
 
 from __future__ import annotations
@@ -149,7 +151,8 @@ def main() -> None:
     ap.add_argument(
         "--derivatives",
         default="exact",
-        help="the solver's Jacobians to fit each log with, in order: exact, finite-differences (default exact)",
+        help="the solvers and Jacobians to fit each log with, in order: exact, finite-differences, mujoco-minimize "
+        "(default exact)",
     )
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
@@ -162,7 +165,8 @@ def main() -> None:
     try:
         methods = [machine_fit.Derivatives(m) for m in args.derivatives.split(",")]
     except ValueError:
-        ap.error(f"--derivatives: expected names among exact, finite-differences, got {args.derivatives!r}")
+        known = ", ".join(map(str, machine_fit.Derivatives))
+        ap.error(f"--derivatives: expected names among {known}, got {args.derivatives!r}")
     setup_jax()
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
@@ -210,6 +214,8 @@ def main() -> None:
                     "residual_rms_before": report.residual_rms_before,
                     "residual_rms_after": report.residual_rms_after,
                     "worst_relative_error": max(e["relative_error"] for e in entries),
+                    # after each residual call: seconds of calls so far, the least residual RMS met so far
+                    "trace": [[round(t, 4), rms] for t, rms in report.trace],
                     "covered_95": sum(e["covered_95"] for e in entries),
                     "values": entries,
                 }
@@ -238,6 +244,9 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict
     for f in fits:
         other = next((e for e in exact if e["case"] == f["case"]), None)
         if f["derivatives"] != "exact" and other is not None:
+            # the same residual: the higher of the two fits' least, and the seconds each took to meet it
+            level = max(other["trace"][-1][1], f["trace"][-1][1])
+            reached = [next(t for t, rms in g["trace"] if rms <= level) for g in (other, f)]
             anchor.append(
                 {
                     "case": f["case"],
@@ -246,6 +255,9 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict
                     "wall_s_ratio": f["wall_s"] / other["wall_s"],
                     "replays_ratio": f["replays"] / other["replays"],
                     "residual_rms_after": [other["residual_rms_after"], f["residual_rms_after"]],
+                    "same_residual_rms": level,
+                    "seconds_to_same_residual": reached,
+                    "same_residual_ratio": reached[1] / reached[0],
                 }
             )
     return {

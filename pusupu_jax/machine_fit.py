@@ -169,8 +169,12 @@ class Derivatives(enum.StrEnum):
 
     EXACT = "exact"  # jax.jacfwd through the replay: one program, forward mode, one tangent per fitted value
     # scipy's 2-point differences of the residual: one more replay per fitted value at each Jacobian, and no
-    # derivative through the model (the derivative-free anchor of benchmarks/bench_identify.py)
+    # derivative through the model (a derivative-free anchor of benchmarks/bench_identify.py)
     FINITE_DIFFERENCES = "finite-differences"
+    # MuJoCo's own solver, mujoco.minimize.least_squares (Gauss-Newton with a Levenberg-Marquardt regulariser and box
+    # bounds, as mujoco.sysid uses it) on its forward differences of the residual, the perturbed replays of each
+    # Jacobian run as one batch (jax.vmap): the other anchor
+    MUJOCO_MINIMIZE = "mujoco-minimize"
 
 
 WINDOW_S = 2.0  # [s] the replay of each log: the excitation path's motion (1.99 s) from rest
@@ -249,7 +253,8 @@ class FitReport:
     the replay's mechanical step [s], the solver's work (``converged``: False where it stopped at
     :data:`MAX_EVALUATIONS`; ``derivatives``: the Jacobian it took; ``residual_calls``: every replay of the residual,
     finite differences included; ``residual_s``, ``jacobian_s``: seconds in the residual's and the Jacobian's calls,
-    compiles left out), and the logs (path, SHA-256, what wrote them)."""
+    compiles left out; ``trace``: after each residual call, those seconds so far and the least residual RMS met so
+    far), and the logs (path, SHA-256, what wrote them)."""
 
     values: tuple[FittedValue, ...]
     residual_rms_before: float
@@ -263,6 +268,7 @@ class FitReport:
     residual_calls: int
     residual_s: float
     jacobian_s: float
+    trace: tuple[tuple[float, float], ...]
     solver_message: str
     converged: bool
     wall_s: float
@@ -371,19 +377,37 @@ def _replay(
 @dataclasses.dataclass(frozen=True)
 class Solution:
     """What :func:`least_squares_excited` found: the values ``x`` (the unexcited ones at their start), their standard
-    errors, which were excited, the residual at the start, scipy's result of the last solve, and the residual and
-    Jacobian evaluations over every solve."""
+    errors, which were excited, the residual at the start, the solver's last message and whether it converged, and
+    over every solve the residual and Jacobian evaluations, the residual calls (each replay: a batch of differences
+    counts its width), the seconds in the residual's and the Jacobian's calls, and ``trace``: after each residual
+    call, the seconds of calls so far and the least residual RMS met so far."""
 
     x: np.ndarray
     std: np.ndarray
     excited: np.ndarray
     residual_before: np.ndarray
-    result: Any
+    message: str
+    converged: bool
     evaluations: int
     jacobians: int
     residual_calls: int
     residual_s: float
     jacobian_s: float
+    trace: tuple[tuple[float, float], ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Solved:
+    """One solve's end: the values (the free ones), half the sum of squared residuals, the Jacobian there, the
+    solver's evaluations of the residual and of the Jacobian, its message and whether it converged."""
+
+    x: np.ndarray
+    cost: float
+    jac: np.ndarray
+    evaluations: int
+    jacobians: int
+    message: str
+    converged: bool
 
 
 def least_squares_excited(
@@ -394,22 +418,23 @@ def least_squares_excited(
     say: Callable[[str], object] = lambda line: None,
     derivatives: Derivatives = Derivatives.EXACT,
 ) -> Solution:
-    """Bounded least squares (scipy's trust-region reflective solver) from ``start`` inside ``[low, high]``, with
-    standard errors from the Jacobian at the optimum, that invents no value the data do not excite.
+    """Bounded least squares from ``start`` inside ``[low, high]``, with standard errors from the Jacobian at the
+    optimum, that invents no value the data do not excite.
 
-    ``derivatives``: the Jacobian the solver takes, the exact one (``residual_of``'s) or scipy's finite differences
-    of the residual.  The Solution counts every residual call (the finite differences' included) and the seconds
-    spent in the residual's and in the Jacobian's calls, each program's first call (its compile) left out.
+    ``derivatives``: the solver and the Jacobian it takes (:class:`Derivatives`): scipy's trust-region reflective
+    solver with the exact Jacobian (``residual_of``'s) or with its finite differences of the residual, or MuJoCo's
+    ``mujoco.minimize.least_squares`` with its own.  The Solution counts every residual call (the finite
+    differences' included) and the seconds spent in the residual's and in the Jacobian's calls, each program's first
+    call (its compile) left out.
 
     ``residual_of(free)`` gives the residual and its Jacobian as functions of the values at the indices ``free``
     (the others held at their start).  A value whose Jacobian column is below :data:`UNEXCITED_COLUMN` of the largest,
     or whose standard error is above :data:`UNEXCITED_ERROR` of its size (or of 1), is not excited: it keeps its
     start, and the others are fitted again without it.  With none excited, every value keeps its start."""
-    from scipy.optimize import least_squares
-
-    exact = derivatives is Derivatives.EXACT
     residual_times: list[float] = []  # s, each residual call's (the finite differences' included)
     jacobian_times: list[float] = []  # s, each exact Jacobian's call
+    calls = [0]  # replays: a batch of differences counts its width
+    trace: list[tuple[float, float]] = []
 
     def timed(fun: Callable[[jax.Array], jax.Array], p: np.ndarray, times: list[float]) -> np.ndarray:
         t = time.perf_counter()
@@ -417,56 +442,122 @@ def least_squares_excited(
         times.append(time.perf_counter() - t)
         return out
 
-    def solve(free: np.ndarray) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray]:
+    def traced(r: np.ndarray, width: int) -> None:
+        """Count a call of ``width`` replays (``r``'s columns where it has several)."""
+        calls[0] += width
+        best = min(float(np.min(np.sqrt(np.mean(r**2, axis=0)))), trace[-1][1] if trace else np.inf)
+        trace.append((sum(residual_times) + sum(jacobian_times), best))
+
+    def solve(free: np.ndarray) -> tuple[_Solved, np.ndarray]:
         f, jac = residual_of(free)
         p0 = start[free]
         r0 = np.asarray(f(jnp.asarray(p0)))
-        if exact:
-            jac(jnp.asarray(p0))
-        how = "" if exact else ", finite-difference Jacobian"
-        say(f"identify: fitting {len(free)} values (trust-region least squares, each inside its field's range{how})")
+        how = {
+            Derivatives.EXACT: "trust-region least squares",
+            Derivatives.FINITE_DIFFERENCES: "trust-region least squares, finite-difference Jacobian",
+            Derivatives.MUJOCO_MINIMIZE: "mujoco.minimize, finite-difference Jacobian",
+        }[derivatives]
+        say(f"identify: fitting {len(free)} values ({how}, each inside its field's range)")
         evaluated = [0]
 
         def residual(p: np.ndarray) -> np.ndarray:
             r = timed(f, p, residual_times)
+            traced(r, 1)
             evaluated[0] += 1
             say(f"identify: evaluation {evaluated[0]}: residual RMS {np.sqrt(np.mean(r**2)):.6g}")
             return r
 
+        if derivatives is Derivatives.MUJOCO_MINIMIZE:
+            return _mujoco_minimize(f, residual, p0, low[free], high[free], timed, residual_times, traced), r0
+        if derivatives is Derivatives.EXACT:
+            jac(jnp.asarray(p0))  # its compile, outside the timed calls
+        from scipy.optimize import least_squares
+
         sol = least_squares(
             residual,
             p0,
-            jac=(lambda p: timed(jac, p, jacobian_times)) if exact else "2-point",
+            jac=(lambda p: timed(jac, p, jacobian_times)) if derivatives is Derivatives.EXACT else "2-point",
             bounds=(low[free], high[free]),
             method="trf",
             xtol=1e-9,
             ftol=1e-9,
             max_nfev=MAX_EVALUATIONS,
         )
-        J = np.asarray(jac(jnp.asarray(sol.x))) if exact else np.asarray(sol.jac)
-        dof = max(J.shape[0] - J.shape[1], 1)
-        variance = 2 * sol.cost / dof
-        std = np.sqrt(np.maximum(np.diag(variance * np.linalg.pinv(J.T @ J)), 0.0))
-        return sol, r0, std, J
+        J = np.asarray(jac(jnp.asarray(sol.x))) if derivatives is Derivatives.EXACT else np.asarray(sol.jac)
+        solved = _Solved(sol.x, float(sol.cost), J, int(sol.nfev), int(sol.njev or 0), str(sol.message), sol.status > 0)
+        return solved, r0
+
+    def errors(solved: _Solved) -> np.ndarray:
+        J = solved.jac
+        variance = 2 * solved.cost / max(J.shape[0] - J.shape[1], 1)  # per degree of freedom
+        return np.sqrt(np.maximum(np.diag(variance * np.linalg.pinv(J.T @ J)), 0.0))
 
     free = np.arange(start.size)
-    sol, r0, std, J = solve(free)
-    norms = np.linalg.norm(J, axis=0)
-    x = sol.x
+    solved, r0 = solve(free)
+    std = errors(solved)
+    norms = np.linalg.norm(solved.jac, axis=0)
+    x = solved.x
     excited = (norms > UNEXCITED_COLUMN * norms.max()) & (std < UNEXCITED_ERROR * np.maximum(np.abs(x), 1.0))
-    evaluations, jacobians = sol.nfev, sol.njev
+    evaluations, jacobians = solved.evaluations, solved.jacobians
     if not excited.all() and excited.any():
         say(f"identify: {int((~excited).sum())} value(s) not excited by the logs: fitting the others again")
         kept = free[excited]
-        again, _, std_kept, _ = solve(kept)
+        again, _ = solve(kept)
         x = start.copy()
         x[kept] = again.x
-        std[kept] = std_kept
-        sol, evaluations, jacobians = again, evaluations + again.nfev, jacobians + again.njev
+        std[kept] = errors(again)
+        solved, evaluations, jacobians = again, evaluations + again.evaluations, jacobians + again.jacobians
     elif not excited.any():
         x = start.copy()
-    work = len(residual_times), sum(residual_times), sum(jacobian_times)
-    return Solution(x, std, excited, r0, sol, int(evaluations), int(jacobians or 0), *work)
+    return Solution(
+        x, std, excited, r0, solved.message, solved.converged, evaluations, jacobians, calls[0],
+        sum(residual_times), sum(jacobian_times), tuple(trace),
+    )  # fmt: skip
+
+
+def _mujoco_minimize(
+    f: Callable[[jax.Array], jax.Array],
+    residual: Callable[[np.ndarray], np.ndarray],
+    p0: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
+    timed: Callable[[Callable[[jax.Array], jax.Array], np.ndarray, list[float]], np.ndarray],
+    residual_times: list[float],
+    traced: Callable[[np.ndarray, int], None],
+) -> _Solved:
+    """One solve by ``mujoco.minimize.least_squares`` (its tolerances as scipy's here, at most
+    :data:`MAX_EVALUATIONS` iterations).  It asks for the residual at one point or, for its forward differences, at
+    one point per value at once (the columns of a matrix): those run as one batch of replays (``jax.vmap`` of ``f``,
+    compiled before the solve).  The Jacobian at the end is its differences there."""
+    import io
+
+    from mujoco import minimize
+
+    batch = jax.jit(jax.vmap(f))
+    batch(jnp.asarray(np.repeat(p0[None], p0.size, axis=0)))  # its compile, outside the timed calls
+    evaluations, jacobians = [0], [0]
+
+    def columns(points: np.ndarray) -> np.ndarray:
+        if points.ndim == 1 or points.shape[1] == 1:
+            evaluations[0] += 1
+            return residual(points.reshape(-1))[:, None]
+        jacobians[0] += 1
+        r = timed(batch, points.T, residual_times).T
+        traced(r, points.shape[1])
+        return r
+
+    out = io.StringIO()
+    x, log = minimize.least_squares(
+        p0, columns, bounds=[low, high], xtol=1e-9, gtol=1e-8, max_iter=MAX_EVALUATIONS,
+        verbose=minimize.Verbosity.FULLITER, output=out,
+    )  # fmt: skip
+    end = log[-1]
+    r = np.asarray(end.residual).reshape(-1)
+    message = out.getvalue().strip().splitlines()
+    return _Solved(
+        x, 0.5 * float(r @ r), np.asarray(end.jacobian), evaluations[0], jacobians[0],
+        next((line for line in message if line.startswith("Terminated")), ""), len(log) - 1 < MAX_EVALUATIONS,
+    )  # fmt: skip
 
 
 def check_mech_step(mech_step: float | None, rates: LoopRates = LoopRates(), name: str = "mech step") -> None:
@@ -575,7 +666,7 @@ def fit(
 
     say(f"identify: compiling the replay and its Jacobian ({starts.size} values; cached for logs of these shapes)")
     solution = least_squares_excited(residual_of, starts / scale, low, high, say, derivatives)
-    sol, r0 = solution.result, solution.residual_before
+    r0 = solution.residual_before
     fitted, errors = solution.x * scale, solution.std * scale
     values = tuple(
         FittedValue(f, k, float(v0), float(v), float(e), bool(ok))
@@ -595,8 +686,9 @@ def fit(
         residual_calls=solution.residual_calls,
         residual_s=solution.residual_s,
         jacobian_s=solution.jacobian_s,
-        solver_message=str(sol.message),
-        converged=bool(sol.status > 0),
+        trace=solution.trace,
+        solver_message=solution.message,
+        converged=solution.converged,
         wall_s=time.perf_counter() - t0,
         logs=tuple({"path": log.path, "sha256": log.digest, "source": log.source} for log in logs),
     )

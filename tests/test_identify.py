@@ -209,24 +209,32 @@ def test_a_value_the_data_do_not_excite_keeps_its_start_and_the_others_are_fitte
     assert not none.excited.any() and none.x.tolist() == start.tolist()
 
 
-def test_finite_differences_find_what_the_exact_jacobian_finds_and_count_their_replays():
-    """The derivative-free anchor (scipy's 2-point differences of the residual) on the linear problem above: the same
-    values, excitation and standard errors as the exact Jacobian (to 1e-6: differences of a linear residual are
-    exact up to rounding), never calling the Jacobian, and its residual calls count each difference (one per value
-    at each Jacobian, beyond the solver's own evaluations)."""
+@pytest.mark.parametrize(
+    "anchor", [machine_fit.Derivatives.FINITE_DIFFERENCES, machine_fit.Derivatives.MUJOCO_MINIMIZE]
+)
+def test_the_derivative_free_anchors_find_what_the_exact_jacobian_finds_and_count_their_replays(anchor):
+    """The derivative-free anchors (scipy's 2-point differences of the residual, and mujoco.minimize on its own
+    forward differences, batched) on the linear problem above: the same values, excitation and standard errors as
+    the exact Jacobian (to 1e-6: differences of a linear residual are exact up to rounding), never calling the
+    Jacobian, and their residual calls count each difference (one per value at each Jacobian, beyond the solver's
+    own evaluations).  The trace of the least residual met never rises, and ends at the fit's."""
     rng = np.random.default_rng(0)
     A = np.column_stack([rng.normal(size=200), np.zeros(200), rng.normal(size=200)])
     truth, start = np.array([2.0, 5.0, -1.5]), np.array([1.0, 3.0, 0.0])
     b = A @ truth + 1e-3 * rng.normal(size=200)
     low, high = np.full(3, -10.0), np.full(3, 10.0)
     exact = least_squares_excited(_linear(A, b, start), start, low, high)
-    differences = least_squares_excited(
-        _linear(A, b, start), start, low, high, derivatives=machine_fit.Derivatives.FINITE_DIFFERENCES
-    )
+    differences = least_squares_excited(_linear(A, b, start), start, low, high, derivatives=anchor)
     assert differences.excited.tolist() == exact.excited.tolist() == [True, False, True]
     np.testing.assert_allclose(differences.x, exact.x, atol=1e-6)
-    np.testing.assert_allclose(differences.std, exact.std, rtol=1e-6)
+    np.testing.assert_allclose(differences.std, exact.std, rtol=1e-6, atol=1e-12)
     assert differences.jacobian_s == 0.0 and exact.jacobian_s > 0.0
     assert exact.residual_calls == exact.evaluations
     # the first solve's differences take 3 calls a Jacobian, the refit without the unexcited value 2
     assert differences.residual_calls > differences.evaluations + 2 * differences.jacobians
+    assert differences.converged and exact.converged
+    for solution in (exact, differences):
+        best = [rms for _, rms in solution.trace]
+        assert all(b <= a for a, b in zip(best, best[1:]))
+        end = np.sqrt(np.mean((A @ solution.x - b) ** 2))
+        assert best[-1] <= end * (1 + 1e-6)
