@@ -185,6 +185,7 @@ COM_SCALE_M = 1e-3  # [m] the least distance a centre of mass's error is taken r
 # valley for thousands of them (a payload's centre of mass on a level path: 33 evaluations of 30 s each, the residual
 # still falling by 3e-4 of itself per step); it stops here instead, and the standard errors show what is loose
 MAX_EVALUATIONS = 50
+OPEN_END = 1e6  # mujoco.minimize's bounds must be finite: an open end at this many times the value's scale
 
 
 def fit_fields(text: str) -> tuple[FitField, ...]:
@@ -528,7 +529,8 @@ def _mujoco_minimize(
     """One solve by ``mujoco.minimize.least_squares`` (its tolerances as scipy's here, at most
     :data:`MAX_EVALUATIONS` iterations).  It asks for the residual at one point or, for its forward differences, at
     one point per value at once (the columns of a matrix): those run as one batch of replays (``jax.vmap`` of ``f``,
-    compiled before the solve).  The Jacobian at the end is its differences there."""
+    compiled before the solve).  The Jacobian at the end is its differences there.  It takes finite bounds only: an
+    open end (a mass's, a centre of mass's) becomes :data:`OPEN_END` times the value's scale."""
     import io
 
     from mujoco import minimize
@@ -547,8 +549,9 @@ def _mujoco_minimize(
         return r
 
     out = io.StringIO()
+    box = [np.nan_to_num(low, neginf=-OPEN_END), np.nan_to_num(high, posinf=OPEN_END)]
     x, log = minimize.least_squares(
-        p0, columns, bounds=[low, high], xtol=1e-9, gtol=1e-8, max_iter=MAX_EVALUATIONS,
+        p0, columns, bounds=box, xtol=1e-9, gtol=1e-8, max_iter=MAX_EVALUATIONS,
         verbose=minimize.Verbosity.FULLITER, output=out,
     )  # fmt: skip
     end = log[-1]
