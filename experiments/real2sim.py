@@ -271,7 +271,7 @@ def _case(t: TrueMachine, folder: Path, nominal: dict[TunedOn, Path], excitation
             cfg if t.kin_error_seed is None else cfg.replace(kin_error_seeds=(t.kin_error_seed,)),
         ),
     ):
-        _say(f"{name}: tune on the {label} machine")
+        _say(f"{name}: {label.words.replace('tuned', 'tune', 1)}")
         out = folder / label.folder
         tunes[label] = _tune(config, out, machine, gain_files.load(nominal[TunedOn.NOMINAL], machine=machine))
         gain_paths[label] = out / "gains.yaml"
