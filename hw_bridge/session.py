@@ -53,9 +53,9 @@ class End(enum.StrEnum):
 
 
 SIGNALS = {signal.SIGINT: End.SIGINT, signal.SIGTERM: End.SIGTERM}
-# bytes per cycle of a run, at most, that its record keeps (BridgeRun's lists, the runner's timings, the cycle of each
-# command sent): with six axes in lock step the record's lists hold 1.2 kB a cycle (their deep size; 0.27 kB of it the
-# drives' speeds, torques and currents), and the rest is room for the lists' growth
+# bytes per cycle of a run, at most, that its record keeps (BridgeRun's samples and lists, the runner's timings, the
+# cycle of each command sent): with six axes the samples kept in the run take 0.94 kB a cycle, and 1.55 kB at the peak
+# of building the per-sample lists from them after the run (tracemalloc); the rest is room for the lists' growth
 RECORD_BYTES = 2048
 
 
@@ -94,9 +94,13 @@ class BridgeRun:
     skipped: int = 0
     latency_us: list = field(default_factory=list)
     feedback_age_us: list = field(default_factory=list)
-    # per run cycle with a fresh sample, the time [us] its record took inside the cycle (the lists below): all that
-    # logging does inside a cycle, the log's file being written from them after the run
+    # per run cycle with a fresh sample, the time [us] its record took inside the cycle (keeping the sample): all that
+    # logging does inside a cycle; the lists below are built from the samples after the run (settle), and the log's
+    # file is written from them
     record_us: list = field(default_factory=list)
+    # in the run, per fresh sample: the cycle of the reference it answers, and its position, velocity, torque, current
+    # (None: not reported) and platform arrays
+    kept: list = field(default_factory=list, repr=False)
     t: list = field(default_factory=list)
     path_time: list = field(default_factory=list)  # per sample, the time along the path of its reference [s]
     reference: list = field(default_factory=list)
@@ -111,6 +115,22 @@ class BridgeRun:
     completed: bool = False
     ended: End | None = None
     run_start: int | None = None  # the cycle at which the path began (None: it never did)
+
+    def settle(self, loop) -> None:
+        """After the run: the per-sample lists from the samples kept in it, against ``loop``'s reference (the time
+        along the path, the motor angles and, where the path has it, the platform pose in force at each sample)."""
+        for cycle, position, velocity, torque, current, platform in self.kept:
+            self.t.append(cycle / loop.rate)
+            self.reference.append(loop.reference_at(cycle))
+            self.path_time.append(loop.path_time(cycle))
+            self.position.append(position)
+            current = current if current is not None else np.full(len(torque), np.nan)
+            self.drive.append(np.stack([velocity, torque, current]))
+            self.platform.append(platform)
+            if loop.reference.platform is not None:
+                p = min(max(cycle // loop.n_position - loop.takeover_periods, 0), len(loop.reference.platform) - 1)
+                self.platform_reference.append(loop.reference.platform[p])
+        self.kept.clear()
 
     def report(self, screw=None) -> BridgeReport:
         """The run's figures (``screw``: each axis's screw ratio [m/rad], for the branches' errors)."""
@@ -369,20 +389,9 @@ class Bridge:
             rec.latency_us.append(send(k, cia402.ENABLE_OPERATION, target, t_wake) * 1e6)
             if st["fresh"] and fb.timestamp_ns:
                 rec.feedback_age_us.append((ep.received_at - fb.timestamp_ns * 1e-9) * 1e6)
-            if st["fresh"] and ja >= 0:
+            if st["fresh"] and ja >= 0:  # the record: the sample and the cycle of the reference it answers
                 t_record = time.perf_counter_ns()
-                rec.t.append((ja + 1) / loop.rate)
-                rec.reference.append(loop.reference_at(ja + 1))
-                rec.path_time.append(loop.path_time(ja + 1))
-                rec.position.append(fb.position)
-                current = fb.current if fb.current is not None else np.full(len(fb.torque), np.nan)
-                rec.drive.append(np.stack([fb.velocity, fb.torque, current]))
-                rec.platform.append(fb.platform)
-                if loop.reference.platform is not None:
-                    p = min(
-                        max((ja + 1) // loop.n_position - loop.takeover_periods, 0), len(loop.reference.platform) - 1
-                    )
-                    rec.platform_reference.append(loop.reference.platform[p])
+                rec.kept.append((ja + 1, fb.position, fb.velocity, fb.torque, fb.current, fb.platform))
                 rec.record_us.append((time.perf_counter_ns() - t_record) * 1e-3)
             sent[st["sequence"] - 1] = j
             if j + 1 >= st["run_cycles"]:
@@ -427,6 +436,7 @@ class Bridge:
                 if granted:
                     granted.restore()
         rec.cycles, rec.missed, rec.skipped = stats.cycles, stats.missed, stats.skipped
+        rec.settle(loop)
         rec.faults = list(safety.faults)
         rec.rejected = dict(ep.rejected)
         return rec
