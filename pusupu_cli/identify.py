@@ -46,6 +46,14 @@ def add_parser(sub):
         help="the replay's mechanical step: 0.00005 (one a current-loop tick: closer to the robot, 5x the time) or "
         "0.00025 (default: the model's, as tune steps it)",
     )
+    i.add_argument(
+        "--derivatives",
+        default="exact",
+        choices=("exact", "mujoco-minimize", "finite-differences"),
+        help="the solver and its Jacobian: exact (default: scipy's trust-region solver on the exact Jacobian through "
+        "the replay), mujoco-minimize (MuJoCo's mujoco.minimize on forward differences, each Jacobian's replays as "
+        "one batch), finite-differences (scipy's solver on its own differences, one replay after another)",
+    )
     i.add_argument("--out", required=True, metavar="FILE", help="the identified machine file to write")
     i.add_argument(
         "--plot", metavar="PNG", help="write the logged currents (or torques) against the replay's, before and after"
@@ -106,6 +114,7 @@ def cmd_identify(args) -> int:
             args.window,
             args.trajectory,
             progress=lambda line: print(line, file=sys.stderr, flush=True),
+            derivatives=machine_fit.Derivatives(args.derivatives),
             mech_step=args.mech_step,
         )
     header = [

@@ -238,3 +238,25 @@ def test_the_derivative_free_anchors_find_what_the_exact_jacobian_finds_and_coun
         assert all(b <= a for a, b in zip(best, best[1:]))
         end = np.sqrt(np.mean((A @ solution.x - b) ** 2))
         assert best[-1] <= end * (1 + 1e-6)
+
+
+def test_the_solver_is_chosen_by_name_and_another_is_refused_in_one_line(tmp_path):
+    """``pusupu identify --derivatives`` offers each solver of :class:`machine_fit.Derivatives`; another name is
+    refused in one line, exit 2, before anything is read."""
+    import argparse
+
+    from pusupu_jax.cli.identify import add_parser
+
+    parser = add_parser(argparse.ArgumentParser().add_subparsers())
+    action = next(a for a in parser._actions if a.dest == "derivatives")
+    assert sorted(action.choices) == sorted(str(d) for d in machine_fit.Derivatives)
+    r = subprocess.run(
+        [sys.executable, "-m", "pusupu_jax.cli", "identify", "x.mcap", "--out", str(tmp_path / "m.yaml")]
+        + ["--derivatives", "newton"],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "--derivatives" in r.stderr and "'newton'" in r.stderr and "mujoco-minimize" in r.stderr
+    assert not (tmp_path / "m.yaml").exists()
