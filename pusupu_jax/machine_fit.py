@@ -471,7 +471,7 @@ def least_squares_excited(
         if derivatives is Derivatives.MUJOCO_MINIMIZE:
             return _mujoco_minimize(f, residual, p0, low[free], high[free], timed, residual_times, traced), r0
         if derivatives is Derivatives.EXACT:
-            jax.block_until_ready(jac(jnp.asarray(p0)))  # its compile and run, outside the timed calls
+            np.asarray(jac(jnp.asarray(p0)))  # its compile and run, waited for, outside the timed calls
         from scipy.optimize import least_squares
 
         sol = least_squares(
@@ -536,7 +536,7 @@ def _mujoco_minimize(
     from mujoco import minimize
 
     batch = jax.jit(jax.vmap(f))
-    jax.block_until_ready(batch(jnp.asarray(np.repeat(p0[None], p0.size, axis=0))))  # compiled, outside the timing
+    np.asarray(batch(jnp.asarray(np.repeat(p0[None], p0.size, axis=0))))  # compiled and run, outside the timing
     evaluations, jacobians = [0], [0]
 
     def columns(points: np.ndarray) -> np.ndarray:

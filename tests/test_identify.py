@@ -98,6 +98,12 @@ def test_kt_is_not_fitted_to_a_log_without_currents(tmp_path):
         machine_fit.fit([log], Machine.default(), ServoParams.table1(), fields=fit_fields("friction,Kt"))
 
 
+def _identify(tmp_path, *options: str) -> subprocess.CompletedProcess:
+    """``pusupu identify x.mcap --out tmp_path/m.yaml`` with ``options``, as a user runs it."""
+    command = [sys.executable, "-m", "pusupu_jax.cli", "identify", "x.mcap", "--out", str(tmp_path / "m.yaml")]
+    return subprocess.run(command + list(options), capture_output=True, text=True, timeout=600)
+
+
 def test_a_mech_step_the_machine_cannot_take_is_refused_in_one_line_before_any_replay(tmp_path):
     """The replay's mechanical step must be a whole number of current-loop ticks dividing the velocity period (50 and
     250 us at the default rates); another is refused by the fit and by ``pusupu identify --mech-step`` (exit 2)."""
@@ -111,13 +117,7 @@ def test_a_mech_step_the_machine_cannot_take_is_refused_in_one_line_before_any_r
     )
     with pytest.raises(ParameterError, match=r"mech step: " + expected + ", got 0.0001"):
         machine_fit.fit([], Machine.default(), ServoParams.table1(), mech_step=1e-4)
-    r = subprocess.run(
-        [sys.executable, "-m", "pusupu_jax.cli", "identify", "x.mcap", "--out", str(tmp_path / "m.yaml")]
-        + ["--mech-step", "1.5e-4"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    r = _identify(tmp_path, "--mech-step", "1.5e-4")
     assert r.returncode == 2 and r.stderr.strip().splitlines() == [
         f"pusupu: error: --mech-step: {expected.replace(chr(92), '')}, got 0.00015"
     ], r.stderr
@@ -250,13 +250,7 @@ def test_the_solver_is_chosen_by_name_and_another_is_refused_in_one_line(tmp_pat
     parser = add_parser(argparse.ArgumentParser().add_subparsers())
     action = next(a for a in parser._actions if a.dest == "derivatives")
     assert sorted(action.choices) == sorted(str(d) for d in machine_fit.Derivatives)
-    r = subprocess.run(
-        [sys.executable, "-m", "pusupu_jax.cli", "identify", "x.mcap", "--out", str(tmp_path / "m.yaml")]
-        + ["--derivatives", "newton"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    r = _identify(tmp_path, "--derivatives", "newton")
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "--derivatives" in r.stderr and "'newton'" in r.stderr and "mujoco-minimize" in r.stderr
     assert not (tmp_path / "m.yaml").exists()
