@@ -208,16 +208,22 @@ def main() -> None:
         }
         if args.log == "alternate":  # the runs with the log written after them, against those without
             results["rates"][f"{rate:g}"]["by_log"] = {
-                way: {
-                    "runs": sum(r["log"] == logged for r in runs),
-                    "missed_deadlines": [r["missed_deadlines"] for r in runs if r["log"] == logged],
-                    "cycles": [r["cycles"] for r in runs if r["log"] == logged],
-                    "missed_fraction": spread([r["missed_fraction"] for r in runs if r["log"] == logged]),
-                    **percentile_spreads([r for r in runs if r["log"] == logged], "latency_us", ("p50", "p99")),
-                }
+                way: _by_log([r for r in runs if r["log"] == logged])
                 for way, logged in (("without", False), ("with", True))
             }
     emit(results, args.out, indent=2)
+
+
+def _by_log(runs: list[dict]) -> dict:
+    """One way's runs (with the log, or without): their missed deadlines and cycles, and the spread of their missed
+    fraction and latency."""
+    return {
+        "runs": len(runs),
+        "missed_deadlines": [r["missed_deadlines"] for r in runs],
+        "cycles": [r["cycles"] for r in runs],
+        "missed_fraction": spread([r["missed_fraction"] for r in runs]),
+        **percentile_spreads(runs, "latency_us", ("p50", "p99")),
+    }
 
 
 if __name__ == "__main__":
