@@ -27,7 +27,7 @@ scipy's 2-point differences of the same residual with the same solver, bounds an
 gives the seconds spent in the residual's and the Jacobian's calls (``solve_s``, compiles left out), its cost in
 forward replays (``replays``: every residual call, the differences' included, plus the Jacobian's seconds over one
 residual call's) and ``trace``, the least residual RMS met against those seconds; ``anchor`` compares them per log,
-and the seconds each took to the same residual (the higher of the two fits' least)::
+and the seconds each took to the same residual (the higher of the two fits' least, to a millionth of it)::
 
     python benchmarks/bench_identify.py [--source sim|bridge] [--fine-steps N] [--trajectory p2p] [--window 2]
         [--mech-step S]
@@ -234,32 +234,44 @@ def main() -> None:
     emit(summary, args.out)
 
 
+SAME_RESIDUAL = 1e-6  # two residual RMS are the same to this fraction: a floor's last digits are no progress
+
+
+def anchors(fits: list[dict]) -> list[dict]:
+    """Each fit of another solver against the exact fit of the same log: the ratios of their solve and wall times
+    and replays, and the seconds each took to the same residual (the higher of the two fits' least, to
+    :data:`SAME_RESIDUAL`): on a log the model cannot match, a solver may spend long on the floor's last digits."""
+    exact = {f["case"]: f for f in fits if f["derivatives"] == "exact"}
+    out = []
+    for f in fits:
+        other = exact.get(f["case"])
+        if f["derivatives"] == "exact" or other is None:
+            continue
+        level = max(other["trace"][-1][1], f["trace"][-1][1])
+        reached = [next(t for t, rms in g["trace"] if rms <= level * (1 + SAME_RESIDUAL)) for g in (other, f)]
+        out.append(
+            {
+                "case": f["case"],
+                "derivatives": f["derivatives"],
+                "solve_s_ratio": f["solve_s"] / other["solve_s"],
+                "wall_s_ratio": f["wall_s"] / other["wall_s"],
+                "replays_ratio": f["replays"] / other["replays"],
+                "residual_rms_after": [other["residual_rms_after"], f["residual_rms_after"]],
+                "same_residual_rms": level,
+                "seconds_to_same_residual": reached,
+                "same_residual_ratio": reached[1] / reached[0],
+            }
+        )
+    return out
+
+
 def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict:
     """The benchmark's JSON over the fits done so far."""
     import jax
 
     exact = [f for f in fits if f["derivatives"] == "exact"]
     noisy = exact[1:]
-    anchor = []
-    for f in fits:
-        other = next((e for e in exact if e["case"] == f["case"]), None)
-        if f["derivatives"] != "exact" and other is not None:
-            # the same residual: the higher of the two fits' least, and the seconds each took to meet it
-            level = max(other["trace"][-1][1], f["trace"][-1][1])
-            reached = [next(t for t, rms in g["trace"] if rms <= level) for g in (other, f)]
-            anchor.append(
-                {
-                    "case": f["case"],
-                    "derivatives": f["derivatives"],
-                    "solve_s_ratio": f["solve_s"] / other["solve_s"],
-                    "wall_s_ratio": f["wall_s"] / other["wall_s"],
-                    "replays_ratio": f["replays"] / other["replays"],
-                    "residual_rms_after": [other["residual_rms_after"], f["residual_rms_after"]],
-                    "same_residual_rms": level,
-                    "seconds_to_same_residual": reached,
-                    "same_residual_ratio": reached[1] / reached[0],
-                }
-            )
+    anchor = anchors(fits)
     return {
         "benchmark": "identify",
         "command": "python benchmarks/bench_identify.py " + " ".join(sys.argv[1:]),
