@@ -468,8 +468,16 @@ def least_squares_excited(
             say(f"identify: evaluation {evaluated[0]}: residual RMS {np.sqrt(np.mean(r**2)):.6g}")
             return r
 
-        if derivatives is Derivatives.MUJOCO_MINIMIZE:
-            return _mujoco_minimize(f, residual, p0, low[free], high[free], timed, residual_times, traced), r0
+        if derivatives is Derivatives.MUJOCO_MINIMIZE:  # its differences: each Jacobian's replays as one batch
+            batch = jax.jit(jax.vmap(f))
+            np.asarray(batch(jnp.asarray(np.repeat(p0[None], p0.size, axis=0))))  # compiled and run, outside timing
+
+            def differences(points: np.ndarray) -> np.ndarray:
+                r = timed(batch, points, residual_times)
+                traced(r.T, len(points))
+                return r
+
+            return _mujoco_minimize(residual, differences, p0, low[free], high[free]), r0
         if derivatives is Derivatives.EXACT:
             np.asarray(jac(jnp.asarray(p0)))  # its compile and run, waited for, outside the timed calls
         from scipy.optimize import least_squares
@@ -517,26 +525,21 @@ def least_squares_excited(
 
 
 def _mujoco_minimize(
-    f: Callable[[jax.Array], jax.Array],
     residual: Callable[[np.ndarray], np.ndarray],
+    differences: Callable[[np.ndarray], np.ndarray],
     p0: np.ndarray,
     low: np.ndarray,
     high: np.ndarray,
-    timed: Callable[[Callable[[jax.Array], jax.Array], np.ndarray, list[float]], np.ndarray],
-    residual_times: list[float],
-    traced: Callable[[np.ndarray, int], None],
 ) -> _Solved:
     """One solve by ``mujoco.minimize.least_squares`` (its tolerances as scipy's here, at most
-    :data:`MAX_EVALUATIONS` iterations).  It asks for the residual at one point or, for its forward differences, at
-    one point per value at once (the columns of a matrix): those run as one batch of replays (``jax.vmap`` of ``f``,
-    compiled before the solve).  The Jacobian at the end is its differences there.  It takes finite bounds only: an
+    :data:`MAX_EVALUATIONS` iterations).  It asks for the residual at one point (``residual(p)``) or, for its forward
+    differences, at one point per value at once (the columns of a matrix: ``differences(points)``, the points as
+    rows, one batch of replays).  The Jacobian at the end is its differences there.  It takes finite bounds only: an
     open end (a mass's, a centre of mass's) becomes :data:`OPEN_END` times the value's scale."""
     import io
 
     from mujoco import minimize
 
-    batch = jax.jit(jax.vmap(f))
-    np.asarray(batch(jnp.asarray(np.repeat(p0[None], p0.size, axis=0))))  # compiled and run, outside the timing
     evaluations, jacobians = [0], [0]
 
     def columns(points: np.ndarray) -> np.ndarray:
@@ -544,9 +547,7 @@ def _mujoco_minimize(
             evaluations[0] += 1
             return residual(points.reshape(-1))[:, None]
         jacobians[0] += 1
-        r = timed(batch, points.T, residual_times).T
-        traced(r, points.shape[1])
-        return r
+        return differences(points.T).T
 
     out = io.StringIO()
     box = [np.nan_to_num(low, neginf=-OPEN_END), np.nan_to_num(high, posinf=OPEN_END)]
