@@ -18,7 +18,10 @@ times per current-loop tick (``pusupu sim-robot --fine-steps``), a truth finer t
 ``--noise-seeds N`` fits N more copies of the log with the sensors' noise drawn afresh: each motor
 angle rounded to an encoder of ``--encoder-bits`` a turn, and each current with Gaussian noise of
 ``--current-noise`` of its axis's RMS.  Each entry says whether the truth lies inside the value's 95 % interval
-(1.96 standard errors).  The later fits find the programs compiled (the logged data are their arguments).
+(1.96 standard errors), and ``per_value`` gives, per value, the share of seeds whose interval covers it.  The later
+fits find the programs compiled (the logged data are their arguments).  ``--first-seed K --noisy-only`` fits seeds
+K, K+1, ... alone, so that several processes can share the seeds; ``--merge A.json B.json ...`` makes one result of
+theirs.
 
 ``--derivatives exact,finite-differences,mujoco-minimize`` fits each log once with each solver and Jacobian
 (:class:`pusupu_jax.machine_fit.Derivatives`): the exact one through the replay, and the derivative-free anchors,
@@ -31,7 +34,9 @@ and the seconds each took to the same residual (the higher of the two fits' leas
 
     python benchmarks/bench_identify.py [--source sim|bridge] [--fine-steps N] [--trajectory p2p] [--window 2]
         [--mech-step S]
-        [--fit friction,motor,payload] [--noise-seeds 0] [--derivatives exact[,finite-differences,...]] [--out FILE]
+        [--fit friction,motor,payload] [--noise-seeds 0] [--first-seed 0] [--noisy-only]
+        [--derivatives exact[,finite-differences,...]] [--out FILE]
+    python benchmarks/bench_identify.py --merge A.json B.json ... [--out FILE]
 """
 
 from __future__ import annotations
@@ -99,13 +104,16 @@ def _bridge_log(tmp: Path, gain_path: Path, trajectory: str, seconds: float, fin
 
 def _noisy(log, seed: int, bits: int, current_noise: float):
     """``log`` as sensors would give it: angles on an encoder of ``bits`` a turn, currents with Gaussian noise of
-    ``current_noise`` of each axis's RMS."""
+    ``current_noise`` of each axis's RMS.  Where an encoder's counts fall against the motor's angle depends on how it
+    was mounted: each seed draws that phase, per axis, uniformly within one count (with one phase for every seed,
+    the rounding would be the same error in every copy of the log)."""
     rng = np.random.default_rng(seed)
     count = 2 * np.pi / 2**bits
     current = log.current + current_noise * np.sqrt(np.mean(log.current**2, axis=0)) * rng.normal(
         size=log.current.shape
     )
-    return dataclasses.replace(log, position=np.round(log.position / count) * count, current=current)
+    phase = rng.uniform(size=log.position.shape[1])
+    return dataclasses.replace(log, position=(np.round(log.position / count + phase) - phase) * count, current=current)
 
 
 def _entries(report, truth) -> list[dict]:
@@ -141,6 +149,14 @@ def main() -> None:
     ap.add_argument("--mech-step", type=float, help="the replay's mechanical step [s] (default the model's)")
     ap.add_argument("--fit", default="friction,motor,payload")
     ap.add_argument("--noise-seeds", type=int, default=0, help="noisy copies of the log fitted after it")
+    ap.add_argument("--first-seed", type=int, default=0, help="the first noisy copy's seed (default 0)")
+    ap.add_argument("--noisy-only", action="store_true", help="fit the noisy copies only, not the noise-free log")
+    ap.add_argument(
+        "--merge",
+        nargs="+",
+        metavar="JSON",
+        help="no fit: one result from these results of the same settings (say, seeds fitted in several processes)",
+    )
     ap.add_argument("--encoder-bits", type=int, default=17)
     ap.add_argument("--current-noise", type=float, default=0.01, help="of each axis's RMS current (default 0.01)")
     ap.add_argument(
@@ -156,6 +172,9 @@ def main() -> None:
     )
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
+    if args.merge:
+        emit(merge([json.loads(Path(f).read_text()) for f in args.merge]), args.out)
+        return
 
     from pusupu_jax import gains as gain_files
     from pusupu_jax import machine_file, machine_fit, run_log
@@ -184,9 +203,9 @@ def main() -> None:
         start = machine_file.load(tmp / "start.yaml")
         g = gain_files.load(gain_path)
         fields = machine_fit.fit_fields(args.fit)
-        cases = [("noise-free", log)] + [
-            (f"noise seed {k}", _noisy(log, k, args.encoder_bits, args.current_noise)) for k in range(args.noise_seeds)
-        ]
+        seeds = range(args.first_seed, args.first_seed + args.noise_seeds)
+        cases = [] if args.noisy_only else [("noise-free", log)]
+        cases += [(f"noise seed {k}", _noisy(log, k, args.encoder_bits, args.current_noise)) for k in seeds]
         fits = []
         for (name, case), derivatives in ((c, m) for c in cases for m in methods):
             print(f"bench_identify: fitting {name} ({derivatives} Jacobian)", file=sys.stderr, flush=True)
@@ -269,8 +288,6 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict
     """The benchmark's JSON over the fits done so far."""
     import jax
 
-    exact = [f for f in fits if f["derivatives"] == "exact"]
-    noisy = exact[1:]
     anchor = anchors(fits)
     return {
         "benchmark": "identify",
@@ -289,9 +306,58 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict
         "sim_log_s": sim_s,
         "fits": fits,
         "anchor": anchor,  # the other Jacobians against the exact one, per log (a ratio above 1: exact is faster)
-        "coverage_95": (sum(f["covered_95"] for f in noisy) / sum(len(f["values"]) for f in noisy) if noisy else None),
         "machine": {"processor": processor(), "cores": os.cpu_count(), "jax": jax.__version__},
+    } | coverage(fits)
+
+
+def coverage(fits: list[dict]) -> dict:
+    """Over the exact fits of noisy logs: the share of all 95 % intervals that cover the truth (``coverage_95``), and
+    per value (``per_value``) the share of seeds whose interval covers it and the worst relative error, with the least
+    share and the worst error over the values (None without noisy fits)."""
+    noisy = [f for f in fits if f["derivatives"] == "exact" and f["case"] != "noise-free"]
+    if not noisy:
+        return {"noisy_fits": 0, "coverage_95": None, "per_value": None}
+    per_value = {
+        e["name"]: {
+            "covered_95": float(np.mean([f["values"][i]["covered_95"] for f in noisy])),
+            "worst_relative_error": max(f["values"][i]["relative_error"] for f in noisy),
+            "excited": sum(f["values"][i]["excited"] for f in noisy),
+        }
+        for i, e in enumerate(noisy[0]["values"])
     }
+    return {
+        "noisy_fits": len(noisy),
+        "coverage_95": sum(f["covered_95"] for f in noisy) / sum(len(f["values"]) for f in noisy),
+        "least_coverage_95": min(v["covered_95"] for v in per_value.values()),
+        "worst_relative_error_noisy": max(v["worst_relative_error"] for v in per_value.values()),
+        "per_value": per_value,
+    }
+
+
+SETTINGS = ("source", "trajectory", "robot_fine_steps", "window_s", "mech_step_s", "fit", "noise", "true_payload_com_m")
+
+
+def merge(results: list[dict]) -> dict:
+    """One result from ``results`` of the same settings (:data:`SETTINGS`): their fits, each case once, and the
+    coverage over all of them; ``commands`` and ``machines`` list each part's (a merged part's own lists)."""
+    first = results[0]
+    for r in results[1:]:
+        differ = [k for k in SETTINGS if r.get(k) != first.get(k)]
+        if differ:
+            raise SystemExit(f"bench_identify: --merge: expected results of the same settings, found {differ} differ")
+    fits = {(f["case"], f["derivatives"]): f for r in results for f in r["fits"]}
+    ordered = sorted(fits.values(), key=lambda f: -1 if f["case"] == "noise-free" else int(f["case"].split()[-1]))
+    commands = [c for r in results for c in r.get("commands", [r["command"]])]
+    machines = [m for r in results for m in r.get("machines", [r["machine"]])]
+    return (
+        first
+        | {"command": None, "commands": commands, "machines": machines, "machine": None}
+        | coverage(ordered)
+        | {
+            "fits": ordered,
+            "anchor": anchors(ordered),
+        }
+    )
 
 
 if __name__ == "__main__":
