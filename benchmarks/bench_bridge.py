@@ -24,7 +24,9 @@ after the fault).  For diagnosis: the probe's wake-ups take a little from the br
 ``--log``: after each run, its MCAP log is written as ``pusupu bridge --log`` writes it (from the run's record, after
 the run: the cycles run the same code with or without it); each run gets ``log_write_s`` (the wall time of that
 write), ``log_bytes`` and ``log_bytes_per_s`` (per second of the cycles run).  ``--log alternate`` runs ``--runs``
-runs each way, without and with the log in turn, and compares their missed deadlines and latencies (``by_log``).
+runs each way in the order without, with, with, without, ... (so that each way follows another run as often as it
+follows a log's write, a pause of seconds: ``after_log_write``), and compares their missed deadlines and latencies
+by the way they ran (``by_log``) and by what came before them (``by_previous``).
 Every run gives ``record_us``: the percentiles of the time its record (what the log is written from) took inside
 each cycle with a fresh sample, all of logging's work inside a cycle.
 
@@ -133,7 +135,10 @@ def main() -> None:
         runs = []
         try:
             for k in range(2 * args.runs if args.log == "alternate" else args.runs):
-                logged = args.log == "on" or (args.log == "alternate" and k % 2 == 1)
+                # alternate: without, with, with, without, ... (ABBA): each way follows a run as often as it follows
+                # a log's write, which holds the next run back for seconds
+                logged = args.log == "on" or (args.log == "alternate" and k % 4 in (1, 2))
+                after_write = bool(runs) and runs[-1]["log"]
                 if args.transport == "udp":
                     ep = Endpoint(FEEDBACK, n_axes=len(loop.drive_modes), peer=("127.0.0.1", port))
                 else:
@@ -167,6 +172,7 @@ def main() -> None:
                         },
                         "steal_ms_per_cpu": stolen,
                         "log": logged,
+                        "after_log_write": after_write,
                     }
                 )
                 if logged:
@@ -211,12 +217,17 @@ def main() -> None:
                 way: _by_log([r for r in runs if r["log"] == logged])
                 for way, logged in (("without", False), ("with", True))
             }
+            # the same runs by what came before them: another run, or a log's write
+            results["rates"][f"{rate:g}"]["by_previous"] = {
+                way: _by_log([r for r in runs if r["after_log_write"] == after])
+                for way, after in (("after_a_run", False), ("after_a_log_write", True))
+            }
     emit(results, args.out, indent=2)
 
 
 def _by_log(runs: list[dict]) -> dict:
-    """One way's runs (with the log, or without): their missed deadlines and cycles, and the spread of their missed
-    fraction and latency."""
+    """One group's runs (with the log or without, after a run or after a log's write): their missed deadlines and
+    cycles, and the spread of their missed fraction and latency."""
     return {
         "runs": len(runs),
         "missed_deadlines": [r["missed_deadlines"] for r in runs],
