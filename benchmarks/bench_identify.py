@@ -15,8 +15,10 @@ simulated robot (``pusupu sim-robot --machine true.yaml``: C MuJoCo, with the dr
 is ``pusupu bridge --log``'s over UDP on loopback, in lock step (``--lockstep``: each cycle waits for the robot's
 answer, so no cycle is skipped on a loaded machine); ``--fine-steps N`` has the simulated robot step its machine N
 times per current-loop tick (``pusupu sim-robot --fine-steps``), a truth finer than the fitting model.
-``--noise-seeds N`` fits N more copies of the log with the sensors' noise drawn afresh: each motor
-angle rounded to an encoder of ``--encoder-bits`` a turn, and each current with Gaussian noise of
+``--robot-sensors BITS,AMPS`` gives the simulated robot sensors of its own (encoders of BITS a turn, current noise of
+AMPS), which its drives' loops close on as a robot's do.
+``--noise-seeds N`` fits N more copies of the log with the sensors' noise drawn afresh: each motor angle rounded to
+an encoder of ``--encoder-bits`` a turn (at a phase drawn per seed), and each current with Gaussian noise of
 ``--current-noise`` of its axis's RMS.  Each entry says whether the truth lies inside the value's 95 % interval
 (1.96 standard errors), and ``per_value`` gives, per value, the share of seeds whose interval covers it.  The later
 fits find the programs compiled (the logged data are their arguments).  ``--first-seed K --noisy-only`` fits seeds
@@ -32,7 +34,8 @@ forward replays (``replays``: every residual call, the differences' included, pl
 residual call's) and ``trace``, the least residual RMS met against those seconds; ``anchor`` compares them per log,
 and the seconds each took to the same residual (the higher of the two fits' least, to a millionth of it)::
 
-    python benchmarks/bench_identify.py [--source sim|bridge] [--fine-steps N] [--trajectory p2p] [--window 2]
+    python benchmarks/bench_identify.py [--source sim|bridge] [--fine-steps N] [--robot-sensors BITS,AMPS]
+        [--trajectory p2p] [--window 2]
         [--mech-step S]
         [--fit friction,motor,payload] [--noise-seeds 0] [--first-seed 0] [--noisy-only]
         [--derivatives exact[,finite-differences,...]] [--out FILE]
@@ -63,14 +66,18 @@ TRUE_MACHINE = EXAMPLES / "machine_as_built.yaml"
 START_MACHINE = EXAMPLES / "machine_as_designed.yaml"  # the built-in one with a 3 kg payload at the centre
 
 
-def _machines(tmp: Path, com: tuple[float, ...]):
-    """The true machine (:data:`TRUE_MACHINE`, its payload's centre of mass at ``com`` [m]) and the start machine
-    (:data:`START_MACHINE`), written as machine files; the true one returned."""
+def _machines(tmp: Path, com: tuple[float, ...], sensors: tuple[int, float] | None = None):
+    """The true machine (:data:`TRUE_MACHINE`, its payload's centre of mass at ``com`` [m], and where given its
+    ``sensors``: encoders of that many bits a turn and current sensors of that standard deviation [A], on every axis)
+    and the start machine (:data:`START_MACHINE`), written as machine files; the true one returned."""
     from pusupu_jax import machine_file
     from pusupu_jax.files import write_atomic
 
     given = machine_file.load(TRUE_MACHINE)
     truth = dataclasses.replace(given, name="true", payload=dataclasses.replace(given.payload, com=com))
+    if sensors is not None:
+        bits, amps = sensors
+        truth = dataclasses.replace(truth, encoder_counts=np.full(6, 2**bits), current_noise=np.full(6, amps))
     start = dataclasses.replace(machine_file.load(START_MACHINE), name="start")
     for name, m in (("true", truth), ("start", start)):
         write_atomic(tmp / f"{name}.yaml", machine_file.template(m))
@@ -170,6 +177,12 @@ def main() -> None:
         help="the solvers and Jacobians to fit each log with, in order: exact, finite-differences, mujoco-minimize "
         "(default exact)",
     )
+    ap.add_argument(
+        "--robot-sensors",
+        metavar="BITS,AMPS",
+        help="with --source bridge: the simulated robot's own sensors, encoders of BITS a turn and current noise of "
+        "AMPS (standard deviation), on every axis (the drives' loops close on what they read; default ideal)",
+    )
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
     if args.merge:
@@ -189,7 +202,11 @@ def main() -> None:
     setup_jax()
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
-        truth = _machines(tmp, tuple(float(c) for c in args.true_com.split(",")))
+        sensors = None
+        if args.robot_sensors:
+            bits, amps = args.robot_sensors.split(",")
+            sensors = (int(bits), float(amps))
+        truth = _machines(tmp, tuple(float(c) for c in args.true_com.split(",")), sensors)
         gain_path = real2sim.table1_gain_file(tmp)
         t0 = time.perf_counter()
         if args.source == "bridge":
@@ -200,6 +217,7 @@ def main() -> None:
             run = None
         sim_s = time.perf_counter() - t0
         log = run_log.drive_log(tmp / "run.mcap")
+        current_rms = None if log.current is None else np.sqrt(np.mean(log.current**2, axis=0)).tolist()
         start = machine_file.load(tmp / "start.yaml")
         g = gain_files.load(gain_path)
         fields = machine_fit.fit_fields(args.fit)
@@ -230,6 +248,7 @@ def main() -> None:
                     "evaluations": report.evaluations,
                     "jacobians": report.jacobians,
                     "converged": report.converged,
+                    "message": report.solver_message,  # the solver's reason to stop
                     "residual_rms_before": report.residual_rms_before,
                     "residual_rms_after": report.residual_rms_after,
                     "worst_relative_error": max(e["relative_error"] for e in entries),
@@ -239,7 +258,7 @@ def main() -> None:
                     "values": entries,
                 }
             )
-            summary = _summary(args, fields, report.samples, sim_s, fits) | {"bridge_run": run}
+            summary = _summary(args, fields, report.samples, sim_s, fits, current_rms) | {"bridge_run": run}
             print(
                 f"bench_identify: {name}: worst relative error {fits[-1]['worst_relative_error']:.3g}, "
                 f"{fits[-1]['covered_95']} of {len(entries)} inside their 95 % intervals, {report.wall_s:.0f} s",
@@ -284,7 +303,7 @@ def anchors(fits: list[dict]) -> list[dict]:
     return out
 
 
-def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict:
+def _summary(args, fields, samples: int, sim_s: float, fits: list[dict], current_rms: list[float] | None) -> dict:
     """The benchmark's JSON over the fits done so far."""
     import jax
 
@@ -303,6 +322,8 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict]) -> dict
         "samples": samples,
         "noise": {"encoder_bits": args.encoder_bits, "current_rms_fraction": args.current_noise},
         "true_payload_com_m": [float(c) for c in args.true_com.split(",")],
+        "robot_sensors": args.robot_sensors,
+        "log_current_rms_a": current_rms,
         "sim_log_s": sim_s,
         "fits": fits,
         "anchor": anchor,  # the other Jacobians against the exact one, per log (a ratio above 1: exact is faster)
@@ -334,7 +355,10 @@ def coverage(fits: list[dict]) -> dict:
     }
 
 
-SETTINGS = ("source", "trajectory", "robot_fine_steps", "window_s", "mech_step_s", "fit", "noise", "true_payload_com_m")
+SETTINGS = (
+    *("source", "trajectory", "robot_fine_steps", "robot_sensors", "window_s", "mech_step_s", "fit", "noise"),
+    "true_payload_com_m",
+)
 
 
 def merge(results: list[dict]) -> dict:

@@ -185,6 +185,11 @@ COM_SCALE_M = 1e-3  # [m] the least distance a centre of mass's error is taken r
 # valley for thousands of them (a payload's centre of mass on a level path: 33 evaluations of 30 s each, the residual
 # still falling by 3e-4 of itself per step); it stops here instead, and the standard errors show what is loose
 MAX_EVALUATIONS = 50
+# the solvers stop when a step cuts the cost (half the sum of squared residuals) by less than this fraction of it, or
+# moves the values by less than XTOL of their size (scipy's ftol and xtol; mujoco.minimize has no ftol of its own, so
+# _mujoco_minimize applies it after each iteration)
+FTOL = 1e-9
+XTOL = 1e-9
 OPEN_END = 1e6  # mujoco.minimize's bounds must be finite: an open end at this many times the value's scale
 
 
@@ -488,8 +493,8 @@ def least_squares_excited(
             jac=(lambda p: timed(jac, p, jacobian_times)) if derivatives is Derivatives.EXACT else "2-point",
             bounds=(low[free], high[free]),
             method="trf",
-            xtol=1e-9,
-            ftol=1e-9,
+            xtol=XTOL,
+            ftol=FTOL,
             max_nfev=MAX_EVALUATIONS,
         )
         J = np.asarray(jac(jnp.asarray(sol.x))) if derivatives is Derivatives.EXACT else np.asarray(sol.jac)
@@ -535,12 +540,30 @@ def _mujoco_minimize(
     :data:`MAX_EVALUATIONS` iterations).  It asks for the residual at one point (``residual(p)``) or, for its forward
     differences, at one point per value at once (the columns of a matrix: ``differences(points)``, the points as
     rows, one batch of replays).  The Jacobian at the end is its differences there.  It takes finite bounds only: an
-    open end (a mass's, a centre of mass's) becomes :data:`OPEN_END` times the value's scale."""
+    open end (a mass's, a centre of mass's) becomes :data:`OPEN_END` times the value's scale.
+
+    Its own rules stop on a small step or gradient, or when no step passes its sufficient-decrease test even with the
+    regulariser at its limit.  On a log the model cannot match exactly, the last of these came only after some
+    hundred rejected steps, one replay each, raised the regulariser to its limit; so it also stops, as scipy's solver
+    does, after an iteration whose step cuts the cost by less than :data:`FTOL` of it.  It then ends at that step,
+    its residual replayed once more, with the Jacobian of the iteration's start (the step changed the cost by less
+    than that fraction)."""
     import io
 
     from mujoco import minimize
 
     evaluations, jacobians = [0], [0]
+
+    class Settled(Exception):
+        """An iteration cut the cost by less than FTOL of it."""
+
+    seen: list[Any] = []  # the solver's iterations so far
+
+    def settled(trace: list[Any]) -> None:
+        seen[:] = trace
+        last = trace[-1]
+        if last.step is not None and 0 <= last.reduction < FTOL * last.objective:
+            raise Settled
 
     def columns(points: np.ndarray) -> np.ndarray:
         if points.ndim == 1 or points.shape[1] == 1:
@@ -551,16 +574,23 @@ def _mujoco_minimize(
 
     out = io.StringIO()
     box = [np.nan_to_num(low, neginf=-OPEN_END), np.nan_to_num(high, posinf=OPEN_END)]
-    x, log = minimize.least_squares(
-        p0, columns, bounds=box, xtol=1e-9, gtol=1e-8, max_iter=MAX_EVALUATIONS,
-        verbose=minimize.Verbosity.FULLITER, output=out,
-    )  # fmt: skip
-    end = log[-1]
+    try:
+        x, trace = minimize.least_squares(
+            p0, columns, bounds=box, xtol=XTOL, gtol=1e-8, max_iter=MAX_EVALUATIONS,
+            verbose=minimize.Verbosity.FULLITER, output=out, iter_callback=settled,
+        )  # fmt: skip
+    except Settled:
+        last = seen[-1]
+        x = np.clip((last.candidate + last.step).reshape(-1), box[0], box[1])
+        r = columns(x[:, None]).reshape(-1)
+        message = f"Terminated after {len(seen)} iterations: cost reduction under {FTOL:g} of the cost (ftol)"
+        return _Solved(x, 0.5 * float(r @ r), np.asarray(last.jacobian), evaluations[0], jacobians[0], message, True)
+    end = trace[-1]
     r = np.asarray(end.residual).reshape(-1)
-    message = out.getvalue().strip().splitlines()
+    lines = out.getvalue().strip().splitlines()
     return _Solved(
         x, 0.5 * float(r @ r), np.asarray(end.jacobian), evaluations[0], jacobians[0],
-        next((line for line in message if line.startswith("Terminated")), ""), len(log) - 1 < MAX_EVALUATIONS,
+        next((line for line in lines if line.startswith("Terminated")), ""), len(trace) - 1 < MAX_EVALUATIONS,
     )  # fmt: skip
 
 

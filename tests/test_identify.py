@@ -240,6 +240,31 @@ def test_the_derivative_free_anchors_find_what_the_exact_jacobian_finds_and_coun
         assert best[-1] <= end * (1 + 1e-6)
 
 
+def test_mujoco_minimize_stops_on_a_step_that_cuts_the_cost_by_less_than_ftol():
+    """A residual the model cannot bring below 1e4 (its first entry), which two values move by 1e-2 each: the
+    gradient is far above mujoco.minimize's gtol, its first step lands on the values (the residual is linear in
+    them), and that step cut the cost by about 1e-11 of it, under FTOL, so the solve ends there, said in its
+    message, with the step taken, the end's residual replayed once, and the Jacobian of the iteration's start."""
+    calls = []
+
+    def residual(p):
+        calls.append(p.copy())
+        return np.array([1e4, 1e-2 * (p[0] - 3.0), 1e-2 * (p[1] + 1.0)])
+
+    def differences(points):
+        return np.stack([residual(p) for p in points])
+
+    solved = machine_fit._mujoco_minimize(
+        residual, differences, np.array([1.0, 1.0]), np.array([-10.0, -10.0]), np.array([10.0, 10.0])
+    )
+    assert "ftol" in solved.message and solved.converged
+    np.testing.assert_allclose(solved.x, [3.0, -1.0], atol=1e-6)
+    assert solved.cost == pytest.approx(0.5e8, rel=1e-12)
+    np.testing.assert_allclose(solved.jac, [[0.0, 0.0], [1e-2, 0.0], [0.0, 1e-2]], atol=1e-8)
+    np.testing.assert_allclose(calls[-1], [3.0, -1.0], atol=1e-6)  # the end replayed
+    assert solved.jacobians == 1
+
+
 def test_the_solver_is_chosen_by_name_and_another_is_refused_in_one_line(tmp_path):
     """``pusupu identify --derivatives`` offers each solver of :class:`machine_fit.Derivatives`; another name is
     refused in one line, exit 2, before anything is read."""
