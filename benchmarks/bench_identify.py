@@ -188,6 +188,8 @@ def main() -> None:
     if args.merge:
         emit(merge([json.loads(Path(f).read_text()) for f in args.merge]), args.out)
         return
+    if args.noisy_only and args.noise_seeds < 1:
+        ap.error(f"--noisy-only: expected --noise-seeds of at least 1, got {args.noise_seeds}")
 
     from pusupu_jax import gains as gain_files
     from pusupu_jax import machine_file, machine_fit, run_log
