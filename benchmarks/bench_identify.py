@@ -20,10 +20,10 @@ AMPS), which its drives' loops close on as a robot's do.
 ``--noise-seeds N`` fits N more copies of the log with the sensors' noise drawn afresh: each motor angle rounded to
 an encoder of ``--encoder-bits`` a turn (at a phase drawn per seed), and each current with Gaussian noise of
 ``--current-noise`` of its axis's RMS.  Each entry says whether the truth lies inside the value's 95 % interval
-(1.96 standard errors), and ``per_value`` gives, per value, the share of seeds whose interval covers it.  The later
-fits find the programs compiled (the logged data are their arguments).  ``--first-seed K --noisy-only`` fits seeds
-K, K+1, ... alone, so that several processes can share the seeds; ``--merge A.json B.json ...`` makes one result of
-theirs.
+(1.96 standard errors), and ``coverage`` gives per solver and value the share of seeds whose interval covers it.
+The later fits find the programs compiled (the logged data are their arguments).  ``--first-seed K --noisy-only``
+fits seeds K, K+1, ... alone, so that several processes can share the seeds; ``--merge A.json B.json ...`` makes one
+result of theirs.
 
 ``--derivatives exact,finite-differences,mujoco-minimize`` fits each log once with each solver and Jacobian
 (:class:`pusupu_jax.machine_fit.Derivatives`): the exact one through the replay, and the derivative-free anchors,
@@ -334,27 +334,30 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict], current
 
 
 def coverage(fits: list[dict]) -> dict:
-    """Over the exact fits of noisy logs: the share of all 95 % intervals that cover the truth (``coverage_95``), and
-    per value (``per_value``) the share of seeds whose interval covers it and the worst relative error, with the least
-    share and the worst error over the values (None without noisy fits)."""
-    noisy = [f for f in fits if f["derivatives"] == "exact" and f["case"] != "noise-free"]
-    if not noisy:
-        return {"noisy_fits": 0, "coverage_95": None, "per_value": None}
-    per_value = {
-        e["name"]: {
-            "covered_95": float(np.mean([f["values"][i]["covered_95"] for f in noisy])),
-            "worst_relative_error": max(f["values"][i]["relative_error"] for f in noisy),
-            "excited": sum(f["values"][i]["excited"] for f in noisy),
+    """Per solver (``coverage``, keyed by its name), over its fits of noisy logs: how many (``noisy_fits``), the share
+    of all 95 % intervals that cover the truth (``coverage_95``), and per value (``per_value``) the share of seeds whose
+    interval covers it and the worst relative error, with the least share and the worst error over the values."""
+    out = {}
+    for solver in dict.fromkeys(f["derivatives"] for f in fits):
+        noisy = [f for f in fits if f["derivatives"] == solver and f["case"] != "noise-free"]
+        if not noisy:
+            continue
+        per_value = {
+            e["name"]: {
+                "covered_95": float(np.mean([f["values"][i]["covered_95"] for f in noisy])),
+                "worst_relative_error": max(f["values"][i]["relative_error"] for f in noisy),
+                "excited": sum(f["values"][i]["excited"] for f in noisy),
+            }
+            for i, e in enumerate(noisy[0]["values"])
         }
-        for i, e in enumerate(noisy[0]["values"])
-    }
-    return {
-        "noisy_fits": len(noisy),
-        "coverage_95": sum(f["covered_95"] for f in noisy) / sum(len(f["values"]) for f in noisy),
-        "least_coverage_95": min(v["covered_95"] for v in per_value.values()),
-        "worst_relative_error_noisy": max(v["worst_relative_error"] for v in per_value.values()),
-        "per_value": per_value,
-    }
+        out[solver] = {
+            "noisy_fits": len(noisy),
+            "coverage_95": sum(f["covered_95"] for f in noisy) / sum(len(f["values"]) for f in noisy),
+            "least_coverage_95": min(v["covered_95"] for v in per_value.values()),
+            "worst_relative_error_noisy": max(v["worst_relative_error"] for v in per_value.values()),
+            "per_value": per_value,
+        }
+    return {"coverage": out}
 
 
 SETTINGS = (
@@ -366,18 +369,24 @@ SETTINGS = (
 def merge(results: list[dict]) -> dict:
     """One result from ``results`` of the same settings (:data:`SETTINGS`): their fits, each case once, and the
     coverage over all of them; ``commands`` and ``machines`` list each part's (a merged part's own lists)."""
-    first = results[0]
+    # the coverage is computed afresh below (a part's own, or one of an older layout, left out)
+    stale = ("coverage", "noisy_fits", "coverage_95", "least_coverage_95", "worst_relative_error_noisy", "per_value")
+    first = {k: v for k, v in results[0].items() if k not in stale}
     for r in results[1:]:
         differ = [k for k in SETTINGS if r.get(k) != first.get(k)]
         if differ:
             raise SystemExit(f"bench_identify: --merge: expected results of the same settings, found {differ} differ")
     fits = {(f["case"], f["derivatives"]): f for r in results for f in r["fits"]}
-    ordered = sorted(fits.values(), key=lambda f: -1 if f["case"] == "noise-free" else int(f["case"].split()[-1]))
+    ordered = sorted(
+        fits.values(),
+        key=lambda f: (f["derivatives"], -1 if f["case"] == "noise-free" else int(f["case"].split()[-1])),
+    )
+    solvers = list(dict.fromkeys(f["derivatives"] for f in ordered))
     commands = [c for r in results for c in r.get("commands", [r["command"]])]
     machines = [m for r in results for m in r.get("machines", [r["machine"]])]
     return (
         first
-        | {"command": None, "commands": commands, "machines": machines, "machine": None}
+        | {"command": None, "commands": commands, "machines": machines, "machine": None, "derivatives": solvers}
         | coverage(ordered)
         | {
             "fits": ordered,
