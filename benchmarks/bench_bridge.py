@@ -214,18 +214,18 @@ def main() -> None:
         }
         if args.log == "alternate":  # the runs with the log written after them, against those without
             results["rates"][f"{rate:g}"]["by_log"] = {
-                way: _by_log([r for r in runs if r["log"] == logged])
+                way: _group_figures([r for r in runs if r["log"] == logged])
                 for way, logged in (("without", False), ("with", True))
             }
             # the same runs by what came before them: another run, or a log's write
             results["rates"][f"{rate:g}"]["by_previous"] = {
-                way: _by_log([r for r in runs if r["after_log_write"] == after])
+                way: _group_figures([r for r in runs if r["after_log_write"] == after])
                 for way, after in (("after_a_run", False), ("after_a_log_write", True))
             }
     emit(results, args.out, indent=2)
 
 
-def _by_log(runs: list[dict]) -> dict:
+def _group_figures(runs: list[dict]) -> dict:
     """One group's runs (with the log or without, after a run or after a log's write): their missed deadlines and
     cycles, and the spread of their missed fraction and latency."""
     return {
