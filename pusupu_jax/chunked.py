@@ -22,7 +22,7 @@ from . import hybrid as hybrid_law
 from .params import LoopRates, ServoParams
 from .plant import AxisPlant
 from .programs import Program, describe
-from .sim import Carry, Rest, initial_carry, period_dt, plant_rest, rollout_chunk
+from .sim import Carry, Rest, initial_carry, period_dt, plant_rest, plant_side, rollout_chunk
 from .trace import Trace
 
 if TYPE_CHECKING:
@@ -91,7 +91,7 @@ def _rest_one(plant: Plant, dt_mech: float) -> Callable[..., Rest]:
     """:func:`~pusupu_jax.sim.plant_rest` of one run: ``(params, model) -> Rest``."""
 
     def rest(params: ServoParams, model: Any) -> Rest:
-        return plant_rest(plant, plant.prepare(params, model, dt_mech))
+        return plant_rest(plant, plant.prepare(*plant_side(params, model), dt_mech))
 
     return rest
 

@@ -33,6 +33,7 @@ filter, clamped PI) and share :class:`PILoop` and :func:`pi_loop_step`.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -206,13 +207,29 @@ def discretize(p: ServoParams, rates: LoopRates) -> Drive:
         pid=lti.c2d(pid_controller(p.Kp_pid, p.Ki_pid, p.Kd_pid, p.Tf_pid), dt_p, m),
         velocity_ff=p.Kff_pid / dt_p,
         ros=RosPID(p.Kp_pid, p.Ki_pid, p.Kd_pid, p.Kff_pid, p.V_max / p.Ke, dt_p),
-        electrical=lti.c2d(electrical_model(p), rates.dt_current, "zoh"),
-        Kt=p.Kt,
-        emf_gain=p.emf_ff * p.Ke / p.Kn,
+        **_motor(p, rates),
         screw=screw_ratio(p),
         force_current=screw_ratio(p) / (p.eta * p.Kt),
         dt_position=dt_p,
     )
+
+
+def on_machine(drive: Drive, p: ServoParams, rates: LoopRates) -> Drive:
+    """``drive`` on a motor whose values are ``p``'s: its electrical model (``R``, ``L``, ``Ke``, the inverter), its
+    torque constant ``Kt`` [N m/A], and the drive's own back-EMF feedforward ``emf_ff Ke / Kn`` [V/(rad/s)] (a drive
+    commissioned with its motor's data, as the simulated robot's drives are) from ``p``; what the host computes from
+    the machine file keeps ``drive``'s, the values it was told (:func:`discretize`): the hybrid force law's current
+    ``r / (eta Kt)`` [A/N] and ROS's PID clamp ``V_max / Ke`` [rad/s]."""
+    return dataclasses.replace(drive, **_motor(p, rates))
+
+
+def _motor(p: ServoParams, rates: LoopRates) -> dict[str, Any]:
+    """The :class:`Drive` fields of the motor and of what its drive knows of it (:func:`on_machine`)."""
+    return {
+        "electrical": lti.c2d(electrical_model(p), rates.dt_current, "zoh"),
+        "Kt": p.Kt,
+        "emf_gain": p.emf_ff * p.Ke / p.Kn,
+    }
 
 
 # ---------------------------------------------------------------- init / step pairs

@@ -26,7 +26,7 @@ from . import paths
 from .cascade import POSITION_MODES, control_mode
 from .objectives import branch_force
 from .params import LoopRates, ParameterError, ServoParams, stack, validate
-from .plant import dynamics, kinematics
+from .plant import PlantDrives, dynamics, kinematics
 from .plant.axis import screw_ratio
 from .plant.geometry import Geometry
 from .plant.mjx_plant import MJXPlant
@@ -94,12 +94,14 @@ def machine_reference(
 class Scenario:
     """One run of the machine: platform poses ``path`` ``(N, 5)`` (one per position period) on the machine
     built with ``options`` (seeded kinematic errors, payload) and the nominal ``geometry`` (None: the default, see
-    :meth:`Geometry.default`); ``name`` labels it in reports."""
+    :meth:`Geometry.default`); ``name`` labels it in reports; ``drives``: drive values of the machine's own where it
+    differs from what the controller is told (:class:`~pusupu_jax.plant.PlantDrives`), or None."""
 
     path: np.ndarray
     options: ModelOptions = ModelOptions()
     name: str = ""
     geometry: Geometry | None = None
+    drives: dict[str, Any] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -210,7 +212,10 @@ def simulate_scenarios(
             setpoint = np.broadcast_to(setpoint, (length, 3))
             reference = compliance_law.ComplianceReference(jnp.asarray(padded), jnp.asarray(setpoint), reference)
         references.append(reference)
-        models.append(plant.variant(sc.options, sc.geometry))
+        model = plant.variant(sc.options, sc.geometry)
+        models.append(model if sc.drives is None else PlantDrives(model, sc.drives))
+    if len({sc.drives is None for sc in scenarios}) > 1:
+        raise ValueError("simulate_scenarios: expected drive values for every scenario or for none")
     t0 = time.perf_counter()
     traces, _ = run_chunked(
         servo,

@@ -33,7 +33,7 @@ from . import compliance as compliance_law
 from . import hybrid as hybrid_law
 from . import loops
 from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate
-from .plant import AxisPlant
+from .plant import AxisPlant, PlantDrives
 from .plant.axis import screw_ratio
 from .plant.kinematics import inverse_kinematics
 from .trace import Trace
@@ -169,6 +169,16 @@ def period_dt(rates: LoopRates, mode: cascade_.ControlMode) -> float:
     return {"current": rates.dt_mech, "velocity": rates.dt_velocity, "position": rates.dt_position}[mode.closed]
 
 
+def plant_side(params: ServoParams, plant_params: Any) -> tuple[ServoParams, Any]:
+    """``(the drive values the machine has, the plant's own parameters)``: ``params`` and ``plant_params`` as they
+    are, or, for a :class:`~pusupu_jax.plant.PlantDrives`, ``params`` with its drive values over them and its
+    ``params``.  The plant, the motor and its drive's own feedforward (:func:`pusupu_jax.loops.on_machine`) run on
+    the first; the controllers and the host's force law on ``params``."""
+    if isinstance(plant_params, PlantDrives):
+        return params.replace(**plant_params.drives), plant_params.params
+    return params, plant_params
+
+
 def pieces(
     params: ServoParams,
     plant_params: Any,
@@ -182,7 +192,10 @@ def pieces(
     if mode.hybrid != (hybrid is not None):
         raise ValueError("rollout: hybrid gains are needed exactly when outer='hybrid'")
     drive = loops.discretize(params, rates)
-    aux = plant.prepare(params, plant_params, rates.dt_mech)
+    machine, plant_params = plant_side(params, plant_params)
+    if machine is not params:
+        drive = loops.on_machine(drive, machine, rates)
+    aux = plant.prepare(machine, plant_params, rates.dt_mech)
     n_mech_steps = rates.n_velocity // rates.n_mech
 
     def record(c: Carry, ref: Any, out: tuple[jax.Array, jax.Array], observation: Any = None) -> dict[str, Any]:

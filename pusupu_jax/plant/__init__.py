@@ -24,9 +24,25 @@ A plant is a hashable object (a static argument of the jitted rollout) with:
   step (the full state of a large plant would not fit in memory over long runs).
 """
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from .axis import AxisPlant
+
+
+class PlantDrives(NamedTuple):
+    """A plant's parameters with drive values of the machine's own, where the machine differs from its machine file
+    (a machine drawn about an identified one, :mod:`pusupu_jax.machine_draws`).
+
+    ``params``: what a plant's ``prepare`` takes as ``plant_params`` (an MJX model, a single-axis load).  ``drives``:
+    ``{field: (n_axes,)}``, plant fields of :class:`~pusupu_jax.params.ServoParams` (friction [N], [N s/m], rotor
+    inertia ``J`` [kg m^2], ``Kt`` [N m/A], ``Ke`` [V s/rad]...).  The rollout gives them to the plant, the motor and
+    what each drive knows of its motor (its back-EMF feedforward); what the host computes from the machine file (the
+    hybrid force law's current, ROS's PID clamp) keeps the ServoParams' values (:func:`pusupu_jax.sim.plant_side`,
+    :func:`pusupu_jax.loops.on_machine`)."""
+
+    params: Any
+    drives: dict[str, Any]
+
 
 if TYPE_CHECKING:
     from typing import Any, Protocol
@@ -64,4 +80,4 @@ if TYPE_CHECKING:
         def observe(self, aux: Any, state: Any) -> Any: ...
 
 
-__all__ = ["AxisPlant"]
+__all__ = ["AxisPlant", "PlantDrives"]
