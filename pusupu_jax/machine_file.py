@@ -3,7 +3,7 @@
 A machine file describes one 6PUS-UPU robot, never its controller: the mechanism's geometry and
 masses, each axis's drive (motor, inverter, ball screw, ratings) and drive-train friction, and the
 payload.  The gain file says what the controller is told; no field lives in both.  Schema
-``pusupu-machine`` version 1, every key required (``pusupu machine init`` writes the built-in
+``pusupu-machine`` version 1, every key required but ``uncertainty`` (``pusupu machine init`` writes the built-in
 machine as a commented template; ``docs/machine.md`` documents each field)::
 
     format: pusupu-machine
@@ -13,6 +13,7 @@ machine as a commented template; ``docs/machine.md`` documents each field)::
     drives: {R: 1.3, L: 0.0027, ...}                # every plant field of ServoParams: a number, or six
                                                     # (optional: encoder_counts, current_noise: the sensors)
     payload: {mass: 0.0, com: [0, 0, 0], inertia: [0, 0, 0]}
+    uncertainty: {coulomb: 0.4, Kt: [...], ...}    # optional: standard errors of identified values
 
 :func:`load` reads and checks one: size, keys, shapes, signs, each drive value's range
 (:func:`pusupu_jax.params.bounds`), the geometry's consistency, and that the home pose is
@@ -59,6 +60,17 @@ PAYLOAD_FIELDS = {
     ),
 }
 COND_MAX = 30.0  # the Jacobian condition number a pose may reach (kinematics.check_poses)
+# the optional ``uncertainty`` section: the standard error of each value ``pusupu identify`` fits (its --fit names,
+# :class:`pusupu_jax.machine_fit.FitField`), what ``pusupu tune``'s ``draws`` draw machines from; its shape (a
+# per-axis drive field: one number for all six axes or six), unit and meaning
+UNCERTAINTY_FIELDS = {
+    "coulomb": ((N_AXES,), "N", "Coulomb friction at the slider"),
+    "viscous": ((N_AXES,), "N*s/m", "viscous friction at the slider"),
+    "J": ((N_AXES,), "kg*m^2", "the motor's rotor inertia"),
+    "Kt": ((N_AXES,), "N*m/A", "the motor's torque constant (Ke follows it in a draw)"),
+    "payload_mass": ((), "kg", "the payload's mass"),
+    "payload_com": ((3,), "m", "the payload's centre of mass"),
+}
 
 
 class Sensor(NamedTuple):
@@ -126,7 +138,8 @@ class Machine:
     """One robot: ``geometry``, ``drives`` (``{field: (6,) array}`` of the plant fields of
     :class:`~pusupu_jax.params.ServoParams`), ``payload``, ``encoder_counts`` (counts per motor revolution,
     ``(6,)`` integers; None: ideal encoders) and ``current_noise`` (the current sensors' standard deviation [A],
-    ``(6,)``; None: noise-free); ``name`` labels it."""
+    ``(6,)``; None: noise-free), ``uncertainty`` (the standard errors of identified values, ``{name: array}`` of
+    :data:`UNCERTAINTY_FIELDS`, in their units; None: none given); ``name`` labels it."""
 
     name: str
     geometry: Geometry
@@ -134,6 +147,7 @@ class Machine:
     payload: Payload = field(default_factory=Payload)
     encoder_counts: np.ndarray | None = None
     current_noise: np.ndarray | None = None
+    uncertainty: dict[str, np.ndarray] | None = None
 
     @classmethod
     def default(cls) -> "Machine":
@@ -171,11 +185,21 @@ class Machine:
         )
 
     def content(self) -> dict[str, Any]:
-        """The machine as plain data (lists and floats), every field: what :func:`digest` hashes (the sensors only
-        where given, so that a file without them keeps its digest)."""
+        """The machine as plain data (lists and floats), every field: what :func:`digest` hashes (the sensors and the
+        uncertainty only where given, so that a file without them keeps its digest)."""
         sensors = {
             k: _compact(getattr(self, k), spec.kind) for k, spec in SENSORS.items() if getattr(self, k) is not None
         }
+        uncertainty = (
+            {}
+            if self.uncertainty is None
+            else {
+                "uncertainty": {
+                    k: _compact(v) if UNCERTAINTY_FIELDS[k][0] == (N_AXES,) else np.asarray(v, float).tolist()
+                    for k, v in self.uncertainty.items()
+                }
+            }
+        )
         return {
             "format": FORMAT,
             "version": VERSION,
@@ -187,7 +211,7 @@ class Machine:
                 "com": [float(x) for x in self.payload.com],
                 "inertia": [float(x) for x in self.payload.inertia],
             },
-        }
+        } | uncertainty
 
 
 def digest(machine: Machine) -> str:
@@ -297,7 +321,7 @@ def load(path: str | os.PathLike[str]) -> Machine:
 
 def parse(doc: Any) -> Machine:
     """:func:`load` on a parsed document."""
-    inputs.check_keys(doc, "machine file", KEYS, ParameterError, required=KEYS)
+    inputs.check_keys(doc, "machine file", [*KEYS, "uncertainty"], ParameterError, required=KEYS)
     if doc["format"] != FORMAT:
         raise ParameterError(f"format: expected {FORMAT!r}, got {inputs.shown(doc['format'])}")
     if doc["version"] != VERSION or isinstance(doc["version"], bool):
@@ -309,7 +333,8 @@ def parse(doc: Any) -> Machine:
     drives = _drives(doc["drives"])
     payload = _payload(doc["payload"])
     sensors = {k: _sensor(k, doc["drives"][k]) for k in SENSORS if k in doc["drives"]}
-    machine = Machine(name, geometry, drives, payload, **sensors)
+    uncertainty = _uncertainty(doc["uncertainty"]) if "uncertainty" in doc else None
+    machine = Machine(name, geometry, drives, payload, **sensors, uncertainty=uncertainty)
     check(machine)
     return machine
 
@@ -375,6 +400,23 @@ def _sensor(name: str, value: Any) -> np.ndarray:
         [read(v, where if not isinstance(value, list) else f"{where}[{k}]") for k, v in enumerate(values)],
         dtype=np.int64 if spec.kind is int else float,
     )
+
+
+def _uncertainty(values: Any) -> dict[str, np.ndarray]:
+    """The optional ``uncertainty`` section: standard errors, each finite and non-negative, in
+    :data:`UNCERTAINTY_FIELDS`'s shapes (a per-axis one as one number for all six axes, or six)."""
+    names = list(UNCERTAINTY_FIELDS)
+    inputs.check_keys(values, "uncertainty", names, ParameterError, what="field")
+    out = {}
+    for k, v in values.items():
+        shape, where = UNCERTAINTY_FIELDS[k][0], f"uncertainty.{k}"
+        if shape == (N_AXES,) and not isinstance(v, list):
+            v = [v] * N_AXES
+        arr = _array(v, where, shape)
+        if (arr < 0).any():
+            raise ParameterError(f"{where}: expected standard errors >= 0, got {arr.tolist()}")
+        out[k] = arr
+    return out
 
 
 def encoder_quanta(machine: Machine, dt_velocity: float) -> dict[str, list[float]] | None:
@@ -455,6 +497,11 @@ def template(machine: Machine | None = None) -> str:
     for k, (_, unit, doc) in PAYLOAD_FIELDS.items():
         lines.append(f"  # {doc} [{unit}]")
         lines.append(f"  {k}: {_flow(content['payload'][k])}")
+    if "uncertainty" in content:
+        lines.append("uncertainty:  # standard errors of identified values: pusupu tune's draws (docs/tuning.md)")
+        for k, v in content["uncertainty"].items():
+            lines.append(f"  # {UNCERTAINTY_FIELDS[k][2]} [{UNCERTAINTY_FIELDS[k][1]}]")
+            lines.append(f"  {k}: {_flow(v)}")
     return "\n".join(lines) + "\n"
 
 
@@ -490,6 +537,13 @@ def json_schema() -> dict[str, Any]:
             "description": f"{spec.doc} [{spec.unit}]; range: {spec.range_doc}",
             "oneOf": [one, {"type": "array", "items": one, "minItems": N_AXES, "maxItems": N_AXES}],
         }
+    uncertainty = {}
+    for k, (shape, unit, doc) in UNCERTAINTY_FIELDS.items():
+        one = {"type": "number", "minimum": 0}
+        many = {"type": "array", "items": one, "minItems": shape[0], "maxItems": shape[0]} if shape else None
+        uncertainty[k] = {"description": f"standard error of {doc} [{unit}]"} | (
+            {"oneOf": [one, many]} if shape == (N_AXES,) else many or one
+        )
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": f"{FORMAT} version {VERSION}",
@@ -521,6 +575,12 @@ def json_schema() -> dict[str, Any]:
                 "properties": {
                     k: shaped(s) | {"description": f"{doc} [{unit}]"} for k, (s, unit, doc) in PAYLOAD_FIELDS.items()
                 },
+            },
+            "uncertainty": {
+                "description": "optional: standard errors of identified values (pusupu identify writes them)",
+                "type": "object",
+                "additionalProperties": False,
+                "properties": uncertainty,
             },
         },
     }

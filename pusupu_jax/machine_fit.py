@@ -157,6 +157,17 @@ def with_values(machine: Machine, values: dict[FitField, np.ndarray]) -> Machine
     )
 
 
+def uncertainty_of(values: tuple[FittedValue, ...]) -> dict[str, np.ndarray]:
+    """The identified machine file's ``uncertainty`` section (:data:`pusupu_jax.machine_file.UNCERTAINTY_FIELDS`):
+    each fitted field's standard errors, in its unit, 0 for a value the logs did not excite (the machine file's value,
+    kept: nothing to draw it from)."""
+    out: dict[str, np.ndarray] = {}
+    for v in values:
+        errors = out.setdefault(str(v.field), np.zeros(v.field.size))
+        errors[v.index] = v.std_error if v.excited else 0.0
+    return {k: e.reshape(()) if k == FitField.PAYLOAD_MASS else e for k, e in out.items()}
+
+
 class Channel(enum.StrEnum):
     """What a log's drive effort is compared as: the measured current where the log has it, else the torque."""
 
@@ -726,7 +737,7 @@ def fit(
         wall_s=time.perf_counter() - t0,
         logs=tuple({"path": log.path, "sha256": log.digest, "source": log.source} for log in logs),
     )
-    identified = with_values(machine, split(fitted))
+    identified = dataclasses.replace(with_values(machine, split(fitted)), uncertainty=uncertainty_of(values))
     plots, at = [], 0  # the replayed efforts, from the residual's first part for each log (no other program)
     for r in replays:
         n, s_effort = r.effort.size, scales[r.channel]

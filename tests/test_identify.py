@@ -69,6 +69,31 @@ def test_fitted_values_go_into_the_machine_file_that_is_written():
     assert written.payload.mass == 4.5 and list(written.payload.com) == [0.01, -0.02, 0.03]
 
 
+def test_the_standard_errors_go_into_the_uncertainty_section_and_an_unexcited_value_has_none():
+    """What ``pusupu identify --out`` writes beside the values (``pusupu tune``'s ``draws`` draw from it): each fitted
+    value's standard error in its field's shape, 0 where the logs did not excite the value."""
+    import dataclasses
+
+    import yaml
+
+    from pusupu_jax import machine_file
+    from pusupu_jax.machine_file import Machine
+
+    values = [machine_fit.FittedValue(FitField.VISCOUS, k, 50.0, 51.0, 0.1 * (k + 1), k != 4) for k in range(6)]
+    values += [machine_fit.FittedValue(FitField.PAYLOAD_MASS, 0, 3.0, 5.0, 0.02, True)]
+    values += [machine_fit.FittedValue(FitField.PAYLOAD_COM, k, 0.0, 0.01, 0.001 * (k + 1), True) for k in range(3)]
+    errors = machine_fit.uncertainty_of(tuple(values))
+    machine = dataclasses.replace(Machine.default(), uncertainty=errors)
+    written = machine_file.parse(yaml.safe_load(machine_file.template(machine)))
+    np.testing.assert_allclose(written.uncertainty["viscous"], [0.1, 0.2, 0.3, 0.4, 0.0, 0.6], rtol=1e-15)
+    assert float(written.uncertainty["payload_mass"]) == 0.02 and set(written.uncertainty) == {
+        "viscous",
+        "payload_mass",
+        "payload_com",
+    }
+    np.testing.assert_allclose(written.uncertainty["payload_com"], [0.001, 0.002, 0.003], rtol=1e-15)
+
+
 def test_a_fitted_value_against_a_known_truth():
     """The error, the error relative to the truth (a centre-of-mass coordinate's relative to the truth's distance from
     the platform's centre) and whether 1.96 standard errors cover the truth."""

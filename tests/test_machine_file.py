@@ -91,6 +91,24 @@ def test_sensors_are_optional_and_a_file_without_them_keeps_its_digest():
 BUILT_IN_DIGEST = "203637fd0b107eff7383196032cbe91085c6bd85070b754fbbe25f4b6b0fa4de"
 
 
+def test_the_uncertainty_section_is_optional_reads_back_and_enters_the_digest():
+    """What ``pusupu identify`` writes: the standard errors of the fitted values.  A per-axis one is one number for all
+    six axes or six; the payload's mass one number, its centre of mass three.  The template writes the section back
+    as read (a file without it keeps its digest)."""
+    doc = yaml.safe_load(machine_file.template())
+    assert "uncertainty" not in doc and machine_file.parse(doc).uncertainty is None
+    doc["uncertainty"] = {"coulomb": 0.5, "Kt": [0.01, 0.02, 0.01, 0.01, 0.01, 0.01], "payload_com": [0.001, 0, 0.002]}
+    doc["uncertainty"]["payload_mass"] = 0.05
+    m = machine_file.parse(doc)
+    np.testing.assert_array_equal(m.uncertainty["coulomb"], np.full(6, 0.5))
+    assert m.uncertainty["payload_mass"].shape == () and m.uncertainty["payload_com"].shape == (3,)
+    assert machine_file.digest(m) != BUILT_IN_DIGEST
+    again = machine_file.parse(yaml.safe_load(machine_file.template(m)))
+    assert machine_file.digest(again) == machine_file.digest(m)
+    for k, v in m.uncertainty.items():
+        np.testing.assert_array_equal(again.uncertainty[k], v)
+
+
 def test_the_schema_file_is_generated_from_the_fields():
     shipped = Path(machine_file.__file__).parent / "schemas" / "pusupu-machine.schema.json"
     assert shipped.read_text() == machine_file.schema_text()
@@ -121,6 +139,9 @@ BAD = {
     "an encoder list of five": (lambda d: d["drives"].update(encoder_counts=[4096] * 5), "drives.encoder_counts"),
     "a negative current noise": (lambda d: d["drives"].update(current_noise=-0.1), "drives.current_noise: expected"),
     "a current noise of NaN": (lambda d: d["drives"].update(current_noise=[0.1] * 5 + [float("nan")]), "current_noise"),
+    "a negative standard error": (lambda d: d.update(uncertainty={"coulomb": -1.0}), "uncertainty.coulomb: expected"),
+    "an uncertainty of a field not fitted": (lambda d: d.update(uncertainty={"R": 0.1}), "unknown field 'R'"),
+    "a centre of mass's error of two": (lambda d: d.update(uncertainty={"payload_com": [0.1, 0.1]}), "payload_com"),
 }
 
 
