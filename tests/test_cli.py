@@ -90,17 +90,19 @@ def test_sim_step_prints_metrics_and_plots(tmp_path, in_process):
         (["sim", "--plot", "/no/such/folder/x.png"], None),
         (["analyze", "--params", "/no/such/file.yaml"], None),
         (["batch", "job.yaml", "--ray", "--workers", "1", "--cpus-per-task", "2"], None),
+        (["tune", "--config", "{bad}", "--out", "{bad}.out"], "draws: 2\n"),  # the built-in machine: nothing to draw
     ],
 )
 def test_bad_input_exits_2_with_one_line(tmp_path, args, message):
     bad = tmp_path / "bad.yaml"
     if message:
         bad.write_text(message)
-    r = pusupu(*[str(bad) if a == "{bad}" else a for a in args], check=False)
+    r = pusupu(*[a.replace("{bad}", str(bad)) for a in args], check=False)
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("pusupu: error: "), r.stderr
     assert "Traceback" not in r.stderr and r.stdout == ""
+    assert not (tmp_path / "bad.yaml.out").exists()
 
 
 @pytest.mark.parametrize(

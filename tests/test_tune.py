@@ -105,6 +105,7 @@ def test_per_axis_space_tunes_each_axis_and_checks_bounds():
         ("baselines: [hybrid]", "baselines: expected a list of distinct modes"),
         ("ros_joints: [a, b]", "ros_joints: expected 6 distinct names of letters, digits and _"),
         ("a: &x 1\nb: *x", "anchors are not accepted"),
+        ("draws: -1", r"draws: expected an integer in \[0, 256\], got -1"),
     ],
 )
 def test_bad_tune_configurations_are_rejected(tmp_path, text, message):
@@ -125,6 +126,43 @@ def test_a_tune_configuration_overrides_the_defaults(tmp_path):
     assert cfg.kin_error_seeds == (None, 3) and cfg.payloads == (0.0, 10.0)
     assert cfg.bounds == {"lambda1": (0.005, 0.3)} and cfg.iterations == TuneConfig().iterations
     assert cfg.digest() != TuneConfig().digest()
+
+
+def test_draws_add_each_scenario_on_machines_drawn_from_the_identified_one_with_the_controller_told_it():
+    """``draws: 2`` on a machine with an uncertainty section: each path and payload on the machine and on two drawn
+    machines (the same two for each), every scenario with its drive values (PlantDrives: the plant's, not the
+    controller's), the payloads drawn too; a machine without the section is refused in one line."""
+    import dataclasses
+
+    from pusupu_jax.machine_file import Machine
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.run import scenario_list
+
+    base = Machine.default()
+    machine = dataclasses.replace(
+        base, uncertainty={"viscous": np.full(6, 5.0), "payload_mass": np.array(0.3), "Kt": np.full(6, 0.02)}
+    )
+    cfg = TuneConfig(trajectories=("arc", "p2p"), payloads=(0.0, 10.0), draws=2)
+    specs = scenario_list(cfg, machine)
+    assert [s.name for s in specs[:6]] == [
+        "arc",
+        "arc/draw1",
+        "arc/draw2",
+        "arc/10kg",
+        "arc/10kg/draw1",
+        "arc/10kg/draw2",
+    ]
+    assert len(specs) == 12 and specs[6].name == "p2p"
+    np.testing.assert_array_equal(specs[0].drives["viscous"], base.drives["viscous"])
+    for a, b in ((1, 7), (2, 11), (1, 4)):  # the same drawn machine on every path and payload
+        for k in ("viscous", "Kt", "Ke"):
+            np.testing.assert_array_equal(specs[a].drives[k], specs[b].drives[k])
+    assert not np.array_equal(specs[1].drives["viscous"], specs[2].drives["viscous"])
+    np.testing.assert_array_equal(specs[1].drives["coulomb"], base.drives["coulomb"])  # no standard error: not drawn
+    assert specs[4].options.payload == pytest.approx(10.0 + specs[1].options.payload)
+    assert all(s.drives is None for s in scenario_list(TuneConfig(), machine))
+    with pytest.raises(ParameterError, match="draws: expected a machine file with an uncertainty section"):
+        scenario_list(cfg, base)
 
 
 class _Stream:

@@ -16,6 +16,8 @@ Every key of :class:`TuneConfig` may appear in the file (unknown keys are errors
                                # start states
     kin_error_seeds: [null]    # robust tuning: scenarios with seeded kinematic errors
     payloads: [0.0]            # kg, scenarios with a payload on the platform
+    draws: 0                   # robust tuning: each scenario also on this many machines drawn from the machine
+                               # file's uncertainty section (pusupu identify writes it; docs/tuning.md)
     aggregate: mean            # mean | max over scenarios
     iterations: 25
     learning_rate: 0.1         # Adam on the log-parameters
@@ -61,6 +63,8 @@ from .space import GROUPS
 # the tuned fields' groups and sharing name it through the space, the IMC form through the start point's structure;
 # the paths, seeds, payloads and the start point's values enter as arguments; the optimiser's, the schedule's and the
 # outputs' settings and the bounds are used on the host only
+MAX_DRAWS = 256  # machines drawn per scenario at most (each is as much work as the scenario itself)
+
 OBJECTIVE_SETTINGS = (
     "mode",
     "windows",
@@ -89,6 +93,7 @@ class TuneConfig:
     refresh_every: int = 5
     kin_error_seeds: tuple = (None,)
     payloads: tuple = (0.0,)
+    draws: int = 0
     aggregate: str = "mean"
     iterations: int = 25
     learning_rate: float = 0.1
@@ -198,6 +203,7 @@ class TuneConfig:
         need(isinstance(self.payloads, tuple) and self.payloads, "payloads", "a list of masses [kg]", self.payloads)
         for k, p in enumerate(self.payloads):
             inputs.number(p, f"tune config payloads[{k}]", ParameterError, low=0.0, high=1000.0)
+        inputs.integer(self.draws, "tune config draws", ParameterError, low=0, high=MAX_DRAWS)
         need(self.aggregate in ("mean", "max"), "aggregate", "mean or max", self.aggregate)
         num("final_lr_fraction", low=0.0, low_open=True, high=1.0)
         for key in ("learning_rate", "clip_norm", "sharpness_force", "force_peak_limit"):

@@ -54,7 +54,7 @@ def evaluate_baselines(cfg: TuneConfig, rates, specs=None, servo: ServoParams | 
     configuration's on the built-in machine), with the start gains ``servo`` (default Table 1)."""
     specs = scenario_list(cfg) if specs is None else specs
     servo = ServoParams.table1() if servo is None else servo
-    scenarios = [Scenario(spec.path(rates), spec.options, spec.name, spec.geometry) for spec in specs]
+    scenarios = [Scenario(spec.path(rates), spec.options, spec.name, spec.geometry, spec.drives) for spec in specs]
     return {
         mode: {sc.name: out for sc, out in zip(scenarios, simulate_scenarios(servo, scenarios, mode=mode, rates=rates))}
         for mode in cfg.baselines

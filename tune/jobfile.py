@@ -10,7 +10,7 @@ A job file (JSON Schema: ``tune/schemas/pusupu-batch.schema.json``; ``docs/batch
     machine: my_robot.yaml     # the machine file every job runs on (docs/machine.md; relative: from the job file's
                                #   folder); default the built-in machine.  Its start gains as pusupu tune's.
     tune:                      # every pusupu tune key but the scenario ones (trajectories, kin_error_seeds,
-      iterations: 10           #   payloads, path_s, baselines): groups, weights, the optimiser, starts, ...
+      iterations: 10           #   payloads, draws, path_s, baselines): groups, weights, the optimiser, starts, ...
       starts: 2                #   mode, windows and window_s are the scenarios' defaults
     scenarios:
       - name: arc-seed1        # default: trajectory/seedN/Pkg (a path file: its stem)
@@ -70,7 +70,7 @@ SCENARIO_KEYS = (
     "window_s",
 )
 SCENARIO_TUNE_KEYS = ("mode", "windows", "window_s")  # per scenario, default from tune:
-NOT_IN_TUNE = ("trajectories", "kin_error_seeds", "payloads", "path_s", "baselines")  # the scenarios say these
+NOT_IN_TUNE = ("trajectories", "kin_error_seeds", "payloads", "draws", "path_s", "baselines")  # the scenarios say these
 GEOMETRY_FIELDS = tuple(f.name for f in dataclasses.fields(Geometry))
 
 

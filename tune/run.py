@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
-from pusupu_jax import devices, machine_file, objectives, workload
+from pusupu_jax import devices, machine_draws, machine_file, objectives, workload
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.gradients import value_and_grad
 from pusupu_jax.hybrid import HybridGains
@@ -32,6 +32,7 @@ from pusupu_jax.machine import machine_metrics, machine_plant, machine_rates, ma
 from pusupu_jax.margins import envelope_margins
 from pusupu_jax.machine_file import Machine
 from pusupu_jax.params import ParameterError, ServoParams, stack
+from pusupu_jax.plant import PlantDrives
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
 from pusupu_jax.programs import Program, UnstableKey, describe, fingerprint
@@ -53,13 +54,16 @@ GRADIENTS_KEPT = 4  # compiled gradients kept for Problems built again with the 
 class ScenarioSpec:
     """One scenario: a path (a name or a path file, :func:`pusupu_jax.paths.platform_path_from`; the first ``path_s``
     seconds of it, or all) on a machine with ``options`` (seeded kinematic errors, payload) and the nominal geometry
-    ``geometry`` (None: :meth:`Geometry.default`)."""
+    ``geometry`` (None: :meth:`Geometry.default`); ``drives``: the drive values of a machine drawn about the tuned one
+    (:func:`pusupu_jax.machine_draws.plant_drives`, run as :class:`~pusupu_jax.plant.PlantDrives`: the machine file
+    still the tuned machine's), or None: the tuned machine's own."""
 
     name: str
     trajectory: str
     options: ModelOptions = ModelOptions()
     geometry: Geometry | None = None
     path_s: float | None = None
+    drives: dict | None = None
 
     def geom(self) -> Geometry:
         return Geometry.default() if self.geometry is None else self.geometry
@@ -73,21 +77,31 @@ class ScenarioSpec:
 def scenario_list(cfg: TuneConfig, machine: Machine | None = None) -> list[ScenarioSpec]:
     """Every scenario of the configuration on ``machine`` (default: the built-in one), named ``arc``, ``arc/seed3``,
     ``p2p/seed3/10kg``... (a path file by its stem; a payload scenario adds its mass to the machine's payload, at the
-    same centre of mass)."""
+    same centre of mass).  With ``cfg.draws``, each also on that many machines drawn about ``machine``
+    (:func:`pusupu_jax.machine_draws.draw`, seeded by ``cfg.seed``), named ``arc/draw1``..."""
     machine = Machine.default() if machine is None else machine
-    base = machine.options()
-    return [
-        ScenarioSpec(
-            path_label(kind) + (f"/seed{seed}" if seed is not None else "") + (f"/{payload:g}kg" if payload else ""),
-            kind,
-            dataclasses.replace(base, kin_error_seed=seed, payload=base.payload + float(payload)),
-            geometry=machine.geometry,
-            path_s=cfg.path_s,
-        )
-        for kind in cfg.trajectories
-        for seed in cfg.kin_error_seeds
-        for payload in cfg.payloads
-    ]
+    machines = [(machine, "")]
+    if cfg.draws:
+        drawn = machine_draws.draw(machine, cfg.draws, cfg.seed)
+        machines += [(m, f"/draw{k + 1}") for k, m in enumerate(drawn)]
+    out = []
+    for kind in cfg.trajectories:
+        for seed in cfg.kin_error_seeds:
+            for payload in cfg.payloads:
+                for m, label in machines:
+                    base = m.options()
+                    name = path_label(kind) + (f"/seed{seed}" if seed is not None else "")
+                    out.append(
+                        ScenarioSpec(
+                            name + (f"/{payload:g}kg" if payload else "") + label,
+                            kind,
+                            dataclasses.replace(base, kin_error_seed=seed, payload=base.payload + float(payload)),
+                            geometry=machine.geometry,
+                            path_s=cfg.path_s,
+                            drives=machine_draws.plant_drives(m) if cfg.draws else None,
+                        )
+                    )
+    return out
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,12 +148,15 @@ class Scenarios:
                 refs.append(
                     machine_reference(servo, padded, cfg.mode, options=spec.options, rates=rates, geom=spec.geom())
                 )
-                models.append(plant.variant(spec.options, spec.geometry))
+                model = plant.variant(spec.options, spec.geometry)
+                models.append(model if spec.drives is None else PlantDrives(model, spec.drives))
             except ParameterError as e:
                 raise type(e)(f"scenario {spec.name}: {e}") from None
             lengths.append(len(path))
             cut.append(path)
             padded_paths.append(padded)
+        if len({spec.drives is None for spec in specs}) > 1:
+            raise ValueError("Scenarios.build: expected drive values for every scenario or for none")
         group_of = [len(p) for p in padded_paths]
         groups = {}
         for n in dict.fromkeys(group_of):
@@ -339,6 +356,9 @@ class Problem(WindowStarts):
             jnp.asarray(sc.window_path),
             stack(list(self.loads.values())),
         )
+        if specs[0].drives is not None:  # the margins on every machine the scenarios run on (drawn ones), too
+            machines = {tuple(np.concatenate([np.ravel(v) for v in s.drives.values()])): s.drives for s in specs}
+            self.windows += (stack(list(machines.values())),)
         self.rows = len(sc.names)
         # every window of every scenario is independent: they are laid over the devices (one per CPU core)
         self.mesh = devices.row_mesh(self.rows * sc.windows)
@@ -476,7 +496,13 @@ class Problem(WindowStarts):
         point ``(servo0, hybrid0)`` (:attr:`Space.start`) that gives the fields not tuned."""
         t, traces = self.scenario_terms(z, starts, windows, start)
         per = scenario_objective(self.cfg, t, baseline)
-        margins = envelope_margins(self.space.apply(z, start)[0], windows[3], mode=self.cfg.mode)
+        servo = self.space.apply(z, start)[0]
+        if len(windows) > 4:  # on each machine drawn (its drive values in both the plant and the controller)
+            margins = jax.vmap(lambda d: envelope_margins(servo.replace(**d), windows[3], mode=self.cfg.mode))(
+                windows[4]
+            )
+        else:
+            margins = envelope_margins(servo, windows[3], mode=self.cfg.mode)
         return aggregate(self.cfg, per, margins), {"scenarios": per, "terms": t}
 
     def value_and_grad(self, z):
