@@ -160,6 +160,9 @@ def test_draws_add_each_scenario_on_machines_drawn_from_the_identified_one_with_
     assert not np.array_equal(specs[1].drives["viscous"], specs[2].drives["viscous"])
     np.testing.assert_array_equal(specs[1].drives["coulomb"], base.drives["coulomb"])  # no standard error: not drawn
     assert specs[4].options.payload == pytest.approx(10.0 + specs[1].options.payload)
+    # the host's reference (hybrid's force feedforward) keeps the machine file's payload, not the drawn one
+    assert specs[0].told is None and specs[1].told.payload == 0.0 and specs[4].told.payload == 10.0
+    assert {s.options.payload for s in specs[1:3]} != {0.0}
     assert all(s.drives is None for s in scenario_list(TuneConfig(), machine))
     with pytest.raises(ParameterError, match="draws: expected a machine file with an uncertainty section"):
         scenario_list(cfg, base)

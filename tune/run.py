@@ -56,7 +56,9 @@ class ScenarioSpec:
     seconds of it, or all) on a machine with ``options`` (seeded kinematic errors, payload) and the nominal geometry
     ``geometry`` (None: :meth:`Geometry.default`); ``drives``: the drive values of a machine drawn about the tuned one
     (:func:`pusupu_jax.machine_draws.plant_drives`, run as :class:`~pusupu_jax.plant.PlantDrives`: the machine file
-    still the tuned machine's), or None: the tuned machine's own."""
+    still the tuned machine's), or None: the tuned machine's own; ``told``: the options the host computes the
+    reference with (the hybrid force feedforward's payload), where not ``options``: a drawn machine's payload is not
+    the machine file's."""
 
     name: str
     trajectory: str
@@ -64,6 +66,7 @@ class ScenarioSpec:
     geometry: Geometry | None = None
     path_s: float | None = None
     drives: dict | None = None
+    told: ModelOptions | None = None
 
     def geom(self) -> Geometry:
         return Geometry.default() if self.geometry is None else self.geometry
@@ -84,21 +87,26 @@ def scenario_list(cfg: TuneConfig, machine: Machine | None = None) -> list[Scena
     if cfg.draws:
         drawn = machine_draws.draw(machine, cfg.draws, cfg.seed)
         machines += [(m, f"/draw{k + 1}") for k, m in enumerate(drawn)]
+
+    def options(m: Machine, seed: int | None, payload: float) -> ModelOptions:
+        base = m.options()
+        return dataclasses.replace(base, kin_error_seed=seed, payload=base.payload + float(payload))
+
     out = []
     for kind in cfg.trajectories:
         for seed in cfg.kin_error_seeds:
             for payload in cfg.payloads:
                 for m, label in machines:
-                    base = m.options()
                     name = path_label(kind) + (f"/seed{seed}" if seed is not None else "")
                     out.append(
                         ScenarioSpec(
                             name + (f"/{payload:g}kg" if payload else "") + label,
                             kind,
-                            dataclasses.replace(base, kin_error_seed=seed, payload=base.payload + float(payload)),
+                            options(m, seed, payload),
                             geometry=machine.geometry,
                             path_s=cfg.path_s,
                             drives=machine_draws.plant_drives(m) if cfg.draws else None,
+                            told=options(machine, seed, payload) if m is not machine else None,
                         )
                     )
     return out
@@ -146,7 +154,9 @@ class Scenarios:
             padded = np.concatenate([path, np.repeat(path[-1:], K * every - len(path), axis=0)])
             try:
                 refs.append(
-                    machine_reference(servo, padded, cfg.mode, options=spec.options, rates=rates, geom=spec.geom())
+                    machine_reference(
+                        servo, padded, cfg.mode, options=spec.told or spec.options, rates=rates, geom=spec.geom()
+                    )
                 )
                 model = plant.variant(spec.options, spec.geometry)
                 models.append(model if spec.drives is None else PlantDrives(model, spec.drives))
