@@ -9,9 +9,9 @@ drawn independently: each keeps its own spread, and the fit's correlations betwe
 holds standard errors, not the covariance), so the draws also reach combinations the fit makes unlikely, on the
 cautious side for a tune.
 
-A drawn machine is what the robot might be; the controller is still told the identified machine
-(:class:`~pusupu_jax.plant.PlantDrives`: a rollout's plant and motor take the drawn drive values, its controllers
-the told ones).
+A drawn machine is what the robot might be, while its machine file is still the identified one
+(:class:`~pusupu_jax.plant.PlantDrives`: a rollout's plant, motors and drives take the drawn drive values; what the
+host computes from the machine file, the identified ones).
 """
 
 from __future__ import annotations
