@@ -95,7 +95,7 @@ class Scenario:
     """One run of the machine: platform poses ``path`` ``(N, 5)`` (one per position period) on the machine
     built with ``options`` (seeded kinematic errors, payload) and the nominal ``geometry`` (None: the default, see
     :meth:`Geometry.default`); ``name`` labels it in reports; ``drives``: drive values of the machine's own where it
-    differs from what the controller is told (:class:`~pusupu_jax.plant.PlantDrives`), or None."""
+    differs from its machine file, what the host is told (:class:`~pusupu_jax.plant.PlantDrives`), or None."""
 
     path: np.ndarray
     options: ModelOptions = ModelOptions()
