@@ -104,6 +104,15 @@ class Scenario:
     drives: dict[str, Any] | None = None
 
 
+def with_drives(models: list[Any], drives: list[dict[str, Any] | None], where: str) -> list[Any]:
+    """Each of a batch's ``models`` with its scenario's ``drives`` as a :class:`~pusupu_jax.plant.PlantDrives`, or as
+    it is where None; ``where`` names the caller in the ValueError for a batch that gives them to some scenarios only
+    (its members must share one structure)."""
+    if len({d is None for d in drives}) > 1:
+        raise ValueError(f"{where}: expected drive values for every scenario or for none")
+    return [m if d is None else PlantDrives(m, d) for m, d in zip(models, drives)]
+
+
 @dataclasses.dataclass(frozen=True)
 class MachineRun:
     """One scenario's run on the machine (:func:`simulate_scenarios`): the scenario's ``name`` (None for
@@ -212,10 +221,8 @@ def simulate_scenarios(
             setpoint = np.broadcast_to(setpoint, (length, 3))
             reference = compliance_law.ComplianceReference(jnp.asarray(padded), jnp.asarray(setpoint), reference)
         references.append(reference)
-        model = plant.variant(sc.options, sc.geometry)
-        models.append(model if sc.drives is None else PlantDrives(model, sc.drives))
-    if len({sc.drives is None for sc in scenarios}) > 1:
-        raise ValueError("simulate_scenarios: expected drive values for every scenario or for none")
+        models.append(plant.variant(sc.options, sc.geometry))
+    models = with_drives(models, [sc.drives for sc in scenarios], "simulate_scenarios")
     t0 = time.perf_counter()
     traces, _ = run_chunked(
         servo,

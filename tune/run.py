@@ -28,11 +28,10 @@ from pusupu_jax import devices, machine_draws, machine_file, objectives, workloa
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.gradients import value_and_grad
 from pusupu_jax.hybrid import HybridGains
-from pusupu_jax.machine import machine_metrics, machine_plant, machine_rates, machine_reference
+from pusupu_jax.machine import machine_metrics, machine_plant, machine_rates, machine_reference, with_drives
 from pusupu_jax.margins import envelope_margins
 from pusupu_jax.machine_file import Machine
 from pusupu_jax.params import ParameterError, ServoParams, stack
-from pusupu_jax.plant import PlantDrives
 from pusupu_jax.plant.geometry import Geometry
 from pusupu_jax.plant.model import ModelOptions
 from pusupu_jax.programs import Program, UnstableKey, describe, fingerprint
@@ -96,11 +95,15 @@ def scenario_list(cfg: TuneConfig, machine: Machine | None = None) -> list[Scena
     for kind in cfg.trajectories:
         for seed in cfg.kin_error_seeds:
             for payload in cfg.payloads:
+                name = (
+                    path_label(kind)
+                    + (f"/seed{seed}" if seed is not None else "")
+                    + (f"/{payload:g}kg" if payload else "")
+                )
                 for m, label in machines:
-                    name = path_label(kind) + (f"/seed{seed}" if seed is not None else "")
                     out.append(
                         ScenarioSpec(
-                            name + (f"/{payload:g}kg" if payload else "") + label,
+                            name + label,
                             kind,
                             options(m, seed, payload),
                             geometry=machine.geometry,
@@ -158,15 +161,13 @@ class Scenarios:
                         servo, padded, cfg.mode, options=spec.told or spec.options, rates=rates, geom=spec.geom()
                     )
                 )
-                model = plant.variant(spec.options, spec.geometry)
-                models.append(model if spec.drives is None else PlantDrives(model, spec.drives))
+                models.append(plant.variant(spec.options, spec.geometry))
             except ParameterError as e:
                 raise type(e)(f"scenario {spec.name}: {e}") from None
             lengths.append(len(path))
             cut.append(path)
             padded_paths.append(padded)
-        if len({spec.drives is None for spec in specs}) > 1:
-            raise ValueError("Scenarios.build: expected drive values for every scenario or for none")
+        models = with_drives(models, [spec.drives for spec in specs], "Scenarios.build")
         group_of = [len(p) for p in padded_paths]
         groups = {}
         for n in dict.fromkeys(group_of):

@@ -45,7 +45,7 @@ class PlantDrives(NamedTuple):
 
 
 if TYPE_CHECKING:
-    from typing import Any, Protocol
+    from typing import Protocol
 
     import jax
 
