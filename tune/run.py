@@ -475,7 +475,7 @@ class Problem(WindowStarts):
         servo, hybrid = self.space.apply(z, start)
         sc = self.scenarios
 
-        def one(model, reference, init):
+        def one(servo, hybrid, model, reference, init):
             return rollout(
                 servo,
                 model,
@@ -488,8 +488,13 @@ class Problem(WindowStarts):
                 remat=self.cfg.remat,
             )
 
-        models, reference, starts = devices.spread_rows((windows[0], windows[1], starts), self.mesh)
-        traces = jax.vmap(one)(models, reference, starts)
+        # The gains go to every window as a row of their own: closed over, the reverse pass would sum their
+        # gradient over the windows inside every step of the scan, which laid over devices is an all-reduce per
+        # step (each device waiting on the others); as rows, the sum is taken once, after the scan.
+        rows = jax.tree.leaves(starts)[0].shape[0]
+        gains = jax.tree.map(lambda x: jnp.broadcast_to(x, (rows, *jnp.shape(x))), (servo, hybrid))
+        gains, models, reference, starts = devices.spread_rows((gains, windows[0], windows[1], starts), self.mesh)
+        traces = jax.vmap(one)(*gains, models, reference, starts)
         path = windows[2]
         S, K = len(sc.names), sc.windows
         joined = jax.tree.map(lambda x: join_windows(x, S, K), traces)
