@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import statistics
 import sys
@@ -67,7 +66,7 @@ def main() -> None:
         "N calls each (medians; 0: not)",
     )
     args = ap.parse_args()
-    from pusupu_jax.runtime import setup_jax
+    from pusupu_jax.runtime import cpu_count, setup_jax
 
     setup_jax()
     import jax
@@ -108,7 +107,7 @@ def main() -> None:
             "x64": bool(jax.config.jax_enable_x64),
             "remat": args.remat,
             "host": platform.node(),
-            "cpus": len(os.sched_getaffinity(0)),
+            "cpus": cpu_count(),
             "window_s": args.window,
             "windows": args.windows,
             "path_s": args.path,

@@ -15,7 +15,6 @@ largest platform error [mm], with their mean and worst over the held-out machine
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import tempfile
 import time
@@ -40,7 +39,7 @@ def main() -> None:
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
 
-    from pusupu_jax.runtime import setup_jax
+    from pusupu_jax.runtime import cpu_count, setup_jax
 
     setup_jax()  # float64 and the persistent compile cache, as the command line has them
 
@@ -119,7 +118,7 @@ def main() -> None:
         {
             "benchmark": "draws",
             "command": " ".join(["python", "benchmarks/bench_draws.py", *sys.argv[1:]]),
-            "machine": {"processor": processor(), "cores": len(os.sched_getaffinity(0))},
+            "machine": {"processor": processor(), "cores": cpu_count()},
             "identified": {"name": machine.name, "uncertainty": machine.content().get("uncertainty")},
             "settings": cfg.to_json() | {"draws": args.draws, "held_out": args.held_out},
             "held_out_seed": HELD_OUT_SEED,

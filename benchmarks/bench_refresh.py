@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import tempfile
 import time
@@ -23,7 +22,7 @@ def main() -> None:
     ap.add_argument("--path-s", type=float, default=1.0, help="each path cut to this many seconds (default 1)")
     ap.add_argument("--repeat", type=int, default=3, help="calls, the first with the compile (default 3)")
     args = ap.parse_args()
-    from pusupu_jax.runtime import setup_jax
+    from pusupu_jax.runtime import cpu_count, setup_jax
 
     with tempfile.TemporaryDirectory(prefix="pusupu-refresh-") as cache:
         setup_jax(cache)
@@ -54,7 +53,7 @@ def main() -> None:
                 "later_calls_s": times[1:],
                 "device": str(jax.devices()[0]),
                 "devices": len(jax.devices()),
-                "cpus": len(os.sched_getaffinity(0)),
+                "cpus": cpu_count(),
                 "machine": platform.machine(),
                 "jax": jax.__version__,
             },
