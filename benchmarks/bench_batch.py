@@ -11,8 +11,11 @@ iteration time is the median of the others, and the mean, which spreads the refr
     python benchmarks/bench_batch.py [--batches 1,2,64] [--iterations 6] [--path 0.2] [--window 0.05] [--windows 1]
                                      [--devices N] [--remat] [--label NAME] [--parts N] [--out FILE]
 
-``scenario_iterations_per_s`` = B / iteration time; ``rows`` = B x ``--windows``, the rollouts of one gradient (the
-width ``--device auto`` compares with :data:`pusupu_jax.devices.GPU_CROSSOVER_ROWS`).  The default tune's windows are
+``scenario_iterations_per_s`` = B / iteration time; ``peak_device_bytes``, the most memory the devices held at once
+since the process started (the largest over the devices, from ``Device.memory_stats``; none on a CPU), so a batch
+size's own peak needs a process of its own; ``max_rss_bytes``, the host process's peak resident memory;
+``rows`` = B x ``--windows``, the rollouts of one gradient (the width ``--device auto``
+compares with :data:`pusupu_jax.devices.GPU_CROSSOVER_ROWS`).  The default tune's windows are
 ``--path 3 --window 0.5 --windows 6``.  With ``--devices N`` the batch is sharded
 over the first N devices (``jax.sharding``), as ``pusupu batch`` does over all of them; ``--remat`` sets the
 configuration's ``remat`` (reverse mode keeps one carry per position period and runs each period again; on an
@@ -24,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import platform
+import resource
 import statistics
 import sys
 import time
@@ -42,6 +46,13 @@ def parts(problem, n: int) -> dict:
         return problem.starts
 
     return {"gradient_s": median_time(lambda: problem.value_and_grad(zb), n), "refresh_s": median_time(refresh, n)}
+
+
+def peak_device_bytes(devices) -> int | None:
+    """The most bytes any of ``devices`` held at once since the process started (None where the runtime keeps no
+    such count, as on the CPU)."""
+    peaks = [(d.memory_stats() or {}).get("peak_bytes_in_use") for d in devices]
+    return max((p for p in peaks if p is not None), default=None)
 
 
 def main() -> None:
@@ -137,6 +148,8 @@ def main() -> None:
             "iteration_s_mean": mean,
             "iteration_s_all": steps,
             "scenario_iterations_per_s": B / med,
+            "peak_device_bytes": peak_device_bytes(devices),
+            "max_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
         }
         if args.parts:
             row.update(parts(problem, args.parts))
