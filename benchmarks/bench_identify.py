@@ -258,6 +258,10 @@ def main() -> None:
                     "trace": [[round(t, 4), rms] for t, rms in report.trace],
                     "covered_95": sum(e["covered_95"] for e in entries),
                     "values": entries,
+                    # the pairs of values the log tells apart only in combination (|correlation| >= 0.5)
+                    "strongest_correlations": machine_fit.strongest_correlations(
+                        report.values, report.correlation, most=10
+                    ),
                 }
             )
             summary = _summary(args, fields, report.samples, sim_s, fits, current_rms) | {"bridge_run": run}

@@ -149,6 +149,12 @@ def cmd_identify(args) -> int:
         print(
             f"{v.name:<15} {v.start:>10.4g} {v.value:>10.4g} {v.std_error:>10.2g}  {machine_fit.UNITS[v.field]}{note}"
         )
+    strongest = machine_fit.strongest_correlations(report.values, report.correlation)
+    if strongest:
+        print(
+            "correlated (drawn together by tune's draws): "
+            + ", ".join(f"{a} and {b} {r:+.2f}" for a, b, r in strongest)
+        )
     if not report.converged:
         print(
             f"pusupu: warning: the fit stopped after {report.evaluations} evaluations without converging "

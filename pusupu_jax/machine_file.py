@@ -13,7 +13,8 @@ machine as a commented template; ``docs/machine.md`` documents each field)::
     drives: {R: 1.3, L: 0.0027, ...}                # every plant field of ServoParams: a number, or six
                                                     # (optional: encoder_counts, current_noise: the sensors)
     payload: {mass: 0.0, com: [0, 0, 0], inertia: [0, 0, 0]}
-    uncertainty: {coulomb: 0.4, Kt: [...], ...}    # optional: standard errors of identified values
+    uncertainty: {coulomb: 0.4, Kt: [...], ...,    # optional: standard errors of identified values,
+                  correlation: {values: [coulomb[1], ...], matrix: [[1, ...], ...]}}   # and their correlations
 
 :func:`load` reads and checks one: size, keys, shapes, signs, each drive value's range
 (:func:`pusupu_jax.params.bounds`), the geometry's consistency, and that the home pose is
@@ -71,6 +72,27 @@ UNCERTAINTY_FIELDS = {
     "payload_mass": ((), "kg", "the payload's mass"),
     "payload_com": ((3,), "m", "the payload's centre of mass"),
 }
+CORRELATION_TOLERANCE = 1e-9  # how far a correlation matrix may be from symmetric, unit-diagonal, semi-definite
+
+
+def value_label(name: str, index: int) -> str:
+    """One value of the ``uncertainty`` field ``name`` (index from 0): ``coulomb[3]`` (axis 3, from 1),
+    ``payload_com.x``, ``payload_mass``: how a correlation names it."""
+    shape = UNCERTAINTY_FIELDS[name][0]
+    if shape == (N_AXES,):
+        return f"{name}[{index + 1}]"
+    return f"{name}.{'xyz'[index]}" if shape == (3,) else str(name)
+
+
+@dataclass(frozen=True)
+class Correlation:
+    """The correlations between identified values, part of the ``uncertainty`` section: ``values``, their labels
+    (:func:`value_label`), and ``matrix`` ``(n, n)``, the fit's covariance divided by the standard errors (symmetric,
+    ones on its diagonal, positive semi-definite, each within :data:`CORRELATION_TOLERANCE`).  A value it leaves out
+    is uncorrelated with the others."""
+
+    values: tuple[str, ...]
+    matrix: np.ndarray
 
 
 class Sensor(NamedTuple):
@@ -139,7 +161,8 @@ class Machine:
     :class:`~pusupu_jax.params.ServoParams`), ``payload``, ``encoder_counts`` (counts per motor revolution,
     ``(6,)`` integers; None: ideal encoders) and ``current_noise`` (the current sensors' standard deviation [A],
     ``(6,)``; None: noise-free), ``uncertainty`` (the standard errors of identified values, ``{name: array}`` of
-    :data:`UNCERTAINTY_FIELDS`, in their units; None: none given); ``name`` labels it."""
+    :data:`UNCERTAINTY_FIELDS`, in their units; None: none given), ``correlation`` (the correlations between some of
+    those values, :class:`Correlation`; None: none given, the values uncorrelated); ``name`` labels it."""
 
     name: str
     geometry: Geometry
@@ -148,6 +171,7 @@ class Machine:
     encoder_counts: np.ndarray | None = None
     current_noise: np.ndarray | None = None
     uncertainty: dict[str, np.ndarray] | None = None
+    correlation: Correlation | None = None
 
     @classmethod
     def default(cls) -> "Machine":
@@ -185,8 +209,8 @@ class Machine:
         )
 
     def content(self) -> dict[str, Any]:
-        """The machine as plain data (lists and floats), every field: what :func:`digest` hashes (the sensors and the
-        uncertainty only where given, so that a file without them keeps its digest)."""
+        """The machine as plain data (lists and floats), every field: what :func:`digest` hashes (the sensors, the
+        uncertainty and its correlation only where given, so that a file without them keeps its digest)."""
         sensors = {
             k: _compact(getattr(self, k), spec.kind) for k, spec in SENSORS.items() if getattr(self, k) is not None
         }
@@ -198,6 +222,16 @@ class Machine:
                     k: _compact(v) if UNCERTAINTY_FIELDS[k][0] == (N_AXES,) else np.asarray(v, float).tolist()
                     for k, v in self.uncertainty.items()
                 }
+                | (
+                    {}
+                    if self.correlation is None
+                    else {
+                        "correlation": {
+                            "values": list(self.correlation.values),
+                            "matrix": np.asarray(self.correlation.matrix, float).tolist(),
+                        }
+                    }
+                )
             }
         )
         return {
@@ -333,8 +367,8 @@ def parse(doc: Any) -> Machine:
     drives = _drives(doc["drives"])
     payload = _payload(doc["payload"])
     sensors = {k: _sensor(k, doc["drives"][k]) for k in SENSORS if k in doc["drives"]}
-    uncertainty = _uncertainty(doc["uncertainty"]) if "uncertainty" in doc else None
-    machine = Machine(name, geometry, drives, payload, **sensors, uncertainty=uncertainty)
+    uncertainty, correlation = _uncertainty(doc["uncertainty"]) if "uncertainty" in doc else (None, None)
+    machine = Machine(name, geometry, drives, payload, **sensors, uncertainty=uncertainty, correlation=correlation)
     check(machine)
     return machine
 
@@ -402,13 +436,16 @@ def _sensor(name: str, value: Any) -> np.ndarray:
     )
 
 
-def _uncertainty(values: Any) -> dict[str, np.ndarray]:
+def _uncertainty(values: Any) -> tuple[dict[str, np.ndarray], Correlation | None]:
     """The optional ``uncertainty`` section: standard errors, each finite and non-negative, in
-    :data:`UNCERTAINTY_FIELDS`'s shapes (a per-axis one as one number for all six axes, or six)."""
+    :data:`UNCERTAINTY_FIELDS`'s shapes (a per-axis one as one number for all six axes, or six), and their optional
+    ``correlation`` (:func:`check_correlation`)."""
     names = list(UNCERTAINTY_FIELDS)
-    inputs.check_keys(values, "uncertainty", names, ParameterError, what="field")
+    inputs.check_keys(values, "uncertainty", [*names, "correlation"], ParameterError, what="field")
     out = {}
     for k, v in values.items():
+        if k == "correlation":
+            continue
         shape, where = UNCERTAINTY_FIELDS[k][0], f"uncertainty.{k}"
         if shape == (N_AXES,) and not isinstance(v, list):
             v = [v] * N_AXES
@@ -416,7 +453,48 @@ def _uncertainty(values: Any) -> dict[str, np.ndarray]:
         if (arr < 0).any():
             raise ParameterError(f"{where}: expected standard errors >= 0, got {arr.tolist()}")
         out[k] = arr
-    return out
+    if "correlation" not in values:
+        return out, None
+    doc, where = values["correlation"], "uncertainty.correlation"
+    inputs.check_keys(doc, where, ["values", "matrix"], ParameterError, required=["values", "matrix"], what="key")
+    labels = doc["values"]
+    if not isinstance(labels, list) or not all(isinstance(x, str) for x in labels):
+        raise ParameterError(f"{where}.values: expected a list of value labels, got {inputs.shown(labels)}")
+    correlation = Correlation(tuple(labels), _array(doc["matrix"], f"{where}.matrix", (len(labels), len(labels))))
+    check_correlation(correlation, out)
+    return out, correlation
+
+
+def check_correlation(correlation: Correlation, uncertainty: dict[str, np.ndarray]) -> None:
+    """ParameterError, one line, unless ``correlation`` names distinct values (:func:`value_label`) that each have a
+    standard error above 0 in ``uncertainty``, and its matrix is a correlation matrix: symmetric, ones on its
+    diagonal, entries within [-1, 1] and no eigenvalue below 0 (each within :data:`CORRELATION_TOLERANCE`)."""
+    where = "uncertainty.correlation"
+    errors = {
+        value_label(k, i): float(e)
+        for k, v in uncertainty.items()
+        for i, e in enumerate(np.broadcast_to(v, UNCERTAINTY_FIELDS[k][0]).reshape(-1))
+    }
+    for label in correlation.values:
+        if label not in errors:
+            raise ParameterError(
+                f"{where}.values: expected labels of values this section gives a standard error "
+                f"({', '.join(errors) or 'none'}), got {label!r}"
+            )
+        if errors[label] == 0:
+            raise ParameterError(f"{where}.values: expected values with a standard error above 0, got {label!r} at 0")
+    if len(set(correlation.values)) != len(correlation.values):
+        raise ParameterError(f"{where}.values: expected each value once, got {list(correlation.values)}")
+    C, tol = np.asarray(correlation.matrix, float), CORRELATION_TOLERANCE
+    asymmetry = float(np.max(np.abs(C - C.T), initial=0.0))
+    diagonal = float(np.max(np.abs(np.diag(C) - 1), initial=0.0))
+    smallest = float(np.min(np.linalg.eigvalsh((C + C.T) / 2), initial=0.0))
+    if asymmetry > tol or diagonal > tol or np.any(np.abs(C) > 1 + tol) or smallest < -tol:
+        raise ParameterError(
+            f"{where}.matrix: expected a correlation matrix (symmetric, ones on its diagonal, entries within [-1, 1], "
+            f"no eigenvalue below 0), got asymmetry {asymmetry:.3g}, diagonal off 1 by {diagonal:.3g}, largest "
+            f"entry {float(np.max(np.abs(C), initial=0.0)):.6g}, smallest eigenvalue {smallest:.3g}"
+        )
 
 
 def encoder_quanta(machine: Machine, dt_velocity: float) -> dict[str, list[float]] | None:
@@ -500,6 +578,15 @@ def template(machine: Machine | None = None) -> str:
     if "uncertainty" in content:
         lines.append("uncertainty:  # standard errors of identified values: pusupu tune's draws (docs/tuning.md)")
         for k, v in content["uncertainty"].items():
+            if k == "correlation":
+                lines.append(
+                    "  # the correlations between these values (the fit's covariance over their standard errors)"
+                )
+                lines.append("  correlation:")
+                lines.append(f"    values: {_flow(v['values'])}")
+                lines.append("    matrix:")
+                lines.extend(f"    - {_flow(row)}" for row in v["matrix"])
+                continue
             lines.append(f"  # {UNCERTAINTY_FIELDS[k][2]} [{UNCERTAINTY_FIELDS[k][1]}]")
             lines.append(f"  {k}: {_flow(v)}")
     return "\n".join(lines) + "\n"
@@ -544,6 +631,21 @@ def json_schema() -> dict[str, Any]:
         uncertainty[k] = {"description": f"standard error of {doc} [{unit}]"} | (
             {"oneOf": [one, many]} if shape == (N_AXES,) else many or one
         )
+    uncertainty["correlation"] = {
+        "description": "the correlations between some of these values (the fit's covariance over their standard "
+        "errors): their labels, such as coulomb[1] or payload_com.x, and the matrix, symmetric with ones on its "
+        "diagonal",
+        "type": "object",
+        "additionalProperties": False,
+        "required": ["values", "matrix"],
+        "properties": {
+            "values": {"type": "array", "items": {"type": "string"}, "uniqueItems": True},
+            "matrix": {
+                "type": "array",
+                "items": {"type": "array", "items": {"type": "number", "minimum": -1, "maximum": 1}},
+            },
+        },
+    }
     return {
         "$schema": "https://json-schema.org/draft/2020-12/schema",
         "title": f"{FORMAT} version {VERSION}",

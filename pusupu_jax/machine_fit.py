@@ -50,7 +50,7 @@ import numpy as np
 from .cascade import control_mode
 from .hybrid import HybridGains, HybridReference
 from .machine import MACHINE_MODES, machine_plant, machine_rates, machine_reference
-from .machine_file import Machine
+from .machine_file import Correlation, Machine, value_label
 from .params import N_AXES, LoopRates, ParameterError, ServoParams, bounds
 from .paths import platform_path_from
 from .plant.model import ModelOptions
@@ -79,10 +79,9 @@ class FitField(enum.StrEnum):
         return N_AXES if self.drive else 3 if self is FitField.PAYLOAD_COM else 1
 
     def label(self, index: int) -> str:
-        """One value's name: ``coulomb[3]`` (axis 3, from 1), ``payload_com.x``, ``payload_mass``."""
-        if self.drive:
-            return f"{self}[{index + 1}]"
-        return f"{self}.{'xyz'[index]}" if self is FitField.PAYLOAD_COM else str(self)
+        """One value's name: ``coulomb[3]`` (axis 3, from 1), ``payload_com.x``, ``payload_mass``
+        (:func:`pusupu_jax.machine_file.value_label`)."""
+        return value_label(self, index)
 
     def start(self, machine: Machine) -> np.ndarray:
         """The field's values in ``machine`` ``(size,)``: where the fit starts."""
@@ -166,6 +165,31 @@ def uncertainty_of(values: tuple[FittedValue, ...]) -> dict[str, np.ndarray]:
         errors = out.setdefault(str(v.field), np.zeros(v.field.size))
         errors[v.index] = v.std_error if v.excited else 0.0
     return {k: e.reshape(()) if k == FitField.PAYLOAD_MASS else e for k, e in out.items()}
+
+
+def correlation_of(values: tuple[FittedValue, ...], matrix: np.ndarray) -> Correlation | None:
+    """The ``uncertainty`` section's correlations (:class:`pusupu_jax.machine_file.Correlation`) between the values
+    with a standard error above 0 (the excited ones), from ``matrix``, the fit's correlations between all ``values``
+    in their order; None where fewer than two have one."""
+    kept = [k for k, v in enumerate(values) if v.excited and v.std_error > 0]
+    if len(kept) < 2:
+        return None
+    return Correlation(tuple(values[k].name for k in kept), np.asarray(matrix, float)[np.ix_(kept, kept)])
+
+
+def strongest_correlations(
+    values: tuple[FittedValue, ...], correlation: Any, least: float = 0.5, most: int = 5
+) -> list[tuple[str, str, float]]:
+    """Up to ``most`` pairs of ``values`` whose ``correlation`` (``(n, n)``, in their order) is at least ``least`` in
+    size, the strongest first: ``(name, name, correlation)``, what the logs tell apart only in combination."""
+    C = np.asarray(correlation, float)
+    pairs = [
+        (values[i].name, values[j].name, float(C[i, j]))
+        for i in range(len(values))
+        for j in range(i + 1, len(values))
+        if abs(C[i, j]) >= least
+    ]
+    return sorted(pairs, key=lambda p: -abs(p[2]))[:most]
 
 
 class Channel(enum.StrEnum):
@@ -271,9 +295,12 @@ class FitReport:
     :data:`MAX_EVALUATIONS`; ``derivatives``: the Jacobian it took; ``residual_calls``: every replay of the residual,
     finite differences included; ``residual_s``, ``jacobian_s``: seconds in the residual's and the Jacobian's calls,
     compiles left out; ``trace``: after each residual call, those seconds so far and the least residual RMS met so
-    far), and the logs (path, SHA-256, what wrote them)."""
+    far), the correlations between the values (``correlation``, in their order: the covariance from the Jacobian at
+    the optimum over the standard errors; an unexcited value's row 0 but for its 1 on the diagonal), and the logs
+    (path, SHA-256, what wrote them)."""
 
     values: tuple[FittedValue, ...]
+    correlation: tuple[tuple[float, ...], ...]
     residual_rms_before: float
     residual_rms_after: float
     samples: int
@@ -394,13 +421,15 @@ def _replay(
 @dataclasses.dataclass(frozen=True)
 class Solution:
     """What :func:`least_squares_excited` found: the values ``x`` (the unexcited ones at their start), their standard
-    errors, which were excited, the residual at the start, the solver's last message and whether it converged, and
+    errors, their correlations (``correlation`` ``(n, n)``: an unexcited value's row 0 but for its diagonal), which
+    were excited, the residual at the start, the solver's last message and whether it converged, and
     over every solve the residual and Jacobian evaluations, the residual calls (each replay: a batch of differences
     counts its width), the seconds in the residual's and the Jacobian's calls, and ``trace``: after each residual
     call, the seconds of calls so far and the least residual RMS met so far."""
 
     x: np.ndarray
     std: np.ndarray
+    correlation: np.ndarray
     excited: np.ndarray
     residual_before: np.ndarray
     message: str
@@ -512,14 +541,26 @@ def least_squares_excited(
         solved = _Solved(sol.x, float(sol.cost), J, int(sol.nfev), int(sol.njev or 0), str(sol.message), sol.status > 0)
         return solved, r0
 
-    def errors(solved: _Solved) -> np.ndarray:
+    def errors(solved: _Solved) -> tuple[np.ndarray, np.ndarray]:
+        """The standard errors and the correlations of the solved values: the covariance ``s^2 (J^T J)^+``, ``s^2``
+        the residual's variance per degree of freedom, ``J`` the Jacobian at the optimum."""
         J = solved.jac
-        variance = 2 * solved.cost / max(J.shape[0] - J.shape[1], 1)  # per degree of freedom
-        return np.sqrt(np.maximum(np.diag(variance * np.linalg.pinv(J.T @ J)), 0.0))
+        variance = 2 * solved.cost / max(J.shape[0] - J.shape[1], 1)
+        covariance = variance * np.linalg.pinv(J.T @ J)
+        std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
+        scale = np.where(std > 0, std, 1.0)
+        correlation = covariance / np.outer(scale, scale)
+        # semi-definite and of unit diagonal to rounding, however ill-conditioned J^T J (the machine file checks it)
+        eigenvalues, eigenvectors = np.linalg.eigh((correlation + correlation.T) / 2)
+        correlation = (eigenvectors * np.maximum(eigenvalues, 0.0)) @ eigenvectors.T
+        unit = np.sqrt(np.where(np.diag(correlation) > 0, np.diag(correlation), 1.0))
+        correlation = np.clip(correlation / np.outer(unit, unit), -1.0, 1.0)
+        np.fill_diagonal(correlation, 1.0)
+        return std, correlation
 
     free = np.arange(start.size)
     solved, r0 = solve(free)
-    std = errors(solved)
+    std, correlation = errors(solved)
     norms = np.linalg.norm(solved.jac, axis=0)
     x = solved.x
     excited = (norms > UNEXCITED_COLUMN * norms.max()) & (std < UNEXCITED_ERROR * np.maximum(np.abs(x), 1.0))
@@ -530,12 +571,15 @@ def least_squares_excited(
         again, _ = solve(kept)
         x = start.copy()
         x[kept] = again.x
-        std[kept] = errors(again)
+        std[kept], kept_correlation = errors(again)
+        correlation = np.eye(start.size)
+        correlation[np.ix_(kept, kept)] = kept_correlation
         solved, evaluations, jacobians = again, evaluations + again.evaluations, jacobians + again.jacobians
     elif not excited.any():
         x = start.copy()
+        correlation = np.eye(start.size)
     return Solution(
-        x, std, excited, r0, solved.message, solved.converged, evaluations, jacobians, calls[0],
+        x, std, correlation, excited, r0, solved.message, solved.converged, evaluations, jacobians, calls[0],
         sum(residual_times), sum(jacobian_times), tuple(trace),
     )  # fmt: skip
 
@@ -720,6 +764,7 @@ def fit(
     r1 = np.asarray(residual_all(jnp.asarray(solution.x), data))
     report = FitReport(
         values=values,
+        correlation=tuple(tuple(float(c) for c in row) for row in solution.correlation),
         residual_rms_before=float(np.sqrt(np.mean(r0**2))),
         residual_rms_after=float(np.sqrt(np.mean(r1**2))),
         samples=int(sum(len(r.t) for r in replays)),
@@ -737,7 +782,11 @@ def fit(
         wall_s=time.perf_counter() - t0,
         logs=tuple({"path": log.path, "sha256": log.digest, "source": log.source} for log in logs),
     )
-    identified = dataclasses.replace(with_values(machine, split(fitted)), uncertainty=uncertainty_of(values))
+    identified = dataclasses.replace(
+        with_values(machine, split(fitted)),
+        uncertainty=uncertainty_of(values),
+        correlation=correlation_of(values, solution.correlation),
+    )
     plots, at = [], 0  # the replayed efforts, from the residual's first part for each log (no other program)
     for r in replays:
         n, s_effort = r.effort.size, scales[r.channel]

@@ -83,8 +83,16 @@ def test_the_standard_errors_go_into_the_uncertainty_section_and_an_unexcited_va
     values += [machine_fit.FittedValue(FitField.PAYLOAD_MASS, 0, 3.0, 5.0, 0.02, True)]
     values += [machine_fit.FittedValue(FitField.PAYLOAD_COM, k, 0.0, 0.01, 0.001 * (k + 1), True) for k in range(3)]
     errors = machine_fit.uncertainty_of(tuple(values))
-    machine = dataclasses.replace(Machine.default(), uncertainty=errors)
+    matrix = np.eye(len(values))
+    matrix[0, 6] = matrix[6, 0] = -0.8  # viscous[1] and the payload's mass
+    matrix[4, 5] = matrix[5, 4] = 0.9  # viscous[5], not excited: left out
+    correlation = machine_fit.correlation_of(tuple(values), matrix)
+    assert correlation is not None and "viscous[5]" not in correlation.values and len(correlation.values) == 9
+    machine = dataclasses.replace(Machine.default(), uncertainty=errors, correlation=correlation)
     written = machine_file.parse(yaml.safe_load(machine_file.template(machine)))
+    assert written.correlation is not None and written.correlation.values == correlation.values
+    np.testing.assert_array_equal(written.correlation.matrix, correlation.matrix)
+    assert written.correlation.matrix[0, correlation.values.index("payload_mass")] == -0.8
     np.testing.assert_allclose(written.uncertainty["viscous"], [0.1, 0.2, 0.3, 0.4, 0.0, 0.6], rtol=1e-15)
     assert float(written.uncertainty["payload_mass"]) == 0.02 and set(written.uncertainty) == {
         "viscous",
@@ -232,6 +240,30 @@ def test_a_value_the_data_do_not_excite_keeps_its_start_and_the_others_are_fitte
     assert "identify: 1 value(s) not excited by the logs: fitting the others again" in lines
     none = least_squares_excited(_linear(np.zeros((50, 3)), np.ones(50), start), start, low, high)
     assert not none.excited.any() and none.x.tolist() == start.tolist()
+
+
+def test_the_fit_gives_the_correlations_of_its_values_from_the_jacobian():
+    """On ``A p - b`` the Jacobian is ``A``, so the values' covariance is ``s^2 (A^T A)^-1`` exactly: two columns
+    nearly alike give values strongly anti-correlated, a third column apart from them hardly correlated.  An
+    unexcited value's row is 0 but for its diagonal, and the report names the strongest pair."""
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=300)
+    A = np.column_stack([x, x + 0.2 * rng.normal(size=300), np.zeros(300), rng.normal(size=300)])
+    truth, start = np.array([1.0, 2.0, 3.0, -1.0]), np.zeros(4)
+    b = A @ truth + 1e-2 * rng.normal(size=300)
+    found = least_squares_excited(_linear(A, b, start), start, np.full(4, -10.0), np.full(4, 10.0))
+    kept = [0, 1, 3]
+    inverse = np.linalg.inv(A[:, kept].T @ A[:, kept])
+    expected = inverse / np.sqrt(np.outer(np.diag(inverse), np.diag(inverse)))
+    np.testing.assert_allclose(found.correlation[np.ix_(kept, kept)], expected, atol=1e-9)
+    assert found.correlation[0, 1] < -0.97 and abs(found.correlation[0, 3]) < 0.2
+    np.testing.assert_array_equal(found.correlation[2], [0.0, 0.0, 1.0, 0.0])
+    values = tuple(
+        machine_fit.FittedValue(FitField.COULOMB, k, 0.0, float(v), float(e), bool(ok))
+        for k, (v, e, ok) in enumerate(zip(found.x, found.std, found.excited))
+    )
+    strongest = machine_fit.strongest_correlations(values, found.correlation)
+    assert [(a, b) for a, b, _ in strongest] == [("coulomb[1]", "coulomb[2]")]
 
 
 @pytest.mark.parametrize(

@@ -109,6 +109,27 @@ def test_the_uncertainty_section_is_optional_reads_back_and_enters_the_digest():
         np.testing.assert_array_equal(again.uncertainty[k], v)
 
 
+def test_a_correlation_reads_back_enters_the_digest_and_needs_standard_errors():
+    """The ``uncertainty`` section's ``correlation``: labels of values the section gives a standard error, and their
+    matrix; the template writes it back as read, and only a file with it has another digest."""
+    doc = yaml.safe_load(machine_file.template())
+    doc["uncertainty"] = {"coulomb": 0.5, "payload_mass": 0.05}
+    without = machine_file.digest(machine_file.parse(doc))
+    doc["uncertainty"]["correlation"] = {"values": ["coulomb[2]", "payload_mass"], "matrix": [[1, -0.7], [-0.7, 1]]}
+    m = machine_file.parse(doc)
+    assert m.correlation is not None and m.correlation.values == ("coulomb[2]", "payload_mass")
+    assert machine_file.digest(m) != without
+    again = machine_file.parse(yaml.safe_load(machine_file.template(m)))
+    assert machine_file.digest(again) == machine_file.digest(m) and again.correlation.values == m.correlation.values
+    np.testing.assert_array_equal(again.correlation.matrix, [[1, -0.7], [-0.7, 1]])
+
+
+def _correlated(values, matrix):
+    return lambda d: d.update(
+        uncertainty={"coulomb": [0.5, 0.5, 0, 0.5, 0.5, 0.5], "correlation": {"values": values, "matrix": matrix}}
+    )
+
+
 def test_the_schema_file_is_generated_from_the_fields():
     shipped = Path(machine_file.__file__).parent / "schemas" / "pusupu-machine.schema.json"
     assert shipped.read_text() == machine_file.schema_text()
@@ -142,6 +163,34 @@ BAD = {
     "a negative standard error": (lambda d: d.update(uncertainty={"coulomb": -1.0}), "uncertainty.coulomb: expected"),
     "an uncertainty of a field not fitted": (lambda d: d.update(uncertainty={"R": 0.1}), "unknown field 'R'"),
     "a centre of mass's error of two": (lambda d: d.update(uncertainty={"payload_com": [0.1, 0.1]}), "payload_com"),
+    "a correlation of a value without a standard error": (
+        _correlated(["coulomb[1]", "Kt[1]"], [[1, 0], [0, 1]]),
+        "uncertainty.correlation.values: expected labels of values this section gives a standard error",
+    ),
+    "a correlation of a value whose standard error is 0": (
+        _correlated(["coulomb[1]", "coulomb[3]"], [[1, 0], [0, 1]]),
+        "expected values with a standard error above 0, got 'coulomb",
+    ),
+    "a correlation naming a value twice": (
+        _correlated(["coulomb[1]", "coulomb[1]"], [[1, 0.5], [0.5, 1]]),
+        "uncertainty.correlation.values: expected each value once",
+    ),
+    "a correlation matrix of the wrong shape": (
+        _correlated(["coulomb[1]", "coulomb[2]"], [[1, 0.5, 0], [0.5, 1, 0]]),
+        "uncertainty.correlation.matrix",
+    ),
+    "an asymmetric correlation": (
+        _correlated(["coulomb[1]", "coulomb[2]"], [[1, 0.5], [0.4, 1]]),
+        "asymmetry 0.1",
+    ),
+    "correlations no three values can have": (
+        _correlated(["coulomb[1]", "coulomb[2]", "coulomb[4]"], [[1, 0.9, -0.9], [0.9, 1, 0.9], [-0.9, 0.9, 1]]),
+        "smallest eigenvalue -0.8",
+    ),
+    "a correlation without its matrix": (
+        lambda d: d.update(uncertainty={"coulomb": 0.5, "correlation": {"values": ["coulomb[1]"]}}),
+        "missing key 'matrix'",
+    ),
 }
 
 
