@@ -4,10 +4,11 @@ section, written by ``pusupu identify``): the scenarios of a tune that must hold
 
 Each value with a standard error is drawn from a normal law about the machine's value with that standard error, held
 inside its field's range (:func:`pusupu_jax.machine_fit.value_range`: no negative friction); a drawn ``Kt`` carries
-``Ke`` in proportion (:func:`pusupu_jax.machine_fit.drive_values`: both are the motor's flux linkage).  The values are
-drawn independently: each keeps its own spread, and the fit's correlations between values are not carried (the file
-holds standard errors, not the covariance), so the draws also reach combinations the fit makes unlikely, on the
-cautious side for a tune.
+``Ke`` in proportion (:func:`pusupu_jax.machine_fit.drive_values`: both are the motor's flux linkage).  The values the
+section's ``correlation`` names (``pusupu identify`` writes the fit's) are drawn jointly, with those correlations: a
+combination the logs rule out (more friction with less inertia, where the fit can tell only their sum) is not drawn.
+The others are drawn independently; a file without a ``correlation`` draws every value independently, which also
+reaches combinations the fit makes unlikely.
 
 A drawn machine is what the robot might be, while its machine file is still the identified one
 (:class:`~pusupu_jax.plant.PlantDrives`: a rollout's plant, motors and drives take the drawn drive values; what the
@@ -20,7 +21,7 @@ import dataclasses
 
 import numpy as np
 
-from .machine_file import UNCERTAINTY_FIELDS, Machine
+from .machine_file import UNCERTAINTY_FIELDS, Machine, check_correlation, value_label
 from .machine_fit import FitField, value_range, with_values
 from .params import ParameterError
 
@@ -37,20 +38,31 @@ def draw(machine: Machine, n: int, seed: int) -> list[Machine]:
             f"draws: expected a machine file with an uncertainty section (pusupu identify --out writes one), got "
             f"machine {machine.name!r} without one"
         )
+    fields = [FitField(name) for name in UNCERTAINTY_FIELDS if name in machine.uncertainty]  # a fixed order
+    joint, factor = [], None
+    if machine.correlation is not None:
+        check_correlation(machine.correlation, machine.uncertainty)
+        at = {value_label(f, i): (f, i) for f in fields for i in range(f.size)}
+        joint = [at[label] for label in machine.correlation.values]
+        # z = F n with F F^T = C: F from C's eigenvectors (C may be singular, where Cholesky fails)
+        eigenvalues, eigenvectors = np.linalg.eigh(np.asarray(machine.correlation.matrix, float))
+        factor = eigenvectors * np.sqrt(np.maximum(eigenvalues, 0.0))
     rng = np.random.default_rng(seed)
     out = []
     for k in range(n):
+        z = {f: rng.standard_normal(f.size) for f in fields}  # independent standard normals, field by field
+        if factor is not None:
+            correlated = factor @ np.array([z[f][i] for f, i in joint])
+            for (f, i), v in zip(joint, correlated):
+                z[f][i] = v
         values = {}
-        for name in UNCERTAINTY_FIELDS:  # in a fixed order, whatever the file's
-            if name not in machine.uncertainty:
-                continue
-            field = FitField(name)
-            start = field.start(machine)
-            low, high = value_range(field)
-            spread = np.broadcast_to(machine.uncertainty[name], start.shape)
-            values[field] = np.clip(start + spread * rng.standard_normal(start.shape), low, high)
+        for f in fields:
+            start = f.start(machine)
+            low, high = value_range(f)
+            spread = np.broadcast_to(machine.uncertainty[f], start.shape)
+            values[f] = np.clip(start + spread * z[f], low, high)
         drawn = with_values(machine, values)
-        out.append(dataclasses.replace(drawn, name=f"{machine.name} draw {k + 1}", uncertainty=None))
+        out.append(dataclasses.replace(drawn, name=f"{machine.name} draw {k + 1}", uncertainty=None, correlation=None))
     return out
 
 

@@ -2,13 +2,15 @@
 the machine's drive values, the host's laws the file's; and machines drawn from an identified machine's standard
 errors."""
 
+import dataclasses
+
 import jax
 import numpy as np
 import pytest
 
 from pusupu_jax import AxisLoad, ServoParams, rollout
 from pusupu_jax.machine_draws import DRAWN_DRIVES, draw, plant_drives
-from pusupu_jax.machine_file import Machine
+from pusupu_jax.machine_file import Correlation, Machine
 from pusupu_jax.params import ParameterError
 from pusupu_jax.plant import PlantDrives
 from pusupu_jax.trajectories import axis_reference
@@ -107,6 +109,32 @@ def test_draws_spread_each_value_by_its_standard_error_and_carry_ke_with_kt():
     # normal about 0 kg, clipped at 0: a spread of sigma sqrt(1/2 - 1/(2 pi)), 0.58 sigma
     assert masses.min() == 0.0 and abs(masses.std() - 0.5 * np.sqrt(0.5 - 1 / (2 * np.pi))) < 0.02
     assert [d.name for d in drawn[:2]] == ["built-in draw 1", "built-in draw 2"]
+
+
+def test_correlated_values_are_drawn_together_and_the_others_as_without_a_correlation():
+    """A correlation of 0.9 between ``coulomb[1]`` and ``Kt[2]`` and of -0.5 between ``coulomb[1]`` and the payload's
+    mass: over 2000 draws the sample correlations lie within 4 sampling errors of them ((1 - r^2) / sqrt(n)), each
+    value keeps its spread, and the values the correlation leaves out are drawn as without it (the same seed)."""
+    m = _identified()
+    m = dataclasses.replace(
+        m,
+        uncertainty=m.uncertainty | {"payload_mass": np.array(0.05)},
+        payload=dataclasses.replace(m.payload, mass=2.0),  # 40 standard errors from 0: never clipped
+        correlation=Correlation(
+            ("coulomb[1]", "Kt[2]", "payload_mass"), np.array([[1, 0.9, -0.5], [0.9, 1, -0.45], [-0.5, -0.45, 1]])
+        ),
+    )
+    drawn, plain = draw(m, 2000, seed=5), draw(dataclasses.replace(m, correlation=None), 2000, seed=5)
+    x = np.array([[d.drives["coulomb"][0], d.drives["Kt"][1], d.payload.mass] for d in drawn])
+    r, n = np.corrcoef(x.T), len(x)
+    for (i, j), expected in {(0, 1): 0.9, (0, 2): -0.5, (1, 2): -0.45}.items():
+        assert abs(r[i, j] - expected) < 4 * (1 - expected**2) / np.sqrt(n)
+    assert np.all(np.abs(x.std(axis=0) / [2.0, 0.05, 0.05] - 1) < 4 / np.sqrt(2 * n))
+    for d, p in zip(drawn[:20], plain[:20]):
+        np.testing.assert_array_equal(d.drives["coulomb"][1:], p.drives["coulomb"][1:])
+        np.testing.assert_array_equal(np.delete(d.drives["Kt"], 1), np.delete(p.drives["Kt"], 1))
+        assert d.payload.com == p.payload.com and d.correlation is None
+    assert not np.array_equal([d.drives["Kt"][1] for d in drawn[:20]], [p.drives["Kt"][1] for p in plain[:20]])
 
 
 def test_the_same_seed_draws_the_same_machines_and_a_machine_without_uncertainty_is_refused():
