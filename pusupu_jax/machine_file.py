@@ -458,8 +458,8 @@ def _uncertainty(values: Any) -> tuple[dict[str, np.ndarray], Correlation | None
     doc, where = values["correlation"], "uncertainty.correlation"
     inputs.check_keys(doc, where, ["values", "matrix"], ParameterError, required=["values", "matrix"], what="key")
     labels = doc["values"]
-    if not isinstance(labels, list) or not all(isinstance(x, str) for x in labels):
-        raise ParameterError(f"{where}.values: expected a list of value labels, got {inputs.shown(labels)}")
+    if not isinstance(labels, list) or len(labels) < 2 or not all(isinstance(x, str) for x in labels):
+        raise ParameterError(f"{where}.values: expected a list of two or more value labels, got {inputs.shown(labels)}")
     correlation = Correlation(tuple(labels), _array(doc["matrix"], f"{where}.matrix", (len(labels), len(labels))))
     check_correlation(correlation, out)
     return out, correlation
@@ -639,7 +639,7 @@ def json_schema() -> dict[str, Any]:
         "additionalProperties": False,
         "required": ["values", "matrix"],
         "properties": {
-            "values": {"type": "array", "items": {"type": "string"}, "uniqueItems": True},
+            "values": {"type": "array", "items": {"type": "string"}, "minItems": 2, "uniqueItems": True},
             "matrix": {
                 "type": "array",
                 "items": {"type": "array", "items": {"type": "number", "minimum": -1, "maximum": 1}},

@@ -187,8 +187,12 @@ BAD = {
         _correlated(["coulomb[1]", "coulomb[2]", "coulomb[4]"], [[1, 0.9, -0.9], [0.9, 1, 0.9], [-0.9, 0.9, 1]]),
         "smallest eigenvalue -0.8",
     ),
+    "a correlation of one value": (
+        _correlated(["coulomb[1]"], [[1]]),
+        "uncertainty.correlation.values: expected a list of two or more value labels",
+    ),
     "a correlation without its matrix": (
-        lambda d: d.update(uncertainty={"coulomb": 0.5, "correlation": {"values": ["coulomb[1]"]}}),
+        lambda d: d.update(uncertainty={"coulomb": 0.5, "correlation": {"values": ["coulomb[1]", "coulomb[2]"]}}),
         "missing key 'matrix'",
     ),
 }
