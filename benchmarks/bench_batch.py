@@ -16,7 +16,17 @@ since the process started (the largest over the devices, from ``Device.memory_st
 size's own peak needs a process of its own; ``max_rss_bytes``, the host process's peak resident memory;
 ``rows`` = B x ``--windows``, the rollouts of one gradient (the width ``--device auto``
 compares with :data:`pusupu_jax.devices.GPU_CROSSOVER_ROWS`).  The default tune's windows are
-``--path 3 --window 0.5 --windows 6``.  With ``--devices N`` the batch is sharded
+``--path 3 --window 0.5 --windows 6``.
+
+``--run LABEL=PLATFORM[@CPUS]:BATCHES[:remat]`` (repeated) compares devices in one run: the script runs itself once
+per ``--run``, one after another in the order given (never side by side), each on its platform (``taskset`` on its
+CPUs) with its batch sizes, an empty compilation cache and the other options as given, and reports every run's rows,
+each run's best throughput and its ratio to the first run's best::
+
+    python benchmarks/bench_batch.py --path 3 --window 0.5 --windows 6 --iterations 4 \
+        --run cpu2=cpu@0-1:1,2,8 --run gpu=gpu:1024 --run gpu_remat=gpu:4096:remat --out FILE
+
+With ``--devices N`` the batch is sharded
 over the first N devices (``jax.sharding``), as ``pusupu batch`` does over all of them; ``--remat`` sets the
 configuration's ``remat`` (reverse mode keeps one carry per position period and runs each period again; on an
 H200 it did not bring batch 4096 into memory before the margins' fix, and is not needed for it since).
@@ -30,9 +40,74 @@ import platform
 import resource
 import statistics
 import sys
+import tempfile
 import time
+from pathlib import Path
 
-from timing import median_time  # beside this script
+from timing import median_time, parse_config, pinned, processor  # beside this script
+
+SHARED = ("iterations", "refresh_every", "path", "window", "windows", "distinct", "parts")  # what every --run takes
+
+
+def parse_run(item: str) -> tuple[str, str, str | None, str, bool]:
+    """``LABEL=PLATFORM[@CPUS]:BATCHES[:remat]`` as ``(label, platform, cpus, batches, remat)``."""
+    config, _, rest = item.partition(":")
+    batches, _, flag = rest.partition(":")
+    label, name, cpus = parse_config(config)
+    if not batches or not all(b.isdigit() and int(b) > 0 for b in batches.split(",")) or flag not in ("", "remat"):
+        raise SystemExit(f"--run: expected LABEL=PLATFORM[@CPUS]:B[,B...][:remat], got {item!r}")
+    return label, name, cpus, batches, flag == "remat"
+
+
+def compare(args) -> None:
+    """Every ``--run`` in turn, each a fresh process of this script from an empty cache; the JSON (on stdout, and
+    into ``--out`` after every run) holds each run's report (or its failure and the rows it wrote before it),
+    each run's best throughput and its ratio to the first's."""
+    runs = [parse_run(item) for item in args.run]
+    result: dict = {
+        "benchmark": "bench_batch",
+        "label": args.label,
+        "command": " ".join(sys.argv),
+        "machine": platform.node(),
+        "processor": processor(),
+        "order": [label for label, *_ in runs],
+        "runs": {},
+    }
+    for label, name, cpus, batches, remat in runs:
+        with tempfile.TemporaryDirectory(prefix="pusupu-bench-batch-") as scratch:
+            out = Path(scratch) / "run.json"
+            cmd = [sys.executable, __file__, "--batches", batches, "--label", label, "--out", str(out)]
+            cmd += [f"--{k.replace('_', '-')}={getattr(args, k)}" for k in SHARED] + (
+                ["--remat"] if remat or args.remat else []
+            )
+            try:
+                pinned(cmd, name, cpus, f"bench_batch: {label}", PUSUPU_JAX_CACHE=str(Path(scratch) / "cache"))
+                failure = None
+            except SystemExit as e:
+                failure = str(e)
+            report = json.loads(out.read_text()) if out.exists() else {"results": []}
+        result["runs"][label] = report | {"cpus_pinned": cpus, "failed": failure}
+        best = {
+            label: max(run["results"], key=lambda r: r["scenario_iterations_per_s"])
+            for label, run in result["runs"].items()
+            if run["results"]
+        }
+        result["best"] = {
+            k: {"batch": r["batch"], "scenario_iterations_per_s": r["scenario_iterations_per_s"]}
+            for k, r in best.items()
+        }
+        first = best.get(result["order"][0])
+        result["ratio_to_first"] = (
+            {k: r["scenario_iterations_per_s"] / first["scenario_iterations_per_s"] for k, r in best.items()}
+            if first
+            else {}
+        )
+        print(f"bench_batch: {label}: {failure or 'done'}; best so far {result['best']}", file=sys.stderr, flush=True)
+        if args.out:
+            from pusupu_jax.files import write_atomic
+
+            write_atomic(args.out, json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result, indent=2))
 
 
 def parts(problem, n: int) -> dict:
@@ -76,7 +151,15 @@ def main() -> None:
         help="after the iterations, time the compiled gradient alone and the window refresh alone, "
         "N calls each (medians; 0: not)",
     )
+    ap.add_argument(
+        "--run",
+        action="append",
+        metavar="LABEL=PLATFORM[@CPUS]:BATCHES[:remat]",
+        help="run the benchmark once per --run, one after another, and compare their best throughputs (see above)",
+    )
     args = ap.parse_args()
+    if args.run:
+        return compare(args)
     from pusupu_jax.runtime import cpu_count, setup_jax
 
     setup_jax()

@@ -37,7 +37,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from timing import MOUNT_TREE, processor  # beside this script
+from timing import MOUNT_TREE, parse_config, pinned, processor  # beside this script
 
 CHILD = (
     r"""
@@ -136,21 +136,10 @@ RESULT_LINES = 20  # of pusupu tune's stdout kept in the JSON: its table of erro
 
 
 def child(tree: Path, platform_name: str, cpus: str | None, cmd: list[str], cwd: Path, what: str, **env_extra: str):
-    """Run ``cmd`` with ``tree`` first on the path, on the platform and CPUs asked, in ``cwd``; a failure ends the
-    benchmark in one line naming ``what`` ran and its last line of stderr."""
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(filter(None, (str(tree), os.environ.get("PYTHONPATH")))))
-    env.pop("PUSUPU_JAX_CACHE", None)
-    env.pop("JAX_PLATFORMS", None)
-    env.update(env_extra)
-    if platform_name == "cpu":
-        env["JAX_PLATFORMS"] = "cpu"
-    if cpus:
-        cmd = ["taskset", "-c", cpus] + cmd
-    done = subprocess.run(cmd, env=env, cwd=cwd, capture_output=True, text=True, timeout=3600)
-    if done.returncode:
-        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
-        raise SystemExit(f"bench_main_job: {what} in {tree} ({platform_name} {cpus or ''}) failed: {last}")
-    return done
+    """Run ``cmd`` with ``tree`` first on the path, on the platform and CPUs asked, in ``cwd``
+    (:func:`timing.pinned`)."""
+    path = os.pathsep.join(filter(None, (str(tree), os.environ.get("PYTHONPATH"))))
+    return pinned(cmd, platform_name, cpus, f"bench_main_job: {what} in {tree}", cwd, PYTHONPATH=path, **env_extra)
 
 
 def run_whole(tree: Path, platform_name: str, cpus: str | None) -> dict:
@@ -193,11 +182,11 @@ def main() -> None:
         ap.error(f"--iterations: expected at least 2, got {args.iterations}")
     configs = {}
     for item in args.configs.split(","):
-        label, _, spec = item.partition("=")
-        name, _, cpus = spec.partition("@")
-        if name not in ("cpu", "gpu") or not label:
-            ap.error(f"--configs: expected LABEL=cpu[@CPUS] or LABEL=gpu, got {item!r}")
-        configs[label] = (name, cpus or None)
+        try:
+            label, name, cpus = parse_config(item)
+        except SystemExit as e:
+            ap.error(f"--configs: {e}")
+        configs[label] = (name, cpus)
     here = Path(__file__).resolve().parent.parent
     trees = {"this": here} | ({"against": args.against.resolve()} if args.against else {})
     runs: dict = {f"{t} {c}": [] for c in configs for t in trees}

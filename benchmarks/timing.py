@@ -24,6 +24,32 @@ def processor() -> str:
     return platform.processor()
 
 
+def parse_config(item: str) -> tuple[str, str, str | None]:
+    """``LABEL=PLATFORM[@CPUS]`` (PLATFORM ``cpu`` or ``gpu``; CPUS as ``taskset -c`` takes them) as ``(label,
+    platform, cpus or None)``; anything else ends the benchmark in one line."""
+    label, _, spec = item.partition("=")
+    name, _, cpus = spec.partition("@")
+    if name not in ("cpu", "gpu") or not label:
+        raise SystemExit(f"expected LABEL=cpu[@CPUS] or LABEL=gpu, got {item!r}")
+    return label, name, cpus or None
+
+
+def pinned(cmd: list[str], platform_name: str, cpus: str | None, what: str, cwd=None, **env: str):
+    """Run ``cmd`` (captured) on the platform and CPUs asked, with ``env`` added to this process's environment but
+    for its ``PUSUPU_JAX_CACHE`` and ``JAX_PLATFORMS``; a failure ends the benchmark in one line naming ``what`` ran
+    and its last line of stderr."""
+    full = {k: v for k, v in os.environ.items() if k not in ("PUSUPU_JAX_CACHE", "JAX_PLATFORMS")} | env
+    if platform_name == "cpu":
+        full["JAX_PLATFORMS"] = "cpu"
+    if cpus:
+        cmd = ["taskset", "-c", cpus] + cmd
+    done = subprocess.run(cmd, env=full, cwd=cwd, capture_output=True, text=True, timeout=3600)
+    if done.returncode:
+        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+        raise SystemExit(f"{what} ({platform_name} {cpus or ''}) failed: {last}")
+    return done
+
+
 def median_time(fn, repeats: int) -> float:
     """Median wall time [s] of ``repeats`` calls of ``fn()``, each awaited, after one warm-up call (the compile)."""
     import jax
