@@ -245,3 +245,38 @@ def test_the_gradients_program_is_named_by_the_settings_it_reads_only():
     # another start point, and another machine's drives, are the program's arguments; other tuned fields are not
     assert structure_key(Problem(base, servo.replace(Kv=servo.Kv * 1.1, R=servo.R * 2), hybrid)) == key
     assert structure_key(Problem(base.replace(groups=("imc", "velocity")), servo, hybrid)) != key
+
+
+def test_a_scenarios_reference_is_kept_on_disk_and_read_back_bit_for_bit(tmp_path, monkeypatch):
+    """``tune.run.kept_reference``: the first call runs ``machine_reference`` and keeps its arrays, a second one with
+    the same arguments reads them back (no ``machine_reference``), equal bit for bit, in a position mode and in hybrid
+    (a pytree of three arrays); other gains are another file; a damaged file warns and is computed again."""
+    from pusupu_jax.paths import platform_path_from
+    from pusupu_jax.plant.geometry import Geometry
+    from pusupu_jax.plant.model import ModelOptions
+    from pusupu_jax.tune import run, starts
+
+    monkeypatch.setattr(starts, "path_for", lambda digest: tmp_path / "starts" / f"{digest}.npz")
+    calls = []
+    computed = run.machine_reference
+    monkeypatch.setattr(run, "machine_reference", lambda *a, **k: calls.append(a[2]) or computed(*a, **k))
+    geom = Geometry.default()
+    path = platform_path_from("arc", geom.home, RATES)[:200]
+    for mode in ("imc", "hybrid"):
+        first = run.kept_reference(SERVO, path, mode, ModelOptions(), RATES, geom)
+        again = run.kept_reference(SERVO, path, mode, ModelOptions(), RATES, geom)
+        want = computed(SERVO, path, mode, options=ModelOptions(), rates=RATES, geom=geom)
+        assert calls.count(mode) == 1
+        assert jax.tree.structure(again) == jax.tree.structure(want)
+        for a, b, c in zip(jax.tree.leaves(first), jax.tree.leaves(again), jax.tree.leaves(want)):
+            assert np.array_equal(a, c) and np.array_equal(b, c) and b.dtype == c.dtype
+    run.kept_reference(SERVO.replace(lambda1=SERVO.lambda1 * 2), path, "imc", ModelOptions(), RATES, geom)
+    assert calls.count("imc") == 2  # other gains: another reference, computed
+    kept = sorted((tmp_path / "starts").glob("*-reference.npz"))
+    assert len(kept) == 3
+    for damaged in kept:
+        damaged.write_bytes(damaged.read_bytes()[:-10] + b"0123456789")
+    with pytest.warns(UserWarning, match="fails its checksum"):
+        for mode in ("imc", "hybrid"):
+            again = run.kept_reference(SERVO, path, mode, ModelOptions(), RATES, geom)
+    assert calls == ["imc", "hybrid", "imc", "imc", "hybrid"] and np.array_equal(again.theta, want.theta)

@@ -27,7 +27,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 from pusupu_jax import devices, machine_draws, machine_file, objectives, workload
 from pusupu_jax.cascade import control_mode
 from pusupu_jax.gradients import value_and_grad
-from pusupu_jax.hybrid import HybridGains
+from pusupu_jax.hybrid import HybridGains, HybridReference
 from pusupu_jax.machine import machine_metrics, machine_plant, machine_rates, machine_reference, with_drives
 from pusupu_jax.margins import envelope_margins
 from pusupu_jax.machine_file import Machine
@@ -115,6 +115,30 @@ def scenario_list(cfg: TuneConfig, machine: Machine | None = None) -> list[Scena
     return out
 
 
+def kept_reference(servo: ServoParams, path: np.ndarray, mode: str, options: ModelOptions, rates, geom: Geometry):
+    """:func:`~pusupu_jax.machine.machine_reference` of ``path`` (``(N, 5)``), kept on disk beside the start states
+    (:mod:`.starts`) under a name that hashes everything it is computed from (the arguments and this package's
+    source): a later run of the same scenario reads the arrays its first run computed, bit for bit, instead of
+    checking the path and running its inverse kinematics and dynamics again (about 5 s of the default job's set-up on
+    2 cores).  A path that fails its check raises as before: nothing is kept for it."""
+    try:
+        parts = ("machine_reference", *map(describe, (servo, np.asarray(path), str(mode), options, rates, geom)))
+        file = kept_starts.path_for(fingerprint(parts))
+    except UnstableKey:
+        file = None
+    if file is not None:
+        file = file.with_name(f"{file.stem}-reference.npz")
+        theta = jax.ShapeDtypeStruct((len(path), 6), jnp.asarray(0.0).dtype)
+        hybrid = HybridReference(theta, *(jax.ShapeDtypeStruct(s, theta.dtype) for s in ((len(path),), (len(path), 5))))
+        kept = kept_starts.load(file, lambda: hybrid if control_mode(mode).hybrid else theta)
+        if kept is not None:
+            return jax.tree.map(jnp.asarray, kept)
+    reference = machine_reference(servo, path, mode, options=options, rates=rates, geom=geom)
+    if file is not None:
+        kept_starts.keep(file, reference)
+    return reference
+
+
 @dataclasses.dataclass(frozen=True)
 class Scenarios:
     """Scenarios, and the training windows spread over each path.
@@ -156,11 +180,7 @@ class Scenarios:
                 )
             padded = np.concatenate([path, np.repeat(path[-1:], K * every - len(path), axis=0)])
             try:
-                refs.append(
-                    machine_reference(
-                        servo, padded, cfg.mode, options=spec.told or spec.options, rates=rates, geom=spec.geom()
-                    )
-                )
+                refs.append(kept_reference(servo, padded, cfg.mode, spec.told or spec.options, rates, spec.geom()))
                 models.append(plant.variant(spec.options, spec.geometry))
             except ParameterError as e:
                 raise type(e)(f"scenario {spec.name}: {e}") from None

@@ -10,7 +10,8 @@ reference, the number of devices, and the source and versions of what computes t
 (or a notebook's second problem) loads the states its first run kept: bit for bit the arrays that run computed.
 Beside the states at the start gains, the objective's terms there (its normalisers,
 :meth:`~pusupu_jax.tune.run.WindowStarts.start_baseline`) are kept the same way: a second run then starts with one
-gradient, not two.
+gradient, not two.  So are the scenarios' references (:func:`pusupu_jax.tune.run.kept_reference`): a second run
+neither checks its paths nor runs their inverse kinematics and dynamics again.
 
 A file holds the states' arrays (``numpy.savez``, read with ``allow_pickle=False``) after the SHA-256 of the rest;
 the states' structure comes from the problem (:meth:`~pusupu_jax.tune.run.Problem.starts_structure`), and a file
