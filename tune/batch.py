@@ -97,7 +97,8 @@ class BatchProblem(WindowStarts):
         self.space = Space.create(
             cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared, bounds=cfg.bounds
         )
-        self.scenarios = sc = Scenarios.build(cfg, self.space.servo0, self.rates, specs)
+        # (its references not kept on disk: a batch may hold thousands of scenarios, each of a few MB)
+        self.scenarios = sc = Scenarios.build(cfg, self.space.servo0, self.rates, specs, keep=False)
         # the margin constraints' loads, per problem (machine_file.margin_loads): ``machine``'s at home, and at the
         # lightest and the heaviest pose along the problem's paths with their payloads (on its scenarios' geometry)
         # (problems of the same scenarios share them: 28 ms each on 2 cores, minutes for thousands of problems)
