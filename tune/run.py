@@ -126,17 +126,13 @@ def kept_reference(servo: ServoParams, path: np.ndarray, mode: str, options: Mod
         file = kept_starts.path_for(fingerprint(parts))
     except UnstableKey:
         file = None
-    if file is not None:
-        file = file.with_name(f"{file.stem}-reference.npz")
-        theta = jax.ShapeDtypeStruct((len(path), 6), jnp.asarray(0.0).dtype)
-        hybrid = HybridReference(theta, *(jax.ShapeDtypeStruct(s, theta.dtype) for s in ((len(path),), (len(path), 5))))
-        kept = kept_starts.load(file, lambda: hybrid if control_mode(mode).hybrid else theta)
-        if kept is not None:
-            return jax.tree.map(jnp.asarray, kept)
-    reference = machine_reference(servo, path, mode, options=options, rates=rates, geom=geom)
-    if file is not None:
-        kept_starts.keep(file, reference)
-    return reference
+    theta = jax.ShapeDtypeStruct((len(path), 6), jnp.asarray(0.0).dtype)
+    hybrid = HybridReference(theta, *(jax.ShapeDtypeStruct(s, theta.dtype) for s in ((len(path),), (len(path), 5))))
+    return kept_starts.kept(
+        None if file is None else file.with_name(f"{file.stem}-reference.npz"),
+        lambda: hybrid if control_mode(mode).hybrid else theta,
+        lambda: machine_reference(servo, path, mode, options=options, rates=rates, geom=geom),
+    )[0]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -340,18 +336,15 @@ class WindowStarts:
             kept = (self.starts, self._starts_z)  # a resumed run has its own starts already: keep them
             z0 = self.z0()
             self.refresh(z0)
-            path = self._baseline_file(z0)
             structure = {k: jax.ShapeDtypeStruct((self.rows,), np.float64) for k in objectives.TERMS}
-            stored = None if path is None else kept_starts.load(path, lambda: structure)
-            if stored is not None:
-                self.baseline = {k: jnp.asarray(v) for k, v in stored.items()}
-                self.baseline_loaded += 1
-            else:
+
+            def terms():
                 ones = {k: jnp.ones(self.rows) for k in objectives.TERMS}
                 (_, aux), _ = self._value_and_grad(z0, ones, self.starts, self.windows, self.space.start)
-                self.baseline = aux["terms"]
-                if path is not None:
-                    kept_starts.keep(path, self.baseline)
+                return aux["terms"]
+
+            self.baseline, loaded = kept_starts.kept(self._baseline_file(z0), lambda: structure, terms)
+            self.baseline_loaded += loaded
             if kept[0] is not None:
                 self.starts, self._starts_z = kept
         return self.baseline
@@ -447,16 +440,12 @@ class Problem(WindowStarts):
         """Renew the windows' start states from a forward pass over the whole paths at ``z``, or load the states an
         earlier run kept for the same problem and gains (:mod:`pusupu_jax.tune.starts`; counted in
         ``starts_loaded``)."""
-        path = self._starts_file(z)
-        stored = None if path is None else kept_starts.load(path, lambda: self.starts_structure(z))
-        if stored is not None:
-            self.starts = jax.tree.map(jnp.asarray, stored)
-            self.starts_loaded += 1
-        else:
-            runs = self.run_paths(z)
-            self.starts = jax.tree.map(lambda *c: jnp.concatenate(c), *[carries for _, carries in runs])
-            if path is not None:
-                kept_starts.keep(path, self.starts)
+
+        def computed():
+            return jax.tree.map(lambda *c: jnp.concatenate(c), *[carries for _, carries in self.run_paths(z)])
+
+        self.starts, loaded = kept_starts.kept(self._starts_file(z), lambda: self.starts_structure(z), computed)
+        self.starts_loaded += loaded
         self._starts_z = {k: np.asarray(v) for k, v in z.items()}
 
     def starts_structure(self, z) -> object:

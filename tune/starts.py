@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from pusupu_jax.files import write_atomic
@@ -70,6 +71,18 @@ def load(path: Path, structure: Callable[[], Any]) -> Any | None:
     if any(a.dtype != t.dtype or a.ndim != len(t.shape) for a, t in zip(kept, leaves)):
         return None
     return jax.tree.unflatten(tree, kept)
+
+
+def kept(path: Path | None, structure: Callable[[], Any], compute: Callable[[], Any]) -> tuple[Any, bool]:
+    """The arrays kept in ``path`` (read by :func:`load` with ``structure``, as JAX arrays), or else ``compute()``,
+    then kept there; and whether they were read.  ``path`` None: computed, nothing kept."""
+    stored = None if path is None else load(path, structure)
+    if stored is not None:
+        return jax.tree.map(jnp.asarray, stored), True
+    value = compute()
+    if path is not None:
+        keep(path, value)
+    return value, False
 
 
 def keep(path: Path, starts: Any) -> None:
