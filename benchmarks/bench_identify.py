@@ -23,9 +23,7 @@ an encoder of ``--encoder-bits`` a turn (at a phase drawn per seed), and each cu
 (1.96 standard errors), and ``coverage`` gives per solver and value the share of seeds whose interval covers it.
 The later fits find the programs compiled (the logged data are their arguments).  ``--first-seed K --noisy-only``
 fits seeds K, K+1, ... alone, so that several processes can share the seeds; ``--merge A.json B.json ...`` makes one
-result of theirs.  ``--together`` fits all those logs at once, as ``pusupu identify LOG LOG ...`` does: logs of one
-shape replay as one vmapped batch, or with ``--no-batch`` each as a run of its own in the same program (the fit's
-``wall_s`` less its ``solve_s`` is mostly the compile).
+result of theirs.
 
 ``--derivatives exact,finite-differences,mujoco-minimize`` fits each log once with each solver and Jacobian
 (:class:`pusupu_jax.machine_fit.Derivatives`): the exact one through the replay, and the derivative-free anchors,
@@ -39,7 +37,7 @@ and the seconds each took to the same residual (the higher of the two fits' leas
     python benchmarks/bench_identify.py [--source sim|bridge] [--fine-steps N] [--robot-sensors BITS,AMPS]
         [--trajectory p2p] [--window 2]
         [--mech-step S]
-        [--fit friction,motor,payload] [--noise-seeds 0] [--first-seed 0] [--noisy-only] [--together [--no-batch]]
+        [--fit friction,motor,payload] [--noise-seeds 0] [--first-seed 0] [--noisy-only]
         [--derivatives exact[,finite-differences,...]] [--out FILE]
     python benchmarks/bench_identify.py --merge A.json B.json ... [--out FILE]
 """
@@ -161,16 +159,6 @@ def main() -> None:
     ap.add_argument("--first-seed", type=int, default=0, help="the first noisy copy's seed (default 0)")
     ap.add_argument("--noisy-only", action="store_true", help="fit the noisy copies only, not the noise-free log")
     ap.add_argument(
-        "--together",
-        action="store_true",
-        help="fit the logs (the noise-free one unless --noisy-only, and the noisy copies) in one fit of them all",
-    )
-    ap.add_argument(
-        "--no-batch",
-        action="store_true",
-        help="with --together: replay each log as a run of its own in the program, not as one vmapped batch",
-    )
-    ap.add_argument(
         "--merge",
         nargs="+",
         metavar="JSON",
@@ -202,8 +190,6 @@ def main() -> None:
         return
     if args.noisy_only and args.noise_seeds < 1:
         ap.error(f"--noisy-only: expected --noise-seeds of at least 1, got {args.noise_seeds}")
-    if args.no_batch and not args.together:
-        ap.error("--no-batch: expected with --together (a fit of several logs), got a fit of one log at a time")
 
     from pusupu_jax import gains as gain_files
     from pusupu_jax import machine_file, machine_fit, run_log
@@ -238,25 +224,21 @@ def main() -> None:
         g = gain_files.load(gain_path)
         fields = machine_fit.fit_fields(args.fit)
         seeds = range(args.first_seed, args.first_seed + args.noise_seeds)
-        cases = [] if args.noisy_only else [("noise-free", [log])]
-        cases += [(f"noise seed {k}", [_noisy(log, k, args.encoder_bits, args.current_noise)]) for k in seeds]
-        if args.together:
-            cases = [(" + ".join(name for name, _ in cases), [one for _, logs in cases for one in logs])]
+        cases = [] if args.noisy_only else [("noise-free", log)]
+        cases += [(f"noise seed {k}", _noisy(log, k, args.encoder_bits, args.current_noise)) for k in seeds]
         fits = []
         for (name, case), derivatives in ((c, m) for c in cases for m in methods):
             print(f"bench_identify: fitting {name} ({derivatives} Jacobian)", file=sys.stderr, flush=True)
             report, _, _ = machine_fit.fit(
-                case, start, g.servo, g.hybrid, g.rates, fields, args.window,
+                [case], start, g.servo, g.hybrid, g.rates, fields, args.window,
                 progress=lambda line: print(line, file=sys.stderr, flush=True), derivatives=derivatives,
-                mech_step=args.mech_step, batched=not args.no_batch,
+                mech_step=args.mech_step,
             )  # fmt: skip
             entries = _entries(report, truth)
             per_call = report.residual_s / max(report.residual_calls, 1)
             fits.append(
                 {
                     "case": name,
-                    "logs": len(case),
-                    "batched": len(case) > 1 and not args.no_batch,
                     "derivatives": str(derivatives),
                     "wall_s": report.wall_s,
                     "solve_s": report.residual_s + report.jacobian_s,

@@ -53,7 +53,6 @@ from .machine import MACHINE_MODES, machine_plant, machine_rates, machine_refere
 from .machine_file import Correlation, Machine, value_label
 from .params import N_AXES, LoopRates, ParameterError, ServoParams, bounds
 from .paths import platform_path_from
-from .plant.geometry import Geometry
 from .plant.model import ModelOptions
 from .run_log import DriveLog
 from .sim import rollout
@@ -328,101 +327,42 @@ class FitReport:
 
 
 @dataclasses.dataclass(frozen=True)
-class ReplayMachine:
-    """What every log's replay shares: the MJX ``plant`` of the machine file (nominal, stepped every ``mech_step``)
-    and its ``model`` (the machine's ``geometry`` and payload as arrays), the loop ``rates``, the machine's
-    ``options``, the ``servo`` gains on it and the ``hybrid`` gains."""
-
-    plant: Any
-    model: Any
-    geometry: Geometry
-    rates: LoopRates
-    options: ModelOptions
-    servo: ServoParams
-    hybrid: HybridGains | None
-
-    @classmethod
-    def of(
-        cls, machine: Machine, gains: ServoParams, hybrid: HybridGains | None, rates: LoopRates, mech_step: float | None
-    ) -> "ReplayMachine":
-        options = machine.options(None if mech_step is None else ModelOptions(timestep=mech_step))
-        nominal = dataclasses.replace(
-            options, kin_error_seed=None, payload=0.0, payload_com=(0.0, 0.0, 0.0), payload_inertia=(0.0, 0.0, 0.0)
-        )
-        plant = machine_plant(nominal)
-        return cls(
-            plant,
-            plant.variant(options, machine.geometry),
-            machine.geometry,
-            machine_rates(options, rates),
-            options,
-            machine.servo(gains),
-            hybrid,
-        )
-
-    def runs(
-        self, mode: str, channel: Channel, references: Any, index: np.ndarray, values: dict[FitField, jax.Array]
-    ) -> tuple[jax.Array, jax.Array]:
-        """The closed-loop replays of a batch of logs of one ``mode`` and ``channel``: each along its reference
-        (``references``: leaves ``(L, n, ...)``) with the fitted ``values``; the efforts and motor angles at the
-        logged periods ``index`` ``(L, m)``, ``(L, m, n_axes)`` each, as one vmapped run."""
-        model, plant = self.model, self.plant
-        if FitField.PAYLOAD_MASS in values or FitField.PAYLOAD_COM in values:  # and what MuJoCo derives from them
-            payload = plant.mj_model.body("payload").id  # welded to the platform at its centre of mass (plant.model)
-            mass, pos = model.body_mass, model.body_pos
-            if FitField.PAYLOAD_MASS in values:
-                mass = mass.at[payload].set(values[FitField.PAYLOAD_MASS][0])
-            if FitField.PAYLOAD_COM in values:
-                pos = pos.at[payload].set(values[FitField.PAYLOAD_COM])
-            model = plant.with_masses(model, mass, pos)
-        servo = self.servo.replace(**drive_values(values, self.servo.Kt, self.servo.Ke))
-        hybrid = self.hybrid if control_mode(mode).hybrid else None
-
-        def one(reference: Any, at: Any) -> tuple[jax.Array, jax.Array]:
-            trace = rollout(servo, model, reference, plant=plant, rates=self.rates, outer=mode, hybrid=hybrid)
-            effort = trace.current if channel is Channel.CURRENT else trace.torque
-            return effort[at], trace.theta[at]
-
-        if jax.tree.leaves(references)[0].shape[0] == 1:  # one log: its own run, not a batch of one
-            effort, theta = one(jax.tree.map(lambda x: x[0], references), index[0])
-            return effort[None], theta[None]
-        return jax.vmap(one)(references, index)
-
-
-@dataclasses.dataclass(frozen=True)
 class Replay:
-    """One log checked against its path on the machine: its ``mode``, the effort ``channel`` it logged (current [A]
-    where the log has it, else torque [N m]), ``drive``, the machine reference the replay follows (the cascade's
-    input, ``n`` position periods), the position period ``index`` of each kept sample, the logged ``effort``,
-    ``position`` and ``reference`` there ``(m, n_axes)``, and ``t`` [s] along the path."""
+    """One log's replay: the jitted ``run(values) -> (effort, theta)`` (``values``: ``{field: (field.size,)}``) at
+    the logged samples ``(n, n_axes)``, the
+    effort in the log's ``channel`` (current [A] where the log has it, else torque [N m]), and the logged ``effort``
+    and ``position`` there; ``t`` [s] along the path."""
 
-    mode: str
+    run: Callable[[dict[FitField, jax.Array]], tuple[jax.Array, jax.Array]]
     channel: Channel
-    drive: Any
-    index: np.ndarray
     effort: np.ndarray
     position: np.ndarray
     reference: np.ndarray
     t: np.ndarray
 
-    def shape(self) -> tuple[str, Channel, int, int]:
-        """What logs replayed in one vmapped batch share: mode, channel, periods and samples."""
-        return self.mode, self.channel, len(jax.tree.leaves(self.drive)[0]), len(self.index)
 
-
-def _replay(log: DriveLog, on: ReplayMachine, window_s: float, trajectory: str | None) -> Replay:
-    """``log``'s first ``window_s`` seconds, checked against the log's mode, rate and reference on the machine
-    ``on``."""
+def _replay(
+    log: DriveLog,
+    machine: Machine,
+    gains: ServoParams,
+    hybrid: HybridGains | None,
+    rates: LoopRates,
+    window_s: float,
+    trajectory: str | None,
+    mech_step: float | None,
+) -> Replay:
+    """The closed-loop replay of ``log``'s first ``window_s`` seconds on ``machine`` under ``gains``, checked against
+    the log: its mode, rate and reference; the MJX machine stepped every ``mech_step`` [s] (None: the model's)."""
     if log.mode not in MACHINE_MODES:
         raise ParameterError(f"{log.path}: mode: expected one of {tuple(map(str, MACHINE_MODES))}, got {log.mode!r}")
-    rates = on.rates
+    options = machine.options(None if mech_step is None else ModelOptions(timestep=mech_step))
+    rates = machine_rates(options, rates)
     spec = trajectory or log.trajectory
     if not spec:
         raise ParameterError(
             f"{log.path}: expected the path it ran (a '# trajectory:' line or --trajectory), found none"
         )
-    geometry = on.geometry
-    path = platform_path_from(spec, geometry.home, rates)
+    path = platform_path_from(spec, machine.geometry.home, rates)
     n = min(int(round(window_s / rates.dt_position)), len(path))
     index = np.rint(log.path_time / rates.dt_position).astype(int)  # the position period of each sample's reference
     keep = (index >= 0) & (index < n)
@@ -431,9 +371,10 @@ def _replay(log: DriveLog, on: ReplayMachine, window_s: float, trajectory: str |
             f"{log.path}: expected samples in the first {window_s:g} s of the path, found fewer than 2"
         )
     index = index[keep]
-    drive = machine_reference(on.servo, path[:n], log.mode, options=on.options, rates=rates, geom=geometry)
+    servo = machine.servo(gains)
+    reference = machine_reference(servo, path[:n], log.mode, options=options, rates=rates, geom=machine.geometry)
     theta_ref = np.asarray(
-        cast(HybridReference, drive).theta if control_mode(log.mode).hybrid else drive,
+        cast(HybridReference, reference).theta if control_mode(log.mode).hybrid else reference,
     )[index]
     off = float(np.abs(theta_ref - log.reference[keep]).max())
     if off > 1e-6:
@@ -441,27 +382,40 @@ def _replay(log: DriveLog, on: ReplayMachine, window_s: float, trajectory: str |
             f"{log.path}: expected the reference of the path {spec!r} on this machine, found one {off:.3g} rad "
             "away (another path, geometry or rate: give --trajectory or --machine)"
         )
-    channel = Channel.TORQUE if log.current is None else Channel.CURRENT
-    logged = log.current if log.current is not None else log.torque
-    return Replay(
-        log.mode,
-        channel,
-        drive,
-        index,
-        logged[keep],
-        log.position[keep],
-        log.reference[keep],
-        index * rates.dt_position,
+    nominal = dataclasses.replace(
+        options, kin_error_seed=None, payload=0.0, payload_com=(0.0, 0.0, 0.0), payload_inertia=(0.0, 0.0, 0.0)
     )
+    plant = machine_plant(nominal)
+    model = plant.variant(options, machine.geometry)
+    mode, hybrid = log.mode, hybrid if control_mode(log.mode).hybrid else None
+    channel = Channel.TORQUE if log.current is None else Channel.CURRENT
 
+    payload = plant.mj_model.body("payload").id  # welded to the platform at its centre of mass (plant.model)
 
-def replay_batches(replays: list[Replay]) -> list[list[int]]:
-    """The logs' indices in batches of one :meth:`Replay.shape`, each batch replayed as one vmapped run, in the order
-    of each shape's first log."""
-    batches: dict[tuple[str, Channel, int, int], list[int]] = {}
-    for i, r in enumerate(replays):
-        batches.setdefault(r.shape(), []).append(i)
-    return list(batches.values())
+    @jax.jit
+    def run(values: dict[FitField, jax.Array]) -> tuple[jax.Array, jax.Array]:
+        fitted = model
+        if FitField.PAYLOAD_MASS in values or FitField.PAYLOAD_COM in values:  # and what MuJoCo derives from them
+            mass, pos = model.body_mass, model.body_pos
+            if FitField.PAYLOAD_MASS in values:
+                mass = mass.at[payload].set(values[FitField.PAYLOAD_MASS][0])
+            if FitField.PAYLOAD_COM in values:
+                pos = pos.at[payload].set(values[FitField.PAYLOAD_COM])
+            fitted = plant.with_masses(model, mass, pos)
+        trace = rollout(
+            servo.replace(**drive_values(values, servo.Kt, servo.Ke)),
+            fitted,
+            reference,
+            plant=plant,
+            rates=rates,
+            outer=mode,
+            hybrid=hybrid,
+        )
+        effort = trace.current if channel is Channel.CURRENT else trace.torque
+        return effort[index], trace.theta[index]
+
+    logged = log.current if log.current is not None else log.torque
+    return Replay(run, channel, logged[keep], log.position[keep], log.reference[keep], index * rates.dt_position)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -720,7 +674,6 @@ def fit(
     progress: Callable[[str], object] | None = None,
     derivatives: Derivatives = Derivatives.EXACT,
     mech_step: float | None = None,
-    batched: bool = True,
 ) -> tuple[FitReport, Machine, list[dict[str, Any]]]:
     """Fit ``fields`` of ``machine`` (its values are the start) to ``logs``, each replayed over its first
     ``window_s`` [s] with ``gains`` (``hybrid``: a hybrid log's gains; ``rates``: the gains' rates; ``trajectory``:
@@ -730,9 +683,7 @@ def fit(
     ``progress(line)`` is told what runs (compiles take about half a minute each on 2 CPU cores).  ``derivatives``:
     the solver's Jacobian (:class:`Derivatives`: the exact one, or finite differences to compare with).
     ``mech_step`` [s]: the replay's mechanical step (:func:`check_mech_step`; None: the model's, 0.25 ms, as the
-    tuner steps it); a finer one is closer to a robot and costs time in proportion.  Logs of one mode, effort channel
-    and length replay as one vmapped batch (:func:`replay_batches`); ``batched=False`` replays each as a run of its
-    own inside the same program instead, the same residual to rounding (to compare the two's compile and run times)."""
+    tuner steps it); a finer one is closer to a robot and costs time in proportion."""
     say = progress or (lambda line: None)
     t0 = time.perf_counter()
     # every fitted value in one vector, field after field (each field.size long), scaled by its start (or SCALES)
@@ -754,8 +705,7 @@ def fit(
                 "current_a columns), found torques only"
             )
     check_mech_step(mech_step, rates)
-    on = ReplayMachine.of(machine, gains, hybrid, rates, mech_step)
-    replays = [_replay(log, on, window_s, trajectory) for log in logs]
+    replays = [_replay(log, machine, gains, hybrid, rates, window_s, trajectory, mech_step) for log in logs]
     if FitField.TORQUE_CONSTANT in fields:
         for log in logs:
             if control_mode(log.mode).hybrid:
@@ -781,29 +731,13 @@ def fit(
     )
     x0 = jnp.asarray(starts / scale)
 
-    # logs of one shape (mode, channel, periods, samples) replay as one vmapped batch: one traced run for all
-    # of them, not one per log
-    batches = replay_batches(replays) if batched else [[i] for i in range(len(replays))]
-    stacked = [
-        (
-            jax.tree.map(lambda *x: np.stack(x), *[replays[i].drive for i in members]),
-            np.stack([replays[i].index for i in members]),
-        )
-        for members in batches
-    ]
-
     def residual(x: jax.Array, data: Any) -> jax.Array:
-        """The residual at every fitted value ``x`` (scaled), log after log."""
+        """The residual at every fitted value ``x`` (scaled)."""
         unit, logged, s_th = data
         values = split(x * unit)
-        runs: list[Any] = [None] * len(replays)
-        for members, (drives, index) in zip(batches, stacked):
-            first = replays[members[0]]
-            effort, theta = on.runs(first.mode, first.channel, drives, index, values)
-            for j, i in enumerate(members):
-                runs[i] = effort[j], theta[j]
         parts = []
-        for (effort, theta), (effort_log, position_log, s_e) in zip(runs, logged):
+        for r, (effort_log, position_log, s_e) in zip(replays, logged):
+            effort, theta = r.run(values)
             parts += [((effort - effort_log) / s_e).ravel(), ((theta - position_log) / s_th).ravel()]
         return jnp.concatenate(parts)
 

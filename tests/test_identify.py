@@ -336,28 +336,3 @@ def test_the_solver_is_chosen_by_name_and_another_is_refused_in_one_line(tmp_pat
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "--derivatives" in r.stderr and "'newton'" in r.stderr and "mujoco-minimize" in r.stderr
     assert not (tmp_path / "m.yaml").exists()
-
-
-def test_logs_of_one_shape_replay_as_one_batch():
-    """``pusupu identify LOG LOG ...``: logs of one mode, effort channel, replayed length and sample count are one
-    vmapped replay (:func:`machine_fit.replay_batches`); another mode, channel, length or count is a batch of its own,
-    in the order of each shape's first log."""
-    from pusupu_jax.machine_fit import Channel, Replay, replay_batches
-
-    def replay(mode: str, channel: Channel, periods: int, samples: int) -> Replay:
-        logged = np.zeros((samples, 6))
-        return Replay(
-            mode, channel, np.zeros((periods, 6)), np.arange(samples), logged, logged, logged, np.zeros(samples)
-        )
-
-    logs = [
-        replay("imc", Channel.CURRENT, 800, 400),
-        replay("imc", Channel.CURRENT, 800, 400),
-        replay("hybrid", Channel.CURRENT, 800, 400),
-        replay("imc", Channel.TORQUE, 800, 400),
-        replay("imc", Channel.CURRENT, 800, 399),
-        replay("imc", Channel.CURRENT, 600, 400),
-        replay("imc", Channel.CURRENT, 800, 400),
-    ]
-    assert replay_batches(logs) == [[0, 1, 6], [2], [3], [4], [5]]
-    assert replay_batches(logs[:1]) == [[0]]
