@@ -47,6 +47,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import devices
 from .cascade import control_mode
 from .hybrid import HybridGains, HybridReference
 from .machine import MACHINE_MODES, machine_plant, machine_rates, machine_reference
@@ -514,7 +515,8 @@ def least_squares_excited(
             return r
 
         if derivatives is Derivatives.MUJOCO_MINIMIZE:  # its differences: each Jacobian's replays as one batch
-            batch = jax.jit(jax.vmap(f))
+            mesh = devices.row_mesh(p0.size)  # the points laid over the devices (one per CPU core)
+            batch = jax.jit(lambda points: jax.vmap(f)(devices.spread_rows(points, mesh)))
             np.asarray(batch(jnp.asarray(np.repeat(p0[None], p0.size, axis=0))))  # compiled and run, outside timing
 
             def differences(points: np.ndarray) -> np.ndarray:
