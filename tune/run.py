@@ -115,17 +115,22 @@ def scenario_list(cfg: TuneConfig, machine: Machine | None = None) -> list[Scena
     return out
 
 
-def kept_reference(servo: ServoParams, path: np.ndarray, mode: str, options: ModelOptions, rates, geom: Geometry):
+def kept_reference(
+    servo: ServoParams, path: np.ndarray, mode: str, options: ModelOptions, rates, geom: Geometry, keep: bool = True
+):
     """:func:`~pusupu_jax.machine.machine_reference` of ``path`` (``(N, 5)``), kept on disk beside the start states
     (:mod:`.starts`) under a name that hashes everything it is computed from (the arguments and this package's
     source): a later run of the same scenario reads the arrays its first run computed, bit for bit, instead of
     checking the path and running its inverse kinematics and dynamics again (about 5 s of the default job's set-up on
-    2 cores).  A path that fails its check raises as before: nothing is kept for it."""
-    try:
-        parts = ("machine_reference", *map(describe, (servo, np.asarray(path), str(mode), options, rates, geom)))
-        file = kept_starts.path_for(fingerprint(parts))
-    except UnstableKey:
-        file = None
+    2 cores).  A path that fails its check raises as before: nothing is kept for it.  Without ``keep``, computed and
+    not kept."""
+    file = None
+    if keep:
+        try:
+            parts = ("machine_reference", *map(describe, (servo, np.asarray(path), str(mode), options, rates, geom)))
+            file = kept_starts.path_for(fingerprint(parts))
+        except UnstableKey:
+            pass
     theta = jax.ShapeDtypeStruct((len(path), 6), jnp.asarray(0.0).dtype)
     hybrid = HybridReference(theta, *(jax.ShapeDtypeStruct(s, theta.dtype) for s in ((len(path),), (len(path), 5))))
     return kept_starts.kept(
@@ -180,11 +185,8 @@ class Scenarios:
                 )
             padded = np.concatenate([path, np.repeat(path[-1:], K * every - len(path), axis=0)])
             try:
-                told = spec.told or spec.options
                 refs.append(
-                    kept_reference(servo, padded, cfg.mode, told, rates, spec.geom())
-                    if keep
-                    else machine_reference(servo, padded, cfg.mode, options=told, rates=rates, geom=spec.geom())
+                    kept_reference(servo, padded, cfg.mode, spec.told or spec.options, rates, spec.geom(), keep)
                 )
                 models.append(plant.variant(spec.options, spec.geometry))
             except ParameterError as e:
