@@ -250,7 +250,8 @@ def test_the_gradients_program_is_named_by_the_settings_it_reads_only():
 def test_a_scenarios_reference_is_kept_on_disk_and_read_back_bit_for_bit(tmp_path, monkeypatch):
     """``tune.run.kept_reference``: the first call runs ``machine_reference`` and keeps its arrays, a second one with
     the same arguments reads them back (no ``machine_reference``), equal bit for bit, in a position mode and in hybrid
-    (a pytree of three arrays); other gains are another file; a damaged file warns and is computed again."""
+    (a pytree of three arrays); other gains are another file; without ``keep`` it is computed and nothing is kept;
+    a damaged file warns and is computed again."""
     from pusupu_jax.paths import platform_path_from
     from pusupu_jax.plant.geometry import Geometry
     from pusupu_jax.plant.model import ModelOptions
@@ -272,6 +273,9 @@ def test_a_scenarios_reference_is_kept_on_disk_and_read_back_bit_for_bit(tmp_pat
             assert np.array_equal(a, c) and np.array_equal(b, c) and b.dtype == c.dtype
     run.kept_reference(SERVO.replace(lambda1=SERVO.lambda1 * 2), path, "imc", ModelOptions(), RATES, geom)
     assert calls.count("imc") == 2  # other gains: another reference, computed
+    alone = run.kept_reference(SERVO, path, "imc", ModelOptions(), RATES, geom, keep=False)
+    assert calls.count("imc") == 3  # without keep: computed, not read
+    assert np.array_equal(alone, computed(SERVO, path, "imc", options=ModelOptions(), rates=RATES, geom=geom))
     kept = sorted((tmp_path / "starts").glob("*-reference.npz"))
     assert len(kept) == 3
     for damaged in kept:
@@ -279,4 +283,4 @@ def test_a_scenarios_reference_is_kept_on_disk_and_read_back_bit_for_bit(tmp_pat
     with pytest.warns(UserWarning, match="fails its checksum"):
         for mode in ("imc", "hybrid"):
             again = run.kept_reference(SERVO, path, mode, ModelOptions(), RATES, geom)
-    assert calls == ["imc", "hybrid", "imc", "imc", "hybrid"] and np.array_equal(again.theta, want.theta)
+    assert calls == ["imc", "hybrid", "imc", "imc", "imc", "hybrid"] and np.array_equal(again.theta, want.theta)
