@@ -373,7 +373,10 @@ def _replay(
         )
     index = index[keep]
     servo = machine.servo(gains)
-    reference = machine_reference(servo, path[:n], log.mode, options=options, rates=rates, geom=machine.geometry)
+    # the whole path checked and referenced, as the run it was, then its first n periods: cut at the window's end, it
+    # would be checked as a path that stops there at once (a window ending at speed refused as beyond the drives)
+    whole = machine_reference(servo, path, log.mode, options=options, rates=rates, geom=machine.geometry)
+    reference = jax.tree.map(lambda x: x[:n], whole)
     theta_ref = np.asarray(
         cast(HybridReference, reference).theta if control_mode(log.mode).hybrid else reference,
     )[index]

@@ -117,6 +117,31 @@ def test_a_fitted_value_against_a_known_truth():
     assert com["true"] == 0.0 and com["relative_error"] == pytest.approx(0.001 / 0.05) and com["covered_95"] is True
 
 
+def test_a_window_that_ends_at_speed_is_replayed_as_the_run_it_was():
+    """The replay checks and references the whole path its log ran, then keeps the window's periods: cut at a window
+    that ends with the machine at speed, the path would be checked as one that stops there at once.  The excitation
+    path's first 0.3 s were refused so ("path exceeds the drives: pose 299 (t = 0.299 s): branch 5 motor torque
+    16.74 N m"); now its replay covers them, its reference the whole path's first periods.  Nothing is run: the
+    replay's program is only built."""
+    from pusupu_jax import LoopRates
+    from pusupu_jax.machine import machine_reference
+    from pusupu_jax.machine_file import Machine
+    from pusupu_jax.paths import platform_path_from
+
+    machine, servo, rates = Machine.default(), ServoParams.table1(), LoopRates()
+    path = platform_path_from("excite", machine.geometry.home, rates)
+    theta = np.asarray(machine_reference(machine.servo(servo), path, "imc", rates=rates, geom=machine.geometry))
+    n, t = 400, np.arange(400) * rates.dt_position  # the log's samples: the first 0.4 s, one a position period
+    zero = np.zeros_like(theta[:n])
+    log = run_log.DriveLog(
+        "run.mcap", "0" * 64, "bridge", None, "imc", "excite", 1 / rates.dt_position, t, theta[:n], theta[:n],
+        zero, zero, zero,
+    )  # fmt: skip
+    replay = machine_fit._replay(log, machine, servo, None, rates, 0.3, None, None)
+    assert replay.t[-1] == pytest.approx(0.3 - rates.dt_position) and len(replay.t) == 300
+    np.testing.assert_array_equal(replay.reference, theta[:300])
+
+
 def test_kt_is_not_fitted_to_a_log_without_currents(tmp_path):
     """Without measured currents the replay's torque does not depend on Kt: asking for it is refused in one line,
     before anything is replayed."""
