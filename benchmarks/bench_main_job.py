@@ -7,7 +7,10 @@ whole job's do).  Each run is a fresh interpreter that builds the problem and ru
 does; it reports the time from its start (imports included) to the end of the first iteration, and the mean of the
 later ones.  The first iteration is taken apart with JAX's own timings (``jax.monitoring``): tracing, lowering to
 StableHLO and XLA's compile (a cache hit's load included), per program for the eight costliest, the cache loads as a
-total, and the rest (running, Python, imports).  A *cold* run has an empty compilation cache (and so no stored traced
+total, and the rest (running, Python, imports).  ``--calls`` takes the rest apart too: each stored program's calls
+(:class:`pusupu_jax.programs.Program`; each waited for, a first call's compile included) and the forward passes over
+the whole paths that give the windows their start states (``Problem.refresh``), to the end of the first iteration.
+A *cold* run has an empty compilation cache (and so no stored traced
 programs); the *warm* run after it uses the cache the cold one filled.
 
 A configuration is ``LABEL=PLATFORM[@CPUS]``: ``cpu2=cpu@0-1`` runs on the CPU pinned to CPUs 0-1 (``taskset``),
@@ -66,6 +69,26 @@ from pusupu_jax.params import ServoParams
 from pusupu_jax.tune.config import TuneConfig
 from pusupu_jax.tune.run import Problem
 
+# with --calls: each stored program's calls to the end of the first iteration (waited for, the first call's compile
+# included), and the forward passes over the whole paths that give the windows their start states
+calls = defaultdict(lambda: {"calls": 0, "s": 0.0})
+if sys.argv[3] == "calls":
+    from pusupu_jax import programs
+
+    def timed(method, name_of):
+        def call(self, *args):
+            a = time.perf_counter()
+            out = jax.block_until_ready(method(self, *args))
+            if not ends:
+                c = calls[name_of(self)]
+                c["calls"] += 1
+                c["s"] += time.perf_counter() - a
+            return out
+        return call
+
+    programs.Program.__call__ = timed(programs.Program.__call__, lambda self: getattr(self.fun, "__qualname__", "?"))
+    Problem.refresh = timed(Problem.refresh, lambda self: "Problem.refresh (the forward pass over the whole paths)")
+
 cfg = TuneConfig()
 digest = cfg.digest()
 cfg = cfg.replace(iterations=int(sys.argv[2]), checkpoint_every=int(sys.argv[2]) * 5)
@@ -94,6 +117,9 @@ breakdown = {k: round(totals[k], 2) for k in KIND.values()} | {
     "rest_s": round(ends[0][0] - totals["trace_s"] - totals["lower_s"] - totals["compile_s"], 2),
     "programs": {name: {k: round(v, 2) for k, v in kinds.items()} for name, kinds in top},
 }
+if calls:
+    costliest = sorted(calls.items(), key=lambda kv: -kv[1]["s"])
+    breakdown["calls"] = {k: {"calls": v["calls"], "s": round(v["s"], 2)} for k, v in costliest}
 print(json.dumps({
     "config_digest": digest,
     "first_iteration_s": ends[0][0],
@@ -162,8 +188,8 @@ def run_whole(tree: Path, platform_name: str, cpus: str | None) -> dict:
     }
 
 
-def run(tree: Path, cache: str, platform_name: str, cpus: str | None, iterations: int) -> dict:
-    cmd = [sys.executable, "-c", CHILD, cache, str(iterations), str(tree)]
+def run(tree: Path, cache: str, platform_name: str, cpus: str | None, iterations: int, calls: bool) -> dict:
+    cmd = [sys.executable, "-c", CHILD, cache, str(iterations), "calls" if calls else "-", str(tree)]
     done = child(tree, platform_name, cpus, cmd, tree, "the run")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -176,6 +202,12 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1, help="cold + warm pairs of each configuration and tree")
     ap.add_argument("--no-warm", action="store_true", help="cold runs only")
     ap.add_argument("--whole", action="store_true", help="the whole pusupu tune of each tree, cold (wall, CPU)")
+    ap.add_argument(
+        "--calls",
+        action="store_true",
+        help="also time each stored program's calls and the forward passes over the whole paths, to the end of the "
+        "first iteration (each call waited for)",
+    )
     ap.add_argument("--out", type=Path, help="write the JSON here, after every run, instead of on stdout at the end")
     args = ap.parse_args()
     if args.iterations < 2:
@@ -200,8 +232,8 @@ def main() -> None:
                     print(f"bench_main_job: {tree_name} {label} round {r + 1}: {whole}", file=sys.stderr, flush=True)
                     continue
                 with tempfile.TemporaryDirectory(prefix="pusupu-main-job-") as cache:
-                    cold = run(tree, cache, name, cpus, args.iterations)
-                    warm = None if args.no_warm else run(tree, cache, name, cpus, args.iterations)
+                    cold = run(tree, cache, name, cpus, args.iterations, args.calls)
+                    warm = None if args.no_warm else run(tree, cache, name, cpus, args.iterations, args.calls)
                 runs[f"{tree_name} {label}"].append({"cold": cold, "warm": warm})
                 if args.out:
                     write(args, configs, trees, runs)
