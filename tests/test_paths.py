@@ -352,6 +352,27 @@ def test_a_batch_scenario_takes_a_path_file_and_fails_alone_when_the_drives_cann
     assert jobfile.read(job).jobs[0].digest() != before  # a done report of the old path is not taken for this one
 
 
+def test_a_path_cut_while_it_moves_is_refused_with_the_cut_named(tmp_path):
+    """``path_s`` cuts a path, and the cut path stops there at once: the excitation path cut at 0.3 s, at speed,
+    asks branch 5 for more torque than its drive has, though the whole path passes.  The job file's check and the
+    tuner's say so; where the whole path fails as well (the fast path, "cut" beyond its end) they add nothing."""
+    from pusupu_jax.hybrid import HybridGains
+    from pusupu_jax.tune import jobfile
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.run import Problem
+
+    fast = _file(tmp_path, "fast.yaml", FAST)
+    tune = {"iterations": 1, "windows": 2, "window_s": 0.1}
+    scenarios = [{"trajectory": "excite", "path_s": 0.3}, {"trajectory": fast, "path_s": 100.0}]
+    job = _file(tmp_path, "job.yaml", json.dumps({"tune": tune, "scenarios": scenarios}))
+    cut, whole = (j.error for j in jobfile.read(job).jobs)
+    note = "(the whole path passes: path_s = 0.3 s cuts it while it moves, and the cut path stops there at once;"
+    assert "exceeds the drives: pose 299 (t = 0.299 s): branch 5 motor torque" in cut and note in cut, cut
+    assert "exceeds the drives" in whole and "whole path passes" not in whole, whole
+    with pytest.raises(ParameterError, match=r"^scenario excite: .*exceeds the drives.*" + re.escape(note)):
+        Problem(TuneConfig(trajectories=("excite",), path_s=0.3, **tune), ServoParams.table1(), HybridGains())
+
+
 def test_the_sim_command_refuses_a_path_the_drives_cannot_follow_in_one_line(tmp_path):
     spec = _file(tmp_path, "fast.yaml", FAST)
     r = subprocess.run(

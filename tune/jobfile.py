@@ -246,7 +246,7 @@ def check_scenario(spec: ScenarioSpec, cfg: TuneConfig, where: str, limits: Serv
             where=f"the {paths.path_label(spec.trajectory)} path",
         )
     except ParameterError as e:
-        raise JobFileError(f"{where} ({spec.name}): {e}") from None
+        raise JobFileError(f"{where} ({spec.name}): {e}{spec.cut_note(limits, rates)}") from None
     every = -(-len(path) // cfg.windows)
     if round(cfg.window_s / rates.dt_position) > every:
         raise JobFileError(

@@ -37,7 +37,7 @@ from pusupu_jax.plant.model import ModelOptions
 from pusupu_jax.programs import Program, UnstableKey, describe, fingerprint
 from pusupu_jax.chunked import carry_structure, run_chunked
 from pusupu_jax.sim import rollout
-from pusupu_jax.paths import path_label, platform_path_from
+from pusupu_jax.paths import check_path, path_label, platform_path_from
 
 from .config import OBJECTIVE_SETTINGS, TuneConfig
 from .optimise import OptimiseResult, optimise
@@ -74,6 +74,23 @@ class ScenarioSpec:
         """The platform poses ``(N, 5)`` about the geometry's home, one per position period (checked later)."""
         path = platform_path_from(self.trajectory, self.geom().home, rates)
         return path if self.path_s is None else path[: max(3, int(round(self.path_s / rates.dt_position)))]
+
+    def cut_note(self, servo: ServoParams, rates, options: ModelOptions | None = None) -> str:
+        """For an error about this scenario's path: where ``path_s`` cut a path whose whole passes its check
+        (:func:`pusupu_jax.paths.check_path` with ``servo``'s drives, on ``options`` or the scenario's), the words
+        that say so (a cut path stops at once at its end, which can ask more of the drives than the whole path);
+        else ''."""
+        if self.path_s is None:
+            return ""
+        whole = platform_path_from(self.trajectory, self.geom().home, rates)
+        try:
+            check_path(whole, servo, rates.dt_position, self.geom(), options or self.options)
+        except ParameterError:
+            return ""
+        return (
+            f" (the whole path passes: path_s = {self.path_s:g} s cuts it while it moves, and the cut path stops "
+            "there at once; cut it where it is at rest)"
+        )
 
 
 def scenario_list(cfg: TuneConfig, machine: Machine | None = None) -> list[ScenarioSpec]:
@@ -190,7 +207,8 @@ class Scenarios:
                 )
                 models.append(plant.variant(spec.options, spec.geometry))
             except ParameterError as e:
-                raise type(e)(f"scenario {spec.name}: {e}") from None
+                note = spec.cut_note(servo, rates, spec.told or spec.options)
+                raise type(e)(f"scenario {spec.name}: {e}{note}") from None
             lengths.append(len(path))
             cut.append(path)
             padded_paths.append(padded)
