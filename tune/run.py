@@ -70,9 +70,14 @@ class ScenarioSpec:
     def geom(self) -> Geometry:
         return Geometry.default() if self.geometry is None else self.geometry
 
+    def whole_path(self, rates):
+        """The whole path's platform poses ``(N, 5)`` about the geometry's home, one per position period, ``path_s``
+        or not."""
+        return platform_path_from(self.trajectory, self.geom().home, rates)
+
     def path(self, rates):
         """The platform poses ``(N, 5)`` about the geometry's home, one per position period (checked later)."""
-        path = platform_path_from(self.trajectory, self.geom().home, rates)
+        path = self.whole_path(rates)
         return path if self.path_s is None else path[: max(3, int(round(self.path_s / rates.dt_position)))]
 
     def cut_note(self, servo: ServoParams, rates, options: ModelOptions | None = None) -> str:
@@ -82,9 +87,8 @@ class ScenarioSpec:
         else ''."""
         if self.path_s is None:
             return ""
-        whole = platform_path_from(self.trajectory, self.geom().home, rates)
         try:
-            check_path(whole, servo, rates.dt_position, self.geom(), options or self.options)
+            check_path(self.whole_path(rates), servo, rates.dt_position, self.geom(), options or self.options)
         except ParameterError:
             return ""
         return (
