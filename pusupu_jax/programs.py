@@ -30,6 +30,7 @@ import hashlib
 import importlib
 import importlib.metadata
 import json
+import threading
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -223,6 +224,11 @@ def fingerprint(parts: Sequence[str], sources: tuple[Path, ...] = ()) -> str:
     return h.hexdigest()
 
 
+def _signature(leaves: list[Any], tree: PyTreeDef) -> tuple[PyTreeDef, tuple[str, ...]]:
+    """What a :class:`Program` keeps one program for: the arguments' structure and their types."""
+    return tree, tuple(str(jax.typeof(x)) for x in leaves)
+
+
 def cache_folder() -> Path | None:
     """``programs/`` in JAX's compilation cache folder (set by :func:`pusupu_jax.runtime.setup_jax`), or None."""
     folder = jax.config.jax_compilation_cache_dir  # type: ignore[attr-defined]  # JAX defines its flags at run time
@@ -259,6 +265,7 @@ class Program:
         self.sources = tuple(Path(s) for s in sources)
         self.loaded = 0
         self._calls: dict[tuple[PyTreeDef, tuple[str, ...]], Wrapped] = {}
+        self._ahead: dict[tuple[PyTreeDef, tuple[str, ...]], threading.Thread] = {}  # compile_ahead's, not joined
 
     def __call__(self, *args: Any) -> Any:
         leaves, tree = jax.tree.flatten(args)
@@ -270,6 +277,26 @@ class Program:
         # every program they reach, this one included, would be lowered and compiled again for it: small outputs
         # (a value and its gradient) come back as plain jit's would
         return jax.tree.map(lambda x: jnp.asarray(np.asarray(x)), call(*leaves))
+
+    def compile_ahead(self, *args: Any) -> None:
+        """Load (or trace and keep) and compile the program for arguments of ``args``' types in a thread of its own,
+        while the caller goes on with other work (a tuner's forward pass over its paths): the first call with
+        arguments of those types waits for that thread, then runs what it compiled.  XLA's compile and the
+        compilation cache's load run outside Python's lock, so on a machine of two cores or more they overlap the
+        caller's own.  What fails there is left to that first call, which does it again and raises."""
+        leaves, tree = jax.tree.flatten(args)
+        signature = _signature(leaves, tree)
+        if signature in self._calls or signature in self._ahead:
+            return
+
+        def compile() -> None:
+            try:
+                self._lookup(leaves, tree, signature).lower(*leaves).compile()
+            except Exception:  # noqa: BLE001  the first call does it again, and raises
+                pass
+
+        thread = self._ahead[signature] = threading.Thread(target=compile, name="compile_ahead", daemon=True)
+        thread.start()
 
     def eval_shape(self, *args: Any) -> Any:
         """The outputs' structure for ``args`` (``jax.ShapeDtypeStruct`` leaves), from the program on disk when there
@@ -289,7 +316,13 @@ class Program:
         return self._call(leaves, tree).lower(*leaves)
 
     def _call(self, leaves: list[Any], tree: PyTreeDef) -> Wrapped:
-        signature = (tree, tuple(str(jax.typeof(x)) for x in leaves))
+        signature = _signature(leaves, tree)
+        ahead = self._ahead.pop(signature, None)
+        if ahead is not None:  # compile_ahead's thread: its program, compiled (or what it left to this call)
+            ahead.join()
+        return self._lookup(leaves, tree, signature)
+
+    def _lookup(self, leaves: list[Any], tree: PyTreeDef, signature: tuple[PyTreeDef, tuple[str, ...]]) -> Wrapped:
         call = self._calls.get(signature)
         if call is None:
             call = self._calls[signature] = self._program(leaves, tree, signature[1])

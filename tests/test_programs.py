@@ -3,6 +3,7 @@ depend on, and a bad file traced again.  Small functions here: the tuner's gradi
 tests/test_batch.py (a Problem built again with nothing in memory loads it and gives the same numbers), and every
 tuning run of the suite (tests/test_cli.py's resumed run, Ray's workers) runs through it."""
 
+import threading
 import warnings
 from typing import NamedTuple
 
@@ -54,6 +55,50 @@ def test_a_second_program_loads_the_first_ones_file_instead_of_tracing(tmp_path)
     fed_back = second(ARGS[0] + out["sum"][1], *ARGS[1:])  # outputs placed as plain jit's: no second compile
     assert second.loaded == 1 and next(iter(second._calls.values()))._cache_size() == 1  # one load per signature
     _same(fed_back, jax.jit(fun)(ARGS[0] + out["sum"][1], *ARGS[1:]))
+
+
+@pytest.mark.filterwarnings("ignore:pusupu_jax.programs. not exported")  # the refused one
+def test_a_program_compiled_ahead_is_what_its_first_call_runs(tmp_path):
+    """``compile_ahead`` with arguments of the call's types (zeros) traces and compiles in a thread of its own; the
+    first call then waits for it, and neither traces nor compiles in its thread (JAX's own events), and gives the direct
+    jit's results.  Arguments of other types are compiled at their call.  A compile that fails ahead is left to the
+    first call, which raises the function's own error."""
+    from jax import monitoring
+
+    fun, traces = _counted()
+    program = Program(fun, "key", folder=tmp_path)
+    program.compile_ahead(*jax.tree.map(jnp.zeros_like, ARGS))
+    program.compile_ahead(*jax.tree.map(jnp.zeros_like, ARGS))  # once per signature
+    compiles = []
+
+    def on_event(event, duration, **kw):
+        # this thread's: the thread of compile_ahead may still be at it
+        if event.endswith(("backend_compile_duration", "jaxpr_trace_duration")) and threading.main_thread() is (
+            threading.current_thread()
+        ):
+            compiles.append((event, kw.get("fun_name")))
+
+    monitoring.register_event_duration_secs_listener(on_event)
+    try:
+        out = program(*ARGS)
+        # the program's own (its traced function, its exported call), not the host copies' small programs
+        assert not {name for _, name in compiles} & {"flat", "call", "jit(call)"} and len(traces) == 1, compiles
+        _same(out, jax.jit(fun)(*ARGS))
+        traces.clear()
+        program(*LONGER)  # another signature: traced at its call
+        assert len(traces) == 1 and "flat" in {name for _, name in compiles}
+    finally:
+        monitoring.unregister_event_duration_listener(on_event)
+
+    def refuses(x):
+        if x.shape[0] == 3:
+            raise ValueError("no three here")
+        return x
+
+    failing = Program(refuses, "refuses", folder=tmp_path)
+    failing.compile_ahead(jnp.zeros(3))
+    with pytest.raises(ValueError, match="no three here"):
+        failing(jnp.ones(3))
 
 
 def test_another_key_or_signature_is_another_program(tmp_path):

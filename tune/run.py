@@ -422,6 +422,17 @@ class Problem(WindowStarts):
         self._value_and_grad = _shared_gradient(self)
         self.starts_loaded = 0  # start states read from disk rather than computed (refresh)
 
+    def prepare(self, z, iteration: int) -> None:
+        """Before the first iteration, the gradient's program is loaded or traced, and compiled, in a thread of its
+        own (:meth:`pusupu_jax.programs.Program.compile_ahead`) while the forward passes over the whole paths give
+        the windows their start states; then as :meth:`WindowStarts.prepare`."""
+        if self.baseline is None:
+            ones = {k: np.ones(self.rows) for k in objectives.TERMS}
+            n = self.rows * self.scenarios.windows  # one start state per window
+            starts = jax.tree.map(lambda s: np.zeros((n,) + s.shape[1:], s.dtype), self.starts_structure(z))
+            self._value_and_grad.compile_ahead(z, ones, starts, self.windows, self.space.start)
+        super().prepare(z, iteration)
+
     def run_paths(self, z) -> list:
         """The forward pass over every scenario's whole path at ``z``: ``[(trace (K every, ...), carries (K,
         ...))]``.  On one device, each group of equal path length in its own batch; where the scenarios can be laid
