@@ -327,9 +327,9 @@ class WindowStarts:
     renewed
     by ``refresh(z)`` (a forward pass over the whole paths), and the normalisers at the start ``z0()``.
 
-    A subclass sets ``cfg``, ``space``, ``windows``, ``_value_and_grad(z, baseline, starts, windows, start)`` and
-    ``rows`` (the length of each term's vector) and defines ``z0()`` and ``refresh(z)``, which sets ``starts`` and
-    ``_starts_z``.
+    A subclass sets ``cfg``, ``space``, ``scenarios``, ``rates``, ``windows``, ``_value_and_grad(z, baseline, starts,
+    windows, start)`` and ``rows`` (the length of each term's vector) and defines ``z0()`` and ``refresh(z)``, which
+    sets ``starts`` and ``_starts_z``.
     """
 
     baseline = None
@@ -343,9 +343,36 @@ class WindowStarts:
         names it)."""
         return None
 
+    def member_z(self, z, m: int) -> dict:
+        """Member ``m``'s ``z`` (a problem of one member: ``z``)."""
+        return z
+
+    def starts_structure(self, z) -> object:
+        """The structure of one path group's start states at ``z`` (``jax.ShapeDtypeStruct`` leaves; for a batch, its
+        first member's), not run (from the start program kept on disk, where it is)."""
+        servo, hybrid = self.space.apply(self.member_z(z, 0))
+        sc = self.scenarios
+        _, models, refs = next(iter(sc.groups.values()))
+        return carry_structure(
+            servo,
+            models,
+            jax.tree.map(lambda x: np.asarray(x)[:, 0], refs),
+            plant=sc.plant,
+            rates=self.rates,
+            outer=self.cfg.mode,
+            hybrid=hybrid if control_mode(self.cfg.mode).hybrid else None,
+        )
+
     def prepare(self, z, iteration: int) -> None:
         """Before iteration ``iteration``: renew the start states every ``refresh_every`` iterations (and when
-        missing)."""
+        missing).  Before the first, the gradient's stored program is loaded or traced, and compiled, in a thread of
+        its own (:meth:`pusupu_jax.programs.Program.compile_ahead`), while the forward passes over the whole paths
+        give the windows their start states."""
+        if self.baseline is None and isinstance(self._value_and_grad, Program):
+            n = self.rows * self.scenarios.windows  # a start state per window: the groups' structure, n long
+            starts = jax.tree.map(lambda s: np.zeros((n,) + s.shape[1:], s.dtype), self.starts_structure(z))
+            ones = {k: np.ones(self.rows) for k in objectives.TERMS}
+            self._value_and_grad.compile_ahead(z, ones, starts, self.windows, self.space.start)
         same = self._starts_z is not None and all(
             np.array_equal(np.asarray(z[k]), v) for k, v in self._starts_z.items()
         )
@@ -422,17 +449,6 @@ class Problem(WindowStarts):
         self._value_and_grad = _shared_gradient(self)
         self.starts_loaded = 0  # start states read from disk rather than computed (refresh)
 
-    def prepare(self, z, iteration: int) -> None:
-        """Before the first iteration, the gradient's program is loaded or traced, and compiled, in a thread of its
-        own (:meth:`pusupu_jax.programs.Program.compile_ahead`) while the forward passes over the whole paths give
-        the windows their start states; then as :meth:`WindowStarts.prepare`."""
-        if self.baseline is None:
-            ones = {k: np.ones(self.rows) for k in objectives.TERMS}
-            n = self.rows * self.scenarios.windows  # one start state per window
-            starts = jax.tree.map(lambda s: np.zeros((n,) + s.shape[1:], s.dtype), self.starts_structure(z))
-            self._value_and_grad.compile_ahead(z, ones, starts, self.windows, self.space.start)
-        super().prepare(z, iteration)
-
     def run_paths(self, z) -> list:
         """The forward pass over every scenario's whole path at ``z``: ``[(trace (K every, ...), carries (K,
         ...))]``.  On one device, each group of equal path length in its own batch; where the scenarios can be laid
@@ -482,22 +498,6 @@ class Problem(WindowStarts):
         self.starts, loaded = kept_starts.kept(self._starts_file(z), lambda: self.starts_structure(z), computed)
         self.starts_loaded += loaded
         self._starts_z = {k: np.asarray(v) for k, v in z.items()}
-
-    def starts_structure(self, z) -> object:
-        """The structure of the start states ``refresh(z)`` makes (``jax.ShapeDtypeStruct`` leaves), not run (from the
-        start program kept on disk, where it is)."""
-        servo, hybrid = self.space.apply(z)
-        sc = self.scenarios
-        _, models, refs = next(iter(sc.groups.values()))
-        return carry_structure(
-            servo,
-            models,
-            jax.tree.map(lambda x: np.asarray(x)[:, 0], refs),
-            plant=sc.plant,
-            rates=self.rates,
-            outer=self.cfg.mode,
-            hybrid=hybrid if control_mode(self.cfg.mode).hybrid else None,
-        )
 
     def _starts_file(self, z) -> Path | None:
         """Where the start states at ``z`` are kept: named by everything they depend on (:mod:`.starts`)."""
