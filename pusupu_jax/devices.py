@@ -119,6 +119,20 @@ def chosen_devices() -> list[jax.Device]:
     return list(jax.devices(_chosen))
 
 
+def forward_pass_devices(rows: int) -> list[jax.Device]:
+    """The devices a forward pass over ``rows`` whole paths (a tuning problem's scenarios) runs on: the chosen
+    platform's (:func:`chosen_devices`), but where that is a GPU, the host CPU's while ``rows`` is at most their
+    number (a path a core).  Such a pass is a scan of small steps, some 2 ms a position period on an H200 whatever its
+    width, against about 1 ms a path on a core (docs/benchmarks.md)."""
+    import jax
+
+    chosen = chosen_devices()
+    if chosen[0].platform == "cpu":
+        return chosen
+    host = list(jax.devices("cpu"))
+    return host if rows <= len(host) else chosen
+
+
 def describe(platform: str) -> str:
     """``cpu (N devices on N cores)`` or ``gpu (NAME)``, for a progress line."""
     import jax

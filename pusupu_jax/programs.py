@@ -11,7 +11,7 @@ executable in the compilation cache; results are bitwise those of the function j
 
 A file is named by a hash of everything its program depends on: the caller's ``key`` (all that the function reads
 besides its arguments), the source of this package and of the ``sources`` folders named, the versions of jax,
-jaxlib, mujoco, mujoco-mjx and numpy, the backend, the JAX settings that change a trace (float64, matmul precision,
+jaxlib, mujoco, mujoco-mjx and numpy, the platform, the JAX settings that change a trace (float64, matmul precision,
 dtype promotion), and the arguments' structure, shapes and dtypes.  It starts with the SHA-256 of the rest, checked
 on reading; then the names of the pytree node types its outputs hold beyond tuples, lists and dicts (JSON: a run's
 carry holds the cascade's states and MJX's data), each of a module in :data:`TRUSTED_MODULES`, imported and its
@@ -212,13 +212,22 @@ def _versions() -> str:
     return ",".join(out)
 
 
+def platform() -> str:
+    """The platform this thread computes on: its default device's (``jax.default_device``, which
+    :func:`pusupu_jax.devices.select` sets, or a ``with`` block), else JAX's default backend's."""
+    device = jax.config.jax_default_device  # type: ignore[attr-defined]  # JAX defines its flags at run time
+    if device is None:
+        return jax.default_backend()
+    return device if isinstance(device, str) else device.platform
+
+
 def fingerprint(parts: Sequence[str], sources: tuple[Path, ...] = ()) -> str:
     """A hash of ``parts`` and of everything else a traced computation depends on: the versions of jax, jaxlib,
-    mujoco, mujoco-mjx and numpy, the backend, the JAX settings that change a trace, and the source of this package
-    and of the ``sources`` folders."""
+    mujoco, mujoco-mjx and numpy, the platform (:func:`platform`), the JAX settings that change a trace, and the
+    source of this package and of the ``sources`` folders."""
     h = hashlib.sha256()
     settings = ",".join(f"{name}={getattr(jax.config, name)}" for name in _SETTINGS)
-    extra = (_versions(), jax.default_backend(), settings, *(_source_digest(f) for f in (HERE, *sources)))
+    extra = (_versions(), platform(), settings, *(_source_digest(f) for f in (HERE, *sources)))
     for part in (*parts, *extra):
         h.update(part.encode() + b"\0")
     return h.hexdigest()
@@ -357,7 +366,8 @@ class Program:
                     f"pusupu_jax.programs: {path} did not load ({type(e).__name__}: {e}); tracing again", stacklevel=4
                 )
         try:
-            exported = export.export(jit(flat))(*leaves)
+            # for the platform this thread computes on (a GPU job's forward passes may run on the host's CPU)
+            exported = export.export(jit(flat), platforms=("cpu",) if platform() == "cpu" else None)(*leaves)
         except Exception as e:  # what jax.export refuses (host callbacks, some custom calls): jit it as it is
             warnings.warn(
                 f"pusupu_jax.programs: not exported, traced in this process only ({type(e).__name__}: {e})",

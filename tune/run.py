@@ -454,11 +454,19 @@ class Problem(WindowStarts):
         ...))]``.  On one device, each group of equal path length in its own batch; where the scenarios can be laid
         over several devices (:func:`pusupu_jax.devices.row_mesh`), every path in one batch laid over them, held at
         its last pose to the longest path's length (each device then runs the longest path's length, but all at
-        once)."""
+        once).  A GPU job's few paths run on the host's CPU (:func:`pusupu_jax.devices.forward_pass_devices`)."""
+        where = devices.forward_pass_devices(len(self.scenarios.names))
+        if where[0].platform == devices.chosen_devices()[0].platform:
+            return self._run_paths(z, where)
+        with jax.default_device(where[0]):  # host copies: the gradient takes the carries on its own device
+            return jax.tree.map(np.asarray, self._run_paths(jax.tree.map(np.asarray, z), where))
+
+    def _run_paths(self, z, where: list) -> list:
+        """:meth:`run_paths` on the devices ``where``."""
         servo, hybrid = self.space.apply(z)
         sc = self.scenarios
         out = [None] * len(sc.names)
-        mesh = devices.row_mesh(len(sc.names)) if len(sc.groups) > 1 else None
+        mesh = devices.row_mesh(len(sc.names), where) if len(sc.groups) > 1 else None
         if mesh is None:
             for idx, models, refs in sc.groups.values():
                 traces, carries = sc.whole(servo, hybrid, models, refs, self.cfg.mode, self.rates)
