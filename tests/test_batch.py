@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 import yaml
 
-from pusupu_jax import gains
+from pusupu_jax import devices, gains
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import ServoParams
 from pusupu_jax.tune import jobfile, run
@@ -228,6 +228,19 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
     assert all(np.array_equal(again.baseline[k], problems[1].baseline[k]) for k in again.baseline)
     computed = jax.tree.map(lambda *c: np.concatenate(c), *[c for _, c in again.run_paths(again.z0())])
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(again.starts), jax.tree.leaves(computed)))
+    # where the job computes on a GPU, its two paths run on the host's CPU (devices.forward_pass_devices): the same
+    # start states, bit for bit, as host arrays that the gradient takes to its own device
+    monkeypatch.setattr(devices, "chosen_devices", lambda: [_Gpu()])
+    hosted = again.run_paths(again.z0())
+    assert all(isinstance(x, np.ndarray) for x in jax.tree.leaves(hosted))
+    on_host = jax.tree.map(lambda *c: np.concatenate(c), *[c for _, c in hosted])
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(on_host), jax.tree.leaves(computed)))
+
+
+class _Gpu:
+    """What :func:`pusupu_jax.devices.chosen_devices` gives where a job computes on a GPU: its platform."""
+
+    platform = "gpu"
 
 
 @pytest.mark.skipif(len(jax.devices()) < 2, reason="one CPU: one host device")
