@@ -249,6 +249,7 @@ def run_chunked(
     hybrid_axis: int | None = None,
     marks: Sequence[int] = (),
     chunk: int = CHUNK,
+    to_end: bool = True,
 ) -> tuple[Trace, Carry | None]:
     """A batch of runs, each :func:`~pusupu_jax.sim.rollout` of its ``models[b]`` over ``reference[b]``
     ``(B, N, ...)``, cut into calls of one compiled program of ``chunk`` periods (host-side): ``(trace (B, N, ...),
@@ -264,7 +265,9 @@ def run_chunked(
     ``marks``: periods at which to keep the carry (the start states of windows, for ``rollout(init=...)``): the
     chunks stop at them (:func:`~pusupu_jax.sim.rollout_chunk`'s ``n_valid``, the same program), and run whole between
     them.  Different programs round differently: a run agrees with :func:`~pusupu_jax.sim.rollout`'s to float64
-    rounding, not bit for bit (``tests/test_windows.py``).
+    rounding, not bit for bit (``tests/test_windows.py``).  ``to_end=False`` stops at the last mark (one period in, at
+    least), for the carries alone (a tuner's start states): the trace then covers the periods run, and the carries
+    are those of the whole run, bit for bit (the same calls up to there).
     """
     init: Callable[..., Carry]
     step: Callable[..., tuple[dict[str, Any], Carry]]
@@ -283,13 +286,13 @@ def run_chunked(
         step = _chunk_program(plant, rates, outer)
     host = jax.tree.map(np.asarray, reference)
     n = jax.tree.leaves(host)[0].shape[1]
-    if any(not 0 <= m < n for m in marks):
-        raise ValueError(f"run_chunked: expected marks in [0, {n}), got {list(marks)}")
+    if any(not 0 <= m < n for m in marks) or not (to_end or marks):
+        raise ValueError(f"run_chunked: expected marks in [0, {n}) (some, unless to_end), got {list(marks)}")
     carry = init(params, models, jax.tree.map(lambda x: x[:, 0], host), hybrid, compliance)
     kept: dict[int, Carry]
     records: list[tuple[dict[str, Any], int]]
     kept, records, done = {}, [], 0
-    for stop in sorted(set(marks) | {n}):
+    for stop in sorted(set(marks) | {n if to_end else max(1, *marks)}):  # a trace of one period at least
         while done < stop:
             k = min(chunk, stop - done)
             pad = [(0, 0), (0, chunk - k)]  # the last sample held
@@ -307,5 +310,5 @@ def run_chunked(
     )  # fetched at the end: the calls before queue without waiting
     # on the host: taken as arguments by other programs, as a plain jit's (uncommitted) outputs would be
     carries = jax.tree.map(lambda *c: np.stack(c, axis=1), *[kept[m] for m in marks]) if marks else None
-    t = np.arange(n) * period_dt(rates, cascade_.control_mode(outer))
+    t = np.arange(done) * period_dt(rates, cascade_.control_mode(outer))
     return Trace(t=np.repeat(t[None], len(rec["theta"]), axis=0), **rec), carries

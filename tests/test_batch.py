@@ -226,8 +226,14 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)))
     assert again.starts_loaded == 1 and again.baseline_loaded == 1  # the start's terms too: one gradient less
     assert all(np.array_equal(again.baseline[k], problems[1].baseline[k]) for k in again.baseline)
-    computed = jax.tree.map(lambda *c: np.concatenate(c), *[c for _, c in again.run_paths(again.z0())])
+    whole = again.run_paths(again.z0())
+    computed = jax.tree.map(lambda *c: np.concatenate(c), *[c for _, c in whole])
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(again.starts), jax.tree.leaves(computed)))
+    # the refresh's forward pass stops at the last window's start: the same start states, bit for bit
+    short = again.run_paths(again.z0(), starts_only=True)
+    assert all(len(t.t) < len(full.t) for (t, _), (full, _) in zip(short, whole))
+    shortened = jax.tree.map(lambda *c: np.concatenate(c), *[c for _, c in short])
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(shortened), jax.tree.leaves(computed)))
     # where the job computes on a GPU, its two paths run on the host's CPU (devices.forward_pass_devices): the same
     # start states, bit for bit, as host arrays that the gradient takes to its own device
     monkeypatch.setattr(devices, "chosen_devices", lambda: [_Gpu()])

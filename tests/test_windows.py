@@ -16,9 +16,11 @@ R = float(SERVO.lead[0]) / (2 * np.pi)
 REF = axis_reference("sine", duration=1.2) / R  # motor angle [rad], 1200 position periods
 
 
-def _chunked(mode="imc", marks=(), chunk=128):
+def _chunked(mode="imc", marks=(), chunk=128, to_end=True):
     """The whole run cut into calls of ``chunk`` periods (a batch of one), and its carries at ``marks``."""
-    trace, carries = run_chunked(SERVO, stack([LOAD]), np.asarray(REF)[None], outer=mode, marks=marks, chunk=chunk)
+    trace, carries = run_chunked(
+        SERVO, stack([LOAD]), np.asarray(REF)[None], outer=mode, marks=marks, chunk=chunk, to_end=to_end
+    )
     return jax.tree.map(lambda x: x[0], trace), jax.tree.map(lambda x: x[0], carries)
 
 
@@ -35,6 +37,12 @@ def test_a_run_cut_into_chunks_is_the_whole_run_and_restarts_from_its_carries():
             for field in ("theta", "omega", "current", "command"):
                 a, b = np.asarray(getattr(whole, field)), getattr(run, field)
                 np.testing.assert_allclose(b, a, rtol=0, atol=1e-13 * np.abs(a).max(), err_msg=f"{mode} {field}")
+        # stopped at the last mark (a tuner's start states): the same carries, bit for bit, and the run up to there
+        short, kept = _chunked(mode, marks=(0, 300, 901), to_end=False)
+        assert len(short.t) == 901
+        np.testing.assert_array_equal(short.theta, trace.theta[:901])
+        for a, b in zip(jax.tree.leaves(kept), jax.tree.leaves(carries)):
+            np.testing.assert_array_equal(a, b)
         for j, k in enumerate((0, 300, 901)):
             window = rollout(SERVO, LOAD, REF[k : k + 200], outer=mode, init=jax.tree.map(lambda x: x[j], carries))
             for field in ("theta", "current"):

@@ -160,9 +160,10 @@ class BatchProblem(WindowStarts):
     def member_z(self, zb, m: int) -> dict:
         return {k: v[m] for k, v in zb.items()}
 
-    def run_paths(self, zb) -> list:
+    def run_paths(self, zb, starts_only: bool = False) -> list:
         """The forward pass over every pair's whole path at its member's ``z``, per group of equal path lengths:
-        ``[(pair indices, traces (n, K every, ...), carries (n, K, ...))]``."""
+        ``[(pair indices, traces (n, K every, ...), carries (n, K, ...))]``; with ``starts_only``, for the windows'
+        start states, to the last of them (the traces end there)."""
         sc = self.scenarios
         out = []
         for length, (idx, models, refs) in sc.groups.items():
@@ -170,14 +171,21 @@ class BatchProblem(WindowStarts):
             local = np.array([idx.index(self.pairs[q][1]) for q in qs])
             servo, hybrid = self._apply(_take(zb, self.pair_member[qs]))
             traces, carries = sc.whole(
-                servo, hybrid, _take(models, local), _take(refs, local), self.cfg.mode, self.rates, batched=True
+                servo,
+                hybrid,
+                _take(models, local),
+                _take(refs, local),
+                self.cfg.mode,
+                self.rates,
+                batched=True,
+                to_end=not starts_only,
             )
             out.append((qs, traces, carries))
         return out
 
     def refresh(self, zb) -> None:  # members iterate in step: prepare() renews them all at once
         """Renew the windows' start states: every pair's carries, in pair order (one gather, no per-pair copies)."""
-        runs = self.run_paths(zb)
+        runs = self.run_paths(zb, starts_only=True)
         order = np.argsort(np.concatenate([qs for qs, _, _ in runs]), kind="stable")
         carries = jax.tree.map(lambda *c: jnp.concatenate(c)[order], *[c for _, _, c in runs])
         self.starts = self.shard(jax.tree.map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:]), carries))

@@ -236,11 +236,14 @@ class Scenarios:
             np.stack([padded_paths[i][a : a + W] for i, a in pick]),
         )
 
-    def whole(self, servo, hybrid, models, references, mode: str, rates, batched: bool = False, marks=None):
+    def whole(
+        self, servo, hybrid, models, references, mode: str, rates, batched: bool = False, marks=None, to_end=True
+    ):
         """The forward pass over whole paths of one group (``models``, ``references`` ``(n, K every, ...)``):
         ``(traces (n, K every, ...), carries at the window starts (n, K, ...))``.  ``servo`` and ``hybrid`` are shared,
         or one set per path when ``batched``.  One compiled chunk of :func:`~pusupu_jax.chunked.run_chunked` serves
-        every path length.  ``marks``: the periods to keep the carries at, if not the window starts."""
+        every path length.  ``marks``: the periods to keep the carries at, if not the window starts; ``to_end=False``:
+        for the carries only, the pass stops at the last window's start (its traces end there)."""
         length = jax.tree.leaves(references)[0].shape[1]
         hybrid_mode = control_mode(mode).hybrid
         return run_chunked(
@@ -254,6 +257,7 @@ class Scenarios:
             params_axis=0 if batched else None,
             hybrid_axis=0 if batched and hybrid_mode else None,
             marks=tuple(range(0, length, length // self.windows)) if marks is None else marks,
+            to_end=to_end,
         )
 
     def reference(self, i: int):
@@ -449,19 +453,21 @@ class Problem(WindowStarts):
         self._value_and_grad = _shared_gradient(self)
         self.starts_loaded = 0  # start states read from disk rather than computed (refresh)
 
-    def run_paths(self, z) -> list:
+    def run_paths(self, z, starts_only: bool = False) -> list:
         """The forward pass over every scenario's whole path at ``z``: ``[(trace (K every, ...), carries (K,
-        ...))]``.  On one device, each group of equal path length in its own batch; where the scenarios can be laid
-        over several devices (:func:`pusupu_jax.devices.row_mesh`), every path in one batch laid over them, held at
-        its last pose to the longest path's length (each device then runs the longest path's length, but all at
-        once).  A GPU job's few paths run on the host's CPU (:func:`pusupu_jax.devices.forward_pass_devices`)."""
+        ...))]``; with ``starts_only``, for the windows' start states, to the last of them (the traces end there).
+        On one device, each group of equal path length in its own batch; where the scenarios can be laid over several
+        devices (:func:`pusupu_jax.devices.row_mesh`), every path in one batch laid over them, held at its last pose
+        to the longest path's length (each device then runs the longest path's length, but all at once; with
+        ``starts_only``, to the latest start of any).  A GPU job's few paths run on the host's CPU
+        (:func:`pusupu_jax.devices.forward_pass_devices`)."""
         where = devices.forward_pass_devices(len(self.scenarios.names))
         if where[0].platform == devices.chosen_devices()[0].platform:
-            return self._run_paths(z, where)
+            return self._run_paths(z, where, starts_only)
         with jax.default_device(where[0]):  # host copies: the gradient takes the carries on its own device
-            return jax.tree.map(np.asarray, self._run_paths(jax.tree.map(np.asarray, z), where))
+            return jax.tree.map(np.asarray, self._run_paths(jax.tree.map(np.asarray, z), where, starts_only))
 
-    def _run_paths(self, z, where: list) -> list:
+    def _run_paths(self, z, where: list, starts_only: bool) -> list:
         """:meth:`run_paths` on the devices ``where``."""
         servo, hybrid = self.space.apply(z)
         sc = self.scenarios
@@ -469,7 +475,9 @@ class Problem(WindowStarts):
         mesh = devices.row_mesh(len(sc.names), where) if len(sc.groups) > 1 else None
         if mesh is None:
             for idx, models, refs in sc.groups.values():
-                traces, carries = sc.whole(servo, hybrid, models, refs, self.cfg.mode, self.rates)
+                traces, carries = sc.whole(
+                    servo, hybrid, models, refs, self.cfg.mode, self.rates, to_end=not starts_only
+                )
                 for j, i in enumerate(idx):
                     out[i] = jax.tree.map(lambda x: x[j], (traces, carries))
             return out
@@ -488,7 +496,9 @@ class Problem(WindowStarts):
             lambda *x: np.concatenate(x), *[jax.tree.map(lambda a: held(a, n), r) for n, (_, _, r) in sc.groups.items()]
         )
         models = jax.device_put(models, NamedSharding(mesh, PartitionSpec("rows")))
-        traces, carries = sc.whole(servo, hybrid, models, refs, self.cfg.mode, self.rates, marks=tuple(marks))
+        traces, carries = sc.whole(
+            servo, hybrid, models, refs, self.cfg.mode, self.rates, marks=tuple(marks), to_end=not starts_only
+        )
         carries = jax.tree.map(np.asarray, carries)  # fetched from the devices they were laid over
         for j, (i, n) in enumerate(rows):
             own = [marks.index(m) for m in range(0, n, n // sc.windows)]
@@ -501,7 +511,8 @@ class Problem(WindowStarts):
         ``starts_loaded``)."""
 
         def computed():
-            return jax.tree.map(lambda *c: jnp.concatenate(c), *[carries for _, carries in self.run_paths(z)])
+            runs = self.run_paths(z, starts_only=True)
+            return jax.tree.map(lambda *c: jnp.concatenate(c), *[carries for _, carries in runs])
 
         self.starts, loaded = kept_starts.kept(self._starts_file(z), lambda: self.starts_structure(z), computed)
         self.starts_loaded += loaded
