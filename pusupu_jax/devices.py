@@ -13,6 +13,7 @@ independent windows (and the paths of the forward pass) run on every core togeth
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import sys
 from collections.abc import Sequence
@@ -131,6 +132,16 @@ def forward_pass_devices(rows: int) -> list[jax.Device]:
         return chosen
     host = list(jax.devices("cpu"))
     return host if rows <= len(host) else chosen
+
+
+def set_up_device() -> contextlib.AbstractContextManager[Any]:
+    """Where a tuning problem's set-up computes (its references, pose Jacobians and checks: small programs whose
+    results go to the host): under ``with``, the host CPU's first device where the chosen platform is a GPU, as for
+    the forward passes (:func:`forward_pass_devices`); else JAX's default, unchanged."""
+    import jax
+
+    host = forward_pass_devices(1)[0]
+    return jax.default_device(host) if host.platform != chosen_devices()[0].platform else contextlib.nullcontext()
 
 
 def describe(platform: str) -> str:

@@ -31,10 +31,13 @@ def test_asking_for_a_gpu_where_there_is_none_is_refused():
 
 def test_a_gpu_jobs_forward_passes_run_on_the_hosts_cpu_while_its_paths_are_no_more_than_its_cores(monkeypatch):
     """On the CPU every forward pass stays there; where the job computes on a GPU, the host's CPU devices take a
-    forward pass of at most one path a device, and the GPU a wider one.  (tests/test_batch.py runs a job's forward
-    pass so, and checks its start states.)"""
+    forward pass of at most one path a device (the GPU a wider one), and the problem's set-up.  (tests/test_batch.py
+    runs a job's forward pass so, and checks its start states.)"""
     cpus = jax.devices("cpu")
     assert devices.forward_pass_devices(10 * len(cpus)) == devices.chosen_devices()
+    default = jax.config.jax_default_device
+    with devices.set_up_device():
+        assert jax.config.jax_default_device == default
 
     class Gpu:
         platform = "gpu"
@@ -43,3 +46,6 @@ def test_a_gpu_jobs_forward_passes_run_on_the_hosts_cpu_while_its_paths_are_no_m
     monkeypatch.setattr(devices, "chosen_devices", lambda: [gpu])
     assert devices.forward_pass_devices(1) == devices.forward_pass_devices(len(cpus)) == cpus
     assert devices.forward_pass_devices(len(cpus) + 1) == [gpu]
+    # so does the problem's set-up: what it computes under set_up_device lands on the host's first CPU device
+    with devices.set_up_device():
+        assert jax.config.jax_default_device == cpus[0]

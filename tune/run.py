@@ -429,12 +429,14 @@ class Problem(WindowStarts):
         self.space = Space.create(
             cfg.groups, servo0.replace(imc_form=cfg.imc_form), hybrid0, shared=cfg.shared, bounds=cfg.bounds
         )
-        self.scenarios = sc = Scenarios.build(cfg, self.space.servo0, self.rates, specs)
-        # the margin constraints' single-axis loads (machine_file.margin_loads): ``machine``'s (default the built-in
-        # one) at home, and at the lightest and the heaviest pose along the scenarios' paths with their payloads
-        specs = scenario_list(cfg) if specs is None else specs
-        runs = [machine_file.PathRun(path, spec.options, spec.geometry) for path, spec in zip(sc.paths, specs)]
-        self.loads = machine_file.margin_loads(Machine.default() if machine is None else machine, runs)
+        with devices.set_up_device():  # a GPU job's set-up on the host's CPU
+            self.scenarios = sc = Scenarios.build(cfg, self.space.servo0, self.rates, specs)
+            # the margin constraints' single-axis loads (machine_file.margin_loads): ``machine``'s (default the
+            # built-in one) at home, and at the lightest and the heaviest pose along the scenarios' paths with their
+            # payloads
+            specs = scenario_list(cfg) if specs is None else specs
+            runs = [machine_file.PathRun(path, spec.options, spec.geometry) for path, spec in zip(sc.paths, specs)]
+            self.loads = machine_file.margin_loads(Machine.default() if machine is None else machine, runs)
         # the windows' models, references and paths, and the margins' loads, enter the gradient as arguments, not as
         # constants folded into the compiled program (constants cost compile time, and change its cache key with
         # their last bits): problems of other paths, seeds or payloads share one program
