@@ -14,8 +14,10 @@ A *cold* run has an empty compilation cache (and so no stored traced
 programs); the *warm* run after it uses the cache the cold one filled.
 
 A configuration is ``LABEL=PLATFORM[@CPUS]``: ``cpu2=cpu@0-1`` runs on the CPU pinned to CPUs 0-1 (``taskset``),
-``gpu=gpu`` on the GPU.  ``--against DIR`` runs each configuration also with another source tree (``git archive``
-of another commit unpacked there), alternating, so that both see the same machine::
+``gpu=gpu`` on the GPU (JAX's default device), ``host=auto`` where ``pusupu tune``'s ``--device auto`` puts the job
+(:func:`pusupu_jax.devices.select`, with every backend visible; ``auto_chose`` in the output says which and why).
+``--against DIR`` runs each configuration also with another source tree (``git archive`` of another commit unpacked
+there), alternating, so that both see the same machine::
 
     python benchmarks/bench_main_job.py --configs cpu2=cpu@0-1,cpu14=cpu@2-15,gpu=gpu [--against DIR] [--repeat 1]
 
@@ -92,6 +94,12 @@ if sys.argv[3] == "calls":
 cfg = TuneConfig()
 digest = cfg.digest()
 cfg = cfg.replace(iterations=int(sys.argv[2]), checkpoint_every=int(sys.argv[2]) * 5)
+chosen = None
+if sys.argv[4] == "auto":  # as pusupu tune chooses (pusupu_cli/tuning.py), before any computation
+    from pusupu_jax import devices
+
+    scenarios = len(cfg.trajectories) * len(cfg.kin_error_seeds) * len(cfg.payloads)
+    chosen = devices.select("auto", scenarios * cfg.windows, f"{scenarios} scenario(s) x {cfg.windows} windows")
 ends = []
 cpu0 = os.times()
 
@@ -131,6 +139,7 @@ print(json.dumps({
     "wall_s": time.perf_counter() - t0,
     "devices": [str(d) for d in jax.devices()],
     "default_backend": jax.default_backend(),
+    "auto_chose": chosen,
     "windows_over_devices": 1 if getattr(p, "mesh", None) is None else p.mesh.size,
     "sources": [pusupu_jax.__file__, sys.modules["pusupu_jax.tune.run"].__file__],
     "jax": jax.__version__,
@@ -189,7 +198,7 @@ def run_whole(tree: Path, platform_name: str, cpus: str | None) -> dict:
 
 
 def run(tree: Path, cache: str, platform_name: str, cpus: str | None, iterations: int, calls: bool) -> dict:
-    cmd = [sys.executable, "-c", CHILD, cache, str(iterations), "calls" if calls else "-", str(tree)]
+    cmd = [sys.executable, "-c", CHILD, cache, str(iterations), "calls" if calls else "-", platform_name, str(tree)]
     done = child(tree, platform_name, cpus, cmd, tree, "the run")
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -215,7 +224,7 @@ def main() -> None:
     configs = {}
     for item in args.configs.split(","):
         try:
-            label, name, cpus = parse_config(item)
+            label, name, cpus = parse_config(item, ("cpu", "gpu", "auto"))
         except SystemExit as e:
             ap.error(f"--configs: {e}")
         configs[label] = (name, cpus)

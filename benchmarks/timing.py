@@ -24,13 +24,13 @@ def processor() -> str:
     return platform.processor()
 
 
-def parse_config(item: str) -> tuple[str, str, str | None]:
-    """``LABEL=PLATFORM[@CPUS]`` (PLATFORM ``cpu`` or ``gpu``; CPUS as ``taskset -c`` takes them) as ``(label,
+def parse_config(item: str, platforms: tuple[str, ...] = ("cpu", "gpu")) -> tuple[str, str, str | None]:
+    """``LABEL=PLATFORM[@CPUS]`` (PLATFORM one of ``platforms``; CPUS as ``taskset -c`` takes them) as ``(label,
     platform, cpus or None)``; anything else ends the benchmark in one line."""
     label, _, spec = item.partition("=")
     name, _, cpus = spec.partition("@")
-    if name not in ("cpu", "gpu") or not label:
-        raise SystemExit(f"expected LABEL=cpu[@CPUS] or LABEL=gpu, got {item!r}")
+    if name not in platforms or not label:
+        raise SystemExit(f"expected LABEL=PLATFORM[@CPUS] with PLATFORM one of {', '.join(platforms)}, got {item!r}")
     return label, name, cpus or None
 
 
