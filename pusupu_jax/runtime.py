@@ -22,20 +22,19 @@ XLA_CPU_WORKAROUND = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
 # empty cache then the compiled call (benchmarks/bench_cold_start.py --xla-flags, and the contact
 # gradient of tests/test_mjx_plant.py): the contact gradient 49.9 -> 29.2 s to compile, 0.50 -> 0.35 s
 # a call; the default tune's forward pass 26.4 -> 20.2 s to compile, its gradient 85-86 s either way
-# and 13.0 -> 11.3 s a call.  With 0.10 the LLVM flag is added only where no GPU plugin is installed: its effect on
-# a GPU's code generator was not measured with that series.
+# and 13.0 -> 11.3 s a call.  The LLVM flag also reaches a GPU's code generator, which was not
+# measured: it is added only when no GPU plugin for jax is installed.
 XLA_CPU_COMPILE = ("--xla_cpu_use_fusion_emitters=false",)
-# jaxlib 0.11.2, which has no fusion-emitter flag: LLVM's expensive passes off, measured on the 16-core Xeon host of
-# one H200 (benchmarks/bench_main_job.py --configs host=auto,gpu=gpu@2-15 --iterations 6 --no-warm --calls, one run
-# without the flag, then one with it): on the host's CPU (--device auto), the default tune's first iteration from an
-# empty cache 83.8 -> 72.5 s and its gradient iterations 2.55-2.65 -> 1.83-2.13 s, the same objective to the last
-# digit; on the GPU, 92.9 -> 92.8 s and 4.12-4.14 -> 4.11-4.13 s.  So with 0.11 it is added GPU plugin or not.
-XLA_LLVM_COMPILE = ("--xla_llvm_disable_expensive_passes=true",)
+XLA_LLVM_CPU_ONLY = ("--xla_llvm_disable_expensive_passes=true",)
 # A jaxlib that does not know a flag in XLA_FLAGS aborts the process when its backend starts ("Unknown flag in
 # XLA_FLAGS"): jaxlib 0.11.2 (seen with a GPU plugin) has no --xla_cpu_use_fusion_emitters.  So the
 # compile flags are added only for the jaxlib series they were measured with; the thread-pool workaround, whose flag
 # 0.11.2 knows too, for every jaxlib.
-XLA_COMPILE_MEASURED_ON = ("0.10.", "0.11.")
+# jaxlib 0.11.2 gets none: --xla_llvm_disable_expensive_passes=true cut the default tune's gradient iterations on a
+# 16-core H200 host's CPU from 2.55-2.65 to 1.83-2.13 s (one run each, one after the other) and left its GPU's as
+# they were, but 2 pinned cores of another such host ran them in 5.57-5.85 s with it, against 3.57-4.24 s without on
+# an earlier one (docs/benchmarks.md); not measured side by side on 2 cores, so not set.
+XLA_COMPILE_MEASURED_ON = ("0.10.",)
 # The bridge's and the simulated robot's processes (hw_bridge) run small compiled steps at a fixed rate on one CPU:
 # XLA's multi-threaded Eigen hands parts of them to its pool threads, whose wake-ups cost more than they save.  The
 # simulated robot's command, timed in its real-time process at 1 kHz (jaxlib 0.10.2): p50 240 us either way, p99 719
@@ -82,11 +81,10 @@ _host_devices_added = False  # whether apply_xla_workaround put XLA_HOST_DEVICES
 def apply_xla_workaround(one_thread: bool = False) -> None:
     """Add :data:`XLA_CPU_WORKAROUND`, one host device per CPU (:data:`XLA_HOST_DEVICES`; ``one_thread`` takes it
     out again where this function put it in)
-    and, with a jaxlib of :data:`XLA_COMPILE_MEASURED_ON`, the compile-time flags measured with it (0.10:
-    :data:`XLA_CPU_COMPILE`, and :data:`XLA_LLVM_COMPILE` where no GPU plugin is installed; 0.11:
-    :data:`XLA_LLVM_COMPILE`) to ``XLA_FLAGS``, each unless the user set that flag themselves.  ``one_thread``
-    (jaxlib 0.10): :data:`XLA_CPU_ONE_THREAD` too, for a real-time process; it takes effect only when called before
-    JAX's CPU backend starts (the process's first computation).
+    and, with a jaxlib of :data:`XLA_COMPILE_MEASURED_ON`, the compile-time flags
+    (:data:`XLA_CPU_COMPILE`; :data:`XLA_LLVM_CPU_ONLY` where no GPU plugin is installed) to ``XLA_FLAGS``, each
+    unless the user set that flag themselves.  ``one_thread``: :data:`XLA_CPU_ONE_THREAD` too, for a real-time
+    process; it takes effect only when called before JAX's CPU backend starts (the process's first computation).
 
     ``PUSUPU_XLA_WORKAROUND=0`` leaves ``XLA_FLAGS`` alone (for a jaxlib that no longer knows the flags).
     """
@@ -100,15 +98,12 @@ def apply_xla_workaround(one_thread: bool = False) -> None:
         flags = f"{flags} {XLA_HOST_DEVICES}={cpu_count()}".strip()
         _host_devices_added = True
     wanted: tuple[str, ...] = (XLA_CPU_WORKAROUND,)
-    version = _jaxlib_version()
-    if version.startswith("0.10."):
+    if _jaxlib_version().startswith(XLA_COMPILE_MEASURED_ON):
         wanted += (
             *XLA_CPU_COMPILE,
-            *(() if gpu_plugin_installed() else XLA_LLVM_COMPILE),
+            *(() if gpu_plugin_installed() else XLA_LLVM_CPU_ONLY),
             *(XLA_CPU_ONE_THREAD if one_thread else ()),
         )
-    elif version.startswith(XLA_COMPILE_MEASURED_ON):
-        wanted += XLA_LLVM_COMPILE
     for flag in wanted:
         if flag.split("=")[0] not in flags:
             flags = f"{flags} {flag}".strip()
