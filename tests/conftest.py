@@ -46,6 +46,7 @@ HEAVY_FIRST = (
     "test_contact_experiments.py",
     "test_batch.py",
     "test_loop_match.py",
+    "test_identify.py",
 )
 
 
