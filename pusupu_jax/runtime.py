@@ -33,7 +33,7 @@ XLA_LLVM_CPU_ONLY = ("--xla_llvm_disable_expensive_passes=true",)
 # jaxlib 0.11.2 gets none: --xla_llvm_disable_expensive_passes=true cut the default tune's gradient iterations on a
 # 16-core H200 host's CPU from 2.55-2.65 to 1.83-2.13 s (one run each, one after the other) and left its GPU's as
 # they were, but 2 pinned cores of another such host ran them in 5.57-5.85 s with it, against 3.57-4.24 s without on
-# an earlier one (docs/benchmarks.md); not measured side by side on 2 cores, so not set.
+# an earlier one (docs/benchmarks.md); never compared on one host on 2 cores, so not set.
 XLA_COMPILE_MEASURED_ON = ("0.10.",)
 # The bridge's and the simulated robot's processes (hw_bridge) run small compiled steps at a fixed rate on one CPU:
 # XLA's multi-threaded Eigen hands parts of them to its pool threads, whose wake-ups cost more than they save.  The
