@@ -17,7 +17,7 @@ A configuration is ``LABEL=PLATFORM[@CPUS]``: ``cpu2=cpu@0-1`` runs on the CPU p
 ``gpu=gpu`` on the GPU (JAX's default device), ``host=auto`` where ``pusupu tune``'s ``--device auto`` puts the job
 (:func:`pusupu_jax.devices.select`, with every backend visible; ``auto_chose`` in the output says which and why).
 ``--against DIR`` runs each configuration also with another source tree (``git archive`` of another commit unpacked
-there), alternating, so that both see the same machine::
+there), alternating (each round in the reverse order of the one before), so that both see the same machine::
 
     python benchmarks/bench_main_job.py --configs cpu2=cpu@0-1,cpu14=cpu@2-15,gpu=gpu [--against DIR] [--repeat 1]
 
@@ -27,11 +27,19 @@ package folders its ``pyproject.toml`` names, so a tree of another layout runs t
 output)::
 
     python benchmarks/bench_main_job.py --whole --configs cpu2=cpu --against DIR --repeat 2
+
+``--xla-flags FLAGS`` runs each configuration of each tree also with ``FLAGS`` added to ``XLA_FLAGS`` (the runs named
+``this+flags`` and ``against+flags``), alternating with the runs without them, so that a flag is judged on one
+machine::
+
+    python benchmarks/bench_main_job.py --configs cpu2=cpu@0-1,cpu14=cpu@2-15 \\
+        --xla-flags=--xla_llvm_disable_expensive_passes=true
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import platform
@@ -144,6 +152,7 @@ print(json.dumps({
     "sources": [pusupu_jax.__file__, sys.modules["pusupu_jax.tune.run"].__file__],
     "jax": jax.__version__,
     "jaxlib": __import__("jaxlib").__version__,
+    "xla_flags": os.environ.get("XLA_FLAGS", ""),  # as the package's import left them (pusupu_jax.runtime)
 }))
 """
 )
@@ -177,7 +186,7 @@ def child(tree: Path, platform_name: str, cpus: str | None, cmd: list[str], cwd:
     return pinned(cmd, platform_name, cpus, f"bench_main_job: {what} in {tree}", cwd, PYTHONPATH=path, **env_extra)
 
 
-def run_whole(tree: Path, platform_name: str, cpus: str | None) -> dict:
+def run_whole(tree: Path, platform_name: str, cpus: str | None, **env: str) -> dict:
     """``pusupu tune`` of ``tree`` from an empty cache (and an empty home): wall and CPU seconds, and the last lines
     of what it printed on stdout (its result)."""
     with tempfile.TemporaryDirectory(prefix="pusupu-main-job-") as scratch:
@@ -185,7 +194,7 @@ def run_whole(tree: Path, platform_name: str, cpus: str | None) -> dict:
         t0 = time.perf_counter()
         cmd = [sys.executable, "-c", WHOLE, "tune", "--out", str(Path(scratch) / "out"), str(tree)]
         done = child(
-            tree, platform_name, cpus, cmd, Path(scratch), "pusupu tune", PUSUPU_JAX_CACHE=scratch, HOME=scratch
+            tree, platform_name, cpus, cmd, Path(scratch), "pusupu tune", PUSUPU_JAX_CACHE=scratch, HOME=scratch, **env
         )
         wall = time.perf_counter() - t0
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -197,9 +206,9 @@ def run_whole(tree: Path, platform_name: str, cpus: str | None) -> dict:
     }
 
 
-def run(tree: Path, cache: str, platform_name: str, cpus: str | None, iterations: int, calls: bool) -> dict:
+def run(tree: Path, cache: str, platform_name: str, cpus: str | None, iterations: int, calls: bool, **env: str) -> dict:
     cmd = [sys.executable, "-c", CHILD, cache, str(iterations), "calls" if calls else "-", platform_name, str(tree)]
-    done = child(tree, platform_name, cpus, cmd, tree, "the run")
+    done = child(tree, platform_name, cpus, cmd, tree, "the run", **env)
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
@@ -217,6 +226,11 @@ def main() -> None:
         help="also time each stored program's calls and the forward passes over the whole paths, to the end of the "
         "first iteration (each call waited for)",
     )
+    ap.add_argument(
+        "--xla-flags",
+        metavar="FLAGS",
+        help="also run each configuration of each tree with FLAGS added to XLA_FLAGS, alternating (runs '+flags')",
+    )
     ap.add_argument("--out", type=Path, help="write the JSON here, after every run, instead of on stdout at the end")
     args = ap.parse_args()
     if args.iterations < 2:
@@ -230,19 +244,26 @@ def main() -> None:
         configs[label] = (name, cpus)
     here = Path(__file__).resolve().parent.parent
     trees = {"this": here} | ({"against": args.against.resolve()} if args.against else {})
-    runs: dict = {f"{t} {c}": [] for c in configs for t in trees}
+    variants = {"": {}} | (
+        {"+flags": {"XLA_FLAGS": f"{os.environ.get('XLA_FLAGS', '')} {args.xla_flags}".strip()}}
+        if args.xla_flags
+        else {}
+    )
+    runs: dict = {f"{t}{v} {c}": [] for c in configs for t in trees for v in variants}
     for r in range(args.repeat):
         for label, (name, cpus) in configs.items():
-            for tree_name, tree in trees.items():
+            order = list(itertools.product(trees.items(), variants.items()))
+            for (tree_base, tree), (variant, env) in order if r % 2 == 0 else reversed(order):  # ABBA over rounds
+                tree_name = tree_base + variant
                 if args.whole:
-                    runs[f"{tree_name} {label}"].append(whole := run_whole(tree, name, cpus))
+                    runs[f"{tree_name} {label}"].append(whole := run_whole(tree, name, cpus, **env))
                     if args.out:
                         write(args, configs, trees, runs)
                     print(f"bench_main_job: {tree_name} {label} round {r + 1}: {whole}", file=sys.stderr, flush=True)
                     continue
                 with tempfile.TemporaryDirectory(prefix="pusupu-main-job-") as cache:
-                    cold = run(tree, cache, name, cpus, args.iterations, args.calls)
-                    warm = None if args.no_warm else run(tree, cache, name, cpus, args.iterations, args.calls)
+                    cold = run(tree, cache, name, cpus, args.iterations, args.calls, **env)
+                    warm = None if args.no_warm else run(tree, cache, name, cpus, args.iterations, args.calls, **env)
                 runs[f"{tree_name} {label}"].append({"cold": cold, "warm": warm})
                 if args.out:
                     write(args, configs, trees, runs)
@@ -267,6 +288,7 @@ def write(args, configs, trees, runs) -> None:
             else "TuneConfig() (pusupu tune's embedded configuration), cut to --iterations",
             "iterations": None if args.whole else args.iterations,
             "configs": {k: {"platform": v[0], "cpus": v[1]} for k, v in configs.items()},
+            "xla_flags": {"inherited": os.environ.get("XLA_FLAGS", ""), "+flags": args.xla_flags},
             "machine": platform.machine(),
             "cpus": os.cpu_count(),
             "processor": processor(),
