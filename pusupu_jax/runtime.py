@@ -30,10 +30,9 @@ XLA_LLVM_CPU_ONLY = ("--xla_llvm_disable_expensive_passes=true",)
 # XLA_FLAGS"): jaxlib 0.11.2 (seen with a GPU plugin) has no --xla_cpu_use_fusion_emitters.  So the
 # compile flags are added only for the jaxlib series they were measured with; the thread-pool workaround, whose flag
 # 0.11.2 knows too, for every jaxlib.
-# jaxlib 0.11.2 gets none: --xla_llvm_disable_expensive_passes=true cut the default tune's gradient iterations on a
-# 16-core H200 host's CPU from 2.55-2.65 to 1.83-2.13 s (one run each, one after the other) and left its GPU's as
-# they were, but 2 pinned cores of another such host ran them in 5.57-5.85 s with it, against 3.57-4.24 s without on
-# an earlier one (docs/benchmarks.md); never compared on one host on 2 cores, so not set.
+# jaxlib 0.11.2 gets none: --xla_llvm_disable_expensive_passes=true, on 2 and 14 pinned cores of one 16-core H200 host,
+# with and without it alternating over two rounds, ran the default tune's gradient iterations 2 % slower on 2 cores and
+# 5 % faster on 14, and its cold first iteration 4 % slower on 2 (docs/benchmarks.md), and left the GPU's as they were.
 XLA_COMPILE_MEASURED_ON = ("0.10.",)
 # The bridge's and the simulated robot's processes (hw_bridge) run small compiled steps at a fixed rate on one CPU:
 # XLA's multi-threaded Eigen hands parts of them to its pool threads, whose wake-ups cost more than they save.  The
