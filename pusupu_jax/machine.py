@@ -21,6 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from . import compliance as compliance_law
+from . import devices
 from . import hybrid as hybrid_law
 from . import paths
 from .cascade import POSITION_MODES, control_mode
@@ -157,7 +158,9 @@ def simulate_scenarios(
     arrays for plots.
 
     The batch runs in calls of :func:`~pusupu_jax.chunked.run_chunked`'s compiled program of
-    ``CHUNK`` periods: one compile per mode and batch size, whatever the paths' length.
+    ``CHUNK`` periods: one compile per mode and batch size, whatever the paths' length.  Its rows are laid over
+    the devices of :func:`pusupu_jax.devices.forward_pass_devices` (the largest number that divides them,
+    :func:`~pusupu_jax.devices.row_mesh`), each a path a core on a CPU of several XLA host devices.
 
     The scenarios differ in their model's arrays (:meth:`MJXPlant.variant`: seeded errors,
     payloads) and their paths; shorter paths are padded with their last pose (the machine
@@ -223,20 +226,24 @@ def simulate_scenarios(
         references.append(reference)
         models.append(plant.variant(sc.options, sc.geometry))
     models = with_drives(models, [sc.drives for sc in scenarios], "simulate_scenarios")
+    where = devices.forward_pass_devices(len(scenarios))
+    # the rows laid over the devices, a path a core, as the tuner's forward passes
+    batch = devices.put_rows(stack(models), devices.row_mesh(len(scenarios), where))
     t0 = time.perf_counter()
-    traces, _ = run_chunked(
-        servo,
-        stack(models),
-        stack(references),
-        plant=plant,
-        rates=rates,
-        outer=mode,
-        hybrid=hybrid if control_mode(mode).hybrid else None,
-        start=start,
-        compliance=None if compliance is None else (compliance, scenarios[0].geometry or Geometry.default()),
-        params_axis=0 if batched else None,
-        hybrid_axis=hybrid_axis,
-    )
+    with jax.default_device(where[0]):
+        traces, _ = run_chunked(
+            servo,
+            batch,
+            stack(references),
+            plant=plant,
+            rates=rates,
+            outer=mode,
+            hybrid=hybrid if control_mode(mode).hybrid else None,
+            start=start,
+            compliance=None if compliance is None else (compliance, scenarios[0].geometry or Geometry.default()),
+            params_axis=0 if batched else None,
+            hybrid_axis=hybrid_axis,
+        )
     wall = time.perf_counter() - t0
     out = []
     for k, sc in enumerate(scenarios):
