@@ -262,7 +262,7 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
         f"tune: {len(problem.scenarios.names)} scenario(s) ({', '.join(problem.scenarios.names)}), "
         f"{cfg.windows} windows of {cfg.window_s:g} s spread over each {extent}, "
         f"tuning {', '.join(problem.space.fields)}; compiling the forward pass and the gradient "
-        "(about 3 min cold on 2 CPU cores)",
+        "(about 1.5 min cold on 2 CPU cores)",
         file=stream,
         flush=True,
     )
