@@ -9,6 +9,7 @@ reports the metrics of ``pusupu sim --plant mjx``.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import time
@@ -143,6 +144,16 @@ class MachineRun:
         return d | self.metrics.to_json() | {"wall_s": self.wall_s}
 
 
+# [s] of the longest path from which simulate_scenarios lays a batch's rows over the devices, a path a core, as the
+# tuner's forward passes run.  Measured on the 2-core CPU: the default tune's two paths (the arc's 43.3 s, p2p's held
+# to its length) took 23.3 s a baseline on one device and 13.2 s laid over two, from a warm cache (0.23 s saved a
+# second of path); but the laid-over programs cost more to compile: the suite's start-at-rest, printed-form and
+# variant tests (3 s paths, 4 sets of programs) took 105.3 s from an empty cache laid over, 72.5 s on one device.
+# So from an empty cache a path pays for it from about 35 s; the default tune's arc does (its whole job 313.0 against
+# 328.2 s, docs/benchmarks.md), and short runs keep their one-device programs.
+LAID_OVER_MIN_S = 35.0
+
+
 def simulate_scenarios(
     servo: ServoParams,
     scenarios: Iterable[Scenario],
@@ -158,9 +169,10 @@ def simulate_scenarios(
     arrays for plots.
 
     The batch runs in calls of :func:`~pusupu_jax.chunked.run_chunked`'s compiled program of
-    ``CHUNK`` periods: one compile per mode and batch size, whatever the paths' length.  Its rows are laid over
-    the devices of :func:`pusupu_jax.devices.forward_pass_devices` (the largest number that divides them,
-    :func:`~pusupu_jax.devices.row_mesh`), each a path a core on a CPU of several XLA host devices.
+    ``CHUNK`` periods: one compile per mode and batch size, whatever the paths' length.  It runs on the devices of
+    :func:`pusupu_jax.devices.forward_pass_devices`; from :data:`LAID_OVER_MIN_S` of path, its rows are laid over
+    them (the largest number that divides them, :func:`~pusupu_jax.devices.row_mesh`), a path a core on a CPU of
+    several XLA host devices.
 
     The scenarios differ in their model's arrays (:meth:`MJXPlant.variant`: seeded errors,
     payloads) and their paths; shorter paths are padded with their last pose (the machine
@@ -227,10 +239,11 @@ def simulate_scenarios(
         models.append(plant.variant(sc.options, sc.geometry))
     models = with_drives(models, [sc.drives for sc in scenarios], "simulate_scenarios")
     where = devices.forward_pass_devices(len(scenarios))
-    # the rows laid over the devices, a path a core, as the tuner's forward passes
-    batch = devices.put_rows(stack(models), devices.row_mesh(len(scenarios), where))
+    long_enough = length * rates.dt_position >= LAID_OVER_MIN_S
+    batch = devices.put_rows(stack(models), devices.row_mesh(len(scenarios), where) if long_enough else None)
     t0 = time.perf_counter()
-    with jax.default_device(where[0]):
+    on_host = where[0].platform != devices.chosen_devices()[0].platform  # a GPU job's few paths: the host's CPU
+    with jax.default_device(where[0]) if on_host else contextlib.nullcontext():
         traces, _ = run_chunked(
             servo,
             batch,

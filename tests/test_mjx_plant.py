@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from pusupu_jax import LoopRates, ServoParams, devices
+from pusupu_jax import LoopRates, ServoParams
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.params import stack
 from pusupu_jax.plant import kinematics as K
@@ -407,9 +407,8 @@ def test_model_variants_vmapped_equal_their_own_plants():
     options = M.ModelOptions(kin_error_seed=3, payload=5.0)
     path = platform_path("p2p", G.home, RATES)[:100]
     ref = machine_reference(SERVO, path, "pid", rates=RATES)
-    # the chunked batch of simulate_scenarios, laid over the devices as it lays it (the PID + feedforward's programs of
-    # the start-at-rest test, at Kff = 0)
-    models = devices.put_rows(stack([PLANT.variant(options), PLANT.variant(M.ModelOptions())]), devices.row_mesh(2))
+    models = stack([PLANT.variant(options), PLANT.variant(M.ModelOptions())])
+    # the chunked batch of simulate_scenarios (the PID + feedforward's programs of the start-at-rest test, at Kff = 0)
     batch, _ = run_chunked(SERVO, models, np.stack([ref, ref]), plant=PLANT, rates=RATES, outer="pid")
     own = MJXPlant.create(G, options)
     trace = jax.jit(lambda r: rollout(SERVO, None, r, plant=own, rates=RATES, outer="pid"))(ref)
