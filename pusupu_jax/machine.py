@@ -147,10 +147,13 @@ class MachineRun:
 # [s] of the longest path from which simulate_scenarios lays a batch's rows over the devices, a path a core, as the
 # tuner's forward passes run.  Measured on the 2-core CPU: the default tune's two paths (the arc's 43.3 s, p2p's held
 # to its length) took 23.3 s a baseline on one device and 13.2 s laid over two, from a warm cache (0.23 s saved a
-# second of path); but the laid-over programs cost more to compile: the suite's start-at-rest, printed-form and
-# variant tests (3 s paths, 4 sets of programs) took 105.3 s from an empty cache laid over, 72.5 s on one device.
-# So from an empty cache a path pays for it from about 35 s; the default tune's arc does (its whole job 313.0 against
-# 328.2 s, docs/benchmarks.md), and short runs keep their one-device programs.
+# second of path); the laid-over programs cost more to compile: the suite's start-at-rest, printed-form and variant
+# tests (3 s paths, 4 sets of programs) took 105.3 s from an empty cache laid over and 93.4 s on one device, both with
+# JAX's default device set around the run (which kept a test that runs the programs outside it from sharing them:
+# 71.9 s without it, 72.5 s before either).  So about 3 s of compile a set of programs, won back from about 13 s of
+# path (one run each: an estimate).  The bound sits at 35 s: the default tune's 43 s arc is laid over (its whole job
+# 313.0 against 328.2 s, docs/benchmarks.md), and the tests' runs, all shorter, keep the one-device programs they
+# share with the tests that call run_chunked directly.
 LAID_OVER_MIN_S = 35.0
 
 
