@@ -165,16 +165,6 @@ def row_mesh(rows: int, devices: Sequence[jax.Device] | None = None) -> Mesh | N
     return None if n == 1 else Mesh(np.array(list(devices)[:n]), ("rows",))
 
 
-def put_rows(tree: Any, mesh: Mesh | None) -> Any:
-    """``tree`` (host arrays) put on ``mesh``'s devices, its leading axis laid over them (unchanged without one)."""
-    import jax
-    from jax.sharding import NamedSharding, PartitionSpec
-
-    if mesh is None:
-        return tree
-    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec("rows")))  # type: ignore[no-untyped-call]
-
-
 def spread_rows(tree: Any, mesh: Mesh | None) -> Any:
     """``tree`` with its leading axis laid over ``mesh``'s devices, inside a traced function (no-op without one)."""
     import jax

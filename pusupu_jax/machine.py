@@ -9,7 +9,6 @@ reports the metrics of ``pusupu sim --plant mjx``.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import time
@@ -22,7 +21,6 @@ import numpy as np
 import numpy.typing as npt
 
 from . import compliance as compliance_law
-from . import devices
 from . import hybrid as hybrid_law
 from . import paths
 from .cascade import POSITION_MODES, control_mode
@@ -144,19 +142,6 @@ class MachineRun:
         return d | self.metrics.to_json() | {"wall_s": self.wall_s}
 
 
-# [s] of the longest path from which simulate_scenarios lays a batch's rows over the devices, a path a core, as the
-# tuner's forward passes run.  Measured on the 2-core CPU: the default tune's two paths (the arc's 43.3 s, p2p's held
-# to its length) took 23.3 s a baseline on one device and 13.2 s laid over two, from a warm cache (0.23 s saved a
-# second of path); the laid-over programs cost more to compile: the suite's start-at-rest, printed-form and variant
-# tests (3 s paths, 4 sets of programs) took 105.3 s from an empty cache laid over and 93.4 s on one device, both with
-# JAX's default device set around the run (which kept a test that runs the programs outside it from sharing them:
-# 71.9 s without it, 72.5 s before either).  So about 3 s of compile a set of programs, won back from about 13 s of
-# path (one run each: an estimate).  The bound sits at 35 s: the default tune's 43 s arc is laid over (its whole job
-# 313.0 against 328.2 s, docs/benchmarks.md), and the tests' runs, all shorter, keep the one-device programs they
-# share with the tests that call run_chunked directly.
-LAID_OVER_MIN_S = 35.0
-
-
 def simulate_scenarios(
     servo: ServoParams,
     scenarios: Iterable[Scenario],
@@ -172,10 +157,7 @@ def simulate_scenarios(
     arrays for plots.
 
     The batch runs in calls of :func:`~pusupu_jax.chunked.run_chunked`'s compiled program of
-    ``CHUNK`` periods: one compile per mode and batch size, whatever the paths' length.  It runs on the devices of
-    :func:`pusupu_jax.devices.forward_pass_devices`; from :data:`LAID_OVER_MIN_S` of path, its rows are laid over
-    them (the largest number that divides them, :func:`~pusupu_jax.devices.row_mesh`), a path a core on a CPU of
-    several XLA host devices.
+    ``CHUNK`` periods: one compile per mode and batch size, whatever the paths' length.
 
     The scenarios differ in their model's arrays (:meth:`MJXPlant.variant`: seeded errors,
     payloads) and their paths; shorter paths are padded with their last pose (the machine
@@ -241,25 +223,20 @@ def simulate_scenarios(
         references.append(reference)
         models.append(plant.variant(sc.options, sc.geometry))
     models = with_drives(models, [sc.drives for sc in scenarios], "simulate_scenarios")
-    where = devices.forward_pass_devices(len(scenarios))
-    long_enough = length * rates.dt_position >= LAID_OVER_MIN_S
-    batch = devices.put_rows(stack(models), devices.row_mesh(len(scenarios), where) if long_enough else None)
     t0 = time.perf_counter()
-    on_host = where[0].platform != devices.chosen_devices()[0].platform  # a GPU job's few paths: the host's CPU
-    with jax.default_device(where[0]) if on_host else contextlib.nullcontext():
-        traces, _ = run_chunked(
-            servo,
-            batch,
-            stack(references),
-            plant=plant,
-            rates=rates,
-            outer=mode,
-            hybrid=hybrid if control_mode(mode).hybrid else None,
-            start=start,
-            compliance=None if compliance is None else (compliance, scenarios[0].geometry or Geometry.default()),
-            params_axis=0 if batched else None,
-            hybrid_axis=hybrid_axis,
-        )
+    traces, _ = run_chunked(
+        servo,
+        stack(models),
+        stack(references),
+        plant=plant,
+        rates=rates,
+        outer=mode,
+        hybrid=hybrid if control_mode(mode).hybrid else None,
+        start=start,
+        compliance=None if compliance is None else (compliance, scenarios[0].geometry or Geometry.default()),
+        params_axis=0 if batched else None,
+        hybrid_axis=hybrid_axis,
+    )
     wall = time.perf_counter() - t0
     out = []
     for k, sc in enumerate(scenarios):

@@ -22,6 +22,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec
 
 from pusupu_jax import devices, machine_draws, machine_file, objectives, workload
 from pusupu_jax.cascade import control_mode
@@ -496,7 +497,7 @@ class Problem(WindowStarts):
         refs = jax.tree.map(
             lambda *x: np.concatenate(x), *[jax.tree.map(lambda a: held(a, n), r) for n, (_, _, r) in sc.groups.items()]
         )
-        models = devices.put_rows(models, mesh)
+        models = jax.device_put(models, NamedSharding(mesh, PartitionSpec("rows")))
         traces, carries = sc.whole(
             servo, hybrid, models, refs, self.cfg.mode, self.rates, marks=tuple(marks), to_end=not starts_only
         )
