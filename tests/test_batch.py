@@ -220,11 +220,14 @@ def test_batch_equals_tuning_each_scenario_alone(batch, monkeypatch):
     # as a new process would: the gradient's traced program is read from disk, not traced, and gives the same numbers
     monkeypatch.setattr(run, "_GRADIENTS", {})
     again = Problem(cfg, ServoParams.table1(), HybridGains(), specs=list(job.specs))
+    again.prepare(again.z0(), 0)  # as a tune's first iteration: the start states at z0, then the terms there
     args = (again.z0(), again.start_baseline(), again.starts, again.windows, again.space.start)
     got, want = again._value_and_grad(*args), problems[1]._value_and_grad(*args)
     assert again._value_and_grad.loaded == 1
     assert all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)))
-    assert again.starts_loaded == 1 and again.baseline_loaded == 1  # the start's terms too: one gradient less
+    # the start's terms read from disk too (one gradient less), and the start states renewed at z0 once, not again
+    # for the terms
+    assert again.starts_loaded == 1 and again.baseline_loaded == 1
     assert all(np.array_equal(again.baseline[k], problems[1].baseline[k]) for k in again.baseline)
     whole = again.run_paths(again.z0())
     computed = jax.tree.map(lambda *c: np.concatenate(c), *[c for _, c in whole])

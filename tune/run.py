@@ -377,11 +377,16 @@ class WindowStarts:
             starts = jax.tree.map(lambda s: np.zeros((n,) + s.shape[1:], s.dtype), self.starts_structure(z))
             ones = {k: np.ones(self.rows) for k in objectives.TERMS}
             self._value_and_grad.compile_ahead(z, ones, starts, self.windows, self.space.start)
-        same = self._starts_z is not None and all(
-            np.array_equal(np.asarray(z[k]), v) for k, v in self._starts_z.items()
-        )
-        if self.starts is None or (iteration % self.cfg.refresh_every == 0 and not same):
+        if self.starts is None or (iteration % self.cfg.refresh_every == 0 and not self.starts_at(z)):
             self.refresh(z)
+
+    def starts_at(self, z) -> bool:
+        """Whether the start states are those of ``z`` (renewed at these very gains)."""
+        return (
+            self.starts is not None
+            and self._starts_z is not None
+            and all(np.array_equal(np.asarray(z[k]), v) for k, v in self._starts_z.items())
+        )
 
     def start_baseline(self):
         """The terms at the start, from one call of the compiled gradient (normalisers of 1: no new compile), or
@@ -390,7 +395,8 @@ class WindowStarts:
         if self.baseline is None:
             kept = (self.starts, self._starts_z)  # a resumed run has its own starts already: keep them
             z0 = self.z0()
-            self.refresh(z0)
+            if not self.starts_at(z0):  # a fresh run has just renewed them at z0 (prepare): not twice
+                self.refresh(z0)
             structure = {k: jax.ShapeDtypeStruct((self.rows,), np.float64) for k in objectives.TERMS}
 
             def terms():
