@@ -99,6 +99,25 @@ def test_a_batch_laid_over_devices_runs_as_on_one():
     assert np.abs(np.asarray(one.current[0]) - np.asarray(one.current[1])).max() > 1e-3  # the two loads differ
 
 
+def test_a_large_batch_computes_its_rests_in_blocks_as_it_does_a_run_at_a_time():
+    """From ``block`` runs on, a batch's rests come from the one-run program vmapped over blocks of ``block`` runs (the
+    last filled with copies of the last run, dropped after): the same rests as a call per run, to float64 rounding
+    (relative 1e-13: different compiled programs), in the batch's order."""
+    from pusupu_jax.chunked import _MemberRests, _per_member
+
+    n = 6
+    loads = stack([LOAD.replace(mass=LOAD.mass * (1 + 0.2 * b)) for b in range(n)])
+    params = _per_member(SERVO, None, n)
+    each = _MemberRests(AxisPlant(), LoopRates().dt_mech, block=n + 1)(params, loads)
+    blocks = _MemberRests(AxisPlant(), LoopRates().dt_mech, block=4)(params, loads)  # 4 runs, then 2 and 2 copies
+    for a, b in zip(jax.tree.leaves(each), jax.tree.leaves(blocks)):
+        a, b = np.asarray(a), np.asarray(b)
+        assert a.shape == b.shape and a.shape[0] == n
+        np.testing.assert_allclose(b, a, rtol=0, atol=1e-13 * max(np.abs(a).max(), 1e-300))
+    held = [np.asarray(x) for x in jax.tree.leaves(each) if np.ptp(np.asarray(x), axis=0).max() > 0]
+    assert held, "the runs' rests differ with their loads"
+
+
 def test_paths_of_any_length_run_one_compiled_chunk():
     """Two path lengths, with and without marks: one compile of the chunk (whole chunks and chunks that stop at marks
     are the same program) and of the start's controllers, which the PID baseline's runs take too: what lets every
