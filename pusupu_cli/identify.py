@@ -149,6 +149,7 @@ def cmd_identify(args) -> int:
         print(
             f"{v.name:<15} {v.start:>10.4g} {v.value:>10.4g} {v.std_error:>10.2g}  {machine_fit.UNITS[v.field]}{note}"
         )
+    print(f"std errors count the residual's correlation in time over {report.error_bandwidth} samples")
     strongest = machine_fit.strongest_correlations(report.values, report.correlation)
     if strongest:
         print(

@@ -30,10 +30,11 @@ optimistix Levenberg-Marquardt traces the whole solve, both programs inside its 
 here compile in about 35 s.  With scipy's finite differences of the residual instead (:class:`Derivatives`), a fit
 of 28 values took 3.1x to 5.6x more replays and had not converged at 50 evaluations (``docs/benchmarks.md``).
 
-*Standard errors* come from the Jacobian at the optimum, ``s^2 (J^T J)^-1`` with ``s^2`` the residual's variance
-per degree of freedom.  A value the logs do not excite (its Jacobian column below ``1e-8`` of the largest, or a
-standard error above half its size) is not invented: it keeps the machine file's value, is reported as not excited,
-and the others are fitted again without it.
+*Standard errors* come from the Jacobian and the residual at the optimum, with the residual's correlation in time
+counted (:mod:`pusupu_jax.fit_errors`: a model's error errs alike over many samples in a row).  A value the logs do
+not excite (its Jacobian column below ``1e-8`` of the largest, or a standard error above half its size) is not
+invented: it keeps the machine file's value, is reported as not excited, and the others are fitted again without
+it.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import devices
+from . import devices, fit_errors
 from .cascade import control_mode
 from .hybrid import HybridGains, HybridReference
 from .machine import MACHINE_MODES, machine_plant, machine_rates, machine_reference
@@ -297,8 +298,9 @@ class FitReport:
     finite differences included; ``residual_s``, ``jacobian_s``: seconds in the residual's and the Jacobian's calls,
     compiles left out; ``trace``: after each residual call, those seconds so far and the least residual RMS met so
     far), the correlations between the values (``correlation``, in their order: the covariance from the Jacobian at
-    the optimum over the standard errors; an unexcited value's row 0 but for its 1 on the diagonal), and the logs
-    (path, SHA-256, what wrote them)."""
+    the optimum over the standard errors; an unexcited value's row 0 but for its 1 on the diagonal), the samples over
+    which the standard errors counted the residual's correlation in time (``error_bandwidth``:
+    :func:`pusupu_jax.fit_errors.covariance`), and the logs (path, SHA-256, what wrote them)."""
 
     values: tuple[FittedValue, ...]
     correlation: tuple[tuple[float, ...], ...]
@@ -318,6 +320,7 @@ class FitReport:
     converged: bool
     wall_s: float
     logs: tuple[dict[str, str], ...]
+    error_bandwidth: int = 0
 
     def as_dict(self) -> dict[str, Any]:
         values = [v.as_dict() for v in self.values]
@@ -429,7 +432,9 @@ class Solution:
     were excited, the residual at the start, the solver's last message and whether it converged, and
     over every solve the residual and Jacobian evaluations, the residual calls (each replay: a batch of differences
     counts its width), the seconds in the residual's and the Jacobian's calls, and ``trace``: after each residual
-    call, the seconds of calls so far and the least residual RMS met so far."""
+    call, the seconds of calls so far and the least residual RMS met so far; ``bandwidth``, the samples over which
+    the standard errors counted the residual's correlation (:func:`pusupu_jax.fit_errors.covariance`; 0 without
+    ``samples``)."""
 
     x: np.ndarray
     std: np.ndarray
@@ -444,16 +449,18 @@ class Solution:
     residual_s: float
     jacobian_s: float
     trace: tuple[tuple[float, float], ...]
+    bandwidth: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
 class _Solved:
-    """One solve's end: the values (the free ones), half the sum of squared residuals, the Jacobian there, the
-    solver's evaluations of the residual and of the Jacobian, its message and whether it converged."""
+    """One solve's end: the values (the free ones), half the sum of squared residuals, the Jacobian and the residual
+    there, the solver's evaluations of the residual and of the Jacobian, its message and whether it converged."""
 
     x: np.ndarray
     cost: float
     jac: np.ndarray
+    residual: np.ndarray
     evaluations: int
     jacobians: int
     message: str
@@ -467,9 +474,14 @@ def least_squares_excited(
     high: np.ndarray,
     say: Callable[[str], object] = lambda line: None,
     derivatives: Derivatives = Derivatives.EXACT,
+    samples: tuple[np.ndarray, list[int]] | None = None,
 ) -> Solution:
     """Bounded least squares from ``start`` inside ``[low, high]``, with standard errors from the Jacobian at the
     optimum, that invents no value the data do not excite.
+
+    ``samples``: each residual entry's sample and the samples of each log (:func:`pusupu_jax.fit_errors.covariance`),
+    whose standard errors count the residual's correlation in time; without it, the textbook ``s^2 (J^T J)^-1``
+    (each entry independent).
 
     ``derivatives``: the solver and the Jacobian it takes (:class:`Derivatives`): scipy's trust-region reflective
     solver with the exact Jacobian (``residual_of``'s) or with its finite differences of the residual, or MuJoCo's
@@ -543,15 +555,23 @@ def least_squares_excited(
             max_nfev=MAX_EVALUATIONS,
         )
         J = np.asarray(jac(jnp.asarray(sol.x))) if derivatives is Derivatives.EXACT else np.asarray(sol.jac)
-        solved = _Solved(sol.x, float(sol.cost), J, int(sol.nfev), int(sol.njev or 0), str(sol.message), sol.status > 0)
+        solved = _Solved(
+            sol.x, float(sol.cost), J, np.asarray(sol.fun), int(sol.nfev), int(sol.njev or 0), str(sol.message),
+            sol.status > 0,
+        )  # fmt: skip
         return solved, r0
 
-    def errors(solved: _Solved) -> tuple[np.ndarray, np.ndarray]:
-        """The standard errors and the correlations of the solved values: the covariance ``s^2 (J^T J)^+``, ``s^2``
-        the residual's variance per degree of freedom, ``J`` the Jacobian at the optimum."""
+    def errors(solved: _Solved) -> tuple[np.ndarray, np.ndarray, int]:
+        """The standard errors and the correlations of the solved values, and the bandwidth they took: the
+        covariance of :func:`pusupu_jax.fit_errors.covariance` with ``samples``, else ``s^2 (J^T J)^+``, ``s^2`` the
+        residual's variance per degree of freedom, ``J`` the Jacobian at the optimum."""
         J = solved.jac
-        variance = 2 * solved.cost / max(J.shape[0] - J.shape[1], 1)
-        covariance = variance * np.linalg.pinv(J.T @ J)
+        if samples is not None:
+            found = fit_errors.covariance(J, solved.residual, *samples)
+            covariance, bandwidth = found.covariance, found.bandwidth
+        else:
+            variance = 2 * solved.cost / max(J.shape[0] - J.shape[1], 1)
+            covariance, bandwidth = variance * np.linalg.pinv(J.T @ J), 0
         std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
         scale = np.where(std > 0, std, 1.0)
         correlation = covariance / np.outer(scale, scale)
@@ -561,11 +581,11 @@ def least_squares_excited(
         unit = np.sqrt(np.where(np.diag(correlation) > 0, np.diag(correlation), 1.0))
         correlation = np.clip(correlation / np.outer(unit, unit), -1.0, 1.0)
         np.fill_diagonal(correlation, 1.0)
-        return std, correlation
+        return std, correlation, bandwidth
 
     free = np.arange(start.size)
     solved, r0 = solve(free)
-    std, correlation = errors(solved)
+    std, correlation, bandwidth = errors(solved)
     norms = np.linalg.norm(solved.jac, axis=0)
     x = solved.x
     excited = (norms > UNEXCITED_COLUMN * norms.max()) & (std < UNEXCITED_ERROR * np.maximum(np.abs(x), 1.0))
@@ -576,7 +596,7 @@ def least_squares_excited(
         again, _ = solve(kept)
         x = start.copy()
         x[kept] = again.x
-        std[kept], kept_correlation = errors(again)
+        std[kept], kept_correlation, bandwidth = errors(again)
         correlation = np.eye(start.size)
         correlation[np.ix_(kept, kept)] = kept_correlation
         solved, evaluations, jacobians = again, evaluations + again.evaluations, jacobians + again.jacobians
@@ -585,7 +605,7 @@ def least_squares_excited(
         correlation = np.eye(start.size)
     return Solution(
         x, std, correlation, excited, r0, solved.message, solved.converged, evaluations, jacobians, calls[0],
-        sum(residual_times), sum(jacobian_times), tuple(trace),
+        sum(residual_times), sum(jacobian_times), tuple(trace), bandwidth,
     )  # fmt: skip
 
 
@@ -644,12 +664,14 @@ def _mujoco_minimize(
         x = np.clip((last.candidate + last.step).reshape(-1), box[0], box[1])
         r = columns(x[:, None]).reshape(-1)
         message = f"Terminated after {len(seen)} iterations: cost reduction under {FTOL:g} of the cost (ftol)"
-        return _Solved(x, 0.5 * float(r @ r), np.asarray(last.jacobian), evaluations[0], jacobians[0], message, True)
+        return _Solved(
+            x, 0.5 * float(r @ r), np.asarray(last.jacobian), r, evaluations[0], jacobians[0], message, True
+        )  # fmt: skip
     end = trace[-1]
     r = np.asarray(end.residual).reshape(-1)
     lines = out.getvalue().strip().splitlines()
     return _Solved(
-        x, 0.5 * float(r @ r), np.asarray(end.jacobian), evaluations[0], jacobians[0],
+        x, 0.5 * float(r @ r), np.asarray(end.jacobian), r, evaluations[0], jacobians[0],
         next((line for line in lines if line.startswith("Terminated")), ""), len(trace) - 1 < MAX_EVALUATIONS,
     )  # fmt: skip
 
@@ -759,7 +781,13 @@ def fit(
         return (lambda p: residual_all(at(p), data)), (lambda p: jacobian_all(at(p), data)[:, free])
 
     say(f"identify: compiling the replay and its Jacobian ({starts.size} values; cached for logs of these shapes)")
-    solution = least_squares_excited(residual_of, starts / scale, low, high, say, derivatives)
+    # each residual entry's sample (per log: the efforts' (n, n_axes) entries, then the angles'), for the standard
+    # errors' count of the residual's correlation in time
+    lengths = [len(r.t) for r in replays]
+    offsets = np.cumsum([0, *lengths])
+    rows = [np.repeat(np.arange(n) + at, r.effort.shape[1]) for n, at, r in zip(lengths, offsets, replays)]
+    samples = np.concatenate([np.concatenate([k, k]) for k in rows])
+    solution = least_squares_excited(residual_of, starts / scale, low, high, say, derivatives, (samples, lengths))
     r0 = solution.residual_before
     fitted, errors = solution.x * scale, solution.std * scale
     values = tuple(
@@ -786,6 +814,7 @@ def fit(
         converged=solution.converged,
         wall_s=time.perf_counter() - t0,
         logs=tuple({"path": log.path, "sha256": log.digest, "source": log.source} for log in logs),
+        error_bandwidth=solution.bandwidth,
     )
     identified = dataclasses.replace(
         with_values(machine, split(fitted)),
