@@ -148,8 +148,8 @@ class _MemberRests:
     once, where a program per batch size cost a compile each (some 8 s of CPU for the default machine).  Below
     ``block`` runs, a call per run of the one-run program, stacked; from ``block`` runs on, a call per ``block`` runs
     of that program vmapped (the last block filled with copies of the batch's last run, dropped after), so that
-    thousands of runs take tens of calls: 4096 runs a call each took about 5 minutes on an H200's host, in the calls
-    and in stacking their 4096 results."""
+    thousands of runs take tens of calls: 4096 runs a call each took more than 4.5 minutes on an H200's host, in
+    the calls and in stacking their 4096 results."""
 
     def __init__(self, plant: Plant, dt_mech: float, block: int = REST_BLOCK) -> None:
         self.program = _rest_program(plant, dt_mech)

@@ -62,9 +62,9 @@ def bandwidths(shortest: int) -> list[int]:
 
 def covariance(J: np.ndarray, r: np.ndarray, samples: np.ndarray, logs: list[int]) -> Covariance:
     """The Newey-West covariance of the values of a least-squares fit at its optimum, each variance at least the
-    textbook one (module docstring): ``J``
-    ``(n, p)`` the residual's Jacobian there, ``r`` ``(n,)`` the residual, ``samples`` ``(n,)`` each entry's sample
-    (from 0, counted across the logs in order), ``logs`` the samples of each log, in order."""
+    textbook one (module docstring): ``J`` ``(n, p)`` the residual's Jacobian there, ``r`` ``(n,)`` the residual,
+    ``samples`` ``(n,)`` each entry's sample (from 0, counted across the logs in order), ``logs`` the samples of each
+    log, in order."""
     n, p = J.shape
     G = np.zeros((sum(logs), p))
     np.add.at(G, samples, J * r[:, None])
