@@ -71,9 +71,9 @@ def covariance(J: np.ndarray, r: np.ndarray, samples: np.ndarray, logs: list[int
     inverse = np.linalg.pinv(J.T @ J)
     grid = bandwidths(min(logs))
     ends = np.cumsum([0, *logs])
-    lags = [sum(g.T @ g for g in _pieces(G, ends))]  # G_0, then G_l for l = 1 .. the grid's largest, within each log
-    for lag in range(1, grid[-1] + 1):
-        lags.append(sum(g[lag:].T @ g[:-lag] for g in _pieces(G, ends)))
+    pieces = [G[a:b] for a, b in zip(ends[:-1], ends[1:])]  # each log's scores
+    # G_l for l = 0 .. the grid's largest, each summed over the logs (no lag reaches from one log into the next)
+    lags = [np.sum([g[lag:].T @ g[: len(g) - lag] for g in pieces], axis=0) for lag in range(grid[-1] + 1)]
     best: Covariance | None = None
     score = -np.inf
     for L in grid:
@@ -93,8 +93,3 @@ def covariance(J: np.ndarray, r: np.ndarray, samples: np.ndarray, logs: list[int
     safe = np.where(variances > 0, variances, 1.0)
     raise_by = np.where(variances > 0, np.sqrt(np.maximum(textbook, variances) / safe), 1.0)
     return Covariance(best.covariance * np.outer(raise_by, raise_by), best.bandwidth)
-
-
-def _pieces(G: np.ndarray, ends: np.ndarray) -> list[np.ndarray]:
-    """The scores ``G`` cut into each log's samples."""
-    return [G[a:b] for a, b in zip(ends[:-1], ends[1:])]
