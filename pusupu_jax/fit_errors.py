@@ -60,6 +60,15 @@ def bandwidths(shortest: int) -> list[int]:
     return [0] + [2**k for k in range(max(shortest // 4, 1).bit_length()) if 2**k <= shortest // 4]
 
 
+def textbook(J: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The textbook covariance ``s^2 (J^T J)^+`` of a least-squares fit's values at its optimum (``J`` ``(n, p)`` the
+    residual's Jacobian there, ``r`` ``(n,)`` the residual, ``s^2`` its variance per degree of freedom): each entry's
+    error taken as independent of the others."""
+    n, p = J.shape
+    covariance: np.ndarray = np.linalg.pinv(J.T @ J) * (float(r @ r) / max(n - p, 1))
+    return covariance
+
+
 def covariance(J: np.ndarray, r: np.ndarray, samples: np.ndarray, logs: list[int]) -> Covariance:
     """The Newey-West covariance of the values of a least-squares fit at its optimum, each variance at least the
     textbook one (module docstring): ``J`` ``(n, p)`` the residual's Jacobian there, ``r`` ``(n,)`` the residual,
@@ -88,8 +97,8 @@ def covariance(J: np.ndarray, r: np.ndarray, samples: np.ndarray, logs: list[int
     # each value's variance at least the textbook one, s^2 (J^T J)^-1 (the correlations Newey-West's): where the
     # residual's variance differs between the samples that carry a value and the others, White's and Newey-West's
     # estimates fall below it, and over noise draws of a log the replay matches they covered the truth less often
-    textbook = np.diag(inverse) * float(r @ r) / max(n - p, 1)
+    floor = np.diag(textbook(J, r))
     variances = np.diag(best.covariance)
     safe = np.where(variances > 0, variances, 1.0)
-    raise_by = np.where(variances > 0, np.sqrt(np.maximum(textbook, variances) / safe), 1.0)
+    raise_by = np.where(variances > 0, np.sqrt(np.maximum(floor, variances) / safe), 1.0)
     return Covariance(best.covariance * np.outer(raise_by, raise_by), best.bandwidth)

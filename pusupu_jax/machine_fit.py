@@ -454,17 +454,22 @@ class Solution:
 
 @dataclasses.dataclass(frozen=True)
 class _Solved:
-    """One solve's end: the values (the free ones), half the sum of squared residuals, the Jacobian and the residual
-    there, the solver's evaluations of the residual and of the Jacobian, its message and whether it converged."""
+    """One solve's end: the values (the free ones), the Jacobian and the residual there, the solver's evaluations of
+    the residual and of the Jacobian, its message and whether it converged; its cost, half the sum of squared
+    residuals, from the residual."""
 
     x: np.ndarray
-    cost: float
     jac: np.ndarray
     residual: np.ndarray
     evaluations: int
     jacobians: int
     message: str
     converged: bool
+
+    @property
+    def cost(self) -> float:
+        """Half the sum of squared residuals."""
+        return 0.5 * float(self.residual @ self.residual)
 
 
 def least_squares_excited(
@@ -556,22 +561,20 @@ def least_squares_excited(
         )
         J = np.asarray(jac(jnp.asarray(sol.x))) if derivatives is Derivatives.EXACT else np.asarray(sol.jac)
         solved = _Solved(
-            sol.x, float(sol.cost), J, np.asarray(sol.fun), int(sol.nfev), int(sol.njev or 0), str(sol.message),
+            sol.x, J, np.asarray(sol.fun), int(sol.nfev), int(sol.njev or 0), str(sol.message),
             sol.status > 0,
         )  # fmt: skip
         return solved, r0
 
     def errors(solved: _Solved) -> tuple[np.ndarray, np.ndarray, int]:
         """The standard errors and the correlations of the solved values, and the bandwidth they took: the
-        covariance of :func:`pusupu_jax.fit_errors.covariance` with ``samples``, else ``s^2 (J^T J)^+``, ``s^2`` the
-        residual's variance per degree of freedom, ``J`` the Jacobian at the optimum."""
-        J = solved.jac
+        covariance of :func:`pusupu_jax.fit_errors.covariance` with ``samples``, else the textbook one
+        (:func:`pusupu_jax.fit_errors.textbook`)."""
         if samples is not None:
-            found = fit_errors.covariance(J, solved.residual, *samples)
+            found = fit_errors.covariance(solved.jac, solved.residual, *samples)
             covariance, bandwidth = found.covariance, found.bandwidth
         else:
-            variance = 2 * solved.cost / max(J.shape[0] - J.shape[1], 1)
-            covariance, bandwidth = variance * np.linalg.pinv(J.T @ J), 0
+            covariance, bandwidth = fit_errors.textbook(solved.jac, solved.residual), 0
         std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
         scale = np.where(std > 0, std, 1.0)
         correlation = covariance / np.outer(scale, scale)
@@ -665,13 +668,13 @@ def _mujoco_minimize(
         r = columns(x[:, None]).reshape(-1)
         message = f"Terminated after {len(seen)} iterations: cost reduction under {FTOL:g} of the cost (ftol)"
         return _Solved(
-            x, 0.5 * float(r @ r), np.asarray(last.jacobian), r, evaluations[0], jacobians[0], message, True
+            x, np.asarray(last.jacobian), r, evaluations[0], jacobians[0], message, True
         )  # fmt: skip
     end = trace[-1]
     r = np.asarray(end.residual).reshape(-1)
     lines = out.getvalue().strip().splitlines()
     return _Solved(
-        x, 0.5 * float(r @ r), np.asarray(end.jacobian), r, evaluations[0], jacobians[0],
+        x, np.asarray(end.jacobian), r, evaluations[0], jacobians[0],
         next((line for line in lines if line.startswith("Terminated")), ""), len(trace) - 1 < MAX_EVALUATIONS,
     )  # fmt: skip
 
