@@ -25,6 +25,10 @@ The later fits find the programs compiled (the logged data are their arguments).
 fits seeds K, K+1, ... alone, so that several processes can share the seeds; ``--merge A.json B.json ...`` makes one
 result of theirs.
 
+``--step-check S`` runs identify's step check (:func:`pusupu_jax.machine_fit.fit`): the fitted values replayed at the
+finer step S and moved by one Gauss-Newton step on that replay's residual; each entry gives the move
+(``step_correction``) and each fit the finer replay's residual RMS before and after it (``step_check_rms``).
+
 ``--derivatives exact,finite-differences,mujoco-minimize`` fits each log once with each solver and Jacobian
 (:class:`pusupu_jax.machine_fit.Derivatives`): the exact one through the replay, and the derivative-free anchors,
 scipy's 2-point differences of the same residual with the same solver, bounds and tolerances, and MuJoCo's
@@ -36,7 +40,7 @@ and the seconds each took to the same residual (the higher of the two fits' leas
 
     python benchmarks/bench_identify.py [--source sim|bridge] [--fine-steps N] [--robot-sensors BITS,AMPS]
         [--trajectory p2p] [--window 2]
-        [--mech-step S]
+        [--mech-step S] [--step-check S]
         [--fit friction,motor,payload] [--noise-seeds 0] [--first-seed 0] [--noisy-only]
         [--derivatives exact[,finite-differences,...]] [--out FILE]
     python benchmarks/bench_identify.py --merge A.json B.json ... [--out FILE]
@@ -126,7 +130,7 @@ def _noisy(log, seed: int, bits: int, current_noise: float):
 def _entries(report, truth) -> list[dict]:
     """Per fitted value: truth, fit, standard error, relative error, and whether 1.96 standard errors cover it
     (:meth:`pusupu_jax.machine_fit.FittedValue.against`)."""
-    keys = ("name", "true", "start", "std_error", "relative_error", "covered_95", "excited")
+    keys = ("name", "true", "start", "std_error", "relative_error", "covered_95", "excited", "step_correction")
     return [
         {k: e[k] for k in keys} | {"fitted": e["value"], "abs_error": abs(e["error"])}
         for e in (v.against(truth) for v in report.values)
@@ -155,6 +159,13 @@ def main() -> None:
     )
     ap.add_argument("--mech-step", type=float, help="the replay's mechanical step [s] (default the model's)")
     ap.add_argument("--fit", default="friction,motor,payload")
+    ap.add_argument(
+        "--step-check",
+        type=float,
+        metavar="S",
+        help="identify's step check: the fitted values replayed at this finer step and moved by one Gauss-Newton step "
+        "(default none)",
+    )
     ap.add_argument("--noise-seeds", type=int, default=0, help="noisy copies of the log fitted after it")
     ap.add_argument("--first-seed", type=int, default=0, help="the first noisy copy's seed (default 0)")
     ap.add_argument("--noisy-only", action="store_true", help="fit the noisy copies only, not the noise-free log")
@@ -232,7 +243,7 @@ def main() -> None:
             report, _, _ = machine_fit.fit(
                 [case], start, g.servo, g.hybrid, g.rates, fields, args.window,
                 progress=lambda line: print(line, file=sys.stderr, flush=True), derivatives=derivatives,
-                mech_step=args.mech_step,
+                mech_step=args.mech_step, step_check=args.step_check,
             )  # fmt: skip
             entries = _entries(report, truth)
             per_call = report.residual_s / max(report.residual_calls, 1)
@@ -253,6 +264,9 @@ def main() -> None:
                     "message": report.solver_message,  # the solver's reason to stop
                     "residual_rms_before": report.residual_rms_before,
                     "residual_rms_after": report.residual_rms_after,
+                    # with --step-check: that replay's residual RMS at the values fitted and at the values moved
+                    "step_check_rms": report.step_check_rms,
+                    "step_check_wall_s": report.step_check_wall_s,
                     "worst_relative_error": max(e["relative_error"] for e in entries),
                     # after each residual call: seconds of calls so far, the least residual RMS met so far
                     "trace": [[round(t, 4), rms] for t, rms in report.trace],
@@ -322,6 +336,7 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict], current
         "robot_fine_steps": args.fine_steps if args.source == "bridge" else None,
         "window_s": args.window,
         "mech_step_s": fits[0]["mech_step_s"],
+        "step_check_s": args.step_check,
         "fit": [str(f) for f in fields],
         "values_fitted": len(fits[0]["values"]),
         "derivatives": args.derivatives.split(","),
@@ -366,7 +381,7 @@ def coverage(fits: list[dict]) -> dict:
 
 SETTINGS = (
     *("source", "trajectory", "robot_fine_steps", "robot_sensors", "window_s", "mech_step_s", "fit", "noise"),
-    "true_payload_com_m",
+    *("true_payload_com_m", "step_check_s"),
 )
 
 

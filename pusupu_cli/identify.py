@@ -47,6 +47,14 @@ def add_parser(sub):
         "0.00025 (default: the model's, as tune steps it)",
     )
     i.add_argument(
+        "--step-check",
+        type=float,
+        metavar="S",
+        help="for a robot's logs: replay the fitted values at this finer step (0.00005: one a current-loop tick) and "
+        "move them by one Gauss-Newton step on its residual, the values a fit at that step would find, for two "
+        "replays at it (default none: a log of pusupu sim at the model's step needs none)",
+    )
+    i.add_argument(
         "--derivatives",
         default="exact",
         choices=("exact", "mujoco-minimize", "finite-differences"),
@@ -80,6 +88,8 @@ def cmd_identify(args) -> int:
     if not (np.isfinite(args.window) and args.window > 0):
         raise ParameterError(f"--window: expected a positive number of seconds, got {args.window}")
     machine_fit.check_mech_step(args.mech_step, name="--mech-step")
+    if args.step_check is not None:
+        machine_fit.check_step_check(args.step_check, args.mech_step, name="--step-check")
     check_output_path(args.out, "--out", "machine")
     if args.plot:
         check_plot_path(args.plot)
@@ -116,6 +126,7 @@ def cmd_identify(args) -> int:
             progress=lambda line: print(line, file=sys.stderr, flush=True),
             derivatives=machine_fit.Derivatives(args.derivatives),
             mech_step=args.mech_step,
+            step_check=args.step_check,
         )
     header = [
         f"# identified by pusupu identify from {machine.name!r}: {', '.join(map(str, fields))} fitted to "
@@ -123,6 +134,14 @@ def cmd_identify(args) -> int:
         *(f"#   log {d['path']} sha256 {d['sha256']}" for d in report.logs),
         f"#   residual RMS {report.residual_rms_before:.4g} -> {report.residual_rms_after:.4g} over "
         f"{report.samples} samples",
+        *(
+            [
+                f"#   step check at {report.step_check_s * 1e6:g} us: that replay's residual RMS "
+                f"{report.step_check_rms[0]:.4g} at the values fitted, {report.step_check_rms[1]:.4g} at these"
+            ]
+            if report.step_check_s is not None and report.step_check_rms is not None
+            else []
+        ),
         *(
             f"#   {v.name} not excited by the logs: kept at {v.start:g} {machine_fit.UNITS[v.field]}"
             for v in report.unexcited()
@@ -143,11 +162,22 @@ def cmd_identify(args) -> int:
         f"identify: residual RMS {report.residual_rms_before:.4g} -> {report.residual_rms_after:.4g} over "
         f"{report.samples} samples of {len(logs)} log(s) ({report.evaluations} evaluations, {report.wall_s:.0f} s)"
     )
-    print(f"{'value':<15} {'start':>10} {'fitted':>10} {'std error':>10}  unit")
+    checked = report.step_check_s is not None and report.step_check_rms is not None
+    if checked:
+        before, after = report.step_check_rms or (0.0, 0.0)
+        print(
+            f"identify: step check at {(report.step_check_s or 0) * 1e6:g} us ({report.step_check_wall_s:.0f} s): that "
+            f"replay's residual RMS {before:.4g} at the values fitted, {after:.4g} moved"
+            + ("" if after < before else ": not moved")
+        )
+    step = f" {'step move':>10}" if checked else ""
+    print(f"{'value':<15} {'start':>10} {'fitted':>10} {'std error':>10}{step}  unit")
     for v in report.values:
         note = "" if v.excited else "  not excited: kept"
+        moved = f" {v.step_correction:>10.2g}" if checked else ""
         print(
-            f"{v.name:<15} {v.start:>10.4g} {v.value:>10.4g} {v.std_error:>10.2g}  {machine_fit.UNITS[v.field]}{note}"
+            f"{v.name:<15} {v.start:>10.4g} {v.value:>10.4g} {v.std_error:>10.2g}{moved}  "
+            f"{machine_fit.UNITS[v.field]}{note}"
         )
     print(f"std errors count the residual's correlation in time over {report.error_bandwidth} samples")
     strongest = machine_fit.strongest_correlations(report.values, report.correlation)

@@ -265,6 +265,48 @@ def test_a_value_the_data_do_not_excite_keeps_its_start_and_the_others_are_fitte
     assert not none.excited.any() and none.x.tolist() == start.tolist()
 
 
+def test_one_gauss_newton_step_from_a_fit_reaches_the_fit_of_a_residual_close_to_it():
+    """The step check's move (:func:`machine_fit.gauss_newton_step`): a residual of the same Jacobian but another bias,
+    smooth in time (as a finer replay's differs from the replay's), is minimised by the fit's values plus one
+    Gauss-Newton step, to rounding; a value the data do not excite (its Jacobian column 0 in the Solution) does not
+    move.  Against a change the Jacobian cannot express (white, orthogonal to its columns) the step is 0."""
+    rng = np.random.default_rng(1)
+    t = np.linspace(0.0, 1.0, 300)
+    A = np.column_stack([rng.normal(size=300), np.zeros(300), np.sin(6 * t)])
+    start, low, high = np.zeros(3), np.full(3, -10.0), np.full(3, 10.0)
+    b = A @ np.array([2.0, 5.0, -1.5]) + 1e-3 * rng.normal(size=300)
+    found = least_squares_excited(_linear(A, b, start), start, low, high)
+    assert found.excited.tolist() == [True, False, True]
+    np.testing.assert_array_equal(found.jacobian[:, 1], 0.0)
+    np.testing.assert_allclose(found.jacobian[:, [0, 2]], A[:, [0, 2]], rtol=1e-12)
+    bias = 0.05 * np.cos(3 * t) + 0.02 * A[:, 0]  # the finer residual is A x - (b - bias)
+    move = machine_fit.gauss_newton_step(found.jacobian, bias)
+    other, *_ = np.linalg.lstsq(A[:, [0, 2]], b - bias, rcond=None)
+    np.testing.assert_allclose((found.x + move)[[0, 2]], other, rtol=1e-6)
+    assert move[1] == 0.0 and abs(move[0] + 0.02) < 5e-3  # mostly the bias's share along the first column
+    q, _ = np.linalg.qr(A[:, [0, 2]])
+    white = rng.normal(size=300)
+    np.testing.assert_allclose(machine_fit.gauss_newton_step(found.jacobian, white - q @ (q.T @ white)), 0, atol=1e-12)
+
+
+def test_a_step_check_not_finer_than_the_replay_is_refused_in_one_line(tmp_path):
+    """``pusupu identify --step-check S``: S must be a step the replay can take, finer than its own (the model's
+    0.25 ms, or --mech-step's); another is refused in one line, exit 2, before anything is read."""
+    machine_fit.check_step_check(5e-5, None)
+    for options, expected in (
+        (("--step-check", "0.00025"), "--step-check: expected a step finer than the replay's 0.00025 s, got 0.00025 s"),
+        (
+            ("--mech-step", "0.00005", "--step-check", "0.00005"),
+            "--step-check: expected a step finer than the replay's 5e-05 s, got 5e-05 s",
+        ),
+        (("--step-check", "0.0001"), "--step-check: expected a whole number of current-loop ticks"),
+    ):
+        r = _identify(tmp_path, *options)
+        assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert r.stderr.startswith(f"pusupu: error: {expected}"), r.stderr
+    assert not (tmp_path / "m.yaml").exists()
+
+
 @pytest.mark.parametrize("rho, textbook_at_most, counted_within", [(0.0, 1.0, (0.92, 0.98)), (0.98, 0.3, (0.78, 1.0))])
 def test_intervals_that_count_the_residuals_correlation_in_time_cover_the_truth(rho, textbook_at_most, counted_within):
     """A linear fit of three values to two logs of 1000 samples each (sines and a square wave, as a path's moves)
@@ -405,7 +447,9 @@ def test_identify_recovers_the_coulomb_friction_of_a_machine_it_did_not_start_fr
     the machine file, and the residual falls by more than 1000x (measured: 0.194 -> 4.6e-12 rad in 7 evaluations, each
     value's standard error about 1e-11 N; 87 s from an empty compile cache on the 2-core CPU).  The
     log is the fitting model's own, without noise: this checks the fit and what the path excites, not the model (the
-    benchmark's bridge cases fit logs of C MuJoCo, with noise)."""
+    benchmark's bridge cases fit logs of C MuJoCo, with noise).  Then ``--step-check 0.00005`` on the same log: the
+    values moved from the same fit by what the report says, the finer replay's residual lowered, the file written
+    with them and the check in its header."""
     import dataclasses
     import json
 
@@ -440,3 +484,17 @@ def test_identify_recovers_the_coulomb_friction_of_a_machine_it_did_not_start_fr
     np.testing.assert_allclose(found, coulomb, rtol=0.01)
     np.testing.assert_array_equal(machine_file.load(out).drives["coulomb"], found)
     assert report["residual_rms_after"] < 1e-3 * report["residual_rms_before"]
+    # the step check on the same log (the replay's programs cached): the fitted values replayed at 50 us and moved
+    # toward what a fit at that step would find.  This log is the replay's own at 0.25 ms, so the move is away from
+    # its truth, and small: the two steps' difference on a slow path
+    checked = tmp_path / "checked.yaml"
+    again = ("--gains", gain_file, "--fit", "coulomb", "--window", "0.8", "--step-check", "0.00005", "--out", checked)
+    report_checked = json.loads(in_process("identify", tmp_path / "run.mcap", *again, "--json"))
+    at_fit, moved = report_checked["step_check_rms"]
+    assert report_checked["step_check_s"] == 5e-5 and moved < at_fit
+    steps = np.array([v["step_correction"] for v in report_checked["values"]])
+    values = np.array([v["value"] for v in report_checked["values"]])
+    np.testing.assert_allclose(values - steps, found, rtol=1e-6)  # the move is from the same fit
+    assert np.all(steps != 0) and np.all(np.abs(steps) < 0.05 * coulomb)
+    np.testing.assert_array_equal(machine_file.load(checked).drives["coulomb"], values)
+    assert "#   step check at 50 us: that replay's residual RMS" in checked.read_text()
