@@ -137,7 +137,8 @@ def cmd_identify(args) -> int:
         *(
             [
                 f"#   step check at {report.step_check_s * 1e6:g} us: that replay's residual RMS "
-                f"{report.step_check_rms[0]:.4g} at the values fitted, {report.step_check_rms[1]:.4g} at these"
+                f"{report.step_check_rms[0]:.4g} at the values fitted, {report.step_check_rms[1]:.4g} moved"
+                + ("" if report.step_check_moved else ": not moved, these are the values fitted")
             ]
             if report.step_check_s is not None and report.step_check_rms is not None
             else []
@@ -168,7 +169,7 @@ def cmd_identify(args) -> int:
         print(
             f"identify: step check at {(report.step_check_s or 0) * 1e6:g} us ({report.step_check_wall_s:.0f} s): that "
             f"replay's residual RMS {before:.4g} at the values fitted, {after:.4g} moved"
-            + ("" if after < before else ": not moved")
+            + ("" if report.step_check_moved else ": not moved")
         )
     step = f" {'step move':>10}" if checked else ""
     print(f"{'value':<15} {'start':>10} {'fitted':>10} {'std error':>10}{step}  unit")

@@ -295,7 +295,8 @@ class FittedValue:
 
 @dataclasses.dataclass(frozen=True)
 class FitReport:
-    """What :func:`fit` found: every fitted value, the residual's RMS before and after, the samples and the window,
+    """What :func:`fit` found: every fitted value, the residual's RMS before and after (at the replay's step, after:
+    at the values the solver found, before a step check's move), the samples and the window,
     the replay's mechanical step [s], the solver's work (``converged``: False where it stopped at
     :data:`MAX_EVALUATIONS`; ``derivatives``: the Jacobian it took; ``residual_calls``: every replay of the residual,
     finite differences included; ``residual_s``, ``jacobian_s``: seconds in the residual's and the Jacobian's calls,
@@ -332,7 +333,16 @@ class FitReport:
 
     def as_dict(self) -> dict[str, Any]:
         values = [v.as_dict() for v in self.values]
-        return dataclasses.asdict(self) | {"values": values, "derivatives": str(self.derivatives)}
+        return dataclasses.asdict(self) | {
+            "values": values,
+            "derivatives": str(self.derivatives),
+            "step_check_moved": self.step_check_moved,
+        }
+
+    @property
+    def step_check_moved(self) -> bool:
+        """Whether a step check moved the values: its move lowered the finer replay's residual."""
+        return self.step_check_rms is not None and self.step_check_rms[1] < self.step_check_rms[0]
 
     def unexcited(self) -> list[FittedValue]:
         return [v for v in self.values if not v.excited]
@@ -696,8 +706,9 @@ def gauss_newton_step(J: np.ndarray, change: np.ndarray) -> np.ndarray:
     """The values' move ``-(J^T J)^+ J^T change`` of one Gauss-Newton step from an optimum of a residual to that of
     another close to it: ``J`` ``(n, p)`` the first residual's Jacobian at its optimum (a value's column 0: no move),
     ``change`` ``(n,)`` the second residual less the first there (the second's Jacobian taken as ``J``).  Exact for
-    residuals linear in the values with one Jacobian."""
-    move: np.ndarray = -np.linalg.pinv(J.T @ J) @ (J.T @ change)
+    residuals linear in the values with one Jacobian.  Solved as the least-squares problem ``J dx = -change`` (the
+    least-norm answer), not through ``J^T J``, whose condition is the square of ``J``'s."""
+    move: np.ndarray = np.linalg.lstsq(J, -change, rcond=None)[0]
     return move
 
 

@@ -497,4 +497,5 @@ def test_identify_recovers_the_coulomb_friction_of_a_machine_it_did_not_start_fr
     np.testing.assert_allclose(values - steps, found, rtol=1e-6)  # the move is from the same fit
     assert np.all(steps != 0) and np.all(np.abs(steps) < 0.05 * coulomb)
     np.testing.assert_array_equal(machine_file.load(checked).drives["coulomb"], values)
+    assert report_checked["step_check_moved"]
     assert "#   step check at 50 us: that replay's residual RMS" in checked.read_text()
