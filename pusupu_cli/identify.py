@@ -5,10 +5,14 @@ from __future__ import annotations
 
 import json
 import sys
+from typing import TYPE_CHECKING
 
 from pusupu_jax.params import ParameterError
 
 from .common import check_output_path, check_plot_path, checking, machine_of
+
+if TYPE_CHECKING:
+    from pusupu_jax.machine_fit import FitReport
 
 
 def add_parser(sub):
@@ -128,21 +132,14 @@ def cmd_identify(args) -> int:
             mech_step=args.mech_step,
             step_check=args.step_check,
         )
+    checked = _step_check_words(report)
     header = [
         f"# identified by pusupu identify from {machine.name!r}: {', '.join(map(str, fields))} fitted to "
         f"{len(logs)} log(s), the first {args.window:g} s of each, replayed at a {report.mech_step_s * 1e6:g} us step",
         *(f"#   log {d['path']} sha256 {d['sha256']}" for d in report.logs),
         f"#   residual RMS {report.residual_rms_before:.4g} -> {report.residual_rms_after:.4g} over "
         f"{report.samples} samples",
-        *(
-            [
-                f"#   step check at {report.step_check_s * 1e6:g} us: that replay's residual RMS "
-                f"{report.step_check_rms[0]:.4g} at the values fitted, {report.step_check_rms[1]:.4g} moved"
-                + ("" if report.step_check_moved else ": not moved, these are the values fitted")
-            ]
-            if report.step_check_s is not None and report.step_check_rms is not None
-            else []
-        ),
+        *([] if checked is None else [f"#   {checked}"]),
         *(
             f"#   {v.name} not excited by the logs: kept at {v.start:g} {machine_fit.UNITS[v.field]}"
             for v in report.unexcited()
@@ -163,19 +160,13 @@ def cmd_identify(args) -> int:
         f"identify: residual RMS {report.residual_rms_before:.4g} -> {report.residual_rms_after:.4g} over "
         f"{report.samples} samples of {len(logs)} log(s) ({report.evaluations} evaluations, {report.wall_s:.0f} s)"
     )
-    checked = report.step_check_s is not None and report.step_check_rms is not None
-    if checked:
-        before, after = report.step_check_rms or (0.0, 0.0)
-        print(
-            f"identify: step check at {(report.step_check_s or 0) * 1e6:g} us ({report.step_check_wall_s:.0f} s): that "
-            f"replay's residual RMS {before:.4g} at the values fitted, {after:.4g} moved"
-            + ("" if report.step_check_moved else ": not moved")
-        )
-    step = f" {'step move':>10}" if checked else ""
+    if checked is not None:
+        print(f"identify: {checked} ({report.step_check_wall_s:.0f} s)")
+    step = "" if checked is None else f" {'step move':>10}"
     print(f"{'value':<15} {'start':>10} {'fitted':>10} {'std error':>10}{step}  unit")
     for v in report.values:
         note = "" if v.excited else "  not excited: kept"
-        moved = f" {v.step_correction:>10.2g}" if checked else ""
+        moved = "" if checked is None else f" {v.step_correction:>10.2g}"
         print(
             f"{v.name:<15} {v.start:>10.4g} {v.value:>10.4g} {v.std_error:>10.2g}{moved}  "
             f"{machine_fit.UNITS[v.field]}{note}"
@@ -197,3 +188,15 @@ def cmd_identify(args) -> int:
         print(f"pusupu: warning: {v.name} was not excited by the logs; kept at {v.start:g}", file=sys.stderr)
     print(f"wrote {args.out}" + (f", {args.plot}" if args.plot else ""))
     return 0
+
+
+def _step_check_words(report: FitReport) -> str | None:
+    """What the step check found (:func:`pusupu_jax.machine_fit.fit`), for the file's header and the terminal; None
+    without one."""
+    if report.step_check_s is None or report.step_check_rms is None:
+        return None
+    before, after = report.step_check_rms
+    return (
+        f"step check at {report.step_check_s * 1e6:g} us: that replay's residual RMS {before:.4g} at the values "
+        f"fitted, {after:.4g} moved" + ("" if report.step_check_moved else ": not moved, these are the values fitted")
+    )

@@ -853,8 +853,9 @@ def fit(
     solution = least_squares_excited(residual_of, starts / scale, low, high, say, derivatives, (samples, lengths))
     r0 = solution.residual_before
     r1 = np.asarray(residual_all(jnp.asarray(solution.x), data))
-    x, step_rms, t_check = solution.x, None, time.perf_counter()
+    x, step_rms, check_s = solution.x, None, 0.0
     if step_check is not None:
+        t_check = time.perf_counter()
         say(f"identify: step check: the fitted values replayed at a {step_check * 1e6:g} us step")
         finer = [_replay(log, machine, gains, hybrid, rates, window_s, trajectory, step_check) for log in logs]
         finer_residual = jax.jit(residual_of_replays(finer))
@@ -869,6 +870,7 @@ def fit(
                 f"identify: step check: the move did not lower the finer replay's residual RMS ({step_rms[0]:.4g} -> "
                 f"{step_rms[1]:.4g}): the values kept as fitted"
             )
+        check_s = time.perf_counter() - t_check
     fitted, errors = x * scale, solution.std * scale
     values = tuple(
         FittedValue(f, k, float(v0), float(v), float(e), bool(ok), float(d))
@@ -896,7 +898,7 @@ def fit(
         error_bandwidth=solution.bandwidth,
         step_check_s=step_check,
         step_check_rms=step_rms,
-        step_check_wall_s=time.perf_counter() - t_check if step_check is not None else 0.0,
+        step_check_wall_s=check_s,
     )
     identified = dataclasses.replace(
         with_values(machine, split(fitted)),
