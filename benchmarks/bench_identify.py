@@ -19,7 +19,11 @@ times per current-loop tick (``pusupu sim-robot --fine-steps``), a truth finer t
 AMPS), which its drives' loops close on as a robot's do.
 ``--noise-seeds N`` fits N more copies of the log with the sensors' noise drawn afresh: each motor angle rounded to
 an encoder of ``--encoder-bits`` a turn (at a phase drawn per seed), and each current with Gaussian noise of
-``--current-noise`` of its axis's RMS.  Each entry says whether the truth lies inside the value's 95 % interval
+``--current-noise`` of its axis's RMS.  With ``--seeds-in-loop`` (and ``--source bridge``) each seed is a bridge run
+of its own instead, the noise drawn inside the loop: the simulated robot gets those sensors (the current noise of
+each axis from the noise-free run's RMS) and ``--noise-seed`` K, so its drives close their loops on what its
+encoders (at phases drawn from K) and current sensors read, and the log holds what they reported.
+Each entry says whether the truth lies inside the value's 95 % interval
 (1.96 standard errors), and ``coverage`` gives per solver and value the share of seeds whose interval covers it.
 The later fits find the programs compiled (the logged data are their arguments).  ``--first-seed K --noisy-only``
 fits seeds K, K+1, ... alone, so that several processes can share the seeds; ``--merge A.json B.json ...`` makes one
@@ -41,7 +45,7 @@ and the seconds each took to the same residual (the higher of the two fits' leas
     python benchmarks/bench_identify.py [--source sim|bridge] [--fine-steps N] [--robot-sensors BITS,AMPS]
         [--trajectory p2p] [--window 2]
         [--mech-step S] [--step-check S]
-        [--fit friction,motor,payload] [--noise-seeds 0] [--first-seed 0] [--noisy-only]
+        [--fit friction,motor,payload] [--noise-seeds 0] [--first-seed 0] [--noisy-only] [--seeds-in-loop]
         [--derivatives exact[,finite-differences,...]] [--out FILE]
     python benchmarks/bench_identify.py --merge A.json B.json ... [--out FILE]
 """
@@ -50,6 +54,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import os
 import subprocess
@@ -80,35 +85,47 @@ def _machines(tmp: Path, com: tuple[float, ...], sensors: tuple[int, float] | No
     given = machine_file.load(TRUE_MACHINE)
     truth = dataclasses.replace(given, name="true", payload=dataclasses.replace(given.payload, com=com))
     if sensors is not None:
-        bits, amps = sensors
-        truth = dataclasses.replace(truth, encoder_counts=np.full(6, 2**bits), current_noise=np.full(6, amps))
+        truth = _sensed(truth, *sensors)
     start = dataclasses.replace(machine_file.load(START_MACHINE), name="start")
     for name, m in (("true", truth), ("start", start)):
         write_atomic(tmp / f"{name}.yaml", machine_file.template(m))
     return truth
 
 
+def _sensed(machine, bits: int, amps):
+    """``machine`` with encoders of ``bits`` a turn and current sensors of standard deviation ``amps`` [A] (one for
+    every axis, or one per axis)."""
+    return dataclasses.replace(
+        machine, encoder_counts=np.full(6, 2**bits), current_noise=np.broadcast_to(np.asarray(amps, float), (6,)).copy()
+    )
+
+
 def _sim_log(tmp: Path, gain_path: Path, trajectory: str) -> None:
     """``pusupu sim --plant mjx --log``: the true machine's run, by the fitting model itself."""
     subprocess.run(
         [sys.executable, "-m", "pusupu_jax.cli", "sim", "--plant", "mjx", "--machine", str(tmp / "true.yaml")]
-        + ["--gains", str(gain_path), "--trajectory", trajectory, "--log", str(tmp / "run.mcap")],
+        + ["--gains", str(gain_path), "--trajectory", trajectory, "--log", str(tmp / "true.mcap")],
         check=True,
         stdout=subprocess.DEVNULL,
         env=os.environ,
     )
 
 
-def _bridge_log(tmp: Path, gain_path: Path, trajectory: str, seconds: float, fine_steps: int | None) -> dict:
-    """``pusupu bridge --log`` against ``pusupu sim-robot --machine true.yaml [--fine-steps fine_steps]`` over UDP on
-    loopback, in lock step, for ``seconds`` of the path; returns the bridge's report."""
+def _bridge_log(
+    tmp: Path, gain_path: Path, trajectory: str, seconds: float, fine_steps: int | None, robot: str = "true", seed=None
+) -> dict:
+    """``pusupu bridge --log ROBOT.mcap`` against ``pusupu sim-robot --machine ROBOT.yaml [--fine-steps fine_steps]
+    [--noise-seed seed]`` over UDP on loopback, in lock step, for ``seconds`` of the path; returns the bridge's report
+    (its cycles, missed deadlines, faults and how it ended)."""
     from pusupu_jax.params import ParameterError
     from pusupu_jax.sim_robot.lockstep import bridge_run
 
     try:
-        return bridge_run(
-            gain_path, trajectory, tmp / "true.yaml", seconds=seconds, fine_steps=fine_steps, log=tmp / "run.mcap"
-        )
+        report = bridge_run(
+            gain_path, trajectory, tmp / f"{robot}.yaml", seconds=seconds, fine_steps=fine_steps,
+            log=tmp / f"{robot}.mcap", noise_seed=seed,
+        )  # fmt: skip
+        return {k: report.get(k) for k in ("cycles", "missed_deadlines", "faults", "ended")}
     except ParameterError as e:
         raise SystemExit(f"bench_identify: {e}") from None
 
@@ -194,6 +211,12 @@ def main() -> None:
         help="with --source bridge: the simulated robot's own sensors, encoders of BITS a turn and current noise of "
         "AMPS (standard deviation), on every axis (the drives' loops close on what they read; default ideal)",
     )
+    ap.add_argument(
+        "--seeds-in-loop",
+        action="store_true",
+        help="with --source bridge: each noise seed a bridge run of its own, the simulated robot's sensors drawn from "
+        "it inside the loop (pusupu sim-robot --noise-seed), not noise added to one log",
+    )
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
     if args.merge:
@@ -201,10 +224,16 @@ def main() -> None:
         return
     if args.noisy_only and args.noise_seeds < 1:
         ap.error(f"--noisy-only: expected --noise-seeds of at least 1, got {args.noise_seeds}")
+    if args.seeds_in_loop and (args.source != "bridge" or args.robot_sensors):
+        ap.error(
+            "--seeds-in-loop: expected --source bridge without --robot-sensors (the seeds' sensors are given by "
+            f"--encoder-bits and --current-noise), got --source {args.source} --robot-sensors {args.robot_sensors}"
+        )
 
     from pusupu_jax import gains as gain_files
     from pusupu_jax import machine_file, machine_fit, run_log
     from pusupu_jax.experiments import real2sim
+    from pusupu_jax.files import write_atomic
     from pusupu_jax.runtime import setup_jax
 
     try:
@@ -222,23 +251,42 @@ def main() -> None:
         truth = _machines(tmp, tuple(float(c) for c in args.true_com.split(",")), sensors)
         gain_path = real2sim.table1_gain_file(tmp)
         t0 = time.perf_counter()
+        seconds = args.window + 0.5
         if args.source == "bridge":
-            bridge = _bridge_log(tmp, gain_path, args.trajectory, args.window + 0.5, args.fine_steps)
-            run = {k: bridge.get(k) for k in ("cycles", "missed_deadlines", "faults", "ended")}
+            run = _bridge_log(tmp, gain_path, args.trajectory, seconds, args.fine_steps)
         else:
             _sim_log(tmp, gain_path, args.trajectory)
             run = None
         sim_s = time.perf_counter() - t0
-        log = run_log.drive_log(tmp / "run.mcap")
+        log = run_log.drive_log(tmp / "true.mcap")
         current_rms = None if log.current is None else np.sqrt(np.mean(log.current**2, axis=0)).tolist()
         start = machine_file.load(tmp / "start.yaml")
         g = gain_files.load(gain_path)
         fields = machine_fit.fit_fields(args.fit)
         seeds = range(args.first_seed, args.first_seed + args.noise_seeds)
-        cases = [] if args.noisy_only else [("noise-free", log)]
-        cases += [(f"noise seed {k}", _noisy(log, k, args.encoder_bits, args.current_noise)) for k in seeds]
+        if args.seeds_in_loop:  # the robot's own sensors: the current noise a fraction of each axis's RMS above
+            sensed = _sensed(truth, args.encoder_bits, args.current_noise * np.asarray(current_rms))
+            write_atomic(tmp / "sensed.yaml", machine_file.template(sensed))
+
+        def in_loop(seed: int):
+            """The log of a bridge run against the robot with sensors, their noise drawn from ``seed``."""
+            t0 = time.perf_counter()
+            robot = _bridge_log(tmp, gain_path, args.trajectory, seconds, args.fine_steps, "sensed", seed)
+            print(f"bench_identify: bridge run of seed {seed}: {robot}", file=sys.stderr, flush=True)
+            return run_log.drive_log(tmp / "sensed.mcap"), robot | {"wall_s": time.perf_counter() - t0}
+
+        def on_the_log(seed: int):
+            """The log with the sensors' noise of ``seed`` added."""
+            return _noisy(log, seed, args.encoder_bits, args.current_noise), run
+
+        cases = [] if args.noisy_only else [("noise-free", lambda: (log, run))]
+        cases += [
+            (f"noise seed {k}", functools.partial(in_loop if args.seeds_in_loop else on_the_log, k)) for k in seeds
+        ]
         fits = []
-        for (name, case), derivatives in ((c, m) for c in cases for m in methods):
+        for (name, make), derivatives in ((c, m) for c in cases for m in methods):
+            if derivatives == methods[0]:
+                case, case_run = make()
             print(f"bench_identify: fitting {name} ({derivatives} Jacobian)", file=sys.stderr, flush=True)
             report, _, _ = machine_fit.fit(
                 [case], start, g.servo, g.hybrid, g.rates, fields, args.window,
@@ -251,6 +299,7 @@ def main() -> None:
                 {
                     "case": name,
                     "derivatives": str(derivatives),
+                    "bridge_run": case_run,  # the run whose log this is (with --seeds-in-loop, the seed's own)
                     "wall_s": report.wall_s,
                     "solve_s": report.residual_s + report.jacobian_s,
                     "residual_calls": report.residual_calls,
@@ -286,8 +335,6 @@ def main() -> None:
                 flush=True,
             )
             if args.out:  # each fit as it ends: a long run stopped early keeps what it found
-                from pusupu_jax.files import write_atomic
-
                 write_atomic(args.out, json.dumps(summary, indent=1) + "\n")
     emit(summary, args.out)
 
@@ -341,7 +388,12 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict], current
         "values_fitted": len(fits[0]["values"]),
         "derivatives": args.derivatives.split(","),
         "samples": samples,
-        "noise": {"encoder_bits": args.encoder_bits, "current_rms_fraction": args.current_noise},
+        # in_loop: each seed the robot's own sensors in a bridge run of its own (--seeds-in-loop), else noise on one log
+        "noise": {
+            "encoder_bits": args.encoder_bits,
+            "current_rms_fraction": args.current_noise,
+            "in_loop": args.seeds_in_loop,
+        },
         "true_payload_com_m": [float(c) for c in args.true_com.split(",")],
         "robot_sensors": args.robot_sensors,
         "log_current_rms_a": current_rms,

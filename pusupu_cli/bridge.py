@@ -115,7 +115,8 @@ def add_parsers(sub) -> None:
         type=int,
         default=0,
         metavar="SEED",
-        help="the seed of the current sensors' noise, where the machine file gives current_noise (default 0)",
+        help="the seed of the sensors' noise, where the machine file gives current_noise or encoder_counts (the "
+        "current noise's draws and the encoders' phases; default 0)",
     )
     r.add_argument(
         "--fine-steps",

@@ -40,10 +40,12 @@ def bridge_run(
     fine_steps: int | None = None,
     kin_error: int | None = None,
     log: Path | None = None,
+    noise_seed: int | None = None,
 ) -> dict:
     """``pusupu bridge --gains gains --trajectory trajectory`` (``--machine bridge_machine``, ``--duration seconds``,
     ``--log log``) against ``pusupu sim-robot --gains gains --machine robot_machine`` (``--fine-steps fine_steps``,
-    ``--kin-error kin_error``; None: the built-in machine, the model's stepping, no kinematic errors), in lock step;
+    ``--kin-error kin_error``, ``--noise-seed noise_seed``; None: the built-in machine, the model's stepping, no
+    kinematic errors, the robot's default seed of its sensors' noise), in lock step;
     returns the bridge's JSON report.  A run that fails, or a robot that does not start, raises
     :class:`~pusupu_jax.params.ParameterError` with the command's last words."""
     url = free_udp_url()
@@ -52,6 +54,7 @@ def bridge_run(
     robot_args += [] if robot_machine is None else ["--machine", str(robot_machine)]
     robot_args += [] if fine_steps is None else ["--fine-steps", str(fine_steps)]
     robot_args += [] if kin_error is None else ["--kin-error", str(kin_error)]
+    robot_args += [] if noise_seed is None else ["--noise-seed", str(noise_seed)]
     with tempfile.TemporaryFile("w+") as robot_err:  # a file, not a pipe: a talkative robot never blocks on it
         robot = subprocess.Popen(CLI + robot_args, stdout=subprocess.PIPE, stderr=robot_err, text=True, env=os.environ)
         try:

@@ -143,10 +143,12 @@ class RobotModel:
     ``rates.dt_velocity``), the current loop's ticks inside it on the speed at its start, their mean torque held over
     it.  With ``fine_steps`` N, a truth finer than that model: N steps per current-loop tick (the timestep
     ``rates.dt_current / N``), each tick on the motors' speed after the last step, its torque held over its N steps;
-    with the machine's ``encoder_counts``, the drives and the feedback see whole encoder counts, and each
-    drive's speed is the counts it saw over the last velocity period; with its ``current_noise``, each current the
-    drives report (and the torque they report, ``Kt`` times it) carries Gaussian noise of that standard deviation,
-    drawn from ``noise_seed`` (the drives' own current loops close on the true current);
+    with the machine's ``encoder_counts``, the drives and the feedback see whole encoder counts, where each
+    encoder's counts fall against its motor's angle (how it was mounted) a phase within one count drawn per axis
+    from ``noise_seed``, and each drive's speed is the counts it saw over the last velocity period; with its
+    ``current_noise``, each current the drives report (and the torque they report, ``Kt`` times it) carries Gaussian
+    noise of that standard deviation, drawn from ``noise_seed`` (the drives' own current loops close on the true
+    current);
     the drives at rest start from the MJX plant's static equilibrium, as the simulator's runs do.  Why C
     MuJoCo: on this 2-core CPU an MJX step through JAX's dispatch took about 300 us, more than a 250 us
     cycle; C MuJoCo takes tens (and the friction law in numpy 2 us).
@@ -195,6 +197,8 @@ class RobotModel:
         # saw over one velocity period, as a drive without a speed observer does
         counts = machine.encoder_counts
         self.count = None if counts is None else 2 * np.pi / np.asarray(counts, dtype=float)
+        # the encoders' phases [counts], a stream of the seed's own: the current noise's draws stay those of the seed
+        self.phase = np.random.default_rng((noise_seed, 1)).uniform(size=len(servo.Kt))
         self._last_angle = np.zeros(len(self.Kt))
         self._measured = np.zeros(len(self.Kt))
         self.current_noise = machine.current_noise  # A, or None: noise-free current sensors
@@ -240,9 +244,10 @@ class RobotModel:
         return self.drive0
 
     def _encoder(self, d):
-        """The motor angles [rad] the encoders read in ``d``: the true ones, or whole counts of them."""
+        """The motor angles [rad] the encoders read in ``d``: the true ones, or whole counts of them from each
+        encoder's phase."""
         theta = (d.qpos[self.qpos] - self.m.qpos0[self.qpos]) / self.r
-        return theta if self.count is None else np.floor(theta / self.count) * self.count
+        return theta if self.count is None else (np.floor(theta / self.count + self.phase) - self.phase) * self.count
 
     def _speed(self, d):
         """The motor speeds [rad/s] the drives measure in ``d``, one velocity period after the last reading: the

@@ -270,9 +270,10 @@ def robot_model(setup):
 
 def test_the_simulated_robots_encoders_read_whole_counts_and_its_drives_count_their_speed(setup, robot_model):
     """A machine with coarse encoders (4096 counts a revolution): under a speed command every angle the robot reports
-    is a whole number of counts, and every speed its drives use and report is the counts seen over one velocity period
-    (0.25 ms) times the count; the built-in machine's ideal encoders report angles that are not.  Both follow the
-    command to 10 % after 0.16 s."""
+    is a whole number of counts from its encoder's phase (drawn per axis from the seed, within one count), and every
+    speed its drives use and report is the counts seen over one velocity period (0.25 ms) times the count; the
+    built-in machine's ideal encoders report angles that are not.  Both follow the command to 10 % after 0.16 s.
+    Another seed mounts the encoders at other phases."""
     import mujoco
 
     from pusupu_jax.machine_file import Machine
@@ -291,10 +292,13 @@ def test_the_simulated_robots_encoders_read_whole_counts_and_its_drives_count_th
             theta, omega, _ = model.actual(d)
             steps.append((theta / count, omega * model.rates.dt_velocity / count))
         counts = np.array(steps)
+        counts[:, 0] += model.phase
         whole = np.allclose(counts, np.round(counts), rtol=0, atol=1e-6)
         assert whole == quantised
         speed = counts[-20:, 1].mean(axis=0) * count / model.rates.dt_velocity  # rad/s, over the last 40 ms
         assert np.all(np.abs(speed - target) < 0.1 * target), speed  # observed 18.2 (ideal) and 18.6 (4096 counts)
+    other = RobotModel(gains.load(setup.path), RATE, machine=machine, noise_seed=1).phase
+    assert np.all((0 <= coarse.phase) & (coarse.phase < 1)) and np.all(np.abs(other - coarse.phase) > 1e-6)
 
 
 def test_the_simulated_robots_finer_steps_converge_and_the_models_step_is_near_them(setup, robot_model):
