@@ -442,14 +442,14 @@ def test_the_solver_is_chosen_by_name_and_another_is_refused_in_one_line(tmp_pat
 def test_identify_recovers_the_coulomb_friction_of_a_machine_it_did_not_start_from(tmp_path, in_process):
     """The small case of benchmarks/bench_identify.py, end to end: ``pusupu sim --plant mjx --log`` runs Table 1's
     gains (IMC) along a second of a pose table with tilts on a true machine whose Coulomb friction differs from the
-    built-in machine's 20 N on every axis (28, 24, 20, 16, 30, 22 N); ``pusupu identify`` starts from the built-in
-    machine and fits the six values to the log's first 0.8 s.  Each is found within 1 % of the truth and written into
-    the machine file, and the residual falls by more than 1000x (measured: 0.194 -> 4.6e-12 rad in 7 evaluations, each
-    value's standard error about 1e-11 N; 87 s from an empty compile cache on the 2-core CPU).  The
-    log is the fitting model's own, without noise: this checks the fit and what the path excites, not the model (the
-    benchmark's bridge cases fit logs of C MuJoCo, with noise).  Then ``--step-check 0.00005`` on the same log: the
-    values moved from the same fit by what the report says, the finer replay's residual lowered, the file written
-    with them and the check in its header."""
+    built-in machine's 20 N on every axis (28, 24, 20, 16, 30, 22 N); ``pusupu identify --step-check 0.00005``
+    starts from the built-in machine and fits the six values to the log's first 0.8 s.  The fit finds each within 1 %
+    of the truth, and the residual falls by more than 1000x (measured: 0.194 -> 4.6e-12 rad in 7 evaluations, each
+    value's standard error about 1e-11 N).  The log is the fitting model's own, without noise: this checks the fit
+    and what the path excites, not the model (the benchmark's bridge cases fit logs of C MuJoCo, with noise).  Then
+    the step check: the fitted values replayed at 50 us and moved by what the report says, the finer replay's
+    residual lowered, the file written with the moved values and the check in its header.  This log is the replay's
+    own at 0.25 ms, so the move goes away from its truth, and is small: the two steps' difference on a slow path."""
     import dataclasses
     import json
 
@@ -476,26 +476,17 @@ def test_identify_recovers_the_coulomb_friction_of_a_machine_it_did_not_start_fr
     r = subprocess.run(sim, capture_output=True, text=True, timeout=900)
     assert r.returncode == 0, r.stderr[-2000:]
     out = tmp_path / "identified.yaml"
-    fit = ("--gains", gain_file, "--fit", "coulomb", "--window", "0.8", "--out", out, "--json")
-    report = json.loads(in_process("identify", tmp_path / "run.mcap", *fit))
-    found = np.array([v["value"] for v in report["values"]])
+    fit = ("--gains", gain_file, "--fit", "coulomb", "--window", "0.8", "--step-check", "0.00005", "--out", out)
+    report = json.loads(in_process("identify", tmp_path / "run.mcap", *fit, "--json"))
+    values = np.array([v["value"] for v in report["values"]])
+    steps = np.array([v["step_correction"] for v in report["values"]])
+    found = values - steps  # the fit's, before the step check's move
     assert [v["name"] for v in report["values"]] == [f"coulomb[{k}]" for k in range(1, 7)]
     assert all(v["excited"] for v in report["values"])
     np.testing.assert_allclose(found, coulomb, rtol=0.01)
-    np.testing.assert_array_equal(machine_file.load(out).drives["coulomb"], found)
     assert report["residual_rms_after"] < 1e-3 * report["residual_rms_before"]
-    # the step check on the same log (the replay's programs cached): the fitted values replayed at 50 us and moved
-    # toward what a fit at that step would find.  This log is the replay's own at 0.25 ms, so the move is away from
-    # its truth, and small: the two steps' difference on a slow path
-    checked = tmp_path / "checked.yaml"
-    again = ("--gains", gain_file, "--fit", "coulomb", "--window", "0.8", "--step-check", "0.00005", "--out", checked)
-    report_checked = json.loads(in_process("identify", tmp_path / "run.mcap", *again, "--json"))
-    at_fit, moved = report_checked["step_check_rms"]
-    assert report_checked["step_check_s"] == 5e-5 and moved < at_fit
-    steps = np.array([v["step_correction"] for v in report_checked["values"]])
-    values = np.array([v["value"] for v in report_checked["values"]])
-    np.testing.assert_allclose(values - steps, found, rtol=1e-6)  # the move is from the same fit
+    at_fit, moved = report["step_check_rms"]
+    assert report["step_check_s"] == 5e-5 and moved < at_fit and report["step_check_moved"]
     assert np.all(steps != 0) and np.all(np.abs(steps) < 0.05 * coulomb)
-    np.testing.assert_array_equal(machine_file.load(checked).drives["coulomb"], values)
-    assert report_checked["step_check_moved"]
-    assert "#   step check at 50 us: that replay's residual RMS" in checked.read_text()
+    np.testing.assert_array_equal(machine_file.load(out).drives["coulomb"], values)
+    assert "#   step check at 50 us: that replay's residual RMS" in out.read_text()
