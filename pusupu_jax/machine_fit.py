@@ -374,7 +374,10 @@ def _replay(
     mech_step: float | None,
 ) -> Replay:
     """The closed-loop replay of ``log``'s first ``window_s`` seconds on ``machine`` under ``gains``, checked against
-    the log: its mode, rate and reference; the MJX machine stepped every ``mech_step`` [s] (None: the model's)."""
+    the log: its mode, rate and reference; the MJX machine stepped every ``mech_step`` [s] (None: the model's).
+    Where the machine has encoders (``encoder_counts``), its drives take their speed from their counts, as the
+    mean over each velocity period (:func:`pusupu_jax.sim.pieces`' ``counted_speed``; at the model's step the same
+    speed): the replay at a finer step then sees what such drives see."""
     if log.mode not in MACHINE_MODES:
         raise ParameterError(f"{log.path}: mode: expected one of {tuple(map(str, MACHINE_MODES))}, got {log.mode!r}")
     options = machine.options(None if mech_step is None else ModelOptions(timestep=mech_step))
@@ -416,6 +419,7 @@ def _replay(
     channel = Channel.TORQUE if log.current is None else Channel.CURRENT
 
     payload = plant.mj_model.body("payload").id  # welded to the platform at its centre of mass (plant.model)
+    counted = machine.encoder_counts is not None  # its drives take their speed from the encoders' counts
 
     @jax.jit
     def run(values: dict[FitField, jax.Array]) -> tuple[jax.Array, jax.Array]:
@@ -435,6 +439,7 @@ def _replay(
             rates=rates,
             outer=mode,
             hybrid=hybrid,
+            counted_speed=counted,
         )
         effort = trace.current if channel is Channel.CURRENT else trace.torque
         return effort[index], trace.theta[index]

@@ -8,7 +8,10 @@ electrical model tick ``n_mech`` times with the motor speed held, and the mechan
 advances with the mean motor torque of those ticks.
 
 Measurements are taken at the start of each period (sample, then compute, then hold), so
-each loop sees the plant through a zero-order hold, as a digital drive does.
+each loop sees the plant through a zero-order hold, as a digital drive does.  A drive that takes its speed from
+its encoder's counts sees the mean speed of the last velocity period (``counted_speed``: the angle's change over
+that period, over the period); at a mechanical step of one velocity period that is the speed at its start, since
+the semi-implicit step moves each angle by the step times the new speed.
 
 :func:`rollout` is the pure function (jit-, vmap- and grad-able); :func:`simulate` is
 the host-side entry point that validates inputs, converts slider references to motor
@@ -79,6 +82,7 @@ class Carry(NamedTuple):
     electrical: Any  # (..., n_axes, 2): inverter voltage [V], armature current [A]
     cascade: cascade_.CascadeState
     outer: Any = None  # the compliance law's state (compliance.AdmittanceState) when one runs outside the cascade
+    counted: Any = None  # the motor angles [rad] at the last velocity tick, where the drives count their speed
 
 
 class Rest(NamedTuple):
@@ -187,8 +191,12 @@ def pieces(
     rates: LoopRates,
     mode: cascade_.ControlMode,
     hybrid: hybrid_law.HybridGains | None,
+    counted_speed: bool = False,
 ) -> Pieces:
-    """The closures of one rollout (traced: call inside a jitted function) for ``mode`` against ``plant``."""
+    """The closures of one rollout (traced: call inside a jitted function) for ``mode`` against ``plant``.
+    ``counted_speed``: the drives' speed is the motor angle's change over the last velocity period, over that period
+    [rad/s] (as a drive counting encoder counts measures it), not the motors' speed at the period's start; the
+    current loop's ticks keep the motors' speed (the back-EMF)."""
     if mode.hybrid != (hybrid is not None):
         raise ValueError("rollout: hybrid gains are needed exactly when outer='hybrid'")
     drive = loops.discretize(params, rates)
@@ -197,6 +205,11 @@ def pieces(
         drive = loops.on_machine(drive, machine, rates)
     aux = plant.prepare(machine, plant_params, rates.dt_mech)
     n_mech_steps = rates.n_velocity // rates.n_mech
+
+    def sensed(c: Carry) -> tuple[jax.Array, jax.Array]:
+        """The motor angles [rad] and speeds [rad/s] the drives read at a velocity tick (each position tick is one)."""
+        theta, omega = plant.measure(aux, c.plant)
+        return (theta, (theta - c.counted) / rates.dt_velocity) if counted_speed else (theta, omega)
 
     def record(c: Carry, ref: Any, out: tuple[jax.Array, jax.Array], observation: Any = None) -> dict[str, Any]:
         ref, _ = _injected(ref)
@@ -233,11 +246,11 @@ def pieces(
     def velocity_period(
         c: Carry, w_ref: jax.Array, i_force: jax.Array | None = None, injected_current: jax.Array | None = None
     ) -> tuple[Carry, jax.Array]:
-        _, omega = plant.measure(aux, c.plant)
+        theta, omega = sensed(c)
         sc, i_ref = cascade_.velocity_tick(drive, mode, c.cascade, w_ref, omega, i_force)
         if injected_current is not None:
             i_ref = i_ref + injected_current
-        c = c._replace(cascade=sc)
+        c = c._replace(cascade=sc, counted=theta if counted_speed else None)
         if n_mech_steps == 1:  # the machine's case: a scan of one step is one more level for the gradient to nest
             return mech_step(c, i_ref)[0], i_ref
         c, _ = jax.lax.scan(lambda cc, _: mech_step(cc, i_ref), c, None, length=n_mech_steps)
@@ -245,7 +258,7 @@ def pieces(
 
     def position_period(c: Carry, ref: Any) -> tuple[Carry, tuple[jax.Array, jax.Array]]:
         ref, injected = _injected(ref)
-        theta, omega = plant.measure(aux, c.plant)
+        theta, omega = sensed(c)
         sc, w_ref, i_force = cascade_.position_tick(drive, mode, c.cascade, ref, theta, omega, hybrid)
         if injected is not None:
             w_ref = w_ref + injected.velocity
@@ -275,9 +288,16 @@ def pieces(
         period,
         record,
         period_dt(rates, mode),
-        lambda start, force_ff0, rest: initial_state(drive, plant, aux, mode, start, force_ff0, rest),
+        lambda start, force_ff0, rest: _counting(
+            initial_state(drive, plant, aux, mode, start, force_ff0, rest), plant, aux, counted_speed
+        ),
         lambda c: plant.observe(aux, c.plant),
     )
+
+
+def _counting(c: Carry, plant: Plant, aux: Any, counted_speed: bool) -> Carry:
+    """``c`` with the angles a counting drive last read: the plant's at the start (a drive at rest counts no speed)."""
+    return c._replace(counted=plant.measure(aux, c.plant)[0]) if counted_speed else c
 
 
 def compliant_pieces(
@@ -342,9 +362,10 @@ def rollout(
     start: str = "rest",
     init: Carry | None = None,
     compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None = None,
+    counted_speed: bool = False,
 ) -> Trace:
     """Run the cascade closed up to ``outer`` against ``plant`` (pure; jit with plant, rates, outer, remat, start
-    static).
+    and counted_speed static).
 
     ``outer``: 'current', 'velocity', 'imc' (2-DOF IMC, ``params.imc_form``), 'pid', 'pid_ff'
     (PID with velocity feedforward), 'ros_pid' (the PID fields run as ROS's PID does:
@@ -374,9 +395,12 @@ def rollout(
 
     A reference whose samples are :class:`Injected` adds its signals at the controller outputs (the velocity and
     current references), for measuring loop gains (:mod:`pusupu_jax.injection`).
+
+    ``counted_speed``: the drives take their speed from the encoder's counts (:func:`pieces`); the trace's ``omega``
+    stays the motors' speed.
     """
     mode = cascade_.control_mode(outer)
-    cascade = _cascade(params, plant_params, plant, rates, mode, hybrid, compliance)
+    cascade = _cascade(params, plant_params, plant, rates, mode, hybrid, compliance, counted_speed)
     if init is None:
         init = _start(cascade, mode, jax.tree.map(lambda x: x[0], reference), start, compliance)
     _, rec = jax.lax.scan(_body(cascade, remat), init, reference)
@@ -391,8 +415,11 @@ def _cascade(
     mode: cascade_.ControlMode,
     hybrid: hybrid_law.HybridGains | None,
     compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None,
+    counted_speed: bool = False,
 ) -> Pieces:
-    cascade = pieces(params, plant_params, plant=plant, rates=rates, mode=mode, hybrid=hybrid)
+    cascade = pieces(
+        params, plant_params, plant=plant, rates=rates, mode=mode, hybrid=hybrid, counted_speed=counted_speed
+    )
     return cascade if compliance is None else compliant_pieces(cascade, params, *compliance, mode=mode)
 
 
