@@ -23,6 +23,8 @@ an encoder of ``--encoder-bits`` a turn (at a phase drawn per seed), and each cu
 of its own instead, the noise drawn inside the loop: the simulated robot gets those sensors (the current noise of
 each axis from the noise-free run's RMS) and ``--noise-seed`` K, so its drives close their loops on what its
 encoders (at phases drawn from K) and current sensors read, and the log holds what they reported.
+``--known-encoders`` gives the start machine the robot's encoders (``encoder_counts``, as a user's machine file
+would): identify's replay then takes the drives' speed from the counts, as the robot's drives do.
 Each entry says whether the truth lies inside the value's 95 % interval
 (1.96 standard errors), and ``coverage`` gives per solver and value the share of seeds whose interval covers it.
 The later fits find the programs compiled (the logged data are their arguments).  ``--first-seed K --noisy-only``
@@ -46,6 +48,7 @@ and the seconds each took to the same residual (the higher of the two fits' leas
         [--trajectory p2p] [--window 2]
         [--mech-step S] [--step-check S]
         [--fit friction,motor,payload] [--noise-seeds 0] [--first-seed 0] [--noisy-only] [--seeds-in-loop]
+        [--known-encoders]
         [--derivatives exact[,finite-differences,...]] [--out FILE]
     python benchmarks/bench_identify.py --merge A.json B.json ... [--out FILE]
 """
@@ -217,6 +220,12 @@ def main() -> None:
         help="with --source bridge: each noise seed a bridge run of its own, the simulated robot's sensors drawn from "
         "it inside the loop (pusupu sim-robot --noise-seed), not noise added to one log",
     )
+    ap.add_argument(
+        "--known-encoders",
+        action="store_true",
+        help="with the robot's sensors (--robot-sensors or --seeds-in-loop): the start machine file gives its "
+        "encoders, so that identify's replay takes the drives' speed from their counts (default: none given)",
+    )
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
     if args.merge:
@@ -224,6 +233,8 @@ def main() -> None:
         return
     if args.noisy_only and args.noise_seeds < 1:
         ap.error(f"--noisy-only: expected --noise-seeds of at least 1, got {args.noise_seeds}")
+    if args.known_encoders and not (args.robot_sensors or args.seeds_in_loop):
+        ap.error("--known-encoders: expected the robot's sensors (--robot-sensors or --seeds-in-loop), got neither")
     if args.seeds_in_loop and (args.source != "bridge" or args.robot_sensors):
         ap.error(
             "--seeds-in-loop: expected --source bridge without --robot-sensors (the seeds' sensors are given by "
@@ -249,6 +260,10 @@ def main() -> None:
             bits, amps = args.robot_sensors.split(",")
             sensors = (int(bits), float(amps))
         truth = _machines(tmp, tuple(float(c) for c in args.true_com.split(",")), sensors)
+        if args.known_encoders:
+            counts = np.full(6, 2 ** (sensors[0] if sensors else args.encoder_bits))
+            start = dataclasses.replace(machine_file.load(tmp / "start.yaml"), encoder_counts=counts)
+            write_atomic(tmp / "start.yaml", machine_file.template(start))
         gain_path = real2sim.table1_gain_file(tmp)
         t0 = time.perf_counter()
         seconds = args.window + 0.5
@@ -394,6 +409,7 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict], current
             "current_rms_fraction": args.current_noise,
             "in_loop": args.seeds_in_loop,
         },
+        "known_encoders": args.known_encoders,  # the start machine gives the robot's encoders
         "true_payload_com_m": [float(c) for c in args.true_com.split(",")],
         "robot_sensors": args.robot_sensors,
         "log_current_rms_a": current_rms,
@@ -433,7 +449,7 @@ def coverage(fits: list[dict]) -> dict:
 
 SETTINGS = (
     *("source", "trajectory", "robot_fine_steps", "robot_sensors", "window_s", "mech_step_s", "fit", "noise"),
-    *("true_payload_com_m", "step_check_s"),
+    *("true_payload_com_m", "step_check_s", "known_encoders"),
 )
 
 
