@@ -110,8 +110,10 @@ def initial_state(
     start: str = "rest",
     force_ff0: ArrayLike | None = None,
     rest: Rest | None = None,
+    counted_speed: bool = False,
 ) -> Carry:
-    """The plant at rest in its initial state, and the cascade as ``start`` says.
+    """The plant at rest in its initial state, and the cascade as ``start`` says; with ``counted_speed`` (drives that
+    count their speed, :func:`pieces`), the angles they last read are the plant's there (at rest they count none).
 
     ``start='rest'``: the cascade holding the plant there, as on a machine that has been standing
     under control (:func:`pusupu_jax.cascade.rest`): the motor currents that hold it
@@ -125,13 +127,15 @@ def initial_state(
         raise ValueError(f"rollout: expected start in {STARTS}, got {start!r}")
     if rest is None:
         rest = plant_rest(plant, aux)
+    counted = rest.theta0 if counted_speed else None
     if start == "zero":
-        return Carry(rest.plant, loops.electrical_init(drive.electrical), cascade_.init(drive, mode, rest.theta0))
+        electrical0 = loops.electrical_init(drive.electrical)
+        return Carry(rest.plant, electrical0, cascade_.init(drive, mode, rest.theta0), counted=counted)
     force = (mode.force_axis, force_ff0) if mode.hybrid else (None, None)
     i = plant.holding_torque(aux, rest.statics, *force) / drive.Kt
     electrical, u = loops.electrical_rest(drive.electrical, i)
     force0 = 0.0 if force_ff0 is None else force_ff0
-    return Carry(rest.plant, electrical, cascade_.rest(drive, mode, i, u, rest.theta0, force0))
+    return Carry(rest.plant, electrical, cascade_.rest(drive, mode, i, u, rest.theta0, force0), counted=counted)
 
 
 def current_ticks(
@@ -288,16 +292,9 @@ def pieces(
         period,
         record,
         period_dt(rates, mode),
-        lambda start, force_ff0, rest: _counting(
-            initial_state(drive, plant, aux, mode, start, force_ff0, rest), plant, aux, counted_speed
-        ),
+        lambda start, force_ff0, rest: initial_state(drive, plant, aux, mode, start, force_ff0, rest, counted_speed),
         lambda c: plant.observe(aux, c.plant),
     )
-
-
-def _counting(c: Carry, plant: Plant, aux: Any, counted_speed: bool) -> Carry:
-    """``c`` with the angles a counting drive last read: the plant's at the start (a drive at rest counts no speed)."""
-    return c._replace(counted=plant.measure(aux, c.plant)[0]) if counted_speed else c
 
 
 def compliant_pieces(
