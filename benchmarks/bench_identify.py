@@ -177,9 +177,6 @@ def main() -> None:
     ap.add_argument(
         "--window", type=float, default=machine_fit.WINDOW_S, help="seconds of the log fitted (default: identify's)"
     )
-    ap.add_argument(
-        "--windows", type=int, default=1, help="identify's windows: each log's replay cut into this many (default 1)"
-    )
     ap.add_argument("--mech-step", type=float, help="the replay's mechanical step [s] (default the model's)")
     ap.add_argument("--fit", default="friction,motor,payload")
     ap.add_argument(
@@ -309,7 +306,7 @@ def main() -> None:
             report, _, _ = machine_fit.fit(
                 [case], start, g.servo, g.hybrid, g.rates, fields, args.window,
                 progress=lambda line: print(line, file=sys.stderr, flush=True), derivatives=derivatives,
-                mech_step=args.mech_step, step_check=args.step_check, windows=args.windows,
+                mech_step=args.mech_step, step_check=args.step_check,
             )  # fmt: skip
             entries = _entries(report, truth)
             per_call = report.residual_s / max(report.residual_calls, 1)
@@ -400,7 +397,6 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict], current
         "trajectory": args.trajectory,
         "robot_fine_steps": args.fine_steps if args.source == "bridge" else None,
         "window_s": args.window,
-        "windows": args.windows,
         "mech_step_s": fits[0]["mech_step_s"],
         "step_check_s": args.step_check,
         "fit": [str(f) for f in fields],

@@ -42,15 +42,6 @@ def add_parser(sub):
         help="replay each log's first S seconds from rest at the path's start (default 2: the excitation path's "
         "motion)",
     )
-    i.add_argument(
-        "--windows",
-        type=int,
-        default=1,
-        metavar="K",
-        help="cut each log's replay into K windows run side by side, each from the state a run at the same values "
-        "reaches at its start: the same residual, with derivatives through each window only, over K times shorter "
-        "scans (default 1: the whole replay)",
-    )
     i.add_argument("--trajectory", metavar="NAME|FILE", help="the path the logs ran, where not the one they name")
     i.add_argument(
         "--mech-step",
@@ -100,7 +91,6 @@ def cmd_identify(args) -> int:
         args.window = machine_fit.WINDOW_S
     if not (np.isfinite(args.window) and args.window > 0):
         raise ParameterError(f"--window: expected a positive number of seconds, got {args.window}")
-    machine_fit.check_windows(args.windows, name="--windows")
     machine_fit.check_mech_step(args.mech_step, name="--mech-step")
     if args.step_check is not None:
         machine_fit.check_step_check(args.step_check, args.mech_step, name="--step-check")
@@ -141,13 +131,11 @@ def cmd_identify(args) -> int:
             derivatives=machine_fit.Derivatives(args.derivatives),
             mech_step=args.mech_step,
             step_check=args.step_check,
-            windows=args.windows,
         )
     checked = _step_check_words(report)
     header = [
         f"# identified by pusupu identify from {machine.name!r}: {', '.join(map(str, fields))} fitted to "
-        f"{len(logs)} log(s), the first {args.window:g} s of each, replayed at a {report.mech_step_s * 1e6:g} us step"
-        + (f" in {args.windows} windows" if args.windows > 1 else ""),
+        f"{len(logs)} log(s), the first {args.window:g} s of each, replayed at a {report.mech_step_s * 1e6:g} us step",
         *(f"#   log {d['path']} sha256 {d['sha256']}" for d in report.logs),
         f"#   residual RMS {report.residual_rms_before:.4g} -> {report.residual_rms_after:.4g} over "
         f"{report.samples} samples",

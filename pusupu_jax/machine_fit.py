@@ -57,7 +57,7 @@ from .params import N_AXES, LoopRates, ParameterError, ServoParams, bounds
 from .paths import platform_path_from
 from .plant.model import ModelOptions
 from .run_log import DriveLog
-from .sim import initial_carry, rollout, rollout_chunk
+from .sim import rollout
 
 
 class FitField(enum.StrEnum):
@@ -215,7 +215,6 @@ class Derivatives(enum.StrEnum):
 
 
 WINDOW_S = 2.0  # [s] the replay of each log: the excitation path's motion (1.99 s) from rest
-MAX_WINDOWS = 64  # windows a replay may be cut into (:func:`_windowed`): each is one row of a batch
 UNEXCITED_COLUMN = 1e-8  # a Jacobian column this small against the largest: the logs do not excite the value
 UNEXCITED_ERROR = 0.5  # a standard error above this fraction of the value (or of its scale): not identified
 COM_SCALE_M = 1e-3  # [m] the least distance a centre of mass's error is taken relative to (FittedValue.against)
@@ -298,9 +297,8 @@ class FittedValue:
 class FitReport:
     """What :func:`fit` found: every fitted value, the residual's RMS before and after (at the replay's step, after:
     at the values the solver found, before a step check's move), the samples and the window,
-    the replay's mechanical step [s], the windows each log's replay is cut into (:func:`_windowed`), the solver's
-    work (``converged``: False where it stopped at :data:`MAX_EVALUATIONS`; ``derivatives``: the Jacobian it took;
-    ``residual_calls``: every replay of the residual,
+    the replay's mechanical step [s], the solver's work (``converged``: False where it stopped at
+    :data:`MAX_EVALUATIONS`; ``derivatives``: the Jacobian it took; ``residual_calls``: every replay of the residual,
     finite differences included; ``residual_s``, ``jacobian_s``: seconds in the residual's and the Jacobian's calls,
     compiles left out; ``trace``: after each residual call, those seconds so far and the least residual RMS met so
     far), the correlations between the values (``correlation``, in their order: the covariance from the Jacobian at
@@ -317,7 +315,6 @@ class FitReport:
     samples: int
     window_s: float
     mech_step_s: float
-    windows: int
     evaluations: int
     jacobians: int
     derivatives: Derivatives
@@ -375,17 +372,12 @@ def _replay(
     window_s: float,
     trajectory: str | None,
     mech_step: float | None,
-    windows: int = 1,
 ) -> Replay:
     """The closed-loop replay of ``log``'s first ``window_s`` seconds on ``machine`` under ``gains``, checked against
     the log: its mode, rate and reference; the MJX machine stepped every ``mech_step`` [s] (None: the model's).
     Where the machine has encoders (``encoder_counts``), its drives take their speed from their counts, as the
     mean over each velocity period (:func:`pusupu_jax.sim.pieces`' ``counted_speed``; at the model's step the same
-    speed): the replay at a finer step then sees what such drives see.
-
-    ``windows``: the replay cut into that many windows of equal length, run side by side (one batch), each from the
-    state a run at the same values reaches at its start (:func:`_windowed`).  The replay's values are the same; its
-    derivatives leave out how the later windows' start states depend on the values, as the tuner's windows do."""
+    speed): the replay at a finer step then sees what such drives see."""
     if log.mode not in MACHINE_MODES:
         raise ParameterError(f"{log.path}: mode: expected one of {tuple(map(str, MACHINE_MODES))}, got {log.mode!r}")
     options = machine.options(None if mech_step is None else ModelOptions(timestep=mech_step))
@@ -429,8 +421,6 @@ def _replay(
     payload = plant.mj_model.body("payload").id  # welded to the platform at its centre of mass (plant.model)
     counted = machine.encoder_counts is not None  # its drives take their speed from the encoders' counts
 
-    run_options = {"plant": plant, "rates": rates, "outer": mode, "hybrid": hybrid, "counted_speed": counted}
-
     @jax.jit
     def run(values: dict[FitField, jax.Array]) -> tuple[jax.Array, jax.Array]:
         fitted = model
@@ -441,14 +431,18 @@ def _replay(
             if FitField.PAYLOAD_COM in values:
                 pos = pos.at[payload].set(values[FitField.PAYLOAD_COM])
             fitted = plant.with_masses(model, mass, pos)
-        params = servo.replace(**drive_values(values, servo.Kt, servo.Ke))
-        if windows == 1:
-            trace = rollout(params, fitted, reference, **run_options)
-            current, torque, theta = trace.current, trace.torque, trace.theta
-        else:
-            current, torque, theta = _windowed(params, fitted, reference, windows, run_options)
-        effort = current if channel is Channel.CURRENT else torque
-        return effort[index], theta[index]
+        trace = rollout(
+            servo.replace(**drive_values(values, servo.Kt, servo.Ke)),
+            fitted,
+            reference,
+            plant=plant,
+            rates=rates,
+            outer=mode,
+            hybrid=hybrid,
+            counted_speed=counted,
+        )
+        effort = trace.current if channel is Channel.CURRENT else trace.torque
+        return effort[index], trace.theta[index]
 
     logged = log.current if log.current is not None else log.torque
     return Replay(run, channel, logged[keep], log.position[keep], log.reference[keep], index * rates.dt_position)
@@ -734,12 +728,6 @@ def check_step_check(
         raise ParameterError(f"{name}: expected a step finer than the replay's {replay:g} s, got {step_check:g} s")
 
 
-def check_windows(windows: int, name: str = "windows") -> None:
-    """:class:`ParameterError` unless ``windows`` is a whole number from 1 to :data:`MAX_WINDOWS`."""
-    if isinstance(windows, bool) or not isinstance(windows, int) or not 1 <= windows <= MAX_WINDOWS:
-        raise ParameterError(f"{name}: expected a whole number of windows from 1 to {MAX_WINDOWS}, got {windows!r}")
-
-
 def check_mech_step(mech_step: float | None, rates: LoopRates = LoopRates(), name: str = "mech step") -> None:
     """ParameterError in one line naming ``name`` unless ``mech_step`` [s] is None (the model's step) or a whole
     number of ``rates``' current-loop ticks that divides the velocity period: the steps the replay's MJX machine can
@@ -751,41 +739,6 @@ def check_mech_step(mech_step: float | None, rates: LoopRates = LoopRates(), nam
         f"{name}: expected a whole number of current-loop ticks that divides the velocity period, one of "
         f"{', '.join(f'{k * rates.dt_current:g}' for k in ticks)} s, got {mech_step!r}"
     )
-
-
-def _windowed(
-    params: ServoParams, model: Any, reference: Any, windows: int, options: dict[str, Any]
-) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """``(current [A], torque [N m], theta [rad])`` ``(N, n_axes)`` of :func:`~pusupu_jax.sim.rollout` over
-    ``reference`` ``(N, ...)``, run as ``windows`` windows of ``ceil(N / windows)`` periods side by side (the last
-    sample held past ``N``).  The first window starts as the rollout does; each later one from the carry that a run
-    at the same values reaches at its start, computed here with its derivative left out (``stop_gradient``): the
-    same values to rounding, with derivatives that follow each window from its start only, over a scan
-    ``windows`` times shorter (a forward-mode Jacobian's tangents then run one short batch, after one run of the
-    values alone)."""
-    n = jax.tree.leaves(reference)[0].shape[0]
-    length = -(-n // windows)
-    pad = windows * length - n
-    cut = jax.tree.map(
-        lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]).reshape((windows, length) + x.shape[1:]),
-        reference,
-    )
-    first = jax.tree.map(lambda x: x[0], reference)
-    start = initial_carry(params, model, first, **options)
-    held = jax.lax.stop_gradient((params, model, start))
-
-    def through(carry: Any, piece: Any) -> tuple[Any, Any]:  # one window at the values alone: the next one's start
-        _, after = rollout_chunk(held[0], held[1], piece, carry, length, **options)
-        return after, after
-
-    _, later = jax.lax.scan(through, held[2], jax.tree.map(lambda x: x[:-1], cut))
-    starts = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), start, later)
-    trace = jax.vmap(lambda init, piece: rollout(params, model, piece, init=init, **options))(starts, cut)
-
-    def joined(x: jax.Array) -> jax.Array:
-        return x.reshape((windows * length,) + x.shape[2:])[:n]
-
-    return joined(trace.current), joined(trace.torque), joined(trace.theta)
 
 
 def fit(
@@ -801,7 +754,6 @@ def fit(
     derivatives: Derivatives = Derivatives.EXACT,
     mech_step: float | None = None,
     step_check: float | None = None,
-    windows: int = 1,
 ) -> tuple[FitReport, Machine, list[dict[str, Any]]]:
     """Fit ``fields`` of ``machine`` (its values are the start) to ``logs``, each replayed over its first
     ``window_s`` [s] with ``gains`` (``hybrid``: a hybrid log's gains; ``rates``: the gains' rates; ``trajectory``:
@@ -812,9 +764,6 @@ def fit(
     the solver's Jacobian (:class:`Derivatives`: the exact one, or finite differences to compare with).
     ``mech_step`` [s]: the replay's mechanical step (:func:`check_mech_step`; None: the model's, 0.25 ms, as the
     tuner steps it); a finer one is closer to a robot and costs time in proportion.
-
-    ``windows``: each log's replay cut into that many windows run side by side (:func:`_windowed`): the same residual,
-    and derivatives through each window from its start only.
 
     ``step_check`` [s], a step finer than the replay's (None: no check): for logs of a robot, which the replay's step
     misses by a bias that the residual left after the fit does not show.  The fitted values are replayed at that step,
@@ -847,8 +796,7 @@ def fit(
     check_mech_step(mech_step, rates)
     if step_check is not None:
         check_step_check(step_check, mech_step, rates)
-    check_windows(windows)
-    replays = [_replay(log, machine, gains, hybrid, rates, window_s, trajectory, mech_step, windows) for log in logs]
+    replays = [_replay(log, machine, gains, hybrid, rates, window_s, trajectory, mech_step) for log in logs]
     if FitField.TORQUE_CONSTANT in fields:
         for log in logs:
             if control_mode(log.mode).hybrid:
@@ -914,7 +862,7 @@ def fit(
     if step_check is not None:
         t_check = time.perf_counter()
         say(f"identify: step check: the fitted values replayed at a {step_check * 1e6:g} us step")
-        finer = [_replay(log, machine, gains, hybrid, rates, window_s, trajectory, step_check, windows) for log in logs]
+        finer = [_replay(log, machine, gains, hybrid, rates, window_s, trajectory, step_check) for log in logs]
         finer_residual = jax.jit(residual_of_replays(finer))
         r_at_fit = np.asarray(finer_residual(jnp.asarray(x), data))
         moved = np.clip(x + gauss_newton_step(solution.jacobian, r_at_fit - r1), low, high)
@@ -941,7 +889,6 @@ def fit(
         samples=int(sum(len(r.t) for r in replays)),
         window_s=window_s,
         mech_step_s=ModelOptions().timestep if mech_step is None else mech_step,
-        windows=windows,
         evaluations=solution.evaluations,
         jacobians=solution.jacobians,
         derivatives=derivatives,

@@ -446,14 +446,14 @@ def initial_carry(
     start: str = "rest",
     compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None = None,
     rest: Rest | None = None,
-    counted_speed: bool = False,
 ) -> Carry:
     """The carry :func:`rollout` starts from, for a reference whose first sample is ``first`` (pure; arguments as
     :func:`rollout`'s).  With :func:`rollout_chunk`, a run cut into calls of one fixed length.  ``rest``: the plant's
     :func:`plant_rest`, computed before, or None to compute it here (:func:`initial_state`)."""
     mode = cascade_.control_mode(outer)
-    cascade = _cascade(params, plant_params, plant, rates, mode, hybrid, compliance, counted_speed)
-    return _start(cascade, mode, first, start, compliance, rest)
+    return _start(
+        _cascade(params, plant_params, plant, rates, mode, hybrid, compliance), mode, first, start, compliance, rest
+    )
 
 
 def rollout_chunk(
@@ -468,7 +468,6 @@ def rollout_chunk(
     outer: str = "imc",
     hybrid: hybrid_law.HybridGains | None = None,
     compliance: tuple[compliance_law.AdmittanceGains, Geometry] | None = None,
-    counted_speed: bool = False,
 ) -> tuple[dict[str, Any], Carry]:
     """``reference`` ``(C, ...)`` from ``carry``: ``(records, the carry after its first n_valid periods)`` (pure;
     arguments as :func:`rollout`'s).  The records are :class:`Trace`'s fields but ``t``.
@@ -481,7 +480,7 @@ def rollout_chunk(
     with it, 1.31 to 1.57 s without), some 10 % on the single-axis plant, whose step is a few small matrices.
     """
     mode = cascade_.control_mode(outer)
-    body = _body(_cascade(params, plant_params, plant, rates, mode, hybrid, compliance, counted_speed), False)
+    body = _body(_cascade(params, plant_params, plant, rates, mode, hybrid, compliance), False)
 
     def step(c: Carry, x: tuple[Any, jax.Array]) -> tuple[Carry, dict[str, Any]]:
         ref, valid = x
