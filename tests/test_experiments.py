@@ -190,8 +190,8 @@ def test_real2sim_true_machines_are_valid_machine_files_within_the_stated_ranges
 
     base = machine_file.Machine.default().drives
     cases = real2sim.true_machines()
-    assert [t.kin_error_seed is None for t in cases] == [True, True, True, False]  # the last: the third, seeded
-    same = dataclasses.replace(cases[3].machine, name=cases[2].machine.name)
+    assert [t.kin_error_seed is None for t in cases] == [True, True, True, True, False]  # the last: the third, seeded
+    same = dataclasses.replace(cases[4].machine, name=cases[2].machine.name)
     assert machine_file.digest(same) == machine_file.digest(cases[2].machine)
     for t in cases:
         again = machine_file.parse(yaml.safe_load(machine_file.template(t.machine)))
