@@ -121,7 +121,8 @@ def true_machines() -> list[TrueMachine]:
     base = Machine.default()
     d = base.drives
 
-    def machine(name, coulomb, viscous, kt, rotor, payload):
+    def unseeded(name, coulomb, viscous, kt, rotor, payload, differs) -> TrueMachine:
+        """The built-in machine with its drives' values scaled per axis, and ``payload``; no kinematic errors."""
         drives = d | {
             "coulomb": d["coulomb"] * np.asarray(coulomb, float),
             "viscous": d["viscous"] * np.asarray(viscous, float),
@@ -129,60 +130,49 @@ def true_machines() -> list[TrueMachine]:
             "Ke": d["Ke"] * np.asarray(kt, float),
             "J": d["J"] * np.asarray(rotor, float),
         }
-        return dataclasses.replace(base, name=name, drives=drives, payload=payload)
+        return TrueMachine(dataclasses.replace(base, name=name, drives=drives, payload=payload), None, differs)
 
-    worn, run_in, mixed = [
-        TrueMachine(
-            machine(
-                "worn",
-                [3.0, 2.5, 2.8, 3.0, 2.2, 2.6],
-                [2.0, 3.0, 2.4, 2.8, 2.0, 2.6],
-                [0.90, 0.92, 0.95, 0.90, 0.93, 0.91],
-                [1.1, 1.3, 1.2, 1.25, 1.15, 1.3],
-                Payload(10.0, (0.05, 0.03, 0.08), (0.06, 0.05, 0.09)),
-            ),
-            None,
+    cases = [
+        unseeded(
+            "worn",
+            [3.0, 2.5, 2.8, 3.0, 2.2, 2.6],
+            [2.0, 3.0, 2.4, 2.8, 2.0, 2.6],
+            [0.90, 0.92, 0.95, 0.90, 0.93, 0.91],
+            [1.1, 1.3, 1.2, 1.25, 1.15, 1.3],
+            Payload(10.0, (0.05, 0.03, 0.08), (0.06, 0.05, 0.09)),
             "friction x2.2-3, Kt -5 to -10 %, rotors +10-30 %, 10 kg payload off centre",
         ),
-        TrueMachine(
-            machine(
-                "run-in",
-                [0.5, 0.6, 0.55, 0.5, 0.65, 0.6],
-                [0.5, 0.6, 0.7, 0.5, 0.55, 0.65],
-                [1.10, 1.08, 1.05, 1.10, 1.07, 1.09],
-                [0.85, 0.9, 0.95, 0.85, 0.9, 0.95],
-                Payload(1.0, (-0.04, 0.02, 0.03), (0.004, 0.004, 0.006)),
-            ),
-            None,
+        unseeded(
+            "run-in",
+            [0.5, 0.6, 0.55, 0.5, 0.65, 0.6],
+            [0.5, 0.6, 0.7, 0.5, 0.55, 0.65],
+            [1.10, 1.08, 1.05, 1.10, 1.07, 1.09],
+            [0.85, 0.9, 0.95, 0.85, 0.9, 0.95],
+            Payload(1.0, (-0.04, 0.02, 0.03), (0.004, 0.004, 0.006)),
             "friction x0.5-0.7, Kt +5 to +10 %, rotors -5 to -15 %, 1 kg payload off centre",
         ),
-        TrueMachine(
-            machine(
-                "mixed",
-                [1.4, 0.8, 2.0, 1.2, 0.7, 1.6],
-                [0.7, 1.5, 1.2, 2.0, 0.8, 1.1],
-                [1.05, 0.93, 1.0, 0.96, 1.06, 0.92],
-                [1.2, 0.9, 1.1, 1.0, 1.3, 0.85],
-                Payload(5.0, (0.03, -0.02, 0.05), (0.02, 0.02, 0.03)),
-            ),
-            None,
+        unseeded(
+            "mixed",
+            [1.4, 0.8, 2.0, 1.2, 0.7, 1.6],
+            [0.7, 1.5, 1.2, 2.0, 0.8, 1.1],
+            [1.05, 0.93, 1.0, 0.96, 1.06, 0.92],
+            [1.2, 0.9, 1.1, 1.0, 1.3, 0.85],
+            Payload(5.0, (0.03, -0.02, 0.05), (0.02, 0.02, 0.03)),
             "friction x0.7-2, Kt -8 to +6 %, rotors -15 to +30 %, 5 kg payload off centre",
         ),
-    ]
-    loaded = TrueMachine(
-        machine(
+        unseeded(
             "loaded",
             [1.2, 1.5, 1.0, 1.3, 1.1, 1.4],
             [1.5, 1.2, 1.8, 1.0, 1.4, 1.6],
             [0.94, 0.97, 0.92, 0.95, 0.98, 0.93],
             [1.2, 1.1, 1.25, 1.15, 1.3, 1.05],
             Payload(8.0, (-0.04, 0.04, 0.06), (0.045, 0.04, 0.07)),
+            "friction x1-1.8, Kt -2 to -8 %, rotors +5-30 %, 8 kg payload off centre",
         ),
-        None,
-        "friction x1-1.8, Kt -2 to -8 %, rotors +5-30 %, 8 kg payload off centre",
-    )
+    ]
+    mixed = cases[2]
     seeded = dataclasses.replace(mixed.machine, name="mixed, with kinematic errors")
-    return [worn, run_in, mixed, loaded, TrueMachine(seeded, 3, mixed.differs + ", seeded kinematic errors")]
+    return cases + [TrueMachine(seeded, 3, mixed.differs + ", seeded kinematic errors")]
 
 
 def as_designed(truth: Machine) -> Machine:
@@ -263,7 +253,7 @@ def _case(
     excitation: Path,
     cfg,
     quick: bool,
-    step_check: float | None = None,
+    step_check: float | None,
 ) -> dict:
     """One true machine through the workflow (module docstring, steps 2 to 5); ``nominal``: the gain files tuned on
     the nominal machine (:attr:`TunedOn.NOMINAL`, :attr:`TunedOn.NOMINAL_AGAIN`), ``excitation``: the gain file of the
