@@ -52,11 +52,11 @@ def add_parser(sub):
     )
     i.add_argument(
         "--step-check",
-        type=float,
-        metavar="S",
-        help="for a robot's logs: replay the fitted values at this finer step (0.00005: one a current-loop tick) and "
-        "move them by one Gauss-Newton step on its residual, the values a fit at that step would find, for two "
-        "replays at it (default none: a log of pusupu sim at the model's step needs none)",
+        metavar="S|none",
+        help="replay the fitted values at this finer step [s] and move them by one Gauss-Newton step on its "
+        "residual, the values (and standard errors) a fit at that step would find, for two replays at it; none: no "
+        "check (default: 0.00005, one step a current-loop tick, for a robot's logs, bridge or CSV; none where every "
+        "log is pusupu sim's, the model's own at its step)",
     )
     i.add_argument(
         "--derivatives",
@@ -92,8 +92,9 @@ def cmd_identify(args) -> int:
     if not (np.isfinite(args.window) and args.window > 0):
         raise ParameterError(f"--window: expected a positive number of seconds, got {args.window}")
     machine_fit.check_mech_step(args.mech_step, name="--mech-step")
-    if args.step_check is not None:
-        machine_fit.check_step_check(args.step_check, args.mech_step, name="--step-check")
+    step_check = _step_check_option(args.step_check)
+    if step_check is not None:
+        machine_fit.check_step_check(step_check, args.mech_step, name="--step-check")
     check_output_path(args.out, "--out", "machine")
     if args.plot:
         check_plot_path(args.plot)
@@ -116,6 +117,16 @@ def cmd_identify(args) -> int:
                     f"{log.path}: ran with the gain file of checksum {log.gain_checksum[:12]}, expected --gains "
                     f"{args.gains}'s {g.document['checksum'][:12]}"
                 )
+    if args.step_check is None:
+        step_check = machine_fit.default_step_check(logs, args.mech_step, rates)
+        why = (
+            f"at {step_check * 1e6:g} us: the logs are a robot's, which runs finer than the replay's step"
+            if step_check is not None
+            else "none: the logs are pusupu sim's, the model's own at its step"
+            if all(log.source == run_log.SIM_SOURCE for log in logs)
+            else "none: the replay steps once a current-loop tick"
+        )
+        print(f"identify: step check {why} (--step-check sets it)", file=sys.stderr)
     devices.announce()
     with checking(f"--machine {args.machine}" if args.machine else "the built-in machine"):
         report, identified, plots = machine_fit.fit(
@@ -130,7 +141,7 @@ def cmd_identify(args) -> int:
             progress=lambda line: print(line, file=sys.stderr, flush=True),
             derivatives=machine_fit.Derivatives(args.derivatives),
             mech_step=args.mech_step,
-            step_check=args.step_check,
+            step_check=step_check,
         )
     checked = _step_check_words(report)
     header = [
@@ -188,6 +199,17 @@ def cmd_identify(args) -> int:
         print(f"pusupu: warning: {v.name} was not excited by the logs; kept at {v.start:g}", file=sys.stderr)
     print(f"wrote {args.out}" + (f", {args.plot}" if args.plot else ""))
     return 0
+
+
+def _step_check_option(text: str | None) -> float | None:
+    """``--step-check``'s step [s]: None for ``none`` or where not given (the default is chosen from the logs,
+    :func:`pusupu_jax.machine_fit.default_step_check`); a ParameterError in one line for anything but a number."""
+    if text is None or text.strip().lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise ParameterError(f"--step-check: expected a step in seconds or none, got {text!r}") from None
 
 
 def _step_check_words(report: FitReport) -> str | None:

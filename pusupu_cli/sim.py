@@ -122,7 +122,7 @@ def _sim_machine(args, servo, rates, hybrid) -> int:
 
         metadata = {
             "package_version": __version__,
-            "source": "pusupu sim --plant mjx",
+            "source": run_log.SIM_SOURCE,
             "mode": str(args.mode),
             "trajectory": args.trajectory,
             "machine": machine_file.reference(machine),

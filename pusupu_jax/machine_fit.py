@@ -56,7 +56,7 @@ from .machine_file import Correlation, Machine, value_label
 from .params import N_AXES, LoopRates, ParameterError, ServoParams, bounds
 from .paths import platform_path_from
 from .plant.model import ModelOptions
-from .run_log import DriveLog
+from .run_log import SIM_SOURCE, DriveLog
 from .sim import rollout
 
 
@@ -227,6 +227,13 @@ MAX_EVALUATIONS = 50
 # _mujoco_minimize applies it after each iteration)
 FTOL = 1e-9
 XTOL = 1e-9
+# the step check's own error, as a share of its move, added to the moved values' standard errors: the move takes the
+# values from the replay's step h to a finer one, and a first-order step's bias, c h, leaves a quarter of the move from
+# 250 to 50 us between 50 us and continuous time (Richardson); half is taken, for what is not first order.  Over
+# twenty noisy copies of a bridge log, a quarter left three rotor inertias covered in 50-60 % of the seeds, half
+# covered every value in at least 85 %; over twenty further copies, every value but one rotor inertia (75 %), whose
+# bias left is larger than its move (docs/identify.md)
+STEP_CHECK_ERROR = 0.5
 OPEN_END = 1e6  # mujoco.minimize's bounds must be finite: an open end at this many times the value's scale
 
 
@@ -497,6 +504,30 @@ class _Solved:
         return 0.5 * float(self.residual @ self.residual)
 
 
+def value_errors(
+    J: np.ndarray, r: np.ndarray, samples: tuple[np.ndarray, list[int]] | None
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The standard errors and the correlations of a least-squares fit's values at its optimum, and the bandwidth
+    they took: ``J`` ``(n, p)`` the residual's Jacobian there, ``r`` ``(n,)`` the residual; the covariance of
+    :func:`pusupu_jax.fit_errors.covariance` with ``samples`` (each entry's sample, the samples of each log), else the
+    textbook one (:func:`pusupu_jax.fit_errors.textbook`)."""
+    if samples is not None:
+        found = fit_errors.covariance(J, r, *samples)
+        covariance, bandwidth = found.covariance, found.bandwidth
+    else:
+        covariance, bandwidth = fit_errors.textbook(J, r), 0
+    std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
+    scale = np.where(std > 0, std, 1.0)
+    correlation = covariance / np.outer(scale, scale)
+    # semi-definite and of unit diagonal to rounding, however ill-conditioned J^T J (the machine file checks it)
+    eigenvalues, eigenvectors = np.linalg.eigh((correlation + correlation.T) / 2)
+    correlation = (eigenvectors * np.maximum(eigenvalues, 0.0)) @ eigenvectors.T
+    unit = np.sqrt(np.where(np.diag(correlation) > 0, np.diag(correlation), 1.0))
+    correlation = np.clip(correlation / np.outer(unit, unit), -1.0, 1.0)
+    np.fill_diagonal(correlation, 1.0)
+    return std, correlation, bandwidth
+
+
 def least_squares_excited(
     residual_of: Callable[[np.ndarray], tuple[Callable[[jax.Array], jax.Array], Callable[[jax.Array], jax.Array]]],
     start: np.ndarray,
@@ -591,29 +622,9 @@ def least_squares_excited(
         )  # fmt: skip
         return solved, r0
 
-    def errors(solved: _Solved) -> tuple[np.ndarray, np.ndarray, int]:
-        """The standard errors and the correlations of the solved values, and the bandwidth they took: the
-        covariance of :func:`pusupu_jax.fit_errors.covariance` with ``samples``, else the textbook one
-        (:func:`pusupu_jax.fit_errors.textbook`)."""
-        if samples is not None:
-            found = fit_errors.covariance(solved.jac, solved.residual, *samples)
-            covariance, bandwidth = found.covariance, found.bandwidth
-        else:
-            covariance, bandwidth = fit_errors.textbook(solved.jac, solved.residual), 0
-        std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
-        scale = np.where(std > 0, std, 1.0)
-        correlation = covariance / np.outer(scale, scale)
-        # semi-definite and of unit diagonal to rounding, however ill-conditioned J^T J (the machine file checks it)
-        eigenvalues, eigenvectors = np.linalg.eigh((correlation + correlation.T) / 2)
-        correlation = (eigenvectors * np.maximum(eigenvalues, 0.0)) @ eigenvectors.T
-        unit = np.sqrt(np.where(np.diag(correlation) > 0, np.diag(correlation), 1.0))
-        correlation = np.clip(correlation / np.outer(unit, unit), -1.0, 1.0)
-        np.fill_diagonal(correlation, 1.0)
-        return std, correlation, bandwidth
-
     free = np.arange(start.size)
     solved, r0 = solve(free)
-    std, correlation, bandwidth = errors(solved)
+    std, correlation, bandwidth = value_errors(solved.jac, solved.residual, samples)
     norms = np.linalg.norm(solved.jac, axis=0)
     x = solved.x
     excited = (norms > UNEXCITED_COLUMN * norms.max()) & (std < UNEXCITED_ERROR * np.maximum(np.abs(x), 1.0))
@@ -625,7 +636,7 @@ def least_squares_excited(
         again, _ = solve(kept)
         x = start.copy()
         x[kept] = again.x
-        std[kept], kept_correlation, bandwidth = errors(again)
+        std[kept], kept_correlation, bandwidth = value_errors(again.jac, again.residual, samples)
         correlation = np.eye(start.size)
         correlation[np.ix_(kept, kept)] = kept_correlation
         solved, evaluations, jacobians = again, evaluations + again.evaluations, jacobians + again.jacobians
@@ -717,6 +728,18 @@ def gauss_newton_step(J: np.ndarray, change: np.ndarray) -> np.ndarray:
     return move
 
 
+def default_step_check(logs: list[DriveLog], mech_step: float | None, rates: LoopRates = LoopRates()) -> float | None:
+    """``pusupu identify``'s step check [s] where none is asked for: one step a current-loop tick (``rates``'
+    ``dt_current``) for logs of a robot (a bridge's, a CSV drive table), whose machine runs in continuous time, finer
+    than the replay's step; None where every log is the fitting model's own at the model's step (``source``
+    :data:`pusupu_jax.run_log.SIM_SOURCE`), which the finer step would move the values away from, or where the
+    replay already steps once a tick (``mech_step`` [s]; None: the model's)."""
+    replay = ModelOptions().timestep if mech_step is None else mech_step
+    if all(log.source == SIM_SOURCE for log in logs) or replay <= rates.dt_current * (1 + 1e-9):
+        return None
+    return rates.dt_current
+
+
 def check_step_check(
     step_check: float, mech_step: float | None, rates: LoopRates = LoopRates(), name: str = "step check"
 ) -> None:
@@ -769,10 +792,13 @@ def fit(
     misses by a bias that the residual left after the fit does not show.  The fitted values are replayed at that step,
     and moved by one Gauss-Newton step on its residual (:func:`gauss_newton_step`, with the Jacobian at the optimum):
     the values a fit at the finer step would find, for two replays at it.  The move is kept where it lowers the finer
-    replay's residual.  The standard errors stay the fit's.  Against a bridge log of the simulated robot stepped four
-    times per current-loop tick, the 28 values of the default set came within 0.75 % of the truth this way (7.5 %
-    without), as a fit at the 50 us step did (``docs/identify.md``).  A log of ``pusupu sim`` at the model's step is
-    the replay itself: the finer step would move its values away from its truth."""
+    replay's residual.  The moved values' standard errors and correlations are then those of a fit at the finer
+    step (:func:`value_errors` of its residual at them, with the Jacobian at the optimum), with the check's own
+    error, :data:`STEP_CHECK_ERROR` of each value's move, added to each variance.  Against a bridge log of
+    the simulated robot stepped four times per current-loop tick, the 28 values of the default set came within 0.75 %
+    of the truth this way (7.5 % without), as a fit at the 50 us step did (``docs/identify.md``).  A log of
+    ``pusupu sim`` at the model's step is the replay itself: the finer step would move its values away from its truth
+    (:func:`default_step_check`, ``pusupu identify``'s choice)."""
     say = progress or (lambda line: None)
     t0 = time.perf_counter()
     # every fitted value in one vector, field after field (each field.size long), scaled by its start (or SCALES)
@@ -858,7 +884,8 @@ def fit(
     solution = least_squares_excited(residual_of, starts / scale, low, high, say, derivatives, (samples, lengths))
     r0 = solution.residual_before
     r1 = np.asarray(residual_all(jnp.asarray(solution.x), data))
-    x, step_rms, check_s = solution.x, None, 0.0
+    x, std, correlation, bandwidth = solution.x, solution.std, solution.correlation, solution.bandwidth
+    step_rms, check_s = None, 0.0
     if step_check is not None:
         t_check = time.perf_counter()
         say(f"identify: step check: the fitted values replayed at a {step_check * 1e6:g} us step")
@@ -870,20 +897,34 @@ def fit(
         step_rms = (float(np.sqrt(np.mean(r_at_fit**2))), float(np.sqrt(np.mean(r_moved**2))))
         if step_rms[1] < step_rms[0]:
             x = moved
+            # the moved values' errors: those of the finer step's fit, from its residual at them and the Jacobian
+            # that the move took as that fit's, with the check's own error, STEP_CHECK_ERROR of the move, beside them
+            kept = solution.excited
+            if kept.any():
+                finer_std, finer_correlation, bandwidth = value_errors(
+                    solution.jacobian[:, kept], r_moved, (samples, lengths)
+                )
+                check_error = STEP_CHECK_ERROR * (moved - solution.x)[kept]
+                covariance = finer_correlation * np.outer(finer_std, finer_std) + np.diag(check_error**2)
+                std, correlation = std.copy(), np.eye(x.size)
+                std[kept] = np.sqrt(np.diag(covariance))
+                unit = np.where(std[kept] > 0, std[kept], 1.0)
+                correlation[np.ix_(kept, kept)] = covariance / np.outer(unit, unit)
+                np.fill_diagonal(correlation, 1.0)
         else:
             say(
                 f"identify: step check: the move did not lower the finer replay's residual RMS ({step_rms[0]:.4g} -> "
                 f"{step_rms[1]:.4g}): the values kept as fitted"
             )
         check_s = time.perf_counter() - t_check
-    fitted, errors = x * scale, solution.std * scale
+    fitted, errors = x * scale, std * scale
     values = tuple(
         FittedValue(f, k, float(v0), float(v), float(e), bool(ok), float(d))
         for (f, k), v0, v, e, ok, d in zip(owner, starts, fitted, errors, solution.excited, fitted - solution.x * scale)
     )
     report = FitReport(
         values=values,
-        correlation=tuple(tuple(float(c) for c in row) for row in solution.correlation),
+        correlation=tuple(tuple(float(c) for c in row) for row in correlation),
         residual_rms_before=float(np.sqrt(np.mean(r0**2))),
         residual_rms_after=float(np.sqrt(np.mean(r1**2))),
         samples=int(sum(len(r.t) for r in replays)),
@@ -900,7 +941,7 @@ def fit(
         converged=solution.converged,
         wall_s=time.perf_counter() - t0,
         logs=tuple({"path": log.path, "sha256": log.digest, "source": log.source} for log in logs),
-        error_bandwidth=solution.bandwidth,
+        error_bandwidth=bandwidth,
         step_check_s=step_check,
         step_check_rms=step_rms,
         step_check_wall_s=check_s,
@@ -908,7 +949,7 @@ def fit(
     identified = dataclasses.replace(
         with_values(machine, split(fitted)),
         uncertainty=uncertainty_of(values),
-        correlation=correlation_of(values, solution.correlation),
+        correlation=correlation_of(values, correlation),
     )
     plots, at = [], 0  # the replayed efforts, from the residual's first part for each log (no other program)
     for r in replays:

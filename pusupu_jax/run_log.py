@@ -27,6 +27,9 @@ from .files import write_atomic
 
 PROFILE = "pusupu"
 METADATA = "pusupu"  # the name of the metadata record
+# the metadata's ``source`` of a log that ``pusupu sim --plant mjx --log`` wrote: the fitting model's own run, at the
+# model's step (:func:`pusupu_jax.machine_fit.default_step_check`)
+SIM_SOURCE = "pusupu sim --plant mjx"
 
 
 def _array(n: int, unit: str, what: str) -> dict[str, Any]:

@@ -291,7 +291,7 @@ def test_one_gauss_newton_step_from_a_fit_reaches_the_fit_of_a_residual_close_to
 
 def test_a_step_check_not_finer_than_the_replay_is_refused_in_one_line(tmp_path):
     """``pusupu identify --step-check S``: S must be a step the replay can take, finer than its own (the model's
-    0.25 ms, or --mech-step's); another is refused in one line, exit 2, before anything is read."""
+    0.25 ms, or --mech-step's), or none; another is refused in one line, exit 2, before anything is read."""
     machine_fit.check_step_check(5e-5, None)
     for options, expected in (
         (("--step-check", "0.00025"), "--step-check: expected a step finer than the replay's 0.00025 s, got 0.00025 s"),
@@ -300,11 +300,31 @@ def test_a_step_check_not_finer_than_the_replay_is_refused_in_one_line(tmp_path)
             "--step-check: expected a step finer than the replay's 5e-05 s, got 5e-05 s",
         ),
         (("--step-check", "0.0001"), "--step-check: expected a whole number of current-loop ticks"),
+        (("--step-check", "fine"), "--step-check: expected a step in seconds or none, got 'fine'"),
     ):
         r = _identify(tmp_path, *options)
         assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
         assert r.stderr.startswith(f"pusupu: error: {expected}"), r.stderr
     assert not (tmp_path / "m.yaml").exists()
+
+
+def test_the_step_check_is_on_by_default_for_a_robots_logs_and_off_for_the_models_own(tmp_path):
+    """``pusupu identify`` without ``--step-check``: a robot's log (a CSV drive table here; a bridge's alike) gets
+    the check at one current-loop tick, 50 us; logs that ``pusupu sim`` wrote at the model's step get none, nor
+    does a replay that already steps once a tick; one robot log among sim logs turns it on."""
+    import dataclasses
+
+    from pusupu_jax import drive_table
+
+    names = drive_table.columns(current=True)
+    rows = [",".join(f"{v:g}" for v in [0.001 * (k + 1)] + [0.0] * (len(names) - 1)) for k in range(2)]
+    robot = drive_table.read(_table(tmp_path / "drive.csv", ",".join(names), rows))
+    sim = dataclasses.replace(robot, source=run_log.SIM_SOURCE)
+    assert machine_fit.default_step_check([robot], None) == 5e-5
+    assert machine_fit.default_step_check([robot], 2.5e-4) == 5e-5
+    assert machine_fit.default_step_check([sim, sim], None) is None
+    assert machine_fit.default_step_check([sim, robot], None) == 5e-5
+    assert machine_fit.default_step_check([robot], 5e-5) is None
 
 
 @pytest.mark.parametrize("rho, textbook_at_most, counted_within", [(0.0, 1.0, (0.92, 0.98)), (0.98, 0.3, (0.78, 1.0))])
@@ -450,7 +470,8 @@ def test_identify_recovers_the_coulomb_friction_of_a_machine_it_did_not_start_fr
     and what the path excites, not the model (the benchmark's bridge cases fit logs of C MuJoCo, with noise).  Then
     the step check: the fitted values replayed at 50 us and moved by what the report says, the finer replay's
     residual lowered, the file written with the moved values and the check in its header.  This log is the replay's
-    own at 0.25 ms, so the move goes away from its truth, and is small: the two steps' difference on a slow path."""
+    own at 0.25 ms, so the move goes away from its truth, and is small: the two steps' difference on a slow path; the
+    moved values' standard errors take in the check's own error, a share of the move."""
     import dataclasses
     import json
 
@@ -489,5 +510,8 @@ def test_identify_recovers_the_coulomb_friction_of_a_machine_it_did_not_start_fr
     at_fit, moved = report["step_check_rms"]
     assert report["step_check_s"] == 5e-5 and moved < at_fit and report["step_check_moved"]
     assert np.all(steps != 0) and np.all(np.abs(steps) < 0.05 * coulomb)
+    # the moved values' standard errors hold the check's own error, a share of each move (beside the finer fit's)
+    errors = np.array([v["std_error"] for v in report["values"]])
+    assert np.all(errors >= machine_fit.STEP_CHECK_ERROR * np.abs(steps) * (1 - 1e-9))
     np.testing.assert_array_equal(machine_file.load(out).drives["coulomb"], values)
     assert "#   step check at 50 us: that replay's residual RMS" in out.read_text()
