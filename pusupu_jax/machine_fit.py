@@ -505,17 +505,23 @@ class _Solved:
 
 
 def value_errors(
-    J: np.ndarray, r: np.ndarray, samples: tuple[np.ndarray, list[int]] | None
+    J: np.ndarray,
+    r: np.ndarray,
+    samples: tuple[np.ndarray, list[int]] | None,
+    added_variance: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int]:
     """The standard errors and the correlations of a least-squares fit's values at its optimum, and the bandwidth
     they took: ``J`` ``(n, p)`` the residual's Jacobian there, ``r`` ``(n,)`` the residual; the covariance of
     :func:`pusupu_jax.fit_errors.covariance` with ``samples`` (each entry's sample, the samples of each log), else the
-    textbook one (:func:`pusupu_jax.fit_errors.textbook`)."""
+    textbook one (:func:`pusupu_jax.fit_errors.textbook`), with ``added_variance`` ``(p,)`` (independent errors
+    besides the residual's, in the values' squared units) added to its diagonal."""
     if samples is not None:
         found = fit_errors.covariance(J, r, *samples)
         covariance, bandwidth = found.covariance, found.bandwidth
     else:
         covariance, bandwidth = fit_errors.textbook(J, r), 0
+    if added_variance is not None:
+        covariance = covariance + np.diag(added_variance)
     std = np.sqrt(np.maximum(np.diag(covariance), 0.0))
     scale = np.where(std > 0, std, 1.0)
     correlation = covariance / np.outer(scale, scale)
@@ -901,16 +907,13 @@ def fit(
             # that the move took as that fit's, with the check's own error, STEP_CHECK_ERROR of the move, beside them
             kept = solution.excited
             if kept.any():
-                finer_std, finer_correlation, bandwidth = value_errors(
-                    solution.jacobian[:, kept], r_moved, (samples, lengths)
-                )
-                check_error = STEP_CHECK_ERROR * (moved - solution.x)[kept]
-                covariance = finer_correlation * np.outer(finer_std, finer_std) + np.diag(check_error**2)
                 std, correlation = std.copy(), np.eye(x.size)
-                std[kept] = np.sqrt(np.diag(covariance))
-                unit = np.where(std[kept] > 0, std[kept], 1.0)
-                correlation[np.ix_(kept, kept)] = covariance / np.outer(unit, unit)
-                np.fill_diagonal(correlation, 1.0)
+                std[kept], correlation[np.ix_(kept, kept)], bandwidth = value_errors(
+                    solution.jacobian[:, kept],
+                    r_moved,
+                    (samples, lengths),
+                    added_variance=(STEP_CHECK_ERROR * (moved - solution.x)[kept]) ** 2,
+                )
         else:
             say(
                 f"identify: step check: the move did not lower the finer replay's residual RMS ({step_rms[0]:.4g} -> "
