@@ -118,15 +118,10 @@ def cmd_identify(args) -> int:
                     f"{args.gains}'s {g.document['checksum'][:12]}"
                 )
     if args.step_check is None:
-        step_check = machine_fit.default_step_check(logs, args.mech_step, rates)
-        why = (
-            f"at {step_check * 1e6:g} us: the logs are a robot's, which runs finer than the replay's step"
-            if step_check is not None
-            else "none: the logs are pusupu sim's, the model's own at its step"
-            if all(log.source == run_log.SIM_SOURCE for log in logs)
-            else "none: the replay steps once a current-loop tick"
-        )
-        print(f"identify: step check {why} (--step-check sets it)", file=sys.stderr)
+        choice = machine_fit.default_step_check(logs, args.mech_step, rates)
+        step_check = choice.step
+        taken = "none" if step_check is None else f"at {step_check * 1e6:g} us"
+        print(f"identify: step check {taken}: {choice.why} (--step-check sets it)", file=sys.stderr)
     devices.announce()
     with checking(f"--machine {args.machine}" if args.machine else "the built-in machine"):
         report, identified, plots = machine_fit.fit(

@@ -734,16 +734,29 @@ def gauss_newton_step(J: np.ndarray, change: np.ndarray) -> np.ndarray:
     return move
 
 
-def default_step_check(logs: list[DriveLog], mech_step: float | None, rates: LoopRates = LoopRates()) -> float | None:
-    """``pusupu identify``'s step check [s] where none is asked for: one step a current-loop tick (``rates``'
+@dataclasses.dataclass(frozen=True)
+class StepCheckChoice:
+    """The step check taken where none is asked for (:func:`default_step_check`): ``step`` [s], None for none, and
+    ``why``, in words for the terminal."""
+
+    step: float | None
+    why: str
+
+
+def default_step_check(
+    logs: list[DriveLog], mech_step: float | None, rates: LoopRates = LoopRates()
+) -> StepCheckChoice:
+    """``pusupu identify``'s step check where none is asked for: one step a current-loop tick (``rates``'
     ``dt_current``) for logs of a robot (a bridge's, a CSV drive table), whose machine runs in continuous time, finer
-    than the replay's step; None where every log is the fitting model's own at the model's step (``source``
+    than the replay's step; none where every log is the fitting model's own at the model's step (``source``
     :data:`pusupu_jax.run_log.SIM_SOURCE`), which the finer step would move the values away from, or where the
     replay already steps once a tick (``mech_step`` [s]; None: the model's)."""
     replay = ModelOptions().timestep if mech_step is None else mech_step
-    if all(log.source == SIM_SOURCE for log in logs) or replay <= rates.dt_current * (1 + 1e-9):
-        return None
-    return rates.dt_current
+    if all(log.source == SIM_SOURCE for log in logs):
+        return StepCheckChoice(None, "the logs are pusupu sim's, the model's own at its step")
+    if replay <= rates.dt_current * (1 + 1e-9):
+        return StepCheckChoice(None, "the replay steps once a current-loop tick")
+    return StepCheckChoice(rates.dt_current, "the logs are a robot's, which runs finer than the replay's step")
 
 
 def check_step_check(

@@ -320,11 +320,12 @@ def test_the_step_check_is_on_by_default_for_a_robots_logs_and_off_for_the_model
     rows = [",".join(f"{v:g}" for v in [0.001 * (k + 1)] + [0.0] * (len(names) - 1)) for k in range(2)]
     robot = drive_table.read(_table(tmp_path / "drive.csv", ",".join(names), rows))
     sim = dataclasses.replace(robot, source=run_log.SIM_SOURCE)
-    assert machine_fit.default_step_check([robot], None) == 5e-5
-    assert machine_fit.default_step_check([robot], 2.5e-4) == 5e-5
-    assert machine_fit.default_step_check([sim, sim], None) is None
-    assert machine_fit.default_step_check([sim, robot], None) == 5e-5
-    assert machine_fit.default_step_check([robot], 5e-5) is None
+    assert machine_fit.default_step_check([robot], None).step == 5e-5
+    assert machine_fit.default_step_check([robot], 2.5e-4).step == 5e-5
+    assert machine_fit.default_step_check([sim, sim], None).step is None
+    assert machine_fit.default_step_check([sim, robot], None).step == 5e-5
+    assert machine_fit.default_step_check([robot], 5e-5).step is None
+    assert "pusupu sim's" in machine_fit.default_step_check([sim], None).why
 
 
 @pytest.mark.parametrize("rho, textbook_at_most, counted_within", [(0.0, 1.0, (0.92, 0.98)), (0.98, 0.3, (0.78, 1.0))])
