@@ -247,6 +247,32 @@ def test_one_newton_iteration_is_the_converged_solve_without_contacts():
 CONTACT_PLANT = MJXPlant.create(G, M.ModelOptions(contacts=True))
 
 
+def test_without_contacts_the_line_search_would_change_nothing():
+    """The model without contacts takes no line-search iterations (:data:`M.LS_ITERATIONS_CONTACTS` with contacts):
+    its equality constraints' cost is quadratic along the Newton direction, so the search starts at its minimum.  With
+    MuJoCo's 4 iterations instead, 400 steps through C MuJoCo are the same to the bit, and 400 steps of two machines
+    vmapped through MJX (where each iteration's conditional computes both branches) the same to rounding.  The tuner's
+    objective and gradients over its iterations: ``docs/benchmarks.md``."""
+    assert PLANT.mj_model.opt.ls_iterations == 0 and CONTACT_PLANT.mj_model.opt.ls_iterations == 4
+    aux = PLANT.prepare(SERVO, None, RATES.dt_mech)
+    aux4 = dataclasses.replace(aux, model=aux.model.replace(opt=aux.model.opt.replace(ls_iterations=4)))
+    searched = M.build_model(G, M.ModelOptions())
+    searched.opt.ls_iterations = 4
+    for a, b in zip(
+        c_mujoco_run(PLANT, aux, model=M.build_model(G, M.ModelOptions()))[:2],
+        c_mujoco_run(PLANT, aux, model=searched)[:2],
+    ):
+        np.testing.assert_array_equal(a, b)
+    torques = jnp.stack([TORQUE, TORQUE[::-1]])
+
+    def run(aux, torque):
+        return jax.lax.scan(lambda d, tau: (PLANT.step(aux, d, tau), None), PLANT.init(aux), torque)[0].qpos
+
+    batch = jax.jit(jax.vmap(run, (None, 0)))
+    # to rounding: 5.6e-17 m after 400 steps (XLA compiles the two programs differently)
+    np.testing.assert_allclose(batch(aux, torques), batch(aux4, torques), rtol=0, atol=1e-15)
+
+
 def _above_the_surface(gap):
     """qpos of the home pose lowered until the tool sphere is ``gap`` [m] above the work surface (joints closed)."""
     m = CONTACT_PLANT.mj_model

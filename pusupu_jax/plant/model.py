@@ -66,6 +66,13 @@ PEG = dict(radius=0.008, top=0.12, bottom=0.18)  # m: a capsule from 120 to 180 
 # m: half-width of the square hole (0.5 mm clearance on the peg), depth, chamfer width, and the hole's top
 # below home (7 mm under the peg's tip)
 HOLE = dict(half_width=0.0085, depth=0.03, chamfer=0.004, top=0.195)
+# MuJoCo's line search along the solver's Newton direction takes up to this many iterations with contacts (their
+# cone makes the constraints' cost piecewise along it).  Without contacts the only constraints are the spherical
+# joints' equalities, whose cost is quadratic along any direction: the search starts at its minimum (the Newton step
+# along it), and its iterations change nothing.  MJX still runs them, as a scan of conditionals whose both branches a
+# batch (vmap) computes, so the model without contacts takes none: the same steps to the bit in C MuJoCo and to
+# rounding in MJX (tests/test_mjx_plant.py), in less time (docs/benchmarks.md).
+LS_ITERATIONS_CONTACTS = 4
 
 
 @dataclass(frozen=True)
@@ -133,7 +140,7 @@ def build_model(geom: Geometry | None = None, options: ModelOptions = ModelOptio
     spec.modelname = "pusupu_6PUS_UPU"
     spec.option.timestep = options.timestep
     spec.option.iterations = options.solver_iterations
-    spec.option.ls_iterations = 4
+    spec.option.ls_iterations = LS_ITERATIONS_CONTACTS if options.contacts else 0
     spec.option.solver = mujoco.mjtSolver.mjSOL_NEWTON
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_EULER
     spec.option.cone = CONES[options.cone]
