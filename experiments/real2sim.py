@@ -57,7 +57,7 @@ from pusupu_jax import gains as gain_files
 from pusupu_jax import machine_file, machine_fit, run_log
 from pusupu_jax.files import write_atomic
 from pusupu_jax.machine_file import Machine, Payload
-from pusupu_jax.params import ParameterError
+from pusupu_jax.params import LoopRates, ParameterError
 from pusupu_jax.plots import save_atomic
 from pusupu_jax.sim_robot.lockstep import bridge_run
 
@@ -71,10 +71,11 @@ DESIGNED_PAYLOAD_KG = 3.0  # the machine as designed: a payload guessed at the p
 QUICK_S = 2.0  # s of the task path in the quick run
 TARGET = 0.7  # the share of the gap the identified-tuned gains should close
 MIN_GAP = 0.01  # a gap below this share of the truth-tuned gains' error is no gap (gap_closed)
-# identify's step check [s] (pusupu identify --step-check): one step a current-loop tick.  The robot steps its machine
-# finer than the replay, and without the check the values on the loaded machine came up to 3.6 % off, and the gains
-# tuned on them closed 23 % of the gap; with it, 0.5 % and 102 % (docs/identify.md)
-STEP_CHECK_S = 5e-5
+# identify's step check [s] (pusupu identify --step-check): one step a current-loop tick, identify's own default for a
+# robot's logs (machine_fit.default_step_check).  The robot steps its machine finer than the replay, and without the
+# check the values on the loaded machine came up to 3.6 % off, and the gains tuned on them closed 23 % of the gap;
+# with it, 0.5 % and 102 % (docs/identify.md)
+STEP_CHECK_S = LoopRates().dt_current
 
 
 class TunedOn(enum.StrEnum):
