@@ -71,7 +71,7 @@ HOLE = dict(half_width=0.0085, depth=0.03, chamfer=0.004, top=0.195)
 # joints' equalities, whose cost is quadratic along any direction: the search starts at its minimum (the Newton step
 # along it), and its iterations change nothing.  MJX still runs them, as a scan of conditionals whose both branches a
 # batch (vmap) computes, so the model without contacts takes none: the same steps to the bit in C MuJoCo and to
-# rounding in MJX (tests/test_mjx_plant.py), in less time (docs/benchmarks.md).
+# rounding in MJX (tests/test_mjx_plant.py), without the iterations' cost (what it buys: docs/benchmarks.md).
 LS_ITERATIONS_CONTACTS = 4
 
 
