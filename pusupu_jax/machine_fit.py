@@ -57,6 +57,7 @@ from .params import N_AXES, LoopRates, ParameterError, ServoParams, bounds
 from .paths import platform_path_from
 from .plant.model import ModelOptions
 from .run_log import SIM_SOURCE, DriveLog
+from .runtime import require_x64
 from .sim import rollout
 
 
@@ -817,7 +818,9 @@ def fit(
     the simulated robot stepped four times per current-loop tick, the 28 values of the default set came within 0.75 %
     of the truth this way (7.5 % without), as a fit at the 50 us step did (``docs/identify.md``).  A log of
     ``pusupu sim`` at the model's step is the replay itself: the finer step would move its values away from its truth
-    (:func:`default_step_check`, ``pusupu identify``'s choice)."""
+    (:func:`default_step_check`, ``pusupu identify``'s choice).  JAX must compute in float64
+    (:func:`pusupu_jax.runtime.setup_jax`; a RuntimeError otherwise)."""
+    require_x64("identify's replays and their Jacobians")
     say = progress or (lambda line: None)
     t0 = time.perf_counter()
     # every fitted value in one vector, field after field (each field.size long), scaled by its start (or SCALES)

@@ -180,6 +180,20 @@ def test_a_mech_step_the_machine_cannot_take_is_refused_in_one_line_before_any_r
     assert not (tmp_path / "m.yaml").exists()
 
 
+def test_a_fit_in_float32_is_refused_before_any_replay():
+    """identify's replays and Jacobians need float64; without it (``setup_jax`` not called) the fit says so at once."""
+    from pusupu_jax.machine_file import Machine
+
+    machine, gains = Machine.default(), ServoParams.table1()
+    with (
+        jax.enable_x64(False),
+        pytest.raises(
+            RuntimeError, match=r"^identify's replays and their Jacobians compute in float64: call pusupu_jax\.runtime"
+        ),
+    ):
+        machine_fit.fit([], machine, gains)
+
+
 def test_a_file_that_is_not_a_run_log_is_refused_in_one_line(tmp_path):
     bad = tmp_path / "gains.mcap"
     bad.write_text("schema: pusupu-gains\n")

@@ -117,6 +117,25 @@ def test_bad_tune_configurations_are_rejected(tmp_path, text, message):
         TuneConfig.load(path)
 
 
+def test_a_job_in_float32_is_refused_before_anything_runs(tmp_path):
+    """Without float64 (a notebook that skipped ``setup_jax``) the job tuned in float32 for minutes and then failed in
+    XLA's verifier at the stability check of the gains it would export (a float32 frequency grid sliced as float64).
+    It is refused at once, saying what to call, and writes nothing."""
+    from pusupu_jax.tune.config import TuneConfig
+    from pusupu_jax.tune.job import run_job
+
+    with (
+        jax.enable_x64(False),
+        pytest.raises(
+            RuntimeError,
+            match=r"^pusupu tune's gradients and the stability check of the gains it exports compute in float64: call "
+            r"pusupu_jax\.runtime\.setup_jax\(\) first$",
+        ),
+    ):
+        run_job(TuneConfig(), tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_tune_configuration_overrides_the_defaults(tmp_path):
     from pusupu_jax.tune.config import TuneConfig
 

@@ -39,6 +39,7 @@ from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.machine_file import Machine
 from pusupu_jax.params import AxisLoad, ParameterError, ServoParams
 from pusupu_jax.plots import save_atomic
+from pusupu_jax.runtime import require_x64
 from pusupu_jax.start_gains import derive
 
 from .config import TuneConfig
@@ -227,8 +228,11 @@ def run_job(
     (:func:`pusupu_jax.tune.run.check_work`) and the output folder are checked before anything is built.
 
     The outputs of one run are written gains first, report last; the report names the gain
-    file it describes by its checksum (or says that none was written and why).
+    file it describes by its checksum (or says that none was written and why).  JAX must compute in float64
+    (:func:`pusupu_jax.runtime.setup_jax`): a RuntimeError says so before anything runs, where float32 would tune
+    for minutes and then fail the export's check.
     """
+    require_x64("pusupu tune's gradients and the stability check of the gains it exports")
     machine = Machine.default() if machine is None else machine
     specs = scenario_list(cfg, machine)
     check_work(cfg, specs)
