@@ -103,12 +103,13 @@ def loop_gains(servo: ServoParams, load: AxisLoad, w: ArrayLike, mode: str = "im
     return {"current": l_i, "velocity": l_v, "position": b["C"] * t_v / s}
 
 
-def _crossings(f: jax.Array, log_w: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Interpolated roots of the real sequence ``f`` along the last axis: (mask, log w) per grid interval."""
+def _crossings(f: jax.Array, log_w: npt.NDArray[np.float64]) -> tuple[jax.Array, jax.Array]:
+    """Interpolated roots of the real sequence ``f`` along the last axis (the grid ``log_w``, numpy): (mask, log w) per
+    grid interval."""
     a, b = f[..., :-1], f[..., 1:]
     mask = (a > 0) & (b <= 0) | (a < 0) & (b >= 0)
     frac = jnp.where(mask, a / jnp.where(mask, a - b, 1.0), 0.0)  # 0 (the grid point) where no root
-    return mask, log_w[:-1] + frac * (log_w[1:] - log_w[:-1])
+    return mask, frac * (log_w[1:] - log_w[:-1]) + log_w[:-1]
 
 
 def unwrapped_phase(angle: ArrayLike) -> jax.Array:
@@ -138,7 +139,10 @@ def margins(gain_fn: Callable[[ArrayLike], jax.Array], w: npt.NDArray[np.float64
     axes, 3 loops): 6.6 GB for a batch of 64 on the CPU, and a batch of 4096 asked a GPU for
     135 GiB.
     """
-    log_w = jnp.log(w)
+    # numpy's log, so that no JAX operation takes the grid itself: JAX reuses such an operation's result on one
+    # numpy array across its enable_x64 context, and a program traced in float32 before (a tuner's in a notebook
+    # that skipped setup_jax) left stability.margins, which runs in float64, a float32 grid that XLA's verifier refused
+    log_w = np.log(w)
 
     def refine(g: Callable[[jax.Array], jax.Array], x: jax.Array, mask: jax.Array) -> jax.Array:
         """Two secant steps on g(log w) = 0 from the interpolated roots, kept on the grid's span.

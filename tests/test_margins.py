@@ -69,7 +69,8 @@ def test_margin_gradients_match_central_differences(name, x, loop, key):
 _MARGIN_GRADIENTS = """
 import json, sys
 from pusupu_jax.runtime import setup_jax
-setup_jax(x64=sys.argv[1] == "float64")
+if sys.argv[1] == "float64":  # float32: as a notebook that skipped setup_jax, without the programs kept on disk
+    setup_jax()
 import jax, jax.numpy as jnp, numpy as np
 from pusupu_jax import AxisLoad, ServoParams
 from pusupu_jax.margins import loop_margins
@@ -80,7 +81,11 @@ def total(x):
     assert all(v.dtype == jnp.dtype(sys.argv[1]) for v in jax.tree.leaves(m))
     return sum(jnp.minimum(loop[k], 60.0).sum() for loop in m.values() for k in ("phase_margin_deg", "gain_margin_db"))
 g = jax.jit(jax.grad(total))({f: np.asarray(getattr(servo, f)) for f in fields})
-print(json.dumps({f: np.asarray(v, dtype=float).tolist() for f, v in g.items()}))
+jax.jit(loop_margins)(servo, load)  # the margins themselves, traced in this precision
+from pusupu_jax import stability  # then the export's check, float64 in either interpreter
+checked = stability.margins(servo)[0]
+out = {f: np.asarray(v, dtype=float).tolist() for f, v in g.items()}
+print(json.dumps(out | {"checked": [checked[loop]["phase_margin_deg"].tolist() for loop in checked]}))
 """
 
 
@@ -90,7 +95,9 @@ def test_margin_gradients_are_finite_in_float32():
 
     Far from any crossover a fast loop's |L| is tiny (1e-21 for the position loop at 1e6 rad/s), and in float32 the
     unused secant steps and angles there had overflowing derivatives: zero cotangent times inf gave NaN in every gain.
-    Each precision runs in its own interpreter: JAX's float64 switch is process-wide.
+    Each precision runs in its own interpreter: JAX's float64 switch is process-wide.  Each then checks the gains as
+    an export does (:func:`pusupu_jax.stability.margins`, float64 whatever the process's setting): after the margins
+    were traced in float32, that check failed in XLA's verifier on a float32 grid, and now gives float64's margins.
     """
     wide, narrow = (
         {
@@ -107,6 +114,7 @@ def test_margin_gradients_are_finite_in_float32():
         }
         for dtype in ("float64", "float32")
     )
+    np.testing.assert_allclose(narrow.pop("checked"), wide.pop("checked"), rtol=1e-12)
     for f, w in wide.items():
         assert np.all(np.isfinite(narrow[f])), f
         scale = np.max(np.abs(w))
