@@ -6,9 +6,10 @@ Public API::
     trace = simulate(ServoParams.table1(), reference_m, mode="imc")
 """
 
-from .runtime import apply_xla_workaround
+from .runtime import apply_xla_workaround, limit_blas_threads
 
 apply_xla_workaround()  # before JAX's CPU backend starts: see runtime.XLA_CPU_WORKAROUND
+limit_blas_threads()  # before numpy loads OpenBLAS: see runtime.BLAS_THREADS
 
 from .params import AxisLoad, LoopRates, ParameterError, ServoParams, validate  # noqa: E402
 from .sim import rollout, simulate  # noqa: E402

@@ -47,6 +47,20 @@ XLA_CPU_ONE_THREAD = ("--xla_cpu_multi_thread_eigen=false",)
 XLA_HOST_DEVICES = "--xla_force_host_platform_device_count"
 
 
+# numpy's and scipy's linear algebra (OpenBLAS) starts a thread per CPU, and its threads wait for work spinning: beside
+# XLA's own threads, and on a machine that other processes share, they burn the CPU that the computation needs.
+# `pusupu identify` of tests/test_identify.py's Coulomb case (a 0.8 s window and the step check; the compile cache
+# warm; 2-core AMD EPYC): alone 59 -> 51 s (83 -> 54 s of CPU) with one thread; beside two busy processes 400 ->
+# 75-85 s.  The count is read when numpy loads OpenBLAS, so the package sets it on import, before numpy's (a count the
+# user set stays).
+BLAS_THREADS = "OPENBLAS_NUM_THREADS"
+
+
+def limit_blas_threads() -> None:
+    """One OpenBLAS thread (:data:`BLAS_THREADS`) unless the user set a count; effective only before numpy's import."""
+    os.environ.setdefault(BLAS_THREADS, "1")
+
+
 def cpu_count() -> int:
     """The CPUs this process may run on (its affinity, as ``taskset`` sets it), at least 1."""
     try:

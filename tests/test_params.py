@@ -158,6 +158,34 @@ def test_importing_the_package_sets_the_xla_flags_and_keeps_the_users(tmp_path):
     assert flags({}, other.parent) == ["--xla_cpu_use_fusion_emitters=true", host_devices, runtime.XLA_CPU_WORKAROUND]
 
 
+def test_importing_the_package_first_gives_numpy_one_blas_thread_and_keeps_the_users_count():
+    """``import pusupu_jax`` before numpy sets OpenBLAS to one thread (runtime.BLAS_THREADS: its spinning threads cost
+    `pusupu identify` 5x its time beside two busy processes); a count the user set stays.  Where numpy's wheel bundles
+    scipy-openblas, the library itself is asked how many threads it runs (else the environment is checked alone)."""
+    import os
+    import subprocess
+    import sys
+
+    from pusupu_jax import runtime
+
+    code = """
+import ctypes, glob, os, pusupu_jax, numpy
+found = glob.glob(os.path.join(os.path.dirname(numpy.__file__), os.pardir, "numpy.libs", "*scipy_openblas64*"))
+ask = getattr(ctypes.CDLL(found[0]), "scipy_openblas_get_num_threads64_", None) if found else None
+print(os.environ[pusupu_jax.runtime.BLAS_THREADS], ask() if ask else "")
+"""
+
+    def threads(extra_env):
+        env = {k: v for k, v in os.environ.items() if k != runtime.BLAS_THREADS} | extra_env
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+        assert r.returncode == 0, r.stderr[-2000:]
+        return r.stdout.split()
+
+    assert threads({})[0] == "1" and threads({})[1:] in ([], ["1"])
+    users = threads({runtime.BLAS_THREADS: "2"})
+    assert users[0] == "2" and users[1:] in ([], [str(min(2, runtime.cpu_count()))])
+
+
 def test_importing_the_packages_makes_no_jax_array():
     """No module makes a JAX array on import (fresh interpreter, float64 off as JAX starts).  Such an array takes
     the float width in force on import: margins' frequency grid was float32 in every process that imported the
