@@ -66,6 +66,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import pusupu_jax  # noqa: F401, I001  before numpy: its one OpenBLAS thread, as pusupu identify has it
 import numpy as np
 
 from timing import emit, processor  # beside this script
