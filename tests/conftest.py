@@ -14,7 +14,9 @@ at level 3 against 36 min 35 s at 0.  The suite passes at every level.  A user's
 programs keep XLA's default (3); to run the suite at another, set ``XLA_FLAGS=--xla_backend_optimization_level=N`` (a
 level set there is kept)."""
 
+import json
 import os
+import time
 
 if "--xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):  # before JAX starts its backend
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --xla_backend_optimization_level=1".strip()
@@ -48,6 +50,59 @@ HEAVY_FIRST = (
     "test_loop_match.py",
     "test_identify.py",
 )
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--compile-profile",
+        metavar="FILE",
+        help="append a JSON line per test to FILE (one file per xdist worker: FILE.gw0, ...): its wall and process "
+        "CPU seconds, and the seconds JAX spent in this process tracing, lowering and XLA compiling, with the count "
+        "of each (jax.monitoring's duration events); commands a test runs as processes of their own are not counted",
+    )
+
+
+class _CompileProfile:
+    """JAX's compile-time events summed per test: what ``--compile-profile`` writes."""
+
+    EVENTS = {
+        "/jax/core/compile/jaxpr_trace_duration": "trace",
+        "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+        "/jax/core/compile/backend_compile_duration": "compile",
+    }
+
+    def __init__(self, path: Path):
+        import jax.monitoring
+
+        self.path, self.seconds, self.counts = path, Counter(), Counter()
+        self.started: dict[str, tuple[float, float, Counter, Counter]] = {}
+        jax.monitoring.register_event_duration_secs_listener(self._event)
+
+    def _event(self, event: str, seconds: float, **_) -> None:
+        if event in self.EVENTS:
+            self.seconds[self.EVENTS[event]] += seconds
+            self.counts[self.EVENTS[event]] += 1
+
+    @pytest.hookimpl
+    def pytest_runtest_logstart(self, nodeid, location):
+        self.started[nodeid] = (time.perf_counter(), time.process_time(), self.seconds.copy(), self.counts.copy())
+
+    @pytest.hookimpl
+    def pytest_runtest_logfinish(self, nodeid, location):
+        wall, cpu, seconds, counts = self.started.pop(nodeid)
+        record = {"test": nodeid, "wall_s": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu}
+        for name in self.EVENTS.values():
+            record[f"{name}_s"] = self.seconds[name] - seconds[name]
+            record[f"{name}_count"] = self.counts[name] - counts[name]
+        with self.path.open("a") as f:
+            f.write(json.dumps(record) + "\n")
+
+
+def pytest_configure(config):
+    path = config.getoption("--compile-profile")
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if path and (worker or not config.getoption("numprocesses", None)):  # the workers run the tests, not xdist's main
+        config.pluginmanager.register(_CompileProfile(Path(f"{path}.{worker}" if worker else path)))
 
 
 def pytest_collection_modifyitems(items):
