@@ -57,8 +57,9 @@ def pytest_addoption(parser):
         "--compile-profile",
         metavar="FILE",
         help="append a JSON line per test to FILE (one file per xdist worker: FILE.gw0, ...): its wall and process "
-        "CPU seconds, and the seconds JAX spent in this process tracing, lowering and XLA compiling, with the count "
-        "of each (jax.monitoring's duration events); commands a test runs as processes of their own are not counted",
+        "CPU seconds, the CPU seconds of the commands it ran as processes of their own and waited for, and the seconds "
+        "JAX spent in this process tracing, lowering and XLA compiling, with the count of each (jax.monitoring's "
+        "duration events)",
     )
 
 
@@ -85,17 +86,36 @@ class _CompileProfile:
 
     @pytest.hookimpl
     def pytest_runtest_logstart(self, nodeid, location):
-        self.started[nodeid] = (time.perf_counter(), time.process_time(), self.seconds.copy(), self.counts.copy())
+        self.started[nodeid] = (
+            time.perf_counter(),
+            time.process_time(),
+            _children_cpu(),
+            self.seconds.copy(),
+            self.counts.copy(),
+        )
 
     @pytest.hookimpl
     def pytest_runtest_logfinish(self, nodeid, location):
-        wall, cpu, seconds, counts = self.started.pop(nodeid)
-        record = {"test": nodeid, "wall_s": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu}
+        wall, cpu, children, seconds, counts = self.started.pop(nodeid)
+        record = {
+            "test": nodeid,
+            "wall_s": time.perf_counter() - wall,
+            "cpu_s": time.process_time() - cpu,
+            "commands_cpu_s": _children_cpu() - children,
+        }
         for name in self.EVENTS.values():
             record[f"{name}_s"] = self.seconds[name] - seconds[name]
             record[f"{name}_count"] = self.counts[name] - counts[name]
         with self.path.open("a") as f:
             f.write(json.dumps(record) + "\n")
+
+
+def _children_cpu() -> float:
+    """User and system CPU seconds of this process's ended children (the commands a test ran and waited for)."""
+    import resource
+
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def pytest_configure(config):
