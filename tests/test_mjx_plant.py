@@ -250,9 +250,10 @@ CONTACT_PLANT = MJXPlant.create(G, M.ModelOptions(contacts=True))
 def test_without_contacts_the_line_search_would_change_nothing():
     """The model without contacts takes no line-search iterations (:data:`M.LS_ITERATIONS_CONTACTS` with contacts):
     its equality constraints' cost is quadratic along the Newton direction, so the search starts at its minimum.  With
-    MuJoCo's 4 iterations instead, 400 steps through C MuJoCo are the same to the bit, and 400 steps of two machines
-    vmapped through MJX (where each iteration's conditional computes both branches) the same to rounding.  The tuner's
-    objective and gradients over its iterations: ``docs/benchmarks.md``."""
+    MuJoCo's 4 iterations instead, 400 steps through C MuJoCo are the same to the bit, and 400 steps of two torque
+    sequences vmapped through MJX (where each iteration's conditional computes both branches) the same to rounding as
+    each run alone without them (:func:`mjx_run`, the program of the tests above).  The tuner's objective and gradients
+    over its iterations: ``docs/benchmarks.md``."""
     assert PLANT.mj_model.opt.ls_iterations == 0 and CONTACT_PLANT.mj_model.opt.ls_iterations == 4
     aux = PLANT.prepare(SERVO, None, RATES.dt_mech)
     aux4 = dataclasses.replace(aux, model=aux.model.replace(opt=aux.model.opt.replace(ls_iterations=4)))
@@ -268,9 +269,10 @@ def test_without_contacts_the_line_search_would_change_nothing():
     def run(aux, torque):
         return jax.lax.scan(lambda d, tau: (PLANT.step(aux, d, tau), None), PLANT.init(aux), torque)[0].qpos
 
-    batch = jax.jit(jax.vmap(run, (None, 0)))
-    # to rounding: 5.6e-17 m after 400 steps (XLA compiles the two programs differently)
-    np.testing.assert_allclose(batch(aux, torques), batch(aux4, torques), rtol=0, atol=1e-15)
+    searched = jax.jit(jax.vmap(run, (None, 0)))(aux4, torques)
+    # to rounding (XLA compiles the two programs differently): observed 1.4e-16 m
+    for k, torque in enumerate(torques):
+        np.testing.assert_allclose(searched[k], mjx_run(PLANT, aux, torque)[0][-1], rtol=0, atol=1e-15)
 
 
 def _above_the_surface(gap):
@@ -358,14 +360,19 @@ def test_every_objective_term_has_the_gradient_of_central_differences():
     d/d(log gain) for the tuner's default fields (shared lambda1, lambda2, T0 and m6, c6, g); d/d(relative change)
     of axis 0's velocity PI and drive-train friction (Kv, Tv, coulomb, viscous, v_coulomb: values of the one compiled
     program, as the gains and the model are); and d/d(platform mass) (what identification fits of a payload), whose
-    derivative includes that of the torque the run starts holding the machine with.  Reverse and forward mode
-    against central differences (steps of 1e-3 in log gain, 1e-4 relative, 1e-4 of the platform's mass): relative
-    error <= 1e-3, or within 1e-7 of the term's size.  Observed: 1e-9 to 1e-5 on every term of every input with
-    Table 1's friction (the mass 1e-9, Kv 1e-8, the friction 1e-8 to 4e-5), except the gains whose effect on a 50 ms
-    run is some 1e-10 of the term (g: up to 3.5e-3, inside the 1e-7 floor).  Each input has a term whose derivative
-    is non-zero and agrees to 1e-3 relative.  The two modes agree to 1e-9 of the term's size: they differ by
-    rounding only.  (One hybrid program for all of it: an IMC-mode program of its own cost another compile, 45 s.)
-    """
+    derivative includes that of the torque the run starts holding the machine with.  Reverse mode against central
+    differences (steps of 1e-3 in log gain, 1e-4 relative, 1e-4 of the platform's mass): relative error <= 1e-3, or
+    within 1e-7 of the term's size.  Observed: 1e-9 to 1e-5 on every term of every input with Table 1's friction (the
+    mass 1e-9, Kv 1e-8, the friction 1e-8 to 4e-5), except the gains whose effect on a 50 ms run is some 1e-10 of the
+    term (g: up to 3.5e-3, inside the 1e-7 floor).  Each input has a term whose derivative is non-zero and agrees to
+    1e-3 relative.
+
+    One compiled program serves it all: the Jacobian with the terms' values (``has_aux``), called at the moved inputs
+    for the differences.  Forward mode (what identification's ``jacfwd`` runs) has no program of its own here: JAX
+    derives reverse mode by linearising with the same forward-mode rules and transposing, so a reverse-mode
+    derivative that matches central differences has run each of those rules on this path (the forward-mode program,
+    checked here before against reverse mode to 1e-9 of each term's size, cost 23 s more to trace and compile).  An
+    IMC-mode program of its own would cost another compile, 45 s."""
     from pusupu_jax import objectives
     from pusupu_jax.machine import machine_reference
     from pusupu_jax.tune.space import Space
@@ -385,14 +392,11 @@ def test_every_objective_term_has_the_gradient_of_central_differences():
 
     x0 = {"z": space.z0(), **{n: jnp.zeros(()) for n in AXIS_0}, "mass": jnp.zeros(())}
     steps = {n: 1e-4 for n in AXIS_0} | {"mass": 1e-4 * float(mass[platform])}
-    jac = jax.jit(jax.jacrev(terms))(x0)
-    # forward mode as one tangent at a time, and the terms' values from the same compiled program (its primal
-    # output): one compile serves the forward-mode check and the central differences
-    jvp = jax.jit(lambda x, dx: jax.jvp(terms, (x,), (dx,)))
-    zero = jax.tree.map(jnp.zeros_like, x0)
+    jacobian = jax.jit(jax.jacrev(lambda x: (terms(x),) * 2, has_aux=True))  # (d terms / d x, terms)
+    jac = jacobian(x0)[0]
 
     def value(x):
-        return jvp(x, zero)[0]
+        return jacobian(x)[1]
 
     def moved(name, by):  # x0 with one input moved by ``by``: a tuner field (in z) or an input of its own
         if name in x0["z"]:
@@ -405,14 +409,11 @@ def test_every_objective_term_has_the_gradient_of_central_differences():
     for name in inputs:
         h = steps.get(name, 1e-3)
         plus, minus = value(moved(name, h)), value(moved(name, -h))
-        tangent = jax.tree.map(lambda a, b: b - a, x0, moved(name, 1.0))
-        forward = jvp(x0, tangent)[1]
         for term in objectives.TERMS:
             fd = (float(plus[term]) - float(minus[term])) / (2 * h)
             ad = float(jac[term]["z"][name] if name in x0["z"] else jac[term][name])
             size = abs(float(at_start[term]))
             report.append((name, term, ad, fd, size, h))
-            assert abs(float(forward[term]) - ad) <= 1e-9 * size, (name, term)
             # 1e-3 relative, or 1e-7 of the term's own size for gradients too small to matter to the tuner
             # (where central differences see the rollout's round-off: force_peak vs lambda1 is 1e-6 relative)
             assert abs(ad - fd) <= 1e-3 * abs(fd) + 1e-7 * size, (name, term, ad, fd)
