@@ -76,7 +76,7 @@ class _CompileProfile:
         import jax.monitoring
 
         self.path, self.seconds, self.counts = path, Counter(), Counter()
-        self.started: dict[str, tuple[float, float, Counter, Counter]] = {}
+        self.started: dict[str, tuple[float, float, float, Counter, Counter]] = {}
         jax.monitoring.register_event_duration_secs_listener(self._event)
 
     def _event(self, event: str, seconds: float, **_) -> None:
