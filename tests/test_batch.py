@@ -79,6 +79,8 @@ def test_the_example_job_file_passes_the_schema_and_bad_ones_fail_both_checks(tm
         (JOB | {"tune": {"iterations": 0}}, "iterations: expected an integer >= 1"),
         (JOB | {"scenarios": []}, "scenarios: expected a non-empty list"),
         (JOB | {"format": "pusupu-batch-9"}, "format: expected 'pusupu-batch-1'"),
+        (JOB | {"problems": "robust", "name": [1, 2]}, r"name: expected letters, digits .* got \[1, 2\]"),
+        (JOB | {"problems": "robust", "name": ".hidden"}, "name: expected letters, digits"),
     ]
     for doc, message in bad_docs:
         with pytest.raises(jsonschema.ValidationError):

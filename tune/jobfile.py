@@ -118,6 +118,19 @@ class JobFile:
     machine: Machine
 
 
+def job_name(name: object, where: str) -> str:
+    """A job's name, which names its folder under the batch's ``jobs/``: letters, digits and ``- _ . /``, not
+    starting with a dot; :class:`JobFileError` naming ``where`` otherwise."""
+    if (
+        not isinstance(name, str)
+        or not name
+        or name.startswith(".")
+        or not all(c.isalnum() or c in "-_./" for c in name)
+    ):
+        raise JobFileError(f"{where}: expected letters, digits and - _ . / (not first: .), got {name!r}")
+    return name
+
+
 def spec_dict(spec: ScenarioSpec) -> dict:
     """A scenario as plain data (JSON), the inverse of :func:`spec_from_dict`."""
     geometry = (
@@ -210,14 +223,7 @@ def _scenario(
         + (f"/seed{seed}" if seed is not None else "")
         + (f"/{payload:g}kg" if payload else "")
     )
-    name = entry.get("name", default_name)
-    if (
-        not isinstance(name, str)
-        or not name
-        or name.startswith(".")
-        or not all(c.isalnum() or c in "-_./" for c in name)
-    ):
-        raise JobFileError(f"{where}.name: expected letters, digits and - _ . / (not first: .), got {name!r}")
+    name = job_name(entry.get("name", default_name), f"{where}.name")
     try:
         cfg = base.replace(**{key: entry[key] for key in SCENARIO_TUNE_KEYS if key in entry})
     except ParameterError as e:
@@ -319,7 +325,7 @@ def read(path) -> JobFile:
             for p in parsed
         ]
     else:
-        name = data.get("name", "robust")
+        name = job_name(data.get("name", "robust"), f"{where}: name")
         ok = [p for p in parsed if isinstance(p[0], ScenarioSpec)]
         errors = [p[1] for p in parsed if not isinstance(p[0], ScenarioSpec)]
         configs = {(c.mode, c.windows, c.window_s) for _, c, _ in ok}
