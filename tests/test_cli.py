@@ -91,6 +91,8 @@ def test_sim_step_prints_metrics_and_plots(tmp_path, in_process):
         (["analyze", "--params", "/no/such/file.yaml"], None),
         (["batch", "job.yaml", "--ray", "--workers", "1", "--cpus-per-task", "2"], None),
         (["tune", "--config", "{bad}", "--out", "{bad}.out"], "draws: 2\n"),  # the built-in machine: nothing to draw
+        # refused once the problem is built, in the folder the run made: no folder left behind
+        (["tune", "--config", "{bad}", "--out", "{bad}.out"], "bounds: {lambda2: [0.2, 0.5]}\n"),
     ],
 )
 def test_bad_input_exits_2_with_one_line(tmp_path, args, message):
@@ -119,6 +121,7 @@ def test_bad_input_exits_2_with_one_line(tmp_path, args, message):
         ["tune", "--device", "tpu"],
         ["identify", "run.mcap", "--fit", "mass", "--out", "x.yaml"],
         ["identify", "/no/such/run.mcap", "--out", "x.yaml"],
+        ["experiment", "servo", "--out", f"{__file__}/out"],  # under a file: refused before it runs
     ],
 )
 def test_bad_machine_arguments_exit_2_with_one_line(args, refused):

@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import hashlib
 import json
@@ -215,9 +216,15 @@ class OutputLock:
         self.file.write(f"pid {os.getpid()} on {socket.gethostname()}")
         self.file.flush()
 
-    def release(self):
+    def release(self, refused_in_new_folder: bool = False):
+        """Unlock; ``refused_in_new_folder``: the run that made the folder refused its input before writing anything,
+        so the lock file goes, and the folder too where nothing else is in it."""
         fcntl.flock(self.file, fcntl.LOCK_UN)
         self.file.close()
+        if refused_in_new_folder:
+            self.path.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):  # not empty: left as it is
+                self.path.parent.rmdir()
 
 
 def run_job(
@@ -236,12 +243,16 @@ def run_job(
     machine = Machine.default() if machine is None else machine
     specs = scenario_list(cfg, machine)
     check_work(cfg, specs)
+    new_folder = not out.exists()
     prepare_output(out, (*run_files(s.name for s in specs), CHECKPOINT))
-    lock = OutputLock(out)
+    lock, refused = OutputLock(out), False
     try:
         return _run(cfg, out, fresh, stream, machine, specs, start)
+    except ParameterError:  # a value checked once the problem is built (bounds, a path's reach): one line, no folder
+        refused = True
+        raise
     finally:
-        lock.release()
+        lock.release(refused_in_new_folder=refused and new_folder)
 
 
 def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, specs, start) -> tuple[TuneReport, int]:
