@@ -163,9 +163,12 @@ def _robot_url(url: str):
             raise ParameterError(f"--robot: expected can://INTERFACE/CHANNEL, got {url!r}")
         return None
     try:
-        return parse_url(url)
+        host, port = parse_url(url)
     except ValueError as e:
         raise ParameterError(f"--robot: {e}") from None
+    if port == 0:  # a port to send to: 0 binds anywhere but reaches no one
+        raise ParameterError(f"--robot: expected udp://HOST:PORT with a port from 1 to 65535, got {url!r}")
+    return host, port
 
 
 def _warn_beyond_loopback(option: str, value: str, host: str, what: str) -> None:
