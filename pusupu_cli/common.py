@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import tempfile
 import sys
 
 from pusupu_jax.inputs import one_line
@@ -63,12 +64,33 @@ def check_output_path(path, option: str = "--plot", kind: str = "PNG"):
         raise ParameterError(f"{option}: expected the path of a {kind} file, got the folder {path!r}")
     if not os.path.isdir(folder):
         raise ParameterError(f"{option}: expected a {kind} path in an existing folder, got {path!r}")
-    if not os.access(folder, os.W_OK):
-        raise ParameterError(f"{option}: cannot write in the folder {folder!r}")
+    _check_writable(folder, option)
     try:
         check_output(path)
     except ParameterError as e:
         raise ParameterError(f"{option}: {e}") from None
+
+
+def _check_writable(folder: str, option: str) -> None:
+    """A file made and removed in ``folder``: permissions alone miss a read-only or special file system (``/proc``,
+    as root)."""
+    try:
+        tempfile.NamedTemporaryFile(dir=folder, prefix=".pusupu-write-test.").close()
+    except OSError as e:
+        raise ParameterError(f"{option}: cannot write in the folder {folder!r} ({e.strerror})") from None
+
+
+def check_output_folder(path, option: str = "--out") -> None:
+    """``OPTION DIR``: a folder to write in, there now or to be made under its nearest existing parent, which must
+    be a folder to write in; checked before any work, nothing made."""
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise ParameterError(f"{option}: expected a folder, got the file {str(path)!r}")
+    base = os.path.abspath(path)
+    while not os.path.exists(base):
+        base = os.path.dirname(base)
+    if not os.path.isdir(base):
+        raise ParameterError(f"{option}: expected a folder, but {base!r} above {str(path)!r} is a file")
+    _check_writable(base, option)
 
 
 def check_plot_path(path):

@@ -7,11 +7,9 @@ import sys
 import time
 
 
-from pusupu_jax.params import ParameterError
-
 from pusupu_jax import devices
 
-from .common import checking, machine_of
+from .common import check_output_folder, checking, machine_of
 
 # the widest batch an experiment simulates at once (hybrid_grid's sweep of one gain over a path)
 EXPERIMENT_ROWS = 64
@@ -23,8 +21,7 @@ def cmd_experiment(args) -> int:
     from pusupu_jax.runtime import setup_jax
 
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise ParameterError(f"--out: expected a folder, got the file {args.out!r}")
+    check_output_folder(out)
     devices.choose(args.device, EXPERIMENT_ROWS, f"at most {EXPERIMENT_ROWS} simulated scenarios")
     setup_jax()
     from pusupu_jax import experiments

@@ -23,8 +23,11 @@ def cmd_machine(args) -> int:
         from pusupu_jax.files import write_atomic
 
         out = Path(args.out)
+        if not args.out:
+            raise ParameterError("--out: expected the name of a new file, got ''")
         if out.exists() or out.is_symlink():
-            raise ParameterError(f"--out {args.out}: expected a new file, found one there (left as it is)")
+            found = "a folder" if out.is_dir() else "one there"
+            raise ParameterError(f"--out {args.out}: expected a new file, found {found} (left as it is)")
         write_atomic(out, machine_file.template())
         print(f"wrote {out}: the built-in machine, every field commented; edit it, then pusupu machine check {out}")
         return 0

@@ -48,6 +48,10 @@ def check_output(path: str | os.PathLike[str]) -> os.stat_result | None:
         st = os.lstat(path)
     except FileNotFoundError:
         return None
+    except NotADirectoryError:
+        raise ParameterError(
+            f"{path}: expected a file in a folder, but {str(Path(path).parent)!r} is not a folder"
+        ) from None
     if not stat.S_ISREG(st.st_mode):
         raise ParameterError(
             f"{path}: expected a regular file to write (or nothing), found "
@@ -71,7 +75,10 @@ def write_files(files: Mapping[_PathT, str | bytes]) -> list[Path]:
     try:
         for path, data in items:
             old = check_output(path)
-            fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+            try:
+                fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+            except OSError as e:  # named by the file asked for, not by the temporary that could not be made
+                raise OSError(e.errno, f"cannot write a file in its folder ({e.strerror})", str(path)) from None
             temps.append(tmp)
             with os.fdopen(fd, "wb") as f:
                 if old is not None and (old.st_uid, old.st_gid) != (os.geteuid(), os.getegid()):

@@ -220,7 +220,10 @@ def test_machine_commands_init_check_and_refusal(tmp_path, in_process, refused):
     out = tmp_path / "m.yaml"
     in_process("machine", "init", "--out", out)
     assert machine_file.digest(machine_file.load(out)) == machine_file.digest(Machine.default())
-    assert "expected a new file" in refused("machine", "init", "--out", out)  # never replaced
+    assert "expected a new file, found one there" in refused("machine", "init", "--out", out)  # never replaced
+    assert "expected a new file, found a folder" in refused("machine", "init", "--out", tmp_path)
+    # a folder that cannot be: the file's name, not that of the temporary the write would have made
+    assert refused("machine", "init", "--out", out / "m.yaml").endswith(f"{out}' is not a folder")
     found = json.loads(in_process("machine", "check", EXAMPLE, "--json"))
     assert found["name"] == "user-1FT7044-lead5" and set(found["workspace"]) == {"home", "arc", "p2p"}
     # twice the carriage mass and 5 kg more on the platform than the built-in machine carries
