@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import socket
 import sys
 import time
 from typing import TYPE_CHECKING
@@ -168,6 +169,10 @@ def _robot_url(url: str):
         raise ParameterError(f"--robot: {e}") from None
     if port == 0:  # a port to send to: 0 binds anywhere but reaches no one
         raise ParameterError(f"--robot: expected udp://HOST:PORT with a port from 1 to 65535, got {url!r}")
+    try:  # the bridge's socket is IPv4
+        socket.getaddrinfo(host, port, socket.AF_INET, socket.SOCK_DGRAM)
+    except OSError as e:
+        raise ParameterError(f"--robot: expected a host with an IPv4 address, got {host!r} ({e.strerror})") from None
     return host, port
 
 
