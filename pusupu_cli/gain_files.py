@@ -67,6 +67,9 @@ def cmd_gains(args) -> int:
             raise ParameterError(f"--out: expected an existing folder, got {args.out!r}")
         for path in ros2.write_files(out, g.servo, g.mode, g.rates, source=args.file, joints=joints):
             print(f"wrote {path}")
+        short = ros2.short_of_floors(g.servo, g.mode, machine, floors)
+        if short:
+            say(f"pusupu: warning: {short}")
     else:
         return _check_ros(args, g)
     return 0

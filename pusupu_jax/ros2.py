@@ -31,16 +31,19 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 
 from . import files as outputs
-from .cascade import MODES, Law, control_mode
+from .cascade import MODES, Law, Mode, control_mode
 from .inputs import shown
 from .params import LoopRates, ParameterError, ServoParams
 from .plant.axis import screw_ratio
+
+if TYPE_CHECKING:
+    from .machine_file import Machine
 
 ANTIWINDUP = "conditional_integration"  # what our PIs do (integration held while the clamp and the error agree)
 JOINTS = tuple(f"slide_{k}" for k in range(1, 7))
@@ -205,4 +208,28 @@ def write_files(
     """Write the two parameter files (:func:`files`) into ``folder`` (atomically, both or neither)."""
     return outputs.write_files(
         {Path(folder) / name: text for name, text in files(servo, mode, rates, source, joints).items()}
+    )
+
+
+def short_of_floors(servo: ServoParams, mode: str, machine: Machine, floors: tuple[float, float]) -> str | None:
+    """What ROS's PID, run with the gains exported from ``servo`` in ``mode`` (:func:`as_ros_servo`), keeps below
+    ``floors`` (phase [deg], gain [dB] margin) on ``machine``'s single-axis model: a line naming each such loop's
+    least margins over the axes, or None.  A gain file's own controller keeps them where it loads; ROS's drops the
+    derivative filter, and in IMC mode the prefilter and C2's output filter."""
+    from .gains import margins_report
+
+    margins = margins_report(as_ros_servo(servo, mode), Mode.ROS_PID, machine)
+    least = {
+        loop: (float(np.min(m["phase_margin_deg"])), float(np.min(m["gain_margin_db"]))) for loop, m in margins.items()
+    }
+    short = [
+        f"its {loop} loop {pm:.1f} deg and {gm:.1f} dB"
+        for loop, (pm, gm) in least.items()
+        if not (pm >= floors[0] and gm >= floors[1])
+    ]
+    if not short:
+        return None
+    return (
+        f"ROS's PID with these gains keeps less than {floors[0]:g} deg and {floors[1]:g} dB on machine "
+        f"{machine.name!r}: {', '.join(short)} (pusupu gains check-ros compares it with the gain file's controller)"
     )

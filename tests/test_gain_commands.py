@@ -75,6 +75,25 @@ def test_export_ros_writes_nothing(unstable, tmp_path, refused):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_export_ros_warns_where_ros_pid_keeps_less_than_the_floors(tmp_path, in_process, capsys):
+    """A PID file whose own position loop keeps its margins, with a large derivative gain behind a slow filter
+    (``Kd_pid`` 10, ``Tf_pid`` 1 s): ROS's PID takes the derivative on the velocity error without that filter, and its
+    position loop keeps some 13 deg and 7.6 dB (``gains check-ros``).  The files are written, as the design of the
+    export is (``docs/gains.md``), with one warning line naming that loop."""
+    from pusupu_jax import ros2
+
+    servo = ServoParams.table1().replace(Kd_pid=np.full(6, 10.0), Tf_pid=np.full(6, 1.0))
+    path = gains.write(tmp_path / "pid.yaml", servo, HybridGains(), LoopRates(n_mech=5), mode="pid")
+    out = tmp_path / "ros"
+    out.mkdir()
+    capsys.readouterr()
+    in_process("gains", "export-ros", path, "--out", out)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert sorted(p.name for p in out.iterdir()) == sorted(ros2.FILES)
+    assert len(err) == 1 and err[0].startswith("pusupu: warning: ROS's PID with these gains keeps less than 45 deg")
+    assert "its position loop" in err[0], err
+
+
 def test_sim_refuses_before_simulating(unstable, refused):
     assert REFUSAL in refused("sim", "--gains", unstable, "--json")
     assert refused.stdout == ""
