@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
 import sys
 
 from pusupu_jax.inputs import one_line
@@ -57,27 +56,18 @@ def check_along_paths(g, machine, specs: list[str], floors, source: str) -> dict
 def check_output_path(path, option: str = "--plot", kind: str = "PNG"):
     """``OPTION PATH``: a file of ``kind`` to write in an existing, writable folder (a regular file or nothing there
     now), checked before any work."""
-    from pusupu_jax.files import check_output
+    from pusupu_jax.files import check_output, check_writable
 
     folder = os.path.dirname(os.path.abspath(path))
     if not path or os.path.isdir(path):
         raise ParameterError(f"{option}: expected the path of a {kind} file, got the folder {path!r}")
     if not os.path.isdir(folder):
         raise ParameterError(f"{option}: expected a {kind} path in an existing folder, got {path!r}")
-    _check_writable(folder, option)
+    check_writable(folder, option)
     try:
         check_output(path)
     except ParameterError as e:
         raise ParameterError(f"{option}: {e}") from None
-
-
-def _check_writable(folder: str, option: str) -> None:
-    """A file made and removed in ``folder``: permissions alone miss a read-only or special file system (``/proc``,
-    as root)."""
-    try:
-        tempfile.NamedTemporaryFile(dir=folder, prefix=".pusupu-write-test.").close()
-    except OSError as e:
-        raise ParameterError(f"{option}: cannot write in the folder {folder!r} ({e.strerror})") from None
 
 
 def check_output_folder(path, option: str = "--out") -> None:
@@ -85,12 +75,14 @@ def check_output_folder(path, option: str = "--out") -> None:
     be a folder to write in; checked before any work, nothing made."""
     if os.path.exists(path) and not os.path.isdir(path):
         raise ParameterError(f"{option}: expected a folder, got the file {str(path)!r}")
+    from pusupu_jax.files import check_writable
+
     base = os.path.abspath(path)
     while not os.path.exists(base):
         base = os.path.dirname(base)
     if not os.path.isdir(base):
         raise ParameterError(f"{option}: expected a folder, but {base!r} above {str(path)!r} is a file")
-    _check_writable(base, option)
+    check_writable(base, option)
 
 
 def check_plot_path(path):

@@ -60,6 +60,15 @@ def check_output(path: str | os.PathLike[str]) -> os.stat_result | None:
     return st
 
 
+def check_writable(folder: str | os.PathLike[str], option: str) -> None:
+    """A file made and removed in ``folder``, an output's folder, before any work: permission bits alone miss a
+    read-only or special file system (``/proc``, as root).  :class:`ParameterError` naming ``option`` otherwise."""
+    try:
+        tempfile.NamedTemporaryFile(dir=folder, prefix=".pusupu-write-test.").close()
+    except OSError as e:
+        raise ParameterError(f"{option}: cannot write in {str(folder)!r} ({e.strerror})") from None
+
+
 def write_files(files: Mapping[_PathT, str | bytes]) -> list[Path]:
     """Write ``{path: data}`` (str or bytes) atomically, every file or none as far as the file system allows.
 

@@ -786,7 +786,7 @@ BEYOND = [
     (["bridge", "--lockstep", "nan"], "--lockstep: expected seconds in [0, 10], got nan"),
     (["bridge", "--robot", "udp://127.0.0.1:0"], "--robot: expected udp://HOST:PORT with a port from 1 to 65535"),
     (["bridge", "--robot", "udp://[::1]:5600"], "--robot: expected a host with an IPv4 address, got '::1'"),
-    (["bridge", "--log", "/proc/run.mcap"], "--log: cannot write in the folder '/proc'"),  # found by making a file
+    (["bridge", "--log", "/proc/run.mcap"], "--log: cannot write in '/proc'"),  # found by making a file
     (["sim-robot", "--kin-error", "-1"], "--kin-error: expected a non-negative integer seed, got -1"),
     (["sim-robot", "--seconds", "nan"], "--seconds: expected a positive number of seconds, got nan"),
     (["sim-robot", "--fine-steps", "0"], "--fine-steps: expected a whole number of steps from 1 to 64, got 0"),

@@ -26,7 +26,6 @@ import os
 import socket
 import stat
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -34,7 +33,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from pusupu_jax import devices, gains, inputs, machine_file, ros2, stability
-from pusupu_jax.files import check_output, write_atomic, write_files
+from pusupu_jax.files import check_output, check_writable, write_atomic, write_files
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.machine_file import Machine
@@ -166,10 +165,9 @@ def prepare_output(out: Path, files=()) -> Path:
         raise ParameterError(f"--out: expected a folder, got the file {str(out)!r}")
     try:
         out.mkdir(parents=True, exist_ok=True)
-        probe = tempfile.NamedTemporaryFile(dir=out, prefix=".pusupu-write-test.", delete=True)
-        probe.close()
     except OSError as e:
         raise ParameterError(f"--out: cannot write in {str(out)!r} ({e.strerror})") from None
+    check_writable(out, "--out")
     legacy = out / "checkpoint.pkl"
     if legacy.exists():
         raise ParameterError(
