@@ -70,21 +70,6 @@ def check_output_path(path, option: str = "--plot", kind: str = "PNG"):
         raise ParameterError(f"{option}: {e}") from None
 
 
-def check_output_folder(path, option: str = "--out") -> None:
-    """``OPTION DIR``: a folder to write in, there now or to be made under its nearest existing parent, which must
-    be a folder to write in; checked before any work, nothing made."""
-    if os.path.exists(path) and not os.path.isdir(path):
-        raise ParameterError(f"{option}: expected a folder, got the file {str(path)!r}")
-    from pusupu_jax.files import check_writable
-
-    base = os.path.abspath(path)
-    while not os.path.exists(base):
-        base = os.path.dirname(base)
-    if not os.path.isdir(base):
-        raise ParameterError(f"{option}: expected a folder, but {base!r} above {str(path)!r} is a file")
-    check_writable(base, option)
-
-
 def check_plot_path(path):
     """``--plot PATH``: :func:`check_output_path` for a PNG file."""
     check_output_path(path)

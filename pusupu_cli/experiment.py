@@ -9,7 +9,9 @@ import time
 
 from pusupu_jax import devices
 
-from .common import check_output_folder, checking, machine_of
+from pusupu_jax.files import check_output_folder
+
+from .common import checking, machine_of
 
 # the widest batch an experiment simulates at once (hybrid_grid's sweep of one gain over a path)
 EXPERIMENT_ROWS = 64

@@ -69,6 +69,19 @@ def check_writable(folder: str | os.PathLike[str], option: str) -> None:
         raise ParameterError(f"{option}: cannot write in {str(folder)!r} ({e.strerror})") from None
 
 
+def check_output_folder(path: str | os.PathLike[str], option: str = "--out") -> None:
+    """``OPTION DIR``: a folder to write in, there now or to be made under its nearest existing parent, which must
+    be a folder to write in; checked before any work, nothing made."""
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise ParameterError(f"{option}: expected a folder, got the file {str(path)!r}")
+    base = os.path.abspath(path)
+    while not os.path.exists(base):
+        base = os.path.dirname(base)
+    if not os.path.isdir(base):
+        raise ParameterError(f"{option}: cannot write in {str(path)!r}: {base!r} above it is a file, not a folder")
+    check_writable(base, option)
+
+
 def write_files(files: Mapping[_PathT, str | bytes]) -> list[Path]:
     """Write ``{path: data}`` (str or bytes) atomically, every file or none as far as the file system allows.
 

@@ -33,7 +33,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from pusupu_jax import devices, gains, inputs, machine_file, ros2, stability
-from pusupu_jax.files import check_output, check_writable, write_atomic, write_files
+from pusupu_jax.files import check_output, check_output_folder, write_atomic, write_files
 from pusupu_jax.hybrid import HybridGains
 from pusupu_jax.machine import Scenario, simulate_scenarios
 from pusupu_jax.machine_file import Machine
@@ -161,13 +161,11 @@ def run_files(scenarios) -> tuple:
 def prepare_output(out: Path, files=()) -> Path:
     """Check ``out`` before any work: a folder that exists or can be made, writable, holding no pickled checkpoint,
     in which each of ``files`` (names) is a regular file or absent (:func:`pusupu_jax.files.check_output`)."""
-    if out.exists() and not out.is_dir():
-        raise ParameterError(f"--out: expected a folder, got the file {str(out)!r}")
+    check_output_folder(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         raise ParameterError(f"--out: cannot write in {str(out)!r} ({e.strerror})") from None
-    check_writable(out, "--out")
     legacy = out / "checkpoint.pkl"
     if legacy.exists():
         raise ParameterError(
