@@ -137,9 +137,15 @@ class TuneConfig:
                 paths.resolve(t, Path(path).parent) if isinstance(t, str) else t for t in data["trajectories"]
             ]
         try:
-            return (base or cls()).replace(**data)
+            cfg = (base or cls()).replace(**data)
+            for k, spec in enumerate(data.get("trajectories") or ()):
+                try:  # a missing or unreadable path file is named with its key here, not later on its own
+                    paths.source_digest(spec)
+                except ParameterError as e:
+                    raise ParameterError(f"tune config trajectories[{k}]: {e}") from None
         except ParameterError as e:
             raise ParameterError(f"{path}: {e}") from None
+        return cfg
 
     def replace(self, **changes) -> "TuneConfig":
         for key in ("groups", "trajectories", "kin_error_seeds", "payloads", "baselines", "ros_joints"):
