@@ -18,7 +18,7 @@ def cmd_analyze(args) -> int:
 
     servo, _, rates, hybrid = load_gains(args, check=False)  # analysed as a diagnosis, then checked
     load = args.linear_load  # the machine's (or the params file's load section)
-    if args.plot:
+    if args.plot is not None:
         check_plot_path(args.plot)
     if args.identify_T0:
         if args.trajectory:

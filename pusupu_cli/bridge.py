@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 from pusupu_jax.params import ParameterError
 
-from .common import check_along_paths, check_output_path, check_plot_path, machine_of
+from .common import check_along_paths, check_log_path, check_plot_path, machine_of
 
 if TYPE_CHECKING:
     from pusupu_jax.hw_bridge.session import BridgeReport
@@ -88,7 +88,7 @@ def add_parsers(sub) -> None:
         "results must not depend on scheduling; never against drives (default 0: real time)",
     )
     b.add_argument("--json", action="store_true", help="print the report as JSON")
-    b.add_argument("--plot", metavar="PNG", help="write the latency histogram and the tracking trace")
+    b.add_argument("--plot", metavar="FIG", help="write the latency histogram and the tracking trace")
     b.add_argument(
         "--log",
         metavar="MCAP",
@@ -224,10 +224,10 @@ def run_bridge(args) -> int:
         raise ParameterError(f"--watchdog: expected at least 1 cycle, got {args.watchdog}")
     if not 0.0 <= args.lockstep <= 10.0:
         raise ParameterError(f"--lockstep: expected seconds in [0, 10], got {args.lockstep}")
-    if args.plot:
+    if args.plot is not None:
         check_plot_path(args.plot)
-    if args.log:
-        check_output_path(args.log, "--log", "MCAP")
+    if args.log is not None:
+        check_log_path(args.log)
     from pusupu_jax import machine_file
 
     machine = machine_of(args)

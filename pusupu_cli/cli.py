@@ -2,12 +2,12 @@
 in its own module: ``analyze``, ``sim``, ``tuning`` (tune, batch), ``experiment``, ``gain_files`` (gains),
 ``machine``, ``bridge`` (bridge, sim-robot); ``common`` holds what they share.
 
-    pusupu analyze [--params FILE] [--mode imc|pid|pid_ff] [--trajectory PATH] [--coupled] [--json] [--plot PNG]
-    pusupu analyze --identify-T0 [--params FILE] [--kin-error SEED] [--json] [--plot PNG]
+    pusupu analyze [--params FILE] [--mode imc|pid|pid_ff] [--trajectory PATH] [--coupled] [--json] [--plot FIG]
+    pusupu analyze --identify-T0 [--params FILE] [--kin-error SEED] [--json] [--plot FIG]
     pusupu sim --plant axis --trajectory step|ramp|sine [--mode imc|pid|pid_ff] [--params FILE]
-               [--duration S] [--json] [--plot PNG]
+               [--duration S] [--json] [--plot FIG]
     pusupu sim --plant mjx --trajectory arc|p2p|circle|tilt|FILE [--mode imc|pid|pid_ff|hybrid] [--params FILE]
-               [--kin-error SEED] [--json] [--plot PNG]
+               [--kin-error SEED] [--json] [--plot FIG]
 
     pusupu tune [--config FILE] [--out DIR] [--quick] [--fresh] [--json]
     pusupu batch JOB.yaml [--out DIR] [--ray [--address ADDR] [--workers N] [--cpus-per-task N]] [--fresh] [--json]
@@ -69,7 +69,7 @@ def _parser() -> argparse.ArgumentParser:
     a.add_argument("--json", action="store_true", help="print JSON instead of a table")
     a.add_argument(
         "--plot",
-        metavar="PNG",
+        metavar="FIG",
         help="write Bode and step plots of axis 0 (with --identify-T0: the machine's step responses and their fits)",
     )
     a.add_argument(
@@ -133,7 +133,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--params", metavar="FILE", help="parameter YAML")
     s.add_argument("--duration", type=float, metavar="S", help="seconds (default per trajectory)")
     s.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    s.add_argument("--plot", metavar="PNG", help="write reference, error and current plots of axis 0")
+    s.add_argument("--plot", metavar="FIG", help="write reference, error and current plots of axis 0")
     s.add_argument(
         "--log",
         metavar="MCAP",

@@ -53,13 +53,15 @@ def check_along_paths(g, machine, specs: list[str], floors, source: str) -> dict
     return loads
 
 
-def check_output_path(path, option: str = "--plot", kind: str = "PNG"):
+def check_output_path(path, option: str = "--plot", kind: str = "PNG", suffixes: tuple[str, ...] = ()):
     """``OPTION PATH``: a file of ``kind`` to write in an existing, writable folder (a regular file or nothing there
-    now), checked before any work."""
+    now), its name ending in one of ``suffixes`` where given; checked before any work."""
     from pusupu_jax.files import check_output, check_writable
 
+    if not path:
+        raise ParameterError(f"{option}: expected the path of a {kind} file, got an empty name")
     folder = os.path.dirname(os.path.abspath(path))
-    if not path or os.path.isdir(path):
+    if os.path.isdir(path):
         raise ParameterError(f"{option}: expected the path of a {kind} file, got the folder {path!r}")
     if not os.path.isdir(folder):
         raise ParameterError(f"{option}: expected a {kind} path in an existing folder, got {path!r}")
@@ -68,11 +70,22 @@ def check_output_path(path, option: str = "--plot", kind: str = "PNG"):
         check_output(path)
     except ParameterError as e:
         raise ParameterError(f"{option}: {e}") from None
+    if suffixes and not str(path).lower().endswith(suffixes):
+        ends = " or ".join([", ".join(suffixes[:-1]), suffixes[-1]] if len(suffixes) > 1 else suffixes)
+        raise ParameterError(f"{option}: expected a name ending {ends}, got {path!r}")
 
 
 def check_plot_path(path):
-    """``--plot PATH``: :func:`check_output_path` for a PNG file."""
-    check_output_path(path)
+    """``--plot PATH``: :func:`check_output_path` for a figure, PNG, SVG or PDF after its suffix
+    (:data:`pusupu_jax.plots.PLOT_FORMATS`)."""
+    from pusupu_jax.plots import PLOT_FORMATS
+
+    check_output_path(path, "--plot", "PNG, SVG or PDF", tuple(f".{f}" for f in PLOT_FORMATS))
+
+
+def check_log_path(path):
+    """``--log PATH``: :func:`check_output_path` for an MCAP log."""
+    check_output_path(path, "--log", "MCAP", (".mcap",))
 
 
 def machine_of(args):

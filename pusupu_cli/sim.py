@@ -12,7 +12,7 @@ from pusupu_jax.params import ParameterError
 
 from pusupu_jax import devices
 
-from .common import check_output_path, check_path_on, check_plot_path, load_gains, machine_of, num
+from .common import check_log_path, check_path_on, check_plot_path, load_gains, machine_of, num
 
 
 def cmd_sim(args) -> int:
@@ -26,12 +26,12 @@ def cmd_sim(args) -> int:
         raise ParameterError("--kin-error: only the mjx plant has kinematic errors")
     devices.choose(args.device, 1, "one run")
     servo, load, rates, hybrid = load_gains(args)
-    if args.plot:
+    if args.plot is not None:
         check_plot_path(args.plot)
-    if args.log:
+    if args.log is not None:
         if args.plant != "mjx":
             raise ParameterError("--log: the log is of the MJX machine's run; give --plant mjx")
-        check_output_path(args.log, "--log", "MCAP")
+        check_log_path(args.log)
     setup_jax()
     if args.plant == "mjx":
         return _sim_machine(args, servo, rates, hybrid)

@@ -1,5 +1,5 @@
 """Figures (host-side).  Every ``plot_*`` returns its matplotlib ``Figure``; given a ``path``, it also writes it
-there as PNG, atomically (:func:`save_atomic`), and closes it in pyplot.
+there, atomically (:func:`save_atomic`), as PNG, SVG or PDF after the path's suffix, and closes it in pyplot.
 
 Importing this module leaves matplotlib's backend alone: a notebook keeps its inline backend, and the ``pusupu``
 command selects Agg itself before it plots.
@@ -21,6 +21,7 @@ from matplotlib.figure import Figure
 from . import analysis
 from .files import write_atomic
 from .metrics import tracking_error
+from .params import ParameterError
 from .plant.axis import screw_ratio
 
 if TYPE_CHECKING:
@@ -30,14 +31,29 @@ if TYPE_CHECKING:
     from .trace import Trace
 
 
+PLOT_FORMATS = ("png", "svg", "pdf")
+"""The figure formats a plot's path may end in (``.png``, ``.svg``, ``.pdf``, in any case)."""
+
+
+def plot_format(path: str | os.PathLike[str]) -> str:
+    """The format of a figure written to ``path``: its suffix, one of :data:`PLOT_FORMATS`; raises
+    :class:`~pusupu_jax.params.ParameterError` naming the path otherwise (a PNG under a ``.txt`` name is no help)."""
+    suffix = Path(path).suffix.lower().lstrip(".")
+    if suffix not in PLOT_FORMATS:
+        names = ", ".join(f".{f}" for f in PLOT_FORMATS)
+        raise ParameterError(f"expected a figure file name ending {names}, got {str(path)!r}")
+    return suffix
+
+
 def save_atomic(fig: Figure, path: str | os.PathLike[str]) -> Path:
-    """Save ``fig`` as PNG to ``path`` atomically (:func:`~pusupu_jax.files.write_atomic`), then close it."""
-    png = io.BytesIO()
+    """Save ``fig`` to ``path`` atomically (:func:`~pusupu_jax.files.write_atomic`) in the format of its suffix
+    (:func:`plot_format`), then close it."""
+    data = io.BytesIO()
     try:
-        fig.savefig(png, format="png", dpi=110)
+        fig.savefig(data, format=plot_format(path), dpi=110)
     finally:
         plt.close(fig)
-    return write_atomic(path, png.getvalue())
+    return write_atomic(path, data.getvalue())
 
 
 def _output(fig: Figure, path: str | os.PathLike[str] | None) -> Figure:
