@@ -68,7 +68,7 @@ def add_parser(sub):
     )
     i.add_argument("--out", required=True, metavar="FILE", help="the identified machine file to write")
     i.add_argument(
-        "--plot", metavar="PNG", help="write the logged currents (or torques) against the replay's, before and after"
+        "--plot", metavar="FIG", help="write the logged currents (or torques) against the replay's, before and after"
     )
     i.add_argument("--json", action="store_true", help="print the report as JSON")
     return i
@@ -85,7 +85,6 @@ def cmd_identify(args) -> int:
 
     from pusupu_jax import devices
 
-    devices.choose(args.device, len(args.logs), "log replay(s), one after another")
     fields = machine_fit.fit_fields(args.fit)
     if args.window is None:
         args.window = machine_fit.WINDOW_S
@@ -96,14 +95,16 @@ def cmd_identify(args) -> int:
     if step_check is not None:
         machine_fit.check_step_check(step_check, args.mech_step, name="--step-check")
     check_output_path(args.out, "--out", "machine")
-    if args.plot:
+    if args.plot is not None:
         check_plot_path(args.plot)
-    setup_jax()
-    machine = machine_of(args)
     logs = []
-    for path in args.logs:
+    for path in args.logs:  # read and checked before any line of progress
         with checking(path):
             logs.append((drive_table.read if path.lower().endswith(".csv") else run_log.drive_log)(path))
+            machine_fit.check_log(logs[-1], args.trajectory)
+    devices.choose(args.device, len(args.logs), "log replay(s), one after another")
+    setup_jax()
+    machine = machine_of(args)
     gains, hybrid, rates = ServoParams.table1(), None, LoopRates()
     if args.gains:
         from pusupu_jax import gains as gain_files

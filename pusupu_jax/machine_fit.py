@@ -54,7 +54,7 @@ from .hybrid import HybridGains, HybridReference
 from .machine import MACHINE_MODES, machine_plant, machine_rates, machine_reference
 from .machine_file import Correlation, Machine, value_label
 from .params import N_AXES, LoopRates, ParameterError, ServoParams, bounds
-from .paths import platform_path_from
+from .paths import check_spec, platform_path_from
 from .plant.model import ModelOptions
 from .run_log import SIM_SOURCE, DriveLog
 from .runtime import require_x64
@@ -371,6 +371,21 @@ class Replay:
     t: np.ndarray
 
 
+def check_log(log: DriveLog, trajectory: str | None = None) -> str:
+    """The path spec that ``log`` is replayed along (``trajectory``, ``--trajectory``, else the log's own), after
+    checking the log's mode and that spec; :class:`ParameterError` naming the log (or ``--trajectory``) otherwise.
+    Cheap: called on every log before any work, and again by the replay."""
+    if log.mode not in MACHINE_MODES:
+        raise ParameterError(f"{log.path}: mode: expected one of {tuple(map(str, MACHINE_MODES))}, got {log.mode!r}")
+    if trajectory:
+        return check_spec(trajectory, "--trajectory")
+    if not log.trajectory:
+        raise ParameterError(
+            f"{log.path}: expected the path it ran (a '# trajectory:' line or --trajectory), found none"
+        )
+    return check_spec(log.trajectory, f"{log.path}: trajectory")
+
+
 def _replay(
     log: DriveLog,
     machine: Machine,
@@ -386,15 +401,9 @@ def _replay(
     Where the machine has encoders (``encoder_counts``), its drives take their speed from their counts, as the
     mean over each velocity period (:func:`pusupu_jax.sim.pieces`' ``counted_speed``; at the model's step the same
     speed): the replay at a finer step then sees what such drives see."""
-    if log.mode not in MACHINE_MODES:
-        raise ParameterError(f"{log.path}: mode: expected one of {tuple(map(str, MACHINE_MODES))}, got {log.mode!r}")
+    spec = check_log(log, trajectory)
     options = machine.options(None if mech_step is None else ModelOptions(timestep=mech_step))
     rates = machine_rates(options, rates)
-    spec = trajectory or log.trajectory
-    if not spec:
-        raise ParameterError(
-            f"{log.path}: expected the path it ran (a '# trajectory:' line or --trajectory), found none"
-        )
     path = platform_path_from(spec, machine.geometry.home, rates)
     n = min(int(round(window_s / rates.dt_position)), len(path))
     index = np.rint(log.path_time / rates.dt_position).astype(int)  # the position period of each sample's reference

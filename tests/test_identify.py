@@ -224,6 +224,7 @@ def _table(path, header, rows, comments="# mode: pid\n# trajectory: arc\n"):
         ("# mode: pid\n", None, "nan", r"row 4: torque_nm_6: expected a finite number, got nan"),
         ("# mode: pid\n", None, "back", r"sample 2: path_time_s: expected no less than the sample before \(0.1 s\)"),
         ("# mode: pid\n", None, "short", "row 3: expected 25 values, got 24"),
+        ("# mode: pid\n", None, "still", "path_time_s: expected times that advance, got 0.1 s in every sample"),
     ],
 )
 def test_a_bad_csv_drive_table_is_refused_in_one_line(tmp_path, comments, header, rows, message):
@@ -239,6 +240,8 @@ def test_a_bad_csv_drive_table_is_refused_in_one_line(tmp_path, comments, header
     if rows == "back":
         values[1][0] = 0.0
         values[0][0] = 0.1
+    if rows == "still":
+        values[1][0] = values[0][0]
     text = [",".join(f"{v:g}" for v in row) for row in values]
     if rows == "short":
         text[0] = text[0].rsplit(",", 1)[0]
@@ -246,6 +249,29 @@ def test_a_bad_csv_drive_table_is_refused_in_one_line(tmp_path, comments, header
     with pytest.raises(ParameterError, match=message) as e:
         drive_table.read(bad)
     assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize(
+    "comments, options, expected",
+    [
+        ("# mode: fancy\n# trajectory: arc\n", (), "{log}: mode: expected one of ('imc', 'pid'"),
+        ("# mode: pid\n# trajectory: nowhere\n", (), "{log}: trajectory: expected one of ('arc'"),
+        ("# mode: pid\n# trajectory: arc\n", ("--trajectory", "nowhere"), "--trajectory: expected one of ('arc'"),
+    ],
+)
+def test_a_log_of_an_unknown_mode_or_path_is_refused_before_any_progress(
+    tmp_path, refused, comments, options, expected
+):
+    """The log's mode and path are checked as it is read: one line naming the log (or --trajectory), and no line of
+    progress (the device, the step check) before it."""
+    from pusupu_jax import drive_table
+
+    names = drive_table.columns(current=False)
+    rows = [",".join(f"{v:g}" for v in [0.001 * k] + [0.0] * (len(names) - 1)) for k in range(3)]
+    log = _table(tmp_path / "drive.csv", ",".join(names), rows, comments)
+    line = refused("identify", log, "--out", tmp_path / "m.yaml", *options)
+    assert line.startswith("pusupu: error: " + expected.format(log=log)), line
+    assert not (tmp_path / "m.yaml").exists()
 
 
 def _linear(A, b, start):
