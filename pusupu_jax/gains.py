@@ -432,6 +432,11 @@ def tuned_loads(provenance: dict[str, Any], machine: Machine, tuned_on: dict[str
             f"provenance.margin_loads_kg: expected a mapping of load names to masses, got {inputs.shown(recorded)}"
         )
     for name, masses in recorded.items():
+        if name not in machine_file.MARGIN_LOADS:
+            raise ParameterError(
+                f"provenance.margin_loads_kg: expected loads named from {machine_file.MARGIN_LOADS}, "
+                f"got {inputs.shown(name)}"
+            )
         mass = np.asarray(masses, dtype=float) if _numbers(masses) else None
         if mass is None or mass.shape != (len(home.mass),) or not np.all(np.isfinite(mass) & (mass > 0)):
             raise ParameterError(

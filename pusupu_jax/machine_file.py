@@ -303,6 +303,10 @@ class PathRun(NamedTuple):
     geometry: Geometry | None = None
 
 
+MARGIN_LOADS = ("home", "lightest", "heaviest")
+"""The names of :func:`margin_loads`' loads, as a gain file's ``provenance.margin_loads_kg`` records them."""
+
+
 def margin_loads(machine: Machine, runs: Iterable[PathRun] = ()) -> dict[str, AxisLoad]:
     """The single-axis loads the linear model's margins are taken with on ``machine``: ``home``
     (:func:`axis_load`), and with ``runs`` the ``lightest`` and the ``heaviest`` mass each slider carries over all
@@ -315,11 +319,9 @@ def margin_loads(machine: Machine, runs: Iterable[PathRun] = ()) -> dict[str, Ax
     ]
     if not ranges:
         return {"home": home}
-    return {
-        "home": home,
-        "lightest": home.replace(mass=np.min([low for low, _ in ranges], axis=0)),
-        "heaviest": home.replace(mass=np.max([high for _, high in ranges], axis=0)),
-    }
+    lightest = home.replace(mass=np.min([low for low, _ in ranges], axis=0))
+    heaviest = home.replace(mass=np.max([high for _, high in ranges], axis=0))
+    return dict(zip(MARGIN_LOADS, (home, lightest, heaviest)))
 
 
 def axis_load(machine: Machine) -> AxisLoad:

@@ -272,7 +272,8 @@ def test_the_loads_a_file_was_tuned_with_are_checked_again_on_every_read(tmp_pat
     paths) is checked with the margins on writing and on every read, on the machine the file was tuned on.  Table 1's
     position loop keeps 52.1 deg at the built-in machine's 54.7 kg and 39.4 deg at 300 kg: a recorded 300 kg is
     refused when written, and when edited into a written file, naming the load; on another machine the recorded
-    masses are not its own and home alone is checked; a malformed record is refused in one line."""
+    masses are not its own and home alone is checked; a malformed record, or a load of another name, is refused in
+    one line."""
     from pusupu_jax import machine_file
     from pusupu_jax.machine_file import Machine
 
@@ -302,3 +303,5 @@ def test_the_loads_a_file_was_tuned_with_are_checked_again_on_every_read(tmp_pat
     for bad in ([1.0, "x"], [0.0] * 6, [50.0] * 5, 50.0):
         with pytest.raises(ParameterError, match="provenance.margin_loads_kg.heaviest: expected 6 masses above 0 kg"):
             gains.tuned_loads({"margin_loads_kg": {"heaviest": bad}}, builtin, g.machine)
+    with pytest.raises(ParameterError, match="margin_loads_kg: expected loads named from .*, got 'heavyest'"):
+        gains.tuned_loads({"margin_loads_kg": {"heavyest": [60.0] * 6}}, builtin, g.machine)  # no such load
