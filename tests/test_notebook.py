@@ -1,6 +1,7 @@
 """What a notebook sees: experiments/explore.ipynb run from top to bottom in a fresh kernel, the short reprs of the
 results it shows, and a matplotlib backend that importing the packages leaves alone."""
 
+import dataclasses
 import importlib.util
 import json
 import os
@@ -179,6 +180,14 @@ def test_the_tuners_results_show_as_summaries():
     assert "lambda1  0.018 -> 0.0147" in text and "NOT EXPORTED: a phase margin below 45 deg" in text
     # report.json's content reads back as the same record
     assert TuneReport.from_json(json.loads(json.dumps(report.to_json()))) == report
+    # exported, with ROS's PID short of the floors: the report keeps the warning tune printed
+    short = "ROS's PID with these gains keeps less than 45 deg and 6 dB"
+    warned = dataclasses.replace(
+        report, export=Export({}, ["gains.yaml"], GainFileRef("gains.yaml", "0" * 64), ros_warning=short)
+    )
+    assert warned.to_json()["ros_warning"] == short and f"warning: {short}" in repr(warned)
+    assert "NOT EXPORTED" not in repr(warned) and "ros_warning" not in report.to_json()
+    assert TuneReport.from_json(json.loads(json.dumps(warned.to_json()))) == warned
 
 
 @pytest.mark.slow

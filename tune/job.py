@@ -19,6 +19,7 @@
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import fcntl
 import hashlib
 import json
@@ -301,6 +302,7 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
     outcome = export(out, cfg, servo1, hybrid1, problem.rates, problem.space.fields, provenance, machine, problem.loads)
     if outcome.error is None and (short := ros2.short_of_floors(servo1, cfg.mode, machine, (cfg.pm_min, cfg.gm_min))):
         print(f"tune: warning: {short}", file=stream, flush=True)  # the ROS files are written: docs/gains.md
+        outcome = dataclasses.replace(outcome, ros_warning=short)
     report = TuneReport(
         config=cfg.to_json(),
         config_hash=cfg.digest(),

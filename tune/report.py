@@ -62,24 +62,33 @@ class GainFileRef:
 
 @dataclasses.dataclass(frozen=True)
 class Export:
-    """What became of the tuned gains: their margins, the files written, the gain file described, and the check that
-    refused them (``error``; None when exported)."""
+    """What became of the tuned gains: their margins, the files written, the gain file described, the check that
+    refused them (``error``; None when exported), and where ROS's PID with the exported gains keeps less than the
+    floors (``ros_warning``, :func:`pusupu_jax.ros2.short_of_floors`; None where it keeps them or nothing was
+    exported)."""
 
     margins_after: dict[str, Any]
     exported: list[str]
     gains_file: GainFileRef
     error: str | None = None
+    ros_warning: str | None = None
 
     def to_json(self) -> dict[str, Any]:
         d: dict[str, Any] = {"margins_after": self.margins_after, "exported": self.exported}
         if self.error is not None:
             d["export_error"] = self.error
+        if self.ros_warning is not None:
+            d["ros_warning"] = self.ros_warning
         return d | {"gains_file": self.gains_file.to_json()}
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Export:
         return cls(
-            d["margins_after"], list(d["exported"]), GainFileRef.from_json(d["gains_file"]), d.get("export_error")
+            d["margins_after"],
+            list(d["exported"]),
+            GainFileRef.from_json(d["gains_file"]),
+            d.get("export_error"),
+            d.get("ros_warning"),
         )
 
 
@@ -204,6 +213,8 @@ def table(report: TuneReport) -> str:
         lines.append(f"  {field:<8} {start[0]:.6g} -> {result[0]:.6g}" + (" (axis 1)" if len(result) > 1 else ""))
     if report.export.error is not None:
         lines.append(f"NOT EXPORTED: {report.export.error}")
+    if report.export.ros_warning is not None:
+        lines.append(f"warning: {report.export.ros_warning}")
     return "\n".join(lines)
 
 
