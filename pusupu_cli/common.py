@@ -53,9 +53,9 @@ def check_along_paths(g, machine, specs: list[str], floors, source: str) -> dict
     return loads
 
 
-def check_output_path(path, option: str = "--plot", kind: str = "PNG", suffixes: tuple[str, ...] = ()):
+def check_output_path(path, option: str = "--plot", kind: str = "PNG"):
     """``OPTION PATH``: a file of ``kind`` to write in an existing, writable folder (a regular file or nothing there
-    now), its name ending in one of ``suffixes`` where given; checked before any work."""
+    now), checked before any work."""
     from pusupu_jax.files import check_output, check_writable
 
     if not path:
@@ -70,22 +70,27 @@ def check_output_path(path, option: str = "--plot", kind: str = "PNG", suffixes:
         check_output(path)
     except ParameterError as e:
         raise ParameterError(f"{option}: {e}") from None
-    if suffixes and not str(path).lower().endswith(suffixes):
-        ends = " or ".join([", ".join(suffixes[:-1]), suffixes[-1]] if len(suffixes) > 1 else suffixes)
-        raise ParameterError(f"{option}: expected a name ending {ends}, got {path!r}")
 
 
 def check_plot_path(path):
-    """``--plot PATH``: :func:`check_output_path` for a figure, PNG, SVG or PDF after its suffix
-    (:data:`pusupu_jax.plots.PLOT_FORMATS`)."""
-    from pusupu_jax.plots import PLOT_FORMATS
+    """``--plot PATH``: :func:`check_output_path` for a figure, PNG, SVG or PDF after its name's suffix (the rule
+    that writes it, :func:`pusupu_jax.plots.plot_format`)."""
+    from pusupu_jax.plots import plot_format
 
-    check_output_path(path, "--plot", "PNG, SVG or PDF", tuple(f".{f}" for f in PLOT_FORMATS))
+    check_output_path(path, "--plot", "PNG, SVG or PDF")
+    try:
+        plot_format(path)
+    except ParameterError as e:
+        raise ParameterError(f"--plot: {e}") from None
 
 
 def check_log_path(path):
-    """``--log PATH``: :func:`check_output_path` for an MCAP log."""
-    check_output_path(path, "--log", "MCAP", (".mcap",))
+    """``--log PATH``: :func:`check_output_path` for an MCAP log, its name ending ``.mcap``."""
+    from pathlib import Path
+
+    check_output_path(path, "--log", "MCAP")
+    if Path(path).suffix.lower() != ".mcap":
+        raise ParameterError(f"--log: expected a name ending .mcap, got {path!r}")
 
 
 def machine_of(args):

@@ -40,8 +40,8 @@ def plot_format(path: str | os.PathLike[str]) -> str:
     :class:`~pusupu_jax.params.ParameterError` naming the path otherwise (a PNG under a ``.txt`` name is no help)."""
     suffix = Path(path).suffix.lower().lstrip(".")
     if suffix not in PLOT_FORMATS:
-        names = ", ".join(f".{f}" for f in PLOT_FORMATS)
-        raise ParameterError(f"expected a figure file name ending {names}, got {str(path)!r}")
+        names = ", ".join(f".{f}" for f in PLOT_FORMATS[:-1]) + f" or .{PLOT_FORMATS[-1]}"
+        raise ParameterError(f"expected a name ending {names}, got {str(path)!r}")
     return suffix
 
 

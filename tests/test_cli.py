@@ -413,6 +413,7 @@ def test_a_second_run_into_a_busy_folder_is_refused(tmp_path):
         (["sim", "--plot", "{dir}"], "--plot: expected the path of a PNG, SVG or PDF file, got the folder"),
         (["sim", "--plot", ""], "--plot: expected the path of a PNG, SVG or PDF file, got an empty name"),
         (["sim", "--plot", "x.txt"], "--plot: expected a name ending .png, .svg or .pdf, got 'x.txt'"),
+        (["sim", "--plot", ".png"], "--plot: expected a name ending .png, .svg or .pdf, got '.png'"),
         (["sim", "--plant", "mjx", "--log", "x.txt"], "--log: expected a name ending .mcap, got 'x.txt'"),
         (["sim", "--duration", "1e4"], "trajectory duration: expected at most 2000 s"),
         (["sim", "--params", "{rates}"], "rates: f_current is 1e+12 Hz; expected 1000 to 100000 Hz"),
