@@ -245,6 +245,8 @@ def test_tune_writes_gains_ros_files_report_and_plots(tuned, in_process):
     from pusupu_cli.common import check_along_paths
     from pusupu_jax.machine_file import Machine
 
+    # the report keeps what ROS's PID with these gains keeps against the floors (None: the floors held)
+    assert report.get("ros_warning") == ros2.short_of_floors(g.servo, "hybrid", Machine.default(), (45.0, 6.0))
     along = check_along_paths(g, Machine.default(), ["p2p"], (45.0, 6.0), "gains.yaml")
     assert list(along) == ["home", "lightest", "heaviest"]
     assert along["home"].mass.tolist() == loads["home"]

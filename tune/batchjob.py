@@ -138,6 +138,7 @@ def run_shard(task: dict, out: str, plots: bool = True, stream=None) -> list[dic
                 machine,
                 start,
                 problem.loads[j],
+                stream,
             )
         )
     print(f"batch: shard {task['id']} done in {time.perf_counter() - t0:.0f} s", file=stream, flush=True)
@@ -158,10 +159,12 @@ def write_job(
     machine: Machine,
     start: dict,
     loads: dict,
+    stream=sys.stderr,
 ) -> dict:
     """One job's outputs on ``machine`` from the start gains ``start`` (what the report says of them): gains and ROS 2
     files if they pass every check (with each of its margin ``loads``, :func:`pusupu_jax.machine_file.margin_loads`),
-    plots, report.json last; its summary row."""
+    plots, report.json last; its summary row.  Where ROS's PID with the exported gains keeps less than the floors,
+    one warning line on ``stream`` names the job (the report keeps it as ``ros_warning``)."""
     from .job import _plots, export
 
     folder = job_dir(out, entry["name"])
@@ -197,6 +200,8 @@ def write_job(
             "metrics_after": metrics_json(metrics_after),
         }
         outcome = export(folder, cfg, servo, hybrid, problem.rates, problem.space.fields, provenance, machine, loads)
+        if outcome.ros_warning is not None:
+            print(f"batch: warning: job {entry['name']}: {outcome.ros_warning}", file=stream, flush=True)
         report = JobReport(
             **common,
             status=JobStatus.OK if outcome.error is None else JobStatus.NOT_EXPORTED,

@@ -19,7 +19,6 @@
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import fcntl
 import hashlib
 import json
@@ -300,9 +299,8 @@ def _run(cfg: TuneConfig, out: Path, fresh: bool, stream, machine: Machine, spec
         "metrics_after": metrics_json(metrics_after),
     }
     outcome = export(out, cfg, servo1, hybrid1, problem.rates, problem.space.fields, provenance, machine, problem.loads)
-    if outcome.error is None and (short := ros2.short_of_floors(servo1, cfg.mode, machine, (cfg.pm_min, cfg.gm_min))):
-        print(f"tune: warning: {short}", file=stream, flush=True)  # the ROS files are written: docs/gains.md
-        outcome = dataclasses.replace(outcome, ros_warning=short)
+    if outcome.ros_warning is not None:
+        print(f"tune: warning: {outcome.ros_warning}", file=stream, flush=True)
     report = TuneReport(
         config=cfg.to_json(),
         config_hash=cfg.digest(),
@@ -372,7 +370,11 @@ def export(
             for name, text in ros2.files(servo, cfg.mode, rates, source=str(gains_path), joints=cfg.ros_joints).items()
         }
         written = write_files(texts)
-        return Export(margins, [str(p) for p in written], GainFileRef(str(gains_path), _sha256(gains_path)))
+        # the ROS files are written whatever ROS's PID keeps (docs/gains.md); the report says where it keeps less
+        short = ros2.short_of_floors(servo, cfg.mode, machine or Machine.default(), (cfg.pm_min, cfg.gm_min))
+        return Export(
+            margins, [str(p) for p in written], GainFileRef(str(gains_path), _sha256(gains_path)), ros_warning=short
+        )
     except ParameterError as e:
         left = {"path": str(gains_path), "sha256": _sha256(gains_path)} if gains_path.is_file() else None
         return Export(
