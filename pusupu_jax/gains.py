@@ -425,18 +425,21 @@ def tuned_loads(provenance: dict[str, Any], machine: Machine, tuned_on: dict[str
     home = machine_file.axis_load(machine)
     loads = {"home": home}
     recorded = provenance.get("margin_loads_kg")
-    if recorded is None or tuned_on["digest"] != machine_file.digest(machine):
+    if recorded is None:
         return loads
     if not isinstance(recorded, dict):
         raise ParameterError(
             f"provenance.margin_loads_kg: expected a mapping of load names to masses, got {inputs.shown(recorded)}"
         )
+    unknown = [name for name in recorded if name not in machine_file.MARGIN_LOADS]
+    if unknown:  # on any machine: a record of other names is not one the tuner wrote
+        raise ParameterError(
+            f"provenance.margin_loads_kg: expected loads named from {machine_file.MARGIN_LOADS}, "
+            f"got {inputs.shown(unknown[0])}"
+        )
+    if tuned_on["digest"] != machine_file.digest(machine):
+        return loads
     for name, masses in recorded.items():
-        if name not in machine_file.MARGIN_LOADS:
-            raise ParameterError(
-                f"provenance.margin_loads_kg: expected loads named from {machine_file.MARGIN_LOADS}, "
-                f"got {inputs.shown(name)}"
-            )
         mass = np.asarray(masses, dtype=float) if _numbers(masses) else None
         if mass is None or mass.shape != (len(home.mass),) or not np.all(np.isfinite(mass) & (mass > 0)):
             raise ParameterError(

@@ -303,5 +303,6 @@ def test_the_loads_a_file_was_tuned_with_are_checked_again_on_every_read(tmp_pat
     for bad in ([1.0, "x"], [0.0] * 6, [50.0] * 5, 50.0):
         with pytest.raises(ParameterError, match="provenance.margin_loads_kg.heaviest: expected 6 masses above 0 kg"):
             gains.tuned_loads({"margin_loads_kg": {"heaviest": bad}}, builtin, g.machine)
-    with pytest.raises(ParameterError, match="margin_loads_kg: expected loads named from .*, got 'heavyest'"):
-        gains.tuned_loads({"margin_loads_kg": {"heavyest": [60.0] * 6}}, builtin, g.machine)  # no such load
+    for tuned_on in (g.machine, other):  # a load of no such name: on any machine
+        with pytest.raises(ParameterError, match="margin_loads_kg: expected loads named from .*, got 'heavyest'"):
+            gains.tuned_loads({"margin_loads_kg": {"heavyest": [60.0] * 6}}, builtin, tuned_on)
