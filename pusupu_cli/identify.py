@@ -85,6 +85,7 @@ def cmd_identify(args) -> int:
 
     from pusupu_jax import devices
 
+    devices.choose(args.device, len(args.logs), "log replay(s), one after another")
     fields = machine_fit.fit_fields(args.fit)
     if args.window is None:
         args.window = machine_fit.WINDOW_S
@@ -101,8 +102,7 @@ def cmd_identify(args) -> int:
     for path in args.logs:  # read and checked before any line of progress
         with checking(path):
             logs.append((drive_table.read if path.lower().endswith(".csv") else run_log.drive_log)(path))
-            machine_fit.check_log(logs[-1], args.trajectory)
-    devices.choose(args.device, len(args.logs), "log replay(s), one after another")
+            machine_fit.check_log(logs[-1], args.trajectory, "--trajectory")
     setup_jax()
     machine = machine_of(args)
     gains, hybrid, rates = ServoParams.table1(), None, LoopRates()

@@ -111,7 +111,7 @@ def read(path: str | os.PathLike[str]) -> DriveLog:
         return table[:, [names.index(f"{name}_{k}") for k in range(1, AXES + 1)]]
 
     steps = np.diff(time)[np.diff(time) > 0]
-    if not steps.size and not meta.get("rate_hz"):
+    if not steps.size:  # a rate_hz given does not make a log of one instant a run
         raise ParameterError(f"{path}: {TIME}: expected times that advance, got {time[0]:g} s in every sample")
     rate = meta.get("rate_hz") or str(1.0 / float(np.median(steps)))
     try:

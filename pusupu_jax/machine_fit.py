@@ -371,14 +371,14 @@ class Replay:
     t: np.ndarray
 
 
-def check_log(log: DriveLog, trajectory: str | None = None) -> str:
-    """The path spec that ``log`` is replayed along (``trajectory``, ``--trajectory``, else the log's own), after
-    checking the log's mode and that spec; :class:`ParameterError` naming the log (or ``--trajectory``) otherwise.
-    Cheap: called on every log before any work, and again by the replay."""
+def check_log(log: DriveLog, trajectory: str | None = None, given_as: str = "trajectory") -> str:
+    """The path spec that ``log`` is replayed along (``trajectory``, else the log's own), after checking the log's
+    mode and that spec; :class:`ParameterError` naming the log, or ``given_as`` for a ``trajectory`` given (the
+    command's ``--trajectory``), otherwise.  Cheap: called on every log before any work, and again by the replay."""
     if log.mode not in MACHINE_MODES:
         raise ParameterError(f"{log.path}: mode: expected one of {tuple(map(str, MACHINE_MODES))}, got {log.mode!r}")
     if trajectory:
-        return check_spec(trajectory, "--trajectory")
+        return check_spec(trajectory, given_as)
     if not log.trajectory:
         raise ParameterError(
             f"{log.path}: expected the path it ran (a '# trajectory:' line or --trajectory), found none"
