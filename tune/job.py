@@ -370,11 +370,6 @@ def export(
             for name, text in ros2.files(servo, cfg.mode, rates, source=str(gains_path), joints=cfg.ros_joints).items()
         }
         written = write_files(texts)
-        # the ROS files are written whatever ROS's PID keeps (docs/gains.md); the report says where it keeps less
-        short = ros2.short_of_floors(servo, cfg.mode, machine or Machine.default(), (cfg.pm_min, cfg.gm_min))
-        return Export(
-            margins, [str(p) for p in written], GainFileRef(str(gains_path), _sha256(gains_path)), ros_warning=short
-        )
     except ParameterError as e:
         left = {"path": str(gains_path), "sha256": _sha256(gains_path)} if gains_path.is_file() else None
         return Export(
@@ -383,6 +378,11 @@ def export(
             GainFileRef(None, not_written=str(e), left_as_it_was=left),
             error=str(e),
         )
+    # the ROS files are written whatever ROS's PID keeps (docs/gains.md); the report says where it keeps less
+    short = ros2.short_of_floors(servo, cfg.mode, machine or Machine.default(), (cfg.pm_min, cfg.gm_min))
+    return Export(
+        margins, [str(p) for p in written], GainFileRef(str(gains_path), _sha256(gains_path)), ros_warning=short
+    )
 
 
 def _sha256(path: Path) -> str:
