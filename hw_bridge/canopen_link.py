@@ -136,6 +136,9 @@ def open_bus(url: str):
 class CanLink:
     """The bridge's side: six remote CiA 402 drives, set up over SDO, driven by RPDO + SYNC, read by TPDO."""
 
+    # the feedback's sequence numbers are this link's count of the answers it returned, not the drives' periods
+    robot_sequence = False
+
     def __init__(self, bus, drive_modes, rated_torque=None, sdo_timeout: float = 2.0, sdo_retries: int = 3):
         import can
         import canopen
@@ -146,6 +149,7 @@ class CanLink:
         self.nodes = []
         self.rejected: Counter = Counter()
         self._sequence = 0
+        self.arrived: list = []  # the answer the last poll returned, if any (the UDP endpoint's every packet)
         self._sent = None  # the sequence of the last command sent
         self._lock = threading.Lock()
         self._first = [None] * N_AXES  # each drive's TPDO1 values, until its TPDO2 completes the answer
@@ -234,6 +238,7 @@ class CanLink:
         answer before it is the newest complete one.  Drives that do not echo the counter (0) give each drive's last
         answer, once every drive has a new one."""
         end = time.monotonic() + timeout
+        self.arrived = []
         while (answer := self._take()) is None and time.monotonic() < end:
             time.sleep(20e-6)
         if answer is None:
@@ -253,6 +258,7 @@ class CanLink:
             current * self.rated_current / 1000.0 if self.rated_current.all() else None,
         )
         self._sequence += 1
+        self.arrived = [fb]
         return fb
 
     def _take(self):

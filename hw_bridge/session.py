@@ -98,17 +98,23 @@ class BridgeRun:
     # logging does inside a cycle; the lists below are built from the samples after the run (settle), and the log's
     # file is written from them
     record_us: list = field(default_factory=list)
-    # in the run, per fresh sample: the cycle of the reference it answers, and its position, velocity, torque, current
-    # (None: not reported) and platform arrays
+    # in the run, per sample that came (every packet, not only the newest of a cycle): the cycle of the reference it
+    # answers, its position, velocity, torque, current (None: not reported) and platform arrays, and where the robot
+    # numbers its packets, its sequence number and the command's it answers (None: not)
     kept: list = field(default_factory=list, repr=False)
     t: list = field(default_factory=list)
+    numbers: list = field(default_factory=list)  # per sample, (its sequence number, the command's it answers) or None
     path_time: list = field(default_factory=list)  # per sample, the time along the path of its reference [s]
     reference: list = field(default_factory=list)
     position: list = field(default_factory=list)
     drive: list = field(default_factory=list)  # per sample (3, n_axes): velocity [rad/s], torque [N m], current [A]
     platform: list = field(default_factory=list)
     platform_reference: list = field(default_factory=list)
-    commands: list = field(default_factory=list)  # every command sent: (cycle, modes, controlword, target)
+    # every command sent: (cycle, controlword, target, its sequence number, the feedback's it answers)
+    commands: list = field(default_factory=list)
+    # per command sent, the time along the path of the reference row it was computed from [s] (None: outside the run),
+    # built after the run (settle)
+    command_path_time: list = field(default_factory=list)
     faults: list = field(default_factory=list)
     rejected: dict = field(default_factory=dict)
     realtime: list = field(default_factory=list)
@@ -119,8 +125,9 @@ class BridgeRun:
     def settle(self, loop) -> None:
         """After the run: the per-sample lists from the samples kept in it, against ``loop``'s reference (the time
         along the path, the motor angles and, where the path has it, the platform pose in force at each sample)."""
-        for cycle, position, velocity, torque, current, platform in self.kept:
+        for cycle, position, velocity, torque, current, platform, number in self.kept:
             self.t.append(cycle / loop.rate)
+            self.numbers.append(number)
             self.reference.append(loop.reference_at(cycle))
             self.path_time.append(loop.path_time(cycle))
             self.position.append(position)
@@ -131,6 +138,11 @@ class BridgeRun:
                 p = min(max(cycle // loop.n_position - loop.takeover_periods, 0), len(loop.reference.platform) - 1)
                 self.platform_reference.append(loop.reference.platform[p])
         self.kept.clear()
+        start = self.run_start if self.run_start is not None else np.inf
+        self.command_path_time = [
+            loop.path_time(k - self.run_start) if start <= k and word == cia402.ENABLE_OPERATION else None
+            for k, word, *_ in self.commands
+        ]
 
     def report(self, screw=None) -> BridgeReport:
         """The run's figures (``screw``: each axis's screw ratio [m/rad], for the branches' errors)."""
@@ -265,7 +277,7 @@ class Bridge:
             )
             ep.send_command(cmd)
             st["sequence"] += 1
-            rec.commands.append((k, controlword, target))
+            rec.commands.append((k, controlword, target, cmd.sequence, cmd.ack))
             return time.monotonic() - t_wake
 
         def states():
@@ -301,6 +313,7 @@ class Bridge:
             """Cycle ``k`` of the connect, enable and run phases: True when it sent its command, False when it went into
             the stop (whose first command it leaves to the stop phase)."""
             packet = ep.poll()
+            arrived = list(ep.arrived)  # every packet of this cycle, oldest first: the record keeps each
             end = t_wake + self.lockstep_s
             while (
                 self.lockstep_s
@@ -309,6 +322,7 @@ class Bridge:
                 and time.monotonic() < end
             ):
                 packet = ep.poll(timeout=min(1e-3, max(end - time.monotonic(), 1e-6))) or packet
+                arrived += ep.arrived
             if packet is not None:
                 st["feedback"], st["age"], st["fresh"] = packet, 0, True
             else:
@@ -389,10 +403,16 @@ class Bridge:
             rec.latency_us.append(send(k, cia402.ENABLE_OPERATION, target, t_wake) * 1e6)
             if st["fresh"] and fb.timestamp_ns:
                 rec.feedback_age_us.append((ep.received_at - fb.timestamp_ns * 1e-9) * 1e6)
-            if st["fresh"] and ja >= 0:  # the record: the sample and the cycle of the reference it answers
+            if st["fresh"]:  # the record: each sample that came, and the cycle of the reference it answers
                 t_record = time.perf_counter_ns()
-                rec.kept.append((ja + 1, fb.position, fb.velocity, fb.torque, fb.current, fb.platform))
-                rec.record_us.append((time.perf_counter_ns() - t_record) * 1e-3)
+                kept = len(rec.kept)
+                for p in arrived:  # the newest (fb) acts; the older ones were periods the robot ran all the same
+                    jp = sent.get(p.ack, -1) if p.ack else j - 1
+                    if jp >= 0:
+                        number = (p.sequence, p.ack) if ep.robot_sequence else None
+                        rec.kept.append((jp + 1, p.position, p.velocity, p.torque, p.current, p.platform, number))
+                if len(rec.kept) > kept:
+                    rec.record_us.append((time.perf_counter_ns() - t_record) * 1e-3)
             sent[st["sequence"] - 1] = j
             if j + 1 >= st["run_cycles"]:
                 rec.completed = not safety.tripped
@@ -444,9 +464,11 @@ class Bridge:
 
 def run_log(rec: BridgeRun) -> list[Channel]:
     """The run's record as MCAP channels (:mod:`pusupu_jax.run_log`), timed from the bridge's first cycle:
-    ``/bridge/command`` (every command sent: cycle, controlword, targets, and in the run its latency),
-    ``/bridge/feedback`` (every fresh sample of the run: the reference the machine was following, the measured angles,
-    speeds, torques and currents, the platform where the robot reports it) and ``/bridge/fault`` (each fault with its
+    ``/bridge/command`` (every command sent: cycle, controlword, targets, its sequence number and the feedback's it
+    answers, and in the run its latency and the time along the path of the reference it was computed from),
+    ``/bridge/feedback`` (every sample of the run that came, each packet of a cycle's, not only the newest the loops
+    act on: the reference the machine was following, the measured angles, speeds, torques and currents, the platform
+    where the robot reports it, the robot's sequence number) and ``/bridge/fault`` (each fault with its
     cycle)."""
     period = 1.0 / rec.rate
     command = Channel(
@@ -465,13 +487,22 @@ def run_log(rec: BridgeRun) -> list[Channel]:
                 "description": "from the cycle's wake-up to its command sent [us] "
                 "(run phase; null before and after it)",
             },
+            "sequence": {"type": "integer", "description": "the command's sequence number (u32, +1 a command)"},
+            "feedback": {
+                "type": "integer",
+                "description": "the sequence number of the feedback packet the command was computed from (0: none)",
+            },
+            "path_time_s": {
+                "type": ["number", "null"],
+                "description": "the time along the path of the reference row the command was computed from [s] "
+                "(negative on the takeover ramp; null outside the run phase). A cycle skipped sends no command, so "
+                "the run's commands can step over a row",
+            },
         },
     )
     latency = iter(rec.latency_us)
-    start = rec.run_start if rec.run_start is not None else np.inf
-    for k, word, target in rec.commands:
-        # the run's commands are those with a latency: from the run's start until its stop (ENABLE_OPERATION words)
-        timed = start <= k and word == cia402.ENABLE_OPERATION
+    for (k, word, target, number, answers), path_time in zip(rec.commands, rec.command_path_time, strict=True):
+        # the run's commands are those with a reference row: from the run's start until its stop
         command.messages.append(
             (
                 k * period,
@@ -479,7 +510,10 @@ def run_log(rec: BridgeRun) -> list[Channel]:
                     "cycle": k,
                     "controlword": int(word),
                     "target": target,
-                    "latency_us": next(latency, None) if timed else None,
+                    "latency_us": next(latency, None) if path_time is not None else None,
+                    "sequence": int(number),
+                    "feedback": int(answers),
+                    "path_time_s": path_time,
                 },
             )
         )
@@ -523,6 +557,15 @@ def run_log(rec: BridgeRun) -> list[Channel]:
                 "items": {"type": "number"},
                 "description": "the platform's reference position [m] (empty: none)",
             },
+            "sequence": {
+                "type": ["integer", "null"],
+                "description": "the robot's sequence number of the packet (u32, +1 a packet: one a period it ran; "
+                "null over CANopen, whose answers carry none)",
+            },
+            "ack": {
+                "type": ["integer", "null"],
+                "description": "the sequence number of the command the robot ran in the period (null over CANopen)",
+            },
         },
     )
     offset = 0.0 if rec.run_start is None else rec.run_start * period
@@ -539,6 +582,8 @@ def run_log(rec: BridgeRun) -> list[Channel]:
                     "current_a": rec.drive[i][2],
                     "platform_m": rec.platform[i],
                     "platform_reference_m": rec.platform_reference[i] if i < len(rec.platform_reference) else [],
+                    "sequence": None if rec.numbers[i] is None else int(rec.numbers[i][0]),
+                    "ack": None if rec.numbers[i] is None else int(rec.numbers[i][1]),
                 },
             )
         )

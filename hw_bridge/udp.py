@@ -75,6 +75,11 @@ class Endpoint:
         self.accepted = 0
         self.last_sequence = None
         self.received_at = 0.0  # s, monotonic: when the newest packet arrived
+        self.arrived: list = []  # every valid packet the last poll accepted, oldest first (the newest: it returned)
+
+    # the feedback's sequence numbers are the robot's own, one a packet it sent: a run's log keeps them, and the
+    # feedback of every period the robot ran (:mod:`pusupu_jax.machine_fit` replays those periods)
+    robot_sequence = True
 
     @property
     def address(self) -> tuple[str, int]:
@@ -93,6 +98,7 @@ class Endpoint:
     def poll(self, timeout: float = 0.0):
         """The newest valid packet received since the last call (None if none); waits up to ``timeout`` [s] for one."""
         newest = None
+        self.arrived = []
         if timeout > 0:
             self.sock.settimeout(timeout)
         try:
@@ -127,6 +133,7 @@ class Endpoint:
                 if self.peer is None or self.kind == protocol.COMMAND:
                     self.peer = addr
                 newest = packet
+                self.arrived.append(packet)
         finally:
             self.sock.setblocking(False)
         return newest

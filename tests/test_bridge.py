@@ -478,8 +478,10 @@ def test_loopback_tracks_the_arc_as_the_simulation_does(robot):
     rep = run.report()
     assert rep.completed and not rep.faults, rep.faults
     assert len(run.platform) >= SECONDS * RATE - 1, (len(run.platform), rep.feedback_age_us)
-    # the record's time inside the cycle, once per sample kept (logging's work in the cycle: bench_bridge times it)
-    assert len(run.record_us) == len(run.position) and rep.record_us is not None and rep.record_us["p50"] > 0
+    # the record's time inside the cycle (logging's work in the cycle: bench_bridge times it), once per cycle that
+    # kept samples (a cycle where packets bunched up keeps each)
+    assert SECONDS * RATE - 1 <= len(run.record_us) <= len(run.position)
+    assert rep.record_us is not None and rep.record_us["p50"] > 0
     pure = _pure_arc()
     assert rep.rms_tracking_error_mm == pytest.approx(pure.metrics.rms_tracking_error_mm, rel=0.01)
 
@@ -495,7 +497,7 @@ def _stopped_at_onset(run, fault: str, late: int = 0, log: str = "", session: in
     serving loop (a SYNC it never received would run no period)."""
     assert run.faults and not run.completed, (fault, log)
     f = run.faults[0]
-    enabled = next(i for i, (_, word, _) in enumerate(run.commands) if word == cia402.ENABLE_OPERATION)
+    enabled = next(i for i, (_, word, *_) in enumerate(run.commands) if word == cia402.ENABLE_OPERATION)
     onset = run.commands[enabled][0] + int(0.3 * RATE)
     if session is not None:
         said = re.search(rf"session {session}: fault \w+ begins on SYNC counter (\d+)", log)
@@ -505,7 +507,7 @@ def _stopped_at_onset(run, fault: str, late: int = 0, log: str = "", session: in
         sent = next(i for i in range(first, len(run.commands)) if i % 240 + 1 == int(said[1]))
         onset = run.commands[sent][0]
     assert onset - 20 <= f.cycle <= onset + 5 + 2 + late + 20, (fault, f.line(), onset, run.commands[enabled][0])
-    stop_words = [word for k, word, _ in run.commands if k >= f.cycle]
+    stop_words = [word for k, word, *_ in run.commands if k >= f.cycle]
     assert stop_words[0] == cia402.QUICK_STOP and stop_words[-1] == cia402.DISABLE_VOLTAGE
     return f
 

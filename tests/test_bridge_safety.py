@@ -575,8 +575,9 @@ def test_a_runs_log_reads_back_as_its_record(setup, tmp_path):
     """A lock-step run that a fault stops (the robot's feedback goes NaN after 40 enabled commands), written to MCAP
     and read back with the mcap package's reader: every command with its cycle and controlword, a latency for each
     command of the run and none outside it, every fresh sample with the measured speeds, torques and currents (the
-    robot answers in protocol version 2 from its 20th enabled command), the fault, each channel with its JSON Schema,
-    log times in order, and the metadata."""
+    robot answers in protocol version 2 from its 20th enabled command), the run's timing (the commands' and samples'
+    numbers, the feedback each command answered, the rows of the references), the fault, each channel with its JSON
+    Schema, log times in order, and the metadata."""
     from pusupu_jax import run_log
     from pusupu_jax.hw_bridge.session import run_log as bridge_channels
 
@@ -594,7 +595,7 @@ def test_a_runs_log_reads_back_as_its_record(setup, tmp_path):
     topics, metadata = run_log.read(path)
     assert metadata == {"mode": "imc", "rate_hz": json.dumps(RATE)}
     commands, feedback, faults = (topics[t][1] for t in ("/bridge/command", "/bridge/feedback", "/bridge/fault"))
-    assert [(m["cycle"], m["controlword"]) for _, m in commands] == [(k, w) for k, w, _ in run.commands]
+    assert [(m["cycle"], m["controlword"]) for _, m in commands] == [(k, w) for k, w, *_ in run.commands]
     assert [m["latency_us"] for _, m in commands if m["latency_us"] is not None] == pytest.approx(run.latency_us)
     assert len(feedback) == len(run.t) and [m["cycle"] for _, m in faults] == [run.faults[0].cycle]
     assert faults[0][1]["kind"] == "feedback invalid"
@@ -605,6 +606,15 @@ def test_a_runs_log_reads_back_as_its_record(setup, tmp_path):
         assert m["current_a"] == pytest.approx([0.2 * v for v in m["velocity_rad_s"]], abs=1e-15)
         assert m["torque_nm"] == pytest.approx([0.1 * v for v in m["velocity_rad_s"]], abs=1e-15)
     assert any(v != 0 for m in two for v in m["velocity_rad_s"])
+    # the run's timing: each command numbered, with the feedback it answered and its reference's row; each sample its
+    # robot's packet number and the command it answers; in lock step, every command's answer the next one's feedback
+    assert [m["sequence"] for _, m in commands] == list(range(len(commands)))
+    ran = [m for _, m in commands if m["path_time_s"] is not None]
+    assert len(ran) == len(run.latency_us) and np.allclose(np.diff([m["path_time_s"] for m in ran]), 1 / RATE)
+    numbers = {m["sequence"]: m["ack"] for m in samples}
+    assert len(numbers) == len(samples) and list(numbers) == sorted(numbers)
+    assert set(numbers.values()) <= {m["sequence"] for m in ran}
+    assert all(numbers[m["feedback"]] == m["sequence"] - 1 for m in ran[1:] if m["feedback"] in numbers)
     for topic, (schema, messages) in topics.items():
         assert set(schema["required"]) <= set(messages[0][1]), topic
         times = [t for t, _ in messages]
@@ -740,7 +750,7 @@ def test_an_axis_that_stops_following_its_path_trips_the_following_error_and_a_c
     assert [f.kind for f in run.faults] == ["following error"] and run.faults[0].detail.startswith("axis 1 "), (
         run.report().faults
     )
-    enabled = next(k for k, word, _ in run.commands if word == cia402.ENABLE_OPERATION)
+    enabled = next(k for k, word, *_ in run.commands if word == cia402.ENABLE_OPERATION)
     stuck = enabled + 50  # the robot's 50th enabled command: the bridge's of cycle enabled + 49, answered in lock step
     assert stuck + 26 <= run.faults[0].cycle <= stuck + 26 + 3, (run.faults[0].line(), enabled)  # late replies: later
     assert run.report().ended == "fault"
