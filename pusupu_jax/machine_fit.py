@@ -58,7 +58,7 @@ from .paths import check_spec, platform_path_from
 from .plant.model import ModelOptions
 from .run_log import SIM_SOURCE, DriveLog
 from .runtime import require_x64
-from .sim import rollout
+from .sim import AGES, Commanded, rollout
 
 
 class FitField(enum.StrEnum):
@@ -312,9 +312,10 @@ class FitReport:
     far), the correlations between the values (``correlation``, in their order: the covariance from the Jacobian at
     the optimum over the standard errors; an unexcited value's row 0 but for its 1 on the diagonal), the samples over
     which the standard errors counted the residual's correlation in time (``error_bandwidth``:
-    :func:`pusupu_jax.fit_errors.covariance`), the logs (path, SHA-256, what wrote them), and with a step check
-    (:func:`fit`) its step [s] and the finer replay's residual RMS at the values fitted at the replay's step and at
-    the values moved (``step_check_rms``), and the seconds it took, its compile included (``step_check_wall_s``)."""
+    :func:`pusupu_jax.fit_errors.covariance`), the logs (path, SHA-256, what wrote them, and for a bridge log over
+    UDP what its timing changed in the replay: :meth:`Commands.counts`), and with a step check (:func:`fit`) its step
+    [s] and the finer replay's residual RMS at the values fitted at the replay's step and at the values moved
+    (``step_check_rms``), and the seconds it took, its compile included (``step_check_wall_s``)."""
 
     values: tuple[FittedValue, ...]
     correlation: tuple[tuple[float, ...], ...]
@@ -333,7 +334,7 @@ class FitReport:
     solver_message: str
     converged: bool
     wall_s: float
-    logs: tuple[dict[str, str], ...]
+    logs: tuple[dict[str, Any], ...]
     error_bandwidth: int = 0
     step_check_s: float | None = None
     step_check_rms: tuple[float, float] | None = None
@@ -361,7 +362,7 @@ class Replay:
     """One log's replay: the jitted ``run(values) -> (effort, theta)`` (``values``: ``{field: (field.size,)}``) at
     the logged samples ``(n, n_axes)``, the
     effort in the log's ``channel`` (current [A] where the log has it, else torque [N m]), and the logged ``effort``
-    and ``position`` there; ``t`` [s] along the path."""
+    and ``position`` there; ``t`` [s] along the path; ``steps``, what the replay runs (:func:`bridge_commands`)."""
 
     run: Callable[[dict[FitField, jax.Array]], tuple[jax.Array, jax.Array]]
     channel: Channel
@@ -369,6 +370,7 @@ class Replay:
     position: np.ndarray
     reference: np.ndarray
     t: np.ndarray
+    steps: Commands
 
 
 def check_log(log: DriveLog, trajectory: str | None = None, given_as: str = "trajectory") -> str:
@@ -406,21 +408,23 @@ def _replay(
     rates = machine_rates(options, rates)
     path = platform_path_from(spec, machine.geometry.home, rates)
     n = min(int(round(window_s / rates.dt_position)), len(path))
-    index = np.rint(log.path_time / rates.dt_position).astype(int)  # the position period of each sample's reference
-    keep = (index >= 0) & (index < n)
+    row = np.rint(log.path_time / rates.dt_position).astype(int)  # the position period of each sample's reference
+    steps = bridge_commands(log, row, rates.dt_position, n)
+    keep = (steps.index >= 0) & (steps.index < len(steps.rows))
     if keep.sum() < 2:
         raise ParameterError(
             f"{log.path}: expected samples in the first {window_s:g} s of the path, found fewer than 2"
         )
-    index = index[keep]
+    index = steps.index[keep]
     servo = machine.servo(gains)
-    # the whole path checked and referenced, as the run it was, then its first n periods: cut at the window's end, it
-    # would be checked as a path that stops there at once (a window ending at speed refused as beyond the drives)
+    # the whole path checked and referenced, as the run it was, then the rows its commands took: cut at the window's
+    # end, it would be checked as a path that stops there at once (a window ending at speed refused as beyond the
+    # drives)
     whole = machine_reference(servo, path, log.mode, options=options, rates=rates, geom=machine.geometry)
-    reference = jax.tree.map(lambda x: x[:n], whole)
-    theta_ref = np.asarray(
-        cast(HybridReference, reference).theta if control_mode(log.mode).hybrid else reference,
-    )[index]
+    reference = jax.tree.map(lambda x: x[steps.rows], whole)
+    if steps.timed:
+        reference = Commanded(reference, jnp.asarray(steps.taken), jnp.asarray(steps.age))
+    theta_ref = np.asarray(cast(HybridReference, whole).theta if control_mode(log.mode).hybrid else whole)[row[keep]]
     off = float(np.abs(theta_ref - log.reference[keep]).max())
     if off > 1e-6:
         raise ParameterError(
@@ -462,7 +466,79 @@ def _replay(
         return effort[index], trace.theta[index]
 
     logged = log.current if log.current is not None else log.torque
-    return Replay(run, channel, logged[keep], log.position[keep], log.reference[keep], index * rates.dt_position)
+    return Replay(
+        run, channel, logged[keep], log.position[keep], log.reference[keep], row[keep] * rates.dt_position, steps
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class Commands:
+    """What a replay runs of a log, in a window: per step ``(m,)`` the path's reference row (``rows``), whether the
+    robot ran a period under it (``taken``) and how many of its periods old the encoders were that the position loop
+    read (``age``), with the replay's sample of each logged sample (``index``: the step whose start it is; outside
+    ``[0, m)`` where no step of the window answers it).  ``timed``: the steps are a bridge's commands
+    (:func:`bridge_commands`), not every row in turn."""
+
+    rows: np.ndarray
+    taken: np.ndarray
+    age: np.ndarray
+    index: np.ndarray
+    timed: bool
+
+    def counts(self) -> dict[str, int] | None:
+        """What the timing changed, for the report: the commands replayed, those the robot did not run, those
+        computed from older encoders, the rows stepped over (skipped cycles); None for every row in turn."""
+        if not self.timed:
+            return None
+        return {
+            "commands": len(self.rows),
+            "not_run": int((~self.taken).sum()),
+            "older_feedback": int((self.age > 0).sum()),
+            "rows_stepped_over": int(self.rows[-1] + 1 - len(self.rows)) if len(self.rows) else 0,
+        }
+
+
+def bridge_commands(log: DriveLog, row: np.ndarray, dt: float, n: int) -> Commands:
+    """The steps of a replay of ``log`` in a window of ``n`` position periods of ``dt`` [s] (``row``: the path's row
+    of each logged sample's reference).
+
+    A simulation's log takes every row in turn: step ``i`` is row ``i``, and a sample of row ``p`` is the start of
+    step ``p``.  A bridge's run does not always go so.  A cycle the bridge skipped on a late wake-up
+    (:class:`~pusupu_jax.hw_bridge.runner.CycleRunner`) sent no command: the next command's row steps over it.  A
+    robot that found two commands waiting ran one period, under the newer; the bridge's position loop had stepped
+    on both.  And a command computed before the last period's feedback came was computed from older encoders.  A
+    bridge log over UDP says all of it (``log.timing``: every command with its row and the feedback it answered,
+    every feedback packet with the command the robot ran); the replay's steps are then the commands from the path's
+    first row, each with whether the robot ran it and the age of its feedback (:class:`~pusupu_jax.sim.Commanded`,
+    an age past ``AGES - 1`` taken as that), and a sample is the start of the step after the command it answers.
+    Logs without timing, and runs with several commands a row (CST axes: the bridge cycles at the velocity loop's
+    rate), take every row in turn."""
+    every = Commands(np.arange(n), np.ones(n, bool), np.zeros(n, np.int32), row, False)
+    timing = log.timing
+    given = None if timing is None else np.rint(timing.path_time / dt).astype(int)
+    if timing is None or given is None or (np.diff(given) == 0).any() or not (given >= 0).any():
+        return every
+    first = int(np.argmax(given >= 0))  # the path's first command (before it: the takeover ramp's)
+    sequence = timing.sequence[first:]
+    taken = np.isin(sequence, timing.sample_ack)
+    before = np.concatenate([[0], np.cumsum(taken)[:-1]])  # the periods the robot ran before each command
+    # each sample: the command it answers among the path's, and the robot's periods to it (0: before the path's)
+    at = np.searchsorted(sequence, timing.sample_ack)
+    answers = (at < len(sequence)) & (sequence[np.minimum(at, len(sequence) - 1)] == timing.sample_ack)
+    periods = np.where(answers, before[np.minimum(at, len(sequence) - 1)] + 1, 0)
+    # each command: the periods to the feedback it was computed from, as the sample of that packet says
+    k = np.searchsorted(timing.sample_sequence, timing.feedback[first:])
+    found = (k < len(periods)) & (timing.sample_sequence[np.minimum(k, len(periods) - 1)] == timing.feedback[first:])
+    age = np.clip(before - np.where(found, periods[np.minimum(k, len(periods) - 1)], 0), 0, AGES - 1)
+    # the commands of the window's rows, to the one after the last a sample answers, whose start that sample is
+    # (after it, whether the robot ran them is not in the log, and no sample needs them)
+    last = int(np.flatnonzero(taken)[-1]) if taken.any() else -2
+    m = min(int(np.searchsorted(given[first:], n)), last + 2)
+    taken = taken | (np.arange(len(taken)) > last)  # that one: taken as run (nothing in the window depends on it)
+    # a sample answering the command before the path's first (the takeover ramp's last) is the replay's start
+    start = (timing.sample_ack == timing.sequence[first - 1]) if first > 0 else np.zeros(len(at), bool)
+    index = np.where(answers, at + 1, np.where(start, 0, -1))
+    return Commands(given[first:][:m], taken[:m], age[:m].astype(np.int32), index, True)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -854,6 +930,13 @@ def fit(
     if step_check is not None:
         check_step_check(step_check, mech_step, rates)
     replays = [_replay(log, machine, gains, hybrid, rates, window_s, trajectory, mech_step) for log in logs]
+    for log, r in zip(logs, replays):
+        if (c := r.steps.counts()) is not None:
+            say(
+                f"identify: {log.path}: the bridge's {c['commands']} commands as the robot ran them: "
+                f"{c['not_run']} not run (a newer one was waiting), {c['older_feedback']} on older feedback, "
+                f"{c['rows_stepped_over']} rows stepped over (skipped cycles)"
+            )
     if FitField.TORQUE_CONSTANT in fields:
         for log in logs:
             if control_mode(log.mode).hybrid:
@@ -968,7 +1051,10 @@ def fit(
         solver_message=solution.message,
         converged=solution.converged,
         wall_s=time.perf_counter() - t0,
-        logs=tuple({"path": log.path, "sha256": log.digest, "source": log.source} for log in logs),
+        logs=tuple(
+            {"path": log.path, "sha256": log.digest, "source": log.source, "timing": r.steps.counts()}
+            for log, r in zip(logs, replays)
+        ),
         error_bandwidth=bandwidth,
         step_check_s=step_check,
         step_check_rms=step_rms,

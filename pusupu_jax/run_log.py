@@ -155,6 +155,24 @@ def machine_channels(arrays: dict[str, Any]) -> list[Channel]:
     return [platform, branch, motor]
 
 
+@dataclass(frozen=True)
+class BridgeTiming:
+    """How a bridge's run went, cycle by cycle, where its log says (over UDP): what a replay of it needs besides the
+    samples (:func:`pusupu_jax.machine_fit.bridge_commands`).  Per command of the run, in order ``(M,)``: the time
+    along the path of the reference row it was computed from [s] (``path_time``; a cycle the bridge skipped sent no
+    command, so rows can be stepped over), its sequence number (``sequence``) and the sequence number of the feedback
+    packet it was computed from (``feedback``; 0: none).  Per sample of the :class:`DriveLog` ``(N,)``: the robot's
+    sequence number of its packet (``sample_sequence``) and the command's it answers (``sample_ack``: the command the
+    robot ran in that period).  The log keeps every packet that came, so the commands no sample answers are the ones
+    the robot did not run."""
+
+    path_time: np.ndarray
+    sequence: np.ndarray
+    feedback: np.ndarray
+    sample_sequence: np.ndarray
+    sample_ack: np.ndarray
+
+
 LOG_LIMIT = 1 << 30  # bytes: the largest log read (an hour at 1 kHz of six axes is about 0.5 GiB of JSON messages)
 DRIVE_TOPICS = ("/sim/drive", "/bridge/feedback")  # the channels that carry each axis's drive samples
 
@@ -167,7 +185,8 @@ class DriveLog:
     angle followed), ``position`` [rad], ``velocity`` [rad/s], ``torque`` [N m] and ``current`` [A] (None where the
     log has none: protocol version 1, CANopen).  ``mode``, ``trajectory`` (the path's name or file) and ``rate_hz``
     come from the log's metadata, with ``gain_checksum`` (the gain file's, where the log names it: the bridge's);
-    ``digest`` is the file's SHA-256."""
+    ``digest`` is the file's SHA-256.  ``timing``: the run's cycles, where a bridge log over UDP has them (None: a
+    simulation's log, which takes every row in turn, a CSV table, a log over CANopen or of an older bridge)."""
 
     path: str
     digest: str
@@ -182,6 +201,11 @@ class DriveLog:
     velocity: np.ndarray
     torque: np.ndarray
     current: np.ndarray | None
+    timing: BridgeTiming | None = None
+
+
+COMMAND_TOPIC = "/bridge/command"
+COMMAND_FIELDS = ("path_time_s", "sequence", "feedback")  # what a replay takes of each command of a run
 
 
 def drive_log(path: str | os.PathLike[str]) -> DriveLog:
@@ -200,7 +224,10 @@ def drive_log(path: str | os.PathLike[str]) -> DriveLog:
     try:
         reader = make_reader(io.BytesIO(data))
         metadata = next((dict(r.metadata) for r in reader.iter_metadata() if r.name == METADATA), None)
-        samples = [json.loads(m.data) for _, _, m in reader.iter_messages(topics=list(DRIVE_TOPICS))]
+        samples: list[Any] = []
+        commands: list[Any] = []
+        for _, channel, m in reader.iter_messages(topics=[*DRIVE_TOPICS, COMMAND_TOPIC]):
+            (commands if channel.topic == COMMAND_TOPIC else samples).append(json.loads(m.data))
     except (McapError, ValueError, KeyError, EOFError) as e:
         raise ParameterError(f"{path}: expected an MCAP run log, got a file that does not read as one ({e})") from None
     if metadata is None or not {"mode", "trajectory", "rate_hz"} <= set(metadata):
@@ -229,6 +256,7 @@ def drive_log(path: str | os.PathLike[str]) -> DriveLog:
             raise ParameterError(f"{path}: {name}: expected finite numbers in every sample, found NaN or inf")
         return out
 
+    timing = _timing(path, commands, column("sequence", optional=True), column("ack", optional=True))
     try:
         rate = float(json.loads(metadata["rate_hz"]))
     except ValueError:
@@ -249,4 +277,35 @@ def drive_log(path: str | os.PathLike[str]) -> DriveLog:
         velocity=column("velocity_rad_s"),
         torque=column("torque_nm"),
         current=column("current_a", optional=True),
+        timing=timing,
     )
+
+
+def _timing(
+    path: Any, commands: list[Any], sample_sequence: np.ndarray | None, sample_ack: np.ndarray | None
+) -> BridgeTiming | None:
+    """The :class:`BridgeTiming` of a log's ``/bridge/command`` messages and its samples' sequence numbers and acks
+    (None where no sample has them); None where the log does not say."""
+    from .params import ParameterError
+
+    run = [c for c in commands if isinstance(c, dict) and c.get("path_time_s") is not None]
+    if sample_sequence is None or sample_ack is None or not run:
+        return None
+    try:
+        path_time, sequence, feedback = (np.asarray([c[k] for c in run], dtype=float) for k in COMMAND_FIELDS)
+    except (KeyError, TypeError, ValueError):
+        raise ParameterError(
+            f"{path}: {COMMAND_TOPIC}: expected numbers {', '.join(COMMAND_FIELDS)} in every command of the run"
+        ) from None
+    for name, x in (
+        ("sequence", sample_sequence),
+        ("ack", sample_ack),
+        (f"{COMMAND_TOPIC} sequence", sequence),
+        (f"{COMMAND_TOPIC} feedback", feedback),
+    ):
+        if ((x != np.round(x)) | (x < 0) | (x >= 2**32)).any():
+            raise ParameterError(f"{path}: {name}: expected whole numbers in [0, 2^32), found another")
+    if not np.isfinite(path_time).all() or (np.diff(path_time) < 0).any():
+        raise ParameterError(f"{path}: {COMMAND_TOPIC} path_time_s: expected finite times that never fall")
+    whole = (x.astype(np.int64) for x in (sequence, feedback, sample_sequence, sample_ack))
+    return BridgeTiming(path_time, *whole)

@@ -75,6 +75,32 @@ def _injected(ref: Any) -> tuple[Any, Injected | None]:
     return (ref.reference, ref) if isinstance(ref, Injected) else (ref, None)
 
 
+AGES = 8  # the periods of encoder readings a Commanded sample reaches back over (the present's included)
+
+
+@jax.tree_util.register_dataclass
+@dataclass(frozen=True)
+class Commanded:
+    """A reference sample as a bridge's command reached the robot: how a bridge log is replayed
+    (:func:`pusupu_jax.machine_fit.bridge_commands`).  Position modes, the drives' loops in the robot.
+
+    The position loop steps on ``reference`` (the mode's own sample) with the encoders' angles and speeds the robot
+    read ``age`` periods of its own before the present (``()`` int in ``[0, AGES)``; 0: the present): the bridge
+    computed the command from the newest feedback it had, which a late packet leaves older.  The drives and the
+    machine run the period under the command only where ``taken`` (``()`` bool): a robot that found a newer command
+    waiting took that one and ran no period under this one, whose step the position loop took all the same.  The
+    trace records each command's start, so a sample is the start of the command after the one it answers."""
+
+    reference: Any
+    taken: Any
+    age: Any
+
+
+def _commanded(ref: Any) -> tuple[Any, Commanded | None]:
+    """``(the sample inside, the Commanded or None)`` of a reference sample."""
+    return (ref.reference, ref) if isinstance(ref, Commanded) else (ref, None)
+
+
 class Carry(NamedTuple):
     """The scan carry: the plant, the electrical model (inverter, armature) and the controllers."""
 
@@ -83,6 +109,9 @@ class Carry(NamedTuple):
     cascade: cascade_.CascadeState
     outer: Any = None  # the compliance law's state (compliance.AdmittanceState) when one runs outside the cascade
     counted: Any = None  # the motor angles [rad] at the last velocity tick, where the drives count their speed
+    # where the reference is Commanded: the encoders' angles [rad] and speeds [rad/s] after each of the last AGES
+    # periods the robot ran, newest (the present) first, ((AGES, n_axes), (AGES, n_axes))
+    measured: Any = None
 
 
 class Rest(NamedTuple):
@@ -170,6 +199,7 @@ class Pieces(NamedTuple):
     dt: float
     init: Callable[[str, Any, Rest | None], Carry]  # (start, force_ff0, the plant's rest or None) -> carry
     observe: Callable[[Carry], Any]  # carry -> what the plant's observe() returns (for a law outside the cascade)
+    sensed: Callable[[Carry], tuple[jax.Array, jax.Array]]  # carry -> the encoders' angles and speeds the drives read
 
 
 def period_dt(rates: LoopRates, mode: cascade_.ControlMode) -> float:
@@ -216,7 +246,7 @@ def pieces(
         return (theta, (theta - c.counted) / rates.dt_velocity) if counted_speed else (theta, omega)
 
     def record(c: Carry, ref: Any, out: tuple[jax.Array, jax.Array], observation: Any = None) -> dict[str, Any]:
-        ref, _ = _injected(ref)
+        ref, _ = _injected(_commanded(ref)[0])
         command, i_refs = out
         theta, omega = plant.measure(aux, c.plant)
         x, v = plant.slider(aux, c.plant)
@@ -261,18 +291,26 @@ def pieces(
         return c, i_ref
 
     def position_period(c: Carry, ref: Any) -> tuple[Carry, tuple[jax.Array, jax.Array]]:
+        ref, commanded = _commanded(ref)
         ref, injected = _injected(ref)
-        theta, omega = sensed(c)
+        if commanded is None:
+            theta, omega = sensed(c)
+        else:  # the feedback the bridge had
+            theta, omega = (x[commanded.age] for x in c.measured)
         sc, w_ref, i_force = cascade_.position_tick(drive, mode, c.cascade, ref, theta, omega, hybrid)
         if injected is not None:
             w_ref = w_ref + injected.velocity
-        c, i_refs = jax.lax.scan(
+        ran, i_refs = jax.lax.scan(
             lambda cc, d: velocity_period(cc, w_ref, i_force, d),
             c._replace(cascade=sc),
             None if injected is None else injected.current,
             length=rates.n_position,
         )
-        return c, (w_ref, i_refs)
+        if commanded is None:
+            return ran, (w_ref, i_refs)
+        ran = ran._replace(measured=tuple(jnp.concatenate([r[None], m[:-1]]) for r, m in zip(sensed(ran), c.measured)))
+        held = c._replace(cascade=sc)  # the position loop stepped; the drives and the machine ran no period
+        return jax.tree.map(lambda a, b: jnp.where(commanded.taken, a, b), ran, held), (w_ref, i_refs)
 
     def current_period(c: Carry, i_ref: jax.Array | Injected) -> tuple[Carry, tuple[jax.Array, jax.Array]]:
         if isinstance(i_ref, Injected):
@@ -294,6 +332,7 @@ def pieces(
         period_dt(rates, mode),
         lambda start, force_ff0, rest: initial_state(drive, plant, aux, mode, start, force_ff0, rest, counted_speed),
         lambda c: plant.observe(aux, c.plant),
+        sensed,
     )
 
 
@@ -343,6 +382,7 @@ def compliant_pieces(
         base.dt,
         lambda start, force_ff0, rest: base.init(start, force_ff0, rest)._replace(outer=compliance_law.init()),
         base.observe,
+        base.sensed,
     )
 
 
@@ -391,7 +431,8 @@ def rollout(
     :class:`~pusupu_jax.compliance.ComplianceReference`.
 
     A reference whose samples are :class:`Injected` adds its signals at the controller outputs (the velocity and
-    current references), for measuring loop gains (:mod:`pusupu_jax.injection`).
+    current references), for measuring loop gains (:mod:`pusupu_jax.injection`).  A reference of :class:`Commanded`
+    samples runs a bridge's commands as its log says the robot ran them (:mod:`pusupu_jax.machine_fit`).
 
     ``counted_speed``: the drives take their speed from the encoder's counts (:func:`pieces`); the trace's ``omega``
     stays the motors' speed.
@@ -400,6 +441,8 @@ def rollout(
     cascade = _cascade(params, plant_params, plant, rates, mode, hybrid, compliance, counted_speed)
     if init is None:
         init = _start(cascade, mode, jax.tree.map(lambda x: x[0], reference), start, compliance)
+    if isinstance(reference, Commanded):  # every reading the robot had before its first period: the start's
+        init = init._replace(measured=tuple(jnp.stack([x] * AGES) for x in cascade.sensed(init)))
     _, rec = jax.lax.scan(_body(cascade, remat), init, reference)
     return _trace(rec, cascade.dt)
 
@@ -429,7 +472,7 @@ def _start(
     rest: Rest | None = None,
 ) -> Carry:
     """The carry at ``start`` for a reference whose first sample is ``first`` (``rest``: :func:`initial_state`'s)."""
-    first, _ = _injected(first)
+    first, _ = _injected(_commanded(first)[0])
     first = first.inner if compliance is not None else first
     return cascade.init(start, first.force_ff if mode.hybrid else None, rest)
 

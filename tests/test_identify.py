@@ -5,6 +5,7 @@ excite at its start, on a linear problem; and one fit of a simulated log end to 
 (friction, rotor inertia, torque constant, the payload's mass and centre of mass) of a machine it did not start from
 (docs/identify.md and benchmarks/bench_identify.py have the full fits: C MuJoCo's logs, with noise)."""
 
+import dataclasses
 import subprocess
 import sys
 from pathlib import Path
@@ -596,3 +597,84 @@ def test_identify_recovers_the_standard_set_from_a_bridge_log_of_a_finer_robot(t
         against = found.against(truth)
         assert v["excited"] and against["covered_95"], (v["name"], against)
         assert against["relative_error"] < (0.01 if field in tight else 0.06), (v["name"], against)
+
+
+def _timed_log(timing, samples=8):
+    """A log of the first ``samples`` of eight samples along the excitation path whose ``timing`` is given."""
+    rows = np.array([0, 1, 2, 4, 5, 8, 9, 10])[:samples]
+    zero = np.zeros((len(rows), 6))
+    return run_log.DriveLog(
+        "run.mcap", "0" * 64, "bridge", None, "imc", "excite", 1000.0, rows * 1e-3, zero, zero, zero, zero, zero,
+        timing=timing,
+    )  # fmt: skip
+
+
+def test_a_bridge_logs_commands_are_replayed_as_the_robot_ran_them():
+    """The replay of a bridge log over UDP follows its cycles as the log says they went.  Commands 10-18 of rows
+    -1 (the takeover ramp's last) to 9: the robot found commands 13 and 14 waiting and ran 14; the bridge skipped
+    the cycles of rows 5 and 6; command 16 was computed from the packet of the period before the last (feedback
+    103, the answer to 14, when 15 had run).  The replay's steps are the path's commands: rows 0-4 and 7-9, 13 not
+    run, 16 reading encoders one period old; each sample is the start of the step after the command it answers (the
+    answer to the takeover's last command, the replay's start).  A last command no sample answers is replayed as run
+    (no sample depends on it).  Without timing, and where several commands share a row (CST axes), every row in
+    turn."""
+    sequence = np.arange(10, 19)
+    timing = run_log.BridgeTiming(
+        path_time=np.array([-1, 0, 1, 2, 3, 4, 7, 8, 9]) * 1e-3,
+        sequence=sequence,
+        feedback=np.array([0, 100, 101, 102, 102, 103, 103, 105, 106]),
+        sample_sequence=np.arange(100, 108),
+        sample_ack=np.array([10, 11, 12, 14, 15, 16, 17, 18]),
+    )
+    log = _timed_log(timing)
+    row = np.rint(log.path_time * 1e3).astype(int)
+    steps = machine_fit.bridge_commands(log, row, 1e-3, 10)
+    assert steps.timed
+    assert steps.rows.tolist() == [0, 1, 2, 3, 4, 7, 8, 9]
+    assert steps.taken.tolist() == [True, True, False, True, True, True, True, True]
+    assert steps.age.tolist() == [0, 0, 0, 0, 0, 1, 0, 0]
+    assert steps.index.tolist() == [0, 1, 2, 4, 5, 6, 7, 8]
+    assert steps.counts() == {"commands": 8, "not_run": 1, "older_feedback": 1, "rows_stepped_over": 2}
+    assert machine_fit.bridge_commands(log, row, 1e-3, 5).rows.tolist() == [0, 1, 2, 3, 4]  # the window's commands
+    unanswered = dataclasses.replace(timing, sample_sequence=np.arange(100, 107), sample_ack=timing.sample_ack[:-1])
+    last = machine_fit.bridge_commands(_timed_log(unanswered, 7), row[:-1], 1e-3, 10)
+    assert last.rows.tolist() == steps.rows.tolist() and last.taken.tolist() == steps.taken.tolist()
+    for plain in (
+        dataclasses.replace(log, timing=None),
+        _timed_log(dataclasses.replace(timing, path_time=timing.path_time // 2e-3 * 1e-3)),
+    ):
+        every = machine_fit.bridge_commands(plain, row, 1e-3, 10)
+        assert not every.timed and every.rows.tolist() == list(range(10)) and every.index.tolist() == row.tolist()
+        assert every.counts() is None
+
+
+def test_a_commanded_reference_runs_the_robots_periods_and_reads_the_encoders_the_bridge_had():
+    """:class:`~pusupu_jax.sim.Commanded` on the single-axis plant, 40 position periods of a cosine: every command
+    run, on the present encoders, is the plain rollout to the bit.  A command not run leaves the machine, the drives
+    and their loops where they were (the next step starts where it started) while the position loop steps; one that
+    reads the encoders a period old computes another command than on the present ones, and the commands before it are
+    the same."""
+    from pusupu_jax import AxisLoad
+    from pusupu_jax.sim import Commanded, rollout
+
+    n = 40
+    ref = jnp.asarray(np.repeat((2.0 * (1 - np.cos(np.linspace(0, np.pi, n))))[:, None], 6, axis=1))
+    run = jax.jit(lambda r: rollout(ServoParams.table1(), AxisLoad.default(), r, outer="imc"))
+    plain = run(ref)
+    taken, age = np.ones(n, bool), np.zeros(n, np.int32)
+    same = run(Commanded(ref, jnp.asarray(taken), jnp.asarray(age)))
+    for a, b in zip(jax.tree.leaves(plain), jax.tree.leaves(same)):
+        assert np.array_equal(a, b)
+    taken[20], age[30] = False, 1
+    timed = run(Commanded(ref, jnp.asarray(taken), jnp.asarray(age)))
+    for field in ("theta", "omega", "current"):
+        x = np.asarray(getattr(timed, field))
+        assert np.array_equal(x[21], x[20]) and not np.array_equal(x[20], x[19])  # no period under command 20
+    s = jax.tree.leaves(timed.state.position)
+    assert any(not np.array_equal(np.asarray(x)[21], np.asarray(x)[20]) for x in s)  # its position loop stepped
+    stale = np.asarray(timed.command)[30]
+    again = np.asarray(
+        run(Commanded(ref, jnp.asarray(taken), jnp.asarray(np.where(np.arange(n) == 30, 0, age)))).command
+    )
+    assert not np.allclose(stale, again[30])
+    assert np.array_equal(np.asarray(timed.command)[:30], again[:30])
