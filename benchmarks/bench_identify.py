@@ -9,6 +9,10 @@ and a 5 kg payload off centre.
 centre (the payload's inertia given as the truth's, as from CAD: it is not fitted) and fits ``--fit``.  A payload
 centre of mass that is not fitted is a model error unless ``--true-com 0,0,0``.
 
+``--realtime LOAD`` runs that bridge in real time instead, beside LOAD busy processes, so that cycles go late, are
+skipped, and meet a robot that took only the newer of two commands: the log's timing says how each went, and
+``--timing with,without`` fits it with identify's replay of that timing and with one that assumes a command a row.
+
 With ``--source sim`` (default) the log is written by the same MJX model that replays it, at the same step: this
 measures the fit and what the data excite, not the model's error.  With ``--source bridge`` the true machine is the
 simulated robot (``pusupu sim-robot --machine true.yaml``: C MuJoCo, with the drives' loops in the robot) and the log
@@ -45,6 +49,7 @@ residual call's) and ``trace``, the least residual RMS met against those seconds
 and the seconds each took to the same residual (the higher of the two fits' least, to a millionth of it)::
 
     python benchmarks/bench_identify.py [--source sim|bridge] [--fine-steps N] [--robot-sensors BITS,AMPS]
+        [--realtime LOAD] [--timing with[,without]]
         [--trajectory p2p] [--window 2]
         [--mech-step S] [--step-check S]
         [--fit friction,motor,payload] [--noise-seeds 0] [--first-seed 0] [--noisy-only] [--seeds-in-loop]
@@ -116,22 +121,47 @@ def _sim_log(tmp: Path, gain_path: Path, trajectory: str) -> None:
 
 
 def _bridge_log(
-    tmp: Path, gain_path: Path, trajectory: str, seconds: float, fine_steps: int | None, robot: str = "true", seed=None
+    tmp: Path,
+    gain_path: Path,
+    trajectory: str,
+    seconds: float,
+    fine_steps: int | None,
+    robot: str = "true",
+    seed=None,
+    load: int | None = None,
 ) -> dict:
     """``pusupu bridge --log ROBOT.mcap`` against ``pusupu sim-robot --machine ROBOT.yaml [--fine-steps fine_steps]
-    [--noise-seed seed]`` over UDP on loopback, in lock step, for ``seconds`` of the path; returns the bridge's report
-    (its cycles, missed deadlines, faults and how it ended)."""
+    [--noise-seed seed]`` over UDP on loopback, in lock step, for ``seconds`` of the path; with ``load``, in real time
+    beside that many busy processes (nice 3), up to three tries for a run that completes.  Returns the bridge's report
+    (its cycles, missed deadlines, skipped cycles, faults and how it ended; with ``load``, each try's)."""
     from pusupu_jax.params import ParameterError
     from pusupu_jax.sim_robot.lockstep import bridge_run
 
-    try:
-        report = bridge_run(
-            gain_path, trajectory, tmp / f"{robot}.yaml", seconds=seconds, fine_steps=fine_steps,
-            log=tmp / f"{robot}.mcap", noise_seed=seed,
-        )  # fmt: skip
-        return {k: report.get(k) for k in ("cycles", "missed_deadlines", "faults", "ended")}
-    except ParameterError as e:
-        raise SystemExit(f"bench_identify: {e}") from None
+    keys = ("cycles", "missed_deadlines", "skipped_cycles", "faults", "ended")
+    tries = []
+    for _ in range(1 if load is None else 3):
+        busy = [
+            subprocess.Popen(["nice", "-n", "3", sys.executable, "-c", "while True: pass"]) for _ in range(load or 0)
+        ]
+        try:
+            report = bridge_run(
+                gain_path, trajectory, tmp / f"{robot}.yaml", seconds=seconds, fine_steps=fine_steps,
+                log=tmp / f"{robot}.mcap", noise_seed=seed, lockstep=load is None,
+            )  # fmt: skip
+            tries.append({k: report.get(k) for k in keys})
+        except ParameterError as e:  # in real time: a run the robot's drives stopped (a stall past their watchdog)
+            if load is None:
+                raise SystemExit(f"bench_identify: {e}") from None
+            tries.append({"ended": "failed", "error": str(e)[-300:]})
+        finally:
+            for p in busy:
+                p.kill()
+                p.wait()
+        if load is None:
+            return tries[-1]
+        if tries[-1]["ended"] == "completed":
+            return tries[-1] | {"tries": tries}
+    raise SystemExit(f"bench_identify: no bridge run completed in real time: {tries}")
 
 
 def _noisy(log, seed: int, bits: int, current_noise: float):
@@ -227,11 +257,33 @@ def main() -> None:
         help="with the robot's sensors (--robot-sensors or --seeds-in-loop): the start machine file gives its "
         "encoders, so that identify's replay takes the drives' speed from their counts (default: none given)",
     )
+    ap.add_argument(
+        "--realtime",
+        type=int,
+        metavar="LOAD",
+        help="with --source bridge: the bridge in real time, not lock step, beside LOAD busy processes (nice 3), so "
+        "that its cycles go late and are skipped as on a loaded host (default: lock step)",
+    )
+    ap.add_argument(
+        "--timing",
+        default="with",
+        help="with --source bridge: fit each log with its run's timing (with: identify's replay of the bridge's "
+        "commands as the robot ran them), without it (without: every row in turn, one command a period), or both "
+        "(with,without; default with)",
+    )
     ap.add_argument("--out", help="also write the JSON here")
     args = ap.parse_args()
     if args.merge:
         emit(merge([json.loads(Path(f).read_text()) for f in args.merge]), args.out)
         return
+    timings = args.timing.split(",")
+    if not timings or set(timings) - {"with", "without"}:
+        ap.error(f"--timing: expected with, without or both, got {args.timing!r}")
+    if args.realtime is not None and (args.source != "bridge" or args.realtime < 0 or args.seeds_in_loop):
+        ap.error(
+            f"--realtime: expected --source bridge without --seeds-in-loop and a load of 0 or more, got --source "
+            f"{args.source} and {args.realtime}"
+        )
     if args.noisy_only and args.noise_seeds < 1:
         ap.error(f"--noisy-only: expected --noise-seeds of at least 1, got {args.noise_seeds}")
     if args.known_encoders and not (args.robot_sensors or args.seeds_in_loop):
@@ -269,7 +321,7 @@ def main() -> None:
         t0 = time.perf_counter()
         seconds = args.window + 0.5
         if args.source == "bridge":
-            run = _bridge_log(tmp, gain_path, args.trajectory, seconds, args.fine_steps)
+            run = _bridge_log(tmp, gain_path, args.trajectory, seconds, args.fine_steps, load=args.realtime)
         else:
             _sim_log(tmp, gain_path, args.trajectory)
             run = None
@@ -300,12 +352,13 @@ def main() -> None:
             (f"noise seed {k}", functools.partial(in_loop if args.seeds_in_loop else on_the_log, k)) for k in seeds
         ]
         fits = []
-        for (name, make), derivatives in ((c, m) for c in cases for m in methods):
-            if derivatives == methods[0]:
+        for (name, make), derivatives, timing in ((c, m, t) for c in cases for m in methods for t in timings):
+            if derivatives == methods[0] and timing == timings[0]:
                 case, case_run = make()
-            print(f"bench_identify: fitting {name} ({derivatives} Jacobian)", file=sys.stderr, flush=True)
+            print(f"bench_identify: fitting {name} ({derivatives} Jacobian, {timing} timing)", file=sys.stderr)
             report, _, _ = machine_fit.fit(
-                [case], start, g.servo, g.hybrid, g.rates, fields, args.window,
+                [case if timing == "with" else dataclasses.replace(case, timing=None)],
+                start, g.servo, g.hybrid, g.rates, fields, args.window,
                 progress=lambda line: print(line, file=sys.stderr, flush=True), derivatives=derivatives,
                 mech_step=args.mech_step, step_check=args.step_check,
             )  # fmt: skip
@@ -315,6 +368,10 @@ def main() -> None:
                 {
                     "case": name,
                     "derivatives": str(derivatives),
+                    # the replay: of the bridge's commands as the run's timing says the robot ran them, or of every
+                    # row in turn (a log without timing: pusupu sim's, or without --timing's with)
+                    "timing": timing if case.timing is not None else "none in the log",
+                    "timing_counts": report.logs[0]["timing"],  # what the timing changed in the replay (with it)
                     "bridge_run": case_run,  # the run whose log this is (with --seeds-in-loop, the seed's own)
                     "wall_s": report.wall_s,
                     "solve_s": report.residual_s + report.jacobian_s,
@@ -362,10 +419,10 @@ def anchors(fits: list[dict]) -> list[dict]:
     """Each fit of another solver against the exact fit of the same log: the ratios of their solve and wall times
     and replays, and the seconds each took to the same residual (the higher of the two fits' least, to
     :data:`SAME_RESIDUAL`): on a log the model cannot match, a solver may spend long on the floor's last digits."""
-    exact = {f["case"]: f for f in fits if f["derivatives"] == "exact"}
+    exact = {(f["case"], f.get("timing")): f for f in fits if f["derivatives"] == "exact"}
     out = []
     for f in fits:
-        other = exact.get(f["case"])
+        other = exact.get((f["case"], f.get("timing")))
         if f["derivatives"] == "exact" or other is None:
             continue
         level = max(other["trace"][-1][1], f["trace"][-1][1])
@@ -397,6 +454,7 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict], current
         "source": args.source,
         "trajectory": args.trajectory,
         "robot_fine_steps": args.fine_steps if args.source == "bridge" else None,
+        "realtime_load": args.realtime,  # the bridge in real time beside this many busy processes (None: lock step)
         "window_s": args.window,
         "mech_step_s": fits[0]["mech_step_s"],
         "step_check_s": args.step_check,
@@ -421,6 +479,11 @@ def _summary(args, fields, samples: int, sim_s: float, fits: list[dict], current
     } | coverage(fits)
 
 
+def _solver(fit: dict) -> str:
+    """A fit's solver, and ", without timing" where its replay left the bridge log's timing out (``--timing``)."""
+    return fit["derivatives"] + (", without timing" if fit.get("timing") == "without" else "")
+
+
 def coverage(fits: list[dict]) -> dict:
     """Per solver (``coverage``, keyed by its name), over its fits of noisy logs: how many (``noisy_fits``), the share
     of all 95 % intervals that cover the truth (``coverage_95``), and per value (``per_value``) the share of seeds whose
@@ -428,8 +491,8 @@ def coverage(fits: list[dict]) -> dict:
     ``error_in_std_errors``, the median and the largest of each excited value's error in its standard errors (intervals
     of the right width give a median near 0.67, the normal distribution's)."""
     out = {}
-    for solver in dict.fromkeys(f["derivatives"] for f in fits):
-        noisy = [f for f in fits if f["derivatives"] == solver and f["case"] != "noise-free"]
+    for solver in dict.fromkeys(map(_solver, fits)):
+        noisy = [f for f in fits if _solver(f) == solver and f["case"] != "noise-free"]
         if not noisy:
             continue
         per_value = {
@@ -456,7 +519,7 @@ def coverage(fits: list[dict]) -> dict:
 
 SETTINGS = (
     *("source", "trajectory", "robot_fine_steps", "robot_sensors", "window_s", "mech_step_s", "fit", "noise"),
-    *("true_payload_com_m", "step_check_s", "known_encoders"),
+    *("true_payload_com_m", "step_check_s", "known_encoders", "realtime_load"),
 )
 
 
