@@ -53,9 +53,10 @@ class End(enum.StrEnum):
 
 
 SIGNALS = {signal.SIGINT: End.SIGINT, signal.SIGTERM: End.SIGTERM}
-# bytes per cycle of a run, at most, that its record keeps (BridgeRun's samples and lists, the runner's timings, the
-# cycle of each command sent): with six axes the samples kept in the run take 0.94 kB a cycle, and 1.55 kB at the peak
-# of building the per-sample lists from them after the run (tracemalloc); the rest is room for the lists' growth
+# bytes per cycle of a run, at most, that its record keeps (BridgeRun's samples and lists, the runner's timings, each
+# command sent): with six axes the packets kept in the run and the commands take 1.59 kB a cycle, also the peak of
+# building the per-sample lists from them after the run, which lets each packet go (tracemalloc, one packet a cycle);
+# the rest is room for the lists' growth
 RECORD_BYTES = 2048
 
 
@@ -99,9 +100,9 @@ class BridgeRun:
     # file is written from them
     record_us: list = field(default_factory=list)
     # in the run, per sample that came (every packet, not only the newest of a cycle): the cycle of the reference it
-    # answers, its position, velocity, torque, current (None: not reported) and platform arrays, and where the robot
-    # numbers its packets, its sequence number and the command's it answers (None: not)
+    # answers and the packet (a protocol.Feedback)
     kept: list = field(default_factory=list, repr=False)
+    robot_sequence: bool = False  # the packets' sequence numbers are the robot's, one a period (the endpoint's word)
     t: list = field(default_factory=list)
     numbers: list = field(default_factory=list)  # per sample, (its sequence number, the command's it answers) or None
     path_time: list = field(default_factory=list)  # per sample, the time along the path of its reference [s]
@@ -125,19 +126,20 @@ class BridgeRun:
     def settle(self, loop) -> None:
         """After the run: the per-sample lists from the samples kept in it, against ``loop``'s reference (the time
         along the path, the motor angles and, where the path has it, the platform pose in force at each sample)."""
-        for cycle, position, velocity, torque, current, platform, number in self.kept:
+        self.kept.reverse()
+        while self.kept:  # each packet let go as its fields are taken: the record's peak stays near its size
+            cycle, fb = self.kept.pop()
             self.t.append(cycle / loop.rate)
-            self.numbers.append(number)
+            self.numbers.append((fb.sequence, fb.ack) if self.robot_sequence else None)
             self.reference.append(loop.reference_at(cycle))
             self.path_time.append(loop.path_time(cycle))
-            self.position.append(position)
-            current = current if current is not None else np.full(len(torque), np.nan)
-            self.drive.append(np.stack([velocity, torque, current]))
-            self.platform.append(platform)
+            self.position.append(fb.position)
+            current = fb.current if fb.current is not None else np.full(len(fb.torque), np.nan)
+            self.drive.append(np.stack([fb.velocity, fb.torque, current]))
+            self.platform.append(fb.platform)
             if loop.reference.platform is not None:
                 p = min(max(cycle // loop.n_position - loop.takeover_periods, 0), len(loop.reference.platform) - 1)
                 self.platform_reference.append(loop.reference.platform[p])
-        self.kept.clear()
         start = self.run_start if self.run_start is not None else np.inf
         self.command_path_time = [
             loop.path_time(k - self.run_start) if start <= k and word == cia402.ENABLE_OPERATION else None
@@ -247,7 +249,7 @@ class Bridge:
         says which signal ended it; the handlers of before are put back when it returns."""
         loop, ep, safety = self.loop, self.endpoint, self.safety
         n_axes = len(loop.drive_modes)
-        rec = BridgeRun(loop.rate)
+        rec = BridgeRun(loop.rate, robot_sequence=ep.robot_sequence)
         st = {
             "phase": "connect",
             "since": 0,
@@ -409,8 +411,7 @@ class Bridge:
                 for p in arrived:  # the newest (fb) acts; the older ones were periods the robot ran all the same
                     jp = sent.get(p.ack, -1) if p.ack else j - 1
                     if jp >= 0:
-                        number = (p.sequence, p.ack) if ep.robot_sequence else None
-                        rec.kept.append((jp + 1, p.position, p.velocity, p.torque, p.current, p.platform, number))
+                        rec.kept.append((jp + 1, p))
                 if len(rec.kept) > kept:
                     rec.record_us.append((time.perf_counter_ns() - t_record) * 1e-3)
             sent[st["sequence"] - 1] = j
